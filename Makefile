@@ -1,0 +1,34 @@
+# terrastream: `make demo` and `make test` set everything up (venv, pip packages, headless GL libs).
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.stamp-install
+
+.PHONY: demo test setup gl-libs lint bench clean
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "terrastream needs Python >= 3.11; set PYTHON=python3.11")'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@touch $(STAMP)
+
+gl-libs:
+	@bash scripts/ensure-gl.sh
+
+setup: $(STAMP) gl-libs
+
+test: setup
+	$(BIN)/python -m pytest
+
+demo: setup
+	@bash scripts/demo.sh
+
+lint: setup
+	$(BIN)/ruff check . && $(BIN)/ruff format --check .
+
+bench: setup
+	$(BIN)/python bench/tiling.py
+
+clean:
+	rm -rf demo-out bench/work .pytest_cache

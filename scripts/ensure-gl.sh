@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Make sure the system libraries for headless OpenGL (EGL + Mesa llvmpipe) are present.
+# Installs them with apt-get when run as root on Debian/Ubuntu; otherwise says what to do.
+set -euo pipefail
+pkgs=(libegl1 libgl1-mesa-dri libgl1)
+have() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+dri_ok() {
+  for f in /usr/lib/*/dri/swrast_dri.so /usr/lib/dri/swrast_dri.so /usr/lib/*/dri/libdril_dri.so; do
+    [ -e "$f" ] && return 0
+  done
+  return 1
+}
+if have libEGL.so.1 && have libGL.so.1 && dri_ok; then
+  exit 0
+fi
+if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+  echo "installing headless OpenGL libraries: ${pkgs[*]}"
+  apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${pkgs[@]}" >/dev/null
+  exit 0
+fi
+cat >&2 <<MSG
+terrastream: the headless OpenGL libraries (EGL + Mesa) are missing and this is not a root
+Debian/Ubuntu shell, so they were not installed. Ask an administrator to run:
+    apt-get update && apt-get install -y --no-install-recommends ${pkgs[*]}
+Tiling and streaming work without them; rendering and the GL tests need them (GL tests skip).
+MSG
+exit 0

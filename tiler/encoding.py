@@ -1,0 +1,179 @@
+"""Lossless level encodings and nodata filling for one block (pure numpy, no I/O).
+
+Level ``i >= 1`` values are predicted by interpolating the level ``i-1`` grid (edge midpoints:
+mean of the two ends, centres: mean of the four corners). What is stored is the prediction
+residual, which is exactly invertible:
+
+* integer DEMs (``int-residual``): ``v - floor(prediction)`` in the source dtype's modular
+  arithmetic (wraps like two's complement, so it never overflows);
+* float DEMs (``float-xor``): the bit pattern of ``v`` XOR the bit pattern of the prediction
+  rounded to the source dtype — the high bits cancel, so the result compresses;
+* quantised floats (``--precision``): ``round(v / step)`` as int32, then ``int-residual``.
+
+Nodata (and NaN, and padding) samples are replaced, coarse to fine, by the prediction from the
+coarser level, so they never make spikes and their residual is zero; a mask keeps them apart.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tiler.errors import SourceError
+from tiler.layout import grid_side, new_vertex_flat_index, subgrid
+
+INT_RESIDUAL = "int-residual"
+FLOAT_XOR = "float-xor"
+
+SUPPORTED_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
+_UINT_VIEW = {4: np.uint32, 8: np.uint64}
+
+
+def parse_dtype(dtype: np.dtype | str) -> np.dtype:
+    """Validate a source dtype the tiler can store losslessly."""
+    dt = np.dtype(dtype)
+    if dt.name not in SUPPORTED_DTYPES:
+        raise SourceError(
+            f"Unsupported raster dtype {dt.name}; supported: {', '.join(SUPPORTED_DTYPES)}. "
+            "Convert the band first (e.g. gdal_translate -ot Int32)."
+        )
+    return dt
+
+
+def storage_dtype_for(dtype: np.dtype) -> np.dtype:
+    """The dtype levels are stored in: the integer dtype itself, or floats' same-size uint bits."""
+    dt = np.dtype(dtype)
+    return np.dtype(_UINT_VIEW[dt.itemsize]) if dt.kind == "f" else dt
+
+
+def encoding_for(dtype: np.dtype) -> str:
+    """The lossless level encoding used for a source (or quantised) dtype."""
+    return FLOAT_XOR if np.dtype(dtype).kind == "f" else INT_RESIDUAL
+
+
+def predict(coarse: np.ndarray) -> np.ndarray:
+    """Interpolate a ``(m, m)`` grid to the ``(2m-1, 2m-1)`` grid of the next level.
+
+    Integers use floor division in int64 (exact); floats use float64 means.
+    """
+    if coarse.dtype.kind == "f":
+        g = coarse.astype(np.float64, copy=False)
+        out = np.empty((2 * g.shape[0] - 1, 2 * g.shape[1] - 1), dtype=np.float64)
+        out[::2, ::2] = g
+        out[::2, 1::2] = (g[:, :-1] + g[:, 1:]) * 0.5
+        out[1::2, ::2] = (g[:-1, :] + g[1:, :]) * 0.5
+        out[1::2, 1::2] = (g[:-1, :-1] + g[:-1, 1:] + g[1:, :-1] + g[1:, 1:]) * 0.25
+        return out
+    g = coarse.astype(np.int64, copy=False)
+    out = np.empty((2 * g.shape[0] - 1, 2 * g.shape[1] - 1), dtype=np.int64)
+    out[::2, ::2] = g
+    out[::2, 1::2] = (g[:, :-1] + g[:, 1:]) >> 1
+    out[1::2, ::2] = (g[:-1, :] + g[1:, :]) >> 1
+    out[1::2, 1::2] = (g[:-1, :-1] + g[:-1, 1:] + g[1:, :-1] + g[1:, 1:]) >> 2
+    return out
+
+
+def fill_invalid(grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """Replace invalid samples, coarse to fine, by the coarser level's prediction.
+
+    Level-0 corners that are invalid take the mean of the block's valid samples (0 if none).
+    Returns a new array of the grid's dtype; valid samples are unchanged.
+    """
+    dtype = grid.dtype
+    if valid.all():
+        return grid.copy()
+    fill0 = float(np.mean(grid[valid], dtype=np.float64)) if valid.any() else 0.0
+    g = subgrid(grid, k, 0).copy()
+    v0 = subgrid(valid, k, 0)
+    if dtype.kind == "f":
+        g[~v0] = fill0
+    else:
+        g[~v0] = int(np.floor(fill0))
+    for level in range(1, k + 1):
+        pred = predict(g)
+        nxt = subgrid(grid, k, level).copy()
+        bad = ~subgrid(valid, k, level)
+        nxt[bad] = pred[bad].astype(dtype)
+        nxt[::2, ::2] = g
+        g = nxt
+    return g
+
+
+def encode_levels(grid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Residual-encode a (filled) ``2**k+1`` block into ``k+1`` level arrays.
+
+    Integer grids give arrays of their own dtype; float grids give same-size unsigned bits.
+    """
+    dtype = grid.dtype
+    if grid.shape != (grid_side(k),) * 2:
+        raise ValueError(f"expected a {grid_side(k)}x{grid_side(k)} block, got {grid.shape}")
+    out = [subgrid(grid, k, 0).ravel().copy().view(storage_dtype_for(dtype))]
+    for level in range(1, k + 1):
+        idx = new_vertex_flat_index(level)
+        pred = predict(subgrid(grid, k, level - 1)).ravel()[idx]
+        vals = subgrid(grid, k, level).ravel()[idx]
+        out.append(_residual(vals, pred, dtype))
+    return out
+
+
+def _residual(vals: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    if dtype.kind == "f":
+        u = _UINT_VIEW[dtype.itemsize]
+        return vals.view(u) ^ pred.astype(dtype).view(u)
+    return (vals.astype(np.int64) - pred).astype(dtype)
+
+
+def _unresidual(res: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    if dtype.kind == "f":
+        u = _UINT_VIEW[dtype.itemsize]
+        return (res.view(u) ^ pred.astype(dtype).view(u)).view(dtype)
+    return (res.astype(np.int64) + pred).astype(dtype)
+
+
+def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = None) -> np.ndarray:
+    """The ``2**L+1`` grid of level ``L`` from the stored (residual) levels ``0..L``."""
+    dtype = np.dtype(dtype)
+    if level is None:
+        level = len(stored) - 1
+    g = np.asarray(stored[0]).view(dtype).reshape(2, 2)
+    for i in range(1, level + 1):
+        pred = predict(g)
+        flat = pred.ravel()
+        idx = new_vertex_flat_index(i)
+        vals = _unresidual(np.asarray(stored[i]).view(dtype), flat[idx], dtype)
+        out = flat.astype(dtype)
+        out[idx] = vals
+        g = out.reshape(pred.shape)
+    return g
+
+
+def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]:
+    """Decoded (height) values of each stored level, in sequence order."""
+    dtype = np.dtype(dtype)
+    out = [np.asarray(stored[0]).view(dtype).copy()]
+    g = out[0].reshape(2, 2)
+    for i in range(1, len(stored)):
+        pred = predict(g)
+        flat = pred.ravel()
+        idx = new_vertex_flat_index(i)
+        vals = _unresidual(np.asarray(stored[i]).view(dtype), flat[idx], dtype)
+        out.append(vals)
+        full = flat.astype(dtype)
+        full[idx] = vals
+        g = full.reshape(pred.shape)
+    return out
+
+
+def quantise(values: np.ndarray, step: float) -> np.ndarray:
+    """``round(values / step)`` as int32; raises if a value does not fit."""
+    q = np.rint(values.astype(np.float64) / step)
+    if q.size and (np.nanmax(np.abs(q)) > 2**31 - 2):
+        raise SourceError(
+            f"precision {step} is too fine for values up to {np.nanmax(np.abs(values)):g}: "
+            "the quantised values do not fit in int32; choose a coarser --precision."
+        )
+    return q.astype(np.int32)
+
+
+def dequantise(q: np.ndarray, step: float, dtype: np.dtype) -> np.ndarray:
+    """Inverse of :func:`quantise`, cast to the source dtype."""
+    return (q.astype(np.float64) * step).astype(dtype)

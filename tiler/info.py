@@ -1,0 +1,60 @@
+"""``terrastream info``: a store's description as a plain dict (no printing here)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from tiler.layout import level_size
+from tiler.store import open_store
+
+
+def store_info(url: str | os.PathLike) -> dict[str, Any]:
+    """Blocks, levels, bytes per level and component, ratio to raw, CRS, extent, value range."""
+    s = open_store(url)
+    m = s.meta
+    idx = s.index
+    nbytes = s.nbytes()
+    per_level = s.level_nbytes()
+    raw = m.height * m.width * np.dtype(m.dtype).itemsize
+    crs = None
+    if m.crs_wkt:
+        from rasterio.crs import CRS
+
+        c = CRS.from_wkt(m.crs_wkt)
+        epsg = c.to_epsg()
+        crs = f"EPSG:{epsg}" if epsg else c.to_string()[:80]
+    vr = m.extra.get("value_range", [float("nan"), float("nan")])
+    return {
+        "url": s.url,
+        "format_version": m.format_version,
+        "tool_version": m.tool_version,
+        "source": m.source.get("name"),
+        "checksum": m.source.get("checksum"),
+        "height": m.height,
+        "width": m.width,
+        "dtype": m.dtype,
+        "precision": m.precision,
+        "nodata": m.nodata,
+        "block_size": m.block_size,
+        "block_rows": s.grid.rows,
+        "block_cols": s.grid.cols,
+        "blocks_with_terrain": int(idx.exists.sum()),
+        "blocks_with_nodata": int((idx.has_nodata & idx.exists).sum()),
+        "levels": m.levels,
+        "encoding": m.encoding,
+        "compressor": f"{m.compressor.get('name')} level {m.compressor.get('level')}",
+        "crs": crs,
+        "extent": list(s.grid.extent),
+        "value_range": vr,
+        "vertical_units": m.vertical_units,
+        "bytes_per_level": [
+            {"level": i, "values_per_block": level_size(i), "bytes": b}
+            for i, b in enumerate(per_level)
+        ],
+        "bytes": nbytes,
+        "raw_bytes": raw,
+        "ratio_to_raw": nbytes["total"] / raw,
+    }

@@ -1,0 +1,220 @@
+"""Static (object-space) errors of a block's quadtree nodes (pure numpy, no I/O).
+
+A node at depth ``d`` (``0 <= d < k``) of a ``2**k+1`` block covers ``2**(k-d)`` sample
+intervals; drawn unsplit it uses the level-``d`` grid. Two error fields are computed per node:
+
+* ``qiu`` — Qiu et al.'s Eq. 3–5: ``H`` = the largest ``|f(v) - f'(v)|`` over the node's four
+  edge midpoints and its centre (the centre interpolated along each diagonal), made monotone:
+  a node's value is at least every descendant's.
+* ``bound`` — the largest vertical distance between any full-resolution sample inside the node
+  and the node's level-``d`` surface, under either diagonal triangulation, also made monotone.
+  It is a true bound on what drawing the node costs in object space, for conservative metrics.
+
+Invalid (nodata, padding) samples are never counted. Fields are stored as float16 rounded *up*
+(never down), and at depths finer than ``cap`` only as the maximum over ``2**(k-cap)``-sample
+cells: one value per depth per cell. A node at depth ``d <= cap`` asking for the maximum over its
+descendants at any depth therefore gets the exact value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tiler.layout import subgrid
+
+FIELDS = ("qiu", "bound")
+_MARGIN = 1.0 + 1e-9
+
+
+def default_cap(k: int) -> int:
+    """Finest depth stored at full node resolution: cells of 16 samples (``k - 4``), at least 0."""
+    return max(0, k - 4)
+
+
+def _node_max(d: np.ndarray, n: int) -> np.ndarray:
+    """Max of a ``(n*s+1)**2`` sample field over each of the ``n x n`` nodes (borders shared)."""
+    s = (d.shape[0] - 1) // n
+    inner = d[:-1, :-1].reshape(n, s, n, s).max(axis=(1, 3))
+    bottom = d[s::s, :-1].reshape(n, n, s).max(axis=2)
+    right = d[:-1, s::s].reshape(n, s, n).max(axis=1)
+    corner = d[s::s, s::s]
+    return np.maximum(np.maximum(inner, bottom), np.maximum(right, corner))
+
+
+def qiu_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Qiu's ``H`` (Eq. 4) for every node, depth ``0..k-1``, as ``(2**d, 2**d)`` float64 arrays."""
+    out = []
+    for depth in range(k):
+        c = subgrid(grid, k, depth).astype(np.float64)
+        f = subgrid(grid, k, depth + 1).astype(np.float64)
+        ok = subgrid(valid, k, depth + 1)
+        top = np.abs(f[:-1:2, 1::2] - (c[:-1, :-1] + c[:-1, 1:]) * 0.5) * ok[:-1:2, 1::2]
+        bot = np.abs(f[2::2, 1::2] - (c[1:, :-1] + c[1:, 1:]) * 0.5) * ok[2::2, 1::2]
+        left = np.abs(f[1::2, :-1:2] - (c[:-1, :-1] + c[1:, :-1]) * 0.5) * ok[1::2, :-1:2]
+        right = np.abs(f[1::2, 2::2] - (c[:-1, 1:] + c[1:, 1:]) * 0.5) * ok[1::2, 2::2]
+        centre = f[1::2, 1::2]
+        d1 = np.abs(centre - (c[:-1, :-1] + c[1:, 1:]) * 0.5)
+        d2 = np.abs(centre - (c[:-1, 1:] + c[1:, :-1]) * 0.5)
+        mid = np.maximum(d1, d2) * ok[1::2, 1::2]
+        out.append(np.maximum.reduce([top, bot, left, right, mid]))
+    return out
+
+
+def bound_errors_reference(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Slow, direct form of :func:`bound_errors` (for tests): interpolate every sample."""
+    side = grid.shape[0]
+    f = grid.astype(np.float64)
+    out = []
+    for depth in range(k):
+        n = 1 << depth
+        s = (side - 1) // n
+        c = subgrid(grid, k, depth).astype(np.float64)
+        pos = np.arange(side)
+        cell = np.minimum(pos // s, n - 1)
+        t = (pos - cell * s) / s
+        u, v = t[None, :], t[:, None]
+        ri, ci = cell[:, None], cell[None, :]
+        a, b, cc, dd = c[ri, ci], c[ri, ci + 1], c[ri + 1, ci], c[ri + 1, ci + 1]
+        za = np.where(u >= v, a + u * (b - a) + v * (dd - b), a + v * (cc - a) + u * (dd - cc))
+        zb = np.where(
+            (u + v) <= 1.0,
+            a + u * (b - a) + v * (cc - a),
+            dd + (1.0 - u) * (cc - dd) + (1.0 - v) * (b - dd),
+        )
+        dev = np.maximum(np.abs(f - za), np.abs(f - zb))
+        dev[~valid] = 0.0
+        out.append(_node_max(dev, n))
+    return out
+
+
+def _surface_dev(f4, a, b, c, d, u, v):
+    """max(|f - z|) over the two diagonal triangulations of each node (broadcast 4-D)."""
+    ba, ca, db, dc = b - a, c - a, d - b, d - c
+    za = np.where(u >= v, a + u * ba + v * db, a + v * ca + u * dc)
+    np.subtract(f4, za, out=za)
+    np.abs(za, out=za)
+    zb = np.where((u + v) <= 1.0, a + u * ba + v * ca, d - (1.0 - u) * dc - (1.0 - v) * db)
+    np.subtract(f4, zb, out=zb)
+    np.abs(zb, out=zb)
+    np.maximum(za, zb, out=za)
+    return za
+
+
+def _edge_dev(f_edge: np.ndarray, c_edge: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """|f - linear interpolation| along a block border (the last row or column)."""
+    interp = (c_edge[:-1, None] * (1.0 - t) + c_edge[1:, None] * t).ravel()
+    return np.abs(f_edge - np.append(interp, c_edge[-1]))
+
+
+def bound_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Largest |sample - level-d surface| per node (either diagonal), depth ``0..k-1``.
+
+    Nodes are viewed as ``(n, s, n, s)`` blocks of the grid (no gathers); the block's last row
+    and column, and the edges nodes share, are added afterwards.
+    """
+    side = grid.shape[0]
+    f = grid.astype(np.float64)
+    inval = ~valid
+    out = []
+    for depth in range(k):
+        n = 1 << depth
+        s = (side - 1) // n
+        c = subgrid(grid, k, depth).astype(np.float64)
+        t = np.arange(s) / s
+        f4 = f[:-1, :-1].reshape(n, s, n, s)
+        corners = [q[:, None, :, None] for q in (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])]
+        dev = _surface_dev(f4, *corners, t[None, None, None, :], t[None, :, None, None])
+        dev[inval[:-1, :-1].reshape(n, s, n, s)] = 0.0
+        lastrow = _edge_dev(f[-1, :], c[-1, :], t)
+        lastcol = _edge_dev(f[:, -1], c[:, -1], t)
+        lastrow[inval[-1, :]] = 0.0
+        lastcol[inval[:, -1]] = 0.0
+        top = dev[:, 0, :, :].max(axis=2)
+        left = dev[:, :, :, 0].max(axis=1)
+        bottom = np.vstack([top[1:], lastrow[:-1].reshape(n, s).max(axis=1)[None]])
+        right = np.hstack([left[:, 1:], lastcol[:-1].reshape(n, s).max(axis=1)[:, None]])
+        corner = np.empty((n, n))
+        corner[:-1, :-1] = dev[1:, 0, 1:, 0]
+        corner[-1, :] = lastrow[s::s]
+        corner[:, -1] = lastcol[s::s]
+        out.append(np.maximum.reduce([dev.max(axis=(1, 3)), bottom, right, corner]))
+    return out
+
+
+def make_monotone(per_depth: list[np.ndarray]) -> list[np.ndarray]:
+    """Qiu's Eq. 3: each node's value becomes the max of itself and all its descendants."""
+    out = [a.copy() for a in per_depth]
+    for depth in range(len(out) - 1, 0, -1):
+        child = out[depth]
+        n = child.shape[0] // 2
+        parent_of_children = child.reshape(n, 2, n, 2).max(axis=(1, 3))
+        np.maximum(out[depth - 1], parent_of_children, out=out[depth - 1])
+    return out
+
+
+def round_up_f16(values: np.ndarray) -> np.ndarray:
+    """float16 values that are never below the float64 inputs (``inf`` when too large)."""
+    v = np.asarray(values, dtype=np.float64)
+    with np.errstate(over="ignore"):  # above 65504 becomes inf: still an upper bound
+        h = v.astype(np.float16)
+    low = h.astype(np.float64) < v
+    if low.any():
+        h[low] = np.nextafter(h[low], np.float16(np.inf))
+    return h
+
+
+def field_sizes(k: int, cap: int) -> list[int]:
+    """Number of stored values for each depth ``0..k-1``."""
+    return [4 ** min(depth, cap) for depth in range(k)]
+
+
+def pack_field(per_depth: list[np.ndarray], cap: int) -> np.ndarray:
+    """Flatten a monotone field depth by depth (row-major; tile max beyond ``cap``), f16 up."""
+    parts = []
+    for depth, arr in enumerate(per_depth):
+        if depth > cap:
+            n = 1 << cap
+            r = arr.shape[0] // n
+            arr = arr.reshape(n, r, n, r).max(axis=(1, 3))
+        parts.append(arr.ravel())
+    return round_up_f16(np.concatenate(parts)) if parts else np.zeros(0, np.float16)
+
+
+def unpack_field(flat: np.ndarray, k: int, cap: int) -> list[np.ndarray]:
+    """Inverse of :func:`pack_field`: ``(2**min(d,cap))**2`` arrays per depth, as float32."""
+    out = []
+    pos = 0
+    for depth, size in enumerate(field_sizes(k, cap)):
+        n = 1 << min(depth, cap)
+        out.append(np.asarray(flat[pos : pos + size], dtype=np.float32).reshape(n, n))
+        pos += size
+    return out
+
+
+def node_error(field: list[np.ndarray], depth: int, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """Stored error of nodes ``(depth, row, col)`` (vectorised) from an unpacked field."""
+    arr = field[depth]
+    shift = depth - int(np.log2(arr.shape[0]))
+    return arr[np.asarray(row) >> shift, np.asarray(col) >> shift]
+
+
+def subtree_error(field: list[np.ndarray], depth: int, row: int, col: int, below: int) -> float:
+    """Max stored error of the descendants ``below`` depths under node ``(depth, row, col)``."""
+    target = depth + below
+    arr = field[target]
+    n = arr.shape[0]
+    scale = n / (1 << depth)
+    if scale >= 1:
+        r0, r1 = int(row * scale), int((row + 1) * scale)
+        c0, c1 = int(col * scale), int((col + 1) * scale)
+        return float(arr[r0:r1, c0:c1].max())
+    shift = depth - int(np.log2(n))
+    return float(arr[row >> shift, col >> shift])
+
+
+def block_errors(grid: np.ndarray, valid: np.ndarray, k: int, cap: int) -> np.ndarray:
+    """Both packed monotone fields of one block: a ``(2, total)`` float16 array (qiu, bound)."""
+    # a relative 1e-9 margin covers float64 rounding in the arithmetic before the f16 round-up
+    q = pack_field([e * _MARGIN for e in make_monotone(qiu_errors(grid, valid, k))], cap)
+    b = pack_field([e * _MARGIN for e in make_monotone(bound_errors(grid, valid, k))], cap)
+    return np.stack([q, b])

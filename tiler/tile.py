@@ -1,0 +1,513 @@
+"""Tile a DEM into a store: windowed reads, one pure function per block, parallel, resumable.
+
+``process_block`` is a pure function of a block's source window and the tiling parameters, so
+it can be handed to any executor (threads here; a dask cluster later) unchanged. Output is
+identical whatever the worker count. A run writes the metadata with ``complete: false`` first,
+marks each block done in ``index/done`` after all of its data is written, and sets
+``complete: true`` last; a rerun of the same command skips finished blocks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, replace
+
+import numpy as np
+import rasterio
+import rasterio.errors
+import zarr
+from rasterio.windows import Window
+
+from tiler import static_error
+from tiler.encoding import (
+    encode_levels,
+    encoding_for,
+    fill_invalid,
+    parse_dtype,
+    quantise,
+    storage_dtype_for,
+)
+from tiler.errors import (
+    SourceError,
+    SourceNotFoundError,
+    StoreCorruptError,
+    StoreError,
+    StoreExistsError,
+)
+from tiler.grid import BlockGrid
+from tiler.layout import grid_side, parse_block_size
+from tiler.store import (
+    ATTR,
+    SHARD_BLOCKS,
+    SHARDED_LEVELS,
+    StoreMeta,
+    TerrainStore,
+    create_layout,
+    is_url,
+    read_meta,
+    tool_version,
+    write_meta,
+)
+
+log = logging.getLogger(__name__)
+WAIT_TIMEOUT_S = 600.0
+
+
+@dataclass(frozen=True)
+class TileOptions:
+    """How to tile: block size, band, lossy precision, workers, overwrite, codec settings."""
+
+    block_size: int = 1025
+    band: int = 1
+    precision: float | None = None
+    workers: int = 0  # 0 = one per CPU core
+    overwrite: bool = False
+    compression_level: int = 3
+    error_cap: int | None = None  # default: k - 4
+
+    def __post_init__(self) -> None:
+        parse_block_size(self.block_size)
+        if self.band < 1:
+            raise SourceError(f"band must be >= 1, got {self.band}")
+        if self.precision is not None and not (np.isfinite(self.precision) and self.precision > 0):
+            raise SourceError(
+                f"precision must be a positive number of metres, got {self.precision}"
+            )
+        if self.workers < 0:
+            raise SourceError(f"workers must be >= 0 (0 = one per core), got {self.workers}")
+        if not 1 <= self.compression_level <= 22:
+            raise SourceError(f"compression level must be in 1..22, got {self.compression_level}")
+
+    @property
+    def k(self) -> int:
+        """``k`` of the block size."""
+        return parse_block_size(self.block_size)
+
+    @property
+    def n_workers(self) -> int:
+        """Worker threads actually used."""
+        return self.workers or (os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class BlockParams:
+    """Everything ``process_block`` needs besides the window (picklable)."""
+
+    k: int
+    dtype: str  # source dtype
+    storage_dtype: str
+    nodata: float | None
+    precision: float | None
+    error_cap: int
+
+
+@dataclass(frozen=True)
+class BlockResult:
+    """Encoded block: stored levels, packed errors, valid mask (None if all valid), index row."""
+
+    levels: list[np.ndarray]
+    errors: np.ndarray
+    mask: np.ndarray | None
+    exists: bool
+    has_nodata: bool
+    zmin: float
+    zmax: float
+    digest: int
+
+
+@dataclass(frozen=True)
+class TileProgress:
+    """Progress report: blocks done/total, source bytes processed, elapsed seconds."""
+
+    blocks_done: int
+    blocks_total: int
+    bytes_done: int
+    elapsed_s: float
+    skipped: int = 0
+
+
+def valid_mask(data: np.ndarray, nodata: float | None) -> np.ndarray:
+    """True where a sample is terrain: not the nodata value and (floats) finite."""
+    valid = np.ones(data.shape, dtype=bool)
+    if data.dtype.kind == "f":
+        valid &= np.isfinite(data)
+    if nodata is not None and not np.isnan(nodata):
+        valid &= data != np.asarray(nodata).astype(data.dtype)
+    return valid
+
+
+def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
+    """Encode one block from its source window (pure: same input, same output)."""
+    k = params.k
+    side = grid_side(k)
+    dtype = np.dtype(params.dtype)
+    data = np.asarray(window, dtype=dtype)
+    h, w = data.shape
+    digest = int.from_bytes(
+        hashlib.blake2b(
+            data.tobytes() + np.array([h, w], np.int64).tobytes(), digest_size=8
+        ).digest(),
+        "little",
+    )
+    valid = np.zeros((side, side), dtype=bool)
+    valid[:h, :w] = valid_mask(data, params.nodata)
+    exists = bool(valid.any())
+    has_nodata = not bool(valid.all())
+    grid = np.zeros((side, side), dtype=dtype)
+    grid[:h, :w] = data
+    if dtype.kind == "f":
+        grid[~valid] = 0  # NaN/inf never enter the arithmetic
+    if exists:
+        vals = grid[valid]
+        zmin, zmax = float(vals.min()), float(vals.max())
+    else:
+        zmin = zmax = float("nan")
+    if params.precision:
+        grid = quantise(grid, params.precision)
+    grid = fill_invalid(grid, valid, k)
+    levels = encode_levels(grid, k)
+    err_grid = grid.astype(np.float64) * params.precision if params.precision else grid
+    errors = static_error.block_errors(err_grid, valid, k, params.error_cap)
+    return BlockResult(
+        levels=levels,
+        errors=errors,
+        mask=valid if has_nodata else None,
+        exists=exists,
+        has_nodata=has_nodata,
+        zmin=zmin,
+        zmax=zmax,
+        digest=digest,
+    )
+
+
+def _open_source(src: str | os.PathLike, band: int) -> rasterio.DatasetReader:
+    path = str(src)
+    if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
+        raise SourceNotFoundError(f"source raster {path!r} does not exist")
+    try:
+        ds = rasterio.open(path)
+    except rasterio.errors.RasterioIOError as exc:
+        raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
+    if band > ds.count:
+        ds.close()
+        raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
+    return ds
+
+
+def _source_meta(ds: rasterio.DatasetReader, src: str, opts: TileOptions) -> StoreMeta:
+    if ds.height < 2 or ds.width < 2:
+        raise SourceError(
+            f"{src!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2 to be tiled"
+        )
+    dtype = parse_dtype(ds.dtypes[opts.band - 1])
+    if opts.precision and dtype.kind != "f":
+        raise SourceError(
+            f"--precision applies to float DEMs; {src!r} is {dtype.name}, which is stored "
+            "losslessly already. Drop --precision."
+        )
+    value = np.dtype(np.int32) if opts.precision else dtype
+    storage = storage_dtype_for(value)
+    nodata = ds.nodatavals[opts.band - 1]
+    k = opts.k
+    cap = static_error.default_cap(k) if opts.error_cap is None else opts.error_cap
+    if not 0 <= cap <= max(0, k - 1):
+        raise SourceError(f"error cap must be in 0..{k - 1} for k={k}, got {cap}")
+    t = ds.transform
+    if abs(t.b) > 1e-12 * abs(t.a) or abs(t.d) > 1e-12 * abs(t.e):
+        raise SourceError(f"{src!r} has a rotated geotransform {tuple(t)[:6]}; warp it north-up")
+    units = ds.units[opts.band - 1] if ds.units else None
+    size = os.path.getsize(src) if not is_url(src) and os.path.isfile(src) else None
+    return StoreMeta(
+        format_version=1,
+        k=k,
+        height=ds.height,
+        width=ds.width,
+        dtype=dtype.name,
+        storage_dtype=storage.name,
+        encoding=encoding_for(value),
+        precision=opts.precision,
+        nodata=None if nodata is None else float(nodata),
+        crs_wkt=ds.crs.to_wkt() if ds.crs else None,
+        geotransform=(t.a, t.b, t.c, t.d, t.e, t.f),
+        vertical_units=units or None,
+        source={"name": os.path.basename(src.rstrip("/")), "path": src, "size_bytes": size},
+        tool_version=tool_version(),
+        error_cap=cap,
+        error_fields=static_error.FIELDS,
+        compressor={"name": "zstd", "level": opts.compression_level},
+    )
+
+
+def _same_job(a: StoreMeta, b: StoreMeta) -> bool:
+    keys = ("k", "height", "width", "dtype", "storage_dtype", "precision", "nodata", "error_cap")
+    return all(getattr(a, n) == getattr(b, n) for n in keys) and a.compressor == b.compressor
+
+
+def _prepare_destination(dst: str, meta: StoreMeta, opts: TileOptions) -> tuple[zarr.Group, bool]:
+    """Create (or reopen for resuming) the store; returns the group and whether it resumes."""
+    exists = _exists(dst)
+    if exists and not opts.overwrite:
+        try:
+            old = read_meta(zarr.open_group(dst, mode="r"))
+        except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
+            raise StoreExistsError(
+                f"{dst!r} exists and is not a terrastream store ({exc}); choose another "
+                "destination (nothing was written)."
+            ) from exc
+        if old.complete:
+            raise StoreExistsError(
+                f"{dst!r} already holds a finished store; pass --overwrite to replace it."
+            )
+        if not _same_job(old, meta):
+            raise StoreExistsError(
+                f"{dst!r} holds an unfinished store made with other settings; pass --overwrite "
+                "to start again, or rerun with the original settings to finish it."
+            )
+        log.info("resuming unfinished store %s", dst)
+        return zarr.open_group(dst, mode="r+"), True
+    if exists:
+        _remove_store(dst)
+    try:
+        group = zarr.open_group(dst, mode="w")
+    except (OSError, ValueError) as exc:
+        raise StoreError(f"cannot create a store at {dst!r}: {exc}") from exc
+    write_meta(group, meta)
+    create_layout(group, meta, opts.compression_level)
+    return group, False
+
+
+def _exists(dst: str) -> bool:
+    if not is_url(dst):
+        return os.path.exists(dst)
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(dst)
+    return bool(fs.exists(path))
+
+
+def _remove_store(dst: str) -> None:
+    """Remove an old store for --overwrite; refuses anything that is not a terrastream store."""
+    if not is_url(dst):
+        if os.path.isdir(dst) and os.listdir(dst):
+            try:
+                read_meta(zarr.open_group(dst, mode="r"))
+            except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
+                raise StoreExistsError(
+                    f"refusing to overwrite {dst!r}: it is a non-empty directory that is not a "
+                    "terrastream store"
+                ) from exc
+            shutil.rmtree(dst)
+        elif os.path.isfile(dst):
+            raise StoreExistsError(f"refusing to overwrite {dst!r}: it is a file, not a store")
+        return
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(dst)
+    fs.rm(path, recursive=True)
+
+
+class _Sources(threading.local):
+    """One open dataset per worker thread (rasterio datasets are not thread-safe)."""
+
+    def __init__(self, src: str, band: int) -> None:
+        self.src, self.band = src, band
+        self.ds: rasterio.DatasetReader | None = None
+
+
+def read_window(ds: rasterio.DatasetReader, band: int, grid: BlockGrid, br: int, bc: int):
+    """The source samples of block ``(br, bc)`` that lie inside the DEM."""
+    r0, c0, h, w = grid.block_window(br, bc)
+    return ds.read(band, window=Window(c0, r0, w, h))
+
+
+def tile(
+    src: str | os.PathLike,
+    dst: str | os.PathLike,
+    options: TileOptions | None = None,
+    progress: Callable[[TileProgress], None] | None = None,
+) -> TerrainStore:
+    """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened."""
+    opts = options or TileOptions()
+    src, dst = str(src), str(dst)
+    with _open_source(src, opts.band) as ds:
+        meta = _source_meta(ds, src, opts)
+    grid = meta.grid
+    if _exists(dst) is False and not is_url(dst):
+        parent = os.path.dirname(os.path.abspath(dst))
+        if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
+            raise StoreError(f"cannot write {dst!r}: {parent!r} is not a writable directory")
+    group, resuming = _prepare_destination(dst, meta, opts)
+    if resuming:
+        meta = replace(read_meta(group), complete=False)
+    params = BlockParams(
+        k=meta.k,
+        dtype=meta.dtype,
+        storage_dtype=meta.storage_dtype,
+        nodata=meta.nodata,
+        precision=meta.precision,
+        error_cap=meta.error_cap,
+    )
+    _run_blocks(src, opts, grid, params, group, progress)
+    try:
+        _finish(group, meta, grid)
+    except SourceError:
+        _remove_store(dst)  # an all-nodata source: leave nothing that looks like a store
+        raise
+    return TerrainStore(dst)
+
+
+def _shard_order(grid: BlockGrid) -> list[list[tuple[int, int]]]:
+    """Blocks grouped by the shard of the small levels they belong to, shards row-major."""
+    rows, cols = grid.shape
+    sr, sc = min(rows, SHARD_BLOCKS), min(cols, SHARD_BLOCKS)
+    groups = []
+    for r0 in range(0, rows, sr):
+        for c0 in range(0, cols, sc):
+            groups.append(
+                [
+                    (r, c)
+                    for r in range(r0, min(r0 + sr, rows))
+                    for c in range(c0, min(c0 + sc, cols))
+                ]
+            )
+    return groups
+
+
+def _run_blocks(
+    src: str,
+    opts: TileOptions,
+    grid: BlockGrid,
+    params: BlockParams,
+    group: zarr.Group,
+    progress: Callable[[TileProgress], None] | None,
+) -> None:
+    done = group["index/done"][...]
+    total = grid.rows * grid.cols
+    skipped = int(done.sum())
+    itemsize = np.dtype(params.dtype).itemsize
+    local = _Sources(src, opts.band)
+    arrays = {f"levels/{i}": group[f"levels/{i}"] for i in range(params.k + 1)}
+    arrays.update({n: group[n] for n in ("errors", "mask")})
+    t0 = time.perf_counter()
+    n_done, bytes_done = skipped, 0
+
+    def work(br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
+        if local.ds is None:
+            local.ds = _open_source(local.src, local.band)
+        window = read_window(local.ds, local.band, grid, br, bc)
+        res = process_block(window, params)
+        for i in range(SHARDED_LEVELS, params.k + 1):
+            arrays[f"levels/{i}"][br, bc] = res.levels[i]
+        arrays["errors"][br, bc] = res.errors
+        if res.mask is not None:
+            arrays["mask"][br, bc] = res.mask
+        return (br, bc), res
+
+    def report() -> None:
+        if progress:
+            progress(TileProgress(n_done, total, bytes_done, time.perf_counter() - t0, skipped))
+
+    report()
+    workers = opts.n_workers
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="terrastream-tile")
+    try:
+        for shard in _shard_order(grid):
+            todo = [b for b in shard if not done[b]]
+            if not todo:
+                continue
+            results: dict[tuple[int, int], BlockResult] = {}
+            pending: set[Future] = set()
+            it = iter(todo)
+            while True:
+                while len(pending) < 2 * workers:
+                    b = next(it, None)
+                    if b is None:
+                        break
+                    pending.add(pool.submit(work, *b))
+                if not pending:
+                    break
+                finished, pending = wait(
+                    pending, timeout=WAIT_TIMEOUT_S, return_when=FIRST_COMPLETED
+                )
+                if not finished:
+                    raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
+                for fut in finished:
+                    b, res = fut.result()  # re-raises a worker's exception here
+                    results[b] = res
+                    r0, c0, h, w = grid.block_window(*b)
+                    bytes_done += h * w * itemsize
+            _write_shard(group, params.k, results)
+            n_done += len(results)
+            report()
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+    if local.ds is not None:
+        local.ds.close()
+
+
+def _write_shard(group: zarr.Group, k: int, results: dict[tuple[int, int], BlockResult]) -> None:
+    """Write a shard's small levels and index rows, then mark its blocks done (main thread)."""
+    rows = [b[0] for b in results]
+    cols = [b[1] for b in results]
+    r0, r1, c0, c1 = min(rows), max(rows) + 1, min(cols), max(cols) + 1
+    for i in range(min(SHARDED_LEVELS, k + 1)):
+        arr = group[f"levels/{i}"]
+        region = arr[r0:r1, c0:c1]
+        for (br, bc), res in results.items():
+            region[br - r0, bc - c0] = res.levels[i]
+        arr[r0:r1, c0:c1] = region
+    sl = (slice(r0, r1), slice(c0, c1))
+    cols_ = {
+        "exists": lambda r: r.exists,
+        "has_nodata": lambda r: r.has_nodata,
+        "zmin": lambda r: r.zmin,
+        "zmax": lambda r: r.zmax,
+        "digest": lambda r: r.digest,
+    }
+    for name, get in cols_.items():
+        arr = group[f"index/{name}"]
+        region = arr[sl]
+        for (br, bc), res in results.items():
+            region[br - r0, bc - c0] = get(res)
+        arr[sl] = region
+    done = group["index/done"]
+    region = done[sl]
+    for br, bc in results:
+        region[br - r0, bc - c0] = True
+    done[sl] = region
+
+
+def _finish(group: zarr.Group, meta: StoreMeta, grid: BlockGrid) -> None:
+    """Check every block is done, write windows and checksums, then mark the store complete."""
+    done = group["index/done"][...]
+    if not done.all():
+        missing = int((~done).sum())
+        raise StoreCorruptError(f"{missing} block(s) are not done; the store stays unfinished")
+    exists = group["index/exists"][...]
+    if not exists.any():
+        raise SourceError(
+            f"{meta.source.get('path')!r} holds no terrain: every sample is nodata or NaN; "
+            "nothing was written"
+        )
+    win = np.zeros((grid.rows, grid.cols, 4), dtype=np.int32)
+    for br, bc in grid.blocks():
+        win[br, bc] = grid.block_window(br, bc)
+    group["index/window"][...] = win
+    digests = group["index/digest"][...]
+    checksum = hashlib.blake2b(digests.astype("<u8").tobytes(), digest_size=16).hexdigest()
+    zmin = group["index/zmin"][...]
+    zmax = group["index/zmax"][...]
+    source = dict(meta.source, checksum=f"blake2b-128:{checksum}")
+    extra = dict(meta.extra)
+    extra["value_range"] = [float(np.nanmin(zmin)), float(np.nanmax(zmax))]
+    write_meta(group, replace(meta, source=source, complete=True, extra=extra))
+    log.info("store complete: %s", ATTR)
