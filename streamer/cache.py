@@ -1,0 +1,212 @@
+"""A byte-budgeted cache of decoded block levels (no threads; the session holds its lock).
+
+A block is resident as its levels ``0..L`` (decoded heights in sequence order); levels arrive
+one at a time, coarse first, and leave finest first. Each block may carry a *want* (the level to
+load, ahead of time included) and a *pin* (the level the current frame needs to draw it; -1 for
+blocks that are only prefetched). Resident bytes never exceed the budget: to make room, levels
+above a block's want go first (least recently wanted blocks first), then wanted but unpinned
+levels (lowest priority first); pinned levels are never evicted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from streamer.errors import BudgetError
+
+Block = tuple[int, int]
+
+
+@dataclass
+class _Entry:
+    levels: list[np.ndarray] = field(default_factory=list)
+    nbytes: int = 0
+    want: int = -1  # level wanted by the current frame, prefetch included (-1: none)
+    pin: int = -1  # level the current frame needs to draw the block (-1: not visible)
+    priority: float = 0.0  # larger = more important among prefetched blocks
+    last_wanted: int = 0  # frame number when last wanted
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.3g} MiB ({n:,} bytes)"
+
+
+class LevelCache:
+    """Decoded levels of blocks under a byte budget; visible wants are pinned."""
+
+    def __init__(self, budget_bytes: int) -> None:
+        if budget_bytes <= 0:
+            raise BudgetError(f"budget must be a positive number of bytes, got {budget_bytes}")
+        self.budget = int(budget_bytes)
+        self._entries: dict[Block, _Entry] = {}
+        self.nbytes = 0
+        self.peak_nbytes = 0
+        self.frame = 0
+        self.evicted_bytes = 0
+
+    def level(self, block: Block) -> int:
+        """Finest resident level of a block (-1 if none)."""
+        e = self._entries.get(block)
+        return len(e.levels) - 1 if e else -1
+
+    def levels(self, block: Block) -> list[np.ndarray]:
+        """The block's resident levels (a new list; arrays are shared, read-only)."""
+        e = self._entries.get(block)
+        return list(e.levels) if e else []
+
+    def blocks(self) -> list[Block]:
+        """Blocks with at least one resident level."""
+        return [b for b, e in self._entries.items() if e.levels]
+
+    def pinned_bytes(self) -> int:
+        """Bytes of resident levels that the current frame pins."""
+        return sum(sum(a.nbytes for a in e.levels[: e.pin + 1]) for e in self._entries.values())
+
+    def set_wants(
+        self,
+        wants: dict[Block, tuple[int, int, float]],
+        level_bytes: list[int],
+    ) -> None:
+        """Replace every block's want: ``block -> (want level, pinned level, priority)``.
+
+        Raises ``BudgetError`` if the pinned levels alone need more than the budget.
+        """
+        self.set_pins({b: pin for b, (_, pin, _) in wants.items() if pin >= 0}, level_bytes)
+        self.set_prefetch({b: (lv, prio) for b, (lv, _, prio) in wants.items()})
+
+    def set_pins(self, pins: dict[Block, int], level_bytes: list[int]) -> None:
+        """Replace the pinned levels (what this frame draws); other wants stay.
+
+        Raises ``BudgetError`` (changing nothing) if the pins alone exceed the budget.
+        """
+        need = sum(sum(level_bytes[: pin + 1]) for pin in pins.values())
+        if need > self.budget:
+            raise BudgetError(
+                f"the visible blocks need {_mib(need)} at their levels but the budget is "
+                f"{_mib(self.budget)}; raise --budget-mb or the error threshold"
+            )
+        self.frame += 1
+        for b, e in self._entries.items():
+            if b not in pins:
+                e.pin = -1
+        for b, pin in pins.items():
+            e = self._entries.setdefault(b, _Entry())
+            e.pin = pin
+            e.want = max(e.want, pin)
+            e.last_wanted = self.frame
+        self._forget_empty()
+
+    def set_prefetch(self, wants: dict[Block, tuple[int, float]]) -> None:
+        """Replace the levels to load ahead: ``block -> (level, priority)``; pins stay."""
+        for b, e in self._entries.items():
+            if b not in wants:
+                e.want, e.priority = e.pin, 0.0
+        for b, (lv, prio) in wants.items():
+            e = self._entries.setdefault(b, _Entry())
+            e.want, e.priority = max(lv, e.pin), prio
+            if lv >= 0:
+                e.last_wanted = self.frame
+        self._forget_empty()
+
+    def _forget_empty(self) -> None:
+        for b in [b for b, e in self._entries.items() if not e.levels and e.want < 0]:
+            del self._entries[b]
+
+    def wanted(self) -> list[tuple[Block, int, int, float]]:
+        """``(block, want, pin, priority)`` of every block that wants something."""
+        return [(b, e.want, e.pin, e.priority) for b, e in self._entries.items() if e.want >= 0]
+
+    def want(self, block: Block) -> tuple[int, int]:
+        """``(wanted level, pinned level)`` of a block (``(-1, -1)`` if unwanted)."""
+        e = self._entries.get(block)
+        return (e.want, e.pin) if e else (-1, -1)
+
+    def _victims(self) -> list[tuple[tuple, Block]]:
+        """Evictable (block, finest level) candidates, best victim first."""
+        out = []
+        for b, e in self._entries.items():
+            if not e.levels:
+                continue
+            top = len(e.levels) - 1
+            if top > e.want:  # above what anyone wants: first to go, stalest first
+                out.append(((0, e.last_wanted, -top), b))
+            elif top > e.pin:  # wanted ahead of time, not needed to draw this frame
+                out.append(((1, e.priority, -top), b))
+        out.sort(key=lambda t: t[0])
+        return out
+
+    def make_room(self, nbytes: int, for_block: Block | None = None) -> bool:
+        """Evict (finest levels first) until ``nbytes`` more fit; False if pins prevent it."""
+        while self.nbytes + nbytes > self.budget:
+            victims = [v for v in self._victims() if v[1] != for_block]
+            if not victims:
+                return False
+            self.drop_level(victims[0][1])
+        return True
+
+    def may_add(self, block: Block, level: int, nbytes: int) -> bool:
+        """Whether loading ``level`` of ``block`` now is worth it and can fit."""
+        e = self._entries.get(block)
+        if e is None or level > e.want or level != len(e.levels):
+            return False
+        return self.nbytes + nbytes <= self.budget or self._room_possible(block, nbytes)
+
+    def _room_possible(self, block: Block, nbytes: int) -> bool:
+        freeable = 0
+        e_new = self._entries[block]
+        for key, b in self._victims():
+            if b == block:
+                continue
+            if key[0] == 1 and key[1] >= e_new.priority and e_new.pin < len(e_new.levels):
+                continue  # never evict a more important prefetch for a less important one
+            e = self._entries[b]
+            keep = e.want if key[0] == 0 else e.pin
+            freeable += sum(a.nbytes for a in e.levels[keep + 1 :])
+        return self.nbytes + nbytes - freeable <= self.budget
+
+    def add_level(self, block: Block, level: int, values: np.ndarray) -> bool:
+        """Add the next level of a block, evicting others if needed; False if it cannot fit."""
+        e = self._entries.get(block)
+        if e is None:
+            return False
+        if level != len(e.levels):
+            raise ValueError(f"block {block}: level {level} arrived but {len(e.levels)} is next")
+        n = int(values.nbytes)
+        if not self.make_room(n, for_block=block):
+            return False
+        values = np.asarray(values)
+        values.setflags(write=False)
+        e.levels.append(values)
+        e.nbytes += n
+        self.nbytes += n
+        self.peak_nbytes = max(self.peak_nbytes, self.nbytes)
+        return True
+
+    def drop_level(self, block: Block) -> None:
+        """Unload a block's finest level."""
+        e = self._entries[block]
+        a = e.levels.pop()
+        e.nbytes -= a.nbytes
+        self.nbytes -= a.nbytes
+        self.evicted_bytes += a.nbytes
+        if not e.levels and e.want < 0:
+            del self._entries[block]
+
+    def trim(self, linger_frames: int = 0) -> int:
+        """Unload levels above their block's want once unwanted for more than ``linger_frames``.
+
+        Returns the bytes unloaded.
+        """
+        before = self.nbytes
+        for b in list(self._entries):
+            e = self._entries.get(b)
+            while (
+                e is not None
+                and len(e.levels) - 1 > max(e.want, -1)
+                and self.frame - e.last_wanted > linger_frames
+            ):
+                self.drop_level(b)
+                e = self._entries.get(b)
+        return before - self.nbytes

@@ -1,0 +1,31 @@
+"""Errors raised by the streamer. Leaves also inherit the matching built-in type."""
+
+from __future__ import annotations
+
+
+class StreamerError(Exception):
+    """Root of every error the streamer raises on purpose."""
+
+
+class CameraError(StreamerError, ValueError):
+    """A camera pose, field of view, viewport or clipping range that is not valid."""
+
+
+class PathError(StreamerError, ValueError):
+    """A fly-through path that cannot be built as asked (bad frame count, bounds, speed...)."""
+
+
+class KeyframeError(PathError):
+    """A keyframe file that is malformed (missing columns, unsorted or non-finite values)."""
+
+
+class FrustumError(StreamerError, ValueError):
+    """A polygon, frame rate, extension length or culling mode that is not valid."""
+
+
+class LodError(StreamerError, ValueError):
+    """An LOD request that is not valid (threshold, patch size, error field, metric name...)."""
+
+
+class BudgetError(StreamerError, ValueError):
+    """A cache byte budget that is not valid, or too small for what the view needs."""

@@ -1,0 +1,622 @@
+"""Streaming sessions: frustum-extension prefetching into a byte-budgeted cache (Qiu et al. 4).
+
+Each :meth:`Session.update` (the caller's thread) projects the frustum and its extension on the
+ground (sets ``M`` and ``N``), picks the level each block needs with the pluggable screen-error
+metric, and hands the wants to the loader threads. Loader threads bring blocks up one level at a
+time, coarsest first across blocks: visible blocks first, then prefetch blocks by screen error.
+Queued work for blocks that left ``N`` is dropped (cancelled). A read that fails is retried with
+exponential backoff; after ``retries`` failures the block stays at the level it has and the next
+``update`` raises :class:`LoadError` (the session stays usable).
+
+Bytes are decoded level bytes (the source dtype), the quantity held in memory and budgeted.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from streamer.cache import Block, LevelCache
+from streamer.camera import Camera
+from streamer.errors import BudgetError, StreamerError
+from streamer.frustum import (
+    block_edge,
+    blocks_meeting,
+    extension_triangle,
+    frustum_hull,
+    view_triangle,
+)
+from streamer.levels import PatchErrorTable
+from streamer.lod import FIELD_FOR_METRIC, get_metric
+from tiler.layout import level_size
+from tiler.store import TerrainStore, open_store
+
+log = logging.getLogger(__name__)
+
+
+class LoadError(StreamerError, OSError):
+    """A block level that could not be read after every retry."""
+
+
+class SessionClosedError(StreamerError, RuntimeError):
+    """The session was used after :meth:`Session.close`."""
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Streaming settings (all validated)."""
+
+    budget_mb: float = 256.0
+    workers: int = 4  # 0: load inline in update() (deterministic, for tests and benchmarks)
+    fps: float = 60.0
+    tau: float = 1.0  # screen-space error threshold in pixels
+    metric: str = "qiu"
+    patch_log2: int = 4
+    prefetch: bool = True
+    lookahead: float = 0.5  # load ahead at tau * lookahead (finer than the frame needs)
+    culling: str = "qiu"
+    extension_L: float | None = None  # default: one block edge
+    latency_ms: float = 0.0  # added to every store request (benchmarks)
+    retries: int = 3
+    backoff_s: float = 0.05
+    wait_timeout_s: float = 30.0
+    linger_s: float = 1.0  # keep unwanted levels this long before unloading them
+    inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame (None: all)
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("budget_mb", self.budget_mb > 0),
+            ("workers", self.workers >= 0 and self.workers <= 64),
+            ("fps", self.fps > 0 and math.isfinite(self.fps)),
+            ("tau", self.tau >= 0),
+            ("patch_log2", self.patch_log2 >= 0),
+            ("latency_ms", self.latency_ms >= 0),
+            ("retries", self.retries >= 1),
+            ("wait_timeout_s", self.wait_timeout_s > 0),
+            ("linger_s", self.linger_s >= 0),
+            ("lookahead", 0 < self.lookahead <= 1),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise StreamerError(f"invalid {name}: {getattr(self, name)!r}")
+        get_metric(self.metric)
+        if self.culling not in ("qiu", "hull"):
+            raise StreamerError(f"culling must be 'qiu' or 'hull', got {self.culling!r}")
+
+
+@dataclass(frozen=True)
+class FrameStats:
+    """One frame's I/O figures (bytes are decoded level bytes)."""
+
+    frame: int
+    visible_blocks: int
+    prefetch_blocks: int
+    needed_bytes: int
+    realtime_bytes: int  # loaded while this frame waited for it or after it was due
+    prefetched_bytes: int  # loaded ahead of any frame needing it, since the previous frame
+    io_ms: float  # worker time spent reading and decoding since the previous frame
+    update_ms: float  # wall time of update() on the caller's thread (excluding waiting)
+    update_cpu_ms: float  # CPU time of the caller's thread in update() (excluding waiting)
+    wait_ms: float
+    stalled: bool
+    missing_levels: int
+    resident_bytes: int
+    io_errors: int
+
+
+@dataclass(frozen=True)
+class Frame:
+    """What a frame may draw: ``blocks[b] = (resident level, needed level)``, and its stats."""
+
+    camera: Camera
+    blocks: dict[Block, tuple[int, int]]
+    stats: FrameStats
+
+
+@dataclass
+class _Totals:
+    frames: int = 0
+    stall_frames: int = 0
+    needed_bytes: int = 0
+    realtime_bytes: int = 0
+    realtime_bytes_after_first: int = 0
+    loaded_bytes: int = 0
+    prefetched_bytes: int = 0
+    max_update_ms: float = 0.0
+    max_update_cpu_ms: float = 0.0
+    io_errors: int = 0
+    cancelled: int = 0
+    used: set = field(default_factory=set)
+    loaded: set = field(default_factory=set)
+
+
+class Session:
+    """A streaming session over one store. Use as a context manager; not for sharing between
+    callers (one thread calls :meth:`update`)."""
+
+    def __init__(
+        self,
+        store: TerrainStore | str,
+        config: SessionConfig | None = None,
+        *,
+        read_hook: Callable[[Block, int], None] | None = None,
+    ) -> None:
+        self.store = store if isinstance(store, TerrainStore) else open_store(store)
+        self.config = config or SessionConfig()
+        self.grid = self.store.grid
+        self._field_name = FIELD_FOR_METRIC.get(self.config.metric, "qiu")
+        itemsize = np.dtype(self.store.meta.dtype).itemsize
+        self.level_bytes = [level_size(i) * itemsize for i in range(self.store.k + 1)]
+        self.cache = LevelCache(int(self.config.budget_mb * 2**20))
+        self._read_hook = read_hook
+        idx = self.store.index
+        self._exists = idx.exists
+        self._zr = np.stack([np.nan_to_num(idx.zmin), np.nan_to_num(idx.zmax)], axis=-1)
+        self._zrange = (float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax)))
+        self._errors = PatchErrorTable(self.store.k, self.config.patch_log2)
+        self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)
+        self._queue: list[tuple[tuple, Block]] = []
+        self._in_flight: set[Block] = set()
+        self._demanded: set[tuple[Block, int]] = set()
+        self._failures: dict[Block, int] = {}
+        self._retry_at: dict[Block, float] = {}
+        self._failed: dict[Block, BaseException] = {}
+        self._unreported: list[tuple[Block, BaseException]] = []
+        self._frame_realtime = 0
+        self._frame_prefetched = 0
+        self._frame_io_s = 0.0
+        self._prev: Camera | None = None
+        self._request: tuple | None = None
+        self._scheduler_error: BaseException | None = None
+        self._prio: dict[Block, tuple] = {}
+        self._prefetch_blocks = 0
+        self._update_cpu_s = 0.0
+        self._closed = False
+        self._stop = False
+        self.totals = _Totals()
+        self._threads = [
+            threading.Thread(target=self._worker, name=f"terrastream-load-{i}", daemon=True)
+            for i in range(self.config.workers)
+        ]
+        if self.config.workers:
+            self._threads.append(
+                threading.Thread(target=self._scheduler, name="terrastream-schedule", daemon=True)
+            )
+        for t in self._threads:
+            t.start()
+
+    # -- context management ---------------------------------------------------------------
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Stop the loader threads (bounded wait) and release the cache."""
+        with self._cv:
+            if self._closed:
+                return
+            self._closed = True
+            self._stop = True
+            self._queue.clear()
+            self._cv.notify_all()
+        deadline = time.monotonic() + timeout_s
+        for t in self._threads:
+            t.join(timeout=max(0.0, deadline - time.monotonic()))
+        alive = [t.name for t in self._threads if t.is_alive()]
+        if alive:
+            log.warning("loader threads still running after %.1f s: %s", timeout_s, alive)
+
+    # -- the frame -------------------------------------------------------------------------
+
+    def update(self, camera: Camera, dt: float | None = None, *, wait: bool = False) -> Frame:
+        """Schedule loads for this camera and report what can be drawn now.
+
+        ``dt`` is the time since the previous pose (default ``1/fps``), used for the velocity
+        that stretches the frustum extension. ``wait=True`` blocks until every visible block
+        holds its needed level (bounded by ``wait_timeout_s``).
+        """
+        if self._closed:
+            raise SessionClosedError("this session is closed")
+        t0 = time.perf_counter()
+        c0 = time.thread_time()
+        cfg = self.config
+        dt = 1.0 / cfg.fps if dt is None else float(dt)
+        velocity = (
+            camera.velocity_from(self._prev, dt) if self._prev is not None and dt > 0 else None
+        )
+        self._prev = camera
+        poly = view_triangle(camera) if cfg.culling == "qiu" else frustum_hull(camera, self._zrange)
+        m = [b for b in map(tuple, blocks_meeting(poly, self.grid).tolist()) if self._exists[b]]
+        needed = self._needed(camera, m)
+        with self._cv:
+            self._raise_scheduler_error()
+            self.cache.set_pins(needed, self.level_bytes)
+            for b, lv in needed.items():
+                if b not in self._errors or self.cache.level(b) < lv:
+                    self._push(b)
+            self._request = (camera, velocity, set(m))
+            self._cv.notify_all()
+        update_s = time.perf_counter() - t0
+        self._update_cpu_s = time.thread_time() - c0
+        if cfg.workers == 0:
+            self._schedule_step()
+            self._load_inline(needed)
+        waited = 0.0
+        if wait:
+            waited = self._wait_for(needed)
+            if needed != (fresh := self._needed(camera, list(needed))):
+                # the errors arrived while waiting: wait for what they say is needed
+                with self._cv:
+                    self.cache.set_pins(fresh, self.level_bytes)
+                    for b in fresh:
+                        self._push(b)
+                needed = fresh
+                waited += self._wait_for(needed)
+        return self._finish_frame(camera, needed, update_s, waited)
+
+    def _needed(self, camera: Camera, m: list[Block]) -> dict[Block, int]:
+        """The level each visible block needs at ``tau`` (the patch level until errors load)."""
+        cfg = self.config
+        floor = min(cfg.patch_log2, self.store.k)
+        needed = {b: floor for b in m}
+        have = [b for b in m if b in self._errors]
+        if have:
+            zr = self._zr[tuple(np.array(have).T)]
+            levels, _ = self._errors.needed_levels(self.grid, have, camera, cfg.tau, cfg.metric, zr)
+            needed.update(zip(have, levels.tolist(), strict=True))
+        return needed
+
+    def _schedule_step(self) -> None:
+        """Prefetch planning for the latest frame: the extension's blocks ``N`` and the level
+        each would need at ``tau * lookahead``; then the work queue is rebuilt."""
+        with self._cv:
+            req, self._request = self._request, None
+        if req is None:
+            return
+        camera, velocity, visible = req
+        cfg = self.config
+        n = set(visible)
+        if cfg.prefetch:
+            ext = extension_triangle(
+                camera,
+                block_edge(self.grid) if cfg.extension_L is None else cfg.extension_L,
+                velocity=velocity if velocity is not None else (0.0, 0.0, 0.0),
+                fps=cfg.fps,
+            )
+            n.update(
+                b for b in map(tuple, blocks_meeting(ext, self.grid).tolist()) if self._exists[b]
+            )
+        blocks = sorted(n)
+        wants: dict[Block, tuple[int, float]] = {b: (0, 0.0) for b in blocks}
+        have = [b for b in blocks if b in self._errors]
+        if have:
+            zr = self._zr[tuple(np.array(have).T)]
+            tau = cfg.tau * (cfg.lookahead if cfg.prefetch else 1.0)
+            ahead, rho = self._errors.needed_levels(self.grid, have, camera, tau, cfg.metric, zr)
+            for b, lv, r in zip(have, ahead.tolist(), rho.tolist(), strict=True):
+                wants[b] = (lv, r)
+        with self._cv:
+            self.cache.set_prefetch(wants)
+            self.cache.trim(int(cfg.linger_s * cfg.fps))
+            self._prefetch_blocks = len(n) - len(visible)
+            self._reschedule()
+
+    def _scheduler(self) -> None:
+        while True:
+            with self._cv:
+                while self._request is None and not self._stop:
+                    self._cv.wait(timeout=0.1)
+                if self._stop:
+                    return
+            try:
+                self._schedule_step()
+            except Exception as exc:  # noqa: BLE001 - surfaced by the next update()
+                with self._cv:
+                    self._scheduler_error = exc
+
+    def _raise_scheduler_error(self) -> None:
+        if self._scheduler_error is not None:
+            exc, self._scheduler_error = self._scheduler_error, None
+            raise StreamerError(f"prefetch planning failed: {exc}") from exc
+
+    def _key(self, b: Block) -> tuple:
+        want, pin = self.cache.want(b)
+        nxt = self.cache.level(b) + 1
+        _, _, _, prio = self._prio.get(b, (b, want, pin, 0.0))
+        return (0 if b not in self._errors else 1, 0 if nxt <= pin else 1, nxt, -prio, b)
+
+    def _push(self, b: Block) -> None:
+        """Queue ``b`` for its next load (caller holds the lock)."""
+        if b in self._failed:
+            return
+        heapq.heappush(self._queue, (self._key(b), b))
+        self._cv.notify_all()
+
+    def _reschedule(self) -> None:
+        """Rebuild the work queue from the cache's wants (caller holds the lock)."""
+        before = {b for _, b in self._queue}
+        self._queue = []
+        self._prio = {}
+        now = time.monotonic()
+        for b, want, pin, prio in self.cache.wanted():
+            self._prio[b] = (b, want, pin, prio)
+            if b in self._failed or (self.cache.level(b) >= want and b in self._errors):
+                continue
+            key = self._key(b)
+            if self._retry_at.get(b, 0.0) > now:
+                key = (2, *key[1:])
+            self._queue.append((key, b))
+        heapq.heapify(self._queue)
+        self.totals.cancelled += len(before - {b for _, b in self._queue})
+        self._cv.notify_all()
+
+    # -- loading ---------------------------------------------------------------------------
+
+    def _next_job(self) -> Block | None:
+        """Pop the most urgent block not already being loaded (caller holds the lock)."""
+        skipped = []
+        job = None
+        now = time.monotonic()
+        while self._queue:
+            key, b = heapq.heappop(self._queue)
+            if b in self._in_flight or self._retry_at.get(b, 0.0) > now:
+                skipped.append((key, b))
+                continue
+            job = b
+            break
+        for item in skipped:
+            heapq.heappush(self._queue, item)
+        return job
+
+    def _load_one(self, b: Block) -> int:
+        """Load the errors or the next wanted level of ``b``; returns bytes added (no lock held)."""
+        t0 = time.perf_counter()
+        with self._cv:
+            need_errors = b not in self._errors
+            levels = self.cache.levels(b)
+            want, _pin = self.cache.want(b)
+        nxt = len(levels)
+        if not need_errors and (nxt > want or nxt > self.store.k):
+            return 0
+        try:
+            if self.config.latency_ms:
+                time.sleep(self.config.latency_ms / 1000.0)
+            if self._read_hook is not None:
+                self._read_hook(b, -1 if need_errors else nxt)
+            if need_errors:
+                errors = self.store.read_errors(b)[self._field_name]
+            else:
+                raw = self.store.read_level_raw(b, nxt)
+                values = self.store.to_heights(self.store.decode_next(_storage(self, levels), raw))
+        except Exception as exc:  # noqa: BLE001 - any read failure is counted and retried
+            with self._cv:
+                self.totals.io_errors += 1
+                count = self._failures.get(b, 0) + 1
+                self._failures[b] = count
+                if count >= self.config.retries:
+                    self._failed[b] = exc
+                    self._unreported.append((b, exc))
+                else:
+                    self._retry_at[b] = time.monotonic() + self.config.backoff_s * 2 ** (count - 1)
+                self._frame_io_s += time.perf_counter() - t0
+            log.warning("reading block %s failed (%d): %s", b, count, exc)
+            return 0
+        with self._cv:
+            self._failures.pop(b, None)
+            self._retry_at.pop(b, None)
+            self._frame_io_s += time.perf_counter() - t0
+            if need_errors:
+                self._errors.add(b, errors)
+                return 0
+            if self.cache.level(b) != nxt - 1:
+                return 0  # evicted or loaded meanwhile
+            if not self.cache.add_level(b, nxt, values):
+                return 0
+            nbytes = int(values.nbytes)
+            self.totals.loaded_bytes += nbytes
+            self.totals.loaded.add((b, nxt))
+            if (b, nxt) in self._demanded:
+                self._frame_realtime += nbytes
+            else:
+                self._frame_prefetched += nbytes
+            self._cv.notify_all()
+            return nbytes
+
+    def _worker(self) -> None:
+        while True:
+            with self._cv:
+                job = None
+                while not self._stop:
+                    job = self._next_job()
+                    if job is not None:
+                        self._in_flight.add(job)
+                        break
+                    self._cv.wait(timeout=0.05)
+                if self._stop:
+                    return
+            try:
+                self._load_one(job)
+            finally:
+                with self._cv:
+                    self._in_flight.discard(job)
+                    self._requeue(job)
+
+    def _requeue(self, b: Block) -> None:
+        """Put ``b`` back in the queue if it still wants more (caller holds the lock)."""
+        want, _pin = self.cache.want(b)
+        if want < 0 or (b in self._errors and self.cache.level(b) >= want):
+            return
+        self._push(b)
+
+    def _load_inline(self, needed: dict[Block, int], unlimited: bool = False) -> None:
+        """``workers=0``: do this frame's loads now, up to the per-frame allowance."""
+        allowance = None if unlimited else self.config.inline_bytes_per_frame
+        spent = 0
+        self._mark_demand(needed)
+        while allowance is None or spent < allowance:
+            with self._cv:
+                b = self._next_job()
+            if b is None:
+                break
+            spent += self._load_one(b)
+            with self._cv:
+                self._requeue(b)
+
+    def _missing(self, needed: dict[Block, int]) -> list[tuple[Block, int]]:
+        return [
+            (b, lv) for b, lv in needed.items() if self.cache.level(b) < lv or b not in self._errors
+        ]
+
+    def _mark_demand(self, needed: dict[Block, int]) -> None:
+        with self._cv:
+            for b, lv in needed.items():
+                for level in range(self.cache.level(b) + 1, lv + 1):
+                    self._demanded.add((b, level))
+
+    def _wait_for(self, needed: dict[Block, int]) -> float:
+        t0 = time.perf_counter()
+        self._mark_demand(needed)
+        deadline = time.monotonic() + self.config.wait_timeout_s
+        with self._cv:
+            while self._missing(needed) and not any(b in self._failed for b in needed):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise LoadError(
+                        f"{len(self._missing(needed))} visible block level(s) did not load within "
+                        f"{self.config.wait_timeout_s:.1f} s"
+                    )
+                if self.config.workers == 0:
+                    break
+                self._cv.wait(timeout=min(left, 0.05))
+        if self.config.workers == 0 and self._missing(needed):
+            self._load_inline(needed, unlimited=True)
+        return time.perf_counter() - t0
+
+    def _finish_frame(
+        self, camera: Camera, needed: dict[Block, int], update_s: float, waited_s: float
+    ) -> Frame:
+        with self._cv:
+            missing = self._missing(needed)
+            for b, lv in missing:
+                for level in range(self.cache.level(b) + 1, lv + 1):
+                    self._demanded.add((b, level))
+            for b, lv in needed.items():
+                for level in range(min(lv, self.cache.level(b)) + 1):
+                    self.totals.used.add((b, level))
+            blocks = {b: (self.cache.level(b), lv) for b, lv in needed.items()}
+            realtime, prefetched = self._frame_realtime, self._frame_prefetched
+            io_s = self._frame_io_s
+            self._frame_realtime = self._frame_prefetched = 0
+            self._frame_io_s = 0.0
+            failures, self._unreported = self._unreported, []
+            resident = self.cache.nbytes
+            errors = self.totals.io_errors
+        needed_bytes = sum(sum(self.level_bytes[: lv + 1]) for lv in needed.values())
+        t = self.totals
+        stalled = bool(missing)
+        update_ms = update_s * 1000.0
+        stats = FrameStats(
+            frame=t.frames,
+            visible_blocks=len(needed),
+            prefetch_blocks=self._prefetch_blocks,
+            needed_bytes=needed_bytes,
+            realtime_bytes=realtime,
+            prefetched_bytes=prefetched,
+            io_ms=io_s * 1000.0,
+            update_ms=update_ms,
+            update_cpu_ms=self._update_cpu_s * 1000.0,
+            wait_ms=waited_s * 1000.0,
+            stalled=stalled,
+            missing_levels=sum(lv - self.cache.level(b) for b, lv in missing),
+            resident_bytes=resident,
+            io_errors=errors,
+        )
+        t.needed_bytes += needed_bytes
+        t.realtime_bytes += realtime
+        if t.frames > 0:
+            t.realtime_bytes_after_first += realtime
+        t.prefetched_bytes += prefetched
+        t.stall_frames += int(stalled)
+        t.max_update_ms = max(t.max_update_ms, update_ms)
+        t.max_update_cpu_ms = max(t.max_update_cpu_ms, self._update_cpu_s * 1000.0)
+        t.frames += 1
+        if failures:
+            b, exc = failures[0]
+            raise LoadError(
+                f"block {b} could not be read after {self.config.retries} tries: {exc}; "
+                "it stays at the level it has"
+            ) from exc
+        return Frame(camera=camera, blocks=blocks, stats=stats)
+
+    # -- results ---------------------------------------------------------------------------
+
+    def levels(self, block: Block) -> list[np.ndarray]:
+        """Resident decoded levels of a block (for renderers)."""
+        with self._cv:
+            return self.cache.levels(block)
+
+    def summary(self) -> dict[str, Any]:
+        """Totals over every frame so far (the ``summary`` object of ``--json``)."""
+        t = self.totals
+        with self._cv:
+            used_bytes = sum(self.level_bytes[lv] for _, lv in t.used)
+        return {
+            "frames": t.frames,
+            "stall_frames": t.stall_frames,
+            "needed_bytes": t.needed_bytes,
+            "realtime_bytes": t.realtime_bytes,
+            "realtime_bytes_after_first_frame": t.realtime_bytes_after_first,
+            "prefetched_bytes": t.prefetched_bytes,
+            "loaded_bytes": t.loaded_bytes,
+            "used_bytes": used_bytes,
+            "wasted_bytes": max(0, t.loaded_bytes - used_bytes),
+            "peak_resident_bytes": self.cache.peak_nbytes,
+            "budget_bytes": self.cache.budget,
+            "max_update_ms": t.max_update_ms,
+            "max_update_cpu_ms": t.max_update_cpu_ms,
+            "io_errors": t.io_errors,
+            "cancelled_loads": t.cancelled,
+        }
+
+
+def _storage(session: Session, levels: list[np.ndarray]) -> list[np.ndarray]:
+    """Decoded heights back to the store's value units (quantised stores keep integers)."""
+    p = session.store.meta.precision
+    if not p:
+        return levels
+    return [np.rint(v.astype(np.float64) / p).astype(np.int32) for v in levels]
+
+
+def open_session(
+    store: str | TerrainStore,
+    *,
+    budget_mb: float = 256.0,
+    workers: int = 4,
+    **config: Any,
+) -> Session:
+    """Open a streaming session: ``with open_session("s.zarr", budget_mb=256) as s: ...``."""
+    return Session(store, SessionConfig(budget_mb=budget_mb, workers=workers, **config))
+
+
+__all__ = [
+    "BudgetError",
+    "Frame",
+    "FrameStats",
+    "LoadError",
+    "Session",
+    "SessionClosedError",
+    "SessionConfig",
+    "open_session",
+]

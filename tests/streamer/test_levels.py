@@ -1,0 +1,64 @@
+"""The fast per-frame needed levels equal the reference selection's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from streamer.camera import Camera
+from streamer.levels import PatchErrorTable
+from streamer.lod import select_many
+from tiler.grid import BlockGrid
+from tiler.static_error import make_monotone
+
+
+def _field(rng, k, cap):
+    per = make_monotone([rng.random((1 << d, 1 << d)) * 40.0 / (d + 1) for d in range(k)])
+    out = []
+    for d, a in enumerate(per):
+        if d > cap:
+            n = 1 << cap
+            r = a.shape[0] // n
+            a = a.reshape(n, r, n, r).max(axis=(1, 3))
+        out.append(a.astype(np.float32))
+    return out
+
+
+CAMERAS = [
+    Camera((500.0, -200.0, 300.0), yaw=10, pitch=-20, far=5000),
+    Camera((1000.0, 1000.0, 50.0), yaw=200, pitch=-5, far=3000, fov_y=30),
+    Camera((100.0, 100.0, 5000.0), yaw=0, pitch=-89, far=20000, fov_y=90),
+    Camera((1e7 + 500.0, 1e7 - 200.0, 300.0), yaw=10, pitch=-20, far=5000),
+]
+
+
+@pytest.mark.parametrize("metric", ["qiu", "conservative"])
+@pytest.mark.parametrize("cam_i", range(len(CAMERAS)), ids=["oblique", "low", "down", "far-1e7"])
+@pytest.mark.parametrize("tau", [0.0, 0.5, 2.0, 1e9])
+def test_table_matches_select_many(metric, cam_i, tau):
+    rng = np.random.default_rng(cam_i)
+    k, cap, p = 7, 4, 2
+    cam = CAMERAS[cam_i]
+    x0 = 1e7 if cam.position[0] > 1e6 else 0.0
+    grid = BlockGrid(
+        height=8 * 128 + 1, width=8 * 128 + 1, k=k, x0=x0, y0=x0 + 1000.0, dx=1.5, dy=1.5
+    )
+    blocks = [(r, c) for r in range(8) for c in range(8)]
+    fields = [_field(rng, k, cap) for _ in blocks]
+    zr = np.stack([rng.random(len(blocks)) * 50, 50 + rng.random(len(blocks)) * 100], axis=1)
+    table = PatchErrorTable(k, p, capacity=4)  # grows
+    for b, f in zip(blocks, fields, strict=True):
+        table.add(b, f)
+    levels, _ = table.needed_levels(grid, blocks, cam, tau, metric, zr)
+    ref = select_many(grid, blocks, fields, cam, tau, metric, None, p, zranges=zr)
+    np.testing.assert_array_equal(levels, [s.needed_level for s in ref])
+
+
+def test_remove_reuses_slots():
+    t = PatchErrorTable(4, 1, capacity=1)
+    f = [np.zeros((1 << min(d, 2),) * 2, np.float32) for d in range(4)]
+    t.add((0, 0), f)
+    t.add((0, 1), f)
+    t.remove((0, 0))
+    t.add((5, 5), f)
+    assert len(t) == 2 and (5, 5) in t and (0, 0) not in t
