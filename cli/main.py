@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -207,6 +208,138 @@ def export(
         s = open_store(store)
         export_geotiff(s, out, level)
         typer.echo(f"wrote {out} (level {s.k if level is None else level} of {s.k})")
+
+
+class PathKind(StrEnum):
+    """Built-in fly-through paths."""
+
+    default = "default"
+    line = "line"
+    circle = "circle"
+    canyon = "canyon"
+    teleports = "teleports"
+
+
+@app.command()
+def stream(
+    store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
+    path: Annotated[
+        Path | None, typer.Option("--path", help="Keyframes file (.json or .csv).")
+    ] = None,
+    path_kind: Annotated[PathKind, typer.Option("--path-kind", help="Built-in path.")] = (
+        PathKind.default
+    ),
+    frames: Annotated[int, typer.Option("--frames", min=1, help="Frames to fly.")] = 600,
+    fps: Annotated[float, typer.Option("--fps", min=1e-3, help="Frame rate (real time).")] = 60.0,
+    speed: Annotated[
+        float | None, typer.Option("--speed", help="World units/s (default 1 block edge/s).")
+    ] = None,
+    no_prefetch: Annotated[
+        bool, typer.Option("--no-prefetch", help="Load only what frames need now.")
+    ] = False,
+    budget_mb: Annotated[float, typer.Option("--budget-mb", help="Resident byte budget.")] = 256.0,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Loader threads.")] = 4,
+    latency_ms: Annotated[
+        float, typer.Option("--latency-ms", min=0.0, help="Delay added to every store request.")
+    ] = 0.0,
+    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Screen error threshold, px.")] = 1.0,
+    metric: Annotated[str, typer.Option("--metric", help="qiu or conservative.")] = "qiu",
+    size: Annotated[str, typer.Option("--size", help="Viewport WxH in pixels.")] = "1024x768",
+    every: Annotated[
+        int, typer.Option("--every", min=0, help="Print every N-th frame (0: auto).")
+    ] = 0,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Write a PNG plot.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write rows + summary.")] = None,
+) -> None:
+    """Fly a camera over a store in real time, streaming what each frame needs.
+
+    Example: terrastream stream demo.zarr --frames 600 --latency-ms 20 --plot io.png
+    """
+    from tqdm import tqdm
+
+    from streamer.run import make_path, plot_run, run_flythrough
+    from streamer.session import SessionConfig, open_session
+    from tiler.store import open_store
+
+    with fail_on_errors():
+        viewport = parse_size(size)
+        s = open_store(store)
+        cams = make_path(
+            s,
+            path_kind.value,
+            frames=frames,
+            fps=fps,
+            speed=speed,
+            path_file=path,
+            viewport=viewport,
+        )
+        cfg = dict(fps=fps, prefetch=not no_prefetch, latency_ms=latency_ms, tau=tau, metric=metric)
+        SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting
+        every = every or max(1, frames // 20)
+        header = (
+            f"{'frame':>6} {'vis':>4} {'pre':>4} {'needed MB':>10} {'rt MB':>8} "
+            f"{'pref MB':>8} {'I/O ms':>8} {'upd ms':>7} stall"
+        )
+        lines = [header]
+        bar = tqdm(total=len(cams), unit="frame", desc="streaming", disable=None)
+
+        def on_frame(i: int, st) -> None:
+            bar.update(1)
+            if i % every == 0 or st.stalled and i < 3:
+                mb = 1 / 2**20
+                lines.append(
+                    f"{i:>6} {st.visible_blocks:>4} {st.prefetch_blocks:>4} "
+                    f"{st.needed_bytes * mb:>10.2f} {st.realtime_bytes * mb:>8.3f} "
+                    f"{st.prefetched_bytes * mb:>8.3f} {st.io_ms:>8.1f} {st.update_ms:>7.2f} "
+                    f"{'yes' if st.stalled else ''}"
+                )
+
+        with open_session(s, budget_mb=budget_mb, workers=workers, **cfg) as session:
+            try:
+                result = run_flythrough(session, cams, on_frame=on_frame)
+            finally:
+                bar.close()
+        typer.echo("\n".join(lines))
+        typer.echo("")
+        typer.echo(format_summary(result.summary))
+        if json_out:
+            result.to_json(json_out)
+            typer.echo(f"wrote {json_out}")
+        if plot:
+            plot_run(result, plot)
+            typer.echo(f"wrote {plot}")
+
+
+def format_summary(d: dict) -> str:
+    """The stream summary block."""
+    mb = 1 / 2**20
+    needed = max(d["needed_bytes"], 1)
+    used = max(d["used_bytes"], 1)
+    return "\n".join(
+        [
+            f"frames {d['frames']}, stall frames {d['stall_frames']}, io errors {d['io_errors']}",
+            f"needed {d['needed_bytes'] * mb:.1f} MB over all frames; real-time loaded "
+            f"{d['realtime_bytes'] * mb:.3f} MB "
+            f"({100 * d['realtime_bytes_after_first_frame'] / needed:.3f} % of needed after "
+            "frame 1)",
+            f"loaded {d['loaded_bytes'] * mb:.2f} MB, used {d['used_bytes'] * mb:.2f} MB "
+            f"(loaded/used {d['loaded_bytes'] / used:.2f}), wasted {d['wasted_bytes'] * mb:.2f} MB",
+            f"peak resident {d['peak_resident_bytes'] * mb:.2f} MB of a "
+            f"{d['budget_bytes'] * mb:.0f} MB budget; max update {d['max_update_ms']:.2f} ms "
+            f"(CPU {d['max_update_cpu_ms']:.2f} ms)",
+        ]
+    )
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``1024x768`` → ``(1024, 768)``; a clear error otherwise."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"expected WIDTHxHEIGHT such as 1024x768, got {text!r}") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise typer.BadParameter(f"viewport {w}x{h} is outside 1..16384 pixels per side")
+    return w, h
 
 
 def main() -> None:

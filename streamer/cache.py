@@ -45,6 +45,7 @@ class LevelCache:
         self.peak_nbytes = 0
         self.frame = 0
         self.evicted_bytes = 0
+        self.reserved = 0  # bytes of levels being fetched (counted in nbytes)
 
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
@@ -166,15 +167,38 @@ class LevelCache:
             freeable += sum(a.nbytes for a in e.levels[keep + 1 :])
         return self.nbytes + nbytes - freeable <= self.budget
 
-    def add_level(self, block: Block, level: int, values: np.ndarray) -> bool:
-        """Add the next level of a block, evicting others if needed; False if it cannot fit."""
+    def reserve(self, block: Block, nbytes: int) -> bool:
+        """Count ``nbytes`` of a level being fetched for ``block`` (evicting if needed)."""
+        if not self.make_room(nbytes, for_block=block):
+            return False
+        self.nbytes += nbytes
+        self.reserved += nbytes
+        self.peak_nbytes = max(self.peak_nbytes, self.nbytes)
+        return True
+
+    def release(self, nbytes: int) -> None:
+        """Give back a reservation that will not become a level."""
+        self.nbytes -= nbytes
+        self.reserved -= nbytes
+
+    def add_level(
+        self, block: Block, level: int, values: np.ndarray, *, reserved: bool = False
+    ) -> bool:
+        """Add the next level of a block, evicting others if needed; False if it cannot fit.
+
+        With ``reserved=True`` the bytes were reserved by :meth:`reserve` (always fits).
+        """
         e = self._entries.get(block)
         if e is None:
+            if reserved:
+                self.release(int(values.nbytes))
             return False
         if level != len(e.levels):
             raise ValueError(f"block {block}: level {level} arrived but {len(e.levels)} is next")
         n = int(values.nbytes)
-        if not self.make_room(n, for_block=block):
+        if reserved:
+            self.release(n)
+        elif not self.make_room(n, for_block=block):
             return False
         values = np.asarray(values)
         values.setflags(write=False)

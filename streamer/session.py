@@ -42,6 +42,9 @@ from tiler.store import TerrainStore, open_store
 log = logging.getLogger(__name__)
 
 
+PER_BLOCK = 4  # raw levels of one block fetched at once
+
+
 class LoadError(StreamerError, OSError):
     """A block level that could not be read after every retry."""
 
@@ -135,7 +138,6 @@ class _Totals:
     io_errors: int = 0
     cancelled: int = 0
     used: set = field(default_factory=set)
-    loaded: set = field(default_factory=set)
 
 
 class Session:
@@ -165,7 +167,9 @@ class Session:
         self._lock = threading.Lock()
         self._cv = threading.Condition(self._lock)
         self._queue: list[tuple[tuple, Block]] = []
-        self._in_flight: set[Block] = set()
+        self._fetching: dict[Block, set[int]] = {}  # levels being read (-1: errors)
+        self._raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded
+        self._decoding: set[Block] = set()
         self._demanded: set[tuple[Block, int]] = set()
         self._failures: dict[Block, int] = {}
         self._retry_at: dict[Block, float] = {}
@@ -331,17 +335,18 @@ class Session:
             exc, self._scheduler_error = self._scheduler_error, None
             raise StreamerError(f"prefetch planning failed: {exc}") from exc
 
-    def _key(self, b: Block) -> tuple:
+    def _key(self, b: Block, level: int | None = None) -> tuple:
+        """Queue order: errors first, then pinned levels, coarse before fine, by screen error."""
         want, pin = self.cache.want(b)
-        nxt = self.cache.level(b) + 1
+        nxt = self.cache.level(b) + 1 if level is None else level
         _, _, _, prio = self._prio.get(b, (b, want, pin, 0.0))
         return (0 if b not in self._errors else 1, 0 if nxt <= pin else 1, nxt, -prio, b)
 
-    def _push(self, b: Block) -> None:
+    def _push(self, b: Block, level: int | None = None) -> None:
         """Queue ``b`` for its next load (caller holds the lock)."""
         if b in self._failed:
             return
-        heapq.heappush(self._queue, (self._key(b), b))
+        heapq.heappush(self._queue, (self._key(b, level), b))
         self._cv.notify_all()
 
     def _reschedule(self) -> None:
@@ -364,44 +369,67 @@ class Session:
 
     # -- loading ---------------------------------------------------------------------------
 
-    def _next_job(self) -> Block | None:
-        """Pop the most urgent block not already being loaded (caller holds the lock)."""
-        skipped = []
+    def _fetchable(self, b: Block) -> int | None:
+        """Next level of ``b`` to fetch (-1: its errors), or None (caller holds the lock).
+
+        Raw levels of one block are fetched concurrently (up to ``PER_BLOCK`` at a time) and
+        decoded in order, so a block needing several levels pays the store latency once.
+        """
+        if b in self._failed or self._retry_at.get(b, 0.0) > time.monotonic():
+            return None
+        busy = self._fetching.get(b, set())
+        if b not in self._errors:
+            return None if -1 in busy else -1
+        want, _pin = self.cache.want(b)
+        pending = self._raw.get(b, {})
+        if len(busy) >= PER_BLOCK:
+            return None
+        for level in range(self.cache.level(b) + 1, min(want, self.store.k) + 1):
+            if level not in busy and level not in pending:
+                return level
+        return None
+
+    def _next_job(self) -> tuple[Block, int] | None:
+        """Pop the most urgent ``(block, level)`` to fetch (caller holds the lock)."""
+        backing_off = []
         job = None
         now = time.monotonic()
         while self._queue:
             key, b = heapq.heappop(self._queue)
-            if b in self._in_flight or self._retry_at.get(b, 0.0) > now:
-                skipped.append((key, b))
+            if self._retry_at.get(b, 0.0) > now and b not in self._failed:
+                backing_off.append((key, b))
                 continue
-            job = b
+            level = self._fetchable(b)
+            if level is None:
+                continue  # re-pushed when its fetches finish, or by the next schedule
+            if level >= 0 and not self.cache.reserve(b, self.level_bytes[level]):
+                continue  # no room: pinned data fills the budget
+            self._fetching.setdefault(b, set()).add(level)
+            more = self._fetchable(b)
+            if more is not None:
+                self._push(b, more)  # its next level can be fetched by another worker
+            job = (b, level)
             break
-        for item in skipped:
+        for item in backing_off:
             heapq.heappush(self._queue, item)
         return job
 
-    def _load_one(self, b: Block) -> int:
-        """Load the errors or the next wanted level of ``b``; returns bytes added (no lock held)."""
+    def _fetch(self, b: Block, level: int) -> None:
+        """Read errors or one raw level of ``b`` (no lock held), then decode what is ready."""
         t0 = time.perf_counter()
-        with self._cv:
-            need_errors = b not in self._errors
-            levels = self.cache.levels(b)
-            want, _pin = self.cache.want(b)
-        nxt = len(levels)
-        if not need_errors and (nxt > want or nxt > self.store.k):
-            return 0
         try:
             if self.config.latency_ms:
                 time.sleep(self.config.latency_ms / 1000.0)
             if self._read_hook is not None:
-                self._read_hook(b, -1 if need_errors else nxt)
-            if need_errors:
-                errors = self.store.read_errors(b)[self._field_name]
+                self._read_hook(b, level)
+            if level < 0:
+                data = self.store.read_errors(b)[self._field_name]
             else:
-                raw = self.store.read_level_raw(b, nxt)
-                values = self.store.to_heights(self.store.decode_next(_storage(self, levels), raw))
+                data = self.store.read_level_raw(b, level)
         except Exception as exc:  # noqa: BLE001 - any read failure is counted and retried
             with self._cv:
+                if level >= 0:
+                    self.cache.release(self.level_bytes[level])
                 self.totals.io_errors += 1
                 count = self._failures.get(b, 0) + 1
                 self._failures[b] = count
@@ -411,28 +439,55 @@ class Session:
                 else:
                     self._retry_at[b] = time.monotonic() + self.config.backoff_s * 2 ** (count - 1)
                 self._frame_io_s += time.perf_counter() - t0
-            log.warning("reading block %s failed (%d): %s", b, count, exc)
-            return 0
+            log.warning("reading block %s level %d failed (%d): %s", b, level, count, exc)
+            return
         with self._cv:
             self._failures.pop(b, None)
             self._retry_at.pop(b, None)
             self._frame_io_s += time.perf_counter() - t0
-            if need_errors:
-                self._errors.add(b, errors)
-                return 0
-            if self.cache.level(b) != nxt - 1:
-                return 0  # evicted or loaded meanwhile
-            if not self.cache.add_level(b, nxt, values):
-                return 0
-            nbytes = int(values.nbytes)
-            self.totals.loaded_bytes += nbytes
-            self.totals.loaded.add((b, nxt))
-            if (b, nxt) in self._demanded:
-                self._frame_realtime += nbytes
-            else:
-                self._frame_prefetched += nbytes
-            self._cv.notify_all()
-            return nbytes
+            if level < 0:
+                self._errors.add(b, data)
+                return
+            self._raw.setdefault(b, {})[level] = data
+            if b in self._decoding:
+                return
+            self._decoding.add(b)
+        try:
+            self._decode_ready(b)
+        finally:
+            with self._cv:
+                self._decoding.discard(b)
+
+    def _decode_ready(self, b: Block) -> None:
+        """Decode ``b``'s fetched levels that follow its resident ones, in order."""
+        while True:
+            t0 = time.perf_counter()
+            with self._cv:
+                nxt = self.cache.level(b) + 1
+                raw = self._raw.get(b, {}).pop(nxt, None)
+                if raw is None:
+                    return
+                levels = self.cache.levels(b)
+            values = self.store.to_heights(self.store.decode_next(_storage(self, levels), raw))
+            with self._cv:
+                self._frame_io_s += time.perf_counter() - t0
+                nbytes = int(values.nbytes)
+                if self.cache.level(b) != nxt - 1 or not self.cache.add_level(
+                    b, nxt, values, reserved=True
+                ):
+                    self._drop_raw(b)  # evicted or unwanted meanwhile
+                    return
+                self.totals.loaded_bytes += nbytes
+                if (b, nxt) in self._demanded:
+                    self._frame_realtime += nbytes
+                else:
+                    self._frame_prefetched += nbytes
+                self._cv.notify_all()
+
+    def _drop_raw(self, b: Block) -> None:
+        """Forget fetched but undecodable levels of ``b`` (caller holds the lock)."""
+        for level in self._raw.pop(b, {}):
+            self.cache.release(self.level_bytes[level])
 
     def _worker(self) -> None:
         while True:
@@ -441,24 +496,30 @@ class Session:
                 while not self._stop:
                     job = self._next_job()
                     if job is not None:
-                        self._in_flight.add(job)
                         break
                     self._cv.wait(timeout=0.05)
                 if self._stop:
+                    if job is not None and job[1] >= 0:
+                        self.cache.release(self.level_bytes[job[1]])
                     return
-            try:
-                self._load_one(job)
-            finally:
-                with self._cv:
-                    self._in_flight.discard(job)
-                    self._requeue(job)
+            self._run_job(job)
+
+    def _run_job(self, job: tuple[Block, int]) -> None:
+        b, level = job
+        try:
+            self._fetch(b, level)
+        finally:
+            with self._cv:
+                self._fetching.get(b, set()).discard(level)
+                self._requeue(b)
 
     def _requeue(self, b: Block) -> None:
         """Put ``b`` back in the queue if it still wants more (caller holds the lock)."""
-        want, _pin = self.cache.want(b)
-        if want < 0 or (b in self._errors and self.cache.level(b) >= want):
-            return
-        self._push(b)
+        backing_off = b not in self._failed and self._retry_at.get(b, 0.0) > time.monotonic()
+        if backing_off or self._fetchable(b) is not None:
+            self._push(b)
+        elif not self._fetching.get(b) and b in self._raw and b not in self._decoding:
+            self._drop_raw(b)  # levels fetched beyond a gap that will not be filled
 
     def _load_inline(self, needed: dict[Block, int], unlimited: bool = False) -> None:
         """``workers=0``: do this frame's loads now, up to the per-frame allowance."""
@@ -467,12 +528,12 @@ class Session:
         self._mark_demand(needed)
         while allowance is None or spent < allowance:
             with self._cv:
-                b = self._next_job()
-            if b is None:
+                job = self._next_job()
+            if job is None:
                 break
-            spent += self._load_one(b)
-            with self._cv:
-                self._requeue(b)
+            before = self.totals.loaded_bytes
+            self._run_job(job)
+            spent += self.totals.loaded_bytes - before
 
     def _missing(self, needed: dict[Block, int]) -> list[tuple[Block, int]]:
         return [

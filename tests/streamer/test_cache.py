@@ -71,7 +71,7 @@ class CacheMachine(RuleBasedStateMachine):
         assert 0 <= self.cache.nbytes <= self.cache.budget
         assert self.cache.peak_nbytes <= self.cache.budget
         total = sum(sum(a.nbytes for a in self.cache.levels(b)) for b in self.cache.blocks())
-        assert total == self.cache.nbytes
+        assert total + self.cache.reserved == self.cache.nbytes
 
 
 TestCacheMachine = CacheMachine.TestCase

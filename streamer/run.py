@@ -1,0 +1,180 @@
+"""Fly a camera path through a session in real time and collect per-frame statistics.
+
+Used by ``terrastream stream`` and ``bench/prefetch.py``. Frames are paced at ``fps`` on the
+wall clock (so store latency is real): frame ``i`` is due at ``t0 + i / fps``; the loop sleeps
+until then, calls :meth:`Session.update` (non-blocking, except the first frame, which waits
+so the fly-through starts with its data), and records the frame's stats.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from streamer import paths
+from streamer.camera import Camera
+from streamer.errors import PathError
+from streamer.session import FrameStats, Session
+from tiler.store import TerrainStore
+
+PATH_KINDS = ("default", "line", "circle", "canyon", "teleports")
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Per-frame statistics and the session summary of one fly-through."""
+
+    rows: list[dict[str, Any]]
+    summary: dict[str, Any]
+
+    def to_json(self, path: str | Path) -> None:
+        """Write ``{"frames": rows, "summary": summary}``."""
+        Path(path).write_text(json.dumps({"frames": self.rows, "summary": self.summary}, indent=1))
+
+
+def store_height_fn(store: TerrainStore, level: int | None = None) -> Callable:
+    """``height(x, y)`` by bilinear interpolation of one level of the store (blocks cached)."""
+    lv = max(0, store.k - 4) if level is None else level
+    step = 1 << (store.k - lv)
+    grid = store.grid
+    cache: dict[tuple[int, int], np.ndarray] = {}
+    zmid = float(np.nanmean(store.index.zmax))
+
+    def height(x: float, y: float) -> float:
+        r, c = grid.world_to_sample(x, y)
+        r = min(max(float(r), 0.0), grid.height - 1.0)
+        c = min(max(float(c), 0.0), grid.width - 1.0)
+        br, bc = (int(v) for v in grid.block_of_sample(int(r), int(c)))
+        if not store.index.exists[br, bc]:
+            return zmid
+        if (br, bc) not in cache:
+            cache[(br, bc)] = store.read_block((br, bc), lv).astype(np.float64)
+        g = cache[(br, bc)]
+        lr, lc = (r - br * grid.step) / step, (c - bc * grid.step) / step
+        r0, c0 = min(int(lr), g.shape[0] - 2), min(int(lc), g.shape[1] - 2)
+        fr, fc = lr - r0, lc - c0
+        top = g[r0, c0] * (1 - fc) + g[r0, c0 + 1] * fc
+        bot = g[r0 + 1, c0] * (1 - fc) + g[r0 + 1, c0 + 1] * fc
+        return float(top * (1 - fr) + bot * fr)
+
+    return height
+
+
+def make_path(
+    store: TerrainStore,
+    kind: str = "default",
+    *,
+    frames: int = 600,
+    fps: float = 60.0,
+    speed: float | None = None,
+    path_file: str | Path | None = None,
+    seed: int = 0,
+    **camera_kw: Any,
+) -> list[Camera]:
+    """A fly-through over the store: a keyframe file, or one of :data:`PATH_KINDS`.
+
+    Speeds are world units per second (default: one block edge per second).
+    """
+    grid = store.grid
+    zmin, zmax = store.meta.extra.get("value_range", (0.0, 0.0))
+    edge = grid.step * grid.dx
+    v = edge if speed is None else float(speed)
+    if path_file is not None:
+        return paths.keyframes(path_file, frames, **camera_kw)
+    x0, y0, x1, y1 = grid.extent
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    height = zmax + max(0.1 * (zmax - zmin), 0.02 * edge)
+    dist = v * frames / fps
+    camera_kw.setdefault("far", max(8 * edge, 4 * (height - zmin) + dist / 4))
+    camera_kw.setdefault("near", max(0.5, 0.002 * (height - zmin)))
+    if kind == "default":
+        kw = {k: camera_kw[k] for k in ("viewport", "fov_y") if k in camera_kw}
+        return paths.default_flythrough(grid, zmin, zmax, frames, fps, speed=v, **kw)
+    if kind == "line":
+        half = min(dist, math.hypot(x1 - x0, y1 - y0)) / 2
+        a = np.array([cx, cy]) - half * np.array([1.0, 1.0]) / math.sqrt(2)
+        b = np.array([cx, cy]) + half * np.array([1.0, 1.0]) / math.sqrt(2)
+        return paths.line((*a, height), (*b, height), frames, **camera_kw)
+    if kind == "circle":
+        radius = min(0.35 * min(x1 - x0, y1 - y0), v * frames / fps / (2 * math.pi))
+        radius = max(radius, edge / 4)
+        return paths.circle((cx, cy), radius, height, frames, look="tangent", **camera_kw)
+    if kind == "canyon":
+        fn = store_height_fn(store)
+        half = min(dist, 0.8 * math.hypot(x1 - x0, y1 - y0)) / 2
+        a = (cx - half / math.sqrt(2), cy - half / math.sqrt(2))
+        b = (cx + half / math.sqrt(2), cy + half / math.sqrt(2))
+        clearance = max(0.01 * edge, 0.05 * (zmax - zmin))
+        return paths.canyon(fn, a, b, frames, clearance, **camera_kw)
+    if kind == "teleports":
+        bounds = (x0, y0, zmax, x1, y1, height + 0.2 * (zmax - zmin))
+        return paths.teleports(bounds, frames, seed, max(1, int(fps)), **camera_kw)
+    raise PathError(f"unknown path kind {kind!r}; choose one of {', '.join(PATH_KINDS)}")
+
+
+def run_flythrough(
+    session: Session,
+    cameras: list[Camera],
+    *,
+    realtime: bool = True,
+    first_wait: bool = True,
+    on_frame: Callable[[int, FrameStats], None] | None = None,
+) -> RunResult:
+    """Update the session once per camera, paced at the session's fps; collect every frame."""
+    fps = session.config.fps
+    rows = []
+    t0 = time.perf_counter()
+    for i, cam in enumerate(cameras):
+        if realtime:
+            due = t0 + i / fps
+            delay = due - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        frame = session.update(cam, 1.0 / fps, wait=first_wait and i == 0)
+        row = asdict(frame.stats)
+        rows.append(row)
+        if on_frame is not None:
+            on_frame(i, frame.stats)
+    return RunResult(rows=rows, summary=session.summary())
+
+
+def plot_run(result: RunResult, out: str | Path, title: str = "") -> None:
+    """Plot needed / real-time / prefetched MB and I/O ms per frame (Qiu's Table 3) to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result.rows
+    f = np.arange(len(rows))
+    mb = 1 / 2**20
+    fig, ax = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+    ax[0].plot(f, [r["needed_bytes"] * mb for r in rows], label="needed MB (visible levels)")
+    ax[0].plot(f, [r["resident_bytes"] * mb for r in rows], label="resident MB")
+    ax[0].legend(loc="upper right")
+    ax[1].plot(f, [r["realtime_bytes"] * mb for r in rows], label="real-time loaded MB", color="C3")
+    ax[1].plot(f, [r["prefetched_bytes"] * mb for r in rows], label="prefetched MB", color="C2")
+    stalls = [i for i, r in enumerate(rows) if r["stalled"]]
+    if stalls:
+        ax[1].scatter(stalls, [0] * len(stalls), marker="|", color="k", label="stall")
+    ax[1].legend(loc="upper right")
+    ax[2].plot(f, [r["io_ms"] for r in rows], label="I/O ms (workers)")
+    ax[2].plot(f, [r["update_ms"] for r in rows], label="update ms (caller)")
+    ax[2].set_xlabel("frame")
+    ax[2].legend(loc="upper right")
+    s = result.summary
+    fig.suptitle(
+        title
+        or f"{s['frames']} frames, {s['stall_frames']} stalls, "
+        f"peak resident {s['peak_resident_bytes'] * mb:.1f} MB"
+    )
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
