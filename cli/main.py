@@ -342,6 +342,21 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _register_optional_commands() -> None:
+    """Commands that live in their own modules (the renderer's), registered on ``app``."""
+    import importlib
+
+    for name in ("cli.render_commands",):
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name != name:
+                raise
+
+
+_register_optional_commands()
+
+
 def main() -> None:
     """Console entry point."""
     try:
