@@ -50,7 +50,9 @@ def tile(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing store.")
     ] = False,
-    level: Annotated[int, typer.Option("--zstd-level", help="zstd compression level.")] = 3,
+    level: Annotated[
+        int, typer.Option("--clevel", min=1, max=9, help="Compression level (blosc zstd).")
+    ] = 5,
 ) -> None:
     """Tile a DEM into a non-redundant level store.
 

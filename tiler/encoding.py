@@ -5,7 +5,9 @@ mean of the two ends, centres: mean of the four corners). What is stored is the 
 residual, which is exactly invertible:
 
 * integer DEMs (``int-residual``): ``v - floor(prediction)`` in the source dtype's modular
-  arithmetic (wraps like two's complement, so it never overflows);
+  arithmetic (wraps like two's complement, so it never overflows), zigzag-mapped to the
+  same-size unsigned type (0, -1, 1, -2... become 0, 1, 2, 3...) so small residuals have zero
+  high bytes; level 0 holds the zigzagged values themselves;
 * float DEMs (``float-xor``): the bit pattern of ``v`` XOR the bit pattern of the prediction
   rounded to the source dtype — the high bits cancel, so the result compresses;
 * quantised floats (``--precision``): ``round(v / step)`` as int32, then ``int-residual``.
@@ -19,13 +21,14 @@ from __future__ import annotations
 import numpy as np
 
 from tiler.errors import SourceError
-from tiler.layout import grid_side, new_vertex_flat_index, subgrid
+from tiler.layout import grid_side, new_vertex_flat_index, reconstruct, subgrid
 
 INT_RESIDUAL = "int-residual"
 FLOAT_XOR = "float-xor"
 
 SUPPORTED_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
-_UINT_VIEW = {4: np.uint32, 8: np.uint64}
+_UINT_VIEW = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}
+_INT_VIEW = {1: np.int8, 2: np.int16, 4: np.int32, 8: np.int64}
 
 
 def parse_dtype(dtype: np.dtype | str) -> np.dtype:
@@ -40,9 +43,34 @@ def parse_dtype(dtype: np.dtype | str) -> np.dtype:
 
 
 def storage_dtype_for(dtype: np.dtype) -> np.dtype:
-    """The dtype levels are stored in: the integer dtype itself, or floats' same-size uint bits."""
-    dt = np.dtype(dtype)
-    return np.dtype(_UINT_VIEW[dt.itemsize]) if dt.kind == "f" else dt
+    """The dtype levels are stored in: the same-size unsigned integer (zigzag or float bits)."""
+    return np.dtype(_UINT_VIEW[np.dtype(dtype).itemsize])
+
+
+def zigzag(signed: np.ndarray) -> np.ndarray:
+    """Map signed integers to unsigned ones of the same size: 0,-1,1,-2 -> 0,1,2,3."""
+    bits = signed.dtype.itemsize * 8
+    u = _UINT_VIEW[signed.dtype.itemsize]
+    return ((signed << 1) ^ (signed >> (bits - 1))).view(u)
+
+
+def unzigzag(z: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`zigzag` (returns the signed type of the same size)."""
+    s = _INT_VIEW[z.dtype.itemsize]
+    return ((z >> 1) ^ (-(z & 1).view(s)).view(z.dtype)).view(s)
+
+
+def _to_stored0(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    if dtype.kind == "f":
+        return values.view(_UINT_VIEW[dtype.itemsize])
+    return zigzag(values.view(_INT_VIEW[dtype.itemsize]))
+
+
+def _from_stored0(stored: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    st = np.asarray(stored).view(_UINT_VIEW[dtype.itemsize])
+    if dtype.kind == "f":
+        return st.view(dtype).copy()
+    return unzigzag(st).view(dtype).copy()
 
 
 def encoding_for(dtype: np.dtype) -> str:
@@ -101,12 +129,12 @@ def fill_invalid(grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
 def encode_levels(grid: np.ndarray, k: int) -> list[np.ndarray]:
     """Residual-encode a (filled) ``2**k+1`` block into ``k+1`` level arrays.
 
-    Integer grids give arrays of their own dtype; float grids give same-size unsigned bits.
+    The arrays have the same-size unsigned dtype (:func:`storage_dtype_for`).
     """
     dtype = grid.dtype
     if grid.shape != (grid_side(k),) * 2:
         raise ValueError(f"expected a {grid_side(k)}x{grid_side(k)} block, got {grid.shape}")
-    out = [subgrid(grid, k, 0).ravel().copy().view(storage_dtype_for(dtype))]
+    out = [_to_stored0(subgrid(grid, k, 0).ravel().copy(), dtype)]
     for level in range(1, k + 1):
         idx = new_vertex_flat_index(level)
         pred = predict(subgrid(grid, k, level - 1)).ravel()[idx]
@@ -119,14 +147,15 @@ def _residual(vals: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarray
     if dtype.kind == "f":
         u = _UINT_VIEW[dtype.itemsize]
         return vals.view(u) ^ pred.astype(dtype).view(u)
-    return (vals.astype(np.int64) - pred).astype(dtype)
+    return zigzag((vals.astype(np.int64) - pred).astype(_INT_VIEW[dtype.itemsize]))
 
 
 def _unresidual(res: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarray:
     if dtype.kind == "f":
         u = _UINT_VIEW[dtype.itemsize]
         return (res.view(u) ^ pred.astype(dtype).view(u)).view(dtype)
-    return (res.astype(np.int64) + pred).astype(dtype)
+    r = unzigzag(res.view(_UINT_VIEW[dtype.itemsize]))
+    return (r.astype(np.int64) + pred).astype(dtype)
 
 
 def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = None) -> np.ndarray:
@@ -134,12 +163,12 @@ def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = N
     dtype = np.dtype(dtype)
     if level is None:
         level = len(stored) - 1
-    g = np.asarray(stored[0]).view(dtype).reshape(2, 2)
+    g = _from_stored0(stored[0], dtype).reshape(2, 2)
     for i in range(1, level + 1):
         pred = predict(g)
         flat = pred.ravel()
         idx = new_vertex_flat_index(i)
-        vals = _unresidual(np.asarray(stored[i]).view(dtype), flat[idx], dtype)
+        vals = _unresidual(np.asarray(stored[i]), flat[idx], dtype)
         out = flat.astype(dtype)
         out[idx] = vals
         g = out.reshape(pred.shape)
@@ -149,18 +178,28 @@ def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = N
 def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]:
     """Decoded (height) values of each stored level, in sequence order."""
     dtype = np.dtype(dtype)
-    out = [np.asarray(stored[0]).view(dtype).copy()]
+    out = [_from_stored0(stored[0], dtype)]
     g = out[0].reshape(2, 2)
     for i in range(1, len(stored)):
         pred = predict(g)
         flat = pred.ravel()
         idx = new_vertex_flat_index(i)
-        vals = _unresidual(np.asarray(stored[i]).view(dtype), flat[idx], dtype)
+        vals = _unresidual(np.asarray(stored[i]), flat[idx], dtype)
         out.append(vals)
         full = flat.astype(dtype)
         full[idx] = vals
         g = full.reshape(pred.shape)
     return out
+
+
+def decode_next_level(levels: list[np.ndarray], raw: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Decode level ``len(levels)`` from its stored values and the decoded levels before it."""
+    dtype = np.dtype(dtype)
+    n = len(levels)
+    if n == 0:
+        return _from_stored0(raw, dtype)
+    pred = predict(reconstruct(levels, n - 1)).ravel()[new_vertex_flat_index(n)]
+    return _unresidual(np.asarray(raw), pred, dtype)
 
 
 def quantise(values: np.ndarray, step: float) -> np.ndarray:

@@ -88,16 +88,62 @@ def bound_errors_reference(grid: np.ndarray, valid: np.ndarray, k: int) -> list[
 
 
 def _surface_dev(f4, a, b, c, d, u, v):
-    """max(|f - z|) over the two diagonal triangulations of each node (broadcast 4-D)."""
-    ba, ca, db, dc = b - a, c - a, d - b, d - c
-    za = np.where(u >= v, a + u * ba + v * db, a + v * ca + u * dc)
-    np.subtract(f4, za, out=za)
-    np.abs(za, out=za)
-    zb = np.where((u + v) <= 1.0, a + u * ba + v * ca, d - (1.0 - u) * dc - (1.0 - v) * db)
-    np.subtract(f4, zb, out=zb)
-    np.abs(zb, out=zb)
-    np.maximum(za, zb, out=za)
-    return za
+    """max |f - z| over the two diagonal triangulations of each node (broadcast 4-D, float32).
+
+    With ``L = a + u (b - a) + v (c - a)`` and ``q = b + c - a - d``, the a-d triangulation is
+    ``L - q min(u, v)`` and the b-c one ``L + q min(1 - u - v, 0)``: two multiply-adds on top
+    of a shared ``f - L``, and no branch.
+    """
+    g = f4 - a
+    g -= u * (b - a)
+    g -= v * (c - a)
+    q = b + c - a - d
+    m1 = np.minimum(u, v)
+    m2 = np.minimum(1.0 - u - v, 0.0).astype(f4.dtype)
+    dev_a = np.abs(g + q * m1)
+    g -= q * m2
+    np.abs(g, out=g)
+    np.maximum(dev_a, g, out=g)
+    return g
+
+
+_BROADCAST_MIN = 16  # node size (samples) above which 4-D broadcasting beats offset loops
+
+
+def _offset_dev(
+    f: np.ndarray, c: np.ndarray, inval: np.ndarray, n: int, s: int, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Node maxima for small nodes: one ``(n, n)`` pass per in-node offset ``(iv, iu)``, so
+    numpy's inner loops run over ``n`` nodes, not ``s`` samples. Returns the max over the
+    node's interior+top+left samples, over its top row, over its left column, and its corner."""
+    a, b, cc, d = c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]
+    ba, ca = b - a, cc - a
+    q = b + cc - a - d
+    inner = np.zeros((n, n), dtype=f.dtype)
+    top = np.zeros((n, n), dtype=f.dtype)
+    left = np.zeros((n, n), dtype=f.dtype)
+    corner = None
+    for iv in range(s):
+        v = t[iv]
+        for iu in range(s):
+            u = t[iu]
+            g = f[iv : iv + n * s : s, iu : iu + n * s : s] - a
+            g -= u * ba
+            g -= v * ca
+            m1, m2 = min(u, v), min(1.0 - u - v, 0.0)
+            out = np.abs(g + m1 * q)
+            g -= m2 * q
+            np.abs(g, out=g)
+            np.maximum(out, g, out=out)
+            out[inval[iv : iv + n * s : s, iu : iu + n * s : s]] = 0.0
+            np.maximum(inner, out, out=inner)
+            if iv == 0:
+                np.maximum(top, out, out=top)
+            if iu == 0:
+                np.maximum(left, out, out=left)
+            if iu == 0 and iv == 0:
+                corner = out.copy()
+    return inner, top, left, corner
 
 
 def _edge_dev(f_edge: np.ndarray, c_edge: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -113,31 +159,43 @@ def bound_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray
     and column, and the edges nodes share, are added afterwards.
     """
     side = grid.shape[0]
-    f = grid.astype(np.float64)
+    # float32 relative to a reference height, with a margin covering the rounding
+    ref = float(np.median(grid[valid])) if valid.any() else 0.0
+    f64 = grid.astype(np.float64) - ref
+    span = float(np.max(np.abs(f64))) if f64.size else 0.0
+    margin = 64.0 * np.finfo(np.float32).eps * span
+    f = f64.astype(np.float32)
     inval = ~valid
     out = []
     for depth in range(k):
         n = 1 << depth
         s = (side - 1) // n
-        c = subgrid(grid, k, depth).astype(np.float64)
-        t = np.arange(s) / s
-        f4 = f[:-1, :-1].reshape(n, s, n, s)
-        corners = [q[:, None, :, None] for q in (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])]
-        dev = _surface_dev(f4, *corners, t[None, None, None, :], t[None, :, None, None])
-        dev[inval[:-1, :-1].reshape(n, s, n, s)] = 0.0
+        c = subgrid(f, k, depth)
+        t = (np.arange(s) / s).astype(np.float32)
+        if s > _BROADCAST_MIN:
+            f4 = f[:-1, :-1].reshape(n, s, n, s)
+            quad = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
+            corners = [q[:, None, :, None] for q in quad]
+            dev = _surface_dev(f4, *corners, t[None, None, None, :], t[None, :, None, None])
+            dev[inval[:-1, :-1].reshape(n, s, n, s)] = 0.0
+            inner = dev.max(axis=(1, 3))
+            top = dev[:, 0, :, :].max(axis=2)
+            left = dev[:, :, :, 0].max(axis=1)
+            tl = dev[:, 0, :, 0]
+        else:
+            inner, top, left, tl = _offset_dev(f, c, inval, n, s, t)
         lastrow = _edge_dev(f[-1, :], c[-1, :], t)
         lastcol = _edge_dev(f[:, -1], c[:, -1], t)
         lastrow[inval[-1, :]] = 0.0
         lastcol[inval[:, -1]] = 0.0
-        top = dev[:, 0, :, :].max(axis=2)
-        left = dev[:, :, :, 0].max(axis=1)
         bottom = np.vstack([top[1:], lastrow[:-1].reshape(n, s).max(axis=1)[None]])
         right = np.hstack([left[:, 1:], lastcol[:-1].reshape(n, s).max(axis=1)[:, None]])
-        corner = np.empty((n, n))
-        corner[:-1, :-1] = dev[1:, 0, 1:, 0]
+        corner = np.empty((n, n), dtype=np.float32)
+        corner[:-1, :-1] = tl[1:, 1:]
         corner[-1, :] = lastrow[s::s]
         corner[:, -1] = lastcol[s::s]
-        out.append(np.maximum.reduce([dev.max(axis=(1, 3)), bottom, right, corner]))
+        node = np.maximum.reduce([inner, bottom, right, corner])
+        out.append(np.where(node > 0, node.astype(np.float64) + margin, 0.0))
     return out
 
 

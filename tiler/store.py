@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 import zarr
-from zarr.codecs import ZstdCodec
+from zarr.codecs import BloscCodec
 
 from tiler import static_error
-from tiler.encoding import decode_grid, decode_levels, dequantise
+from tiler.encoding import decode_grid, decode_levels, decode_next_level, dequantise
 from tiler.errors import (
     StoreCorruptError,
     StoreError,
@@ -35,7 +35,7 @@ from tiler.errors import (
     StoreVersionError,
 )
 from tiler.grid import BlockGrid
-from tiler.layout import grid_side, level_index, level_size, order_index, reconstruct
+from tiler.layout import grid_side, level_index, level_size, order_index
 
 FORMAT_VERSION = 1
 ATTR = "terrastream"
@@ -150,9 +150,22 @@ class StoreMeta:
             raise StoreCorruptError(f"store metadata is incomplete or damaged: {exc}") from exc
 
 
-def compressor(level: int = 3) -> ZstdCodec:
-    """The level compressor (zstd; chosen by measurement, see BENCHMARKS.md)."""
-    return ZstdCodec(level=level)
+DEFAULT_CLEVEL = 5
+
+
+def compressor(level: int = DEFAULT_CLEVEL, typesize: int = 2, bits: bool = False) -> BloscCodec:
+    """Blosc (zstd inside) with byte shuffle, or bit shuffle for index tables.
+
+    Chosen by measurement (BENCHMARKS.md): on zigzagged residuals, byte shuffle + zstd beats
+    plain zstd by 15-35 %; blosc is in the zarr v3 specification, unlike numcodecs filters.
+    """
+    return BloscCodec(
+        cname="zstd",
+        clevel=level,
+        shuffle="bitshuffle" if bits else "shuffle",
+        typesize=typesize,
+        blocksize=0,
+    )
 
 
 def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
@@ -160,7 +173,8 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
     grid = meta.grid
     rows, cols = grid.shape
     side = grid.side
-    comp = [compressor(comp_level)]
+    itemsize = np.dtype(meta.storage_dtype).itemsize
+    comp = [compressor(comp_level, itemsize)]
     for i in range(meta.levels):
         n = level_size(i)
         kw: dict[str, Any] = {}
@@ -182,7 +196,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
         shape=(rows, cols, len(meta.error_fields), e),
         chunks=(1, 1, len(meta.error_fields), e),
         dtype="float16",
-        compressors=comp,
+        compressors=[compressor(comp_level, 2)],
         fill_value=0,
     )
     group.create_array(
@@ -190,7 +204,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
         shape=(rows, cols, side, side),
         chunks=(1, 1, side, side),
         dtype="bool",
-        compressors=comp,
+        compressors=[compressor(comp_level, 1, bits=True)],
         fill_value=True,
     )
     ic = (min(rows, INDEX_CHUNK), min(cols, INDEX_CHUNK))
@@ -208,8 +222,12 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
     group.create_array(
         "index/window", shape=(rows, cols, 4), chunks=(*ic, 4), dtype="int32", fill_value=0
     )
-    group.create_array("level_index", data=np.asarray(level_index(meta.k)), compressors=comp)
-    group.create_array("order_index", data=np.asarray(order_index(meta.k)), compressors=comp)
+    for name, table in (("level_index", level_index(meta.k)), ("order_index", order_index(meta.k))):
+        group.create_array(
+            name,
+            data=np.asarray(table),
+            compressors=[compressor(9, table.dtype.itemsize, bits=True)],
+        )
 
 
 def write_meta(group: zarr.Group, meta: StoreMeta) -> None:
@@ -304,15 +322,7 @@ class TerrainStore:
 
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
         """Decode the next level from its raw values and the decoded levels ``0..L-1``."""
-        n = len(levels)
-        if n == 0:
-            return np.asarray(raw).view(self._value_dtype).copy()
-        from tiler.encoding import _unresidual, predict
-        from tiler.layout import new_vertex_flat_index
-
-        coarse = reconstruct(levels, n - 1)
-        pred = predict(coarse).ravel()[new_vertex_flat_index(n)]
-        return _unresidual(np.asarray(raw).view(self._value_dtype), pred, self._value_dtype)
+        return decode_next_level(levels, raw, self._value_dtype)
 
     def to_heights(self, values: np.ndarray) -> np.ndarray:
         """Convert decoded storage values to the source dtype (dequantises ``--precision``)."""

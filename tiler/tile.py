@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import rasterio
+import rasterio.env
 import rasterio.errors
 import zarr
 from rasterio.windows import Window
@@ -69,8 +70,9 @@ class TileOptions:
     precision: float | None = None
     workers: int = 0  # 0 = one per CPU core
     overwrite: bool = False
-    compression_level: int = 3
+    compression_level: int = 5  # blosc/zstd clevel
     error_cap: int | None = None  # default: k - 4
+    gdal_cache_mb: int = 64  # GDAL's block cache (its default, 5 % of RAM, dominates RSS)
 
     def __post_init__(self) -> None:
         parse_block_size(self.block_size)
@@ -82,8 +84,8 @@ class TileOptions:
             )
         if self.workers < 0:
             raise SourceError(f"workers must be >= 0 (0 = one per core), got {self.workers}")
-        if not 1 <= self.compression_level <= 22:
-            raise SourceError(f"compression level must be in 1..22, got {self.compression_level}")
+        if not 1 <= self.compression_level <= 9:
+            raise SourceError(f"compression level must be in 1..9, got {self.compression_level}")
 
     @property
     def k(self) -> int:
@@ -113,7 +115,7 @@ class BlockResult:
     """Encoded block: stored levels, packed errors, valid mask (None if all valid), index row."""
 
     levels: list[np.ndarray]
-    errors: np.ndarray
+    errors: np.ndarray | None
     mask: np.ndarray | None
     exists: bool
     has_nodata: bool
@@ -124,7 +126,11 @@ class BlockResult:
 
 @dataclass(frozen=True)
 class TileProgress:
-    """Progress report: blocks done/total, source bytes processed, elapsed seconds."""
+    """Progress report: blocks processed/total, source bytes processed, elapsed seconds.
+
+    A block counts when its data is written; it is marked done in the store (for resuming)
+    once the small-level shard it belongs to is written.
+    """
 
     blocks_done: int
     blocks_total: int
@@ -241,7 +247,7 @@ def _source_meta(ds: rasterio.DatasetReader, src: str, opts: TileOptions) -> Sto
         tool_version=tool_version(),
         error_cap=cap,
         error_fields=static_error.FIELDS,
-        compressor={"name": "zstd", "level": opts.compression_level},
+        compressor={"name": "blosc-zstd-shuffle", "level": opts.compression_level},
     )
 
 
@@ -336,6 +342,8 @@ def tile(
     """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened."""
     opts = options or TileOptions()
     src, dst = str(src), str(dst)
+    # Takes effect if GDAL's cache was not used yet in this process (e.g. the CLI's tile run).
+    rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(opts.gdal_cache_mb))
     with _open_source(src, opts.band) as ds:
         meta = _source_meta(ds, src, opts)
     grid = meta.grid
@@ -408,7 +416,8 @@ def _run_blocks(
         arrays["errors"][br, bc] = res.errors
         if res.mask is not None:
             arrays["mask"][br, bc] = res.mask
-        return (br, bc), res
+        # keep only what the shard writer needs: the small levels and the index row
+        return (br, bc), replace(res, levels=res.levels[:SHARDED_LEVELS], errors=None, mask=None)
 
     def report() -> None:
         if progress:
@@ -443,9 +452,9 @@ def _run_blocks(
                     results[b] = res
                     r0, c0, h, w = grid.block_window(*b)
                     bytes_done += h * w * itemsize
+                    n_done += 1
+                    report()
             _write_shard(group, params.k, results)
-            n_done += len(results)
-            report()
     except BaseException:
         pool.shutdown(wait=True, cancel_futures=True)
         raise

@@ -92,7 +92,8 @@ def test_errors_match_brute_force(k, holes):
     for got, ref in zip(qiu_errors(grid, valid, k), brute_qiu(grid, valid, k), strict=True):
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
     for got, ref in zip(bound_errors(grid, valid, k), brute_bound(grid, valid, k), strict=True):
-        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+        assert np.all(got >= ref)  # float32 with a rounding margin: never below
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * 20000)
 
 
 @settings(max_examples=25, deadline=None)
@@ -105,7 +106,9 @@ def test_fast_bound_equals_reference(k, seed):
     for a, b in zip(
         bound_errors(grid, valid, k), bound_errors_reference(grid, valid, k), strict=True
     ):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
+        assert np.all(a >= b)  # a bound: never below the exact value
+        scale = np.abs(grid).max() + 1
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * scale)
 
 
 def test_monotone_parent_at_least_descendants():

@@ -106,7 +106,7 @@ def test_precision_bound(dem_factory, tmp_path, step):
     data = (fractal((60, 45), 4, "float64") * 1.37).astype(np.float32)
     src = dem_factory(data)
     store = tile(src, tmp_path / "s.zarr", TileOptions(block_size=33, precision=step))
-    assert store.meta.encoding == "int-residual" and store.meta.storage_dtype == "int32"
+    assert store.meta.encoding == "int-residual" and store.meta.storage_dtype == "uint32"
     # step/2 plus float32 rounding of the output
     assert_store_matches(store, data, tol=step / 2 + 1e-3)
 
