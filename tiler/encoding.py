@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from tiler.errors import SourceError
-from tiler.layout import grid_side, new_vertex_flat_index, reconstruct, subgrid
+from tiler.layout import grid_side, reconstruct, subgrid
 
 INT_RESIDUAL = "int-residual"
 FLOAT_XOR = "float-xor"
@@ -78,25 +78,70 @@ def encoding_for(dtype: np.dtype) -> str:
     return FLOAT_XOR if np.dtype(dtype).kind == "f" else INT_RESIDUAL
 
 
+def _work_dtype(dtype: np.dtype) -> type:
+    """Arithmetic type for predictions: int32 is exact for sums of four 16-bit values."""
+    if dtype.kind == "f":
+        return np.float64
+    return np.int32 if dtype.itemsize <= 2 else np.int64
+
+
+def _predict_parts(g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predictions for the vertices a ``(m, m)`` grid gains at the next level.
+
+    Returns ``(h, v, c)``: horizontal edge midpoints ``(m, m-1)``, vertical ones ``(m-1, m)``
+    and centres ``(m-1, m-1)``. Integers floor in a wide integer type; floats take means.
+    """
+    wt = _work_dtype(g.dtype)
+    w = g.astype(wt, copy=False)
+    if g.dtype.kind == "f":
+        h = (w[:, :-1] + w[:, 1:]) * 0.5
+        v = (w[:-1, :] + w[1:, :]) * 0.5
+        c = (w[:-1, :-1] + w[:-1, 1:] + w[1:, :-1] + w[1:, 1:]) * 0.25
+        return h, v, c
+    h = (w[:, :-1] + w[:, 1:]) >> 1
+    v = (w[:-1, :] + w[1:, :]) >> 1
+    c = (w[:-1, :-1] + w[:-1, 1:] + w[1:, :-1] + w[1:, 1:]) >> 2
+    return h, v, c
+
+
 def predict(coarse: np.ndarray) -> np.ndarray:
     """Interpolate a ``(m, m)`` grid to the ``(2m-1, 2m-1)`` grid of the next level.
 
-    Integers use floor division in int64 (exact); floats use float64 means.
+    Integers use floor division (exact, in a wide type); floats use float64 means.
     """
-    if coarse.dtype.kind == "f":
-        g = coarse.astype(np.float64, copy=False)
-        out = np.empty((2 * g.shape[0] - 1, 2 * g.shape[1] - 1), dtype=np.float64)
-        out[::2, ::2] = g
-        out[::2, 1::2] = (g[:, :-1] + g[:, 1:]) * 0.5
-        out[1::2, ::2] = (g[:-1, :] + g[1:, :]) * 0.5
-        out[1::2, 1::2] = (g[:-1, :-1] + g[:-1, 1:] + g[1:, :-1] + g[1:, 1:]) * 0.25
-        return out
-    g = coarse.astype(np.int64, copy=False)
-    out = np.empty((2 * g.shape[0] - 1, 2 * g.shape[1] - 1), dtype=np.int64)
-    out[::2, ::2] = g
-    out[::2, 1::2] = (g[:, :-1] + g[:, 1:]) >> 1
-    out[1::2, ::2] = (g[:-1, :] + g[1:, :]) >> 1
-    out[1::2, 1::2] = (g[:-1, :-1] + g[:-1, 1:] + g[1:, :-1] + g[1:, 1:]) >> 2
+    h, v, c = _predict_parts(coarse)
+    m = coarse.shape[0]
+    out = np.empty((2 * m - 1, 2 * m - 1), dtype=h.dtype)
+    out[::2, ::2] = coarse
+    out[::2, 1::2] = h
+    out[1::2, ::2] = v
+    out[1::2, 1::2] = c
+    return out
+
+
+def _split(seq: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Views of a level's values (sequence order) by position in the ``2m-1`` grid.
+
+    Row-major order alternates an even row's odd columns (``m-1`` values) with a whole odd row
+    (``2m-1`` values), ending with the last even row. Returns ``(h_head, v, c, h_tail)``:
+    even rows but the last ``(m-1, m-1)``, odd rows' even columns ``(m-1, m)``, odd rows' odd
+    columns ``(m-1, m-1)``, and the last even row ``(m-1,)``.
+    """
+    n = (m - 1) * (3 * m - 2)
+    head = seq[:n].reshape(m - 1, 3 * m - 2)
+    odd = head[:, m - 1 :]
+    return head[:, : m - 1], odd[:, ::2], odd[:, 1::2], seq[n:]
+
+
+def _join(parts: tuple[np.ndarray, ...], m: int, dtype: np.dtype) -> np.ndarray:
+    """Inverse of :func:`_split` for ``(h, v, c)`` parts of a level (``h`` is ``(m, m-1)``)."""
+    h, v, c = parts
+    out = np.empty((m - 1) * (3 * m - 2) + (m - 1), dtype=dtype)
+    hh, vv, cc, tail = _split(out, m)
+    hh[...] = h[:-1]
+    vv[...] = v
+    cc[...] = c
+    tail[...] = h[-1]
     return out
 
 
@@ -136,9 +181,11 @@ def encode_levels(grid: np.ndarray, k: int) -> list[np.ndarray]:
         raise ValueError(f"expected a {grid_side(k)}x{grid_side(k)} block, got {grid.shape}")
     out = [_to_stored0(subgrid(grid, k, 0).ravel().copy(), dtype)]
     for level in range(1, k + 1):
-        idx = new_vertex_flat_index(level)
-        pred = predict(subgrid(grid, k, level - 1)).ravel()[idx]
-        vals = subgrid(grid, k, level).ravel()[idx]
+        coarse = subgrid(grid, k, level - 1)
+        fine = subgrid(grid, k, level)
+        m = coarse.shape[0]
+        pred = _join(_predict_parts(coarse), m, _work_dtype(dtype))
+        vals = _join((fine[::2, 1::2], fine[1::2, ::2], fine[1::2, 1::2]), m, dtype)
         out.append(_residual(vals, pred, dtype))
     return out
 
@@ -147,7 +194,8 @@ def _residual(vals: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarray
     if dtype.kind == "f":
         u = _UINT_VIEW[dtype.itemsize]
         return vals.view(u) ^ pred.astype(dtype).view(u)
-    return zigzag((vals.astype(np.int64) - pred).astype(_INT_VIEW[dtype.itemsize]))
+    wide = vals.astype(pred.dtype) - pred
+    return zigzag(wide.astype(_INT_VIEW[dtype.itemsize]))
 
 
 def _unresidual(res: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarray:
@@ -155,7 +203,21 @@ def _unresidual(res: np.ndarray, pred: np.ndarray, dtype: np.dtype) -> np.ndarra
         u = _UINT_VIEW[dtype.itemsize]
         return (res.view(u) ^ pred.astype(dtype).view(u)).view(dtype)
     r = unzigzag(res.view(_UINT_VIEW[dtype.itemsize]))
-    return (r.astype(np.int64) + pred).astype(dtype)
+    return (r.astype(pred.dtype) + pred).astype(dtype)
+
+
+def _next_grid(g: np.ndarray, raw: np.ndarray, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """The next level's grid from this one and its stored values; also its decoded values."""
+    m = g.shape[0]
+    h, v, c = _predict_parts(g)
+    rh, rv, rc, rt = _split(np.asarray(raw), m)
+    out = np.empty((2 * m - 1, 2 * m - 1), dtype=dtype)
+    out[::2, ::2] = g
+    out[0 : 2 * m - 2 : 2, 1::2] = _unresidual(rh, h[:-1], dtype)
+    out[2 * m - 2, 1::2] = _unresidual(rt, h[-1], dtype)
+    out[1::2, ::2] = _unresidual(rv, v, dtype)
+    out[1::2, 1::2] = _unresidual(rc, c, dtype)
+    return out
 
 
 def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = None) -> np.ndarray:
@@ -165,14 +227,14 @@ def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = N
         level = len(stored) - 1
     g = _from_stored0(stored[0], dtype).reshape(2, 2)
     for i in range(1, level + 1):
-        pred = predict(g)
-        flat = pred.ravel()
-        idx = new_vertex_flat_index(i)
-        vals = _unresidual(np.asarray(stored[i]), flat[idx], dtype)
-        out = flat.astype(dtype)
-        out[idx] = vals
-        g = out.reshape(pred.shape)
+        g = _next_grid(g, stored[i], dtype)
     return g
+
+
+def level_values(grid: np.ndarray) -> np.ndarray:
+    """The values a level's ``(2m-1, 2m-1)`` grid adds, in sequence (row-major) order."""
+    m = (grid.shape[0] + 1) // 2
+    return _join((grid[::2, 1::2], grid[1::2, ::2], grid[1::2, 1::2]), m, grid.dtype)
 
 
 def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]:
@@ -181,14 +243,8 @@ def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]
     out = [_from_stored0(stored[0], dtype)]
     g = out[0].reshape(2, 2)
     for i in range(1, len(stored)):
-        pred = predict(g)
-        flat = pred.ravel()
-        idx = new_vertex_flat_index(i)
-        vals = _unresidual(np.asarray(stored[i]), flat[idx], dtype)
-        out.append(vals)
-        full = flat.astype(dtype)
-        full[idx] = vals
-        g = full.reshape(pred.shape)
+        g = _next_grid(g, stored[i], dtype)
+        out.append(level_values(g))
     return out
 
 
@@ -198,8 +254,7 @@ def decode_next_level(levels: list[np.ndarray], raw: np.ndarray, dtype: np.dtype
     n = len(levels)
     if n == 0:
         return _from_stored0(raw, dtype)
-    pred = predict(reconstruct(levels, n - 1)).ravel()[new_vertex_flat_index(n)]
-    return _unresidual(np.asarray(raw), pred, dtype)
+    return level_values(_next_grid(reconstruct(levels, n - 1), raw, dtype))
 
 
 def quantise(values: np.ndarray, step: float) -> np.ndarray:

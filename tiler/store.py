@@ -320,6 +320,27 @@ class TerrainStore:
                 f"cannot read level {level} of block {block} from {self.url!r}: {exc}"
             ) from exc
 
+    def read_levels_raw(self, block: tuple[int, int], max_level: int) -> list[np.ndarray]:
+        """Stored levels ``0..max_level`` of a block, read concurrently (one chunk each)."""
+        import asyncio
+
+        from zarr.core.sync import sync
+
+        br, bc = self.check_block(block)
+        if not 0 <= max_level <= self.k:
+            raise StoreError(f"level {max_level} is outside 0..{self.k}")
+        arrays = [self._array(f"levels/{i}").async_array for i in range(max_level + 1)]
+
+        async def gather() -> list:
+            return await asyncio.gather(*(a.getitem((br, bc)) for a in arrays))
+
+        try:
+            return [np.asarray(r) for r in sync(gather())]
+        except (ValueError, OSError, RuntimeError) as exc:
+            raise StoreCorruptError(
+                f"cannot read levels 0..{max_level} of block {block} from {self.url!r}: {exc}"
+            ) from exc
+
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
         """Decode the next level from its raw values and the decoded levels ``0..L-1``."""
         return decode_next_level(levels, raw, self._value_dtype)
@@ -332,7 +353,7 @@ class TerrainStore:
 
     def read_levels(self, block: tuple[int, int], max_level: int) -> list[np.ndarray]:
         """Decoded heights of levels ``0..max_level`` of a block (sequence order, source dtype)."""
-        raws = [self.read_level_raw(block, i) for i in range(max_level + 1)]
+        raws = self.read_levels_raw(block, max_level)
         return [self.to_heights(v) for v in decode_levels(raws, self._value_dtype)]
 
     def read_block(self, block: tuple[int, int], max_level: int | None = None) -> np.ndarray:
@@ -340,7 +361,7 @@ class TerrainStore:
         level = self.k if max_level is None else int(max_level)
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
-        raws = [self.read_level_raw(block, i) for i in range(level + 1)]
+        raws = self.read_levels_raw(block, level)
         return self.to_heights(decode_grid(raws, self._value_dtype, level))
 
     def read_mask(self, block: tuple[int, int]) -> np.ndarray:
