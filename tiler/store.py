@@ -275,6 +275,11 @@ class TerrainStore:
                 f"store {self.url!r} was never finished (interrupted tiling?); run the same "
                 "'terrastream tile' command again to complete it."
             )
+        if np.dtype(self.meta.storage_dtype).kind != "u":
+            raise StoreVersionError(
+                f"store {self.url!r} was written by a pre-release terrastream (signed storage "
+                f"dtype {self.meta.storage_dtype}); tile the DEM again"
+            )
         self.grid = self.meta.grid
         self.k = self.meta.k
         self.dtype = np.dtype(self.meta.dtype)

@@ -1,0 +1,230 @@
+"""Measuring what a LOD frame costs in accuracy (pure numpy, no GL).
+
+* :func:`lod_surface` evaluates the drawn (LOD) surface at every full-resolution sample of each
+  patch: the patch's level grid triangulated as on the GPU (:mod:`render.mesh`), with edge
+  snapping applied (snapped edge strips are rasterised triangle by triangle on the sample lattice).
+* :func:`screen_errors` projects each sample's true position and the LOD surface at the same
+  ``(x, y)`` with :meth:`Camera.project` and returns the pixel distances of samples in view.
+* :func:`psnr`, :func:`changed_share`, :func:`crack_pixels` compare images.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from render.mesh import edge_strip_triangles
+from render.select import Patches
+from streamer.camera import Camera
+from tiler.grid import BlockGrid
+
+CHUNK = 1 << 21  # samples evaluated at once
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Measured screen-space error of a frame (pixels) over ``samples`` samples in view."""
+
+    max_px: float
+    p99_px: float
+    mean_px: float
+    samples: int
+
+
+def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: np.ndarray, n: int):
+    """Height of the regular (unsnapped) patch surface at patch cell coords ``(u, v)``."""
+    ci = np.minimum(np.floor(u).astype(np.int64), n - 1)
+    cj = np.minimum(np.floor(v).astype(np.int64), n - 1)
+    fu, fv = u - ci, v - cj
+    ra, ca = r0 + cj * s, c0 + ci * s
+    ha = full[ra, ca]
+    hb = full[ra, ca + s]
+    hc = full[ra + s, ca]
+    hd = full[ra + s, ca + s]
+    upper = fu >= fv
+    return np.where(
+        upper, ha + fu * (hb - ha) + fv * (hd - hb), ha + fv * (hc - ha) + fu * (hd - hc)
+    )
+
+
+def rasterise(tri: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integer lattice points ``(rows, cols)`` covered (edges included) by triangles ``tri``
+    ``(m, 3, 2)`` given as ``(col, row)`` ints, and the linear interpolant of ``h`` ``(m, 3)``."""
+    out_r, out_c, out_h = [], [], []
+    lo = tri.min(axis=1)
+    ext = tri.max(axis=1) - lo
+    keys, inv = np.unique(ext, axis=0, return_inverse=True)
+    for g, (w, hgt) in enumerate(keys):
+        sel = np.flatnonzero(inv.ravel() == g)
+        oy, ox = np.mgrid[0 : hgt + 1, 0 : w + 1]
+        ox, oy = ox.ravel(), oy.ravel()
+        for part in np.array_split(sel, max(1, len(sel) * len(ox) // CHUNK + 1)):
+            t = tri[part].astype(np.int64)
+            px = lo[part, 0][:, None] + ox
+            py = lo[part, 1][:, None] + oy
+            (x0, y0), (x1, y1), (x2, y2) = (
+                (t[:, i, 0][:, None], t[:, i, 1][:, None]) for i in range(3)
+            )
+            area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+            w0 = (x1 - px) * (y2 - py) - (y1 - py) * (x2 - px)
+            w1 = (x2 - px) * (y0 - py) - (y2 - py) * (x0 - px)
+            w2 = area - w0 - w1
+            sign = np.sign(area)
+            inside = (w0 * sign >= 0) & (w1 * sign >= 0) & (w2 * sign >= 0)
+            hh = h[part]
+            val = (w0 * hh[:, 0:1] + w1 * hh[:, 1:2] + w2 * hh[:, 2:3]) / area
+            out_r.append(py[inside])
+            out_c.append(px[inside])
+            out_h.append(val[inside])
+    if not out_r:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, np.zeros(0)
+    return np.concatenate(out_r), np.concatenate(out_c), np.concatenate(out_h)
+
+
+def lod_surface(
+    patches: Patches, k: int, heights: Callable[[int], np.ndarray]
+) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """Yield ``(block index, rows, cols, lod height)`` chunks covering every patch's samples.
+
+    ``heights(i)`` is the full-resolution ``(2**k+1)**2`` float64 grid of ``patches.blocks[i]``
+    with NaN at masked samples (NaN propagates: hidden triangles give NaN).
+    """
+    cells = patches.cells_log2
+    spacing_log2 = k - patches.level
+    snapped = patches.snap.max(axis=1) > 0
+    key = np.stack([patches.block, cells, spacing_log2], 1)
+    for grp in np.unique(key, axis=0):
+        b, c, sl = (int(v) for v in grp)
+        full = heights(b)
+        sel = np.flatnonzero((key == grp).all(axis=1))
+        n, s = 1 << c, 1 << sl
+        e = n * s
+        loc = np.arange(e + 1)
+        per = (e + 1) ** 2
+        for part in np.array_split(sel, max(1, len(sel) * per // CHUNK + 1)):
+            r0 = patches.row[part] * e
+            c0 = patches.col[part] * e
+            rr, cc = np.broadcast_arrays(
+                r0[:, None, None] + loc[None, :, None], c0[:, None, None] + loc[None, None, :]
+            )
+            v = np.broadcast_to(loc[None, :, None] / s, rr.shape)
+            u = np.broadcast_to(loc[None, None, :] / s, rr.shape)
+            hreg = _reg(full, r0, c0, s, u, v, n)
+            sn = patches.snap[part]
+            excl = np.zeros(rr.shape, dtype=bool)
+            excl |= (sn[:, 0] > 0)[:, None, None] & (v <= 1)
+            excl |= (sn[:, 2] > 0)[:, None, None] & (v >= n - 1)
+            excl |= (sn[:, 3] > 0)[:, None, None] & (u <= 1)
+            excl |= (sn[:, 1] > 0)[:, None, None] & (u >= n - 1)
+            keep = ~excl
+            yield b, rr[keep], cc[keep], hreg[keep]
+        for i in sel[snapped[sel]]:
+            tri = edge_strip_triangles(c, tuple(int(t) for t in patches.snap[i]))
+            if not len(tri):
+                continue
+            r0, c0 = int(patches.row[i]) * e, int(patches.col[i]) * e
+            tc = c0 + tri[..., 0] * s
+            tr = r0 + tri[..., 1] * s
+            hv = full[tr, tc]
+            rows, cols, hh = rasterise(np.stack([tc, tr], -1), hv)
+            yield b, rows, cols, hh
+
+
+def _reg(full, r0, c0, s, u, v, n):
+    """Regular surface for a stack of patches (origins ``r0, c0`` broadcast over the grid)."""
+    r0 = r0[:, None, None]
+    c0 = c0[:, None, None]
+    return _tri_heights(full, r0, c0, s, u, v, n)
+
+
+def screen_errors(
+    patches: Patches,
+    grid: BlockGrid,
+    camera: Camera,
+    heights: Callable[[int], np.ndarray],
+) -> np.ndarray:
+    """Pixel distances between true and LOD projections of every full-res sample in view."""
+    k = grid.k
+    out = []
+    w, h = camera.viewport
+    for b, rows, cols, hlod in lod_surface(patches, k, heights):
+        full = heights(b)
+        htrue = full[rows, cols]
+        ok = np.isfinite(hlod) & np.isfinite(htrue)
+        if not ok.any():
+            continue
+        rows, cols, hlod, htrue = rows[ok], cols[ok], hlod[ok], htrue[ok]
+        br, bc = (int(v) for v in patches.blocks[b])
+        x, y = grid.sample_xy(br * grid.step + rows, bc * grid.step + cols)
+        px0, py0, d0 = camera.project(np.stack([x, y, htrue], -1))
+        px1, py1, d1 = camera.project(np.stack([x, y, hlod], -1))
+        with np.errstate(invalid="ignore"):
+            view = (
+                (d0 >= camera.near)
+                & (d0 <= camera.far)
+                & (px0 >= 0)
+                & (px0 <= w)
+                & (py0 >= 0)
+                & (py0 <= h)
+                & (d1 > 0)
+            )
+        out.append(np.hypot(px1 - px0, py1 - py0)[view])
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def error_stats(err: np.ndarray) -> ErrorStats:
+    """Max, 99th percentile and mean of measured errors (0 for an empty view)."""
+    if err.size == 0:
+        return ErrorStats(0.0, 0.0, 0.0, 0)
+    return ErrorStats(
+        float(err.max()), float(np.percentile(err, 99)), float(err.mean()), int(err.size)
+    )
+
+
+def psnr(a: np.ndarray, b: np.ndarray, cap_db: float = 100.0) -> float:
+    """PSNR in dB of two uint8 images (``cap_db`` when identical)."""
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    if mse == 0.0:
+        return cap_db
+    return min(cap_db, 10.0 * np.log10(255.0**2 / mse))
+
+
+def changed_share(a: np.ndarray, b: np.ndarray, threshold: int = 2) -> float:
+    """Share of pixels whose largest channel difference exceeds ``threshold`` levels."""
+    d = np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1)
+    return float((d > threshold).mean())
+
+
+def is_clear(img: np.ndarray, clear_rgb: tuple[int, int, int]) -> np.ndarray:
+    """Boolean image: the pixel has exactly the clear colour."""
+    return (img[..., :3] == np.asarray(clear_rgb, dtype=img.dtype)).all(axis=-1)
+
+
+def crack_pixels(
+    img: np.ndarray, footprint: np.ndarray, clear_rgb: tuple[int, int, int], max_iter: int = 4096
+) -> int:
+    """Clear-colour pixels of ``img`` inside ``footprint`` that the outside cannot reach.
+
+    Pixels joined to the background (outside ``footprint`` or the image border) through clear
+    pixels are outline differences of a coarser silhouette, not holes, and are not counted.
+    """
+    clear = is_clear(img, clear_rgb)
+    reach = clear & ~footprint
+    reach[0] |= clear[0]
+    reach[-1] |= clear[-1]
+    reach[:, 0] |= clear[:, 0]
+    reach[:, -1] |= clear[:, -1]
+    for _ in range(max_iter):
+        grow = reach.copy()
+        grow[1:] |= reach[:-1]
+        grow[:-1] |= reach[1:]
+        grow[:, 1:] |= reach[:, :-1]
+        grow[:, :-1] |= reach[:, 1:]
+        grow &= clear
+        if (grow == reach).all():
+            break
+        reach = grow
+    return int((clear & footprint & ~reach).sum())

@@ -1,0 +1,378 @@
+"""Rendering with a streaming session: single views, the tau trade-off sweep, fly-throughs."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from render import measure
+from render.errors import RenderError
+from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
+from render.select import Patches
+from streamer.camera import Camera
+from streamer.session import Frame, Session, open_session
+from tiler.layout import grid_side, level_size
+from tiler.store import TerrainStore
+
+Block = tuple[int, int]
+
+
+def _budget_mb(store: TerrainStore) -> float:
+    """A budget that holds every block at full resolution (the reference needs that)."""
+    per = sum(level_size(i) for i in range(store.k + 1)) * store.dtype.itemsize
+    return max(64.0, 1.2 * per * len(store.blocks()) / 2**20)
+
+
+def open_render_session(
+    store: TerrainStore,
+    tau: float,
+    metric: str,
+    patch_log2: int,
+    *,
+    workers: int = 0,
+    budget_mb: float | None = None,
+    prefetch: bool = False,
+) -> Session:
+    """A session that loads what the renderer's frustum-hull culling sees."""
+    return open_session(
+        store,
+        budget_mb=budget_mb or _budget_mb(store),
+        workers=workers,
+        tau=tau,
+        metric=metric,
+        patch_log2=patch_log2,
+        culling="hull",
+        prefetch=prefetch,
+    )
+
+
+def resident_levels(frame: Frame) -> dict[Block, int]:
+    """The finest resident level of each visible block of a streaming frame."""
+    return {b: res for b, (res, _need) in frame.blocks.items() if res >= 0}
+
+
+def heights_fn(store: TerrainStore, patches: Patches) -> Callable[[int], np.ndarray]:
+    """Full-resolution float64 grids (NaN where masked) of ``patches.blocks[i]``, cached."""
+    cache: dict[int, np.ndarray] = {}
+
+    def get(i: int) -> np.ndarray:
+        if i not in cache:
+            b = tuple(int(v) for v in patches.blocks[i])
+            g = store.read_block(b).astype(np.float64)
+            if store.index.has_nodata[b]:
+                g[~store.read_mask(b)] = np.nan
+            cache[i] = g
+        return cache[i]
+
+    return get
+
+
+def draw_timed(
+    renderer: TerrainRenderer, camera: Camera, patches: Patches, repeats: int = 1, **kw: Any
+) -> RenderStats:
+    """Draw ``repeats`` times and keep the fastest frame time (llvmpipe timings are noisy)."""
+    best = None
+    for _ in range(max(1, repeats)):
+        st = renderer.draw(camera, patches, **kw)
+        if best is None or st.frame_ms < best.frame_ms:
+            best = st
+    assert best is not None
+    return best
+
+
+def render_view(
+    store: TerrainStore,
+    camera: Camera,
+    *,
+    tau: float = 1.0,
+    metric: str = "qiu",
+    patch_log2: int = 4,
+    wireframe: bool = False,
+    lod_colour: bool = False,
+    renderer: TerrainRenderer | None = None,
+) -> tuple[np.ndarray, RenderStats]:
+    """Stream what the view needs (waiting for it) and render it once."""
+    r = renderer or TerrainRenderer(
+        store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
+    )
+    with open_render_session(store, tau, metric, r.p) as session:
+        frame = session.update(camera, wait=True)
+        r.sync(frame.blocks, session)
+        patches, ms = r.select(camera, tau, metric, resident=resident_levels(frame))
+        st = r.draw(camera, patches, wireframe=wireframe, lod_colour=lod_colour, selection_ms=ms)
+    return r.image(), st
+
+
+def nadir_for(camera: Camera, zmid: float) -> Camera:
+    """A straight-down camera over the point the view centre looks at (for crack counting)."""
+    f = camera.forward
+    eye = camera.eye
+    t = (zmid - eye[2]) / f[2] if f[2] < -1e-6 else 0.0
+    gx, gy = (eye[:2] + t * f[:2]) if t > 0 else eye[:2]
+    h = max(abs(eye[2] - zmid), 1.0)
+    return Camera(
+        (gx, gy, zmid + h),
+        pitch=-90.0,
+        fov_y=camera.fov_y,
+        viewport=camera.viewport,
+        near=camera.near,
+        far=camera.far,
+    )
+
+
+@dataclass(frozen=True)
+class TradeoffRow:
+    """One tau of the trade-off sweep (the ``--json`` row)."""
+
+    tau: float
+    metric: str
+    triangles: int
+    patches: int
+    selection_ms: float
+    frame_ms: float
+    reference_frame_ms: float
+    reference_triangles: int
+    max_screen_error_px: float
+    p99_screen_error_px: float
+    mean_screen_error_px: float
+    samples_in_view: int
+    psnr_db: float
+    changed_share: float
+    crack_pixels: int
+    resident_bytes: int
+    loaded_bytes: int
+    gpu_bytes: int
+    clamped: int
+
+
+def tradeoff(
+    store: TerrainStore,
+    camera: Camera,
+    taus: Sequence[float],
+    *,
+    metric: str = "qiu",
+    patch_log2: int = 4,
+    repeats: int = 3,
+    renderer: TerrainRenderer | None = None,
+    log: Callable[[str], None] | None = None,
+) -> list[TradeoffRow]:
+    """Render the view at every tau and at full resolution; measure cost and error."""
+    r = renderer or TerrainRenderer(
+        store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
+    )
+    zlo, zhi = r.terrain_zrange
+    nadir = nadir_for(camera, 0.5 * (zlo + zhi))
+    with open_render_session(store, 0.0, metric, r.p) as ref_session:
+        ref_res = []
+        for cam in (camera, nadir):
+            frame = ref_session.update(cam, wait=True)
+            r.sync(frame.blocks, ref_session)
+            ref_res.append(resident_levels(frame))
+    ref_p, _ = r.select(camera, 0.0, metric, resident=ref_res[0], full=True)
+    ref_st = draw_timed(r, camera, ref_p, repeats)
+    ref_img = r.image()
+    nad_p, _ = r.select(nadir, 0.0, metric, resident=ref_res[1], full=True)
+    r.draw(nadir, nad_p, clear=CLEAR)
+    footprint = ~measure.is_clear(r.image(), CLEAR)
+    rows = []
+    for tau in taus:
+        with open_render_session(store, tau, metric, r.p) as s:
+            frame = s.update(camera, wait=True)
+            res = resident_levels(frame)
+            nad_res = resident_levels(s.update(nadir, wait=True))
+            loaded = s.summary()["loaded_bytes"]
+        patches, sel_ms = r.select(camera, tau, metric, resident=res)
+        for _ in range(max(0, repeats - 1)):
+            patches, ms = r.select(camera, tau, metric, resident=res)
+            sel_ms = min(sel_ms, ms)
+        st = draw_timed(r, camera, patches, repeats)
+        img = r.image()
+        err = measure.error_stats(
+            measure.screen_errors(patches, r.grid, camera, heights_fn(store, patches))
+        )
+        np_, _ = r.select(nadir, tau, metric, resident=nad_res)
+        r.draw(nadir, np_, clear=CLEAR)
+        cracks = measure.crack_pixels(r.image(), footprint, CLEAR)
+        drawn = {tuple(int(v) for v in b) for b in patches.blocks[np.unique(patches.block)]}
+        gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn)
+        row = TradeoffRow(
+            tau=float(tau),
+            metric=metric,
+            triangles=st.triangles,
+            patches=st.patches,
+            selection_ms=sel_ms,
+            frame_ms=st.frame_ms,
+            reference_frame_ms=ref_st.frame_ms,
+            reference_triangles=ref_st.triangles,
+            max_screen_error_px=err.max_px,
+            p99_screen_error_px=err.p99_px,
+            mean_screen_error_px=err.mean_px,
+            samples_in_view=err.samples,
+            psnr_db=measure.psnr(img, ref_img),
+            changed_share=measure.changed_share(img, ref_img),
+            crack_pixels=cracks,
+            resident_bytes=int(frame.stats.resident_bytes),
+            loaded_bytes=int(loaded),
+            gpu_bytes=gpu,
+            clamped=st.clamped,
+        )
+        rows.append(row)
+        if log:
+            log(format_row(row))
+    return rows
+
+
+TABLE_HEADER = (
+    f"{'tau':>5} {'metric':>12} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'ref ms':>7} "
+    f"{'max px':>7} {'p99 px':>7} {'PSNR':>6} {'changed':>8} {'cracks':>6} {'resident MB':>11}"
+)
+
+
+def format_row(r: TradeoffRow) -> str:
+    """One line of the trade-off table."""
+    return (
+        f"{r.tau:>5g} {r.metric:>12} {r.triangles:>10,} {r.selection_ms:>7.2f} "
+        f"{r.frame_ms:>7.1f} {r.reference_frame_ms:>7.1f} {r.max_screen_error_px:>7.2f} "
+        f"{r.p99_screen_error_px:>7.2f} {r.psnr_db:>6.1f} {100 * r.changed_share:>7.2f}% "
+        f"{r.crack_pixels:>6} {r.resident_bytes / 2**20:>11.2f}"
+    )
+
+
+def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "") -> None:
+    """tau vs triangles, times, bytes, measured error and PSNR, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 3, figsize=(13, 7))
+    for metric in sorted({r.metric for r in rows}):
+        rs = sorted((r for r in rows if r.metric == metric), key=lambda r: r.tau)
+        t = [r.tau for r in rs]
+        panels = [
+            ("triangles", [r.triangles for r in rs]),
+            ("CPU selection ms", [r.selection_ms for r in rs]),
+            ("GPU frame ms (LOD)", [r.frame_ms for r in rs]),
+            ("resident MB", [r.resident_bytes / 2**20 for r in rs]),
+            ("measured screen error px", [r.max_screen_error_px for r in rs]),
+            ("PSNR dB vs full res", [r.psnr_db for r in rs]),
+        ]
+        for a, (name, ys) in zip(ax.ravel(), panels, strict=True):
+            a.plot(t, ys, "o-", label=f"{metric}" + (" max" if "error" in name else ""))
+            if "error" in name:
+                a.plot(t, [r.p99_screen_error_px for r in rs], "s--", label=f"{metric} p99")
+            a.set_xscale("log", base=2)
+            a.set_xlabel("tau (px)")
+            a.set_title(name)
+    ax[1, 0].plot(t, t, "k:", label="tau")
+    for a in ax.ravel():
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7)
+    fig.suptitle(title or "speed / accuracy trade-off")
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
+@dataclass(frozen=True)
+class FlyRow:
+    """One fly-through frame (a CSV row)."""
+
+    frame: int
+    triangles: int
+    patches: int
+    selection_ms: float
+    gpu_ms: float
+    loaded_mb: float
+    resident_mb: float
+    stalled: bool
+    clamped: int
+
+
+def flythrough(
+    store: TerrainStore,
+    cameras: Sequence[Camera],
+    out_dir: str | Path,
+    *,
+    tau: float = 1.0,
+    metric: str = "qiu",
+    patch_log2: int = 4,
+    workers: int = 2,
+    budget_mb: float = 256.0,
+    fps: float = 30.0,
+    save_every: int = 1,
+    on_frame: Callable[[FlyRow], None] | None = None,
+) -> tuple[list[FlyRow], dict[str, Any]]:
+    """Stream and render each camera; write PNG frames and ``frames.csv`` into ``out_dir``."""
+    from PIL import Image
+
+    if not cameras:
+        raise RenderError("the camera path has no frames")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=patch_log2))
+    rows: list[FlyRow] = []
+    with open_session(
+        store,
+        budget_mb=budget_mb,
+        workers=workers,
+        tau=tau,
+        metric=metric,
+        patch_log2=r.p,
+        culling="hull",
+        fps=fps,
+    ) as session:
+        for i, cam in enumerate(cameras):
+            frame = session.update(cam, 1.0 / fps, wait=i == 0)
+            r.sync(frame.blocks, session)
+            patches, ms = r.select(cam, tau, metric, resident=resident_levels(frame))
+            st = r.draw(cam, patches, selection_ms=ms)
+            if save_every and i % save_every == 0:
+                Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
+            fs = frame.stats
+            row = FlyRow(
+                frame=i,
+                triangles=st.triangles,
+                patches=st.patches,
+                selection_ms=ms,
+                gpu_ms=st.frame_ms,
+                loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
+                resident_mb=fs.resident_bytes / 2**20,
+                stalled=fs.stalled,
+                clamped=st.clamped,
+            )
+            rows.append(row)
+            if on_frame:
+                on_frame(row)
+        summary = session.summary()
+    r.close()
+    with open(out / "frames.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
+        w.writeheader()
+        for row in rows:
+            w.writerow(asdict(row))
+    tri = np.array([x.triangles for x in rows])
+    summary = {
+        "frames": len(rows),
+        "mean_triangles": float(tri.mean()),
+        "max_triangles": int(tri.max()),
+        "mean_selection_ms": float(np.mean([x.selection_ms for x in rows])),
+        "max_selection_ms": float(np.max([x.selection_ms for x in rows])),
+        "mean_gpu_ms": float(np.mean([x.gpu_ms for x in rows])),
+        "stall_frames": int(sum(x.stalled for x in rows)),
+        "clamped_frames": int(sum(x.clamped > 0 for x in rows)),
+        "loaded_mb": float(summary["loaded_bytes"] / 2**20),
+        "peak_resident_mb": float(summary["peak_resident_bytes"] / 2**20),
+    }
+    return rows, summary
+
+
+def finite(x: float) -> float | None:
+    """JSON-safe float (None for NaN/inf)."""
+    return x if math.isfinite(x) else None

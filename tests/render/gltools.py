@@ -1,0 +1,40 @@
+"""Helpers for the renderer's tests: a shared headless context, tiny stores, GL error checks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from render.errors import GLUnavailableError
+
+
+def make_context():
+    """The module's headless EGL context, or skip the module with the reason."""
+    from render.gpu import create_context
+
+    try:
+        return create_context()
+    except GLUnavailableError as exc:
+        pytest.skip(f"no headless OpenGL 4.5 context: {exc}", allow_module_level=True)
+
+
+def rough(n: int, seed: int, amp: float = 8.0) -> np.ndarray:
+    """A rough int16 DEM of ``n x n`` samples around 800 m."""
+    from conftest import fractal
+
+    d = fractal((n, n), seed=seed).astype(np.float64)
+    return np.rint((d - d.mean()) * amp + 800).astype(np.int16)
+
+
+def tile_dem(tmp: Path, data: np.ndarray, block: int, **kw) -> Path:
+    """Write ``data`` as a GeoTIFF and tile it; return the store path."""
+    from conftest import write_dem
+
+    from tiler.tile import TileOptions, tile
+
+    src = write_dem(tmp / "dem.tif", data, **kw)
+    dst = tmp / "s.zarr"
+    tile(src, dst, TileOptions(block_size=block, workers=1))
+    return dst
