@@ -27,8 +27,10 @@ demo: setup
 lint: setup
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 
-bench: setup
+bench: setup   # long: see BENCHMARKS.md for each command's run time
 	$(BIN)/python bench/tiling.py
+	$(BIN)/python bench/prefetch.py
+	$(BIN)/python bench/render.py
 
 clean:
 	rm -rf demo-out bench/work .pytest_cache

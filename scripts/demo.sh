@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The end-to-end demo: generated DEM -> zarr store -> info (and, as the project grows,
-# streamed fly-through -> rendered frames and statistics). Outputs go to demo-out/.
+# The end-to-end demo: generated DEM -> zarr store -> streamed fly-through -> rendered frames
+# and statistics. Everything it writes goes to demo-out/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TS=.venv/bin/terrastream
@@ -12,12 +12,25 @@ echo "== 2. tile it into a non-redundant zarr store (blocks of 513^2)"
 $TS tile "$OUT/demo.tif" "$OUT/demo.zarr" --block-size 513 --overwrite
 echo "== 3. describe the store"
 $TS info "$OUT/demo.zarr"
-echo "== 4. export level 9 of 9 and check it is bit-identical to the source"
+echo "== 4. export the finest level and check it is bit-identical to the source"
 $TS export "$OUT/demo.zarr" "$OUT/demo-roundtrip.tif" --overwrite
 .venv/bin/python - "$OUT/demo.tif" "$OUT/demo-roundtrip.tif" <<'PY'
 import sys, numpy as np, rasterio
-a, b = (rasterio.open(p) for p in sys.argv[1:3])
-same = np.array_equal(a.read(1), b.read(1)) and a.transform == b.transform and a.crs == b.crs
+with rasterio.open(sys.argv[1]) as a, rasterio.open(sys.argv[2]) as b:
+    same = np.array_equal(a.read(1), b.read(1)) and a.transform == b.transform and a.crs == b.crs
 print("round trip bit-identical:", same)
 sys.exit(0 if same else 1)
 PY
+echo "== 5. stream a 5 s fly-through in real time (20 ms added to every store request)"
+$TS stream "$OUT/demo.zarr" --frames 300 --fps 60 --latency-ms 20 --workers 8 \
+    --json "$OUT/stream.json" --plot "$OUT/stream.png"
+echo "== 6. render an overview at tau = 1 px"
+$TS render "$OUT/demo.zarr" --size 1024x768 --tau 1 -o "$OUT/view.png"
+echo "== 7. render 30 frames of the fly-through"
+$TS flythrough "$OUT/demo.zarr" --frames 30 --size 640x480 --tau 1 --out "$OUT/frames"
+echo "== 8. measure the speed/accuracy trade"
+$TS tradeoff "$OUT/demo.zarr" --size 640x480 --taus 0.5,1,2,4,8 \
+    --json "$OUT/tradeoff.json" --plot "$OUT/tradeoff.png"
+$TS tradeoff "$OUT/demo.zarr" --size 640x480 --taus 0.5,1,2,4,8 --metric conservative \
+    --json "$OUT/tradeoff-conservative.json"
+echo "== done: see $OUT/ (view.png, frames/, stream.png, tradeoff.png, *.json)"

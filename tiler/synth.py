@@ -33,10 +33,15 @@ few MB per window whatever the raster size.
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+import rasterio
+from rasterio.transform import Affine
+from rasterio.windows import Window
 
 from tiler.errors import SourceError
 
@@ -280,3 +285,60 @@ def synth_array(
             np.clip(z, -32768.0, 32767.0, out=z)
         out[...] = z
     return result
+
+
+def synth_dem(
+    path: str | os.PathLike,
+    size: int,
+    seed: int = 0,
+    dtype: str = "int16",
+    *,
+    window: int = 1024,
+    relief: float = 2500.0,
+    base: float = 200.0,
+    cell_size: float = 30.0,
+    origin: tuple[float, float] = (500000.0, 5000000.0),
+    crs: str = "EPSG:32633",
+    progress: Callable[[int, int], None] | None = None,
+) -> None:
+    """Write a deterministic fractal DEM (size x size, int16 or float32 GeoTIFF) window by window.
+
+    Memory stays at one ``window``-row strip whatever ``size`` is; the samples equal
+    :func:`synth_array`'s for the same arguments.
+    """
+    size = _check_size(size)
+    if dtype not in DTYPES:
+        raise SourceError(f"Expected dtype to be one of {', '.join(DTYPES)}, got {dtype!r}.")
+    if isinstance(window, bool) or not isinstance(window, int) or window < 16:
+        raise SourceError(f"Expected window to be an integer >= 16, got {window!r}.")
+    if not (math.isfinite(cell_size) and cell_size > 0):
+        raise SourceError(f"Expected a positive cell size, got {cell_size!r}.")
+    profile = {
+        "driver": "GTiff",
+        "width": size,
+        "height": size,
+        "count": 1,
+        "dtype": dtype,
+        "crs": crs,
+        "transform": Affine(cell_size, 0.0, origin[0], 0.0, -cell_size, origin[1]),
+        "nodata": None,
+        "compress": "deflate",
+        "predictor": 2 if dtype == "int16" else 3,
+        "BIGTIFF": "IF_SAFER",
+    }
+    if size >= _BLOCK:
+        profile.update(tiled=True, blockxsize=_BLOCK, blockysize=_BLOCK)
+    total = size * size
+    done = 0
+    with rasterio.open(path, "w", **profile) as dst:
+        for r0 in range(0, size, window):
+            nr = min(window, size - r0)
+            for c0 in range(0, size, window):
+                nc = min(window, size - c0)
+                arr = synth_array(
+                    slice(r0, r0 + nr), slice(c0, c0 + nc), size, seed, relief, base, dtype
+                )
+                dst.write(arr, 1, window=Window(c0, r0, nc, nr))
+                done += nr * nc
+                if progress is not None:
+                    progress(done, total)
