@@ -19,7 +19,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -137,7 +137,7 @@ class _Totals:
     max_update_cpu_ms: float = 0.0
     io_errors: int = 0
     cancelled: int = 0
-    used: set = field(default_factory=set)
+    used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
 
 
 class Session:
@@ -183,7 +183,7 @@ class Session:
         self._scheduler_error: BaseException | None = None
         self._prio: dict[Block, tuple] = {}
         self._prefetch_blocks = 0
-        self._update_cpu_s = 0.0
+        self._failures_now: list[tuple[Block, BaseException]] = []
         self._closed = False
         self._stop = False
         self.totals = _Totals()
@@ -243,32 +243,38 @@ class Session:
         self._prev = camera
         poly = view_triangle(camera) if cfg.culling == "qiu" else frustum_hull(camera, self._zrange)
         m = [b for b in map(tuple, blocks_meeting(poly, self.grid).tolist()) if self._exists[b]]
-        needed = self._needed(camera, m)
-        with self._cv:
+        with self._cv:  # one critical section: the error table is shared with the loaders
             self._raise_scheduler_error()
+            needed = self._needed(camera, m)
             self.cache.set_pins(needed, self.level_bytes)
             for b, lv in needed.items():
                 if b not in self._errors or self.cache.level(b) < lv:
-                    self._push(b)
+                    self._push(b, notify=False)
             self._request = (camera, velocity, set(m))
-            self._cv.notify_all()
+            self._cv.notify_all()  # loaders and the scheduler, once
         update_s = time.perf_counter() - t0
-        self._update_cpu_s = time.thread_time() - c0
+        update_cpu = time.thread_time() - c0
         if cfg.workers == 0:
             self._schedule_step()
             self._load_inline(needed)
-        waited = 0.0
+        t1 = time.perf_counter()
         if wait:
-            waited = self._wait_for(needed)
-            if needed != (fresh := self._needed(camera, list(needed))):
+            self._wait_for(needed)
+            with self._cv:
+                fresh = self._needed(camera, list(needed))
+            if needed != fresh:
                 # the errors arrived while waiting: wait for what they say is needed
                 with self._cv:
                     self.cache.set_pins(fresh, self.level_bytes)
                     for b in fresh:
                         self._push(b)
                 needed = fresh
-                waited += self._wait_for(needed)
-        return self._finish_frame(camera, needed, update_s, waited)
+                self._wait_for(needed)
+        t2, c2 = time.perf_counter(), time.thread_time()
+        frame = self._finish_frame(camera, needed)
+        # the caller's cost: update work and frame bookkeeping, not the time spent waiting
+        t3, c3 = time.perf_counter(), time.thread_time()
+        return self._record_frame(frame, update_s + (t3 - t2), update_cpu + (c3 - c2), t2 - t1)
 
     def _needed(self, camera: Camera, m: list[Block]) -> dict[Block, int]:
         """The level each visible block needs at ``tau`` (the patch level until errors load)."""
@@ -308,7 +314,10 @@ class Session:
         if have:
             zr = self._zr[tuple(np.array(have).T)]
             tau = cfg.tau * (cfg.lookahead if cfg.prefetch else 1.0)
-            ahead, rho = self._errors.needed_levels(self.grid, have, camera, tau, cfg.metric, zr)
+            with self._cv:
+                ahead, rho = self._errors.needed_levels(
+                    self.grid, have, camera, tau, cfg.metric, zr
+                )
             for b, lv, r in zip(have, ahead.tolist(), rho.tolist(), strict=True):
                 wants[b] = (lv, r)
         with self._cv:
@@ -342,12 +351,13 @@ class Session:
         _, _, _, prio = self._prio.get(b, (b, want, pin, 0.0))
         return (0 if b not in self._errors else 1, 0 if nxt <= pin else 1, nxt, -prio, b)
 
-    def _push(self, b: Block, level: int | None = None) -> None:
+    def _push(self, b: Block, level: int | None = None, *, notify: bool = True) -> None:
         """Queue ``b`` for its next load (caller holds the lock)."""
         if b in self._failed:
             return
         heapq.heappush(self._queue, (self._key(b, level), b))
-        self._cv.notify_all()
+        if notify:
+            self._cv.notify_all()
 
     def _reschedule(self) -> None:
         """Rebuild the work queue from the cache's wants (caller holds the lock)."""
@@ -565,61 +575,68 @@ class Session:
             self._load_inline(needed, unlimited=True)
         return time.perf_counter() - t0
 
-    def _finish_frame(
-        self, camera: Camera, needed: dict[Block, int], update_s: float, waited_s: float
-    ) -> Frame:
+    def _finish_frame(self, camera: Camera, needed: dict[Block, int]) -> Frame:
+        """What this frame may draw and its I/O figures (timings are filled in afterwards)."""
         with self._cv:
             missing = self._missing(needed)
             for b, lv in missing:
                 for level in range(self.cache.level(b) + 1, lv + 1):
                     self._demanded.add((b, level))
-            for b, lv in needed.items():
-                for level in range(min(lv, self.cache.level(b)) + 1):
-                    self.totals.used.add((b, level))
             blocks = {b: (self.cache.level(b), lv) for b, lv in needed.items()}
+            used = self.totals.used
+            for b, (have, lv) in blocks.items():
+                top = min(lv, have)
+                if top > used.get(b, -1):
+                    used[b] = top
             realtime, prefetched = self._frame_realtime, self._frame_prefetched
             io_s = self._frame_io_s
             self._frame_realtime = self._frame_prefetched = 0
             self._frame_io_s = 0.0
-            failures, self._unreported = self._unreported, []
+            self._failures_now, self._unreported = self._unreported, []
             resident = self.cache.nbytes
             errors = self.totals.io_errors
-        needed_bytes = sum(sum(self.level_bytes[: lv + 1]) for lv in needed.values())
-        t = self.totals
-        stalled = bool(missing)
-        update_ms = update_s * 1000.0
         stats = FrameStats(
-            frame=t.frames,
+            frame=self.totals.frames,
             visible_blocks=len(needed),
             prefetch_blocks=self._prefetch_blocks,
-            needed_bytes=needed_bytes,
+            needed_bytes=sum(sum(self.level_bytes[: lv + 1]) for lv in needed.values()),
             realtime_bytes=realtime,
             prefetched_bytes=prefetched,
             io_ms=io_s * 1000.0,
-            update_ms=update_ms,
-            update_cpu_ms=self._update_cpu_s * 1000.0,
-            wait_ms=waited_s * 1000.0,
-            stalled=stalled,
-            missing_levels=sum(lv - self.cache.level(b) for b, lv in missing),
+            update_ms=0.0,
+            update_cpu_ms=0.0,
+            wait_ms=0.0,
+            stalled=bool(missing),
+            missing_levels=sum(lv - max(blocks[b][0], -1) for b, lv in missing),
             resident_bytes=resident,
             io_errors=errors,
         )
-        t.needed_bytes += needed_bytes
-        t.realtime_bytes += realtime
+        return Frame(camera=camera, blocks=blocks, stats=stats)
+
+    def _record_frame(self, frame: Frame, wall_s: float, cpu_s: float, wait_s: float) -> Frame:
+        """Fill in the caller-thread timings, add the frame to the totals, report failures."""
+        st = replace(
+            frame.stats, update_ms=wall_s * 1e3, update_cpu_ms=cpu_s * 1e3, wait_ms=wait_s * 1e3
+        )
+        object.__setattr__(frame, "stats", st)
+        t = self.totals
+        t.needed_bytes += st.needed_bytes
+        t.realtime_bytes += st.realtime_bytes
         if t.frames > 0:
-            t.realtime_bytes_after_first += realtime
-        t.prefetched_bytes += prefetched
-        t.stall_frames += int(stalled)
-        t.max_update_ms = max(t.max_update_ms, update_ms)
-        t.max_update_cpu_ms = max(t.max_update_cpu_ms, self._update_cpu_s * 1000.0)
+            t.realtime_bytes_after_first += st.realtime_bytes
+        t.prefetched_bytes += st.prefetched_bytes
+        t.stall_frames += int(st.stalled)
+        t.max_update_ms = max(t.max_update_ms, st.update_ms)
+        t.max_update_cpu_ms = max(t.max_update_cpu_ms, st.update_cpu_ms)
         t.frames += 1
+        failures, self._failures_now = self._failures_now, []
         if failures:
             b, exc = failures[0]
             raise LoadError(
                 f"block {b} could not be read after {self.config.retries} tries: {exc}; "
                 "it stays at the level it has"
             ) from exc
-        return Frame(camera=camera, blocks=blocks, stats=stats)
+        return frame
 
     # -- results ---------------------------------------------------------------------------
 
@@ -632,7 +649,7 @@ class Session:
         """Totals over every frame so far (the ``summary`` object of ``--json``)."""
         t = self.totals
         with self._cv:
-            used_bytes = sum(self.level_bytes[lv] for _, lv in t.used)
+            used_bytes = sum(sum(self.level_bytes[: top + 1]) for top in t.used.values())
         return {
             "frames": t.frames,
             "stall_frames": t.stall_frames,
