@@ -226,6 +226,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
         group.create_array(
             name,
             data=np.asarray(table),
+            chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
             compressors=[compressor(9, table.dtype.itemsize, bits=True)],
         )
 
