@@ -11,16 +11,25 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import multiprocessing
 import os
 import shutil
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from concurrent.futures import (
+    FIRST_COMPLETED,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+    wait,
+)
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 
 import numpy as np
 import rasterio
+import rasterio._env
 import rasterio.env
 import rasterio.errors
 import zarr
@@ -73,6 +82,7 @@ class TileOptions:
     compression_level: int = 5  # blosc/zstd clevel
     error_cap: int | None = None  # default: k - 4
     gdal_cache_mb: int = 64  # GDAL's block cache (its default, 5 % of RAM, dominates RSS)
+    executor: str = "auto"  # "threads", "processes" or "auto" (processes for big local jobs)
 
     def __post_init__(self) -> None:
         parse_block_size(self.block_size)
@@ -84,6 +94,10 @@ class TileOptions:
             )
         if self.workers < 0:
             raise SourceError(f"workers must be >= 0 (0 = one per core), got {self.workers}")
+        if self.executor not in ("auto", "threads", "processes"):
+            raise SourceError(
+                f"executor must be 'auto', 'threads' or 'processes', got {self.executor!r}"
+            )
         if not 1 <= self.compression_level <= 9:
             raise SourceError(f"compression level must be in 1..9, got {self.compression_level}")
 
@@ -319,12 +333,52 @@ def _remove_store(dst: str) -> None:
     fs.rm(path, recursive=True)
 
 
-class _Sources(threading.local):
-    """One open dataset per worker thread (rasterio datasets are not thread-safe)."""
+class _BlockWorker:
+    """Reads, encodes and writes blocks for one thread or process (own dataset and arrays)."""
 
-    def __init__(self, src: str, band: int) -> None:
-        self.src, self.band = src, band
-        self.ds: rasterio.DatasetReader | None = None
+    def __init__(self, src: str, band: int, dst: str, grid: BlockGrid, params: BlockParams):
+        self.src, self.band, self.grid, self.params = src, band, grid, params
+        self.ds = _open_source(src, band)
+        group = zarr.open_group(dst, mode="r+")
+        names = [f"levels/{i}" for i in range(SHARDED_LEVELS, params.k + 1)]
+        self.arrays = {n: group[n] for n in [*names, "errors", "mask"]}
+
+    def run(self, br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
+        """Encode block ``(br, bc)``, write its big levels, errors and mask; return the rest."""
+        res = process_block(read_window(self.ds, self.band, self.grid, br, bc), self.params)
+        for i in range(SHARDED_LEVELS, self.params.k + 1):
+            self.arrays[f"levels/{i}"][br, bc] = res.levels[i]
+        self.arrays["errors"][br, bc] = res.errors
+        if res.mask is not None:
+            self.arrays["mask"][br, bc] = res.mask
+        # keep only what the shard writer needs: the small levels and the index row
+        return (br, bc), replace(res, levels=res.levels[:SHARDED_LEVELS], errors=None, mask=None)
+
+    def close(self) -> None:
+        """Close the source dataset."""
+        self.ds.close()
+
+
+_PROCESS_WORKER: _BlockWorker | None = None
+
+
+def _process_init(gdal_cache_mb: int, *args: object) -> None:
+    global _PROCESS_WORKER
+    rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(gdal_cache_mb))
+    _PROCESS_WORKER = _BlockWorker(*args)  # type: ignore[arg-type]
+
+
+def _process_run(br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
+    assert _PROCESS_WORKER is not None
+    return _PROCESS_WORKER.run(br, bc)
+
+
+def _use_processes(opts: TileOptions, dst: str, todo: int) -> bool:
+    """Processes give real parallelism (numpy + codecs hold the GIL too often for threads);
+    they need a destination every process can open (not ``memory://``) and enough blocks."""
+    if opts.executor != "auto":
+        return opts.executor == "processes"
+    return opts.n_workers > 1 and todo >= 4 * opts.n_workers and not dst.startswith("memory:")
 
 
 def read_window(ds: rasterio.DatasetReader, band: int, grid: BlockGrid, br: int, bc: int):
@@ -342,8 +396,22 @@ def tile(
     """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened."""
     opts = options or TileOptions()
     src, dst = str(src), str(dst)
-    # Takes effect if GDAL's cache was not used yet in this process (e.g. the CLI's tile run).
+    # GDAL sizes its block cache once, on first use: this caps it for a fresh process (the
+    # CLI's run, the worker processes); the option is restored afterwards.
+    previous = rasterio.env.get_gdal_config("GDAL_CACHEMAX")
     rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(opts.gdal_cache_mb))
+    try:
+        return _tile(src, dst, opts, progress)
+    finally:
+        if previous is None:
+            rasterio._env.del_gdal_config("GDAL_CACHEMAX")
+        else:
+            rasterio.env.set_gdal_config("GDAL_CACHEMAX", previous)
+
+
+def _tile(
+    src: str, dst: str, opts: TileOptions, progress: Callable[[TileProgress], None] | None
+) -> TerrainStore:
     with _open_source(src, opts.band) as ds:
         meta = _source_meta(ds, src, opts)
     grid = meta.grid
@@ -362,7 +430,7 @@ def tile(
         precision=meta.precision,
         error_cap=meta.error_cap,
     )
-    _run_blocks(src, opts, grid, params, group, progress)
+    _run_blocks(src, dst, opts, grid, params, group, progress)
     try:
         _finish(group, meta, grid)
     except SourceError:
@@ -390,6 +458,7 @@ def _shard_order(grid: BlockGrid) -> list[list[tuple[int, int]]]:
 
 def _run_blocks(
     src: str,
+    dst: str,
     opts: TileOptions,
     grid: BlockGrid,
     params: BlockParams,
@@ -400,32 +469,36 @@ def _run_blocks(
     total = grid.rows * grid.cols
     skipped = int(done.sum())
     itemsize = np.dtype(params.dtype).itemsize
-    local = _Sources(src, opts.band)
-    arrays = {f"levels/{i}": group[f"levels/{i}"] for i in range(params.k + 1)}
-    arrays.update({n: group[n] for n in ("errors", "mask")})
     t0 = time.perf_counter()
     n_done, bytes_done = skipped, 0
+    workers = opts.n_workers
+    args = (src, opts.band, dst, grid, params)
+    local = threading.local()
+    thread_workers: list[_BlockWorker] = []
 
-    def work(br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
-        if local.ds is None:
-            local.ds = _open_source(local.src, local.band)
-        window = read_window(local.ds, local.band, grid, br, bc)
-        res = process_block(window, params)
-        for i in range(SHARDED_LEVELS, params.k + 1):
-            arrays[f"levels/{i}"][br, bc] = res.levels[i]
-        arrays["errors"][br, bc] = res.errors
-        if res.mask is not None:
-            arrays["mask"][br, bc] = res.mask
-        # keep only what the shard writer needs: the small levels and the index row
-        return (br, bc), replace(res, levels=res.levels[:SHARDED_LEVELS], errors=None, mask=None)
+    def thread_run(br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
+        w = getattr(local, "worker", None)
+        if w is None:
+            w = local.worker = _BlockWorker(*args)
+            thread_workers.append(w)
+        return w.run(br, bc)
 
     def report() -> None:
         if progress:
             progress(TileProgress(n_done, total, bytes_done, time.perf_counter() - t0, skipped))
 
     report()
-    workers = opts.n_workers
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="terrastream-tile")
+    if _use_processes(opts, dst, total - skipped):
+        pool = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_process_init,
+            initargs=(opts.gdal_cache_mb, *args),
+        )
+        run = _process_run
+    else:
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="terrastream-tile")
+        run = thread_run
     try:
         for shard in _shard_order(grid):
             todo = [b for b in shard if not done[b]]
@@ -439,7 +512,7 @@ def _run_blocks(
                     b = next(it, None)
                     if b is None:
                         break
-                    pending.add(pool.submit(work, *b))
+                    pending.add(pool.submit(run, *b))
                 if not pending:
                     break
                 finished, pending = wait(
@@ -448,7 +521,14 @@ def _run_blocks(
                 if not finished:
                     raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
                 for fut in finished:
-                    b, res = fut.result()  # re-raises a worker's exception here
+                    try:
+                        b, res = fut.result()  # re-raises a worker's exception here
+                    except BrokenProcessPool as exc:
+                        raise StoreError(
+                            "a tiling worker process died (out of memory, killed, or a script "
+                            "calling tile() without an `if __name__ == '__main__':` guard; "
+                            "executor='threads' avoids processes); rerun to resume"
+                        ) from exc
                     results[b] = res
                     r0, c0, h, w = grid.block_window(*b)
                     bytes_done += h * w * itemsize
@@ -458,9 +538,10 @@ def _run_blocks(
     except BaseException:
         pool.shutdown(wait=True, cancel_futures=True)
         raise
+    finally:
+        for w in thread_workers:
+            w.close()
     pool.shutdown(wait=True)
-    if local.ds is not None:
-        local.ds.close()
 
 
 def _write_shard(group: zarr.Group, k: int, results: dict[tuple[int, int], BlockResult]) -> None:

@@ -111,11 +111,12 @@ def test_precision_bound(dem_factory, tmp_path, step):
     assert_store_matches(store, data, tol=step / 2 + 1e-3)
 
 
-def test_worker_count_does_not_change_output(dem_factory, tmp_path):
+@pytest.mark.parametrize("executor", ["threads", "processes"])
+def test_worker_count_does_not_change_output(dem_factory, tmp_path, executor):
     data = fractal((150, 130), 5)
     src = dem_factory(data)
     a = tile(src, tmp_path / "a.zarr", TileOptions(block_size=33, workers=1))
-    b = tile(src, tmp_path / "b.zarr", TileOptions(block_size=33, workers=2))
+    b = tile(src, tmp_path / "b.zarr", TileOptions(block_size=33, workers=2, executor=executor))
     ga, gb = (
         zarr.open_group(tmp_path / "a.zarr", mode="r"),
         zarr.open_group(tmp_path / "b.zarr", mode="r"),
@@ -190,7 +191,7 @@ def _interrupt_after(monkeypatch, n: int):
 def test_interrupted_run_resumes_to_identical_store(dem_factory, tmp_path, monkeypatch):
     data = fractal((300, 300), 10)
     src = dem_factory(data)
-    opts = TileOptions(block_size=17, workers=2)
+    opts = TileOptions(block_size=17, workers=2, executor="threads")  # the patch is in-process
     # 19x19 blocks; the small levels are written per 16x16 shard, so interrupt mid-way
     _interrupt_after(monkeypatch, 300)
     with pytest.raises(KeyboardInterrupt):
