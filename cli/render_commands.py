@@ -1,4 +1,4 @@
-"""The renderer's commands: ``render``, ``tradeoff``, ``flythrough`` (wiring only)."""
+"""The renderer's commands: ``render``, ``tradeoff``, ``flythrough``, ``view`` (wiring only)."""
 
 from __future__ import annotations
 
@@ -225,4 +225,64 @@ def flythrough(
             f"{summary['max_selection_ms']:.2f}), GPU {summary['mean_gpu_ms']:.1f} ms, "
             f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MB; "
             f"wrote {out}/frames.csv"
+        )
+
+
+@app.command()
+def view(
+    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Starting screen error, px.")] = 1.0,
+    metric: MetricOpt = Metric.qiu,
+    size: SizeOpt = "1280x800",
+    camera: CameraOpt = None,
+    look_at: LookAtOpt = None,
+    yaw: YawOpt = None,
+    pitch: PitchOpt = None,
+    fov: FovOpt = 45.0,
+    patch_log2: PatchOpt = 4,
+    budget_mb: Annotated[float, typer.Option("--budget-mb", help="Resident budget.")] = 512.0,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Loader threads.")] = 4,
+    wireframe: Annotated[bool, typer.Option("--wireframe", help="Start in wireframe.")] = False,
+    frames: Annotated[
+        int | None, typer.Option("--frames", min=1, help="Run N frames without input, then exit.")
+    ] = None,
+    screenshot: Annotated[
+        Path | None, typer.Option("--screenshot", help="With --frames: save the last frame.")
+    ] = None,
+) -> None:
+    """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
+    +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).
+
+    Needs a display (X11; on a headless machine: xvfb-run terrastream view ...).
+    Example: terrastream view demo.zarr --tau 1 --size 1280x800
+    """
+    from render.viewer import run_viewer
+    from render.views import make_camera
+    from tiler.store import open_store
+
+    with fail_on_errors():
+        viewport = parse_size(size)
+        if screenshot is not None and frames is None:
+            raise typer.BadParameter("--screenshot needs --frames N")
+        s = open_store(store)
+        cam = make_camera(
+            s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
+        )
+        res = run_viewer(
+            s,
+            cam,
+            tau=tau,
+            metric=metric.value,
+            patch_log2=patch_log2,
+            workers=workers,
+            budget_mb=budget_mb,
+            wireframe=wireframe,
+            frames=frames,
+            screenshot=screenshot,
+        )
+        st = res.last
+        typer.echo(
+            f"{res.frames} frames; last: {st.triangles if st else 0:,} triangles at tau "
+            f"{res.tau:.3g}, {res.resident_mb:.1f} MB resident"
+            + (f"; wrote {res.screenshot}" if res.screenshot else "")
         )

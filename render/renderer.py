@@ -143,6 +143,8 @@ class TerrainRenderer:
             if self._frame - self._seen.get(b, -(10**9)) > self.config.linger_frames:
                 self.pool.release(b)
                 self._seen.pop(b, None)
+                for t in self.tables.values():
+                    t.remove(b)
 
     def table(self, metric: str) -> PatchTable:
         """The pooled patch errors for the metric's error field."""
@@ -174,30 +176,26 @@ class TerrainRenderer:
         levels = (
             resident if resident is not None else {b: s.level for b, s in self.pool.slots.items()}
         )
-        blocks = [b for b, lv in levels.items() if lv >= 0 and self.pool.level(b) >= 0]
-        blocks.sort()
+        gpu_level = self.pool.level
+        # a block is drawn when both its cap and its GPU level are >= 0, at the lower of them
+        pairs = sorted((b, min(lv, gpu_level(b))) for b, lv in levels.items() if lv >= 0)
+        pairs = [bl for bl in pairs if bl[1] >= 0]
+        blocks = [b for b, _ in pairs]
+        res = np.array([lv for _, lv in pairs], dtype=np.int64)
         table = self.table(metric)
         name = FIELD_FOR_METRIC.get(metric, "qiu")
         for b in blocks:
             if b not in table:
                 table.add(b, self.store.read_errors(b)[name])
-        res = [min(levels[b], self.pool.level(b)) for b in blocks]
-        zr = (
-            self._zr[tuple(np.array(blocks, dtype=np.int64).reshape(-1, 2).T)]
-            if blocks
-            else np.zeros((0, 2))
-        )
-        zr = np.where(np.isfinite(zr), zr, 0.0)
-        win = (
-            self.store.index.window[tuple(np.array(blocks, dtype=np.int64).reshape(-1, 2).T)]
-            if blocks
-            else None
-        )
+        blk = np.array(blocks, dtype=np.int64).reshape(-1, 2)
+        at = (blk[:, 0], blk[:, 1])
+        zr = np.where(np.isfinite(zr := self._zr[at]), zr, 0.0)
+        win = self.store.index.window[at] if blocks else None
         tau_used = 0.0 if full else tau
         fn = _always_split if full else metric
         patches = select_patches(
             self.grid,
-            blocks,
+            blk,
             table,
             camera,
             tau_used,

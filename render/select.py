@@ -1,17 +1,25 @@
 """CLOD patch selection and stitching levels (pure numpy, no GL; Qiu et al. 3.3).
 
-:func:`select_patches` walks the quadtrees of many blocks at once, breadth-first, one depth per
-pass: a node whose bounding circle (diameter = node diagonal) misses the ground polygon is
-culled, one lying wholly in padding is dropped, and a node is split while ``metric(delta) > tau``.
-A node at depth ``d`` is drawn as a patch from level ``min(k, d + patch_log2)`` (the streamer's
-convention, :mod:`streamer.lod`); its ``delta`` is the largest stored error of its descendants at
-depth ``d + patch_log2``. A block whose finest *resident* level ``R`` is coarser than that is not
-split beyond depth ``R - patch_log2`` and is drawn at level ``R`` (counted as clamped).
+:func:`select_patches` walks the quadtrees of all blocks at once, breadth-first, one numpy pass
+per depth over every block's live nodes: a node whose bounding circle (diameter = node diagonal)
+misses the ground polygon is culled, one lying wholly in padding is dropped, and a node is split
+while ``metric(delta) > tau``. A node at depth ``d`` is drawn as a patch from level
+``min(k, d + patch_log2)`` (the streamer's convention, :mod:`streamer.lod`); its ``delta`` is the
+largest stored error of its descendants at depth ``d + patch_log2``. A block whose finest
+*resident* level ``R`` is coarser than that is not split beyond depth ``R - patch_log2`` and is
+drawn at level ``R`` (counted as clamped).
+
+:class:`PatchTable` keeps those pooled patch errors of every known block in one
+``(slots, 2**d, 2**d)`` array per depth (like :class:`streamer.levels.PatchErrorTable`), so a
+pass looks all its nodes' errors up with one fancy index and nothing is stacked per frame. The
+circle test is :func:`streamer.frustum.polygon_meets_circles`'s arithmetic with the polygon's
+part computed once per frame (:class:`_Cull`).
 
 :func:`stitch` then gives every patch edge the snap ``t = max(0, s_n - s)`` where ``s`` and
 ``s_n`` are the log2 cell spacings of the patch and of the leaf across that edge (same or
 adjacent block), and enforces the restriction ``2**s_n <= node edge`` by splitting the coarse
-neighbour (repeatedly); see docs/RENDER.md.
+neighbour (repeatedly); see docs/RENDER.md. All edges' probes at all depths are one
+``searchsorted``.
 """
 
 from __future__ import annotations
@@ -24,7 +32,7 @@ import numpy as np
 
 from render.errors import SelectionError
 from streamer.camera import Camera
-from streamer.frustum import polygon_meets_circles
+from streamer.frustum import as_polygon
 from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
 
@@ -34,42 +42,119 @@ _CHILD_C = np.array([0, 1, 0, 1])
 
 
 class PatchTable:
-    """Per block and refinable depth ``d``, the max error of descendants at ``d + patch_log2``."""
+    """Per block and refinable depth ``d``, the max error of descendants at ``d + patch_log2``.
 
-    def __init__(self, k: int, patch_log2: int) -> None:
+    Blocks own slots of one float64 ``(capacity, 2**d, 2**d)`` array per depth; the capacity
+    doubles when full and :meth:`remove` frees a slot for reuse.
+    """
+
+    def __init__(self, k: int, patch_log2: int, capacity: int = 64) -> None:
         if not patch_log2 >= 0:
             raise SelectionError(f"patch_log2 must be >= 0, got {patch_log2}")
         self.k, self.patch_log2 = k, patch_log2
         self.depths = max(0, k - patch_log2)
-        self._rows: dict[Block, list[np.ndarray]] = {}
+        self._cap = max(1, int(capacity))
+        self._arrays = [np.zeros((self._cap, 1 << d, 1 << d)) for d in range(self.depths)]
+        self._slot: dict[Block, int] = {}
+        self._free = list(range(self._cap - 1, -1, -1))
 
     def __contains__(self, block: Block) -> bool:
-        return block in self._rows
+        return block in self._slot
+
+    def __len__(self) -> int:
+        return len(self._slot)
 
     def add(self, block: Block, field: Sequence[np.ndarray]) -> None:
         """Pool one block's unpacked error field (one array per depth ``0..k-1``)."""
         if len(field) != self.k:
             raise SelectionError(f"error field must hold {self.k} depths, got {len(field)}")
-        pooled = []
+        block = (int(block[0]), int(block[1]))
+        if block in self._slot:
+            return
+        if not self._free:
+            old = self._cap
+            self._cap *= 2
+            self._arrays = [
+                np.concatenate([a, np.zeros((old, *a.shape[1:]))]) for a in self._arrays
+            ]
+            self._free.extend(range(self._cap - 1, old - 1, -1))
+        s = self._free.pop()
+        self._slot[block] = s
         for d in range(self.depths):
             src = np.asarray(field[d + self.patch_log2], dtype=np.float64)
             n, nd = src.shape[0], 1 << d
             if n >= nd:
                 r = n // nd
-                pooled.append(src.reshape(nd, r, nd, r).max(axis=(1, 3)))
+                self._arrays[d][s] = src.reshape(nd, r, nd, r).max(axis=(1, 3))
             else:
-                pooled.append(np.repeat(np.repeat(src, nd // n, 0), nd // n, 1))
-        self._rows[block] = pooled
+                self._arrays[d][s] = np.repeat(np.repeat(src, nd // n, 0), nd // n, 1)
 
-    def delta(self, blocks: Sequence[Block], idx: np.ndarray, depth: int, rows, cols) -> np.ndarray:
-        """Patch errors of nodes ``(depth, rows, cols)`` of ``blocks[idx]`` (0 at full res)."""
+    def remove(self, block: Block) -> None:
+        """Forget a block (its slot is reused)."""
+        s = self._slot.pop((int(block[0]), int(block[1])), None)
+        if s is not None:
+            self._free.append(s)
+
+    def slots(self, blocks: np.ndarray | Sequence[Block]) -> np.ndarray:
+        """Slot of each block (``SelectionError`` for a block without errors)."""
+        get = self._slot.get
+        out = [get(b, -1) for b in map(tuple, np.asarray(blocks, np.int64).reshape(-1, 2).tolist())]
+        arr = np.array(out, dtype=np.int64)
+        if (arr < 0).any():
+            b = np.asarray(blocks).reshape(-1, 2)[int(np.argmin(arr))]
+            raise SelectionError(
+                f"block {tuple(int(v) for v in b)} has no errors in the patch table"
+            )
+        return arr
+
+    def delta(self, slots: np.ndarray, depth: int, rows, cols) -> np.ndarray:
+        """Patch errors of nodes ``(depth, rows, cols)`` of the blocks in ``slots`` (0 at full
+        resolution)."""
         if depth >= self.depths:
-            return np.zeros(len(idx))
-        out = np.empty(len(idx))
-        for u in np.unique(idx):
-            m = idx == u
-            out[m] = self._rows[blocks[int(u)]][depth][rows[m], cols[m]]
-        return out
+            return np.zeros(len(slots))
+        return self._arrays[depth][slots, rows, cols]
+
+
+class _Cull:
+    """:func:`streamer.frustum.polygon_meets_circles` for one polygon and many calls: the same
+    arithmetic (so the same answers), with the polygon's part done once."""
+
+    def __init__(self, polygon: np.ndarray) -> None:
+        poly = as_polygon(polygon)
+        self.empty = len(poly) == 0
+        if self.empty:
+            return
+        self.o = poly[0]
+        p = poly - self.o
+        e = np.roll(p, -1, axis=0) - p
+        self.px, self.py = p[:, 0], p[:, 1]
+        self.ex, self.ey = e[:, 0], e[:, 1]
+        self.ee = e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1]
+        self.ok = self.ee > 0.0
+        self.all_ok = bool(self.ok.all())
+        self.ee_safe = np.where(self.ok, self.ee, 1.0)
+        area2 = np.sum(p[:-1, 0] * p[1:, 1] - p[1:, 0] * p[:-1, 1])  # frustum._area2
+        self.ccw = len(p) >= 3 and float(area2) > 0.0
+
+    def __call__(self, cx: np.ndarray, cy: np.ndarray, radius) -> tuple[np.ndarray, np.ndarray]:
+        """``(meets, inside)``: the disc meets the polygon; it lies strictly inside it (then so
+        do its descendants' discs, which :func:`select_patches` then does not test)."""
+        if self.empty:
+            return np.zeros(len(cx), dtype=bool), np.zeros(len(cx), dtype=bool)
+        ax = (cx - self.o[0])[:, None] - self.px  # (n, edges)
+        ay = (cy - self.o[1])[:, None] - self.py
+        t = (ax * self.ex + ay * self.ey) / self.ee_safe
+        if not self.all_ok:
+            t = np.where(self.ok, t, 0.0)
+        np.clip(t, 0.0, 1.0, out=t)
+        dx = ax - t * self.ex
+        dy = ay - t * self.ey
+        dist2 = (dx * dx + dy * dy).min(axis=1)
+        near = dist2 <= radius * radius
+        if not self.ccw:
+            return near, np.zeros(len(cx), dtype=bool)
+        centre_in = (self.ex * ay - self.ey * ax >= 0.0).all(axis=1)
+        return near | centre_in, centre_in & ~near
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,14 +197,14 @@ class Patches:
 
 def select_patches(
     grid: BlockGrid,
-    blocks: Sequence[Block],
+    blocks: np.ndarray | Sequence[Block],
     table: PatchTable,
     camera: Camera,
     tau: float,
     metric: str | Metric,
     polygon: np.ndarray | None,
     *,
-    resident: Sequence[int],
+    resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
     windows: np.ndarray | None = None,
 ) -> Patches:
@@ -137,111 +222,144 @@ def select_patches(
         raise SelectionError(f"tau must be a pixel threshold >= 0, got {tau!r}")
     fn = get_metric(metric)
     k, p = grid.k, table.patch_log2
-    blocks = [tuple(int(v) for v in b) for b in blocks]
-    m = len(blocks)
+    blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+    m = len(blk)
     res = np.asarray(resident, dtype=np.int64).reshape(m)
     zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
     zr = np.where(np.isfinite(zr), zr, 0.0)
     win = None if windows is None else np.asarray(windows, dtype=np.int64).reshape(m, 4)
-    for b in blocks:
-        grid.check_block(*b)
-        if b not in table:
-            raise SelectionError(f"block {b} has no errors in the patch table")
-    blk = np.asarray(blocks, dtype=np.int64).reshape(m, 2)
+    outside = (
+        (blk[:, 0] < 0) | (blk[:, 0] >= grid.rows) | (blk[:, 1] < 0) | (blk[:, 1] >= grid.cols)
+    )
+    if outside.any():
+        grid.check_block(*(int(v) for v in blk[int(np.argmax(outside))]))
+    slots = table.slots(blk)
     zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
     bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 4
     diag = math.hypot(grid.dx, grid.dy)
-    out: dict[str, list[np.ndarray]] = {n: [] for n in ("block", "depth", "row", "col", "level")}
-    out_d: list[np.ndarray] = []
-    out_r: list[np.ndarray] = []
+    cull = _Cull(polygon) if polygon is not None and len(polygon) else None
+    if win is not None and m and (win[:, 2:] > 1 << k).all():
+        win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
+    parts: list[tuple] = []
     clamped = 0
     idx = np.flatnonzero(res >= 0)
     rows = np.zeros(len(idx), dtype=np.int64)
     cols = np.zeros(len(idx), dtype=np.int64)
+    inside = np.zeros(len(idx), dtype=bool)  # disc wholly inside the polygon: no test
     depth = 0
     while idx.size:
         size = 1 << (k - depth)
-        keep = np.ones(len(idx), dtype=bool)
-        if win is not None:
-            keep &= (rows * size < win[idx, 2] - 1) & (cols * size < win[idx, 3] - 1)
+        half = 0.5 * size * diag
         cx = bx0[idx] + (cols + 0.5) * (size * grid.dx)
         cy = by1[idx] - (rows + 0.5) * (size * grid.dy)
-        half = 0.5 * size * diag
-        if polygon is not None and len(polygon):
-            keep &= polygon_meets_circles(polygon, cx, cy, half)
-        idx, rows, cols, cx, cy = idx[keep], rows[keep], cols[keep], cx[keep], cy[keep]
-        if not idx.size:
-            break
-        delta = table.delta(blocks, idx, depth, rows, cols)
+        keep = None
+        if win is not None:
+            keep = (rows * size < win[idx, 2] - 1) & (cols * size < win[idx, 3] - 1)
+        if cull is not None and not inside.all():
+            test = np.flatnonzero(~inside)
+            if len(test) == len(idx):
+                meets, inside = cull(cx, cy, half)
+            else:
+                meets = np.ones(len(idx), dtype=bool)
+                meets[test], inside[test] = cull(cx[test], cy[test], half)
+            keep = meets if keep is None else keep & meets
+        if keep is not None and not keep.all():
+            idx, rows, cols, cx, cy = idx[keep], rows[keep], cols[keep], cx[keep], cy[keep]
+            inside = inside[keep]
+            if not idx.size:
+                break
+        delta = table.delta(slots[idx], depth, rows, cols)
         centres = np.stack([cx, cy, zmid[idx]], axis=1)
         rho = np.asarray(fn(delta, centres, np.hypot(half, zhalf[idx]), camera), np.float64)
-        want = ~(rho <= tau) & (depth + p < k)
-        can = depth + p < res[idx]
-        split = want & can
-        clamped += int((want & ~can).sum())
-        leaf = ~split
-        out["block"].append(idx[leaf])
-        out["depth"].append(np.full(int(leaf.sum()), depth, dtype=np.int64))
-        out["row"].append(rows[leaf])
-        out["col"].append(cols[leaf])
-        out["level"].append(np.minimum(np.minimum(k, depth + p), res[idx[leaf]]))
-        out_d.append(delta[leaf])
-        out_r.append(rho[leaf])
+        r_idx = res[idx]
+        level = np.minimum(min(k, depth + p), r_idx)
+        if depth + p >= k:
+            parts.append((idx, depth, rows, cols, level, delta, rho))
+            break
+        want = ~(rho <= tau)
+        split = want & (depth + p < r_idx)
+        n_split = int(np.count_nonzero(split))
+        clamped += int(np.count_nonzero(want)) - n_split
+        if n_split == 0:
+            parts.append((idx, depth, rows, cols, level, delta, rho))
+            break
+        if n_split < len(idx):
+            leaf = ~split
+            parts.append(
+                (idx[leaf], depth, rows[leaf], cols[leaf], level[leaf], delta[leaf], rho[leaf])
+            )
         idx = np.repeat(idx[split], 4)
+        inside = np.repeat(inside[split], 4)
         rows = (2 * rows[split][:, None] + _CHILD_R).ravel()
         cols = (2 * cols[split][:, None] + _CHILD_C).ravel()
         depth += 1
-    cat = {n: np.concatenate(v) if v else np.zeros(0, np.int64) for n, v in out.items()}
-    n = len(cat["depth"])
+    return _assemble(blk, parts, clamped)
+
+
+def _assemble(blk: np.ndarray, parts: list[tuple], clamped: int) -> Patches:
+    """Concatenate the per-depth leaves."""
+    if not parts:
+        z = np.zeros(0, np.int64)
+        return Patches(
+            blk, z, z, z, z, z, np.zeros(0), np.zeros(0), np.zeros((0, 4), np.int64), clamped, 0
+        )
+    block, row, col, level, delta, rho = (
+        np.concatenate([pt[i] for pt in parts]) for i in (0, 2, 3, 4, 5, 6)
+    )
+    depth = np.repeat(
+        np.array([pt[1] for pt in parts], dtype=np.int64), [len(pt[0]) for pt in parts]
+    )
+    n = len(depth)
     return Patches(
         blocks=blk,
-        delta=np.concatenate(out_d) if out_d else np.zeros(0),
-        rho=np.concatenate(out_r) if out_r else np.zeros(0),
+        block=block.astype(np.int64),
+        depth=depth,
+        row=row.astype(np.int64),
+        col=col.astype(np.int64),
+        level=level.astype(np.int64),
+        delta=delta.astype(np.float64),
+        rho=rho,
         snap=np.zeros((n, 4), dtype=np.int64),
         clamped=clamped,
         violations=0,
-        **{n_: v.astype(np.int64) for n_, v in cat.items()},
     )
 
 
 def _neighbours(patches: Patches, k: int) -> np.ndarray:
-    """``(n, 4)`` index of the leaf across each edge (N, E, S, W) at the edge midpoint, or -1."""
+    """``(n, 4)`` index of the leaf across each edge (N, E, S, W) at the edge midpoint, or -1.
+
+    Every edge's probe (one finest node beyond the edge midpoint) is looked up at every depth
+    in one ``searchsorted`` over the sorted leaf keys; the deepest hit wins.
+    """
     n = len(patches)
     if n == 0:
         return np.zeros((0, 4), dtype=np.int64)
     big = int(patches.depth.max())
     blk = patches.blocks[patches.block]
-    rows_b = int(patches.blocks[:, 0].max()) + 2
-    cols_b = int(patches.blocks[:, 1].max()) + 2
-    nr, nc = rows_b << big, cols_b << big
-
-    def key(d: np.ndarray, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
-        return (d * nr + gr) * nc + gc
-
+    nr = (int(patches.blocks[:, 0].max()) + 2) << big
+    nc = (int(patches.blocks[:, 1].max()) + 2) << big
     d = patches.depth
     gr = (blk[:, 0] << d) + patches.row
     gc = (blk[:, 1] << d) + patches.col
-    keys = key(d, gr, gc)
+    keys = (d * nr + gr) * nc + gc
     order = np.argsort(keys)
     sk = keys[order]
     span = np.left_shift(1, big - d)
     fr0, fc0 = gr << (big - d), gc << (big - d)
     mid = span >> 1
-    probes = [
-        (fr0 - 1, fc0 + mid),
-        (fr0 + mid, fc0 + span),
-        (fr0 + span, fc0 + mid),
-        (fr0 + mid, fc0 - 1),
-    ]
-    out = np.full((n, 4), -1, dtype=np.int64)
-    for e, (fr, fc) in enumerate(probes):
-        inside = (fr >= 0) & (fc >= 0) & (fr < nr) & (fc < nc)
-        for depth in range(big + 1):
-            q = key(np.full(n, depth), fr >> (big - depth), fc >> (big - depth))
-            pos = np.clip(np.searchsorted(sk, q), 0, n - 1)
-            hit = inside & (sk[pos] == q)
-            out[hit, e] = order[pos[hit]]
-    return out
+    fr = np.concatenate([fr0 - 1, fr0 + mid, fr0 + span, fr0 + mid])
+    fc = np.concatenate([fc0 + mid, fc0 + span, fc0 + mid, fc0 - 1])
+    inside = (fr >= 0) & (fc >= 0) & (fr < nr) & (fc < nc)
+    dd = np.unique(d)[:, None]  # the depths that hold leaves (others cannot hit)
+    q = (dd * nr + (fr >> (big - dd))) * nc + (fc >> (big - dd))  # (depths, 4n)
+    pos = np.searchsorted(sk, q)
+    np.clip(pos, 0, n - 1, out=pos)
+    hit = (sk[pos] == q) & inside
+    last = len(dd) - 1 - np.argmax(hit[::-1], axis=0)
+    found = hit.any(axis=0)
+    col = np.arange(4 * n)
+    out = np.where(found, order[pos[last, col]], -1)
+    return out.reshape(4, n).T.copy()
 
 
 def stitch(
@@ -251,7 +369,7 @@ def stitch(
     camera: Camera,
     metric: str | Metric,
     *,
-    resident: Sequence[int],
+    resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
     max_rounds: int = 16,
 ) -> Patches:
@@ -259,23 +377,23 @@ def stitch(
     k = grid.k
     res = np.asarray(resident, dtype=np.int64)
     cur = patches
+    slots = None
     for _ in range(max_rounds):
         nb = _neighbours(cur, k)
         spacing = k - cur.level
-        s_n = np.where(nb >= 0, spacing[np.maximum(nb, 0)], 0)
-        snap = np.where(nb >= 0, np.maximum(s_n - spacing[:, None], 0), 0)
+        has = nb >= 0
+        s_n = np.where(has, spacing[np.maximum(nb, 0)], 0)
+        snap = np.where(has, np.maximum(s_n - spacing[:, None], 0), 0)
         edge = k - cur.depth  # log2 node edge in samples
-        bad = (nb >= 0) & (s_n > edge[:, None])
-        victims = np.unique(nb[bad])
+        bad = has & (s_n > edge[:, None])
+        victims = np.unique(nb[bad]) if bad.any() else nb[bad]
         if victims.size:
             splittable = cur.depth[victims] + table.patch_log2 < np.minimum(
                 k, res[cur.block[victims]]
             )
             victims = victims[splittable]
         if not victims.size:
-            viol = int(bad.sum())
-            cells = cur.cells_log2[:, None]
-            snap = np.minimum(snap, cells)
+            snap = np.minimum(snap, cur.cells_log2[:, None])
             return Patches(
                 blocks=cur.blocks,
                 block=cur.block,
@@ -287,9 +405,11 @@ def stitch(
                 rho=cur.rho,
                 snap=snap.astype(np.int64),
                 clamped=cur.clamped,
-                violations=viol,
+                violations=int(np.count_nonzero(bad)),
             )
-        cur = _split(cur, victims, grid, table, camera, metric, res, zranges)
+        if slots is None:
+            slots = table.slots(cur.blocks)
+        cur = _split(cur, victims, grid, table, slots, camera, metric, res, zranges)
     raise SelectionError(f"stitching did not settle in {max_rounds} rounds")
 
 
@@ -298,6 +418,7 @@ def _split(
     victims: np.ndarray,
     grid: BlockGrid,
     table: PatchTable,
+    slots: np.ndarray,
     camera: Camera,
     metric: str | Metric,
     res: np.ndarray,
@@ -312,11 +433,10 @@ def _split(
     r = (2 * cur.row[victims][:, None] + _CHILD_R).ravel()
     c = (2 * cur.col[victims][:, None] + _CHILD_C).ravel()
     level = np.minimum(np.minimum(k, d + p), res[b])
-    blocks = [tuple(int(v) for v in x) for x in cur.blocks]
     delta = np.zeros(len(b))
-    for depth in np.unique(d):
+    for depth in np.unique(d).tolist():
         m = d == depth
-        delta[m] = table.delta(blocks, b[m], int(depth), r[m], c[m])
+        delta[m] = table.delta(slots[b[m]], depth, r[m], c[m])
     blk = cur.blocks[b]
     bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1])
     size = np.left_shift(1, k - d).astype(np.float64)

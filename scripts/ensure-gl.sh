@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Make sure the system libraries for headless OpenGL (EGL + Mesa llvmpipe) are present.
+# Make sure the system libraries for headless OpenGL (EGL + Mesa llvmpipe) are present, and
+# Xvfb for the interactive viewer's window test.
 # Installs them with apt-get when run as root on Debian/Ubuntu; otherwise says what to do.
 set -euo pipefail
-pkgs=(libegl1 libgl1-mesa-dri libgl1)
+pkgs=(libegl1 libgl1-mesa-dri libgl1 libglx-mesa0 xvfb xauth libxrandr2 libxcursor1 libxi6 libxinerama1)
 have() { ldconfig -p 2>/dev/null | grep -q "$1"; }
 dri_ok() {
   for f in /usr/lib/*/dri/swrast_dri.so /usr/lib/dri/swrast_dri.so /usr/lib/*/dri/libdril_dri.so; do
@@ -10,7 +11,7 @@ dri_ok() {
   done
   return 1
 }
-if have libEGL.so.1 && have libGL.so.1 && dri_ok; then
+if have libEGL.so.1 && have libGL.so.1 && dri_ok && command -v Xvfb >/dev/null; then
   exit 0
 fi
 if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
@@ -23,6 +24,7 @@ cat >&2 <<MSG
 terrastream: the headless OpenGL libraries (EGL + Mesa) are missing and this is not a root
 Debian/Ubuntu shell, so they were not installed. Ask an administrator to run:
     apt-get update && apt-get install -y --no-install-recommends ${pkgs[*]}
-Tiling and streaming work without them; rendering and the GL tests need them (GL tests skip).
+Tiling and streaming work without them; rendering and the GL tests need them (GL tests skip),
+and the viewer's window test needs Xvfb (it skips).
 MSG
 exit 0
