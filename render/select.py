@@ -33,6 +33,7 @@ import numpy as np
 from render.errors import SelectionError
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
+from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
 
@@ -41,78 +42,7 @@ _CHILD_R = np.array([0, 0, 1, 1])
 _CHILD_C = np.array([0, 1, 0, 1])
 
 
-class PatchTable:
-    """Per block and refinable depth ``d``, the max error of descendants at ``d + patch_log2``.
-
-    Blocks own slots of one float64 ``(capacity, 2**d, 2**d)`` array per depth; the capacity
-    doubles when full and :meth:`remove` frees a slot for reuse.
-    """
-
-    def __init__(self, k: int, patch_log2: int, capacity: int = 64) -> None:
-        if not patch_log2 >= 0:
-            raise SelectionError(f"patch_log2 must be >= 0, got {patch_log2}")
-        self.k, self.patch_log2 = k, patch_log2
-        self.depths = max(0, k - patch_log2)
-        self._cap = max(1, int(capacity))
-        self._arrays = [np.zeros((self._cap, 1 << d, 1 << d)) for d in range(self.depths)]
-        self._slot: dict[Block, int] = {}
-        self._free = list(range(self._cap - 1, -1, -1))
-
-    def __contains__(self, block: Block) -> bool:
-        return block in self._slot
-
-    def __len__(self) -> int:
-        return len(self._slot)
-
-    def add(self, block: Block, field: Sequence[np.ndarray]) -> None:
-        """Pool one block's unpacked error field (one array per depth ``0..k-1``)."""
-        if len(field) != self.k:
-            raise SelectionError(f"error field must hold {self.k} depths, got {len(field)}")
-        block = (int(block[0]), int(block[1]))
-        if block in self._slot:
-            return
-        if not self._free:
-            old = self._cap
-            self._cap *= 2
-            self._arrays = [
-                np.concatenate([a, np.zeros((old, *a.shape[1:]))]) for a in self._arrays
-            ]
-            self._free.extend(range(self._cap - 1, old - 1, -1))
-        s = self._free.pop()
-        self._slot[block] = s
-        for d in range(self.depths):
-            src = np.asarray(field[d + self.patch_log2], dtype=np.float64)
-            n, nd = src.shape[0], 1 << d
-            if n >= nd:
-                r = n // nd
-                self._arrays[d][s] = src.reshape(nd, r, nd, r).max(axis=(1, 3))
-            else:
-                self._arrays[d][s] = np.repeat(np.repeat(src, nd // n, 0), nd // n, 1)
-
-    def remove(self, block: Block) -> None:
-        """Forget a block (its slot is reused)."""
-        s = self._slot.pop((int(block[0]), int(block[1])), None)
-        if s is not None:
-            self._free.append(s)
-
-    def slots(self, blocks: np.ndarray | Sequence[Block]) -> np.ndarray:
-        """Slot of each block (``SelectionError`` for a block without errors)."""
-        get = self._slot.get
-        out = [get(b, -1) for b in map(tuple, np.asarray(blocks, np.int64).reshape(-1, 2).tolist())]
-        arr = np.array(out, dtype=np.int64)
-        if (arr < 0).any():
-            b = np.asarray(blocks).reshape(-1, 2)[int(np.argmin(arr))]
-            raise SelectionError(
-                f"block {tuple(int(v) for v in b)} has no errors in the patch table"
-            )
-        return arr
-
-    def delta(self, slots: np.ndarray, depth: int, rows, cols) -> np.ndarray:
-        """Patch errors of nodes ``(depth, rows, cols)`` of the blocks in ``slots`` (0 at full
-        resolution)."""
-        if depth >= self.depths:
-            return np.zeros(len(slots))
-        return self._arrays[depth][slots, rows, cols]
+PatchTable = PatchErrorTable  # the streamer's table: the same pooled patch errors
 
 
 class _Cull:

@@ -50,6 +50,7 @@ class PatchErrorTable:
         """Store a block's unpacked error field (one array per depth ``0..k-1``)."""
         if len(field) != self.k:
             raise LodError(f"field must hold {self.k} depths, got {len(field)}")
+        block = (int(block[0]), int(block[1]))
         if block in self._slot:
             return
         if not self._free:
@@ -69,9 +70,28 @@ class PatchErrorTable:
 
     def remove(self, block: Block) -> None:
         """Forget a block (its slot is reused)."""
-        s = self._slot.pop(block, None)
+        s = self._slot.pop((int(block[0]), int(block[1])), None)
         if s is not None:
             self._free.append(s)
+
+    def slots(self, blocks: Sequence[Block] | np.ndarray) -> np.ndarray:
+        """Slot of each block (``LodError`` for a block whose errors were never added)."""
+        get = self._slot.get
+        keys = np.asarray(blocks, dtype=np.int64).reshape(-1, 2).tolist()
+        arr = np.fromiter((get(tuple(b), -1) for b in keys), np.int64, len(keys))
+        if (arr < 0).any():
+            b = keys[int(np.argmin(arr))]
+            raise LodError(f"block {tuple(b)} has no errors in the patch table")
+        return arr
+
+    def delta(
+        self, slots: np.ndarray, depth: int, rows: np.ndarray, cols: np.ndarray
+    ) -> np.ndarray:
+        """Patch errors (float64) of nodes ``(depth, rows, cols)`` of the blocks in ``slots``;
+        0 at full resolution (``depth + patch_log2 >= k``)."""
+        if depth >= self.depths:
+            return np.zeros(len(slots))
+        return self._arrays[depth][slots, rows, cols].astype(np.float64)
 
     def _grow(self) -> None:
         old = self._cap
@@ -99,7 +119,7 @@ class PatchErrorTable:
         if m == 0 or self.depths == 0:
             return levels, rho_max
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
-        slots = np.fromiter((self._slot[b] for b in map(tuple, blk.tolist())), np.int64, m)
+        slots = self.slots(blk)
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
         bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1])
@@ -112,7 +132,7 @@ class PatchErrorTable:
         for d in range(self.depths):
             size = float(1 << (k - d))
             levels[idx] = d + p  # every block still holding nodes reaches this depth
-            delta = self._arrays[d][slots[idx], rows, cols].astype(np.float64)
+            delta = self.delta(slots[idx], d, rows, cols)
             cx = bx0[idx] + (cols + 0.5) * (size * grid.dx)
             cy = by1[idx] - (rows + 0.5) * (size * grid.dy)
             half = 0.5 * size * diag

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from select_reference import RefPatchTable, ref_select_patches, ref_stitch
 
-from render.errors import SelectionError
 from render.select import Patches, PatchTable, _Cull, select_patches, stitch
 from streamer.camera import Camera
+from streamer.errors import LodError
 from streamer.frustum import frustum_hull, polygon_meets_circles, view_triangle
 from tiler.grid import BlockGrid
 
@@ -116,7 +116,7 @@ def test_patch_table_slots_are_reused_and_grow():
     assert sorted(s.tolist()) == list(range(len(blocks)))
     t.remove(blocks[0])
     assert blocks[0] not in t
-    with pytest.raises(SelectionError, match="no errors"):
+    with pytest.raises(LodError, match="no errors"):
         t.slots([blocks[0]])
     t.add((0, 0), fields[(0, 0)])
     assert t.slots([(0, 0)])[0] == s[0]  # the freed slot
