@@ -320,6 +320,7 @@ def format_summary(d: dict) -> str:
     return "\n".join(
         [
             f"frames {d['frames']}, stall frames {d['stall_frames']}, io errors {d['io_errors']}",
+            f"warm-up before frame 0: {d['warmup_bytes'] * mb:.2f} MB in {d['warmup_ms']:.0f} ms",
             f"needed {d['needed_bytes'] * mb:.1f} MB over all frames; real-time loaded "
             f"{d['realtime_bytes'] * mb:.3f} MB "
             f"({100 * d['realtime_bytes_after_first_frame'] / needed:.3f} % of needed after "

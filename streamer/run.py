@@ -127,9 +127,15 @@ def run_flythrough(
     first_wait: bool = True,
     on_frame: Callable[[int, FrameStats], None] | None = None,
 ) -> RunResult:
-    """Update the session once per camera, paced at the session's fps; collect every frame."""
+    """Update the session once per camera, paced at the session's fps; collect every frame.
+
+    With ``first_wait`` the session is warmed up for the first camera (see
+    :meth:`Session.warm_up`; reported as ``warmup_ms``/``warmup_bytes``) and frame 0 waits.
+    """
     fps = session.config.fps
     rows = []
+    if first_wait and cameras:
+        session.warm_up(cameras[0])
     t0 = time.perf_counter()
     for i, cam in enumerate(cameras):
         if realtime:

@@ -71,7 +71,9 @@ class SessionConfig:
     retries: int = 3
     backoff_s: float = 0.05
     wait_timeout_s: float = 30.0
-    linger_s: float = 1.0  # keep unwanted levels this long before unloading them
+    linger_s: float | None = None  # unload unwanted levels after this long; None: only when
+    # the budget needs the room (least recently wanted first)
+    horizon_s: float = 0.5  # also plan for where the camera will be this far ahead
     inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame (None: all)
 
     def __post_init__(self) -> None:
@@ -84,7 +86,8 @@ class SessionConfig:
             ("latency_ms", self.latency_ms >= 0),
             ("retries", self.retries >= 1),
             ("wait_timeout_s", self.wait_timeout_s > 0),
-            ("linger_s", self.linger_s >= 0),
+            ("linger_s", self.linger_s is None or self.linger_s >= 0),
+            ("horizon_s", self.horizon_s >= 0),
             ("lookahead", 0 < self.lookahead <= 1),
         ]
         for name, ok in checks:
@@ -135,6 +138,7 @@ class _Totals:
     prefetched_bytes: int = 0
     max_update_ms: float = 0.0
     max_update_cpu_ms: float = 0.0
+    warmup: dict = field(default_factory=dict)
     io_errors: int = 0
     cancelled: int = 0
     used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
@@ -224,6 +228,55 @@ class Session:
 
     # -- the frame -------------------------------------------------------------------------
 
+    def warm_up(self, camera: Camera, timeout_s: float | None = None) -> dict[str, float]:
+        """Before a flight: load everything the plan for ``camera`` wants — the visible levels
+        and the prefetch around them — and return ``{"ms", "bytes"}`` spent.
+
+        Without it the first second of a flight stalls while the prefetch ring fills; Qiu et
+        al. likewise count the first frame's load apart (Table 3).
+        """
+        if self._closed:
+            raise SessionClosedError("this session is closed")
+        t0 = time.perf_counter()
+        before = self.totals.loaded_bytes
+        limit = timeout_s or self.config.wait_timeout_s
+        deadline = time.monotonic() + limit
+        for _ in range(3):  # errors first, then the levels they ask for, then a last check
+            m = self._visible(camera)
+            with self._cv:
+                needed = self._needed(camera, m)
+                self.cache.set_pins(needed, self.level_bytes)
+                self._request = (camera, None, set(m))
+            self._schedule_step()
+            with self._cv:
+                for b in needed:
+                    self._push(b, notify=False)
+                self._cv.notify_all()
+                while self._queue or any(self._fetching.values()) or self._decoding:
+                    if self.config.workers == 0:
+                        break
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise LoadError(f"warm-up did not finish within {limit:.1f} s")
+                    self._cv.wait(timeout=min(left, 0.05))
+            if self.config.workers == 0:
+                self._load_inline({}, unlimited=True)
+        with self._cv:
+            self._frame_realtime = self._frame_prefetched = 0
+            self._frame_io_s = 0.0
+        out = {
+            "ms": (time.perf_counter() - t0) * 1000.0,
+            "bytes": float(self.totals.loaded_bytes - before),
+        }
+        self.totals.warmup = out
+        return out
+
+    def _visible(self, camera: Camera) -> list[Block]:
+        """Blocks meeting the projected frustum (Qiu's triangle or Jung & Han's hull)."""
+        cfg = self.config
+        poly = view_triangle(camera) if cfg.culling == "qiu" else frustum_hull(camera, self._zrange)
+        return [b for b in map(tuple, blocks_meeting(poly, self.grid).tolist()) if self._exists[b]]
+
     def update(self, camera: Camera, dt: float | None = None, *, wait: bool = False) -> Frame:
         """Schedule loads for this camera and report what can be drawn now.
 
@@ -241,8 +294,7 @@ class Session:
             camera.velocity_from(self._prev, dt) if self._prev is not None and dt > 0 else None
         )
         self._prev = camera
-        poly = view_triangle(camera) if cfg.culling == "qiu" else frustum_hull(camera, self._zrange)
-        m = [b for b in map(tuple, blocks_meeting(poly, self.grid).tolist()) if self._exists[b]]
+        m = self._visible(camera)
         with self._cv:  # one critical section: the error table is shared with the loaders
             self._raise_scheduler_error()
             needed = self._needed(camera, m)
@@ -289,8 +341,9 @@ class Session:
         return needed
 
     def _schedule_step(self) -> None:
-        """Prefetch planning for the latest frame: the extension's blocks ``N`` and the level
-        each would need at ``tau * lookahead``; then the work queue is rebuilt."""
+        """Prefetch planning for the latest frame: the blocks ``N`` of the frustum extension, of
+        this camera and of the camera ``horizon_s`` ahead along its velocity, and the level each
+        would need at ``tau * lookahead`` from either pose; then the work queue is rebuilt."""
         with self._cv:
             req, self._request = self._request, None
         if req is None:
@@ -298,31 +351,39 @@ class Session:
         camera, velocity, visible = req
         cfg = self.config
         n = set(visible)
+        poses = [camera]
         if cfg.prefetch:
-            ext = extension_triangle(
-                camera,
-                block_edge(self.grid) if cfg.extension_L is None else cfg.extension_L,
-                velocity=velocity if velocity is not None else (0.0, 0.0, 0.0),
-                fps=cfg.fps,
-            )
-            n.update(
-                b for b in map(tuple, blocks_meeting(ext, self.grid).tolist()) if self._exists[b]
-            )
+            v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
+            if cfg.horizon_s > 0 and np.any(v):
+                ahead_pos = np.asarray(camera.position, dtype=np.float64) + v * cfg.horizon_s
+                poses.append(replace(camera, position=tuple(ahead_pos.tolist())))
+            edge = block_edge(self.grid) if cfg.extension_L is None else cfg.extension_L
+            for cam in poses:
+                ext = extension_triangle(cam, edge, velocity=v, fps=cfg.fps)
+                n.update(
+                    b
+                    for b in map(tuple, blocks_meeting(ext, self.grid).tolist())
+                    if self._exists[b]
+                )
         blocks = sorted(n)
         wants: dict[Block, tuple[int, float]] = {b: (0, 0.0) for b in blocks}
         have = [b for b in blocks if b in self._errors]
         if have:
             zr = self._zr[tuple(np.array(have).T)]
             tau = cfg.tau * (cfg.lookahead if cfg.prefetch else 1.0)
-            with self._cv:
-                ahead, rho = self._errors.needed_levels(
-                    self.grid, have, camera, tau, cfg.metric, zr
-                )
-            for b, lv, r in zip(have, ahead.tolist(), rho.tolist(), strict=True):
+            levels = np.zeros(len(have), dtype=np.int64)
+            rho = np.zeros(len(have))
+            for cam in poses:
+                with self._cv:
+                    lv, r = self._errors.needed_levels(self.grid, have, cam, tau, cfg.metric, zr)
+                np.maximum(levels, lv, out=levels)
+                np.maximum(rho, r, out=rho)
+            for b, lv, r in zip(have, levels.tolist(), rho.tolist(), strict=True):
                 wants[b] = (lv, r)
         with self._cv:
             self.cache.set_prefetch(wants)
-            self.cache.trim(int(cfg.linger_s * cfg.fps))
+            if cfg.linger_s is not None:
+                self.cache.trim(int(cfg.linger_s * cfg.fps))
             self._prefetch_blocks = len(n) - len(visible)
             self._reschedule()
 
@@ -666,6 +727,8 @@ class Session:
             "max_update_cpu_ms": t.max_update_cpu_ms,
             "io_errors": t.io_errors,
             "cancelled_loads": t.cancelled,
+            "warmup_ms": t.warmup.get("ms", 0.0),
+            "warmup_bytes": int(t.warmup.get("bytes", 0)),
         }
 
 

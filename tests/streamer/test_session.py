@@ -173,3 +173,14 @@ def test_straight_line_summary_keys(store):
     ):
         assert key in summary
     assert summary["loaded_bytes"] >= summary["realtime_bytes"]
+
+
+def test_warm_up_loads_the_prefetch_ring_so_the_flight_starts_without_stalls(store):
+    cams = flight(store, 30)
+    with open_session(store, budget_mb=64, workers=4) as s:
+        warm = s.warm_up(cams[0])
+        assert warm["bytes"] > 0
+        f = s.update(cams[0])  # no wait: everything the first view needs is resident
+        assert not f.stats.stalled
+        assert f.stats.realtime_bytes == 0
+        assert s.summary()["warmup_bytes"] == warm["bytes"]
