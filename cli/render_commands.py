@@ -40,6 +40,12 @@ PitchOpt = Annotated[float | None, typer.Option("--pitch", help="Degrees above t
 FovOpt = Annotated[float, typer.Option("--fov", min=1.0, max=170.0, help="Vertical FOV, deg.")]
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WxH in pixels.")]
 MetricOpt = Annotated[Metric, typer.Option("--metric", help="Screen-error metric.")]
+LodOpt = Annotated[
+    str,
+    typer.Option(
+        "--lod", help="LOD strategy: qiu (default) or chunk-tessellation (render.strategies)."
+    ),
+]
 PatchOpt = Annotated[
     int, typer.Option("--patch-log2", min=0, max=7, help="Patch cells per side, log2.")
 ]
@@ -60,6 +66,7 @@ def render(
     patch_log2: PatchOpt = 4,
     wireframe: Annotated[bool, typer.Option("--wireframe", help="Overlay edges.")] = False,
     lod_colour: Annotated[bool, typer.Option("--lod-colour", help="Tint by level.")] = False,
+    lod: LodOpt = "qiu",
 ) -> None:
     """Render one view of a store to a PNG (default: an oblique overview of the whole DEM).
 
@@ -86,6 +93,7 @@ def render(
             patch_log2=patch_log2,
             wireframe=wireframe,
             lod_colour=lod_colour,
+            lod=lod,
         )
         Image.fromarray(img).save(out)
         typer.echo(
@@ -123,6 +131,7 @@ def tradeoff(
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed draws per tau.")] = 3,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write one row per tau.")] = None,
     plot: Annotated[Path | None, typer.Option("--plot", help="Write a PNG plot.")] = None,
+    lod: LodOpt = "qiu",
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 
@@ -149,6 +158,7 @@ def tradeoff(
             patch_log2=patch_log2,
             repeats=repeats,
             log=typer.echo,
+            lod=lod,
         )
         if rows:
             typer.echo(
@@ -180,6 +190,7 @@ def flythrough(
     budget_mb: Annotated[float, typer.Option("--budget-mb", help="Resident budget.")] = 256.0,
     workers: Annotated[int, typer.Option("--workers", min=0, help="Loader threads.")] = 2,
     every: Annotated[int, typer.Option("--every", min=0, help="Save every N-th PNG.")] = 1,
+    lod: LodOpt = "qiu",
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 
@@ -217,6 +228,7 @@ def flythrough(
             fps=fps,
             save_every=every,
             on_frame=on_frame,
+            lod=lod,
         )
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
         typer.echo(
@@ -249,6 +261,7 @@ def view(
     screenshot: Annotated[
         Path | None, typer.Option("--screenshot", help="With --frames: save the last frame.")
     ] = None,
+    lod: LodOpt = "qiu",
 ) -> None:
     """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
     +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).
@@ -279,6 +292,7 @@ def view(
             wireframe=wireframe,
             frames=frames,
             screenshot=screenshot,
+            lod=lod,
         )
         st = res.last
         typer.echo(
@@ -286,3 +300,63 @@ def view(
             f"{res.tau:.3g}, {res.resident_mb:.1f} MB resident"
             + (f"; wrote {res.screenshot}" if res.screenshot else "")
         )
+
+
+@app.command()
+def compare(
+    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    path: Annotated[Path | None, typer.Option("--path", help="Keyframe file.")] = None,
+    path_kind: Annotated[PathKind, typer.Option("--path-kind", help="Built-in path.")] = (
+        PathKind.default
+    ),
+    frames: Annotated[int, typer.Option("--frames", min=1, help="Fly-through frames.")] = 8,
+    taus: Annotated[str, typer.Option("--taus", help="Comma-separated taus, px.")] = "0.5,1,2,4",
+    lods: Annotated[
+        str | None, typer.Option("--lods", help="Comma-separated strategies (default: all).")
+    ] = None,
+    size: SizeOpt = "1024x768",
+    metric: MetricOpt = Metric.qiu,
+    patch_log2: PatchOpt = 4,
+    quick: Annotated[
+        bool, typer.Option("--quick", help="256x192, 4 frames, taus 1,4 (a smoke run).")
+    ] = False,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="One row per strategy and tau.")
+    ] = None,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Pareto plot PNG.")] = None,
+) -> None:
+    """Compare every LOD strategy on the same fly-through: triangles, CPU/GPU ms, measured
+    screen error, cracks, popping, bytes.
+
+    Example: terrastream compare demo.zarr --taus 0.5,1,2,4 --json c.json --plot c.png
+    """
+    from render.strategies import check_name
+    from render.strategies.compare import HEADER, plot_pareto
+    from render.strategies.compare import compare as run
+    from streamer.run import make_path
+    from tiler.store import open_store
+
+    with fail_on_errors():
+        if quick:
+            size, frames, taus = "256x192", 4, "1,4"
+        viewport = parse_size(size)
+        values = _taus(taus)
+        names = [check_name(n.strip()) for n in lods.split(",")] if lods else None
+        s = open_store(store)
+        cams = make_path(s, path_kind.value, frames=frames, path_file=path, viewport=viewport)
+        typer.echo(HEADER)
+        rows = run(
+            s,
+            cams,
+            values,
+            strategies=names,
+            metric=metric.value,
+            patch_log2=patch_log2,
+            log=typer.echo,
+        )
+        if json_out:
+            json_out.write_text(json.dumps(rows, indent=1))
+            typer.echo(f"wrote {json_out}")
+        if plot:
+            plot_pareto(rows, plot, title=f"{Path(store).name} {viewport[0]}x{viewport[1]}")
+            typer.echo(f"wrote {plot}")

@@ -15,6 +15,7 @@ from render import measure
 from render.errors import RenderError
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
 from render.select import Patches
+from render.strategies import DEFAULT, check_name, get_strategy
 from streamer.camera import Camera
 from streamer.session import Frame, Session, open_session
 from tiler.layout import grid_side, level_size
@@ -74,9 +75,11 @@ def heights_fn(store: TerrainStore, patches: Patches) -> Callable[[int], np.ndar
 
 
 def draw_timed(
-    renderer: TerrainRenderer, camera: Camera, patches: Patches, repeats: int = 1, **kw: Any
+    renderer: Any, camera: Camera, patches: Any, repeats: int = 1, **kw: Any
 ) -> RenderStats:
-    """Draw ``repeats`` times and keep the fastest frame time (llvmpipe timings are noisy)."""
+    """Draw ``repeats`` times and keep the fastest frame time (llvmpipe timings are noisy).
+
+    ``renderer`` is a :class:`TerrainRenderer` or a strategy (anything with ``draw``)."""
     best = None
     for _ in range(max(1, repeats)):
         st = renderer.draw(camera, patches, **kw)
@@ -96,16 +99,19 @@ def render_view(
     wireframe: bool = False,
     lod_colour: bool = False,
     renderer: TerrainRenderer | None = None,
+    lod: str = DEFAULT,
 ) -> tuple[np.ndarray, RenderStats]:
-    """Stream what the view needs (waiting for it) and render it once."""
+    """Stream what the view needs (waiting for it) and render it once with strategy ``lod``."""
+    check_name(lod)
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
     )
     with open_render_session(store, tau, metric, r.p) as session:
         frame = session.update(camera, wait=True)
         r.sync(frame.blocks, session)
-        patches, ms = r.select(camera, tau, metric, resident=resident_levels(frame))
-        st = r.draw(camera, patches, wireframe=wireframe, lod_colour=lod_colour, selection_ms=ms)
+        strat = get_strategy(lod, r)
+        sel, ms = strat.select(camera, tau, metric, resident=resident_levels(frame))
+        st = strat.draw(camera, sel, wireframe=wireframe, lod_colour=lod_colour, selection_ms=ms)
     return r.image(), st
 
 
@@ -149,6 +155,7 @@ class TradeoffRow:
     loaded_bytes: int
     gpu_bytes: int
     clamped: int
+    strategy: str = DEFAULT
 
 
 def tradeoff(
@@ -161,8 +168,11 @@ def tradeoff(
     repeats: int = 3,
     renderer: TerrainRenderer | None = None,
     log: Callable[[str], None] | None = None,
+    lod: str = DEFAULT,
 ) -> list[TradeoffRow]:
-    """Render the view at every tau and at full resolution; measure cost and error."""
+    """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
+    reference mesh); measure cost and error."""
+    check_name(lod)
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
     )
@@ -180,6 +190,7 @@ def tradeoff(
     nad_p, _ = r.select(nadir, 0.0, metric, resident=ref_res[1], full=True)
     r.draw(nadir, nad_p, clear=CLEAR)
     footprint = ~measure.is_clear(r.image(), CLEAR)
+    strat = get_strategy(lod, r)
     rows = []
     for tau in taus:
         with open_render_session(store, tau, metric, r.p) as s:
@@ -187,19 +198,17 @@ def tradeoff(
             res = resident_levels(frame)
             nad_res = resident_levels(s.update(nadir, wait=True))
             loaded = s.summary()["loaded_bytes"]
-        patches, sel_ms = r.select(camera, tau, metric, resident=res)
+        patches, sel_ms = strat.select(camera, tau, metric, resident=res)
         for _ in range(max(0, repeats - 1)):
-            patches, ms = r.select(camera, tau, metric, resident=res)
+            patches, ms = strat.select(camera, tau, metric, resident=res)
             sel_ms = min(sel_ms, ms)
-        st = draw_timed(r, camera, patches, repeats)
+        st = draw_timed(strat, camera, patches, repeats)
         img = r.image()
-        err = measure.error_stats(
-            measure.screen_errors(patches, r.grid, camera, heights_fn(store, patches))
-        )
-        np_, _ = r.select(nadir, tau, metric, resident=nad_res)
-        r.draw(nadir, np_, clear=CLEAR)
+        err = measure.error_stats(strat.screen_errors(camera, patches))
+        np_, _ = strat.select(nadir, tau, metric, resident=nad_res)
+        strat.draw(nadir, np_, clear=CLEAR)
         cracks = measure.crack_pixels(r.image(), footprint, CLEAR)
-        drawn = {tuple(int(v) for v in b) for b in patches.blocks[np.unique(patches.block)]}
+        drawn = strat.drawn_blocks(patches)
         gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn)
         row = TradeoffRow(
             tau=float(tau),
@@ -221,6 +230,7 @@ def tradeoff(
             loaded_bytes=int(loaded),
             gpu_bytes=gpu,
             clamped=st.clamped,
+            strategy=lod,
         )
         rows.append(row)
         if log:
@@ -308,8 +318,11 @@ def flythrough(
     fps: float = 30.0,
     save_every: int = 1,
     on_frame: Callable[[FlyRow], None] | None = None,
+    lod: str = DEFAULT,
 ) -> tuple[list[FlyRow], dict[str, Any]]:
-    """Stream and render each camera; write PNG frames and ``frames.csv`` into ``out_dir``."""
+    """Stream and render each camera with strategy ``lod``; write PNG frames and
+    ``frames.csv`` into ``out_dir``."""
+    check_name(lod)
     from PIL import Image
 
     if not cameras:
@@ -317,6 +330,7 @@ def flythrough(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=patch_log2))
+    strat = get_strategy(lod, r)
     rows: list[FlyRow] = []
     with open_session(
         store,
@@ -331,8 +345,8 @@ def flythrough(
         for i, cam in enumerate(cameras):
             frame = session.update(cam, 1.0 / fps, wait=i == 0)
             r.sync(frame.blocks, session)
-            patches, ms = r.select(cam, tau, metric, resident=resident_levels(frame))
-            st = r.draw(cam, patches, selection_ms=ms)
+            patches, ms = strat.select(cam, tau, metric, resident=resident_levels(frame))
+            st = strat.draw(cam, patches, selection_ms=ms)
             if save_every and i % save_every == 0:
                 Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
             fs = frame.stats

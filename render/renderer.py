@@ -164,11 +164,15 @@ class TerrainRenderer:
         *,
         resident: dict[Block, int] | None = None,
         full: bool = False,
+        table: PatchTable | None = None,
+        field: str | None = None,
     ) -> tuple[Patches, float]:
         """Stitched patches of the resident blocks at ``tau`` and the CPU time in ms.
 
         ``resident`` caps each block's level (default: what is on the GPU); ``full`` draws
-        every visible node at full resolution (the reference mesh).
+        every visible node at full resolution (the reference mesh). ``metric`` may be a
+        callable (:data:`streamer.lod.Metric`); ``table`` (another patch size) and ``field``
+        (the stored error field it is filled from) let a strategy select its own node sizes.
         """
         t0 = time.perf_counter()
         get_metric(metric)
@@ -182,8 +186,10 @@ class TerrainRenderer:
         pairs = [bl for bl in pairs if bl[1] >= 0]
         blocks = [b for b, _ in pairs]
         res = np.array([lv for _, lv in pairs], dtype=np.int64)
-        table = self.table(metric)
-        name = FIELD_FOR_METRIC.get(metric, "qiu")
+        table = table if table is not None else self.table(metric)
+        if field is None:
+            field = FIELD_FOR_METRIC.get(metric, "qiu") if isinstance(metric, str) else "bound"
+        name = field
         for b in blocks:
             if b not in table:
                 table.add(b, self.store.read_errors(b)[name])

@@ -6,7 +6,11 @@ from __future__ import annotations
 # in_a = (block col0, block row0) global sample of the block origin, (node col0, node row0)
 #        in block samples; in_b = (slot base in the height buffer, level, cells_log2, snaps
 #        packed 4 bits each N | E<<4 | S<<8 | W<<12).
-VERTEX_COMMON = """
+# Height fetch and vertex construction shared by every stage that makes terrain vertices (the
+# vertex shader here, the tessellation evaluation shader of render/strategies/chunk_tess.py):
+# vertex_at(a, b, si, sj) builds the vertex at (already snapped) patch cell (si, sj) of the
+# instance (a, b) laid out as below.
+FETCH_COMMON = """
 #version 450
 layout(std430, binding = 0) readonly buffer Heights { float heights[]; };
 layout(binding = 1) uniform usampler2D level_tex;
@@ -17,9 +21,6 @@ uniform ivec2 cam_cell;     // integer global sample (col, row) near the camera
 uniform vec3 cam_frac;      // camera - that sample's world position (x, y), and camera z
 uniform vec2 spacing;       // dx, dy
 uniform mat4 mvp;           // projection * camera-relative view
-in ivec2 in_grid;
-in ivec4 in_a;
-in ivec4 in_b;
 
 const float MASKED = -1.0e30;
 
@@ -37,22 +38,11 @@ float fetch(int base, ivec2 cr) {
 
 struct Vtx { vec3 rel; float h; float masked; vec3 normal; int level; ivec2 g; };
 
-Vtx make_vertex() {
-    int base = in_b.x;
-    int lv = in_b.y;
-    int c = in_b.z;
-    int n = 1 << c;
+Vtx vertex_at(ivec4 a, ivec4 b, int si, int sj) {
+    int base = b.x;
+    int lv = b.y;
     int s = 1 << (k - lv);
-    int ci = in_grid.x >> (patch_log2 - c);
-    int cj = in_grid.y >> (patch_log2 - c);
-    int tn = in_b.w & 15, te = (in_b.w >> 4) & 15;
-    int ts = (in_b.w >> 8) & 15, tw = (in_b.w >> 12) & 15;
-    int si = ci, sj = cj;
-    if (cj == 0 && tn > 0) si = (ci >> tn) << tn;
-    if (cj == n && ts > 0) si = (ci >> ts) << ts;
-    if (ci == 0 && tw > 0) sj = (cj >> tw) << tw;
-    if (ci == n && te > 0) sj = (cj >> te) << te;
-    ivec2 cr = ivec2(in_a.z + si * s, in_a.w + sj * s);     // step 1: block sample (col, row)
+    ivec2 cr = ivec2(a.z + si * s, a.w + sj * s);     // step 1: block sample (col, row)
     float h = fetch(base, cr);
     Vtx v;
     v.masked = h <= MASKED ? 1.0e6 : 0.0;
@@ -68,7 +58,7 @@ Vtx make_vertex() {
     float dzdx = (he - hw) / (float(e.x - w.x) * spacing.x);
     float dzdy = (hn - hs) / (float(ss.y - nn.y) * spacing.y);
     v.normal = normalize(vec3(-dzdx, -dzdy, 1.0));
-    ivec2 g = in_a.xy + cr;
+    ivec2 g = a.xy + cr;
     v.rel = vec3(float(g.x - cam_cell.x) * spacing.x - cam_frac.x,
                  -float(g.y - cam_cell.y) * spacing.y - cam_frac.y,
                  h - cam_frac.z);
@@ -78,6 +68,34 @@ Vtx make_vertex() {
     return v;
 }
 """
+
+# Shared vertex logic. Per vertex: in_grid = (i, j) of a P x P patch mesh. Per instance:
+# in_a = (block col0, block row0) global sample of the block origin, (node col0, node row0)
+#        in block samples; in_b = (slot base in the height buffer, level, cells_log2, snaps
+#        packed 4 bits each N | E<<4 | S<<8 | W<<12).
+VERTEX_COMMON = (
+    FETCH_COMMON
+    + """
+in ivec2 in_grid;
+in ivec4 in_a;
+in ivec4 in_b;
+
+Vtx make_vertex() {
+    int c = in_b.z;
+    int n = 1 << c;
+    int ci = in_grid.x >> (patch_log2 - c);
+    int cj = in_grid.y >> (patch_log2 - c);
+    int tn = in_b.w & 15, te = (in_b.w >> 4) & 15;
+    int ts = (in_b.w >> 8) & 15, tw = (in_b.w >> 12) & 15;
+    int si = ci, sj = cj;
+    if (cj == 0 && tn > 0) si = (ci >> tn) << tn;
+    if (cj == n && ts > 0) si = (ci >> ts) << ts;
+    if (ci == 0 && tw > 0) sj = (cj >> tw) << tw;
+    if (ci == n && te > 0) sj = (cj >> te) << te;
+    return vertex_at(in_a, in_b, si, sj);
+}
+"""
+)
 
 VERTEX = (
     VERTEX_COMMON

@@ -250,23 +250,31 @@ def run_viewer(
     wireframe: bool = False,
     frames: int | None = None,
     screenshot: str | Path | None = None,
+    lod: str = "qiu",
 ) -> ViewResult:
-    """Open the window and fly until it closes (or for ``frames`` frames, without input)."""
+    """Open the window and fly until it closes (or for ``frames`` frames, without input);
+    ``lod`` names the LOD strategy (:mod:`render.strategies`)."""
+    from render.strategies import check_name
+
+    check_name(lod)
     size = tuple(start.viewport)
     glfw, win, ctx = open_window(size, f"terrastream view {store.url}", visible=True)
     try:
         return _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget_mb,
-                     wireframe, frames, screenshot)  # fmt: skip
+                     wireframe, frames, screenshot, lod)  # fmt: skip
     finally:
         glfw.terminate()
 
 
 def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget_mb, wireframe,
-          frames, screenshot) -> ViewResult:  # fmt: skip
+          frames, screenshot, lod="qiu") -> ViewResult:  # fmt: skip
+    from render.strategies import get_strategy
+
     size, scripted = tuple(start.viewport), frames is not None
     fb = glfw.get_framebuffer_size(win)
     size = (int(fb[0]), int(fb[1])) if fb[0] > 0 else size
     r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=patch_log2), ctx=ctx)
+    strat = get_strategy(lod, r)
     overlay = _Overlay(ctx, size)
     zlo = float(np.nanmin(store.index.zmin))
     pose, fov = Pose.of(start), start.fov_y
@@ -348,8 +356,8 @@ def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget
                 log.warning("%s", exc)
                 continue
             r.sync(frame.blocks, session)
-            patches, ms = r.select(cam, state["tau"], metric, resident=resident_levels(frame))
-            last = r.draw(cam, patches, wireframe=state["wire"], selection_ms=ms)
+            patches, ms = strat.select(cam, state["tau"], metric, resident=resident_levels(frame))
+            last = strat.draw(cam, patches, wireframe=state["wire"], selection_ms=ms)
             ctx.copy_framebuffer(ctx.screen, r.fbo)
             ctx.screen.use()
             fps = 1.0 / frame_s if frame_s > 0.0 else 0.0

@@ -1,0 +1,137 @@
+"""The strategy interface and the generic measurement of a drawn triangle mesh.
+
+A strategy (:class:`Strategy`) turns a camera, τ and the resident levels into a *selection*
+(whatever it draws from), draws it with a :class:`render.renderer.TerrainRenderer` (same store,
+same ``HeightPool`` and level/order-index fetch, same framebuffer) and returns the renderer's
+:class:`render.renderer.RenderStats`. For the measured screen error every strategy gives the
+drawn surface on the CPU: :meth:`Strategy.screen_errors` (the CLOD patches use the exact CPU twin
+in :mod:`render.measure`; other strategies read their drawn triangles back — with transform
+feedback when the GPU makes them — and rasterise them on the sample lattice with
+:func:`triangle_screen_errors`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from render import measure
+from render.renderer import RenderStats, TerrainRenderer
+from streamer.camera import Camera
+from tiler.grid import BlockGrid
+from tiler.store import TerrainStore
+
+Block = tuple[int, int]
+
+
+class Strategy:
+    """One LOD method over a renderer. Subclasses set ``name`` and implement the four hooks."""
+
+    name = ""
+    #: the session's metric argument is honoured (otherwise the strategy has its own error)
+    uses_metric = True
+
+    def __init__(self, renderer: TerrainRenderer) -> None:
+        self.r = renderer
+
+    def select(
+        self,
+        camera: Camera,
+        tau: float,
+        metric: str = "qiu",
+        *,
+        resident: dict[Block, int] | None = None,
+    ) -> tuple[Any, float]:
+        """The selection at ``tau`` and its CPU ms."""
+        raise NotImplementedError
+
+    def draw(self, camera: Camera, sel: Any, **kw: Any) -> RenderStats:
+        """Draw the selection (``wireframe``, ``lod_colour``, ``clear``, ``selection_ms``)."""
+        raise NotImplementedError
+
+    def screen_errors(self, camera: Camera, sel: Any) -> np.ndarray:
+        """Measured pixel errors of every full-resolution sample under the drawn surface."""
+        raise NotImplementedError
+
+    def drawn_blocks(self, sel: Any) -> set[Block]:
+        """The blocks the selection draws from."""
+        raise NotImplementedError
+
+    def surface(self, camera: Camera, sel: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The drawn surface at full-resolution samples: global ``(rows, cols, heights)``
+        (used for popping; a sample may appear more than once)."""
+        raise NotImplementedError
+
+
+class GlobalHeights:
+    """Full-resolution heights (float64, NaN where masked) at global ``(row, col)`` samples."""
+
+    def __init__(self, store: TerrainStore) -> None:
+        self.store = store
+        self.grid = store.grid
+        self._cache: dict[Block, np.ndarray] = {}
+
+    def block(self, b: Block) -> np.ndarray:
+        """One block's full-resolution grid (cached)."""
+        if b not in self._cache:
+            g = self.store.read_block(b).astype(np.float64)
+            if self.store.index.has_nodata[b]:
+                g[~self.store.read_mask(b)] = np.nan
+            self._cache[b] = g
+        return self._cache[b]
+
+    def __call__(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        g = self.grid
+        step = g.step
+        br = np.clip(rows // step, 0, g.rows - 1)
+        bc = np.clip(cols // step, 0, g.cols - 1)
+        out = np.full(rows.shape, np.nan)
+        key = br * g.cols + bc
+        for kv in np.unique(key).tolist():
+            m = key == kv
+            b = (kv // g.cols, kv % g.cols)
+            out[m] = self.block(b)[rows[m] - b[0] * step, cols[m] - b[1] * step]
+        return out
+
+
+def triangle_screen_errors(
+    grid: BlockGrid,
+    camera: Camera,
+    tri_cr: np.ndarray,
+    tri_h: np.ndarray,
+    true_h: GlobalHeights,
+) -> np.ndarray:
+    """The renderer's measured screen error for a triangle mesh given as global integer sample
+    ``(col, row)`` corners ``(m, 3, 2)`` and drawn heights ``(m, 3)`` (NaN or <= -1e29: hidden).
+
+    Every lattice sample a triangle covers is evaluated (linear interpolation of the drawn
+    heights); a sample covered by two triangles (shared edges) is counted once per triangle,
+    which does not change max or p99 noticeably. Same projection and view test as
+    :func:`render.measure.screen_errors`.
+    """
+    h = np.asarray(tri_h, dtype=np.float64)
+    ok = np.isfinite(h).all(axis=1) & (h > -1e29).all(axis=1)
+    tri = np.asarray(tri_cr, dtype=np.int64)[ok]
+    h = h[ok]
+    if not len(tri):
+        return np.zeros(0)
+    rows, cols, hlod = measure.rasterise(tri, h)
+    htrue = true_h(rows, cols)
+    good = np.isfinite(htrue) & np.isfinite(hlod)
+    rows, cols, hlod, htrue = rows[good], cols[good], hlod[good], htrue[good]
+    x, y = grid.sample_xy(rows, cols)
+    w, hh = camera.viewport
+    px0, py0, d0 = camera.project(np.stack([x, y, htrue], -1))
+    px1, py1, d1 = camera.project(np.stack([x, y, hlod], -1))
+    with np.errstate(invalid="ignore"):
+        view = (
+            (d0 >= camera.near)
+            & (d0 <= camera.far)
+            & (px0 >= 0)
+            & (px0 <= w)
+            & (py0 >= 0)
+            & (py0 <= hh)
+            & (d1 > 0)
+        )
+    return np.hypot(px1 - px0, py1 - py0)[view]

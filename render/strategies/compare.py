@@ -1,0 +1,156 @@
+"""Side-by-side comparison of the registered LOD strategies (``terrastream compare``,
+``bench/lod_compare.py``).
+
+For each strategy and τ: the renderer's trade-off row (:func:`render.pipeline.tradeoff`) for
+the *middle* camera of the fly-through (measured max/p99 screen error against the
+full-resolution reference, PSNR, crack pixels straight down, bytes resident / on the GPU), plus
+fly-through means over every camera of the path (triangles, CPU selection ms, GPU ms; every
+frame's data is waited for, so all strategies see the same resident levels) and **popping**:
+the camera is moved sideways by one pixel's worth at the depth of the view centre (so the
+scene shifts by ~1 px), the strategy selects again, and ``popping_px`` is the largest screen
+displacement (seen from the moved camera) of the drawn surface at any full-resolution sample
+drawn in both frames, i.e. the jump caused by the LOD change alone. It is taken at the middle
+camera.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from render.pipeline import open_render_session, resident_levels, tradeoff
+from render.renderer import RenderConfig, TerrainRenderer
+from render.strategies import get_strategy, strategy_names
+from render.strategies.base import Strategy
+from streamer.camera import Camera
+from tiler.store import TerrainStore
+
+
+def shifted(camera: Camera, depth: float) -> Camera:
+    """The camera moved along its right vector by one pixel's worth at ``depth``."""
+    step = depth / camera.focal_px
+    pos = np.asarray(camera.position, dtype=np.float64) + step * camera.right
+    return replace(camera, position=tuple(float(v) for v in pos))
+
+
+def popping(strat: Strategy, cam0: Camera, cam1: Camera, tau: float, metric: str) -> float:
+    """Largest screen displacement (px, seen by ``cam1``) of the drawn surface at samples drawn
+    in both frames, between the selections for ``cam0`` and ``cam1``."""
+    s0, _ = strat.select(cam0, tau, metric)
+    s1, _ = strat.select(cam1, tau, metric)
+    r0, c0, h0 = strat.surface(cam0, s0)
+    r1, c1, h1 = strat.surface(cam1, s1)
+    w = strat.r.grid.cols * strat.r.grid.step + 1
+    k0, i0 = np.unique(r0 * w + c0, return_index=True)
+    k1, i1 = np.unique(r1 * w + c1, return_index=True)
+    _, a, b = np.intersect1d(k0, k1, assume_unique=True, return_indices=True)
+    rows, cols = r0[i0[a]], c0[i0[a]]
+    ha, hb = h0[i0[a]], h1[i1[b]]
+    ok = np.isfinite(ha) & np.isfinite(hb)
+    x, y = strat.r.grid.sample_xy(rows[ok], cols[ok])
+    pa = cam1.project(np.stack([x, y, ha[ok]], -1))
+    pb = cam1.project(np.stack([x, y, hb[ok]], -1))
+    wv, hv = cam1.viewport
+    with np.errstate(invalid="ignore"):
+        view = (pa[2] >= cam1.near) & (pa[0] >= 0) & (pa[0] <= wv) & (pa[1] >= 0) & (pa[1] <= hv)
+    d = np.hypot(pb[0] - pa[0], pb[1] - pa[1])[view]
+    return float(d.max()) if d.size else 0.0
+
+
+def compare(
+    store: TerrainStore,
+    cameras: Sequence[Camera],
+    taus: Sequence[float],
+    *,
+    strategies: Sequence[str] | None = None,
+    metric: str = "qiu",
+    patch_log2: int = 4,
+    repeats: int = 1,
+    log: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """One row per strategy and τ (the tradeoff keys plus fly-through means and popping)."""
+    names = list(strategies or strategy_names())
+    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=patch_log2))
+    mid = cameras[len(cameras) // 2]
+    zlo, zhi = r.terrain_zrange
+    f = mid.forward
+    t = (0.5 * (zlo + zhi) - mid.eye[2]) / f[2] if f[2] < -1e-6 else 1000.0
+    moved = shifted(mid, max(float(t), mid.near))
+    rows: list[dict[str, Any]] = []
+    for name in names:
+        strat = get_strategy(name, r)
+        for tau in taus:
+            tr = tradeoff(store, mid, [tau], metric=metric, renderer=r, repeats=repeats, lod=name)
+            row = asdict(tr[0])
+            tri, cpu, gpu = [], [], []
+            with open_render_session(store, tau, metric, r.p) as s:
+                for cam in cameras:
+                    frame = s.update(cam, wait=True)
+                    r.sync(frame.blocks, s)
+                    sel, ms = strat.select(cam, tau, metric, resident=resident_levels(frame))
+                    st = strat.draw(cam, sel, selection_ms=ms)
+                    tri.append(st.triangles)
+                    cpu.append(ms)
+                    gpu.append(st.frame_ms)
+                for cam in (mid, moved):
+                    r.sync(s.update(cam, wait=True).blocks, s)
+                pop = popping(strat, mid, moved, tau, metric)
+            row.update(
+                strategy=name,
+                popping_px=pop,
+                fly_frames=len(cameras),
+                fly_triangles=float(np.mean(tri)),
+                fly_cpu_ms=float(np.mean(cpu)),
+                fly_gpu_ms=float(np.mean(gpu)),
+            )
+            rows.append(row)
+            if log:
+                log(format_row(row))
+    r.close()
+    return rows
+
+
+HEADER = (
+    f"{'strategy':>20} {'tau':>5} {'tris/frame':>10} {'CPU ms':>7} {'GPU ms':>7} "
+    f"{'max px':>7} {'p99 px':>7} {'cracks':>6} {'pop px':>6} {'GPU MB':>7}"
+)
+
+
+def format_row(row: dict[str, Any]) -> str:
+    """One line of the comparison table."""
+    return (
+        f"{row['strategy']:>20} {row['tau']:>5g} {row['fly_triangles']:>10,.0f} "
+        f"{row['fly_cpu_ms']:>7.2f} {row['fly_gpu_ms']:>7.1f} {row['max_screen_error_px']:>7.2f} "
+        f"{row['p99_screen_error_px']:>7.2f} {row['crack_pixels']:>6} {row['popping_px']:>6.2f} "
+        f"{row['gpu_bytes'] / 2**20:>7.2f}"
+    )
+
+
+def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = "") -> None:
+    """Triangles per frame (middle camera) vs measured max and p99 error, per strategy."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.5))
+    for name in sorted({r["strategy"] for r in rows}):
+        rs = sorted((r for r in rows if r["strategy"] == name), key=lambda r: r["tau"])
+        for a, key in zip(ax, ("max_screen_error_px", "p99_screen_error_px"), strict=True):
+            a.plot([r[key] for r in rs], [r["triangles"] for r in rs], "o-", label=name)
+            for r in rs:
+                a.annotate(f"τ={r['tau']:g}", (r[key], r["triangles"]), fontsize=7)
+    for a, lab in zip(ax, ("measured max error px", "measured p99 error px"), strict=True):
+        a.set_xlabel(lab)
+        a.set_ylabel("triangles")
+        a.set_yscale("log")
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.suptitle(title or "triangles vs measured screen error (lower left is better)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
