@@ -37,7 +37,9 @@ def _inputs(
     if c.shape[-1:] != (3,):
         raise LodError(f"centre_xyz must be (m, 3) world points, got shape {c.shape}")
     rel = c - camera.eye
-    d = np.broadcast_to(np.asarray(delta, dtype=np.float64), rel.shape[:-1])
+    d = np.asarray(delta, dtype=np.float64)
+    if d.shape != rel.shape[:-1]:
+        d = np.broadcast_to(d, rel.shape[:-1])
     return d, rel
 
 
@@ -59,15 +61,24 @@ def qiu_eq7(
     clamped below at ``near``. Not an upper bound on the screen error (measure it).
     """
     d, rel = _inputs(delta, centre_xyz, camera)
-    dist = np.sqrt(np.einsum("...i,...i->...", rel, rel))
-    horiz = np.hypot(rel[..., 0], rel[..., 1])
+    x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
+    h2 = x * x + y * y
+    dist = np.sqrt(h2 + z * z)
+    fwd = camera.forward
     with np.errstate(invalid="ignore", divide="ignore"):
-        cos_t = np.where(dist > 0.0, horiz / dist, 1.0)
-        cos_b = np.where(dist > 0.0, (rel @ camera.forward) / dist, 1.0)
-    sin_b = np.where(cos_b >= 0.0, np.sqrt(np.clip(1.0 - cos_b * cos_b, 0.0, 1.0)), 1.0)
+        inv = 1.0 / dist
+        cos_t = np.sqrt(h2) * inv
+        cos_b = (x * fwd[0] + y * fwd[1] + z * fwd[2]) * inv
+    zero = dist == 0.0
+    if zero.any():
+        cos_t[zero] = 1.0
+        cos_b[zero] = 1.0
+    sin_b = np.sqrt(np.clip(1.0 - cos_b * cos_b, 0.0, 1.0))
+    sin_b[cos_b < 0.0] = 1.0
     rho = camera.focal_px * d * cos_t / (np.maximum(dist, camera.near) * (1.0 + sin_b))
-    inside = dist <= np.broadcast_to(np.asarray(radius, dtype=np.float64), dist.shape)
-    return np.where(d == 0.0, 0.0, np.where(inside, np.inf, rho))
+    rho[dist <= radius] = np.inf
+    rho[d == 0.0] = 0.0
+    return rho
 
 
 def conservative(

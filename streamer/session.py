@@ -169,7 +169,8 @@ class Session:
         self._zrange = (float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax)))
         self._errors = PatchErrorTable(self.store.k, self.config.patch_log2)
         self._lock = threading.Lock()
-        self._cv = threading.Condition(self._lock)
+        self._cv = threading.Condition(self._lock)  # loaders, and callers waiting for data
+        self._sched_cv = threading.Condition(self._lock)  # the scheduler thread
         self._queue: list[tuple[tuple, Block]] = []
         self._fetching: dict[Block, set[int]] = {}  # levels being read (-1: errors)
         self._raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded
@@ -219,6 +220,7 @@ class Session:
             self._stop = True
             self._queue.clear()
             self._cv.notify_all()
+            self._sched_cv.notify_all()
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -299,11 +301,16 @@ class Session:
             self._raise_scheduler_error()
             needed = self._needed(camera, m)
             self.cache.set_pins(needed, self.level_bytes)
+            pushed = 0
             for b, lv in needed.items():
                 if b not in self._errors or self.cache.level(b) < lv:
                     self._push(b, notify=False)
+                    pushed += 1
             self._request = (camera, velocity, set(m))
-            self._cv.notify_all()  # loaders and the scheduler, once
+            # wake only as many loaders as there is new work (each wake-up costs the caller)
+            if pushed:
+                self._cv.notify(min(pushed, max(1, self.config.workers)))
+            self._sched_cv.notify()
         update_s = time.perf_counter() - t0
         update_cpu = time.thread_time() - c0
         if cfg.workers == 0:
@@ -391,7 +398,7 @@ class Session:
         while True:
             with self._cv:
                 while self._request is None and not self._stop:
-                    self._cv.wait(timeout=0.1)
+                    self._sched_cv.wait(timeout=0.1)
                 if self._stop:
                     return
             try:
