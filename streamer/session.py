@@ -64,7 +64,7 @@ class SessionConfig:
     metric: str = "qiu"
     patch_log2: int = 4
     prefetch: bool = True
-    lookahead: float = 0.5  # load ahead at tau * lookahead (finer than the frame needs)
+    lookahead: float = 0.7  # load ahead at tau * lookahead (finer than the frame needs)
     culling: str = "qiu"
     extension_L: float | None = None  # default: one block edge
     latency_ms: float = 0.0  # added to every store request (benchmarks)
