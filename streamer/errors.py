@@ -29,3 +29,11 @@ class LodError(StreamerError, ValueError):
 
 class BudgetError(StreamerError, ValueError):
     """A cache byte budget that is not valid, or too small for what the view needs."""
+
+
+class LoadError(StreamerError, OSError):
+    """A block level that could not be read after every retry."""
+
+
+class SessionClosedError(StreamerError, RuntimeError):
+    """The session was used after :meth:`Session.close`."""

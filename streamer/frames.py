@@ -1,0 +1,102 @@
+"""Values of streaming sessions: settings, per-frame statistics, what a frame may draw."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from streamer.cache import Block
+from streamer.camera import Camera
+from streamer.errors import StreamerError
+from streamer.lod import get_metric
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Streaming settings (all validated)."""
+
+    budget_mb: float = 256.0
+    workers: int = 4  # 0: load inline in update() (deterministic, for tests and benchmarks)
+    fps: float = 60.0
+    tau: float = 1.0  # screen-space error threshold in pixels
+    metric: str = "qiu"
+    patch_log2: int = 4
+    prefetch: bool = True
+    lookahead: float = 0.7  # load ahead at tau * lookahead (finer than the frame needs)
+    culling: str = "qiu"
+    extension_L: float | None = None  # default: one block edge
+    latency_ms: float = 0.0  # added to every store request (benchmarks)
+    retries: int = 3
+    backoff_s: float = 0.05
+    wait_timeout_s: float = 30.0
+    linger_s: float | None = None  # unload unwanted levels after this long; None: only when
+    # the budget needs the room (least recently wanted first)
+    horizon_s: float = 0.5  # also plan for where the camera will be this far ahead
+    inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame (None: all)
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("budget_mb", self.budget_mb > 0),
+            ("workers", self.workers >= 0 and self.workers <= 64),
+            ("fps", self.fps > 0 and math.isfinite(self.fps)),
+            ("tau", self.tau >= 0),
+            ("patch_log2", self.patch_log2 >= 0),
+            ("latency_ms", self.latency_ms >= 0),
+            ("retries", self.retries >= 1),
+            ("wait_timeout_s", self.wait_timeout_s > 0),
+            ("linger_s", self.linger_s is None or self.linger_s >= 0),
+            ("horizon_s", self.horizon_s >= 0),
+            ("lookahead", 0 < self.lookahead <= 1),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise StreamerError(f"invalid {name}: {getattr(self, name)!r}")
+        get_metric(self.metric)
+        if self.culling not in ("qiu", "hull"):
+            raise StreamerError(f"culling must be 'qiu' or 'hull', got {self.culling!r}")
+
+
+@dataclass(frozen=True)
+class FrameStats:
+    """One frame's I/O figures (bytes are decoded level bytes)."""
+
+    frame: int
+    visible_blocks: int
+    prefetch_blocks: int
+    needed_bytes: int
+    realtime_bytes: int  # loaded while this frame waited for it or after it was due
+    prefetched_bytes: int  # loaded ahead of any frame needing it, since the previous frame
+    io_ms: float  # worker time spent reading and decoding since the previous frame
+    update_ms: float  # wall time of update() on the caller's thread (excluding waiting)
+    update_cpu_ms: float  # CPU time of the caller's thread in update() (excluding waiting)
+    wait_ms: float
+    stalled: bool
+    missing_levels: int
+    resident_bytes: int
+    io_errors: int
+
+
+@dataclass(frozen=True)
+class Frame:
+    """What a frame may draw: ``blocks[b] = (resident level, needed level)``, and its stats."""
+
+    camera: Camera
+    blocks: dict[Block, tuple[int, int]]
+    stats: FrameStats
+
+
+@dataclass
+class _Totals:
+    frames: int = 0
+    stall_frames: int = 0
+    needed_bytes: int = 0
+    realtime_bytes: int = 0
+    realtime_bytes_after_first: int = 0
+    loaded_bytes: int = 0
+    prefetched_bytes: int = 0
+    max_update_ms: float = 0.0
+    max_update_cpu_ms: float = 0.0
+    warmup: dict = field(default_factory=dict)
+    io_errors: int = 0
+    cancelled: int = 0
+    used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
