@@ -279,17 +279,16 @@ class TerrainRenderer:
         )
         return vao, buf
 
-    def draw(
+    def begin_frame(
         self,
         camera: Camera,
-        patches: Patches,
+        prog: moderngl.Program,
         *,
-        wireframe: bool = False,
-        lod_colour: bool = False,
         clear: tuple[int, int, int] | None = None,
-        selection_ms: float = 0.0,
-    ) -> RenderStats:
-        """Draw the patches; return the stats (frame ms = GPU time until ``ctx.finish()``)."""
+        lod_colour: bool = False,
+    ) -> float:
+        """Bind and clear the framebuffer, set the camera uniforms and the index textures for
+        ``prog``; returns the frame's start time (``perf_counter``). Shared by all strategies."""
         if tuple(camera.viewport) != tuple(self.config.size):
             raise RenderError(
                 f"camera viewport {camera.viewport} differs from the renderer's {self.config.size}"
@@ -301,12 +300,27 @@ class TerrainRenderer:
         self.fbo.clear(c[0] / 255, c[1] / 255, c[2] / 255, 1.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
-        prog = self.wire if wireframe else self.prog
         self._uniforms(prog, camera)
         if "lod_colour" in prog:
-            prog["lod_colour"].value = int(lod_colour or wireframe)
+            prog["lod_colour"].value = int(lod_colour)
         self.level_tex.use(1)
         self.order_tex.use(2)
+        return t0
+
+    def draw(
+        self,
+        camera: Camera,
+        patches: Patches,
+        *,
+        wireframe: bool = False,
+        lod_colour: bool = False,
+        clear: tuple[int, int, int] | None = None,
+        selection_ms: float = 0.0,
+    ) -> RenderStats:
+        """Draw the patches; return the stats (frame ms = GPU time until ``ctx.finish()``)."""
+        ctx = self.ctx
+        prog = self.wire if wireframe else self.prog
+        t0 = self.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour or wireframe)
         if len(patches):
             for page, inst in self._instances(patches).items():
                 self.pool.pages[page].buffer.bind_to_storage_buffer(0)

@@ -12,6 +12,7 @@ feedback when the GPU makes them — and rasterise them on the sample lattice wi
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any
 
 import numpy as np
@@ -25,8 +26,8 @@ from tiler.store import TerrainStore
 Block = tuple[int, int]
 
 
-class Strategy:
-    """One LOD method over a renderer. Subclasses set ``name`` and implement the four hooks."""
+class Strategy(ABC):
+    """One LOD method over a renderer. Subclasses set ``name`` and implement the hooks."""
 
     name = ""
     #: the session's metric argument is honoured (otherwise the strategy has its own error)
@@ -35,6 +36,7 @@ class Strategy:
     def __init__(self, renderer: TerrainRenderer) -> None:
         self.r = renderer
 
+    @abstractmethod
     def select(
         self,
         camera: Camera,
@@ -44,24 +46,28 @@ class Strategy:
         resident: dict[Block, int] | None = None,
     ) -> tuple[Any, float]:
         """The selection at ``tau`` and its CPU ms."""
-        raise NotImplementedError
+        ...
 
+    @abstractmethod
     def draw(self, camera: Camera, sel: Any, **kw: Any) -> RenderStats:
         """Draw the selection (``wireframe``, ``lod_colour``, ``clear``, ``selection_ms``)."""
-        raise NotImplementedError
+        ...
 
+    @abstractmethod
     def screen_errors(self, camera: Camera, sel: Any) -> np.ndarray:
         """Measured pixel errors of every full-resolution sample under the drawn surface."""
-        raise NotImplementedError
+        ...
 
+    @abstractmethod
     def drawn_blocks(self, sel: Any) -> set[Block]:
         """The blocks the selection draws from."""
-        raise NotImplementedError
+        ...
 
+    @abstractmethod
     def surface(self, camera: Camera, sel: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The drawn surface at full-resolution samples: global ``(rows, cols, heights)``
         (used for popping; a sample may appear more than once)."""
-        raise NotImplementedError
+        ...
 
 
 class GlobalHeights:

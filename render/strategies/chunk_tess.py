@@ -247,23 +247,9 @@ class ChunkTessellation(Strategy):
         selection_ms: float = 0.0,
     ) -> RenderStats:
         r = self.r
-        if tuple(camera.viewport) != tuple(r.config.size):
-            raise RenderError(
-                f"camera viewport {camera.viewport} differs from the renderer's {r.config.size}"
-            )
         ctx = r.ctx
-        r.fbo.use()
-        t0 = time.perf_counter()
-        c = clear or r.config.clear
-        r.fbo.clear(c[0] / 255, c[1] / 255, c[2] / 255, 1.0, depth=1.0)
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.disable(moderngl.CULL_FACE)
         prog = self.wire if wireframe else self.prog
-        r._uniforms(prog, camera)
-        if "lod_colour" in prog:
-            prog["lod_colour"].value = int(lod_colour or wireframe)
-        r.level_tex.use(1)
-        r.order_tex.use(2)
+        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour or wireframe)
         ctx.patch_vertices = 1
         if len(sel):
             for vao, n in self._passes(prog, sel):
