@@ -149,7 +149,6 @@ def screen_errors(
     """Pixel distances between true and LOD projections of every full-res sample in view."""
     k = grid.k
     out = []
-    w, h = camera.viewport
     for b, rows, cols, hlod in lod_surface(patches, k, heights):
         full = heights(b)
         htrue = full[rows, cols]
@@ -159,20 +158,29 @@ def screen_errors(
         rows, cols, hlod, htrue = rows[ok], cols[ok], hlod[ok], htrue[ok]
         br, bc = (int(v) for v in patches.blocks[b])
         x, y = grid.sample_xy(br * grid.step + rows, bc * grid.step + cols)
-        px0, py0, d0 = camera.project(np.stack([x, y, htrue], -1))
-        px1, py1, d1 = camera.project(np.stack([x, y, hlod], -1))
-        with np.errstate(invalid="ignore"):
-            view = (
-                (d0 >= camera.near)
-                & (d0 <= camera.far)
-                & (px0 >= 0)
-                & (px0 <= w)
-                & (py0 >= 0)
-                & (py0 <= h)
-                & (d1 > 0)
-            )
-        out.append(np.hypot(px1 - px0, py1 - py0)[view])
+        out.append(pixel_errors(camera, x, y, htrue, hlod))
     return np.concatenate(out) if out else np.zeros(0)
+
+
+def pixel_errors(
+    camera: Camera, x: np.ndarray, y: np.ndarray, htrue: np.ndarray, hlod: np.ndarray
+) -> np.ndarray:
+    """Pixel distance between the projections of ``(x, y, htrue)`` and ``(x, y, hlod)``, for
+    the points whose true projection is in the viewport and the depth range."""
+    w, h = camera.viewport
+    px0, py0, d0 = camera.project(np.stack([x, y, htrue], -1))
+    px1, py1, d1 = camera.project(np.stack([x, y, hlod], -1))
+    with np.errstate(invalid="ignore"):
+        view = (
+            (d0 >= camera.near)
+            & (d0 <= camera.far)
+            & (px0 >= 0)
+            & (px0 <= w)
+            & (py0 >= 0)
+            & (py0 <= h)
+            & (d1 > 0)
+        )
+    return np.hypot(px1 - px0, py1 - py0)[view]
 
 
 def error_stats(err: np.ndarray) -> ErrorStats:

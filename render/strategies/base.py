@@ -127,17 +127,4 @@ def triangle_screen_errors(
     good = np.isfinite(htrue) & np.isfinite(hlod)
     rows, cols, hlod, htrue = rows[good], cols[good], hlod[good], htrue[good]
     x, y = grid.sample_xy(rows, cols)
-    w, hh = camera.viewport
-    px0, py0, d0 = camera.project(np.stack([x, y, htrue], -1))
-    px1, py1, d1 = camera.project(np.stack([x, y, hlod], -1))
-    with np.errstate(invalid="ignore"):
-        view = (
-            (d0 >= camera.near)
-            & (d0 <= camera.far)
-            & (px0 >= 0)
-            & (px0 <= w)
-            & (py0 >= 0)
-            & (py0 <= hh)
-            & (d1 > 0)
-        )
-    return np.hypot(px1 - px0, py1 - py0)[view]
+    return measure.pixel_errors(camera, x, y, htrue, hlod)
