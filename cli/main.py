@@ -373,4 +373,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    # ``python -m cli.main``: run the imported module's app, where the optional command
+    # modules registered themselves (this file also runs as ``__main__``, a second copy).
+    from cli.main import main as _entry
+
+    _entry()
