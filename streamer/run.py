@@ -138,12 +138,14 @@ def run_flythrough(
         session.warm_up(cameras[0])
     t0 = time.perf_counter()
     for i, cam in enumerate(cameras):
-        if realtime:
+        if realtime and i > 0:
             due = t0 + i / fps
             delay = due - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
         frame = session.update(cam, 1.0 / fps, wait=first_wait and i == 0)
+        if i == 0:
+            t0 = time.perf_counter()  # the clock starts once frame 0 is shown (after its wait)
         row = asdict(frame.stats)
         rows.append(row)
         if on_frame is not None:

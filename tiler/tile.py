@@ -240,6 +240,13 @@ def _source_meta(ds: rasterio.DatasetReader, src: str, opts: TileOptions) -> Sto
     if not 0 <= cap <= max(0, k - 1):
         raise SourceError(f"error cap must be in 0..{k - 1} for k={k}, got {cap}")
     t = ds.transform
+    if ds.crs is not None and ds.crs.is_geographic:
+        log.warning(
+            "%s is in a geographic CRS: x and y are degrees while heights are metres, so "
+            "streaming and rendering see a squashed DEM; reproject it to a projected CRS "
+            "(e.g. gdalwarp -t_srs EPSG:32618) before tiling for those",
+            src,
+        )
     if abs(t.b) > 1e-12 * abs(t.a) or abs(t.d) > 1e-12 * abs(t.e):
         raise SourceError(f"{src!r} has a rotated geotransform {tuple(t)[:6]}; warp it north-up")
     units = ds.units[opts.band - 1] if ds.units else None
