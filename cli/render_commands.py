@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 
 from cli.common import fail_on_errors
-from cli.main import app, parse_size
+from cli.main import PathKind, app, parse_size
 
 
 class Metric(StrEnum):
@@ -19,16 +19,6 @@ class Metric(StrEnum):
 
     qiu = "qiu"
     conservative = "conservative"
-
-
-class PathKind(StrEnum):
-    """Camera path kinds (streamer.run.PATH_KINDS)."""
-
-    default = "default"
-    line = "line"
-    circle = "circle"
-    canyon = "canyon"
-    teleports = "teleports"
 
 
 CameraOpt = Annotated[

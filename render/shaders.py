@@ -97,15 +97,12 @@ Vtx make_vertex() {
 """
 )
 
-VERTEX = (
-    VERTEX_COMMON
-    + """
+EMIT = """
 out vec3 v_normal;
 out float v_h;
 out float v_masked;
 flat out int v_level;
-void main() {
-    Vtx v = make_vertex();
+void emit(Vtx v) {
     gl_Position = mvp * vec4(v.rel, 1.0);
     v_normal = v.normal;
     v_h = v.h;
@@ -113,7 +110,9 @@ void main() {
     v_level = v.level;
 }
 """
-)
+"""The varyings every strategy's last vertex stage hands to the shared fragment shader."""
+
+VERTEX = VERTEX_COMMON + EMIT + "void main() { emit(make_vertex()); }\n"
 
 # Transform feedback probe: the fetched height and global sample of every vertex.
 PROBE = (

@@ -100,23 +100,7 @@ Vtx tess_vertex() {
 """
 )
 
-TES = (
-    TES_HEAD
-    + """
-out vec3 v_normal;
-out float v_h;
-out float v_masked;
-flat out int v_level;
-void main() {
-    Vtx v = tess_vertex();
-    gl_Position = mvp * vec4(v.rel, 1.0);
-    v_normal = v.normal;
-    v_h = v.h;
-    v_masked = v.masked;
-    v_level = v.level;
-}
-"""
-)
+TES = TES_HEAD + shaders.EMIT + "void main() { emit(tess_vertex()); }\n"
 
 TES_PROBE = (
     TES_HEAD
