@@ -2,23 +2,31 @@
 streaming session, ``HeightPool`` and level/order-index fetch, returns the renderer's
 ``RenderStats`` and is measured the same way (docs/RENDER.md, "Strategies").
 
-Registered here only when complete and tested:
+* ``qiu`` (default) — :mod:`render.strategies.qiu`, the renderer's CLOD patches (Qiu et al.);
+* ``jung-han`` — :mod:`render.strategies.jung_han`, 3×3-vertex blocks, CPU simplification;
+* ``geometry-splitting`` — :mod:`render.strategies.geometry_splitting`, Lee & Shin, quadtree
+  expanded on the GPU with transform feedback;
+* ``chunk-tessellation`` — :mod:`render.strategies.chunk_tess`, Kim, Lee & Shin;
+* ``seamless-patches`` — :mod:`render.strategies.seamless`, Livny, Kogan & El-Sana.
 
-* ``qiu`` (default) — :mod:`render.strategies.qiu`, the renderer's CLOD patches;
-* ``chunk-tessellation`` — :mod:`render.strategies.chunk_tess`, Kim, Lee & Shin.
+Strategy modules are imported on first use (each compiles its own shaders).
 """
 
 from __future__ import annotations
 
+from importlib import import_module
+
 from render.errors import RenderError
 from render.strategies.base import Strategy
-from render.strategies.chunk_tess import ChunkTessellation
-from render.strategies.qiu import QiuStrategy
 
 DEFAULT = "qiu"
-STRATEGIES: dict[str, type[Strategy]] = {
-    QiuStrategy.name: QiuStrategy,
-    ChunkTessellation.name: ChunkTessellation,
+#: name -> "module:Class"
+STRATEGIES: dict[str, str] = {
+    "qiu": "render.strategies.qiu:QiuStrategy",
+    "jung-han": "render.strategies.jung_han:JungHan",
+    "geometry-splitting": "render.strategies.geometry_splitting:GeometrySplitting",
+    "chunk-tessellation": "render.strategies.chunk_tess:ChunkTessellation",
+    "seamless-patches": "render.strategies.seamless:SeamlessPatches",
 }
 
 
@@ -40,9 +48,15 @@ def check_name(name: str) -> str:
     return name
 
 
+def strategy_class(name: str) -> type[Strategy]:
+    """The class registered as ``name``."""
+    module, cls = STRATEGIES[check_name(name)].split(":")
+    return getattr(import_module(module), cls)
+
+
 def get_strategy(name: str, renderer, **options) -> Strategy:
     """An instance of strategy ``name`` drawing with ``renderer``."""
-    return STRATEGIES[check_name(name)](renderer, **options)
+    return strategy_class(name)(renderer, **options)
 
 
 __all__ = [
@@ -52,5 +66,6 @@ __all__ = [
     "UnknownStrategyError",
     "check_name",
     "get_strategy",
+    "strategy_class",
     "strategy_names",
 ]
