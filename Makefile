@@ -31,6 +31,7 @@ bench: setup   # long: see BENCHMARKS.md for each command's run time
 	$(BIN)/python bench/tiling.py
 	$(BIN)/python bench/prefetch.py
 	$(BIN)/python bench/render.py
+	$(BIN)/python bench/lod_compare.py
 
 clean:
 	rm -rf demo-out bench/work .pytest_cache

@@ -167,20 +167,26 @@ def pixel_errors(
 ) -> np.ndarray:
     """Pixel distance between the projections of ``(x, y, htrue)`` and ``(x, y, hlod)``, for
     the points whose true projection is in the viewport and the depth range."""
-    w, h = camera.viewport
-    px0, py0, d0 = camera.project(np.stack([x, y, htrue], -1))
-    px1, py1, d1 = camera.project(np.stack([x, y, hlod], -1))
+    px0, py0, d0, keep = project_in_view(camera, x, y, htrue)
+    px1, py1, d1 = camera.project(
+        np.stack([np.asarray(x)[keep], np.asarray(y)[keep], np.asarray(hlod)[keep]], -1)
+    )
     with np.errstate(invalid="ignore"):
-        view = (
-            (d0 >= camera.near)
-            & (d0 <= camera.far)
-            & (px0 >= 0)
-            & (px0 <= w)
-            & (py0 >= 0)
-            & (py0 <= h)
-            & (d1 > 0)
-        )
-    return np.hypot(px1 - px0, py1 - py0)[view]
+        return np.hypot(px1 - px0, py1 - py0)[d1 > 0]
+
+
+def project_in_view(
+    camera: Camera, x: np.ndarray, y: np.ndarray, z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(px, py, depth)`` of the points ``(x, y, z)`` that lie in the viewport and depth range,
+    and the indices of those points (one projection, ``Camera.project``'s arithmetic)."""
+    w, h = camera.viewport
+    px, py, d = camera.project(np.stack([x, y, z], -1))
+    with np.errstate(invalid="ignore"):
+        view = (d >= camera.near) & (d <= camera.far) & (px >= 0) & (px <= w)
+        view &= (py >= 0) & (py <= h)
+    keep = np.flatnonzero(view)
+    return px[keep], py[keep], d[keep], keep
 
 
 def error_stats(err: np.ndarray) -> ErrorStats:

@@ -209,7 +209,7 @@ def tradeoff(
         strat.draw(nadir, np_, clear=CLEAR)
         cracks = measure.crack_pixels(r.image(), footprint, CLEAR)
         drawn = strat.drawn_blocks(patches)
-        gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn)
+        gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn) + strat.own_gpu_bytes()
         row = TradeoffRow(
             tau=float(tau),
             metric=metric,

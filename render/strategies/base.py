@@ -63,6 +63,11 @@ class Strategy(ABC):
         """The blocks the selection draws from."""
         ...
 
+    def own_gpu_bytes(self) -> int:
+        """Bytes of GPU buffers the strategy keeps besides the shared ``HeightPool`` (cached
+        meshes, quadtree textures); counted in the comparison's GPU bytes."""
+        return 0
+
     @abstractmethod
     def surface(self, camera: Camera, sel: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The drawn surface at full-resolution samples: global ``(rows, cols, heights)``

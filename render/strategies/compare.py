@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from render import measure
 from render.pipeline import open_render_session, resident_levels, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
 from render.strategies import get_strategy, strategy_names
@@ -42,23 +43,44 @@ def popping(strat: Strategy, cam0: Camera, cam1: Camera, tau: float, metric: str
     in both frames, between the selections for ``cam0`` and ``cam1``."""
     s0, _ = strat.select(cam0, tau, metric)
     s1, _ = strat.select(cam1, tau, metric)
-    r0, c0, h0 = strat.surface(cam0, s0)
-    r1, c1, h1 = strat.surface(cam1, s1)
-    w = strat.r.grid.cols * strat.r.grid.step + 1
-    k0, i0 = np.unique(r0 * w + c0, return_index=True)
-    k1, i1 = np.unique(r1 * w + c1, return_index=True)
-    _, a, b = np.intersect1d(k0, k1, assume_unique=True, return_indices=True)
-    rows, cols = r0[i0[a]], c0[i0[a]]
-    ha, hb = h0[i0[a]], h1[i1[b]]
-    ok = np.isfinite(ha) & np.isfinite(hb)
-    x, y = strat.r.grid.sample_xy(rows[ok], cols[ok])
-    pa = cam1.project(np.stack([x, y, ha[ok]], -1))
-    pb = cam1.project(np.stack([x, y, hb[ok]], -1))
-    wv, hv = cam1.viewport
-    with np.errstate(invalid="ignore"):
-        view = (pa[2] >= cam1.near) & (pa[0] >= 0) & (pa[0] <= wv) & (pa[1] >= 0) & (pa[1] <= hv)
-    d = np.hypot(pb[0] - pa[0], pb[1] - pa[1])[view]
+    rows, cols, ha, hb = common_samples(strat.surface(cam0, s0), strat.surface(cam1, s1))
+    moved = ha != hb  # equal drawn heights do not move on screen
+    rows, cols, ha, hb = rows[moved], cols[moved], ha[moved], hb[moved]
+    x, y = strat.r.grid.sample_xy(rows, cols)
+    d = measure.pixel_errors(cam1, x, y, ha, hb)
     return float(d.max()) if d.size else 0.0
+
+
+#: above this many samples in the surfaces' bounding box, samples are matched by sorting
+DENSE_LIMIT = 1 << 26
+
+
+def common_samples(a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, cols, height in a, height in b)`` at the samples two surfaces (``(rows, cols,
+    heights)``, see :meth:`Strategy.surface`) both draw; NaN heights are not drawn."""
+    (r0, c0, h0), (r1, c1, h1) = a, b
+    ok0, ok1 = np.isfinite(h0), np.isfinite(h1)
+    r0, c0, h0, r1, c1, h1 = r0[ok0], c0[ok0], h0[ok0], r1[ok1], c1[ok1], h1[ok1]
+    if not (r0.size and r1.size):
+        empty = np.zeros(0, np.int64)
+        return empty, empty, np.zeros(0), np.zeros(0)
+    rmin, cmin = min(r0.min(), r1.min()), min(c0.min(), c1.min())
+    nr = int(max(r0.max(), r1.max()) - rmin + 1)
+    nc = int(max(c0.max(), c1.max()) - cmin + 1)
+    k0 = (r0 - rmin) * nc + (c0 - cmin)
+    k1 = (r1 - rmin) * nc + (c1 - cmin)
+    if nr * nc <= DENSE_LIMIT:
+        dense = np.full(nr * nc, np.nan)
+        dense[k0] = h0
+        ha = dense[k1]
+        both = np.isfinite(ha)  # a sample drawn twice in b is kept twice (max is unchanged)
+        keys, ha, hb = k1[both], ha[both], h1[both]
+    else:
+        keys0, i0 = np.unique(k0, return_index=True)
+        keys1, i1 = np.unique(k1, return_index=True)
+        keys, a0, a1 = np.intersect1d(keys0, keys1, assume_unique=True, return_indices=True)
+        ha, hb = h0[i0[a0]], h1[i1[a1]]
+    return keys // nc + rmin, keys % nc + cmin, ha, hb
 
 
 def compare(

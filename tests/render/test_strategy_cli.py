@@ -40,7 +40,7 @@ def test_compare_writes_rows_per_strategy_and_tau(store, tmp_path):
     res = runner.invoke(
         app,
         ["compare", store, "--size", "96x64", "--frames", "2", "--taus", "1,4",
-         "--patch-log2", "2", "--json", str(js)],
+         "--patch-log2", "2", "--lods", "qiu,chunk-tessellation", "--json", str(js)],
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     rows = json.loads(js.read_text())

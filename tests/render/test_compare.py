@@ -1,0 +1,30 @@
+"""The comparison's pure parts: matching two drawn surfaces sample by sample (no GL)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from render.strategies import compare
+
+
+def _surface(rows, cols, h):
+    return np.array(rows), np.array(cols), np.array(h, dtype=np.float64)
+
+
+@pytest.mark.parametrize("limit", [compare.DENSE_LIMIT, 0])  # dense map, then sorting
+def test_common_samples_pairs_heights_of_samples_drawn_in_both(monkeypatch, limit):
+    monkeypatch.setattr(compare, "DENSE_LIMIT", limit)
+    a = _surface([0, 0, 5, 9, 3], [0, 1, 7, 9, 3], [1.0, 2.0, 3.0, 4.0, np.nan])
+    b = _surface([5, 0, 9, 3, 100], [7, 1, 8, 3, 100], [30.0, 20.0, 5.0, 6.0, 7.0])
+    rows, cols, ha, hb = compare.common_samples(a, b)
+    got = sorted(zip(rows.tolist(), cols.tolist(), ha.tolist(), hb.tolist(), strict=True))
+    # (3, 3) is NaN (hidden) in a; (9, 9) and (9, 8) differ; (100, 100) only in b
+    assert got == [(0, 1, 2.0, 20.0), (5, 7, 3.0, 30.0)]
+
+
+def test_common_samples_of_disjoint_or_empty_surfaces():
+    a = _surface([0], [0], [1.0])
+    empty = _surface([], [], [])
+    assert all(v.size == 0 for v in compare.common_samples(a, empty))
+    assert all(v.size == 0 for v in compare.common_samples(a, _surface([1], [1], [1.0])))
