@@ -585,6 +585,10 @@ class GeometrySplitting(Strategy):
         self.heights = GlobalHeights(renderer.store)
         check_gl(ctx, "creating the geometry-splitting programs")
 
+    def own_gpu_bytes(self) -> int:
+        """The quadtree texture buffer (σ and height ranges of every resident block)."""
+        return self._qt_buf.size if self._qt_buf is not None else 0
+
     # -- quadtree texture --------------------------------------------------------------------
 
     def tree(self, b: Block) -> BlockTree:

@@ -585,6 +585,10 @@ class SeamlessPatches(Strategy):
 
     # selection
 
+    def own_gpu_bytes(self) -> int:
+        """The cached tile and strip meshes (one vertex buffer)."""
+        return self.mesh_vbo.size
+
     def select(
         self,
         camera: Camera,
