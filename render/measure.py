@@ -51,8 +51,13 @@ def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: n
 
 def rasterise(tri: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Integer lattice points ``(rows, cols)`` covered (edges included) by triangles ``tri``
-    ``(m, 3, 2)`` given as ``(col, row)`` ints, and the linear interpolant of ``h`` ``(m, 3)``."""
+    ``(m, 3, 2)`` given as ``(col, row)`` ints, and the linear interpolant of ``h`` ``(m, 3)``
+    (zero-area triangles are skipped)."""
     out_r, out_c, out_h = [], [], []
+    t64 = np.asarray(tri, dtype=np.int64)
+    e1, e2 = t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0]
+    solid = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] != 0  # zero-area triangles cover nothing
+    tri, h = t64[solid], np.asarray(h)[solid]
     lo = tri.min(axis=1)
     ext = tri.max(axis=1) - lo
     keys, inv = np.unique(ext, axis=0, return_inverse=True)
@@ -61,7 +66,7 @@ def rasterise(tri: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
         oy, ox = np.mgrid[0 : hgt + 1, 0 : w + 1]
         ox, oy = ox.ravel(), oy.ravel()
         for part in np.array_split(sel, max(1, len(sel) * len(ox) // CHUNK + 1)):
-            t = tri[part].astype(np.int64)
+            t = tri[part]
             px = lo[part, 0][:, None] + ox
             py = lo[part, 1][:, None] + oy
             (x0, y0), (x1, y1), (x2, y2) = (

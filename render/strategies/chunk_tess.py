@@ -36,6 +36,11 @@ chunks that the hardware tessellator draws.
   triangles back with transform feedback (a pass-through geometry shader emits each triangle's
   3 corners as points: integer global sample and fetched height) and rasterises them on the
   sample lattice.
+* **Batches** (a Mesa llvmpipe limit found by the read-back): when one draw call tessellates
+  more than 65,536 vertices, the geometry shader receives triangles whose corners belong to
+  other triangles (16-bit vertex indices wrapping; the plain draw without a geometry shader is
+  unaffected). Every pass is therefore issued in batches of ``batch_chunks(c)`` chunks
+  (60 at ``c = 5``); the test reads back 198 chunks and checks their area.
 """
 
 from __future__ import annotations
@@ -160,6 +165,16 @@ def tess_triangles(cells_log2: np.ndarray, snap: np.ndarray) -> np.ndarray:
     return np.where(n == 1, 2, 2 * (n - 2) ** 2 + 4 * (n - 2) + outer)
 
 
+#: tessellated vertices per draw call that Mesa's llvmpipe hands to a geometry shader intact
+#: (beyond 65,536 — 16-bit vertex indices — the GS receives corners of other triangles)
+MAX_TESS_VERTICES = 65535
+
+
+def batch_chunks(chunk_log2: int) -> int:
+    """Chunks per draw call so that one call tessellates at most ``MAX_TESS_VERTICES``."""
+    return max(1, MAX_TESS_VERTICES // ((1 << chunk_log2) + 1) ** 2)
+
+
 def outer_factors(cells_log2: int, snap: tuple[int, int, int, int]) -> tuple[int, ...]:
     """GL outer levels ``[u=0 (W), v=0 (N), u=1 (E), v=1 (S)]`` of a chunk (CPU twin of the TCS)."""
     tn, te, ts, tw = snap
@@ -212,13 +227,17 @@ class ChunkTessellation(Strategy):
         )
 
     def _passes(self, prog: moderngl.Program, patches: Patches):
+        """Per height page, in batches of at most :func:`batch_chunks` chunks: ``(vao, n)``."""
+        per = batch_chunks(self.c)
         for page, inst in self.r._instances(patches).items():
             self.r.pool.pages[page].buffer.bind_to_storage_buffer(0)
-            buf = self.r.ctx.buffer(np.ascontiguousarray(inst).tobytes())
-            vao = self.r.ctx.vertex_array(prog, [(buf, "4i 4i", "in_a", "in_b")])
-            yield vao, len(inst)
-            vao.release()
-            buf.release()
+            for i in range(0, len(inst), per):
+                part = np.ascontiguousarray(inst[i : i + per])
+                buf = self.r.ctx.buffer(part.tobytes())
+                vao = self.r.ctx.vertex_array(prog, [(buf, "4i 4i", "in_a", "in_b")])
+                yield vao, len(part)
+                vao.release()
+                buf.release()
 
     def draw(
         self,

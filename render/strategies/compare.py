@@ -9,8 +9,10 @@ frame's data is waited for, so all strategies see the same resident levels) and 
 the camera is moved sideways by one pixel's worth at the depth of the view centre (so the
 scene shifts by ~1 px), the strategy selects again, and ``popping_px`` is the largest screen
 displacement (seen from the moved camera) of the drawn surface at any full-resolution sample
-drawn in both frames, i.e. the jump caused by the LOD change alone. It is taken at the middle
-camera.
+drawn in both frames, i.e. the jump caused by the LOD change alone. It is taken from the
+middle camera over ``pop_steps`` (16) such consecutive one-pixel moves (a single move rarely
+crosses a LOD threshold): ``popping_px`` is the largest jump, ``popping_moved_steps`` how many
+of the moves changed the drawn surface at all.
 """
 
 from __future__ import annotations
@@ -38,17 +40,33 @@ def shifted(camera: Camera, depth: float) -> Camera:
     return replace(camera, position=tuple(float(v) for v in pos))
 
 
-def popping(strat: Strategy, cam0: Camera, cam1: Camera, tau: float, metric: str) -> float:
-    """Largest screen displacement (px, seen by ``cam1``) of the drawn surface at samples drawn
-    in both frames, between the selections for ``cam0`` and ``cam1``."""
-    s0, _ = strat.select(cam0, tau, metric)
-    s1, _ = strat.select(cam1, tau, metric)
-    rows, cols, ha, hb = common_samples(strat.surface(cam0, s0), strat.surface(cam1, s1))
-    moved = ha != hb  # equal drawn heights do not move on screen
-    rows, cols, ha, hb = rows[moved], cols[moved], ha[moved], hb[moved]
-    x, y = strat.r.grid.sample_xy(rows, cols)
-    d = measure.pixel_errors(cam1, x, y, ha, hb)
-    return float(d.max()) if d.size else 0.0
+def popping(
+    strat: Strategy,
+    cams: Sequence[Camera],
+    tau: float,
+    metric: str,
+    prepare: Callable[[Camera], None] | None = None,
+) -> tuple[float, int]:
+    """Largest screen displacement (px, seen by the later camera) of the drawn surface at
+    samples drawn in both frames, over consecutive pairs of ``cams``; and how many pairs moved
+    anything. ``prepare(cam)`` runs before each selection (e.g. streaming its data in)."""
+    prev = None
+    worst, moved_pairs = 0.0, 0
+    for cam in cams:
+        if prepare:
+            prepare(cam)
+        sel, _ = strat.select(cam, tau, metric)
+        surf = strat.surface(cam, sel)
+        if prev is not None:
+            rows, cols, ha, hb = common_samples(prev, surf)
+            moved = ha != hb  # equal drawn heights do not move on screen
+            x, y = strat.r.grid.sample_xy(rows[moved], cols[moved])
+            d = measure.pixel_errors(cam, x, y, ha[moved], hb[moved])
+            if d.size and d.max() > 0:
+                moved_pairs += 1
+                worst = max(worst, float(d.max()))
+        prev = surf
+    return worst, moved_pairs
 
 
 #: above this many samples in the surfaces' bounding box, samples are matched by sorting
@@ -92,6 +110,7 @@ def compare(
     metric: str = "qiu",
     patch_log2: int = 4,
     repeats: int = 1,
+    pop_steps: int = 16,
     log: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
     """One row per strategy and τ (the tradeoff keys plus fly-through means and popping)."""
@@ -101,7 +120,10 @@ def compare(
     zlo, zhi = r.terrain_zrange
     f = mid.forward
     t = (0.5 * (zlo + zhi) - mid.eye[2]) / f[2] if f[2] < -1e-6 else 1000.0
-    moved = shifted(mid, max(float(t), mid.near))
+    depth = max(float(t), mid.near)
+    pop_cams = [mid]
+    for _ in range(pop_steps):
+        pop_cams.append(shifted(pop_cams[-1], depth))
     rows: list[dict[str, Any]] = []
     for name in names:
         strat = get_strategy(name, r)
@@ -118,12 +140,16 @@ def compare(
                     tri.append(st.triangles)
                     cpu.append(ms)
                     gpu.append(st.frame_ms)
-                for cam in (mid, moved):
+
+                def prepare(cam: Camera, s=s) -> None:
                     r.sync(s.update(cam, wait=True).blocks, s)
-                pop = popping(strat, mid, moved, tau, metric)
+
+                pop, pop_moved = popping(strat, pop_cams, tau, metric, prepare)
             row.update(
                 strategy=name,
                 popping_px=pop,
+                popping_steps=pop_steps,
+                popping_moved_steps=pop_moved,
                 fly_frames=len(cameras),
                 fly_triangles=float(np.mean(tri)),
                 fly_cpu_ms=float(np.mean(cpu)),

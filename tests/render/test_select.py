@@ -154,6 +154,12 @@ def test_rasterise_includes_edges():
     assert len(pts) == 6 and (1, 1, 3.0) in pts
 
 
+def test_rasterise_skips_zero_area_triangles():
+    tri = np.array([[[0, 0], [2, 0], [0, 2]], [[0, 0], [4, 4], [2, 2]]])  # 2nd: a line
+    r, c, h = measure.rasterise(tri, np.array([[0.0, 2.0, 4.0], [1.0, 1.0, 1.0]]))
+    assert r.size == 6 and np.isfinite(h).all()
+
+
 def test_full_resolution_patches_have_zero_error():
     g = BlockGrid(height=33, width=33, k=5, x0=0.0, y0=960.0, dx=30.0, dy=30.0)
     rng = np.random.default_rng(0)

@@ -13,7 +13,7 @@ from render.strategies import (
     get_strategy,
     strategy_names,
 )
-from render.strategies.chunk_tess import kim_metric, outer_factors, tess_triangles
+from render.strategies.chunk_tess import batch_chunks, kim_metric, outer_factors, tess_triangles
 from streamer.camera import Camera
 from tiler.store import open_store
 
@@ -185,3 +185,21 @@ def test_measured_error_is_reported(rough_store):
     p, _ = st.select(cam, 2.0)
     err = st.screen_errors(cam, p)
     assert err.size > 5000 and 0 < err.max() < 8.0
+
+
+def test_read_back_of_more_than_65536_tessellated_vertices(tmp_path):
+    # > 60 chunks of 32 x 32 cells: > 65,536 tessellated vertices, over llvmpipe's 16-bit limit for
+    # one draw call feeding a geometry shader (the strategy batches its passes)
+    st = _strategy(tile_dem(tmp_path, rough(257, 5), 257), chunk_log2=5)
+    assert batch_chunks(5) == 60
+    cam = Camera.look_at(
+        (X0 + 3840, Y0 - 20000, 9000.0), (X0 + 3840, Y0 - 3840, 0.0), viewport=SIZE, near=5.0
+    )
+    p, _ = st.select(cam, 0.0)
+    assert len(p) > 60 and (p.level == 8).all()
+    tri, h = st.triangles(cam, p)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    area = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    assert len(tri) == len(p) * 2048 and (area == 1).all()  # every triangle half a cell
+    full = st.r.store.read_block((0, 0)).astype(np.float64)
+    np.testing.assert_array_equal(h, full[tri[..., 1], tri[..., 0]])
