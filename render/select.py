@@ -125,6 +125,17 @@ class Patches:
         )
 
 
+def check_tau(tau: float) -> float:
+    """``tau`` as a float, or :class:`SelectionError` unless it is a number >= 0 (inf allowed)."""
+    try:
+        ok = float(tau) >= 0.0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise SelectionError(f"tau must be a pixel threshold >= 0, got {tau!r}")
+    return float(tau)
+
+
 def select_patches(
     grid: BlockGrid,
     blocks: np.ndarray | Sequence[Block],
@@ -144,12 +155,7 @@ def select_patches(
     ``zranges[i]`` its (zmin, zmax); ``windows[i]`` its ``(row0, col0, nrows, ncols)`` inside the
     DEM (nodes wholly in padding are dropped).
     """
-    try:
-        ok = float(tau) >= 0.0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise SelectionError(f"tau must be a pixel threshold >= 0, got {tau!r}")
+    check_tau(tau)
     fn = get_metric(metric)
     k, p = grid.k, table.patch_log2
     blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)

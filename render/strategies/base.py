@@ -12,12 +12,17 @@ feedback when the GPU makes them — and rasterise them on the sample lattice wi
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import Any
 
+import moderngl
 import numpy as np
 
 from render import measure
+from render.errors import RenderError
+from render.gpu import check_gl
 from render.renderer import RenderStats, TerrainRenderer
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
@@ -67,6 +72,61 @@ class Strategy(ABC):
         """Bytes of GPU buffers the strategy keeps besides the shared ``HeightPool`` (cached
         meshes, quadtree textures); counted in the comparison's GPU bytes."""
         return 0
+
+    def timed_frame(
+        self,
+        camera: Camera,
+        prog: moderngl.Program,
+        body: Callable[[], None],
+        *,
+        clear: tuple[int, int, int] | None,
+        lod_colour: bool,
+        what: str,
+    ) -> float:
+        """Begin the renderer's frame for ``prog``, run ``body`` (the draw calls), wait for the
+        GPU and check for GL errors; the frame's wall time in ms."""
+        r = self.r
+        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour)
+        body()
+        r.ctx.finish()
+        ms = (time.perf_counter() - t0) * 1000.0
+        check_gl(r.ctx, what)
+        return ms
+
+    def read_triangles(
+        self,
+        camera: Camera,
+        prog: moderngl.Program,
+        cap: int,
+        body: Callable[[], None],
+        what: str,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Run ``body`` (draw calls with ``prog``, whose geometry shader is
+        :data:`render.shaders.TRIANGLE_PROBE`) with the rasteriser discarded; every triangle's
+        global ``(col, row)`` corners ``(m, 3, 2)`` int64 and heights ``(m, 3)`` (-1e30 masked).
+        More than ``cap`` triangles is an error."""
+        r = self.r
+        r.fbo.use()  # an EGL context has no default framebuffer
+        r._uniforms(prog, camera)
+        r.level_tex.use(1)
+        r.order_tex.use(2)
+        out = r.ctx.buffer(reserve=16 + max(cap, 1) * 36)
+        out.write(np.zeros(4, np.uint32).tobytes())
+        out.bind_to_storage_buffer(3)
+        prog["cap"].value = cap
+        r.ctx.enable(moderngl.RASTERIZER_DISCARD)
+        try:
+            body()
+        finally:
+            r.ctx.disable(moderngl.RASTERIZER_DISCARD)
+        raw = out.read()
+        out.release()
+        check_gl(r.ctx, what)
+        count = int(np.frombuffer(raw[:4], np.uint32)[0])
+        if count > cap:
+            raise RenderError(f"{what}: the GPU made {count} triangles, expected at most {cap}")
+        a = np.frombuffer(raw[16:], np.float32)[: 9 * count].reshape(-1, 3, 3).astype(np.float64)
+        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
 
     @abstractmethod
     def surface(self, camera: Camera, sel: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -45,8 +45,6 @@ chunks that the hardware tessellator draws.
 
 from __future__ import annotations
 
-import time
-
 import moderngl
 import numpy as np
 
@@ -118,27 +116,6 @@ void main() {
 }
 """
 )
-
-GS_PROBE = """
-#version 450
-layout(triangles) in;
-layout(points, max_vertices = 1) out;
-layout(std430, binding = 3) buffer Tris {
-    uint count; uint pad0; uint pad1; uint pad2; float data[];
-};
-uniform uint cap;
-in vec3 t_gh[];
-void main() {
-    uint i = atomicAdd(count, 1u);
-    if (i < cap) {
-        for (int j = 0; j < 3; j++) {
-            data[9u * i + uint(3 * j)] = t_gh[j].x;
-            data[9u * i + uint(3 * j + 1)] = t_gh[j].y;
-            data[9u * i + uint(3 * j + 2)] = t_gh[j].z;
-        }
-    }
-}
-"""
 
 
 def kim_metric(delta, centre_xyz, radius, camera: Camera) -> np.ndarray:
@@ -216,7 +193,7 @@ class ChunkTessellation(Strategy):
             vertex_shader=VS,
             tess_control_shader=TCS,
             tess_evaluation_shader=TES_PROBE,
-            geometry_shader=GS_PROBE,
+            geometry_shader=shaders.TRIANGLE_PROBE,
         )
         self.heights = GlobalHeights(renderer.store)
         check_gl(ctx, "creating the chunk-tessellation programs")
@@ -239,6 +216,11 @@ class ChunkTessellation(Strategy):
                 vao.release()
                 buf.release()
 
+    def _run(self, prog: moderngl.Program, sel: Patches) -> None:
+        self.r.ctx.patch_vertices = 1
+        for vao, n in self._passes(prog, sel):
+            vao.render(moderngl.PATCHES, vertices=n)
+
     def draw(
         self,
         camera: Camera,
@@ -250,16 +232,11 @@ class ChunkTessellation(Strategy):
         selection_ms: float = 0.0,
     ) -> RenderStats:
         r = self.r
-        ctx = r.ctx
         prog = self.wire if wireframe else self.prog
-        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour or wireframe)
-        ctx.patch_vertices = 1
-        if len(sel):
-            for vao, n in self._passes(prog, sel):
-                vao.render(moderngl.PATCHES, vertices=n)
-        ctx.finish()
-        frame_ms = (time.perf_counter() - t0) * 1000.0
-        check_gl(ctx, "drawing tessellated chunks")
+        frame_ms = self.timed_frame(
+            camera, prog, lambda: self._run(prog, sel), clear=clear,
+            lod_colour=lod_colour or wireframe, what="drawing tessellated chunks",
+        )  # fmt: skip
         return RenderStats(
             triangles=int(tess_triangles(sel.cells_log2, sel.snap).sum()),
             patches=len(sel),
@@ -273,35 +250,13 @@ class ChunkTessellation(Strategy):
         )
 
     def triangles(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray]:
-        """Transform feedback: every tessellated triangle's global ``(col, row)`` corners
-        ``(m, 3, 2)`` int64 and fetched heights ``(m, 3)`` (-1e30 where masked)."""
-        r = self.r
-        r.fbo.use()
-        r._uniforms(self.probe_prog, camera)
-        r.level_tex.use(1)
-        r.order_tex.use(2)
-        r.ctx.patch_vertices = 1
+        """Every tessellated triangle read back (:meth:`Strategy.read_triangles`): global
+        ``(col, row)`` corners ``(m, 3, 2)`` int64 and fetched heights ``(m, 3)``."""
         cap = int(tess_triangles(sel.cells_log2, sel.snap).sum())
-        out = r.ctx.buffer(reserve=16 + max(cap, 1) * 36)
-        out.write(np.zeros(4, np.uint32).tobytes())
-        out.bind_to_storage_buffer(3)
-        self.probe_prog["cap"].value = cap
-        r.ctx.enable(moderngl.RASTERIZER_DISCARD)
-        for vao, n in self._passes(self.probe_prog, sel):
-            vao.render(moderngl.PATCHES, vertices=n)
-        r.ctx.disable(moderngl.RASTERIZER_DISCARD)
-        raw = out.read()
-        out.release()
-        count = int(np.frombuffer(raw[:4], np.uint32)[0])
-        if count > cap:
-            raise RenderError(f"tessellator made {count} triangles, expected at most {cap}")
-        arr = np.frombuffer(raw[16:], np.float32)[: 9 * count]
-        out_all = [arr]
-        check_gl(r.ctx, "reading tessellated triangles back")
-        if not out_all:
-            return np.zeros((0, 3, 2), np.int64), np.zeros((0, 3))
-        a = np.concatenate(out_all).reshape(-1, 3, 3).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2].astype(np.float64)
+        prog = self.probe_prog
+        return self.read_triangles(
+            camera, prog, cap, lambda: self._run(prog, sel), "reading tessellated triangles back"
+        )
 
     def screen_errors(self, camera: Camera, sel: Patches) -> np.ndarray:
         tri, h = self.triangles(camera, sel)

@@ -83,6 +83,7 @@ from render import measure, shaders
 from render.errors import RenderError
 from render.gpu import check_gl
 from render.renderer import RenderStats, TerrainRenderer
+from render.select import check_tau
 from render.strategies.base import Block, GlobalHeights, Strategy, triangle_screen_errors
 from streamer.camera import Camera
 
@@ -679,12 +680,7 @@ class GeometrySplitting(Strategy):
         *,
         resident: dict[Block, int] | None = None,
     ) -> tuple[Selection, float]:
-        try:
-            ok = float(tau) >= 0.0
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise RenderError(f"tau must be a pixel threshold >= 0, got {tau!r}")
+        check_tau(tau)
         t0 = time.perf_counter()
         ctx = self.r.ctx
         blocks, _ = self.block_table(resident)
@@ -751,21 +747,24 @@ class GeometrySplitting(Strategy):
         selection_ms: float = 0.0,
     ) -> RenderStats:
         r = self.r
-        ctx = r.ctx
         prog = self.wire if wireframe else self.prog
-        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour or wireframe)
-        if sel.triangles:
+
+        def body() -> None:
+            if not sel.triangles:
+                return
             sel.block_buf.bind_to_storage_buffer(4)
             sel.tri_buf.bind_to_storage_buffer(6)
-            vao = ctx.vertex_array(prog, [])
+            vao = r.ctx.vertex_array(prog, [])
             for page in self._pages(sel):
                 r.pool.pages[page].buffer.bind_to_storage_buffer(0)
                 prog["page"].value = page
                 vao.render(moderngl.TRIANGLES, vertices=3 * sel.triangles)
             vao.release()
-        ctx.finish()
-        frame_ms = (time.perf_counter() - t0) * 1000.0 + sel.gpu_ms
-        check_gl(ctx, "drawing split geometry")
+
+        frame_ms = sel.gpu_ms + self.timed_frame(
+            camera, prog, body, clear=clear, lod_colour=lod_colour or wireframe,
+            what="drawing split geometry",
+        )  # fmt: skip
         return RenderStats(
             triangles=sel.triangles,
             patches=sel.leaves,

@@ -102,6 +102,7 @@ import numpy as np
 from render import measure, shaders
 from render.gpu import check_gl
 from render.renderer import RenderStats, TerrainRenderer
+from render.select import check_tau
 from render.strategies.base import Block, GlobalHeights, Strategy, triangle_screen_errors
 from streamer.camera import Camera
 from streamer.frustum import as_polygon, frustum_hull, polygon_meets_rects
@@ -554,7 +555,7 @@ class JungHan(Strategy):
         remove cracks and build the mesh; returns it and the CPU ms."""
         t0 = time.perf_counter()
         r, g, k = self.r, self.r.grid, self.r.k
-        tau = float(tau)
+        tau = check_tau(tau)
         poly = frustum_hull(camera, r.terrain_zrange)
         pairs = self._resident(resident)
         blocks = [b for b, _ in pairs]
@@ -820,22 +821,25 @@ class JungHan(Strategy):
         r = self.r
         ctx = r.ctx
         prog = self.wire if wireframe else self.prog
-        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour or wireframe)
-        for page, vb, ib, n in self._batches(sel):
-            r.pool.pages[page].buffer.bind_to_storage_buffer(0)
-            vbo, ibo = ctx.buffer(vb), ctx.buffer(ib)
-            vao = ctx.vertex_array(
-                prog,
-                [(vbo, "4i 4i f", "in_a", "in_b", "in_h")],
-                index_buffer=ibo,
-                index_element_size=4,
-            )
-            vao.render(moderngl.TRIANGLES, vertices=n)
-            for o in (vao, vbo, ibo):
-                o.release()
-        ctx.finish()
-        frame_ms = (time.perf_counter() - t0) * 1000.0
-        check_gl(ctx, "drawing jung-han blocks")
+
+        def body() -> None:
+            for page, vb, ib, n in self._batches(sel):
+                r.pool.pages[page].buffer.bind_to_storage_buffer(0)
+                vbo, ibo = ctx.buffer(vb), ctx.buffer(ib)
+                vao = ctx.vertex_array(
+                    prog,
+                    [(vbo, "4i 4i f", "in_a", "in_b", "in_h")],
+                    index_buffer=ibo,
+                    index_element_size=4,
+                )
+                vao.render(moderngl.TRIANGLES, vertices=n)
+                for o in (vao, vbo, ibo):
+                    o.release()
+
+        frame_ms = self.timed_frame(
+            camera, prog, body, clear=clear, lod_colour=lod_colour or wireframe,
+            what="drawing jung-han blocks",
+        )  # fmt: skip
         lv = np.concatenate([sel.nodes[:, 1] + 1, np.zeros(sel.corner_blocks, np.int64)])
         return RenderStats(
             triangles=len(sel),

@@ -83,9 +83,8 @@ from render import measure, shaders
 from render.errors import RenderError, SelectionError
 from render.gpu import check_gl
 from render.renderer import RenderStats, TerrainRenderer
-from render.select import PatchTable, _Cull
+from render.select import PatchTable, _Cull, check_tau
 from render.strategies.base import Block, GlobalHeights, Strategy, triangle_screen_errors
-from render.strategies.chunk_tess import GS_PROBE
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
 
@@ -572,7 +571,9 @@ class SeamlessPatches(Strategy):
             geometry_shader=shaders.GEOMETRY,
             fragment_shader=shaders.FRAGMENT_WIRE,
         )
-        self.probe_prog = ctx.program(vertex_shader=VS_PROBE, geometry_shader=GS_PROBE)
+        self.probe_prog = ctx.program(
+            vertex_shader=VS_PROBE, geometry_shader=shaders.TRIANGLE_PROBE
+        )
         self.vaos = {
             id(p): ctx.vertex_array(p, [(self.mesh_vbo, "3i", "in_uvr")])
             for p in (self.prog, self.wire, self.probe_prog)
@@ -598,12 +599,7 @@ class SeamlessPatches(Strategy):
         resident: dict[Block, int] | None = None,
     ) -> tuple[PatchLayout, float]:
         """Leaf patches and edge levels at ``tau`` (``metric`` is ignored) and the CPU ms."""
-        try:
-            ok = float(tau) >= 0.0
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise SelectionError(f"tau must be a pixel threshold >= 0, got {tau!r}")
+        check_tau(tau)
         t0 = time.perf_counter()
         fr = _Frame(self, camera, tau, resident)
         leaves = _Leaves()
@@ -699,11 +695,10 @@ class SeamlessPatches(Strategy):
     ) -> RenderStats:
         r = self.r
         prog = self.wire if wireframe else self.prog
-        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour or wireframe)
-        self._render(prog, sel)
-        r.ctx.finish()
-        frame_ms = (time.perf_counter() - t0) * 1000.0
-        check_gl(r.ctx, "drawing seamless patches")
+        frame_ms = self.timed_frame(
+            camera, prog, lambda: self._render(prog, sel), clear=clear,
+            lod_colour=lod_colour or wireframe, what="drawing seamless patches",
+        )  # fmt: skip
         lv = sel.edge_level
         return RenderStats(
             triangles=self.triangle_count(sel),
@@ -722,27 +717,15 @@ class SeamlessPatches(Strategy):
     def triangles(self, camera: Camera, sel: PatchLayout) -> tuple[np.ndarray, np.ndarray]:
         """Every drawn triangle read back from the GPU: global ``(col, row)`` corners
         ``(m, 3, 2)`` int64 and fetched heights ``(m, 3)`` (-1e30 where masked)."""
-        r = self.r
-        r.fbo.use()
-        r._uniforms(self.probe_prog, camera)
-        r.level_tex.use(1)
-        r.order_tex.use(2)
         cap = self.triangle_count(sel)
-        out = r.ctx.buffer(reserve=16 + max(cap, 1) * 36)
-        out.write(np.zeros(4, np.uint32).tobytes())
-        out.bind_to_storage_buffer(3)
-        self.probe_prog["cap"].value = cap
-        r.ctx.enable(moderngl.RASTERIZER_DISCARD)
-        self._render(self.probe_prog, sel)
-        r.ctx.disable(moderngl.RASTERIZER_DISCARD)
-        raw = out.read()
-        out.release()
-        check_gl(r.ctx, "reading seamless-patch triangles back")
-        count = int(np.frombuffer(raw[:4], np.uint32)[0])
-        if count != cap:
-            raise RenderError(f"the GPU drew {count} triangles, expected {cap}")
-        a = np.frombuffer(raw[16:], np.float32)[: 9 * count].reshape(-1, 3, 3).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+        prog = self.probe_prog
+        tri, h = self.read_triangles(
+            camera, prog, cap, lambda: self._render(prog, sel),
+            "reading seamless-patch triangles back",
+        )  # fmt: skip
+        if len(tri) != cap:
+            raise RenderError(f"the GPU drew {len(tri)} triangles, expected {cap}")
+        return tri, h
 
     def cpu_triangles(self, sel: PatchLayout) -> np.ndarray:
         """The CPU twin of the vertex shader: global ``(col, row)`` corners ``(m, 3, 2)``."""
