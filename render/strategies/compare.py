@@ -10,7 +10,7 @@ the camera is moved sideways by one pixel's worth at the depth of the view centr
 scene shifts by ~1 px), the strategy selects again, and ``popping_px`` is the largest screen
 displacement (seen from the moved camera) of the drawn surface at any full-resolution sample
 drawn in both frames, i.e. the jump caused by the LOD change alone. It is taken from the
-middle camera over ``pop_steps`` (16) such consecutive one-pixel moves (a single move rarely
+middle camera over ``pop_steps`` (8) such consecutive one-pixel moves (a single move rarely
 crosses a LOD threshold): ``popping_px`` is the largest jump, ``popping_moved_steps`` how many
 of the moves changed the drawn surface at all.
 """
@@ -57,7 +57,7 @@ def popping(
             prepare(cam)
         sel, _ = strat.select(cam, tau, metric)
         surf = strat.surface(cam, sel)
-        if prev is not None:
+        if prev is not None and not _same(prev, surf):
             rows, cols, ha, hb = common_samples(prev, surf)
             moved = ha != hb  # equal drawn heights do not move on screen
             x, y = strat.r.grid.sample_xy(rows[moved], cols[moved])
@@ -67,6 +67,13 @@ def popping(
                 worst = max(worst, float(d.max()))
         prev = surf
     return worst, moved_pairs
+
+
+def _same(a, b) -> bool:
+    """The two surfaces are the same arrays (the usual case when no LOD changed)."""
+    return all(x.shape == y.shape for x, y in zip(a, b, strict=True)) and all(
+        np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b, strict=True)
+    )
 
 
 #: above this many samples in the surfaces' bounding box, samples are matched by sorting
@@ -110,7 +117,7 @@ def compare(
     metric: str = "qiu",
     patch_log2: int = 4,
     repeats: int = 1,
-    pop_steps: int = 16,
+    pop_steps: int = 8,
     log: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
     """One row per strategy and τ (the tradeoff keys plus fly-through means and popping)."""

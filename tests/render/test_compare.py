@@ -28,3 +28,11 @@ def test_common_samples_of_disjoint_or_empty_surfaces():
     empty = _surface([], [], [])
     assert all(v.size == 0 for v in compare.common_samples(a, empty))
     assert all(v.size == 0 for v in compare.common_samples(a, _surface([1], [1], [1.0])))
+
+
+def test_same_surface_detects_any_change():
+    a = _surface([0, 1], [2, 3], [1.0, np.nan])
+    assert compare._same(a, _surface([0, 1], [2, 3], [1.0, np.nan]))
+    assert not compare._same(a, _surface([0, 1], [2, 3], [1.5, np.nan]))
+    assert not compare._same(a, _surface([0, 1], [2, 4], [1.0, np.nan]))
+    assert not compare._same(a, _surface([0], [2], [1.0]))
