@@ -156,6 +156,8 @@ class TradeoffRow:
     gpu_bytes: int
     clamped: int
     strategy: str = DEFAULT
+    used_bytes: int = 0  # level data (float32) the drawn surface reads, per block up to its level
+    own_gpu_bytes: int = 0  # the strategy's own GPU buffers (meshes, quadtree textures)
 
 
 def tradeoff(
@@ -169,9 +171,12 @@ def tradeoff(
     renderer: TerrainRenderer | None = None,
     log: Callable[[str], None] | None = None,
     lod: str = DEFAULT,
+    stream_tau: float | None = None,
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
-    reference mesh); measure cost and error."""
+    reference mesh); measure cost and error. The data is streamed by the renderer's session at
+    ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution, so the
+    strategy is not limited by what Qiu's metric would load)."""
     check_name(lod)
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
@@ -193,7 +198,8 @@ def tradeoff(
     strat = get_strategy(lod, r)
     rows = []
     for tau in taus:
-        with open_render_session(store, tau, metric, r.p) as s:
+        st_tau = tau if stream_tau is None else stream_tau
+        with open_render_session(store, st_tau, metric, r.p) as s:
             frame = s.update(camera, wait=True)
             res = resident_levels(frame)
             nad_res = resident_levels(s.update(nadir, wait=True))
@@ -209,7 +215,9 @@ def tradeoff(
         strat.draw(nadir, np_, clear=CLEAR)
         cracks = measure.crack_pixels(r.image(), footprint, CLEAR)
         drawn = strat.drawn_blocks(patches)
-        gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn) + strat.own_gpu_bytes()
+        own = strat.own_gpu_bytes()
+        gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn) + own
+        used = sum(4 * grid_side(lv) ** 2 for lv in strat.used_levels(camera, patches).values())
         row = TradeoffRow(
             tau=float(tau),
             metric=metric,
@@ -231,6 +239,8 @@ def tradeoff(
             gpu_bytes=gpu,
             clamped=st.clamped,
             strategy=lod,
+            used_bytes=int(used),
+            own_gpu_bytes=int(own),
         )
         rows.append(row)
         if log:

@@ -26,6 +26,7 @@ from render.gpu import check_gl
 from render.renderer import RenderStats, TerrainRenderer
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
+from tiler.layout import level_index
 from tiler.store import TerrainStore
 
 Block = tuple[int, int]
@@ -67,6 +68,12 @@ class Strategy(ABC):
     def drawn_blocks(self, sel: Any) -> set[Block]:
         """The blocks the selection draws from."""
         ...
+
+    def used_levels(self, camera: Camera, sel: Any) -> dict[Block, int]:
+        """The finest store level the drawn surface reads in each block, from the drawn
+        triangles (``self.triangles(camera, sel)``; strategies without it override this)."""
+        tri, _ = self.triangles(camera, sel)  # type: ignore[attr-defined]
+        return block_levels(self.r.grid, tri)
 
     def own_gpu_bytes(self) -> int:
         """Bytes of GPU buffers the strategy keeps besides the shared ``HeightPool`` (cached
@@ -133,6 +140,27 @@ class Strategy(ABC):
         """The drawn surface at full-resolution samples: global ``(rows, cols, heights)``
         (used for popping; a sample may appear more than once)."""
         ...
+
+
+def block_levels(grid: BlockGrid, tri_cr: np.ndarray) -> dict[Block, int]:
+    """Per block, the finest level of any corner of the triangles ``(m, 3, 2)`` (global
+    ``(col, row)``) lying in it (a triangle belongs to the block holding its centroid; a sample
+    belongs to the level that first stores it, :func:`tiler.layout.level_index`)."""
+    tri = np.asarray(tri_cr, dtype=np.int64).reshape(-1, 3, 2)
+    if not len(tri):
+        return {}
+    step = grid.step
+    cen = tri.sum(axis=1) // 3
+    bc = np.clip(cen[:, 0] // step, 0, grid.cols - 1)
+    br = np.clip(cen[:, 1] // step, 0, grid.rows - 1)
+    li = level_index(grid.k)
+    col = np.clip(tri[..., 0] - (bc * step)[:, None], 0, step)
+    row = np.clip(tri[..., 1] - (br * step)[:, None], 0, step)
+    lv = li[row, col].max(axis=1).astype(np.int64)
+    key = br * grid.cols + bc
+    out = np.full(grid.rows * grid.cols, -1, np.int64)
+    np.maximum.at(out, key, lv)
+    return {(int(i // grid.cols), int(i % grid.cols)): int(v) for i, v in enumerate(out) if v >= 0}
 
 
 class GlobalHeights:

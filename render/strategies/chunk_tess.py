@@ -54,6 +54,7 @@ from render.gpu import check_gl
 from render.renderer import RenderStats, TerrainRenderer
 from render.select import Patches, PatchTable
 from render.strategies.base import Block, GlobalHeights, Strategy, triangle_screen_errors
+from render.strategies.qiu import patch_levels
 from streamer.camera import Camera
 from streamer.lod import exact_projected
 
@@ -261,6 +262,10 @@ class ChunkTessellation(Strategy):
     def screen_errors(self, camera: Camera, sel: Patches) -> np.ndarray:
         tri, h = self.triangles(camera, sel)
         return triangle_screen_errors(self.r.grid, camera, tri, h, self.heights)
+
+    def used_levels(self, camera: Camera, sel: Patches) -> dict[Block, int]:
+        """The finest chunk level drawn in each block (tessellated vertices are its samples)."""
+        return patch_levels(sel)
 
     def drawn_blocks(self, sel: Patches) -> set[Block]:
         return {tuple(int(v) for v in b) for b in sel.blocks[np.unique(sel.block)]}

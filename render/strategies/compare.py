@@ -5,7 +5,12 @@ For each strategy and τ: the renderer's trade-off row (:func:`render.pipeline.t
 the *middle* camera of the fly-through (measured max/p99 screen error against the
 full-resolution reference, PSNR, crack pixels straight down, bytes resident / on the GPU), plus
 fly-through means over every camera of the path (triangles, CPU selection ms, GPU ms; every
-frame's data is waited for, so all strategies see the same resident levels) and **popping**:
+frame's data is waited for, so all strategies see the same resident levels) and **popping**.
+The data is streamed at full resolution (a τ = 0 session: every block in view at level ``k``)
+so that no strategy is held back by the levels Qiu's metric would have loaded; ``used_bytes``
+is what each strategy's drawn surface actually reads (per block the level data up to the
+finest level it draws, :meth:`Strategy.used_levels`), ``own_gpu_bytes`` its own GPU buffers.
+Popping:
 the camera is moved sideways by one pixel's worth at the depth of the view centre (so the
 scene shifts by ~1 px), the strategy selects again, and ``popping_px`` is the largest screen
 displacement (seen from the moved camera) of the drawn surface at any full-resolution sample
@@ -135,10 +140,13 @@ def compare(
     for name in names:
         strat = get_strategy(name, r)
         for tau in taus:
-            tr = tradeoff(store, mid, [tau], metric=metric, renderer=r, repeats=repeats, lod=name)
+            tr = tradeoff(
+                store, mid, [tau], metric=metric, renderer=r, repeats=repeats, lod=name,
+                stream_tau=0.0,
+            )  # fmt: skip
             row = asdict(tr[0])
             tri, cpu, gpu = [], [], []
-            with open_render_session(store, tau, metric, r.p) as s:
+            with open_render_session(store, 0.0, metric, r.p) as s:
                 for cam in cameras:
                     frame = s.update(cam, wait=True)
                     r.sync(frame.blocks, s)
@@ -171,7 +179,7 @@ def compare(
 
 HEADER = (
     f"{'strategy':>20} {'tau':>5} {'tris/frame':>10} {'CPU ms':>7} {'GPU ms':>7} "
-    f"{'max px':>7} {'p99 px':>7} {'cracks':>6} {'pop px':>6} {'GPU MB':>7}"
+    f"{'max px':>7} {'p99 px':>7} {'cracks':>6} {'pop px':>6} {'data MB':>7} {'own MB':>6}"
 )
 
 
@@ -181,7 +189,7 @@ def format_row(row: dict[str, Any]) -> str:
         f"{row['strategy']:>20} {row['tau']:>5g} {row['fly_triangles']:>10,.0f} "
         f"{row['fly_cpu_ms']:>7.2f} {row['fly_gpu_ms']:>7.1f} {row['max_screen_error_px']:>7.2f} "
         f"{row['p99_screen_error_px']:>7.2f} {row['crack_pixels']:>6} {row['popping_px']:>6.2f} "
-        f"{row['gpu_bytes'] / 2**20:>7.2f}"
+        f"{row['used_bytes'] / 2**20:>7.2f} {row['own_gpu_bytes'] / 2**20:>6.2f}"
     )
 
 

@@ -855,6 +855,10 @@ class JungHan(Strategy):
 
     # -- measuring ---------------------------------------------------------------------------
 
+    def triangles(self, camera: Camera, sel: JHSelection) -> tuple[np.ndarray, np.ndarray]:
+        """The drawn triangles: global ``(col, row)`` corners ``(m, 3, 2)``, drawn heights."""
+        return sel.tri, sel.tri_h
+
     def screen_errors(self, camera: Camera, sel: JHSelection) -> np.ndarray:
         """Measured pixel errors of the drawn (height-adjusted) triangles."""
         return triangle_screen_errors(self.r.grid, camera, sel.tri, sel.tri_h, self.heights)

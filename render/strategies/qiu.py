@@ -16,6 +16,15 @@ from render.strategies.base import Block, Strategy
 from streamer.camera import Camera
 
 
+def patch_levels(sel: Patches) -> dict[Block, int]:
+    """The finest level of any patch in each block."""
+    out = np.full(len(sel.blocks), -1, np.int64)
+    np.maximum.at(out, sel.block, sel.level)
+    return {
+        tuple(int(v) for v in b): int(lv) for b, lv in zip(sel.blocks, out, strict=True) if lv >= 0
+    }
+
+
 class QiuStrategy(Strategy):
     """Qiu's CLOD patches (the default)."""
 
@@ -31,6 +40,10 @@ class QiuStrategy(Strategy):
         from render.pipeline import heights_fn  # pipeline imports the strategies
 
         return measure.screen_errors(sel, self.r.grid, camera, heights_fn(self.r.store, sel))
+
+    def used_levels(self, camera: Camera, sel: Patches) -> dict[Block, int]:
+        """The finest patch level drawn in each block."""
+        return patch_levels(sel)
 
     def drawn_blocks(self, sel: Patches) -> set[Block]:
         return {tuple(int(v) for v in b) for b in sel.blocks[np.unique(sel.block)]}

@@ -36,3 +36,20 @@ def test_same_surface_detects_any_change():
     assert not compare._same(a, _surface([0, 1], [2, 3], [1.5, np.nan]))
     assert not compare._same(a, _surface([0, 1], [2, 4], [1.0, np.nan]))
     assert not compare._same(a, _surface([0], [2], [1.0]))
+
+
+def test_block_levels_of_triangles():
+    from render.strategies.base import block_levels
+    from tiler.grid import BlockGrid
+
+    g = BlockGrid(height=65, width=65, k=5, x0=0.0, y0=0.0, dx=1.0, dy=1.0)  # 2 x 2 blocks
+    tri = np.array(
+        [
+            [[0, 0], [32, 0], [0, 32]],  # block (0, 0), corners of level 0
+            [[0, 0], [16, 0], [0, 16]],  # block (0, 0), level 1
+            [[32, 0], [64, 0], [32, 32]],  # block (0, 1), level 0 (its corners)
+            [[33, 33], [34, 33], [33, 34]],  # block (1, 1), full resolution
+        ]
+    )
+    assert block_levels(g, tri) == {(0, 0): 1, (0, 1): 0, (1, 1): 5}
+    assert block_levels(g, np.zeros((0, 3, 2), np.int64)) == {}

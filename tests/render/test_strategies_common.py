@@ -124,6 +124,9 @@ def test_tau_zero_draws_the_full_mesh_and_huge_tau_fewer(rough_store, name):
     coarse = st.draw(cam, st.select(cam, 1e9)[0]).triangles
     assert 16 * 2 <= coarse <= mid < full
     assert st.drawn_blocks(sel) == set(st.r.store.blocks())
+    assert st.used_levels(cam, sel) == {b: 5 for b in st.r.store.blocks()}
+    coarse_levels = st.used_levels(cam, st.select(cam, 1e9)[0])
+    assert set(coarse_levels) == set(st.r.store.blocks()) and max(coarse_levels.values()) < 5
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -9,6 +9,7 @@ from gltools import make_context, rough, tile_dem
 from typer.testing import CliRunner
 
 from cli.main import app
+from render.strategies import strategy_names
 
 pytestmark = pytest.mark.gl
 make_context()
@@ -40,12 +41,13 @@ def test_compare_writes_rows_per_strategy_and_tau(store, tmp_path):
     res = runner.invoke(
         app,
         ["compare", store, "--size", "96x64", "--frames", "2", "--taus", "1,4",
-         "--patch-log2", "2", "--lods", "qiu,chunk-tessellation", "--json", str(js)],
+         "--patch-log2", "2", "--json", str(js)],
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     rows = json.loads(js.read_text())
     assert {(r["strategy"], r["tau"]) for r in rows} == {
-        (s, t) for s in ("qiu", "chunk-tessellation") for t in (1.0, 4.0)
+        (s, t) for s in strategy_names() for t in (1.0, 4.0)
     }
     for r in rows:
         assert r["crack_pixels"] == 0 and r["popping_px"] >= 0 and r["triangles"] > 0
+        assert r["used_bytes"] > 0 and r["popping_steps"] == 8
