@@ -193,6 +193,16 @@ def format_row(row: dict[str, Any]) -> str:
     )
 
 
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The points ``(error, triangles)`` no other point beats on both (fewer or equal triangles
+    at lower or equal error), sorted by error."""
+    front: list[tuple[float, float]] = []
+    for e, t in sorted(points):
+        if not front or t < front[-1][1]:
+            front.append((e, t))
+    return front
+
+
 def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = "") -> None:
     """Triangles per frame (middle camera) vs measured max and p99 error, per strategy."""
     import matplotlib
@@ -207,6 +217,11 @@ def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = ""
             a.plot([r[key] for r in rs], [r["triangles"] for r in rs], "o-", label=name)
             for r in rs:
                 a.annotate(f"τ={r['tau']:g}", (r[key], r["triangles"]), fontsize=7)
+    for a, key in zip(ax, ("max_screen_error_px", "p99_screen_error_px"), strict=True):
+        front = pareto_front([(r[key], r["triangles"]) for r in rows])
+        if front:
+            xs, ys = zip(*front, strict=True)
+            a.step(xs, ys, "k--", where="post", lw=1, alpha=0.5, label="Pareto front")
     for a, lab in zip(ax, ("measured max error px", "measured p99 error px"), strict=True):
         a.set_xlabel(lab)
         a.set_ylabel("triangles")

@@ -53,3 +53,9 @@ def test_block_levels_of_triangles():
     )
     assert block_levels(g, tri) == {(0, 0): 1, (0, 1): 0, (1, 1): 5}
     assert block_levels(g, np.zeros((0, 3, 2), np.int64)) == {}
+
+
+def test_pareto_front_keeps_the_non_dominated_points():
+    pts = [(1.0, 100), (0.5, 300), (2.0, 50), (1.5, 120), (0.5, 400), (3.0, 50)]
+    assert compare.pareto_front(pts) == [(0.5, 300), (1.0, 100), (2.0, 50)]
+    assert compare.pareto_front([]) == []
