@@ -364,7 +364,8 @@ def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget
             mb = frame.stats.resident_bytes / 2**20
             if now - tick > 0.25 or last_frame:
                 tick = now
-                text = status_line(fps, last, state["tau"], metric, mb, state["wire"])
+                label = metric if strat.uses_metric else strat.name  # whose error tau bounds
+                text = status_line(fps, last, state["tau"], label, mb, state["wire"])
                 overlay.set(text)
                 glfw.set_window_title(win, f"terrastream view | {text}")
             overlay.draw()
