@@ -15,7 +15,7 @@ from render import measure
 from render.errors import RenderError
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
 from render.select import Patches
-from render.strategies import DEFAULT, check_name, get_strategy
+from render.strategies import DEFAULT, check_name, get_strategy, stream_metric
 from streamer.camera import Camera
 from streamer.session import Frame, Session, open_session
 from tiler.layout import grid_side, level_size
@@ -106,7 +106,7 @@ def render_view(
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
     )
-    with open_render_session(store, tau, metric, r.p) as session:
+    with open_render_session(store, tau, stream_metric(lod, metric), r.p) as session:
         frame = session.update(camera, wait=True)
         r.sync(frame.blocks, session)
         strat = get_strategy(lod, r)
@@ -175,8 +175,8 @@ def tradeoff(
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
     reference mesh); measure cost and error. The data is streamed by the renderer's session at
-    ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution, so the
-    strategy is not limited by what Qiu's metric would load)."""
+    ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
+    :func:`render.strategies.stream_metric`."""
     check_name(lod)
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
@@ -199,7 +199,7 @@ def tradeoff(
     rows = []
     for tau in taus:
         st_tau = tau if stream_tau is None else stream_tau
-        with open_render_session(store, st_tau, metric, r.p) as s:
+        with open_render_session(store, st_tau, stream_metric(lod, metric), r.p) as s:
             frame = s.update(camera, wait=True)
             res = resident_levels(frame)
             nad_res = resident_levels(s.update(nadir, wait=True))
@@ -347,7 +347,7 @@ def flythrough(
         budget_mb=budget_mb,
         workers=workers,
         tau=tau,
-        metric=metric,
+        metric=stream_metric(lod, metric),
         patch_log2=r.p,
         culling="hull",
         fps=fps,

@@ -268,7 +268,7 @@ def run_viewer(
 
 def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget_mb, wireframe,
           frames, screenshot, lod="qiu") -> ViewResult:  # fmt: skip
-    from render.strategies import get_strategy
+    from render.strategies import get_strategy, stream_metric
 
     size, scripted = tuple(start.viewport), frames is not None
     fb = glfw.get_framebuffer_size(win)
@@ -315,7 +315,7 @@ def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget
             budget_mb=budget_mb,
             workers=workers,
             tau=state["tau"],
-            metric=metric,
+            metric=stream_metric(lod, metric),
             patch_log2=r.p,
             culling="hull",
         )

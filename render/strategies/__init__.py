@@ -54,6 +54,13 @@ def strategy_class(name: str) -> type[Strategy]:
     return getattr(import_module(module), cls)
 
 
+def stream_metric(name: str, metric: str) -> str:
+    """The metric the streaming session should load levels with for strategy ``name``: the
+    given one when the strategy selects with it, else ``"conservative"`` (a bound on the
+    patches' error, so a strategy with its own error is not held back by Eq. 7's loading)."""
+    return metric if strategy_class(name).uses_metric else "conservative"
+
+
 def get_strategy(name: str, renderer, **options) -> Strategy:
     """An instance of strategy ``name`` drawing with ``renderer``."""
     return strategy_class(name)(renderer, **options)
@@ -68,4 +75,5 @@ __all__ = [
     "get_strategy",
     "strategy_class",
     "strategy_names",
+    "stream_metric",
 ]

@@ -59,3 +59,14 @@ def test_pareto_front_keeps_the_non_dominated_points():
     pts = [(1.0, 100), (0.5, 300), (2.0, 50), (1.5, 120), (0.5, 400), (3.0, 50)]
     assert compare.pareto_front(pts) == [(0.5, 300), (1.0, 100), (2.0, 50)]
     assert compare.pareto_front([]) == []
+
+
+def test_strategies_with_their_own_error_stream_with_the_conservative_metric():
+    from render.strategies import strategy_class, strategy_names, stream_metric
+
+    assert stream_metric("qiu", "qiu") == "qiu"
+    assert stream_metric("qiu", "conservative") == "conservative"
+    for name in strategy_names():
+        want = "qiu" if strategy_class(name).uses_metric else "conservative"
+        assert stream_metric(name, "qiu") == want
+    assert stream_metric("jung-han", "qiu") == "conservative"
