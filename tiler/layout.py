@@ -57,7 +57,7 @@ def level_size(level: int) -> int:
     return level_end(level) - level_start(level) + 1
 
 
-def _trailing_zeros(v: np.ndarray, cap: int) -> np.ndarray:
+def trailing_zeros(v: np.ndarray, cap: int) -> np.ndarray:
     """Trailing zero bits of each non-negative integer, with 0 mapped to ``cap``."""
     v = np.asarray(v, dtype=np.int64)
     out = np.full(v.shape, cap, dtype=np.int64)
@@ -71,7 +71,7 @@ def _trailing_zeros(v: np.ndarray, cap: int) -> np.ndarray:
 def level_index(k: int) -> np.ndarray:
     """``(2**k+1, 2**k+1)`` uint8 array: the level each vertex of a block first appears in."""
     side = grid_side(k)
-    tz = _trailing_zeros(np.arange(side), k)
+    tz = trailing_zeros(np.arange(side), k)
     lev = k - np.minimum(tz[:, None], tz[None, :])
     out = lev.astype(np.uint8)
     out.setflags(write=False)

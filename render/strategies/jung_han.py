@@ -107,6 +107,7 @@ from render.strategies.base import Block, GlobalHeights, Strategy, triangle_scre
 from streamer.camera import Camera
 from streamer.frustum import as_polygon, frustum_hull, polygon_meets_rects
 from streamer.lod import exact_projected
+from tiler.layout import trailing_zeros
 
 #: the paper's 12 triangles, in the bit order of its ``Block`` structure
 TRIANGLES = ("TL", "TR", "BL", "BR", "LT", "LB", "RT", "RB", "T", "B", "L", "R")
@@ -739,7 +740,9 @@ class JungHan(Strategy):
         ids, ends, frac = t_junctions(tri, vcol, vrow)
         if len(ids):
             step = g.step
-            tz = np.minimum(_tz(vcol[ids] % step, k), _tz(vrow[ids] % step, k))
+            tz = np.minimum(
+                trailing_zeros(vcol[ids] % step, k), trailing_zeros(vrow[ids] % step, k)
+            )
             vlev = k - tz
             ia = np.searchsorted(uk, ends[:, 0, 1] * wg + ends[:, 0, 0])
             ib = np.searchsorted(uk, ends[:, 1, 1] * wg + ends[:, 1, 0])
@@ -873,13 +876,3 @@ class JungHan(Strategy):
         """The drawn surface rasterised on the sample lattice (hidden triangles left out)."""
         ok = np.isfinite(sel.tri_h).all(axis=1)
         return measure.rasterise(sel.tri[ok], sel.tri_h[ok])
-
-
-def _tz(v: np.ndarray, cap: int) -> np.ndarray:
-    """Trailing zero bits of non-negative ints (0 -> ``cap``)."""
-    v = np.asarray(v, dtype=np.int64)
-    out = np.full(v.shape, cap, dtype=np.int64)
-    nz = v != 0
-    low = v[nz] & -v[nz]
-    out[nz] = np.minimum(np.log2(low).astype(np.int64), cap)
-    return out
