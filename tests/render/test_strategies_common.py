@@ -168,3 +168,47 @@ def test_tradeoff_row_through_the_streaming_session(rough_store, name):
     row = rows[0]
     assert row.strategy == name and row.crack_pixels == 0
     assert row.triangles > 0 and row.samples_in_view > 5000
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_translated_by_1e7_renders_the_same_image(tmp_path, name):
+    dem = rough(65, 5)
+    imgs, tris = [], []
+    for i, shift in enumerate((0.0, 1e7)):
+        d = tmp_path / str(i)
+        d.mkdir()
+        st = _strategy(tile_dem(d, dem, 33, origin=(500000.0 + shift, 5000000.0 + shift)), name)
+        g = st.r.grid
+        cam = Camera.look_at(
+            (g.x0 + 200, g.y0 - 2400, 1400.0), (g.x0 + 1000, g.y0 - 900, 700.0), viewport=SIZE,
+            near=5.0, far=1e5,
+        )  # fmt: skip
+        sel, _ = st.select(cam, 1.0)
+        tris.append(st.draw(cam, sel).triangles)
+        imgs.append(st.r.image())
+    assert tris[0] == tris[1]
+    assert measure.changed_share(imgs[0], imgs[1], threshold=0) <= 0.002
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_nodata_is_hidden_at_full_resolution(tmp_path, name):
+    # rough terrain (so every strategy refines to full resolution at tau = 0) with a hole;
+    # coarser meshes may bridge a hole smaller than their cells (docs/RENDER.md, nodata)
+    dem = rough(65, 5).astype(np.float32)
+    dem[20:30, 20:30] = np.nan
+    st = _strategy(tile_dem(tmp_path, dem, 33, nodata=np.nan), name)
+    g = st.r.grid
+    cx, cy, z = g.x0 + 24.5 * g.dx, g.y0 - 24.5 * g.dy, float(np.nanmean(dem))
+    cam = Camera.look_at((cx, cy - 500.0, z + 2000.0), (cx, cy, z), viewport=SIZE, near=5.0)
+    sel, _ = st.select(cam, 0.0)
+    st.draw(cam, sel, clear=CLEAR)
+    clear = measure.is_clear(st.r.image(), CLEAR)
+    hole = cam.project(np.array([[cx, cy, z]]))
+    hx, hy = int(hole[0][0]), int(hole[1][0])
+    assert clear[hy - 1 : hy + 2, hx - 1 : hx + 2].all()  # ~10 px wide in this view
+    ref, _ = st.r.select(cam, 0.0, full=True)
+    st.r.draw(cam, ref, clear=CLEAR)
+    assert (clear == measure.is_clear(st.r.image(), CLEAR)).mean() > 0.995  # as the reference
+    rows, cols, h = st.surface(cam, sel)
+    drawn = (rows >= 20) & (rows < 30) & (cols >= 20) & (cols < 30)
+    assert not np.isfinite(h[drawn]).any()  # no drawn height inside the hole
