@@ -156,6 +156,17 @@ class TerrainRenderer:
 
     # -- selection ---------------------------------------------------------------------------
 
+    def drawable(self, resident: dict[Block, int] | None = None) -> list[tuple[Block, int]]:
+        """``(block, level)`` sorted: the blocks a frame may draw and the finest level of each —
+        the lower of the cap in ``resident`` (default: what the GPU holds) and the GPU's level;
+        a block is drawn when both are >= 0."""
+        pool = self.pool
+        levels = resident if resident is not None else {b: s.level for b, s in pool.slots.items()}
+        pairs = sorted(
+            (tuple(b), min(int(lv), pool.level(b))) for b, lv in levels.items() if lv >= 0
+        )
+        return [(b, lv) for b, lv in pairs if lv >= 0]
+
     def select(
         self,
         camera: Camera,
@@ -177,13 +188,7 @@ class TerrainRenderer:
         t0 = time.perf_counter()
         get_metric(metric)
         poly = frustum_hull(camera, self.terrain_zrange)
-        levels = (
-            resident if resident is not None else {b: s.level for b, s in self.pool.slots.items()}
-        )
-        gpu_level = self.pool.level
-        # a block is drawn when both its cap and its GPU level are >= 0, at the lower of them
-        pairs = sorted((b, min(lv, gpu_level(b))) for b, lv in levels.items() if lv >= 0)
-        pairs = [bl for bl in pairs if bl[1] >= 0]
+        pairs = self.drawable(resident)
         blocks = [b for b, _ in pairs]
         res = np.array([lv for _, lv in pairs], dtype=np.int64)
         table = table if table is not None else self.table(metric)

@@ -628,9 +628,7 @@ class GeometrySplitting(Strategy):
     ) -> tuple[list[Block], np.ndarray]:
         """The drawn blocks (sorted) and their ``(m, 16)`` int32 table (see ``QT_LIB``)."""
         pool = self.r.pool
-        levels = resident if resident is not None else {b: s.level for b, s in pool.slots.items()}
-        pairs = sorted((b, min(lv, pool.level(b))) for b, lv in levels.items() if lv >= 0)
-        pairs = [(b, lv) for b, lv in pairs if lv >= 0]
+        pairs = self.r.drawable(resident)
         blocks = [b for b, _ in pairs]
         index = {b: i for i, b in enumerate(blocks)}
         k = self.k

@@ -538,9 +538,7 @@ class JungHan(Strategy):
         pool = self.r.pool
         for b in [b for b in self._trees if b not in pool.slots]:
             del self._trees[b]  # released from the GPU
-        levels = resident if resident is not None else {b: s.level for b, s in pool.slots.items()}
-        pairs = sorted((b, min(int(lv), pool.level(b))) for b, lv in levels.items() if lv >= 0)
-        return [(b, lv) for b, lv in pairs if lv >= 0]
+        return self.r.drawable(resident)
 
     # -- selection ---------------------------------------------------------------------------
 

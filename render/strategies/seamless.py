@@ -278,10 +278,7 @@ class _Frame:
         r = st.r
         self.k, self.c, self.grid = r.k, st.c, r.grid
         self.camera, self.tau = camera, float(tau)
-        gpu_level = r.pool.level
-        levels = resident if resident is not None else {b: s.level for b, s in r.pool.slots.items()}
-        pairs = sorted((tuple(b), min(int(lv), gpu_level(b))) for b, lv in levels.items())
-        pairs = [(b, lv) for b, lv in pairs if lv >= 0]
+        pairs = r.drawable(resident)
         self.skipped = sum(1 for _, lv in pairs if lv < 1)
         pairs = [(b, lv) for b, lv in pairs if lv >= 1]
         self.blk = np.array([b for b, _ in pairs], dtype=np.int64).reshape(-1, 2)
