@@ -10,14 +10,19 @@ Choices where the paper is open, and GL 4.5 / moderngl in place of DirectX 10:
   cells and is drawn as one quad of level ``d`` (its 4 corners), cut along the ``a-d`` diagonal
   like :mod:`render.mesh`; depth ``k`` nodes are full-resolution cells. A node may split only
   while ``d < cap`` (the block's resident level, ``select(resident=...)`` or the GPU level).
-* **Roughness** ``δ_l`` (the paper's five midpoint errors) is taken as the largest vertical
-  distance of *any* full-resolution sample of the node from its quad (computed from the heights,
-  :func:`node_errors`, so it bounds exactly what a leaf draws without T-vertices); masked
-  samples are ignored, a valid sample under a masked corner gives ``inf``. ``σ_k = 0``,
+* **Roughness** ``δ_l`` (the paper's five midpoint errors, precomputed): the store's ``bound``
+  field, computed at tiling time — the largest vertical distance of any valid full-resolution
+  sample of the node from its quad (either diagonal, float16 rounded up; below the store's cap
+  depth one value covers a tile of nodes — when the block is resident at full resolution
+  those deepest depths are computed exactly from its heights, :func:`quad_errors`), so it bounds
+  what a leaf draws without T-vertices.
+  Masked samples are ignored, as for every strategy (docs/RENDER.md, nodata). ``σ_k = 0``,
   ``σ_l = max(δ_l, 2 max σ_(l+1) of the children)`` (:func:`roughness`, Eq. 3 applied
   recursively). The "quadtree texture" is an SSBO per block in depth order holding per node
   ``σ`` (float32 rounded up, which keeps the doubling exact) and the node's height range as
-  two halves (rounded outwards); depth ``k`` nodes are not stored (``σ = 0``, parent's range).
+  two halves (rounded outwards): its 4 corners ``∓ δ`` from the block's *resident* level grid
+  (:func:`stored_tree`), rebuilt when the resident level changes — nothing finer than the
+  session loaded is read; depth ``k`` nodes are not stored (``σ = 0``, parent's range).
 * **Split flag** (Eq. 2): bounding sphere centred on the node at its mid height, radius
   ``half diagonal + half height range`` (a child's sphere lies inside its parent's). Eye inside
   and ``σ ≠ 0``: split. Otherwise split iff ``τ <= σ̄``, ``σ̄`` = the largest pixel distance
@@ -65,8 +70,8 @@ Choices where the paper is open, and GL 4.5 / moderngl in place of DirectX 10:
 * **Timing**: the CPU's share of a frame (``select``'s ms) is the block table and root list
   only; the expansion and splitting passes are GPU work, timed in ``select`` and added to the
   frame's GPU ms (``RenderStats.frame_ms`` = passes + draw). Building a block's quadtree
-  texture (once per block, ~0.5 s for 1025² samples in numpy) is load-time work, like
-  decoding, and is left out of both.
+  texture (when its resident level changes: one level read and a few numpy passes) is
+  load-time work, like decoding, and is left out of both.
 """
 
 from __future__ import annotations
@@ -407,61 +412,6 @@ void main() {
 # --- the quadtree texture (CPU, once per block) -----------------------------------------------
 
 
-def _spread(corner: np.ndarray, s: int) -> np.ndarray:
-    """A per-node value on every sample of the ``(m*s+1)²`` grid (the last row and column
-    belong to the last node)."""
-    full = np.repeat(np.repeat(corner, s, axis=0), s, axis=1)
-    return np.pad(full, ((0, 1), (0, 1)), mode="edge")
-
-
-def _node_max(e: np.ndarray, d: int) -> np.ndarray:
-    """Per depth-``d`` node the max of ``e`` ``(2**k+1)²`` over its samples, borders included."""
-    n = e.shape[0] - 1
-    m, s = 1 << d, n >> d
-    inner = e[:n, :n].reshape(m, s, m, s).max(axis=(1, 3))
-    south = e[s::s, :n].reshape(m, m, s).max(axis=2)
-    east = e[:n, s::s].reshape(m, s, m).max(axis=1)
-    return np.maximum(np.maximum(inner, e[s::s, s::s]), np.maximum(south, east))
-
-
-def node_errors(h: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
-    """``δ``, ``zmin``, ``zmax`` per depth ``0..k-1`` of a ``(2**k+1)²`` grid (NaN = masked):
-    ``δ`` = largest vertical distance of a full-resolution sample from the node's quad."""
-    h = np.asarray(h, dtype=np.float64)
-    n = h.shape[0] - 1
-    k = n.bit_length() - 1
-    if h.shape != (n + 1, n + 1) or n != 1 << k:
-        raise RenderError(f"heights must be a (2**k+1)² grid, got {h.shape}")
-    deltas, zmins, zmaxs = [], [], []
-    valid = np.isfinite(h)
-    finite = bool(valid.all())
-    lo_h = h if finite else np.where(valid, h, np.inf)
-    hi_h = h if finite else np.where(valid, h, -np.inf)
-    idx = np.arange(n + 1)
-    for d in range(k):
-        s = n >> d
-        node = np.minimum(idx // s, (1 << d) - 1) * s  # first sample of each sample's node
-        frac = (idx - node) / s
-        u, v = frac[None, :], frac[:, None]
-        a, b, c, dd = (
-            _spread(x, s) for x in (h[:n:s, :n:s], h[:n:s, s::s], h[s::s, :n:s], h[s::s, s::s])
-        )
-        with np.errstate(invalid="ignore"):
-            quad = np.where(
-                u >= v, a * (1 - u) + b * (u - v) + dd * v, a * (1 - v) + c * (v - u) + dd * u
-            )
-            err = np.abs(h - quad)
-        if not finite:
-            err = np.where(valid & np.isnan(err), np.inf, np.where(valid, err, 0.0))
-        deltas.append(_node_max(err, d))
-        lo = -_node_max(-lo_h, d)
-        hi = _node_max(hi_h, d)
-        empty = ~np.isfinite(lo)
-        zmins.append(np.where(empty, 0.0, lo))
-        zmaxs.append(np.where(empty, 0.0, hi))
-    return deltas, zmins, zmaxs
-
-
 def roughness(deltas: list[np.ndarray]) -> list[np.ndarray]:
     """Lee & Shin's Eq. 3, recursively: ``σ_l = max(δ_l, 2 max σ_(l+1))`` (``σ_k = 0``)."""
     sig = [np.asarray(x, dtype=np.float64) for x in deltas]
@@ -500,12 +450,84 @@ class BlockTree:
         return np.stack([s, lo | (hi << 16)], 1)
 
 
-def block_tree(h: np.ndarray) -> BlockTree:
-    """The quadtree texture of one block's full-resolution heights."""
-    deltas, zmin, zmax = node_errors(h)
+def quad_errors(h: np.ndarray, valid: np.ndarray | None, depths) -> dict[int, np.ndarray]:
+    """``δ`` per depth in ``depths`` of a full-resolution ``(2**k+1)²`` grid: the largest
+    vertical distance of a valid sample (its own last row and column included) from the node's
+    quad, cut along its a-d diagonal (samples x nodes arrays, vectorised over the nodes)."""
+    h = np.asarray(h, dtype=np.float64)
+    n = h.shape[0] - 1
+    ok = np.ones(h.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
+    out = {}
+    for d in depths:
+        m, s = 1 << d, n >> d
+        a, b, c, dd = h[:n:s, :n:s], h[:n:s, s::s], h[s::s, :n:s], h[s::s, s::s]
+        t = np.arange(s) / s
+        v, u = t[:, None, None, None], t[None, :, None, None]
+        # (sample row, sample col, node row, node col): the long axes innermost
+        err = np.ascontiguousarray(h[:n, :n].reshape(m, s, m, s).transpose(1, 3, 0, 2))
+        # the a-d triangulation is L - q min(u, v), L = a + u (b - a) + v (c - a),
+        # q = b + c - a - d (as tiler.static_error), updated in place
+        err -= a
+        err -= u * (b - a)
+        err -= v * (c - a)
+        err += np.minimum(u, v) * (b + c - a - dd)
+        np.abs(err, out=err)
+        err[~ok[:n, :n].reshape(m, s, m, s).transpose(1, 3, 0, 2)] = 0.0
+        node = err.max(axis=(0, 1))
+        # a node's south (east) edge is the next node's north (west) edge: same samples, same
+        # segment, same errors; only the block's last row (column) is computed apart
+        t1 = np.arange(s + 1) / s
+        along = np.arange(m)[:, None] * s + np.arange(s + 1)[None, :]  # (m, s + 1) samples
+        south = np.empty((m, m))
+        south[:-1] = err[0, :, 1:, :].max(axis=0)
+        last = np.abs(h[n][along] - (c[-1][:, None] * (1 - t1) + dd[-1][:, None] * t1))
+        south[-1] = np.where(ok[n][along], last, 0.0).max(axis=1)
+        east = np.empty((m, m))
+        east[:, :-1] = err[:, 0, :, 1:].max(axis=0)
+        last = np.abs(h[:, n][along] - (b[:, -1][:, None] * (1 - t1) + dd[:, -1][:, None] * t1))
+        east[:, -1] = np.where(ok[:, n][along], last, 0.0).max(axis=1)
+        out[d] = np.maximum(node, np.maximum(south, east))
+    return out
+
+
+def _per_node(arr: np.ndarray, d: int) -> np.ndarray:
+    """A stored per-depth field ``(2**min(d, cap))²`` at every depth-``d`` node ``(2**d)²``
+    (beyond the store's cap one value covers a tile of nodes)."""
+    rep = (1 << d) // arr.shape[0]
+    return np.repeat(np.repeat(np.asarray(arr, dtype=np.float64), rep, 0), rep, 1)
+
+
+def stored_tree(
+    bound: list[np.ndarray], grid: np.ndarray, exact: dict[int, np.ndarray] | None = None
+) -> BlockTree:
+    """One block's quadtree texture from what the store already holds: ``bound`` (the tiler's
+    per-node error field, depths ``0..k-1``: the largest vertical distance of any valid
+    full-resolution sample from the node's quad, either diagonal, rounded up) as ``δ``, and the
+    block's level-``R`` grid ``(2**R+1)²`` (its resident level) for the height ranges: a node of
+    depth ``d <= R`` spans ``[min, max]`` of its 4 corners ``∓ δ`` (every sample lies within
+    ``δ`` of the quad, which lies between its corners); deeper nodes take their depth-``R``
+    ancestor's range (they cannot split there). ``exact`` replaces ``δ`` at some depths (the
+    store keeps one value per tile of nodes below its cap depth, see :func:`quad_errors`)."""
+    k = len(bound)
+    g = np.asarray(grid, dtype=np.float64)
+    rr = (g.shape[0] - 1).bit_length() - 1
+    if g.shape != ((1 << rr) + 1,) * 2 or not 0 <= rr <= k:
+        raise RenderError(f"expected a (2**R+1)² grid with R <= {k}, got {g.shape}")
+    deltas = [_per_node(bound[d], d) for d in range(k)]
+    for d, e in (exact or {}).items():
+        deltas[d] = np.minimum(deltas[d], e)  # both bound the quad's error; keep the tighter
     sig = roughness(deltas)
+    zmin, zmax = [], []
+    for d in range(k):
+        a = min(d, rr, k - 1)  # the depth whose corners bound this node
+        c = g[:: 1 << (rr - a), :: 1 << (rr - a)] if a <= rr else g
+        quad = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+        lo, hi = quad.min(axis=0) - deltas[a], quad.max(axis=0) + deltas[a]
+        rep = 1 << (d - a)
+        zmin.append(np.repeat(np.repeat(lo, rep, 0), rep, 1))
+        zmax.append(np.repeat(np.repeat(hi, rep, 0), rep, 1))
     return BlockTree(
-        sigma=[_round_up32(s) for s in sig],
+        sigma=[_round_up32(x) for x in sig],
         zmin=[_half(z, False) for z in zmin],
         zmax=[_half(z, True) for z in zmax],
     )
@@ -580,6 +602,8 @@ class GeometrySplitting(Strategy):
         )
         self.probe_prog = ctx.program(vertex_shader=VS_PROBE, varyings=["t_out"])
         self.trees: dict[Block, BlockTree] = {}
+        self._tree_level: dict[Block, int] = {}  # the resident level each tree was built for
+        self._qt_level: dict[Block, int] = {}  # ... and each uploaded texture
         self._qt_offset: dict[Block, int] = {}
         self._qt_buf: moderngl.Buffer | None = None
         self._qt_used = 0
@@ -592,21 +616,35 @@ class GeometrySplitting(Strategy):
 
     # -- quadtree texture --------------------------------------------------------------------
 
-    def tree(self, b: Block) -> BlockTree:
-        """The block's quadtree texture (computed once from the store's heights)."""
-        if b not in self.trees:
+    def tree(self, b: Block, level: int | None = None) -> BlockTree:
+        """The block's quadtree texture for its resident ``level`` (default: the GPU's), from
+        the stored errors and that level's grid (:func:`stored_tree`; rebuilt when the level
+        changes)."""
+        lv = self.r.pool.level(b) if level is None else int(level)
+        if self._tree_level.get(b) != lv or b not in self.trees:
             store = self.r.store
-            h = store.read_block(b).astype(np.float64)
-            if store.index.has_nodata[b]:
-                h[~store.read_mask(b)] = np.nan
-            self.trees[b] = block_tree(h)
+            grid = store.read_block(b, max_level=max(lv, 0))
+            exact = None
+            deep = range(store.meta.error_cap + 1, self.k)
+            if lv == self.k and len(deep):  # full resolution resident: exact δ where tiled
+                valid = store.read_mask(b) if store.index.has_nodata[b] else None
+                exact = quad_errors(grid, valid, deep)
+            self.trees[b] = stored_tree(store.read_errors(b)["bound"], grid, exact)
+            self._tree_level[b] = lv
         return self.trees[b]
 
-    def _upload_trees(self, blocks: list[Block]) -> None:
+    def _upload_trees(self, pairs: list[tuple[Block, int]]) -> None:
+        blocks = [b for b, _ in pairs]
+        per = ((1 << (2 * self.k)) - 1) // 3
+        for b, lv in pairs:  # resident level changed: rewrite the block's texture in place
+            if b in self._qt_offset and self._qt_level.get(b) != lv:
+                data = self.tree(b, lv).packed().tobytes()
+                self._qt_buf.write(data, offset=self._qt_offset[b] * 8)
+                self._qt_level[b] = lv
         new = [b for b in blocks if b not in self._qt_offset]
         if not new:
             return
-        per = ((1 << (2 * self.k)) - 1) // 3
+        level = dict(pairs)
         cap = 0 if self._qt_buf is None else self._qt_buf.size // 8
         if self._qt_used + per * len(new) > cap:
             keep = [b for b in self._qt_offset if b in self.r.pool.slots or b in blocks]
@@ -617,9 +655,13 @@ class GeometrySplitting(Strategy):
             self._qt_buf = self.r.ctx.buffer(reserve=size * 8)
             self._qt_offset, self._qt_used = {}, 0
             self.trees = {b: t for b, t in self.trees.items() if b in keep}
+            self._tree_level = {b: v for b, v in self._tree_level.items() if b in keep}
+            self._qt_level = {b: v for b, v in self._qt_level.items() if b in keep}
             new = keep
         for b in new:
-            self._qt_buf.write(self.tree(b).packed().tobytes(), offset=self._qt_used * 8)
+            lv = level.get(b, self._qt_level.get(b, self.r.pool.level(b)))
+            self._qt_buf.write(self.tree(b, lv).packed().tobytes(), offset=self._qt_used * 8)
+            self._qt_level[b] = lv
             self._qt_offset[b] = self._qt_used
             self._qt_used += per
 
@@ -681,9 +723,8 @@ class GeometrySplitting(Strategy):
         check_tau(tau)
         t0 = time.perf_counter()
         ctx = self.r.ctx
-        blocks, _ = self.block_table(resident)
         tb = time.perf_counter()
-        self._upload_trees(blocks)
+        self._upload_trees(self.r.drawable(resident))
         build_ms = (time.perf_counter() - tb) * 1000.0
         blocks, table = self.block_table(resident)
         block_buf = ctx.buffer(np.ascontiguousarray(table).tobytes() or bytes(64))
@@ -848,7 +889,7 @@ class GeometrySplitting(Strategy):
         nodes that split, both ``(block index, depth, row, col)`` sorted."""
         blocks, t = self.block_table(resident)
         k, g = self.k, self.r.grid
-        trees = [self.tree(b) for b in blocks]
+        trees = [self.tree(b, int(t[i, 3])) for i, b in enumerate(blocks)]
         mvp = camera.projection_matrix() @ camera.view_matrix()
         planes = []
         for i in range(3):

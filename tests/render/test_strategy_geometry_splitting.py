@@ -8,16 +8,18 @@ import pytest
 from gltools import make_context, rough, tile_dem
 
 from render import measure
+from render.errors import RenderError
 from render.gpu import HeightPool
 from render.renderer import CLEAR, RenderConfig, TerrainRenderer
 from render.strategies import get_strategy
 from render.strategies.geometry_splitting import (
-    block_tree,
-    node_errors,
     projected_error,
+    quad_errors,
     roughness,
+    stored_tree,
 )
 from streamer.camera import Camera
+from tiler.static_error import bound_errors
 from tiler.store import open_store
 
 pytestmark = pytest.mark.gl
@@ -64,8 +66,8 @@ OBLIQUE = Camera.look_at(
 )
 
 
-def _brute_delta(h: np.ndarray, d: int) -> np.ndarray:
-    """Node errors by explicit loops: every sample against its quad's two triangles."""
+def _brute_delta(h: np.ndarray, d: int, ok: np.ndarray | None = None) -> np.ndarray:
+    """Node errors by explicit loops: every (valid) sample against its quad's two triangles."""
     n = h.shape[0] - 1
     s = n >> d
     out = np.zeros((1 << d, 1 << d))
@@ -81,30 +83,25 @@ def _brute_delta(h: np.ndarray, d: int) -> np.ndarray:
                         if u >= v
                         else a + v * (cc - a) + u * (dd - cc)
                     )
-                    out[r, c] = max(out[r, c], abs(h[r * s + j, c * s + i] - q))
+                    if ok is None or ok[r * s + j, c * s + i]:
+                        out[r, c] = max(out[r, c], abs(h[r * s + j, c * s + i] - q))
     return out
 
 
 def test_doubling_rule_on_a_known_tree():
-    h = np.zeros((5, 5))
-    h[1, 1] = 8.0  # the centre of the north-west depth-1 node
-    deltas, zmin, zmax = node_errors(h)
-    assert deltas[0].tolist() == [[8.0]]
-    assert deltas[1].tolist() == [[8.0, 0.0], [0.0, 0.0]]
-    sig = roughness(deltas)
+    # δ of a 2-depth tree: the centre of the north-west depth-1 node is 8 m off its quad
+    sig = roughness([np.array([[8.0]]), np.array([[8.0, 0.0], [0.0, 0.0]])])
     assert sig[1].tolist() == [[8.0, 0.0], [0.0, 0.0]]  # depth k - 1: σ = δ
     assert sig[0].tolist() == [[16.0]]  # the doubling wins over δ_0 = 8
-    assert zmin[1].tolist() == [[0.0, 0.0], [0.0, 0.0]] and zmax[1][0, 0] == 8.0
-    # rough and curved trees: δ equals the brute force, σ the recursion, both branches occur
+    # rough and curved trees: σ follows the recursion, both branches occur
     rng = np.random.default_rng(5)
     noise = rng.integers(0, 40, (17, 17)).astype(np.float64)
     curved = np.add.outer(np.arange(17.0) ** 2, np.zeros(17)) + rng.integers(0, 2, (17, 17))
     by_delta = by_double = 0
     for g in (noise, curved):
-        deltas, _, _ = node_errors(g)
+        deltas = [_brute_delta(g, d) for d in range(4)]
         sig = roughness(deltas)
         for d in range(4):
-            np.testing.assert_allclose(deltas[d], _brute_delta(g, d), rtol=1e-12)
             if d < 3:
                 child = 2 * sig[d + 1].reshape(1 << d, 2, 1 << d, 2).max(axis=(1, 3))
                 np.testing.assert_array_equal(sig[d], np.maximum(deltas[d], child))
@@ -113,14 +110,68 @@ def test_doubling_rule_on_a_known_tree():
             else:
                 np.testing.assert_array_equal(sig[d], deltas[d])  # σ_k = 0 below
     assert by_delta > 0 and by_double > 0
-    g = noise
-    # the GPU copy (float32 rounded up) keeps σ_l >= 2 σ_(l+1) exactly
-    tree = block_tree(g)
-    for d in range(3):
-        kids = tree.sigma[d + 1].reshape(1 << d, 2, 1 << d, 2).max(axis=(1, 3))
-        assert (tree.sigma[d] >= 2 * kids).all() and (tree.sigma[d] >= sig[d]).all()
+
+
+@pytest.mark.parametrize("level", [4, 2, 0])
+def test_stored_tree_bounds_the_true_errors_and_heights(level):
+    # the quadtree texture from the tiler's bound field and the level-R grid: σ >= the exact
+    # doubling of the exact δ, σ_l >= 2 σ_(l+1) after float32 rounding, ranges enclose
+    g = np.random.default_rng(5).integers(0, 40, (17, 17)).astype(np.float64)
+    bound = bound_errors(g, np.ones_like(g, bool), 4)
+    assert all((b >= _brute_delta(g, d) - 1e-9).all() for d, b in enumerate(bound))
+    tree = stored_tree(bound, g[:: 1 << (4 - level), :: 1 << (4 - level)])
+    exact = roughness([_brute_delta(g, d) for d in range(4)])
+    for d in range(4):
+        assert (tree.sigma[d] >= exact[d]).all()
+        if d < 3:
+            kids = tree.sigma[d + 1].reshape(1 << d, 2, 1 << d, 2).max(axis=(1, 3))
+            assert (tree.sigma[d] >= 2 * kids).all()
         assert (tree.zmin[d] <= _pool(g, d, np.min)).all()
         assert (tree.zmax[d] >= _pool(g, d, np.max)).all()
+    # exact δ where the store tiles its values: the brute force, and never looser
+    qe = quad_errors(g, None, range(4))
+    for d in range(4):
+        np.testing.assert_allclose(qe[d], _brute_delta(g, d), rtol=1e-12)
+    ok = np.random.default_rng(1).random(g.shape) > 0.2  # masked samples are ignored
+    qm = quad_errors(g, ok, range(4))
+    for d in range(4):
+        np.testing.assert_allclose(qm[d], _brute_delta(g, d, ok), rtol=1e-12)
+    tight = stored_tree([np.full_like(b, 1e3) for b in bound], g, {3: qe[3]})
+    assert (tight.sigma[3] == _round_up32_ref(qe[3])).all() and (tight.sigma[2] >= 1e3).all()
+    # the ranges come from the corners: a flat grid gives exact ranges and σ = 0
+    flat = stored_tree([np.zeros((1 << d, 1 << d)) for d in range(4)], np.full((3, 3), 7.0))
+    assert all((z == 7.0).all() for z in flat.zmin + flat.zmax)
+    assert all((x == 0).all() for x in flat.sigma)
+    with pytest.raises(RenderError, match="2\\*\\*R"):
+        stored_tree(bound, np.zeros((4, 4)))
+
+
+def _round_up32_ref(x):
+    f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+
+
+def test_the_texture_follows_the_resident_level(rough_store):
+    st = _strategy(rough_store, levels={b: 3 for b in open_store(rough_store).blocks()})
+    b = (1, 1)
+    store = st.r.store
+    want = stored_tree(store.read_errors(b)["bound"], store.read_block(b, max_level=3))
+    got = st.tree(b)
+    for x, y in zip(
+        got.zmin + got.zmax + got.sigma, want.zmin + want.zmax + want.sigma, strict=True
+    ):
+        np.testing.assert_array_equal(x, y)
+    sel3, _ = st.select(OBLIQUE, 0.5)
+    assert st.leaf_nodes(sel3)[:, 1].max() <= 3
+    for bb in store.blocks():  # the finer levels arrive: the texture is rebuilt for level 5
+        st.r.upload(bb, store.read_levels(bb, 5))
+    sel5, _ = st.select(OBLIQUE, 0.5)
+    assert st._qt_level[b] == 5 and st.leaf_nodes(sel5)[:, 1].max() > 3
+    full = store.read_block(b)
+    want = stored_tree(store.read_errors(b)["bound"], full, quad_errors(full, None, range(2, 5)))
+    np.testing.assert_array_equal(st.tree(b).sigma[4], want.sigma[4])
+    counts, leaves, _ = st.expand_reference(OBLIQUE, 0.5)
+    assert sel5.pass_counts == counts
 
 
 def _pool(g, d, fn):
