@@ -1,36 +1,77 @@
-"""Small helpers shared by the CLI commands: logging, error reporting, formatting."""
+"""What every command shares: logging, exit statuses, error reporting, the help's look.
+
+Exit statuses (rio's convention), also printed at the end of every command's ``--help``:
+
+* 0 — success;
+* 1 — the command started and failed (an I/O error, a damaged store, a library failure);
+* 2 — usage: a bad option or argument value, a missing input, an output that exists without
+  ``--overwrite``, a missing capability (no display / OpenGL);
+* 130 — interrupted (Ctrl-C); rerunning the same command resumes where it can.
+"""
 
 from __future__ import annotations
 
 import logging
+import sys
+import traceback
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
+import click
 import typer
+from typer.core import TyperArgument, TyperCommand, TyperGroup, TyperOption
 
-EXIT_USER_ERROR = 2
+EXIT_RUNTIME = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+#: kept for code written before the 1/2 split: usage errors
+EXIT_USER_ERROR = EXIT_USAGE
+
+EXIT_STATUS_HELP = (
+    "Exit status: 0 success; 1 the command failed while running (I/O error, damaged store, "
+    "library failure); 2 usage error (bad value, missing input, existing output without "
+    "--overwrite, no display or OpenGL); 130 interrupted (rerun the same command to resume)."
+)
+INTERRUPTED_MESSAGE = "interrupted; rerun the same command to resume"
+
+#: the loggers -v/-vv raise (every other library stays at WARNING)
+OWN_LOGGERS = ("tiler", "streamer", "render", "cli", "terrastream", "bench")
+
+
+class UsageError(ValueError):
+    """A bad value found while a command runs: printed as ``error: HINT: message``, exit 2."""
+
+    def __init__(self, message: str, hint: str | None = None) -> None:
+        super().__init__(f"{hint}: {message}" if hint else message)
+
+
+class _State:
+    verbose = 0
+    quiet = False
+
+
+state = _State()
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
-    """Map ``-v``/``-q`` to log levels (warning by default)."""
-    level = (
+    """``-q``: errors only; default: warnings; ``-v``/``-vv``: terrastream's INFO/DEBUG.
+
+    Only terrastream's own loggers (:data:`OWN_LOGGERS`) are raised: zarr, numcodecs, fsspec,
+    rasterio, PIL ... stay at WARNING whatever ``-v`` says.
+    """
+    state.verbose, state.quiet = verbose, quiet
+    base = logging.ERROR if quiet else logging.WARNING
+    own = (
         logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
     )
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
+    logging.basicConfig(level=base, format="%(levelname)s %(name)s: %(message)s", force=True)
+    for name in OWN_LOGGERS:
+        logging.getLogger(name).setLevel(own)
 
 
-@contextmanager
-def fail_on_errors() -> Iterator[None]:
-    """Turn the packages' own errors into ``error: …`` on stderr and exit status 2."""
-    try:
-        yield
-    except known_errors() as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(EXIT_USER_ERROR) from exc
-
-
-def known_errors() -> tuple[type[BaseException], ...]:
-    """Error classes whose message is meant for the user (no traceback)."""
+def _library_errors() -> tuple[type[BaseException], ...]:
+    """Root error classes of the packages (their messages are meant for the user)."""
     import importlib
 
     out: list[type[BaseException]] = []
@@ -44,3 +85,125 @@ def known_errors() -> tuple[type[BaseException], ...]:
         except (ImportError, AttributeError):
             continue
     return tuple(out)
+
+
+known_errors = _library_errors
+
+#: built-in types that mean "the input is wrong" (the packages' leaves inherit them)
+_USAGE_TYPES: tuple[type[BaseException], ...] = (
+    ValueError,
+    FileNotFoundError,
+    FileExistsError,
+    NotADirectoryError,
+    IsADirectoryError,
+)
+#: class names of "this machine cannot do that" errors, also usage (exit 2)
+_CAPABILITY_ERRORS = ("GLUnavailableError", "ViewerUnavailableError")
+
+
+def exit_status(exc: BaseException) -> int:
+    """1 or 2 for an exception a command raised (see the module docstring)."""
+    if isinstance(exc, _USAGE_TYPES) or type(exc).__name__ in _CAPABILITY_ERRORS:
+        return EXIT_USAGE
+    return EXIT_RUNTIME
+
+
+def one_line(exc: BaseException) -> str:
+    """The error as one line: the message of a library error, ``Type: message`` otherwise."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, (*_library_errors(), UsageError)):
+        return text
+    return f"{type(exc).__name__}: {text}"
+
+
+#: Typer's (vendored click's) usage errors and exits, and click's own: handled by the runner
+_PASS_THROUGH = (
+    typer.TyperException,
+    typer.Exit,
+    typer.Abort,
+    click.exceptions.ClickException,
+    click.exceptions.Exit,
+    click.exceptions.Abort,
+)
+
+
+@contextmanager
+def fail_on_errors() -> Iterator[None]:
+    """Any error → one ``error: …`` line on stderr and exit 1 or 2; Ctrl-C → exit 130.
+
+    The traceback is printed too with ``-vv``. Click's own usage errors pass through.
+    """
+    try:
+        yield
+    except _PASS_THROUGH:
+        raise
+    except KeyboardInterrupt:
+        typer.echo(INTERRUPTED_MESSAGE, err=True)
+        raise typer.Exit(EXIT_INTERRUPTED) from None
+    except Exception as exc:  # noqa: BLE001 - the CLI's last line: one message, no traceback
+        if state.verbose >= 2:
+            traceback.print_exception(exc, file=sys.stderr)
+        hint = (
+            "" if state.verbose >= 2 or isinstance(exc, _library_errors()) else " (-vv: traceback)"
+        )
+        typer.echo(f"error: {one_line(exc)}{hint}", err=True)
+        raise typer.Exit(exit_status(exc)) from exc
+
+
+class _Argument(TyperArgument):
+    """Arguments shown as ``SRC`` in the usage line and the help table (not ``{src} <str>``)."""
+
+    @property
+    def display_name_raw(self) -> str:
+        return self.metavar or (self.name or "").upper()
+
+    def _usage_display_name(self) -> str:
+        name = self.display_name_raw
+        name = name if self.required else f"[{name}]"
+        return name + ("..." if self.nargs != 1 else "")
+
+    def display_type_rich(self, ctx: click.Context) -> str | None:
+        return None
+
+
+def _readable(params: list[click.Parameter]) -> None:
+    """Readable metavars: ``SRC`` for arguments, nothing after flags and count flags."""
+    for p in params:
+        if isinstance(p, TyperArgument) and not isinstance(p, _Argument):
+            p.__class__ = _Argument
+        elif isinstance(p, TyperOption) and (p.is_flag or p.count) and p.metavar is None:
+            p.metavar = ""
+            if p.count:
+                p.show_default = False
+
+
+class _ReadableHelp:
+    """``--help`` without a ``<bool>`` after it."""
+
+    def get_help_option(self, ctx: click.Context) -> click.Option | None:
+        opt = super().get_help_option(ctx)  # type: ignore[misc]
+        if opt is not None:
+            opt.metavar = ""
+        return opt
+
+
+class Command(_ReadableHelp, TyperCommand):
+    """A terrastream command: readable help, the exit-status epilog, errors as one line."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["epilog"] = kwargs.get("epilog") or EXIT_STATUS_HELP
+        super().__init__(*args, **kwargs)
+        _readable(self.params)
+
+    def invoke(self, ctx: click.Context) -> Any:
+        with fail_on_errors():
+            return super().invoke(ctx)
+
+
+class Group(_ReadableHelp, TyperGroup):
+    """The ``terrastream`` group: readable help and the exit-status epilog."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["epilog"] = kwargs.get("epilog") or EXIT_STATUS_HELP
+        super().__init__(*args, **kwargs)
+        _readable(self.params)

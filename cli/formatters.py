@@ -18,12 +18,12 @@ def format_info(d: dict) -> str:
         f"store          {d['url']}",
         f"format         v{d['format_version']}, written by terrastream {d['tool_version']}",
         f"source         {d['source']} ({d['checksum']})",
-        f"samples        {d['height']} x {d['width']} {d['dtype']}"
+        f"samples        {d['width']} x {d['height']} {d['dtype']} (width x height)"
         + (f", quantised to {d['precision']} m" if d["precision"] else ", lossless"),
-        f"blocks         {d['block_rows']} x {d['block_cols']} of {d['block_size']}^2 "
+        f"blocks         {d['block_cols']} x {d['block_rows']} of {d['block_size']}^2 "
         f"({d['blocks_with_terrain']} with terrain, {d['blocks_with_nodata']} with nodata)",
         f"levels         {d['levels']} (encoding {d['encoding']}, {d['compressor']})",
-        f"nodata         {d['nodata']}",
+        f"nodata         {'none' if d['nodata'] is None else format(d['nodata'], 'g')}",
         f"crs            {d['crs']}",
         f"extent         x {d['extent'][0]:.3f} .. {d['extent'][2]:.3f}, "
         f"y {d['extent'][1]:.3f} .. {d['extent'][3]:.3f}",
@@ -58,15 +58,16 @@ def format_summary(d: dict) -> str:
     return "\n".join(
         [
             f"frames {d['frames']}, stall frames {d['stall_frames']}, io errors {d['io_errors']}",
-            f"warm-up before frame 0: {d['warmup_bytes'] * mb:.2f} MB in {d['warmup_ms']:.0f} ms",
-            f"needed {d['needed_bytes'] * mb:.1f} MB over all frames; real-time loaded "
-            f"{d['realtime_bytes'] * mb:.3f} MB "
+            f"warm-up before frame 0: {d['warmup_bytes'] * mb:.2f} MiB in {d['warmup_ms']:.0f} ms",
+            f"needed {d['needed_bytes'] * mb:.1f} MiB over all frames; real-time loaded "
+            f"{d['realtime_bytes'] * mb:.3f} MiB "
             f"({100 * d['realtime_bytes_after_first_frame'] / needed:.3f} % of needed after "
             "frame 1)",
-            f"loaded {d['loaded_bytes'] * mb:.2f} MB, used {d['used_bytes'] * mb:.2f} MB "
-            f"(loaded/used {d['loaded_bytes'] / used:.2f}), wasted {d['wasted_bytes'] * mb:.2f} MB",
-            f"peak resident {d['peak_resident_bytes'] * mb:.2f} MB of a "
-            f"{d['budget_bytes'] * mb:.0f} MB budget; max update {d['max_update_ms']:.2f} ms "
+            f"loaded {d['loaded_bytes'] * mb:.2f} MiB, used {d['used_bytes'] * mb:.2f} MiB "
+            f"(loaded/used {d['loaded_bytes'] / used:.2f}), "
+            f"wasted {d['wasted_bytes'] * mb:.2f} MiB",
+            f"peak resident {d['peak_resident_bytes'] * mb:.2f} MiB of a "
+            f"{d['budget_bytes'] * mb:.0f} MiB budget; max update {d['max_update_ms']:.2f} ms "
             f"(CPU {d['max_update_cpu_ms']:.2f} ms)",
         ]
     )

@@ -2,23 +2,66 @@
 
 :func:`build_app` makes the Typer app and calls each command module's ``register(app)``
 (:data:`cli.commands.COMMANDS`); importing a command module registers nothing by itself.
+Every command gets :class:`cli.common.Command` (one-line errors, exit statuses 1/2/130, readable
+help) unless it asks for another class.
 """
 
 from __future__ import annotations
 
-import logging
 import sys
 from typing import Annotated
 
 import typer
+from typer.core import TyperCommand
 
 from cli.commands import COMMANDS
-from cli.common import setup_logging
+from cli.common import (
+    EXIT_INTERRUPTED,
+    EXIT_STATUS_HELP,
+    INTERRUPTED_MESSAGE,
+    Command,
+    Group,
+    setup_logging,
+)
+
+
+def version() -> str:
+    """The installed terrastream version (``0+unknown`` when run from a bare checkout)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("terrastream")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"terrastream {version()}")
+        raise typer.Exit()
 
 
 def _root(
-    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More logging.")] = 0,
+    verbose: Annotated[
+        int,
+        typer.Option(
+            "--verbose",
+            "-v",
+            count=True,
+            help="More of terrastream's logging: -v info, -vv debug (and tracebacks).",
+        ),
+    ] = 0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Only errors.")] = False,
+    show_version: Annotated[
+        bool,
+        typer.Option(
+            "--version",
+            callback=_print_version,
+            is_eager=True,
+            help="Print the version and exit.",
+        ),
+    ] = False,
 ) -> None:
     setup_logging(verbose, quiet)
 
@@ -28,6 +71,8 @@ def build_app() -> typer.Typer:
     new = typer.Typer(
         name="terrastream",
         help="Out-of-core terrain: tile DEMs into zarr stores, stream and render them.",
+        epilog=EXIT_STATUS_HELP,
+        cls=Group,
         no_args_is_help=True,
         add_completion=False,
         pretty_exceptions_enable=False,
@@ -35,6 +80,9 @@ def build_app() -> typer.Typer:
     new.callback()(_root)
     for module in COMMANDS:
         module.register(new)
+    for info in new.registered_commands:
+        if info.cls in (None, TyperCommand):
+            info.cls = Command
     return new
 
 
@@ -45,12 +93,9 @@ def main() -> None:
     """Console entry point."""
     try:
         app()
-    except KeyboardInterrupt:
-        logging.getLogger("terrastream").error("interrupted")
-        sys.stderr.write(
-            "interrupted: nothing finished was lost; rerun the same command to continue\n"
-        )
-        sys.exit(130)
+    except KeyboardInterrupt:  # outside a command (while parsing, say)
+        sys.stderr.write(INTERRUPTED_MESSAGE + "\n")
+        sys.exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":

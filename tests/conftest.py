@@ -69,3 +69,17 @@ def dem_factory(tmp_path):
         return write_dem(tmp_path / name, data, **kw)
 
     return make
+
+
+@pytest.fixture(scope="session")
+def gl_context():
+    """A headless EGL context, or skip (fail when ``CI=true``: CI always has GL)."""
+    moderngl = pytest.importorskip("moderngl")
+    try:
+        ctx = moderngl.create_standalone_context(require=450, backend="egl")
+    except Exception as exc:  # noqa: BLE001 - any driver failure means "no GL here"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"CI=true but no headless OpenGL 4.5 context: {exc}")
+        pytest.skip(f"no headless OpenGL 4.5 context (EGL + Mesa): {exc}")
+    yield ctx
+    ctx.release()

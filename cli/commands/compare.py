@@ -8,58 +8,78 @@ from typing import Annotated
 
 import typer
 
-from cli.common import fail_on_errors
-from cli.options import Metric, MetricOpt, PatchOpt, PathKind, SizeOpt, parse_size, parse_taus
+from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
+from cli.common import UsageError, fail_on_errors
+from cli.options import (
+    LOD_NAMES,
+    MetricOpt,
+    PatchOpt,
+    PathKindOpt,
+    PathOpt,
+    SizeOpt,
+    integer,
+    parse_size,
+    parse_taus,
+)
 
 
 def compare(
     store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
-    path: Annotated[Path | None, typer.Option("--path", help="Keyframe file.")] = None,
-    path_kind: Annotated[PathKind, typer.Option("--path-kind", help="Built-in path.")] = (
-        PathKind.default
-    ),
-    frames: Annotated[int, typer.Option("--frames", min=1, help="Fly-through frames.")] = 8,
-    taus: Annotated[str, typer.Option("--taus", help="Comma-separated taus, px.")] = "0.5,1,2,4",
+    path: PathOpt = None,
+    path_kind: PathKindOpt = "default",
+    frames: Annotated[int, integer("--frames", "Fly-through frames.", min=1)] = 8,
+    taus: Annotated[
+        str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
+    ] = "0.5,1,2,4",
     lods: Annotated[
-        str | None, typer.Option("--lods", help="Comma-separated strategies (default: all).")
+        str | None,
+        typer.Option(
+            "--lods",
+            metavar="NAME,...",
+            help=f"Comma-separated strategies (default: all: {', '.join(LOD_NAMES)}).",
+        ),
     ] = None,
     size: SizeOpt = "1024x768",
-    metric: MetricOpt = Metric.qiu,
+    metric: MetricOpt = "qiu",
     patch_log2: PatchOpt = 4,
     quick: Annotated[
         bool, typer.Option("--quick", help="256x192, 4 frames, taus 1,4 (a smoke run).")
     ] = False,
     json_out: Annotated[
-        Path | None, typer.Option("--json", help="One row per strategy and tau.")
+        Path | None,
+        typer.Option("--json", metavar="FILE", help="One row per strategy and tau."),
     ] = None,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Pareto plot PNG.")] = None,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", metavar="FILE", help="Pareto plot (PNG, SVG, PDF).")
+    ] = None,
 ) -> None:
     """Compare every LOD strategy on the same fly-through: triangles, CPU/GPU ms, measured
     screen error, cracks, popping, bytes.
 
     Example: terrastream compare demo.zarr --taus 0.5,1,2,4 --json c.json --plot c.png
     """
-    from render.strategies import check_name
     from render.strategies.compare import HEADER, plot_pareto
     from render.strategies.compare import compare as run
     from streamer.run import make_path
-    from tiler.store import open_store
 
     with fail_on_errors():
         if quick:
             size, frames, taus = "256x192", 4, "1,4"
         viewport = parse_size(size)
         values = parse_taus(taus)
-        names = [check_name(n.strip()) for n in lods.split(",")] if lods else None
-        s = open_store(store)
-        cams = make_path(s, path_kind.value, frames=frames, path_file=path, viewport=viewport)
+        names = parse_lods(lods)
+        input_file(path, "--path")
+        output_file(json_out, "--json")
+        output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
+        s = open_store_arg(store)
+        cams = make_path(s, path_kind, frames=frames, path_file=path, viewport=viewport)
         typer.echo(HEADER)
         rows = run(
             s,
             cams,
             values,
             strategies=names,
-            metric=metric.value,
+            metric=metric,
             patch_log2=patch_log2,
             log=typer.echo,
         )
@@ -69,6 +89,20 @@ def compare(
         if plot:
             plot_pareto(rows, plot, title=f"{Path(store).name} {viewport[0]}x{viewport[1]}")
             typer.echo(f"wrote {plot}")
+
+
+def parse_lods(text: str | None) -> list[str] | None:
+    """``qiu,jung-han`` → the names, each checked against the registry (None: all)."""
+    if not text:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in LOD_NAMES]
+    if bad or not names:
+        raise UsageError(
+            f"unknown LOD strategy {(bad or [text])[0]!r}; choose from {', '.join(LOD_NAMES)}",
+            hint="--lods",
+        )
+    return names
 
 
 def register(app: typer.Typer) -> None:

@@ -7,11 +7,12 @@ from typing import Annotated
 
 import typer
 
-from cli.common import fail_on_errors
+from cli.checks import open_store_arg, output_file
+from cli.common import UsageError, fail_on_errors
 
 
 def export(
-    store: Annotated[str, typer.Argument(help="A terrastream store.")],
+    store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
     out: Annotated[Path, typer.Argument(help="Output GeoTIFF.")],
     level: Annotated[
         int | None, typer.Option("--level", help="Level to export (default: the finest).")
@@ -25,14 +26,14 @@ def export(
     Example: terrastream export n44.zarr n44.tif --level 8
     """
     from tiler.export import export_geotiff
-    from tiler.store import open_store
 
     with fail_on_errors():
-        if out.exists() and not overwrite:
-            raise typer.BadParameter(
-                f"{out} exists; pass --overwrite to replace it", param_hint="OUT"
+        output_file(out, "OUT", overwrite=overwrite)
+        s = open_store_arg(store)
+        if level is not None and not 0 <= level <= s.k:
+            raise UsageError(
+                f"--level must be in 0..{s.k} for this store, got {level}", hint="--level"
             )
-        s = open_store(store)
         export_geotiff(s, out, level)
         typer.echo(f"wrote {out} (level {s.k if level is None else level} of {s.k})")
 

@@ -8,27 +8,48 @@ from typing import Annotated
 
 import typer
 
+from cli.checks import input_file, open_store_arg, output_dir
 from cli.common import fail_on_errors
-from cli.options import LodOpt, Metric, MetricOpt, PatchOpt, PathKind, SizeOpt, parse_size
+from cli.options import (
+    LOD_NAMES,
+    BudgetOpt,
+    LodOpt,
+    MetricOpt,
+    PatchOpt,
+    PathKindOpt,
+    PathOpt,
+    SizeOpt,
+    TauOpt,
+    integer,
+    number,
+    parse_size,
+)
 
 
 def flythrough(
     store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
-    out: Annotated[Path, typer.Option("--out", help="Output directory.")] = Path("frames"),
-    path: Annotated[Path | None, typer.Option("--path", help="Keyframe file.")] = None,
-    path_kind: Annotated[PathKind, typer.Option("--path-kind", help="Built-in path.")] = (
-        PathKind.default
-    ),
-    frames: Annotated[int, typer.Option("--frames", min=1, help="Frames to render.")] = 120,
-    fps: Annotated[float, typer.Option("--fps", min=1e-3, help="Path frame rate.")] = 30.0,
-    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Screen error, px.")] = 1.0,
-    metric: MetricOpt = Metric.qiu,
+    out: Annotated[
+        Path, typer.Option("--out", metavar="DIR", help="Output directory (created).")
+    ] = Path("frames"),
+    path: PathOpt = None,
+    path_kind: PathKindOpt = "default",
+    frames: Annotated[int, integer("--frames", "Frames to render.", min=1)] = 120,
+    fps: Annotated[float, number("--fps", "Path frame rate.", min=1e-3)] = 30.0,
+    tau: TauOpt = 1.0,
+    metric: MetricOpt = "qiu",
     size: SizeOpt = "1024x768",
     patch_log2: PatchOpt = 4,
-    budget_mb: Annotated[float, typer.Option("--budget-mb", help="Resident budget.")] = 256.0,
-    workers: Annotated[int, typer.Option("--workers", min=0, help="Loader threads.")] = 2,
-    every: Annotated[int, typer.Option("--every", min=0, help="Save every N-th PNG.")] = 1,
-    lod: LodOpt = "qiu",
+    budget_mb: BudgetOpt = 256.0,
+    workers: Annotated[
+        int,
+        integer(
+            "--workers",
+            "Loader threads of the streaming session (0: load inside each frame).",
+            min=0,
+        ),
+    ] = 2,
+    every: Annotated[int, integer("--every", "Save every N-th PNG.", min=0)] = 1,
+    lod: LodOpt = LOD_NAMES[0],
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 
@@ -36,16 +57,17 @@ def flythrough(
     """
     from render.pipeline import flythrough as run
     from streamer.run import make_path
-    from tiler.store import open_store
 
     with fail_on_errors():
         viewport = parse_size(size)
-        s = open_store(store)
-        cams = make_path(
-            s, path_kind.value, frames=frames, fps=fps, path_file=path, viewport=viewport
-        )
+        input_file(path, "--path")
+        output_dir(out, "--out")
+        s = open_store_arg(store)
+        cams = make_path(s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport)
         every_line = max(1, frames // 10)
-        typer.echo(f"{'frame':>6} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'MB in':>7} stall")
+        typer.echo(
+            f"{'frame':>6} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'MiB in':>7} stall"
+        )
 
         def on_frame(r) -> None:
             if r.frame % every_line == 0:
@@ -59,7 +81,7 @@ def flythrough(
             cams,
             out,
             tau=tau,
-            metric=metric.value,
+            metric=metric,
             patch_log2=patch_log2,
             workers=workers,
             budget_mb=budget_mb,
@@ -73,7 +95,7 @@ def flythrough(
             f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
             f"selection {summary['mean_selection_ms']:.2f} ms (max "
             f"{summary['max_selection_ms']:.2f}), GPU {summary['mean_gpu_ms']:.1f} ms, "
-            f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MB; "
+            f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MiB; "
             f"wrote {out}/frames.csv"
         )
 

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from cli.checks import is_local, open_store_arg
 from cli.common import fail_on_errors
 from cli.formatters import format_info
 
@@ -22,6 +24,8 @@ def info(
     from tiler.info import store_info
 
     with fail_on_errors():
+        if is_local(store) and not Path(store).exists():
+            open_store_arg(store)  # the usage error
         d = store_info(store)
         if as_json:
             typer.echo(json.dumps(d, indent=2))

@@ -2,22 +2,26 @@
 
 from __future__ import annotations
 
+import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from cli.checks import image_suffixes, open_store_arg, output_file
 from cli.common import fail_on_errors
 from cli.options import (
+    LOD_NAMES,
     CameraOpt,
     FovOpt,
     LodOpt,
     LookAtOpt,
-    Metric,
     MetricOpt,
     PatchOpt,
     PitchOpt,
     SizeOpt,
+    TauOpt,
     YawOpt,
     parse_size,
 )
@@ -25,19 +29,25 @@ from cli.options import (
 
 def render(
     store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Output PNG.")] = Path("view.png"),
+    out: Annotated[
+        Path,
+        typer.Option("-o", "--out", metavar="FILE", help="Output image (.png, .jpg, .tif ...)."),
+    ] = Path("view.png"),
     camera: CameraOpt = None,
     look_at: LookAtOpt = None,
     yaw: YawOpt = None,
     pitch: PitchOpt = None,
     fov: FovOpt = 45.0,
     size: SizeOpt = "1024x768",
-    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Screen error, px.")] = 1.0,
-    metric: MetricOpt = Metric.qiu,
+    tau: TauOpt = 1.0,
+    metric: MetricOpt = "qiu",
     patch_log2: PatchOpt = 4,
     wireframe: Annotated[bool, typer.Option("--wireframe", help="Overlay edges.")] = False,
     lod_colour: Annotated[bool, typer.Option("--lod-colour", help="Tint by level.")] = False,
-    lod: LodOpt = "qiu",
+    lod: LodOpt = LOD_NAMES[0],
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print the frame's statistics as JSON.")
+    ] = False,
 ) -> None:
     """Render one view of a store to a PNG (default: an oblique overview of the whole DEM).
 
@@ -48,11 +58,11 @@ def render(
 
     from render.pipeline import render_view
     from render.views import make_camera
-    from tiler.store import open_store
 
     with fail_on_errors():
         viewport = parse_size(size)
-        s = open_store(store)
+        output_file(out, "--out", suffixes=image_suffixes())
+        s = open_store_arg(store)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
@@ -60,17 +70,22 @@ def render(
             s,
             cam,
             tau=tau,
-            metric=metric.value,
+            metric=metric,
             patch_log2=patch_log2,
             wireframe=wireframe,
             lod_colour=lod_colour,
             lod=lod,
         )
         Image.fromarray(img).save(out)
+        if as_json:
+            d = {"out": str(out), "tau": tau, "metric": metric, "lod": lod, **asdict(st)}
+            d["viewport"] = list(viewport)
+            typer.echo(json.dumps(d))
+            return
         typer.echo(
             f"wrote {out}: {st.triangles:,} triangles in {st.patches} patches (levels "
             f"{st.min_level}..{st.max_level}), selection {st.selection_ms:.2f} ms, GPU "
-            f"{st.frame_ms:.1f} ms, {st.gpu_bytes / 2**20:.1f} MB of heights on the GPU"
+            f"{st.frame_ms:.1f} ms, {st.gpu_bytes / 2**20:.1f} MiB of heights on the GPU"
             + (f", {st.clamped} nodes clamped to resident levels" if st.clamped else "")
         )
 

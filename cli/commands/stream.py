@@ -7,57 +7,70 @@ from typing import Annotated
 
 import typer
 
+from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
 from cli.common import fail_on_errors
 from cli.formatters import format_summary
-from cli.options import PathKind, parse_size
+from cli.options import (
+    BudgetOpt,
+    MetricOpt,
+    PathKindOpt,
+    PathOpt,
+    SizeOpt,
+    TauOpt,
+    integer,
+    number,
+    parse_size,
+)
+from cli.progress import Progress
 
 
 def stream(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
-    path: Annotated[
-        Path | None, typer.Option("--path", help="Keyframes file (.json or .csv).")
-    ] = None,
-    path_kind: Annotated[PathKind, typer.Option("--path-kind", help="Built-in path.")] = (
-        PathKind.default
-    ),
-    frames: Annotated[int, typer.Option("--frames", min=1, help="Frames to fly.")] = 600,
-    fps: Annotated[float, typer.Option("--fps", min=1e-3, help="Frame rate (real time).")] = 60.0,
+    path: PathOpt = None,
+    path_kind: PathKindOpt = "default",
+    frames: Annotated[int, integer("--frames", "Frames to fly.", min=1)] = 600,
+    fps: Annotated[float, number("--fps", "Frame rate (real time).", min=1e-3)] = 60.0,
     speed: Annotated[
-        float | None, typer.Option("--speed", help="World units/s (default 1 block edge/s).")
+        float | None,
+        number("--speed", "World units/s (default 1 block edge/s).", min=0.0, min_open=True),
     ] = None,
     no_prefetch: Annotated[
         bool, typer.Option("--no-prefetch", help="Load only what frames need now.")
     ] = False,
-    budget_mb: Annotated[float, typer.Option("--budget-mb", help="Resident byte budget.")] = 256.0,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="Loader threads.")] = 4,
+    budget_mb: BudgetOpt = 256.0,
+    workers: Annotated[int, integer("--workers", "Loader threads of the session.", min=1)] = 4,
     latency_ms: Annotated[
-        float, typer.Option("--latency-ms", min=0.0, help="Delay added to every store request.")
+        float, number("--latency-ms", "Delay added to every store request, ms.", min=0.0)
     ] = 0.0,
-    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Screen error threshold, px.")] = 1.0,
-    metric: Annotated[str, typer.Option("--metric", help="qiu or conservative.")] = "qiu",
-    size: Annotated[str, typer.Option("--size", help="Viewport WxH in pixels.")] = "1024x768",
-    every: Annotated[
-        int, typer.Option("--every", min=0, help="Print every N-th frame (0: auto).")
-    ] = 0,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Write a PNG plot.")] = None,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write rows + summary.")] = None,
+    tau: TauOpt = 1.0,
+    metric: MetricOpt = "qiu",
+    size: SizeOpt = "1024x768",
+    every: Annotated[int, integer("--every", "Print every N-th frame (0: auto).", min=0)] = 0,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
+    ] = None,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", metavar="FILE", help="Write rows + summary.")
+    ] = None,
 ) -> None:
     """Fly a camera over a store in real time, streaming what each frame needs.
 
+    Sizes are in MiB (2^20 bytes).
+
     Example: terrastream stream demo.zarr --frames 600 --latency-ms 20 --plot io.png
     """
-    from tqdm import tqdm
-
     from streamer.run import make_path, plot_run, run_flythrough
     from streamer.session import SessionConfig, open_session
-    from tiler.store import open_store
 
     with fail_on_errors():
         viewport = parse_size(size)
-        s = open_store(store)
+        input_file(path, "--path")
+        output_file(json_out, "--json")
+        output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
+        s = open_store_arg(store)
         cams = make_path(
             s,
-            path_kind.value,
+            path_kind,
             frames=frames,
             fps=fps,
             speed=speed,
@@ -68,14 +81,14 @@ def stream(
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting
         every = every or max(1, frames // 20)
         header = (
-            f"{'frame':>6} {'vis':>4} {'pre':>4} {'needed MB':>10} {'rt MB':>8} "
-            f"{'pref MB':>8} {'I/O ms':>8} {'upd ms':>7} stall"
+            f"{'frame':>6} {'vis':>4} {'pre':>4} {'needed MiB':>10} {'rt MiB':>8} "
+            f"{'pref MiB':>8} {'I/O ms':>8} {'upd ms':>7} stall"
         )
         lines = [header]
-        bar = tqdm(total=len(cams), unit="frame", desc="streaming", disable=None)
+        bar = Progress("streaming", "frame")
 
         def on_frame(i: int, st) -> None:
-            bar.update(1)
+            bar.update(i + 1, len(cams))
             if i % every == 0 or st.stalled and i < 3:
                 mb = 1 / 2**20
                 lines.append(

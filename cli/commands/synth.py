@@ -2,42 +2,45 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from cli.checks import output_file
 from cli.common import fail_on_errors
+from cli.options import DTYPES, choice_option, integer
+from cli.progress import Progress
 
 
 def synth(
-    out: Annotated[Path, typer.Argument(help="Output GeoTIFF.")],
-    size: Annotated[int, typer.Option("--size", help="Samples per side.")] = 4097,
+    out: Annotated[Path, typer.Argument(help="Output GeoTIFF.", show_default=False)],
+    size: Annotated[int, integer("--size", "Samples per side.", min=2)] = 4097,
     seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed, same DEM).")] = 0,
-    dtype: Annotated[str, typer.Option("--dtype", help="int16 or float32.")] = "int16",
+    dtype: Annotated[
+        str, choice_option("--dtype", DTYPES, "sample type", "Sample type of the GeoTIFF.")
+    ] = DTYPES[0],
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
     ] = False,
 ) -> None:
     """Write a deterministic fractal DEM, window by window (any size, bounded memory).
 
+    Progress goes to stderr (a bar on a terminal, a line every few seconds otherwise).
+
     Example: terrastream synth demo.tif --size 4097 --seed 1
     """
-    from tqdm import tqdm
-
     from tiler.synth import synth_dem
 
     with fail_on_errors():
-        if out.exists() and not overwrite:
-            raise typer.BadParameter(
-                f"{out} exists; pass --overwrite to replace it", param_hint="OUT"
-            )
-        bar = tqdm(total=size * size, unit="sample", unit_scale=True, desc="synth", disable=None)
+        output_file(out, "OUT", overwrite=overwrite)
+        bar = Progress("synth", "sample")
+        t0 = time.perf_counter()
 
         def on_progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
+            rate = done / max(time.perf_counter() - t0, 1e-9) / 1e6
+            bar.update(done, total, f"{rate:.2f} M samples/s")
 
         try:
             synth_dem(out, size, seed=seed, dtype=dtype, progress=on_progress)

@@ -9,18 +9,20 @@ from typing import Annotated
 
 import typer
 
+from cli.checks import open_store_arg, output_file, plot_suffixes
 from cli.common import fail_on_errors
 from cli.options import (
+    LOD_NAMES,
     CameraOpt,
     FovOpt,
     LodOpt,
     LookAtOpt,
-    Metric,
     MetricOpt,
     PatchOpt,
     PitchOpt,
     SizeOpt,
     YawOpt,
+    integer,
     parse_size,
     parse_taus,
 )
@@ -34,13 +36,19 @@ def tradeoff(
     pitch: PitchOpt = None,
     fov: FovOpt = 45.0,
     size: SizeOpt = "1024x768",
-    taus: Annotated[str, typer.Option("--taus", help="Comma-separated taus, px.")] = "0.5,1,2,4,8",
-    metric: MetricOpt = Metric.qiu,
+    taus: Annotated[
+        str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
+    ] = "0.5,1,2,4,8",
+    metric: MetricOpt = "qiu",
     patch_log2: PatchOpt = 4,
-    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed draws per tau.")] = 3,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write one row per tau.")] = None,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Write a PNG plot.")] = None,
-    lod: LodOpt = "qiu",
+    repeats: Annotated[int, integer("--repeats", "Timed draws per tau.", min=1)] = 3,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", metavar="FILE", help="Write one row per tau.")
+    ] = None,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
+    ] = None,
+    lod: LodOpt = LOD_NAMES[0],
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 
@@ -49,12 +57,13 @@ def tradeoff(
     from render.pipeline import TABLE_HEADER, plot_tradeoff
     from render.pipeline import tradeoff as run
     from render.views import make_camera
-    from tiler.store import open_store
 
     with fail_on_errors():
         viewport = parse_size(size)
         values = parse_taus(taus)
-        s = open_store(store)
+        output_file(json_out, "--json")
+        output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
+        s = open_store_arg(store)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
@@ -63,7 +72,7 @@ def tradeoff(
             s,
             cam,
             values,
-            metric=metric.value,
+            metric=metric,
             patch_log2=patch_log2,
             repeats=repeats,
             log=typer.echo,

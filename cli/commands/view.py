@@ -7,26 +7,30 @@ from typing import Annotated
 
 import typer
 
-from cli.common import fail_on_errors
+from cli.checks import image_suffixes, open_store_arg, output_file
+from cli.common import UsageError, fail_on_errors
 from cli.options import (
+    LOD_NAMES,
+    BudgetOpt,
     CameraOpt,
     FovOpt,
     LodOpt,
     LookAtOpt,
-    Metric,
     MetricOpt,
     PatchOpt,
     PitchOpt,
     SizeOpt,
+    TauOpt,
     YawOpt,
+    integer,
     parse_size,
 )
 
 
 def view(
     store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
-    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Starting screen error, px.")] = 1.0,
-    metric: MetricOpt = Metric.qiu,
+    tau: TauOpt = 1.0,
+    metric: MetricOpt = "qiu",
     size: SizeOpt = "1280x800",
     camera: CameraOpt = None,
     look_at: LookAtOpt = None,
@@ -34,16 +38,21 @@ def view(
     pitch: PitchOpt = None,
     fov: FovOpt = 45.0,
     patch_log2: PatchOpt = 4,
-    budget_mb: Annotated[float, typer.Option("--budget-mb", help="Resident budget.")] = 512.0,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="Loader threads.")] = 4,
+    budget_mb: BudgetOpt = 512.0,
+    workers: Annotated[
+        int, integer("--workers", "Loader threads of the streaming session.", min=1)
+    ] = 4,
     wireframe: Annotated[bool, typer.Option("--wireframe", help="Start in wireframe.")] = False,
     frames: Annotated[
-        int | None, typer.Option("--frames", min=1, help="Run N frames without input, then exit.")
+        int | None, integer("--frames", "Run N frames without input, then exit.", min=1)
     ] = None,
     screenshot: Annotated[
-        Path | None, typer.Option("--screenshot", help="With --frames: save the last frame.")
+        Path | None,
+        typer.Option(
+            "--screenshot", metavar="FILE", help="With --frames: save the last frame (an image)."
+        ),
     ] = None,
-    lod: LodOpt = "qiu",
+    lod: LodOpt = LOD_NAMES[0],
 ) -> None:
     """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
     +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).
@@ -53,13 +62,13 @@ def view(
     """
     from render.viewer import run_viewer
     from render.views import make_camera
-    from tiler.store import open_store
 
     with fail_on_errors():
         viewport = parse_size(size)
         if screenshot is not None and frames is None:
-            raise typer.BadParameter("--screenshot needs --frames N")
-        s = open_store(store)
+            raise UsageError("--screenshot needs --frames N")
+        output_file(screenshot, "--screenshot", suffixes=image_suffixes() if screenshot else None)
+        s = open_store_arg(store)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
@@ -67,7 +76,7 @@ def view(
             s,
             cam,
             tau=tau,
-            metric=metric.value,
+            metric=metric,
             patch_log2=patch_log2,
             workers=workers,
             budget_mb=budget_mb,
@@ -79,7 +88,7 @@ def view(
         st = res.last
         typer.echo(
             f"{res.frames} frames; last: {st.triangles if st else 0:,} triangles at tau "
-            f"{res.tau:.3g}, {res.resident_mb:.1f} MB resident"
+            f"{res.tau:.3g}, {res.resident_mb:.1f} MiB resident"
             + (f"; wrote {res.screenshot}" if res.screenshot else "")
         )
 

@@ -30,7 +30,7 @@ def test_tile_info_export_round_trip(src, tmp_path):
     assert "3x3 blocks, 6 levels" in r.output
     r = run("info", tmp_path / "s.zarr")
     assert r.exit_code == 0, r.output
-    for needle in ("90 x 70 int16", "EPSG:32633", "x raw", "blocks         3 x 3 of 33^2"):
+    for needle in ("70 x 90 int16", "EPSG:32633", "x raw", "blocks         3 x 3 of 33^2"):
         assert needle in r.output
     r = run("info", tmp_path / "s.zarr", "--json")
     d = json.loads(r.output)

@@ -1,0 +1,119 @@
+"""Checks of the command line's paths made before any long run starts (exit 2, naming the path).
+
+A run that would only fail at its end (``stream --json`` into a missing directory) fails here,
+in the first second, instead.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from cli.common import UsageError
+
+
+def is_local(url: str | os.PathLike) -> bool:
+    """True for a plain filesystem path (not ``memory://``, ``s3://``, ``http://`` ...)."""
+    text = str(url)
+    return "://" not in text and not text.startswith("memory:")
+
+
+def open_store_arg(url: str, hint: str = "STORE") -> Any:
+    """The store at ``url`` opened; a local path that does not exist is a usage error."""
+    from tiler.store import open_store
+
+    if is_local(url) and not Path(url).exists():
+        raise UsageError(
+            f"no store at {url!r}: the path does not exist (make one with terrastream tile)",
+            hint=hint,
+        )
+    return open_store(url)
+
+
+def input_file(path: Path | None, hint: str) -> Path | None:
+    """``path`` if it names an existing regular file (``None`` passes)."""
+    if path is None:
+        return None
+    if not path.exists():
+        raise UsageError(f"{str(path)!r} does not exist", hint=hint)
+    if path.is_dir():
+        raise UsageError(f"{str(path)!r} is a directory, not a file", hint=hint)
+    return path
+
+
+def _probe_dir(directory: Path, hint: str, what: str) -> None:
+    """Create and delete a scratch file in ``directory``: the only test that is never wrong."""
+    if not directory.exists():
+        raise UsageError(
+            f"the directory {str(directory)!r} for {what} does not exist; create it first",
+            hint=hint,
+        )
+    if not directory.is_dir():
+        raise UsageError(f"{str(directory)!r} is not a directory", hint=hint)
+    try:
+        with tempfile.NamedTemporaryFile(dir=directory, prefix=".terrastream-probe-"):
+            pass
+    except OSError as exc:
+        raise UsageError(
+            f"cannot write in {str(directory)!r}: {exc.strerror or exc}", hint=hint
+        ) from None
+
+
+def output_file(
+    path: Path | None,
+    hint: str,
+    *,
+    suffixes: Iterable[str] | None = None,
+    overwrite: bool | None = None,
+) -> Path | None:
+    """``path`` if a file can be written there (``None`` passes): its directory exists and is
+    writable, it is not a directory, its extension is one of ``suffixes`` (when given), and it
+    does not exist unless ``overwrite`` is true (when given)."""
+    if path is None:
+        return None
+    if path.is_dir():
+        raise UsageError(f"{str(path)!r} is a directory; give a file name", hint=hint)
+    if suffixes is not None:
+        allowed = sorted({s.lower() for s in suffixes})
+        if path.suffix.lower() not in allowed:
+            raise UsageError(
+                f"cannot tell the file format of {str(path)!r} from its extension "
+                f"{path.suffix or '(none)'!r}; use one of {', '.join(allowed)}",
+                hint=hint,
+            )
+    if overwrite is False and path.exists():
+        raise UsageError(f"{path} exists; pass --overwrite to replace it", hint=hint)
+    _probe_dir(path.parent if str(path.parent) else Path("."), hint, str(path))
+    return path
+
+
+def output_dir(path: Path, hint: str) -> Path:
+    """``path`` created if needed (a directory the command writes files into)."""
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{str(path)!r} exists and is not a directory", hint=hint)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(
+            f"cannot create the directory {str(path)!r}: {exc.strerror or exc}", hint=hint
+        ) from None
+    _probe_dir(path, hint, "the output files")
+    return path
+
+
+def image_suffixes() -> set[str]:
+    """File extensions Pillow can write."""
+    from PIL import Image
+
+    Image.init()
+    return {ext for ext, fmt in Image.registered_extensions().items() if fmt in Image.SAVE}
+
+
+def plot_suffixes() -> set[str]:
+    """File extensions matplotlib can write."""
+    from matplotlib.figure import Figure
+
+    return {"." + ext for ext in Figure().canvas.get_supported_filetypes()}

@@ -1,0 +1,180 @@
+"""A new user's first hour (issue 13 item 7): version, exit statuses, readable help, registry
+choices, logging levels, units, info in GDAL order, non-TTY progress, ``--json``."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import re
+
+import pytest
+from conftest import fractal
+from typer.testing import CliRunner
+
+from cli import progress as progress_mod
+from cli.main import app, version
+
+runner = CliRunner()
+COMMANDS = ["tile", "info", "synth", "export", "stream", "render", "tradeoff", "flythrough",
+            "view", "compare"]  # fmt: skip
+
+
+def run(*args, **kw):
+    return runner.invoke(app, [str(a) for a in args], **kw)
+
+
+def flat(text: str) -> str:
+    """Output with rich's boxes and line wrapping removed (for substring checks)."""
+    return " ".join(re.sub(r"[│╭╮╰╯─]", " ", text).split())
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """A 70 x 90 (width x height) store of 3 x 3 blocks."""
+    from conftest import write_dem
+
+    d = tmp_path_factory.mktemp("fh")
+    src = write_dem(d / "dem.tif", fractal((90, 70), 11))
+    r = run("tile", src, d / "s.zarr", "--block-size", "33")
+    assert r.exit_code == 0, r.output
+    return d / "s.zarr"
+
+
+def test_version():
+    r = run("--version")
+    assert r.exit_code == 0 and r.output.strip() == f"terrastream {version()}"
+    assert re.fullmatch(r"\d+\.\d+.*", version())
+
+
+@pytest.mark.parametrize("command", [None, *COMMANDS], ids=["root", *COMMANDS])
+def test_help_is_readable_and_documents_exit_statuses(command):
+    r = run(*([command] if command else []), "--help", env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    text = r.output
+    assert "{" not in text.split("\n\n")[0] + text.split("Usage:")[1].split("\n")[0]
+    assert "<bool>" not in text
+    assert "Exit status: 0 success; 1 " in flat(text) and "2 usage error" in flat(text)
+    if command is None:
+        assert "<int>" not in text  # -v is a count flag
+        assert "--version" in text
+
+
+def test_usage_line_shows_argument_names():
+    r = run("tile", "--help", env={"COLUMNS": "200"})
+    assert "tile [OPTIONS] SRC DST" in r.output and "{src}" not in r.output
+
+
+def test_choices_come_from_the_registries():
+    from render.strategies import strategy_names
+    from streamer.lod import METRICS
+    from streamer.run import PATH_KINDS
+    from tiler.synth import DTYPES
+
+    render_help = flat(run("render", "--help", env={"COLUMNS": "250"}).output)
+    stream_help = flat(run("stream", "--help", env={"COLUMNS": "250"}).output)
+    synth_help = flat(run("synth", "--help", env={"COLUMNS": "250"}).output)
+    assert "|".join(strategy_names()).replace("|", "") in render_help.replace("|", "").replace(
+        " ", ""
+    )
+    for text in (render_help, stream_help):  # one metric choice list in render and stream
+        assert "|".join(METRICS) in text
+    assert "|".join(PATH_KINDS) in stream_help
+    assert "|".join(DTYPES) in synth_help
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["stream", "S", "--metric", "nope"], "unknown screen-error metric 'nope'; choose one of"),
+        (["render", "S", "--metric", "nope"], "unknown screen-error metric 'nope'; choose one of"),
+        (["stream", "S", "--path-kind", "spiral"], "unknown path kind 'spiral'; choose one of"),
+        (["synth", "x.tif", "--dtype", "int8"], "unknown sample type 'int8'; choose one of"),
+        (["render", "S", "--lod", "nope"], "unknown LOD strategy 'nope'; choose one of"),
+    ],
+    ids=["stream-metric", "render-metric", "path-kind", "dtype", "lod"],
+)
+def test_unknown_choice_exits_2_naming_value_and_choices(args, message):
+    r = run(*args)
+    assert r.exit_code == 2
+    assert message in flat(r.output)
+
+
+def test_verbose_raises_only_terrastreams_loggers(store):
+    for flag, level in (("-v", logging.INFO), ("-vv", logging.DEBUG)):
+        assert run(flag, "info", store).exit_code == 0
+        for name in ("tiler", "streamer", "render", "cli"):
+            assert logging.getLogger(name).getEffectiveLevel() == level
+        for name in ("numcodecs", "zarr", "fsspec", "rasterio", "PIL"):
+            assert logging.getLogger(name).getEffectiveLevel() >= logging.WARNING
+    assert run("-q", "info", store).exit_code == 0
+    assert logging.getLogger("tiler").getEffectiveLevel() == logging.ERROR
+    assert run("info", store).exit_code == 0
+    assert logging.getLogger("tiler").getEffectiveLevel() == logging.WARNING
+
+
+def test_info_prints_width_by_height_and_nodata_none(store):
+    r = run("info", store)
+    assert r.exit_code == 0, r.output
+    assert "samples        70 x 90 int16 (width x height)" in r.output
+    assert "nodata         none" in r.output and "None" not in r.output
+
+
+def test_tile_json_summary_and_progress_lines(tmp_path, dem_factory, monkeypatch):
+    monkeypatch.setenv("TERRASTREAM_PROGRESS_S", "0")
+    src = dem_factory(fractal((90, 70), 3))
+    r = run("tile", src, tmp_path / "s.zarr", "--block-size", "33", "--json")
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert (d["width"], d["height"], d["block_cols"], d["block_rows"]) == (70, 90, 3, 3)
+    assert d["levels"] == 6 and d["blocks_total"] == 9 and d["source_bytes"] > 0
+    assert "tiling: 100.0 % (9/9 blocks)" in r.stderr and "MiB/s" in r.stderr
+    assert "MB/s" not in r.stderr
+
+
+def test_synth_progress_lines_on_a_non_tty(tmp_path, monkeypatch):
+    monkeypatch.setenv("TERRASTREAM_PROGRESS_S", "0")
+    r = run("synth", tmp_path / "d.tif", "--size", "65")
+    assert r.exit_code == 0, r.output
+    assert re.search(r"synth: 100\.0 % \(4225/4225 samples\), [\d.]+ M samples/s", r.stderr)
+    r = run("-q", "synth", tmp_path / "e.tif", "--size", "65")
+    assert r.exit_code == 0 and "synth:" not in r.stderr
+
+
+def test_progress_lines_are_periodic(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr(progress_mod.time, "monotonic", lambda: now[0])
+    monkeypatch.setenv("TERRASTREAM_PROGRESS_S", "5")
+    out = io.StringIO()
+    p = progress_mod.Progress("tiling", "block", stream=out, quiet=False)
+    for i in range(1, 101):
+        now[0] += 0.5  # 50 s in all: a line at 0.5 s, then every 5 s, then the final one
+        p.update(i, 100, "1.0 MiB/s")
+    p.close()
+    lines = out.getvalue().splitlines()
+    assert 10 <= len(lines) <= 12, lines
+    quiet = io.StringIO()
+    q = progress_mod.Progress("tiling", "block", stream=quiet, quiet=True)
+    q.update(1, 2)
+    q.close()
+    assert quiet.getvalue() == ""
+    assert lines[0].startswith("tiling: 1.0 % (1/100 blocks), 1.0 MiB/s")
+    assert lines[-1].startswith("tiling: 100.0 % (100/100 blocks)")
+    assert "~" in lines[1] and "s left" in lines[1]
+
+
+def test_stream_sizes_are_mib(store):
+    r = run("stream", store, "--frames", "3", "--fps", "200", "--size", "64x48")
+    assert r.exit_code == 0, r.output
+    assert "needed MiB" in r.stdout and "MiB budget" in r.stdout
+    assert not re.search(r"\bMB\b", r.stdout)
+
+
+@pytest.mark.gl
+def test_render_json_stats(store, tmp_path, gl_context):
+    out = tmp_path / "v.png"
+    r = run("render", store, "--size", "64x48", "--patch-log2", "2", "-o", out, "--json")
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert d["triangles"] > 0 and d["viewport"] == [64, 48] and d["lod"] == "qiu"
+    assert out.stat().st_size > 0
