@@ -104,6 +104,17 @@ def output_dir(path: Path, hint: str) -> Path:
     return path
 
 
+def store_destination(url: str, hint: str = "DST") -> str:
+    """``url`` if a store can be made there: for a local path, its parent directory exists
+    and is writable (other locations are checked by the tiler)."""
+    if is_local(url):
+        path = Path(url)
+        if path.exists() and not path.is_dir():
+            raise UsageError(f"{url!r} exists and is a file, not a store directory", hint)
+        _probe_dir(path.parent if str(path.parent) else Path("."), hint, url)
+    return url
+
+
 def image_suffixes() -> set[str]:
     """File extensions Pillow can write."""
     from PIL import Image

@@ -12,6 +12,7 @@ Exit statuses (rio's convention), also printed at the end of every command's ``-
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import traceback
 from collections.abc import Iterator
@@ -108,9 +109,13 @@ def exit_status(exc: BaseException) -> int:
     return EXIT_RUNTIME
 
 
+_NUMPY_REPR = re.compile(r"np\.(?:float|int|uint|bool_)\w*\(([^()]*)\)")
+
+
 def one_line(exc: BaseException) -> str:
-    """The error as one line: the message of a library error, ``Type: message`` otherwise."""
-    text = " ".join(str(exc).split()) or type(exc).__name__
+    """The error as one line: the message of a library error, ``Type: message`` otherwise;
+    numpy scalar reprs (``np.float64(1.5)``) shown as their values."""
+    text = _NUMPY_REPR.sub(r"\1", " ".join(str(exc).split())) or type(exc).__name__
     if isinstance(exc, (*_library_errors(), UsageError)):
         return text
     return f"{type(exc).__name__}: {text}"
@@ -143,9 +148,8 @@ def fail_on_errors() -> Iterator[None]:
     except Exception as exc:  # noqa: BLE001 - the CLI's last line: one message, no traceback
         if state.verbose >= 2:
             traceback.print_exception(exc, file=sys.stderr)
-        hint = (
-            "" if state.verbose >= 2 or isinstance(exc, _library_errors()) else " (-vv: traceback)"
-        )
+        expected = isinstance(exc, (*_library_errors(), UsageError))
+        hint = "" if state.verbose >= 2 or expected else " (-vv: traceback)"
         typer.echo(f"error: {one_line(exc)}{hint}", err=True)
         raise typer.Exit(exit_status(exc)) from exc
 

@@ -8,6 +8,7 @@ from typing import Annotated, Any
 
 import typer
 
+from cli.checks import store_destination
 from cli.common import fail_on_errors
 from cli.options import integer, number
 from cli.progress import Progress
@@ -58,6 +59,7 @@ def tile(
     from tiler.tile import tile as run_tile
 
     with fail_on_errors():
+        store_destination(dst)
         opts = TileOptions(
             block_size=block_size,
             band=band,

@@ -1,0 +1,181 @@
+"""Every bad input a message (issue 11 item 5): one line naming the value, exit 1 or 2, no
+traceback; checks of output paths happen before any long run; Ctrl-C exits 130."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import pytest
+from conftest import fractal, write_dem
+from typer.testing import CliRunner
+
+from cli.main import app
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def flat(text: str) -> str:
+    """Output with rich's boxes and line wrapping removed (for substring checks)."""
+    return " ".join(re.sub(r"[│╭╮╰╯─]", " ", text).split())
+
+
+@pytest.fixture(scope="module")
+def paths(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bad")
+    src = write_dem(d / "dem.tif", fractal((65, 65), 5))
+    assert run("tile", src, d / "s.zarr", "--block-size", "33").exit_code == 0
+    (d / "adir").mkdir()
+    return {"tmp": d, "src": src, "store": d / "s.zarr", "dir": d / "adir"}
+
+
+# (arguments, exit status, message): {tmp}, {src}, {store}, {dir} are filled in
+CASES = {
+    "path-missing": (["stream", "{store}", "--path", "{tmp}/nope.json"], 2,
+                     "error: --path: '{tmp}/nope.json' does not exist"),
+    "path-is-dir": (["stream", "{store}", "--path", "{dir}"], 2, "is a directory, not a file"),
+    "flythrough-path-missing": (["flythrough", "{store}", "--path", "{tmp}/k.csv",
+                                 "--out", "{tmp}/f"], 2, "'{tmp}/k.csv' does not exist"),
+    "budget-inf": (["stream", "{store}", "--budget-mb", "inf"], 2,
+                   "'inf' is not a finite number; give one in the range 0<x"),
+    "budget-nan": (["flythrough", "{store}", "--budget-mb", "nan"], 2,
+                   "'nan' is not a finite number"),
+    "budget-zero": (["stream", "{store}", "--budget-mb", "0"], 2, "0 is not in the range 0<x"),
+    "stream-json-missing-dir": (["stream", "{store}", "--json", "{tmp}/no/s.json"], 2,
+                                "the directory '{tmp}/no' for {tmp}/no/s.json does not exist"),
+    "stream-plot-extension": (["stream", "{store}", "--plot", "{tmp}/p.xyz"], 2,
+                              "cannot tell the file format of '{tmp}/p.xyz'"),
+    "tradeoff-json-missing-dir": (["tradeoff", "{store}", "--json", "{tmp}/no/t.json"], 2,
+                                  "the directory '{tmp}/no' for {tmp}/no/t.json does not exist"),
+    "compare-plot-missing-dir": (["compare", "{store}", "--plot", "{tmp}/no/c.png"], 2,
+                                 "the directory '{tmp}/no'"),
+    "render-out-missing-dir": (["render", "{store}", "-o", "{tmp}/no/v.png"], 2,
+                               "the directory '{tmp}/no' for {tmp}/no/v.png does not exist"),
+    "render-out-extension": (["render", "{store}", "-o", "{tmp}/v.xyz"], 2,
+                             "cannot tell the file format of '{tmp}/v.xyz' from its extension "
+                             "'.xyz'; use one of"),
+    "render-out-no-extension": (["render", "{store}", "-o", "{tmp}/view"], 2,
+                                "from its extension '(none)'"),
+    "view-screenshot-extension": (["view", "{store}", "--frames", "1", "--screenshot",
+                                   "{tmp}/s.abc"], 2, "cannot tell the file format"),
+    "synth-missing-dir": (["synth", "{tmp}/no/d.tif", "--size", "65"], 2,
+                          "the directory '{tmp}/no' for {tmp}/no/d.tif does not exist"),
+    "synth-out-is-dir": (["synth", "{dir}", "--size", "65"], 2, "is a directory; give a file name"),
+    "export-missing-dir": (["export", "{store}", "{tmp}/no/e.tif"], 2, "the directory '{tmp}/no'"),
+    "tile-dst-missing-parent": (["tile", "{src}", "{tmp}/no/s.zarr", "--block-size", "33"], 2,
+                                "the directory '{tmp}/no' for {tmp}/no/s.zarr does not exist"),
+    "tile-dst-is-file": (["tile", "{src}", "{src}", "--block-size", "33"], 2,
+                         "exists and is a file, not a store directory"),
+    "flythrough-out-proc": (["flythrough", "{store}", "--out", "/proc/terrastream-frames"], 2,
+                            "cannot create the directory '/proc/terrastream-frames'"),
+    "flythrough-out-is-file": (["flythrough", "{store}", "--out", "{src}"], 2,
+                               "exists and is not a directory"),
+    "frames-zero": (["stream", "{store}", "--frames", "0"], 2,
+                    "Invalid value for '--frames': 0 is not in the range 1<=x"),
+    "frames-text": (["flythrough", "{store}", "--frames", "many"], 2,
+                    "'many' is not an integer"),
+    "tau-nan": (["render", "{store}", "--tau", "nan"], 2,
+                "Invalid value for '--tau': 'nan' is not a finite number; give one in the range "
+                "0<=x"),
+    "tau-negative": (["stream", "{store}", "--tau", "-1"], 2, "-1 is not in the range 0<=x"),
+    "fov-nan": (["render", "{store}", "--fov", "nan"], 2,
+                "'nan' is not a finite number; give one in the range 1<=x<=170"),
+    "fov-large": (["tradeoff", "{store}", "--fov", "200"], 2, "200 is not in the range 1<=x<=170"),
+    "fps-inf": (["stream", "{store}", "--fps", "inf"], 2, "'inf' is not a finite number"),
+    "speed-negative": (["stream", "{store}", "--speed", "-3"], 2, "-3 is not in the range 0<x"),
+    "latency-nan": (["stream", "{store}", "--latency-ms", "nan"], 2, "'nan' is not a finite"),
+    "precision-nan": (["tile", "{src}", "{tmp}/p.zarr", "--precision", "nan"], 2,
+                      "'nan' is not a finite number"),
+    "patch-log2": (["render", "{store}", "--patch-log2", "9"], 2, "9 is not in the range 0<=x<=7"),
+    "taus-nan": (["tradeoff", "{store}", "--taus", "1,nan"], 2,
+                 "error: --taus: expected comma-separated finite taus >= 0 such as 0.5,1,2, "
+                 "got '1,nan'"),
+    "size": (["render", "{store}", "--size", "0x5"], 2,
+             "error: --size: viewport 0x5 is outside 1..16384 pixels per side"),
+    "size-text": (["stream", "{store}", "--size", "big"], 2, "got 'big'"),
+    "lods": (["compare", "{store}", "--lods", "qiu,nope"], 2,
+             "error: --lods: unknown LOD strategy 'nope'; choose from qiu"),
+    "store-missing": (["stream", "{tmp}/none.zarr"], 2,
+                      "error: STORE: no store at '{tmp}/none.zarr': the path does not exist"),
+    "store-missing-render": (["render", "{tmp}/none.zarr"], 2, "no store at '{tmp}/none.zarr'"),
+    "export-level": (["export", "{store}", "{tmp}/l.tif", "--level", "7"], 2,
+                     "--level must be in 0..5 for this store, got 7"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize(("args", "status", "message"), CASES.values(), ids=CASES.keys())
+def test_bad_input_gives_one_message(paths, args, status, message):
+    r = run(*[a.format(**paths) for a in args])
+    assert r.exit_code == status, r.output
+    assert message.format(**paths) in flat(r.output)
+    assert "Traceback" not in r.output and "np.float64" not in r.output
+
+
+def test_output_paths_are_checked_before_the_run(paths, monkeypatch):
+    import streamer.run
+
+    ran = []
+    monkeypatch.setattr(streamer.run, "run_flythrough", lambda *a, **k: ran.append(1))
+    t0 = time.monotonic()
+    r = run("stream", paths["store"], "--frames", "100000", "--fps", "1",
+            "--json", paths["tmp"] / "missing" / "s.json")  # fmt: skip
+    assert r.exit_code == 2 and "does not exist; create it first" in flat(r.output)
+    assert ran == [] and time.monotonic() - t0 < 30
+
+
+def test_library_error_is_one_line_exit_1(paths, tmp_path):
+    import shutil
+
+    bad = tmp_path / "bad.zarr"
+    shutil.copytree(paths["store"], bad)
+    (bad / "zarr.json").write_text("{ not json")
+    r = run("info", bad)
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and str(bad) in lines[0]
+
+
+def test_unexpected_error_is_one_line_exit_1_and_traceback_with_vv(paths, monkeypatch):
+    import tiler.info
+
+    def boom(url):
+        raise RuntimeError(f"something broke at {url}")
+
+    monkeypatch.setattr(tiler.info, "store_info", boom)
+    r = run("info", paths["store"])
+    assert r.exit_code == 1
+    assert r.output.strip() == (
+        f"error: RuntimeError: something broke at {paths['store']} (-vv: traceback)"
+    )
+    r = run("-vv", "info", paths["store"])
+    assert r.exit_code == 1 and "Traceback" in r.output and "something broke" in r.output
+
+
+@pytest.mark.parametrize("where", ["info", "tile"])
+def test_ctrl_c_exits_130_with_one_line(paths, monkeypatch, where, tmp_path):
+    import tiler.info
+    import tiler.tile
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tiler.info, "store_info", interrupted)
+    monkeypatch.setattr(tiler.tile, "tile", interrupted)
+    args = ["info", paths["store"]] if where == "info" else ["tile", paths["src"], tmp_path / "t"]
+    r = run(*args)
+    assert r.exit_code == 130
+    assert r.output.strip() == "interrupted; rerun the same command to resume"
+
+
+def test_numpy_reprs_are_shown_as_values():
+    import numpy as np
+
+    from cli.common import one_line
+    from tiler.errors import LayoutError
+
+    exc = LayoutError(f"bad extent {np.float64(1.5)!r} .. {np.int64(7)!r}")
+    assert one_line(exc) == "bad extent 1.5 .. 7"
