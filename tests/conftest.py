@@ -83,3 +83,44 @@ def gl_context():
         pytest.skip(f"no headless OpenGL 4.5 context (EGL + Mesa): {exc}")
     yield ctx
     ctx.release()
+
+
+# --- how many GL tests ran: a line at the end of every run (issue 10 item 8) ------------------
+
+
+class GLTally:
+    """Outcomes of the tests marked ``gl``: passed, failed, skipped (with one skip reason)."""
+
+    def __init__(self) -> None:
+        self.passed = self.failed = self.skipped = 0
+        self.reason = ""
+
+    def add(self, report: pytest.TestReport) -> None:
+        """Count one phase report of a ``gl`` test (each test counted once)."""
+        if report.when == "call" and report.passed:
+            self.passed += 1
+        elif report.failed:
+            self.failed += 1
+        elif report.skipped and report.when in ("setup", "call"):
+            self.skipped += 1
+            if not self.reason and isinstance(report.longrepr, tuple):
+                self.reason = str(report.longrepr[2])
+
+    def line(self) -> str:
+        """``GL tests: 240 ran (240 passed, 0 failed), 3 skipped``."""
+        ran = self.passed + self.failed
+        text = f"GL tests: {ran} ran ({self.passed} passed, {self.failed} failed), "
+        text += f"{self.skipped} skipped"
+        return text + (f" (e.g. {self.reason})" if self.skipped and self.reason else "")
+
+
+_GL = GLTally()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if "gl" in report.keywords:
+        _GL.add(report)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    terminalreporter.write_sep("-", _GL.line())
