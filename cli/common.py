@@ -15,7 +15,7 @@ import logging
 import re
 import sys
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -181,8 +181,26 @@ def _readable(params: list[click.Parameter]) -> None:
                 p.show_default = False
 
 
+#: placeholder -> function giving the text, resolved when help is printed (cli.options.Registry)
+LAZY_TEXT: dict[str, Callable[[], str]] = {}
+
+
+def resolve_lazy_text(params: list[click.Parameter]) -> None:
+    """Replace registry placeholders in metavars and help texts by the registered names."""
+    for p in params:
+        for key, text in LAZY_TEXT.items():
+            if p.metavar == key:
+                p.metavar = text()
+            if getattr(p, "help", None) and key in p.help:
+                p.help = p.help.replace(key, text().replace("|", ", "))
+
+
 class _ReadableHelp:
-    """``--help`` without a ``<bool>`` after it."""
+    """``--help`` without a ``<bool>`` after it; registry names filled in."""
+
+    def format_help(self, ctx: click.Context, formatter: Any) -> None:
+        resolve_lazy_text(self.params)  # type: ignore[attr-defined]
+        return super().format_help(ctx, formatter)  # type: ignore[misc]
 
     def get_help_option(self, ctx: click.Context) -> click.Option | None:
         opt = super().get_help_option(ctx)  # type: ignore[misc]

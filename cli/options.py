@@ -3,27 +3,41 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from importlib import import_module
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
-from cli.common import UsageError
+from cli.common import LAZY_TEXT, UsageError
 
 
-class RegistryChoice:
-    """Parser: one of a registry's names; an unknown one is refused naming it and the choices."""
+class Registry:
+    """The names of a registry (``module.attr``: a dict, a sequence or a function returning one),
+    imported on first use — when a command parses the option or prints its help — so that
+    ``terrastream --version`` or ``tile`` does not import the renderer."""
 
-    def __init__(self, names: Sequence[str], noun: str) -> None:
-        self.choices, self.noun = list(names), noun
+    def __init__(self, module: str, attr: str, noun: str) -> None:
+        self.module, self.attr, self.noun = module, attr, noun
+        #: stands for the names in metavars and help texts until they are resolved
+        self.placeholder = f"<{module}.{attr}>"
+        LAZY_TEXT[self.placeholder] = lambda: "|".join(self.names)
+        self._names: list[str] | None = None
+
+    @property
+    def names(self) -> list[str]:
+        """The registered names, in the registry's order."""
+        if self._names is None:
+            obj = getattr(import_module(self.module), self.attr)
+            self._names = [str(n) for n in (obj() if callable(obj) else obj)]
+        return self._names
 
     def __call__(self, value: Any) -> Any:
-        if value is None or value in self.choices:
+        """Parser: ``value`` if registered, else a usage error naming it and the choices."""
+        if value is None or value in self.names:
             return value
         raise typer.BadParameter(
-            f"unknown {self.noun} {value!r}; choose one of {', '.join(self.choices)}"
+            f"unknown {self.noun} {value!r}; choose one of {', '.join(self.names)}"
         )
 
 
@@ -92,17 +106,9 @@ def integer(flag: str, help: str, *decls: str, **bounds: Any) -> Any:
     return typer.Option(flag, *decls, parser=t, help=f"{help} [{t.describe()}]")
 
 
-def _names(module: str, attr: str) -> list[str]:
-    """The names of a registry ``module.attr`` (a dict, a sequence or a function)."""
-    obj = getattr(import_module(module), attr)
-    return list(obj() if callable(obj) else obj)
-
-
-def choice_option(flag: str, names: Sequence[str], noun: str, help: str) -> Any:
-    """A ``typer.Option`` whose value must be one of ``names`` (shown in the help)."""
-    return typer.Option(
-        flag, parser=RegistryChoice(names, noun), metavar="|".join(names), help=help
-    )
+def choice_option(flag: str, registry: Registry, help: str) -> Any:
+    """A ``typer.Option`` whose value must be one of ``registry``'s names (shown in the help)."""
+    return typer.Option(flag, parser=registry, metavar=registry.placeholder, help=help)
 
 
 def number(flag: str, help: str, *decls: str, **bounds: Any) -> Any:
@@ -114,10 +120,12 @@ def number(flag: str, help: str, *decls: str, **bounds: Any) -> Any:
     )
 
 
-LOD_NAMES = _names("render.strategies", "strategy_names")
-METRIC_NAMES = _names("streamer.lod", "METRICS")
-PATH_KINDS = _names("streamer.run", "PATH_KINDS")
-DTYPES = _names("tiler.synth", "DTYPES")
+LODS = Registry("render.strategies", "strategy_names", "LOD strategy")
+METRICS = Registry("streamer.lod", "METRICS", "screen-error metric")
+PATH_KINDS = Registry("streamer.run", "PATH_KINDS", "path kind")
+DTYPES = Registry("tiler.synth", "DTYPES", "sample type")
+#: the defaults (render.strategies.DEFAULT, the first of streamer.lod.METRICS, tiler.synth.DTYPES)
+LOD_DEFAULT, METRIC_DEFAULT, DTYPE_DEFAULT = "qiu", "qiu", "int16"
 
 CameraOpt = Annotated[
     str | None,
@@ -132,17 +140,13 @@ FovOpt = Annotated[float, number("--fov", "Vertical field of view, degrees.", mi
 SizeOpt = Annotated[str, typer.Option("--size", metavar="WxH", help="Viewport in pixels.")]
 MetricOpt = Annotated[
     str,
-    choice_option(
-        "--metric", METRIC_NAMES, "screen-error metric", "Screen-error metric (streamer.lod)."
-    ),
+    choice_option("--metric", METRICS, "Screen-error metric (streamer.lod)."),
 ]
 LodOpt = Annotated[
     str,
-    choice_option("--lod", LOD_NAMES, "LOD strategy", f"LOD strategy ({LOD_NAMES[0]} by default)."),
+    choice_option("--lod", LODS, "LOD strategy (render.strategies)."),
 ]
-PathKindOpt = Annotated[
-    str, choice_option("--path-kind", PATH_KINDS, "path kind", "Built-in camera path.")
-]
+PathKindOpt = Annotated[str, choice_option("--path-kind", PATH_KINDS, "Built-in camera path.")]
 PathOpt = Annotated[
     Path | None,
     typer.Option("--path", metavar="FILE", help="Keyframes file (.json or .csv)."),

@@ -11,7 +11,8 @@ import typer
 from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
 from cli.common import UsageError, fail_on_errors
 from cli.options import (
-    LOD_NAMES,
+    LODS,
+    METRIC_DEFAULT,
     MetricOpt,
     PatchOpt,
     PathKindOpt,
@@ -36,11 +37,11 @@ def compare(
         typer.Option(
             "--lods",
             metavar="NAME,...",
-            help=f"Comma-separated strategies (default: all: {', '.join(LOD_NAMES)}).",
+            help=f"Comma-separated strategies (default: all: {LODS.placeholder}).",
         ),
     ] = None,
     size: SizeOpt = "1024x768",
-    metric: MetricOpt = "qiu",
+    metric: MetricOpt = METRIC_DEFAULT,
     patch_log2: PatchOpt = 4,
     quick: Annotated[
         bool, typer.Option("--quick", help="256x192, 4 frames, taus 1,4 (a smoke run).")
@@ -96,10 +97,10 @@ def parse_lods(text: str | None) -> list[str] | None:
     if not text:
         return None
     names = [n.strip() for n in text.split(",") if n.strip()]
-    bad = [n for n in names if n not in LOD_NAMES]
+    bad = [n for n in names if n not in LODS.names]
     if bad or not names:
         raise UsageError(
-            f"unknown LOD strategy {(bad or [text])[0]!r}; choose from {', '.join(LOD_NAMES)}",
+            f"unknown LOD strategy {(bad or [text])[0]!r}; choose from {', '.join(LODS.names)}",
             hint="--lods",
         )
     return names

@@ -11,7 +11,8 @@ import typer
 from cli.checks import input_file, open_store_arg, output_dir
 from cli.common import fail_on_errors
 from cli.options import (
-    LOD_NAMES,
+    LOD_DEFAULT,
+    METRIC_DEFAULT,
     BudgetOpt,
     LodOpt,
     MetricOpt,
@@ -36,7 +37,7 @@ def flythrough(
     frames: Annotated[int, integer("--frames", "Frames to render.", min=1)] = 120,
     fps: Annotated[float, number("--fps", "Path frame rate.", min=1e-3)] = 30.0,
     tau: TauOpt = 1.0,
-    metric: MetricOpt = "qiu",
+    metric: MetricOpt = METRIC_DEFAULT,
     size: SizeOpt = "1024x768",
     patch_log2: PatchOpt = 4,
     budget_mb: BudgetOpt = 256.0,
@@ -49,7 +50,7 @@ def flythrough(
         ),
     ] = 2,
     every: Annotated[int, integer("--every", "Save every N-th PNG.", min=0)] = 1,
-    lod: LodOpt = LOD_NAMES[0],
+    lod: LodOpt = LOD_DEFAULT,
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 

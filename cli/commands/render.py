@@ -12,7 +12,8 @@ import typer
 from cli.checks import image_suffixes, open_store_arg, output_file
 from cli.common import fail_on_errors
 from cli.options import (
-    LOD_NAMES,
+    LOD_DEFAULT,
+    METRIC_DEFAULT,
     CameraOpt,
     FovOpt,
     LodOpt,
@@ -40,11 +41,11 @@ def render(
     fov: FovOpt = 45.0,
     size: SizeOpt = "1024x768",
     tau: TauOpt = 1.0,
-    metric: MetricOpt = "qiu",
+    metric: MetricOpt = METRIC_DEFAULT,
     patch_log2: PatchOpt = 4,
     wireframe: Annotated[bool, typer.Option("--wireframe", help="Overlay edges.")] = False,
     lod_colour: Annotated[bool, typer.Option("--lod-colour", help="Tint by level.")] = False,
-    lod: LodOpt = LOD_NAMES[0],
+    lod: LodOpt = LOD_DEFAULT,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print the frame's statistics as JSON.")
     ] = False,

@@ -11,6 +11,7 @@ from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
 from cli.common import fail_on_errors
 from cli.formatters import format_summary
 from cli.options import (
+    METRIC_DEFAULT,
     BudgetOpt,
     MetricOpt,
     PathKindOpt,
@@ -43,7 +44,7 @@ def stream(
         float, number("--latency-ms", "Delay added to every store request, ms.", min=0.0)
     ] = 0.0,
     tau: TauOpt = 1.0,
-    metric: MetricOpt = "qiu",
+    metric: MetricOpt = METRIC_DEFAULT,
     size: SizeOpt = "1024x768",
     every: Annotated[int, integer("--every", "Print every N-th frame (0: auto).", min=0)] = 0,
     plot: Annotated[

@@ -10,7 +10,7 @@ import typer
 
 from cli.checks import output_file
 from cli.common import fail_on_errors
-from cli.options import DTYPES, choice_option, integer
+from cli.options import DTYPE_DEFAULT, DTYPES, choice_option, integer
 from cli.progress import Progress
 
 
@@ -18,9 +18,9 @@ def synth(
     out: Annotated[Path, typer.Argument(help="Output GeoTIFF.", show_default=False)],
     size: Annotated[int, integer("--size", "Samples per side.", min=2)] = 4097,
     seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed, same DEM).")] = 0,
-    dtype: Annotated[
-        str, choice_option("--dtype", DTYPES, "sample type", "Sample type of the GeoTIFF.")
-    ] = DTYPES[0],
+    dtype: Annotated[str, choice_option("--dtype", DTYPES, "Sample type of the GeoTIFF.")] = (
+        DTYPE_DEFAULT
+    ),
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
     ] = False,

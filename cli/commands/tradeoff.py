@@ -12,7 +12,8 @@ import typer
 from cli.checks import open_store_arg, output_file, plot_suffixes
 from cli.common import fail_on_errors
 from cli.options import (
-    LOD_NAMES,
+    LOD_DEFAULT,
+    METRIC_DEFAULT,
     CameraOpt,
     FovOpt,
     LodOpt,
@@ -39,7 +40,7 @@ def tradeoff(
     taus: Annotated[
         str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
     ] = "0.5,1,2,4,8",
-    metric: MetricOpt = "qiu",
+    metric: MetricOpt = METRIC_DEFAULT,
     patch_log2: PatchOpt = 4,
     repeats: Annotated[int, integer("--repeats", "Timed draws per tau.", min=1)] = 3,
     json_out: Annotated[
@@ -48,7 +49,7 @@ def tradeoff(
     plot: Annotated[
         Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
     ] = None,
-    lod: LodOpt = LOD_NAMES[0],
+    lod: LodOpt = LOD_DEFAULT,
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 

@@ -10,7 +10,8 @@ import typer
 from cli.checks import image_suffixes, open_store_arg, output_file
 from cli.common import UsageError, fail_on_errors
 from cli.options import (
-    LOD_NAMES,
+    LOD_DEFAULT,
+    METRIC_DEFAULT,
     BudgetOpt,
     CameraOpt,
     FovOpt,
@@ -30,7 +31,7 @@ from cli.options import (
 def view(
     store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
     tau: TauOpt = 1.0,
-    metric: MetricOpt = "qiu",
+    metric: MetricOpt = METRIC_DEFAULT,
     size: SizeOpt = "1280x800",
     camera: CameraOpt = None,
     look_at: LookAtOpt = None,
@@ -52,7 +53,7 @@ def view(
             "--screenshot", metavar="FILE", help="With --frames: save the last frame (an image)."
         ),
     ] = None,
-    lod: LodOpt = LOD_NAMES[0],
+    lod: LodOpt = LOD_DEFAULT,
 ) -> None:
     """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
     +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).

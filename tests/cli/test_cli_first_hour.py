@@ -178,3 +178,19 @@ def test_render_json_stats(store, tmp_path, gl_context):
     d = json.loads(r.stdout)
     assert d["triangles"] > 0 and d["viewport"] == [64, 48] and d["lod"] == "qiu"
     assert out.stat().st_size > 0
+
+
+def test_registry_defaults_and_lazy_imports():
+    import subprocess
+    import sys
+
+    from cli.options import DTYPE_DEFAULT, LOD_DEFAULT, METRIC_DEFAULT, METRICS
+    from render.strategies import DEFAULT
+    from tiler.synth import DTYPES
+
+    assert LOD_DEFAULT == DEFAULT and METRIC_DEFAULT in METRICS.names
+    assert DTYPE_DEFAULT in DTYPES
+    code = "import sys, cli.main; print(sorted(m for m in ('render.strategies', 'moderngl', "
+    code += "'zarr', 'streamer.run') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"  # `terrastream --version` / `tile` start fast
