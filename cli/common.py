@@ -181,6 +181,16 @@ def _readable(params: list[click.Parameter]) -> None:
                 p.show_default = False
 
 
+def usage_line(e: Exception) -> str:
+    """A usage error as one line, with where to read more when it is not about one value."""
+    fmt = getattr(e, "format_message", None)
+    text = " ".join((fmt() if fmt else str(e)).split())
+    ctx = getattr(e, "ctx", None)
+    if ctx is not None and type(e).__name__ != "BadParameter":
+        text += f" (see '{ctx.command_path} --help')"
+    return text
+
+
 #: placeholder -> function giving the text, resolved when help is printed (cli.options.Registry)
 LAZY_TEXT: dict[str, Callable[[], str]] = {}
 
@@ -223,7 +233,22 @@ class Command(_ReadableHelp, TyperCommand):
 
 
 class Group(_ReadableHelp, TyperGroup):
-    """The ``terrastream`` group: readable help and the exit-status epilog."""
+    """The ``terrastream`` group: readable help, the exit-status epilog, usage errors as one
+    ``error: …`` line (``Invalid value for '--tau': 'nan' is not a finite number; …``)."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except (typer.TyperException, click.exceptions.ClickException) as e:
+            if type(e).__name__ != "NoArgsIsHelpError":  # that one has printed the help
+                typer.echo(f"error: {usage_line(e)}", err=True)
+            sys.exit(getattr(e, "exit_code", EXIT_USAGE))
+        except (typer.Abort, click.exceptions.Abort):
+            typer.echo(INTERRUPTED_MESSAGE, err=True)
+            sys.exit(EXIT_INTERRUPTED)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs["epilog"] = kwargs.get("epilog") or EXIT_STATUS_HELP

@@ -111,8 +111,24 @@ CASES = {
 def test_bad_input_gives_one_message(paths, args, status, message):
     r = run(*[a.format(**paths) for a in args])
     assert r.exit_code == status, r.output
-    assert message.format(**paths) in flat(r.output)
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.output  # one line
+    assert message.format(**paths) in lines[0]
     assert "Traceback" not in r.output and "np.float64" not in r.output
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["render"], "error: Missing argument 'STORE'. (see 'terrastream render --help')"),
+        (["render", "S", "--bogus"], "error: No such option: --bogus"),
+        (["rendr", "S"], "error: No such command 'rendr'."),
+    ],
+    ids=["missing-argument", "unknown-option", "unknown-command"],
+)
+def test_usage_errors_are_one_line_exit_2(args, message):
+    r = run(*args)
+    assert r.exit_code == 2 and r.output.startswith(message) and len(r.output.splitlines()) == 1
 
 
 def test_output_paths_are_checked_before_the_run(paths, monkeypatch):
