@@ -112,10 +112,29 @@ def exit_status(exc: BaseException) -> int:
 _NUMPY_REPR = re.compile(r"np\.(?:float|int|uint|bool_)\w*\(([^()]*)\)")
 
 
+_PREVIOUS = re.compile(r"\s*See previous exception for details\.?", re.I)
+_REMOTE_LINE = re.compile(r"^[\w.]+(?:Error|Exception): (.+)$", re.M)
+
+
+def root_cause(exc: BaseException) -> str:
+    """The message of the first cause of ``exc`` (through a worker process's traceback too)."""
+    seen, e, root = 0, exc.__cause__, ""
+    while e is not None and seen < 20:
+        if type(e).__name__ == "_RemoteTraceback":  # concurrent.futures.process
+            lines = [m for m in _REMOTE_LINE.findall(str(e)) if not _PREVIOUS.search(m)]
+            return lines[0] if lines else root
+        root, e, seen = str(e), e.__cause__, seen + 1
+    return root
+
+
 def one_line(exc: BaseException) -> str:
     """The error as one line: the message of a library error, ``Type: message`` otherwise;
-    numpy scalar reprs (``np.float64(1.5)``) shown as their values."""
-    text = _NUMPY_REPR.sub(r"\1", " ".join(str(exc).split())) or type(exc).__name__
+    numpy scalar reprs (``np.float64(1.5)``) shown as their values; a message that only says
+    "see previous exception" (rasterio) gets the first cause's message instead."""
+    raw = str(exc)
+    if _PREVIOUS.search(raw) and (cause := root_cause(exc)):
+        raw = _PREVIOUS.sub("", raw).rstrip(". ") + ": " + cause
+    text = _NUMPY_REPR.sub(r"\1", " ".join(raw.split())) or type(exc).__name__
     if isinstance(exc, (*_library_errors(), UsageError)):
         return text
     return f"{type(exc).__name__}: {text}"

@@ -195,3 +195,36 @@ def test_numpy_reprs_are_shown_as_values():
 
     exc = LayoutError(f"bad extent {np.float64(1.5)!r} .. {np.int64(7)!r}")
     assert one_line(exc) == "bad extent 1.5 .. 7"
+
+
+def _damaged(tmp_path, how: str):
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+
+    path = tmp_path / f"{how}.tif"
+    data = fractal((257, 257), 2)
+    with rasterio.open(path, "w", driver="GTiff", width=257, height=257, count=1,
+                       dtype=data.dtype, crs="EPSG:32633", compress="deflate",
+                       transform=from_origin(500000, 5000000, 30, 30)) as dst:  # fmt: skip
+        dst.write(data, 1)
+    raw = bytearray(path.read_bytes())
+    if how == "truncated":
+        raw = raw[: len(raw) // 4]
+    else:  # a corrupted strip: garbage in the middle of the compressed data
+        mid = len(raw) // 2
+        raw[mid : mid + 2000] = np.full(2000, 0xFF, np.uint8).tobytes()
+    path.write_bytes(bytes(raw))
+    return path
+
+
+@pytest.mark.parametrize(("how", "cause"), [("truncated", "Read error"), ("corrupt", "error")])
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_damaged_geotiff_is_one_line_exit_1_with_the_cause(tmp_path, how, cause, workers):
+    src = _damaged(tmp_path, how)
+    r = run("-q", "tile", src, tmp_path / "s.zarr", "--block-size", "33", "--workers", workers)
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.output
+    assert cause in lines[0] and "See previous exception" not in lines[0]
+    assert "Traceback" not in r.output
