@@ -50,7 +50,9 @@ def flip_bit(path: Path, rng: np.random.Generator) -> tuple[int, int]:
     return off, bit
 
 
-def block_of(root: Path, array: str, chunk: Path, shard: tuple[int, int] = (1, 1)) -> tuple[int, int]:
+def block_of(
+    root: Path, array: str, chunk: Path, shard: tuple[int, int] = (1, 1)
+) -> tuple[int, int]:
     """First block covered by a chunk file (``c/<r>/<c>/...``), scaled by the shard shape."""
     parts = chunk.relative_to(root / array / "c").parts
     return int(parts[0]) * shard[0], int(parts[1]) * shard[1]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zarr
 from conftest import fractal
-from storetools import chunk_files, diff_stores, flip_bit
+from storetools import diff_stores, flip_bit
 
 from tiler import codecs
 from tiler.errors import (
@@ -121,7 +121,9 @@ def test_info_counts_nodata_not_padding(dem_factory, tmp_path):
 
 def test_block_size_larger_than_needed_is_clamped(dem_factory, tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
-        s = tile(dem_factory(fractal((20, 20), 5)), tmp_path / "s.zarr", TileOptions(block_size=16385))
+        s = tile(
+            dem_factory(fractal((20, 20), 5)), tmp_path / "s.zarr", TileOptions(block_size=16385)
+        )
     assert s.meta.block_size == 33
     assert "block size 16385 is larger than a 20x20 DEM needs; using 33" in caplog.text
     assert s.tile_summary.notes
