@@ -48,6 +48,25 @@ def _describe(d: dict[str, Any]) -> str:
     return f"process {d.get('pid')} on host {d.get('host')!r} (last heartbeat {age:.0f} s ago)"
 
 
+def _owner_gone(d: dict[str, Any]) -> bool:
+    """True if the lease's owner ran on this host and that process is gone (a crash)."""
+    if d.get("host") != socket.gethostname():
+        return False
+    try:
+        pid = int(d.get("pid", -1))
+    except (TypeError, ValueError):
+        return False
+    if pid <= 0 or pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
 class WriterLease:
     """Exclusive writer lease on one store; use as a context manager (or acquire/release)."""
 
@@ -79,7 +98,7 @@ class WriterLease:
                 continue  # released between our two calls: try again
             if cur.get("token") == self.record["token"]:
                 break
-            if lease_is_fresh(cur, self.timeout_s):
+            if lease_is_fresh(cur, self.timeout_s) and not _owner_gone(cur):
                 left = self.timeout_s - (time.time() - float(cur.get("heartbeat", 0.0)))
                 raise StoreLockedError(
                     f"{self.loc.url!r} is being written by {_describe(cur)}; wait for it to "
@@ -87,11 +106,12 @@ class WriterLease:
                     f"its last heartbeat (timeout {self.timeout_s:.0f} s) and is then taken over."
                 )
             log.warning(
-                "taking over the stale writer lease of %s on %s (no heartbeat for more than "
-                "%.0f s)",
+                "taking over the stale writer lease of %s on %s (%s)",
                 _describe(cur),
                 self.loc.url,
-                self.timeout_s,
+                "that process no longer exists on this host"
+                if _owner_gone(cur)
+                else f"no heartbeat for more than {self.timeout_s:.0f} s",
             )
             self.loc.delete_key(LEASE_KEY)
         else:

@@ -37,7 +37,7 @@ MIRROR_INTERVAL_S = 0.5
 
 def open_for_write(target: Any, name: str) -> zarr.Array:
     """Open one array of a store for writing, writing every chunk (even all-fill ones)."""
-    return zarr.open_array(target, path=name, mode="r+", config=WRITE_CONFIG)
+    return zarr.open_array(target, path=name, mode="r+").with_config(WRITE_CONFIG)
 
 
 class BlockWorker:

@@ -307,3 +307,11 @@ def test_tile_from_a_plain_script_without_main_guard(dem_factory, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "blocks 64 threads" in r.stdout
     assert "no `if __name__ == '__main__':` guard" in r.stderr
+
+
+def test_all_fill_index_chunks_are_written(dem_factory, tmp_path):
+    # one exactly fitting block: has_nodata is all False (= the fill value) and must be stored
+    s = tile(dem_factory(fractal((17, 17), 20)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    assert not s.index.has_nodata.any()
+    assert (tmp_path / "s.zarr" / "index" / "has_nodata" / "c" / "0" / "0").is_file()
+    assert verify_store(tmp_path / "s.zarr").ok
