@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.stamp-install
 
-.PHONY: demo test setup gl-libs lint bench clean
+.PHONY: demo test setup gl-libs lint bench clean reliability
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "terrastream needs Python >= 3.11; set PYTHON=python3.11")'
@@ -20,6 +20,9 @@ setup: $(STAMP) gl-libs
 
 test: setup   # ends with "GL tests: N ran (...), M skipped" (tests/conftest.py)
 	$(BIN)/python -m pytest
+
+reliability: setup   # the long fault-injection run (>= 20 kills); counts in RELIABILITY.md
+	TERRASTREAM_RELIABILITY_LONG=1 $(BIN)/python -m pytest -m reliability -s tests/reliability
 
 demo: setup
 	@bash scripts/demo.sh

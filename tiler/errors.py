@@ -37,3 +37,35 @@ class StoreVersionError(StoreError):
 
 class StoreCorruptError(StoreError):
     """The store's metadata or data are damaged or inconsistent."""
+
+
+class BlockDataError(StoreCorruptError):
+    """One block's data in one array is damaged (checksum) or missing; names all three."""
+
+    def __init__(self, message: str, *, array: str, block: tuple[int, int], level: int | None):
+        super().__init__(message)
+        self.array, self.block, self.level = array, block, level
+
+
+class ChunkChecksumError(BlockDataError):
+    """A chunk's crc32c does not match its bytes (bit rot, a torn write, tampering)."""
+
+
+class MissingChunkError(BlockDataError):
+    """A chunk the index says was written is absent (deleted or never synced)."""
+
+
+class StoreChangedError(StoreError):
+    """The store was replaced or rewritten while a reader had it open; reopen it."""
+
+
+class StoreLockedError(StoreError, BlockingIOError):
+    """Another process holds the store's writer lease."""
+
+
+class JobMismatchError(StoreExistsError):
+    """An unfinished store was started with another source or other settings."""
+
+
+class TilingInterrupted(TilerError, KeyboardInterrupt):
+    """Tiling was interrupted (Ctrl-C); the store is resumable by rerunning the same call."""

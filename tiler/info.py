@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from tiler.layout import level_size
-from tiler.store import open_store
+from tiler.store import TerrainStore, open_store
 
 
 def store_info(url: str | os.PathLike) -> dict[str, Any]:
@@ -42,9 +42,13 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         "block_rows": s.grid.rows,
         "block_cols": s.grid.cols,
         "blocks_with_terrain": int(idx.exists.sum()),
-        "blocks_with_nodata": int((idx.has_nodata & idx.exists).sum()),
+        "blocks_with_nodata": blocks_with_nodata(s),
         "levels": m.levels,
         "encoding": m.encoding,
+        "checksums": "crc32c on every chunk"
+        if m.checksummed
+        else f"none (format {m.format_version})",
+        "generation": m.generation,
         "compressor": f"{m.compressor.get('name')} level {m.compressor.get('level')}",
         "crs": crs,
         "extent": list(s.grid.extent),
@@ -58,3 +62,17 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         "raw_bytes": raw,
         "ratio_to_raw": nbytes["total"] / raw,
     }
+
+
+def blocks_with_nodata(store: TerrainStore) -> int:
+    """Blocks holding nodata samples inside the DEM (padding beyond the DEM edge is not nodata)."""
+    idx = store.index
+    grid = store.grid
+    n = 0
+    for br, bc in zip(*np.nonzero(idx.has_nodata & idx.exists), strict=True):
+        _, _, h, w = grid.block_window(int(br), int(bc))
+        if h == grid.side and w == grid.side:
+            n += 1  # an interior block: its masked samples are nodata
+        elif not store.read_mask((int(br), int(bc)))[:h, :w].all():
+            n += 1
+    return n

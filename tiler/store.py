@@ -14,35 +14,67 @@ The root attribute ``terrastream.complete`` is written last; a store without it 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import threading
+import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec
 
-from tiler import static_error
-from tiler.encoding import decode_grid, decode_levels, decode_next_level, dequantise
+from tiler import codecs, static_error
 from tiler.errors import (
+    BlockDataError,
+    ChunkChecksumError,
+    MissingChunkError,
+    StoreChangedError,
     StoreCorruptError,
     StoreError,
     StoreIncompleteError,
     StoreVersionError,
 )
 from tiler.grid import BlockGrid
-from tiler.layout import grid_side, level_index, level_size, order_index
+from tiler.layout import grid_side
+from tiler.location import Location, as_location, is_url
+from tiler.schema import (
+    ATTR,
+    DEFAULT_CLEVEL,
+    FORMAT_VERSION,
+    INDEX_CHUNK,
+    INDEX_NAMES,
+    SHARD_BLOCKS,
+    SHARDED_LEVELS,
+    array_names,
+    chunk_key,
+    compressor,
+    create_layout,
+    index_chunk,
+    level_fill,
+)
 
-FORMAT_VERSION = 1
-ATTR = "terrastream"
-SHARDED_LEVELS = 6  # levels 0..5 (<= 800 values a block) are sharded
-SHARD_BLOCKS = 16  # blocks per shard edge for small levels
-INDEX_CHUNK = 256
-INDEX_NAMES = ("exists", "done", "has_nodata", "zmin", "zmax", "window", "digest")
+__all__ = [
+    "ATTR",
+    "DEFAULT_CLEVEL",
+    "FORMAT_VERSION",
+    "INDEX_CHUNK",
+    "SHARD_BLOCKS",
+    "SHARDED_LEVELS",
+    "BlockIndex",
+    "StoreMeta",
+    "TerrainStore",
+    "compressor",
+    "create_layout",
+    "is_url",
+    "open_store",
+    "read_meta",
+    "write_meta",
+]
 
 
 def tool_version() -> str:
@@ -53,11 +85,6 @@ def tool_version() -> str:
         return version("terrastream")
     except PackageNotFoundError:
         return "0+unknown"
-
-
-def is_url(path: str | os.PathLike) -> bool:
-    """True for fsspec URLs such as ``memory://``, ``http://``, ``s3://``."""
-    return "://" in str(path)
 
 
 @dataclass(frozen=True)
@@ -74,7 +101,7 @@ class StoreMeta:
     precision: float | None
     nodata: float | None
     crs_wkt: str | None
-    geotransform: tuple[float, ...]  # GDAL order, of the source pixel corners
+    geotransform: tuple[float, ...]  # Affine order (a, b, c, d, e, f), pixel corners
     vertical_units: str | None
     source: dict[str, Any]
     tool_version: str
@@ -88,6 +115,16 @@ class StoreMeta:
     def value_dtype(self) -> np.dtype:
         """dtype of decoded level values (int32 for quantised stores, else the source dtype)."""
         return np.dtype("int32") if self.precision else np.dtype(self.dtype)
+
+    @property
+    def generation(self) -> str | None:
+        """Id of this build of the store (new for every fresh tiling); None in format 1."""
+        return self.extra.get("generation")
+
+    @property
+    def checksummed(self) -> bool:
+        """True if every chunk carries a crc32c (format 2 and later)."""
+        return self.format_version >= 2
 
     @property
     def levels(self) -> int:
@@ -150,87 +187,6 @@ class StoreMeta:
             raise StoreCorruptError(f"store metadata is incomplete or damaged: {exc}") from exc
 
 
-DEFAULT_CLEVEL = 5
-
-
-def compressor(level: int = DEFAULT_CLEVEL, typesize: int = 2, bits: bool = False) -> BloscCodec:
-    """Blosc (zstd inside) with byte shuffle, or bit shuffle for index tables.
-
-    Chosen by measurement (BENCHMARKS.md): on zigzagged residuals, byte shuffle + zstd beats
-    plain zstd by 15-35 %; blosc is in the zarr v3 specification, unlike numcodecs filters.
-    """
-    return BloscCodec(
-        cname="zstd",
-        clevel=level,
-        shuffle="bitshuffle" if bits else "shuffle",
-        typesize=typesize,
-        blocksize=0,
-    )
-
-
-def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
-    """Create every array of an empty store (no data written)."""
-    grid = meta.grid
-    rows, cols = grid.shape
-    side = grid.side
-    itemsize = np.dtype(meta.storage_dtype).itemsize
-    comp = [compressor(comp_level, itemsize)]
-    for i in range(meta.levels):
-        n = level_size(i)
-        kw: dict[str, Any] = {}
-        if i < SHARDED_LEVELS:
-            kw["shards"] = (min(rows, SHARD_BLOCKS), min(cols, SHARD_BLOCKS), n)
-        group.create_array(
-            f"levels/{i}",
-            shape=(rows, cols, n),
-            chunks=(1, 1, n),
-            dtype=meta.storage_dtype,
-            compressors=comp,
-            fill_value=0,
-            dimension_names=("block_row", "block_col", "value"),
-            **kw,
-        )
-    e = sum(static_error.field_sizes(meta.k, meta.error_cap))
-    group.create_array(
-        "errors",
-        shape=(rows, cols, len(meta.error_fields), e),
-        chunks=(1, 1, len(meta.error_fields), e),
-        dtype="float16",
-        compressors=[compressor(comp_level, 2)],
-        fill_value=0,
-    )
-    group.create_array(
-        "mask",
-        shape=(rows, cols, side, side),
-        chunks=(1, 1, side, side),
-        dtype="bool",
-        compressors=[compressor(comp_level, 1, bits=True)],
-        fill_value=True,
-    )
-    ic = (min(rows, INDEX_CHUNK), min(cols, INDEX_CHUNK))
-    for name, dtype, fill in (
-        ("exists", "bool", False),
-        ("done", "bool", False),
-        ("has_nodata", "bool", False),
-        ("zmin", "float64", np.nan),
-        ("zmax", "float64", np.nan),
-        ("digest", "uint64", 0),
-    ):
-        group.create_array(
-            f"index/{name}", shape=(rows, cols), chunks=ic, dtype=dtype, fill_value=fill
-        )
-    group.create_array(
-        "index/window", shape=(rows, cols, 4), chunks=(*ic, 4), dtype="int32", fill_value=0
-    )
-    for name, table in (("level_index", level_index(meta.k)), ("order_index", order_index(meta.k))):
-        group.create_array(
-            name,
-            data=np.asarray(table),
-            chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
-            compressors=[compressor(9, table.dtype.itemsize, bits=True)],
-        )
-
-
 def write_meta(group: zarr.Group, meta: StoreMeta) -> None:
     """Write the root attribute (``complete`` as given in ``meta``)."""
     group.attrs[ATTR] = json.loads(json.dumps(meta.to_json(), allow_nan=False))
@@ -259,13 +215,28 @@ class BlockIndex:
     digest: np.ndarray
 
 
-class TerrainStore:
-    """Read access to a finished store; safe to share between threads."""
+REMOTE_CHECK_INTERVAL_S = 1.0
+_READ_ERRORS = (ValueError, OSError, RuntimeError)
 
-    def __init__(self, url: str | os.PathLike, *, allow_incomplete: bool = False) -> None:
-        self.url = str(url)
+
+class TerrainStore:
+    """Read access to a finished store; safe to share between threads.
+
+    Format-2 stores are checked on every read: a chunk whose crc32c does not match raises
+    :class:`ChunkChecksumError`, a chunk the index says was written but is absent raises
+    :class:`MissingChunkError` (both name array, block and level), and a store replaced or
+    rewritten since it was opened raises :class:`StoreChangedError` (checked after each read
+    batch; at most once a second for remote stores).
+    """
+
+    def __init__(
+        self, url: str | os.PathLike | Location | Any, *, allow_incomplete: bool = False
+    ) -> None:
+        self.location = as_location(url)
+        self.url = self.location.url
+        self._token = self.location.change_token()
         try:
-            self._group = zarr.open_group(self.url, mode="r")
+            self._group = self.location.open_group("r")
         except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
             raise StoreError(f"no terrastream store at {self.url!r}: {exc}") from exc
         except (ValueError, KeyError, json.JSONDecodeError) as exc:
@@ -284,9 +255,16 @@ class TerrainStore:
         self.grid = self.meta.grid
         self.k = self.meta.k
         self.dtype = np.dtype(self.meta.dtype)
-        self._value_dtype = self.meta.value_dtype
+        self.codec = codecs.for_meta(self.meta)
+        self._value_dtype = self.codec.value_dtype
+        self.checksummed = self.meta.format_version >= 2
+        self._fill = level_fill(self.meta.storage_dtype) if self.checksummed else None
         self._lock = threading.Lock()
         self._arrays: dict[str, zarr.Array] = {}
+        self._last_check = time.monotonic()
+        if self.meta.complete:
+            for name in array_names(self.k):  # a missing array is damage, not an empty one
+                self._array(name)
 
     def __repr__(self) -> str:
         m = self.meta
@@ -299,14 +277,106 @@ class TerrainStore:
                 try:
                     arr = self._group[name]
                 except KeyError as exc:
-                    raise StoreCorruptError(f"store {self.url!r} has no array {name!r}") from exc
+                    raise StoreCorruptError(
+                        f"store {self.url!r} has no array {name!r}: the store is damaged; "
+                        "tile the DEM again (or repair the store)"
+                    ) from exc
+                except _READ_ERRORS as exc:
+                    raise StoreCorruptError(
+                        f"the metadata of array {name!r} in {self.url!r} is damaged: {exc}"
+                    ) from exc
                 self._arrays[name] = arr
             return arr
 
+    def check_unchanged(self, *, force: bool = False) -> None:
+        """Raise StoreChangedError if the store was replaced or rewritten since it was opened."""
+        if not self.location.is_local and not self.location.is_memory and not force:
+            now = time.monotonic()
+            if now - self._last_check < REMOTE_CHECK_INTERVAL_S:
+                return
+            self._last_check = now
+        token = self.location.change_token()
+        if token == self._token:
+            return
+        gen = None
+        with contextlib.suppress(StoreError, FileNotFoundError, ValueError, KeyError):
+            gen = read_meta(self.location.open_group("r")).generation
+        if gen is None or gen != self.meta.generation:
+            raise StoreChangedError(
+                f"store {self.url!r} was replaced or rewritten while it was open (generation "
+                f"{self.meta.generation!r} -> {gen!r}); reopen it to read the new store"
+            )
+        self._token = token
+
+    def _read(self, name: str, block: tuple[int, int], level: int | None) -> np.ndarray:
+        """One block of one array, with checksum and missing-chunk errors naming the block."""
+        what = f"level {level}" if level is not None else name
+        try:
+            out = self._array(name)[block]
+        except _READ_ERRORS as exc:
+            cls = ChunkChecksumError if "checksum" in str(exc) else BlockDataError
+            raise cls(
+                f"cannot read {what} of block {block} (array {name!r}) from {self.url!r}: {exc}; "
+                "the store is damaged: verify it and repair it from the source",
+                array=name,
+                block=block,
+                level=level,
+            ) from exc
+        if self.checksummed and self._looks_missing(name, block, out):
+            raise MissingChunkError(
+                f"{what} of block {block} (array {name!r}) is missing from {self.url!r} although "
+                "the store says it was written; the store is damaged: verify it and repair it "
+                "from the source",
+                array=name,
+                block=block,
+                level=level,
+            )
+        return out
+
+    def _looks_missing(self, name: str, block: tuple[int, int], out: np.ndarray) -> bool:
+        if name.startswith("levels/"):
+            if not np.all(out == self._fill):
+                return False
+        elif name == "errors":
+            if not np.all(np.isnan(out)):
+                return False
+        elif name == "mask":
+            if not (self.index.has_nodata[block] and out.all()):
+                return False
+        else:
+            return False
+        key = chunk_key(name, block, *self.grid.shape)
+        sharded = name.startswith("levels/") and int(name.split("/")[1]) < SHARDED_LEVELS
+        return sharded or not self.location.key_exists(key)
+
     @cached_property
     def index(self) -> BlockIndex:
-        """The grid index (read once)."""
-        return BlockIndex(**{n: self._array(f"index/{n}")[...] for n in INDEX_NAMES})
+        """The grid index (read once; damaged or missing index chunks raise)."""
+        out = {}
+        for n in INDEX_NAMES:
+            try:
+                out[n] = self._array(f"index/{n}")[...]
+            except _READ_ERRORS as exc:
+                raise StoreCorruptError(
+                    f"the block index 'index/{n}' of {self.url!r} is damaged ({exc}); the store "
+                    "is damaged: verify it and repair it from the source"
+                ) from exc
+        if self.checksummed and self.meta.complete:
+            rows, cols = self.grid.shape
+            ir, ic = index_chunk(rows, cols)
+            for n in INDEX_NAMES:
+                for br in range(0, rows, ir):
+                    for bc in range(0, cols, ic):
+                        key = chunk_key(f"index/{n}", (br, bc), rows, cols)
+                        if not self.location.key_exists(key):
+                            raise MissingChunkError(
+                                f"chunk {key!r} of the block index is missing from {self.url!r}; "
+                                "the store is damaged: verify it and repair it from the source",
+                                array=f"index/{n}",
+                                block=(br, bc),
+                                level=None,
+                            )
+        return BlockIndex(**out)
 
     def check_block(self, block: tuple[int, int]) -> tuple[int, int]:
         """Validate a block id and return it as ints."""
@@ -319,48 +389,38 @@ class TerrainStore:
         br, bc = self.check_block(block)
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
-        try:
-            return self._array(f"levels/{level}")[br, bc]
-        except (ValueError, OSError, RuntimeError) as exc:
-            raise StoreCorruptError(
-                f"cannot read level {level} of block {block} from {self.url!r}: {exc}"
-            ) from exc
+        out = self._read(f"levels/{level}", (br, bc), level)
+        self.check_unchanged()
+        return out
 
     def read_levels_raw(self, block: tuple[int, int], max_level: int) -> list[np.ndarray]:
-        """Stored levels ``0..max_level`` of a block, read concurrently (one chunk each)."""
-        import asyncio
-
-        from zarr.core.sync import sync
-
+        """Stored levels ``0..max_level`` of a block (one chunk each; concurrent for remote)."""
         br, bc = self.check_block(block)
         if not 0 <= max_level <= self.k:
             raise StoreError(f"level {max_level} is outside 0..{self.k}")
-        arrays = [self._array(f"levels/{i}").async_array for i in range(max_level + 1)]
-
-        async def gather() -> list:
-            return await asyncio.gather(*(a.getitem((br, bc)) for a in arrays))
-
-        try:
-            return [np.asarray(r) for r in sync(gather())]
-        except (ValueError, OSError, RuntimeError) as exc:
-            raise StoreCorruptError(
-                f"cannot read levels 0..{max_level} of block {block} from {self.url!r}: {exc}"
-            ) from exc
+        levels = range(max_level + 1)
+        if self.location.is_local or self.location.is_memory or max_level == 0:
+            out = [self._read(f"levels/{i}", (br, bc), i) for i in levels]
+        else:
+            with ThreadPoolExecutor(
+                max_workers=min(8, max_level + 1), thread_name_prefix="terrastream-read"
+            ) as pool:
+                out = list(pool.map(lambda i: self._read(f"levels/{i}", (br, bc), i), levels))
+        self.check_unchanged()
+        return out
 
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
         """Decode the next level from its raw values and the decoded levels ``0..L-1``."""
-        return decode_next_level(levels, raw, self._value_dtype)
+        return self.codec.decode_next(levels, raw)
 
     def to_heights(self, values: np.ndarray) -> np.ndarray:
         """Convert decoded storage values to the source dtype (dequantises ``--precision``)."""
-        if self.meta.precision:
-            return dequantise(values, self.meta.precision, self.dtype)
-        return values.astype(self.dtype, copy=False)
+        return self.codec.to_heights(values)
 
     def read_levels(self, block: tuple[int, int], max_level: int) -> list[np.ndarray]:
         """Decoded heights of levels ``0..max_level`` of a block (sequence order, source dtype)."""
         raws = self.read_levels_raw(block, max_level)
-        return [self.to_heights(v) for v in decode_levels(raws, self._value_dtype)]
+        return [self.to_heights(v) for v in self.codec.decode(raws)]
 
     def read_block(self, block: tuple[int, int], max_level: int | None = None) -> np.ndarray:
         """The ``2**L+1`` grid of a block at level ``L`` (default finest), in the source dtype."""
@@ -368,17 +428,20 @@ class TerrainStore:
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
         raws = self.read_levels_raw(block, level)
-        return self.to_heights(decode_grid(raws, self._value_dtype, level))
+        return self.to_heights(self.codec.decode_grid(raws, level))
 
     def read_mask(self, block: tuple[int, int]) -> np.ndarray:
         """``(side, side)`` bool, True where the block has terrain (not nodata, not padding)."""
         br, bc = self.check_block(block)
-        return self._array("mask")[br, bc]
+        out = self._read("mask", (br, bc), None)
+        self.check_unchanged()
+        return out
 
     def read_errors(self, block: tuple[int, int]) -> dict[str, list[np.ndarray]]:
         """The block's monotone error fields, unpacked per depth (see tiler.static_error)."""
         br, bc = self.check_block(block)
-        packed = self._array("errors")[br, bc]
+        packed = self._read("errors", (br, bc), None)
+        self.check_unchanged()
         return {
             name: static_error.unpack_field(packed[i], self.k, self.meta.error_cap)
             for i, name in enumerate(self.meta.error_fields)
@@ -386,21 +449,18 @@ class TerrainStore:
 
     def level_nbytes(self) -> list[int]:
         """Stored (compressed) bytes of each level array, summed over blocks."""
-        return [_stored_bytes(self._group.store, f"levels/{i}") for i in range(self.k + 1)]
+        return [self.location.total_size(f"levels/{i}") for i in range(self.k + 1)]
 
     def nbytes(self) -> dict[str, int]:
         """Stored bytes by component: levels, errors, mask, index, metadata, total."""
-        store = self._group.store
-        levels = sum(self.level_nbytes())
+        size = self.location.total_size
         parts = {
-            "levels": levels,
-            "errors": _stored_bytes(store, "errors"),
-            "mask": _stored_bytes(store, "mask"),
-            "index": _stored_bytes(store, "index")
-            + _stored_bytes(store, "level_index")
-            + _stored_bytes(store, "order_index"),
+            "levels": sum(self.level_nbytes()),
+            "errors": size("errors"),
+            "mask": size("mask"),
+            "index": size("index") + size("level_index") + size("order_index"),
         }
-        total = _stored_bytes(store, "")
+        total = size("")
         parts["metadata"] = total - sum(parts.values())
         parts["total"] = total
         return parts
@@ -411,27 +471,11 @@ class TerrainStore:
         return list(zip(rr.tolist(), cc.tolist(), strict=True))
 
 
-def _stored_bytes(store: Any, prefix: str) -> int:
-    """Total size of the objects under ``prefix`` (a local directory or an fsspec store)."""
-    import asyncio
-
-    async def total() -> int:
-        n = 0
-        async for key in store.list_prefix(prefix):
-            size = await store.getsize(key)
-            n += int(size)
-        return n
-
-    from zarr.core.sync import sync
-
-    try:
-        return sync(total())
-    except (NotImplementedError, asyncio.CancelledError, FileNotFoundError):
-        return 0
-
-
-def open_store(url: str | os.PathLike, *, allow_incomplete: bool = False) -> TerrainStore:
-    """Open a finished store (local path or fsspec URL such as ``http://``, ``memory://``)."""
-    if not is_url(url) and not os.path.exists(url):
-        raise StoreError(f"no store at {str(url)!r}: the path does not exist")
-    return TerrainStore(url, allow_incomplete=allow_incomplete)
+def open_store(
+    url: str | os.PathLike | Location | Any, *, allow_incomplete: bool = False
+) -> TerrainStore:
+    """Open a finished store (local path, fsspec URL such as ``http://``, or a zarr Store)."""
+    loc = as_location(url)
+    if loc.is_local and not os.path.exists(loc.path):
+        raise StoreError(f"no store at {loc.url!r}: the path does not exist")
+    return TerrainStore(loc, allow_incomplete=allow_incomplete)

@@ -1,70 +1,57 @@
 """Tile a DEM into a store: windowed reads, one pure function per block, parallel, resumable.
 
 ``process_block`` is a pure function of a block's source window and the tiling parameters, so
-it can be handed to any executor (threads here; a dask cluster later) unchanged. Output is
-identical whatever the worker count. A run writes the metadata with ``complete: false`` first,
-marks each block done in ``index/done`` after all of its data is written, and sets
-``complete: true`` last; a rerun of the same command skips finished blocks.
+it can be handed to any executor unchanged; output is identical whatever the worker count. A run
+creates the layout (state ``layout``), then every worker writes a block's data and its journal
+entry last (``tiler.resume``), so a run killed at any moment and rerun recomputes only the blocks
+that were in flight; the finish step builds the shards and the index and marks the store
+``complete``. One writer at a time holds the store's lease (``tiler.lease``); ``overwrite`` of a
+local store builds next to it and swaps the directories at the end.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
-import multiprocessing
+import math
 import os
-import shutil
-import threading
-import time
+import uuid
 from collections.abc import Callable
-from concurrent.futures import (
-    FIRST_COMPLETED,
-    Future,
-    ProcessPoolExecutor,
-    ThreadPoolExecutor,
-    wait,
-)
-from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import rasterio
 import rasterio._env
 import rasterio.env
-import rasterio.errors
 import zarr
-from rasterio.windows import Window
 
-from tiler import static_error
-from tiler.encoding import (
-    encode_levels,
-    encoding_for,
-    fill_invalid,
-    parse_dtype,
-    quantise,
-    storage_dtype_for,
-)
+from tiler import codecs, static_error
+from tiler.encoding import fill_invalid, quantise
 from tiler.errors import (
     SourceError,
-    SourceNotFoundError,
-    StoreCorruptError,
     StoreError,
     StoreExistsError,
+    TilingInterrupted,
 )
-from tiler.grid import BlockGrid
 from tiler.layout import grid_side, parse_block_size
-from tiler.store import (
-    ATTR,
-    SHARD_BLOCKS,
-    SHARDED_LEVELS,
-    StoreMeta,
-    TerrainStore,
-    create_layout,
-    is_url,
-    read_meta,
-    tool_version,
-    write_meta,
-)
+from tiler.lease import DEFAULT_TIMEOUT_S, LEASE_KEY, WriterLease
+from tiler.location import Location, as_location
+from tiler.resume import check_same_job, create_journal, job_identity, source_fingerprint
+from tiler.schema import ATTR, FORMAT_VERSION, create_layout
+from tiler.source import _open_source, _source_meta, read_window
+from tiler.store import StoreMeta, TerrainStore, read_meta, write_meta
+
+__all__ = [
+    "BlockParams",
+    "BlockResult",
+    "TileOptions",
+    "TileProgress",
+    "TileSummary",
+    "process_block",
+    "read_window",
+    "tile",
+    "valid_mask",
+]
 
 log = logging.getLogger(__name__)
 WAIT_TIMEOUT_S = 600.0
@@ -72,7 +59,11 @@ WAIT_TIMEOUT_S = 600.0
 
 @dataclass(frozen=True)
 class TileOptions:
-    """How to tile: block size, band, lossy precision, workers, overwrite, codec settings."""
+    """How to tile: block size, band, lossy precision, workers, overwrite, codec settings.
+
+    ``repair`` rewrites only the damaged blocks of a finished store from the source;
+    ``lease_timeout_s`` is how long a dead writer's lease blocks other writers.
+    """
 
     block_size: int = 1025
     band: int = 1
@@ -83,6 +74,8 @@ class TileOptions:
     error_cap: int | None = None  # default: k - 4
     gdal_cache_mb: int = 64  # GDAL's block cache (its default, 5 % of RAM, dominates RSS)
     executor: str = "auto"  # "threads", "processes" or "auto" (processes for big local jobs)
+    repair: bool = False
+    lease_timeout_s: float = DEFAULT_TIMEOUT_S
 
     def __post_init__(self) -> None:
         parse_block_size(self.block_size)
@@ -100,6 +93,10 @@ class TileOptions:
             )
         if not 1 <= self.compression_level <= 9:
             raise SourceError(f"compression level must be in 1..9, got {self.compression_level}")
+        if not (math.isfinite(self.lease_timeout_s) and self.lease_timeout_s > 0):
+            raise SourceError(f"lease timeout must be > 0 seconds, got {self.lease_timeout_s}")
+        if self.repair and self.overwrite:
+            raise SourceError("repair and overwrite exclude each other: repair keeps the store")
 
     @property
     def k(self) -> int:
@@ -122,6 +119,7 @@ class BlockParams:
     nodata: float | None
     precision: float | None
     error_cap: int
+    encoding: str = ""  # level codec name ("" = the default for the value dtype)
 
 
 @dataclass(frozen=True)
@@ -142,8 +140,8 @@ class BlockResult:
 class TileProgress:
     """Progress report: blocks processed/total, source bytes processed, elapsed seconds.
 
-    A block counts when its data is written; it is marked done in the store (for resuming)
-    once the small-level shard it belongs to is written.
+    ``skipped`` (also ``blocks_skipped``) counts blocks a resumed run found finished; a block
+    counts as done once its data and journal entry are written.
     """
 
     blocks_done: int
@@ -151,6 +149,25 @@ class TileProgress:
     bytes_done: int
     elapsed_s: float
     skipped: int = 0
+
+    @property
+    def blocks_skipped(self) -> int:
+        """Blocks a resumed run did not recompute."""
+        return self.skipped
+
+
+@dataclass
+class TileSummary:
+    """What a ``tile`` call did (``TerrainStore.tile_summary`` of the returned store)."""
+
+    blocks_total: int = 0
+    blocks_skipped: int = 0
+    blocks_computed: int = 0
+    blocks_repaired: int = 0
+    resumed: bool = False
+    executor: str = ""
+    block_size: int = 0
+    notes: list[str] = field(default_factory=list)
 
 
 def valid_mask(data: np.ndarray, nodata: float | None) -> np.ndarray:
@@ -192,7 +209,8 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     if params.precision:
         grid = quantise(grid, params.precision)
     grid = fill_invalid(grid, valid, k)
-    levels = encode_levels(grid, k)
+    codec = codecs.get(params.encoding) if params.encoding else codecs.for_dtype(grid.dtype)
+    levels = codec.encode(grid, k)
     err_grid = grid.astype(np.float64) * params.precision if params.precision else grid
     errors = static_error.block_errors(err_grid, valid, k, params.error_cap)
     return BlockResult(
@@ -207,208 +225,39 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     )
 
 
-def _open_source(src: str | os.PathLike, band: int) -> rasterio.DatasetReader:
-    path = str(src)
-    if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
-        raise SourceNotFoundError(f"source raster {path!r} does not exist")
-    try:
-        ds = rasterio.open(path)
-    except rasterio.errors.RasterioIOError as exc:
-        raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
-    if band > ds.count:
-        ds.close()
-        raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
-    return ds
-
-
-def _source_meta(ds: rasterio.DatasetReader, src: str, opts: TileOptions) -> StoreMeta:
-    if ds.height < 2 or ds.width < 2:
-        raise SourceError(
-            f"{src!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2 to be tiled"
-        )
-    dtype = parse_dtype(ds.dtypes[opts.band - 1])
-    if opts.precision and dtype.kind != "f":
-        raise SourceError(
-            f"--precision applies to float DEMs; {src!r} is {dtype.name}, which is stored "
-            "losslessly already. Drop --precision."
-        )
-    value = np.dtype(np.int32) if opts.precision else dtype
-    storage = storage_dtype_for(value)
-    nodata = ds.nodatavals[opts.band - 1]
-    k = opts.k
-    cap = static_error.default_cap(k) if opts.error_cap is None else opts.error_cap
-    if not 0 <= cap <= max(0, k - 1):
-        raise SourceError(f"error cap must be in 0..{k - 1} for k={k}, got {cap}")
-    t = ds.transform
-    if ds.crs is not None and ds.crs.is_geographic:
-        log.warning(
-            "%s is in a geographic CRS: x and y are degrees while heights are metres, so "
-            "streaming and rendering see a squashed DEM; reproject it to a projected CRS "
-            "(e.g. gdalwarp -t_srs EPSG:32618) before tiling for those",
-            src,
-        )
-    if abs(t.b) > 1e-12 * abs(t.a) or abs(t.d) > 1e-12 * abs(t.e):
-        raise SourceError(f"{src!r} has a rotated geotransform {tuple(t)[:6]}; warp it north-up")
-    units = ds.units[opts.band - 1] if ds.units else None
-    size = os.path.getsize(src) if not is_url(src) and os.path.isfile(src) else None
-    return StoreMeta(
-        format_version=1,
-        k=k,
-        height=ds.height,
-        width=ds.width,
-        dtype=dtype.name,
-        storage_dtype=storage.name,
-        encoding=encoding_for(value),
-        precision=opts.precision,
-        nodata=None if nodata is None else float(nodata),
-        crs_wkt=ds.crs.to_wkt() if ds.crs else None,
-        geotransform=(t.a, t.b, t.c, t.d, t.e, t.f),
-        vertical_units=units or None,
-        source={"name": os.path.basename(src.rstrip("/")), "path": src, "size_bytes": size},
-        tool_version=tool_version(),
-        error_cap=cap,
-        error_fields=static_error.FIELDS,
-        compressor={"name": "blosc-zstd-shuffle", "level": opts.compression_level},
-    )
-
-
-def _same_job(a: StoreMeta, b: StoreMeta) -> bool:
-    keys = ("k", "height", "width", "dtype", "storage_dtype", "precision", "nodata", "error_cap")
-    return all(getattr(a, n) == getattr(b, n) for n in keys) and a.compressor == b.compressor
-
-
-def _prepare_destination(dst: str, meta: StoreMeta, opts: TileOptions) -> tuple[zarr.Group, bool]:
-    """Create (or reopen for resuming) the store; returns the group and whether it resumes."""
-    exists = _exists(dst)
-    if exists and not opts.overwrite:
-        try:
-            old = read_meta(zarr.open_group(dst, mode="r"))
-        except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
-            raise StoreExistsError(
-                f"{dst!r} exists and is not a terrastream store ({exc}); choose another "
-                "destination (nothing was written)."
-            ) from exc
-        if old.complete:
-            raise StoreExistsError(
-                f"{dst!r} already holds a finished store; pass --overwrite to replace it."
-            )
-        if not _same_job(old, meta):
-            raise StoreExistsError(
-                f"{dst!r} holds an unfinished store made with other settings; pass --overwrite "
-                "to start again, or rerun with the original settings to finish it."
-            )
-        log.info("resuming unfinished store %s", dst)
-        return zarr.open_group(dst, mode="r+"), True
-    if exists:
-        _remove_store(dst)
-    try:
-        group = zarr.open_group(dst, mode="w")
-    except (OSError, ValueError) as exc:
-        raise StoreError(f"cannot create a store at {dst!r}: {exc}") from exc
-    write_meta(group, meta)
-    create_layout(group, meta, opts.compression_level)
-    return group, False
-
-
-def _exists(dst: str) -> bool:
-    if not is_url(dst):
-        return os.path.exists(dst)
-    import fsspec
-
-    fs, path = fsspec.core.url_to_fs(dst)
-    return bool(fs.exists(path))
-
-
-def _remove_store(dst: str) -> None:
-    """Remove an old store for --overwrite; refuses anything that is not a terrastream store."""
-    if not is_url(dst):
-        if os.path.isdir(dst) and os.listdir(dst):
-            try:
-                read_meta(zarr.open_group(dst, mode="r"))
-            except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
-                raise StoreExistsError(
-                    f"refusing to overwrite {dst!r}: it is a non-empty directory that is not a "
-                    "terrastream store"
-                ) from exc
-            shutil.rmtree(dst)
-        elif os.path.isfile(dst):
-            raise StoreExistsError(f"refusing to overwrite {dst!r}: it is a file, not a store")
-        return
-    import fsspec
-
-    fs, path = fsspec.core.url_to_fs(dst)
-    fs.rm(path, recursive=True)
-
-
-class _BlockWorker:
-    """Reads, encodes and writes blocks for one thread or process (own dataset and arrays)."""
-
-    def __init__(self, src: str, band: int, dst: str, grid: BlockGrid, params: BlockParams):
-        self.src, self.band, self.grid, self.params = src, band, grid, params
-        self.ds = _open_source(src, band)
-        group = zarr.open_group(dst, mode="r+")
-        names = [f"levels/{i}" for i in range(SHARDED_LEVELS, params.k + 1)]
-        self.arrays = {n: group[n] for n in [*names, "errors", "mask"]}
-
-    def run(self, br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
-        """Encode block ``(br, bc)``, write its big levels, errors and mask; return the rest."""
-        res = process_block(read_window(self.ds, self.band, self.grid, br, bc), self.params)
-        for i in range(SHARDED_LEVELS, self.params.k + 1):
-            self.arrays[f"levels/{i}"][br, bc] = res.levels[i]
-        self.arrays["errors"][br, bc] = res.errors
-        if res.mask is not None:
-            self.arrays["mask"][br, bc] = res.mask
-        # keep only what the shard writer needs: the small levels and the index row
-        return (br, bc), replace(res, levels=res.levels[:SHARDED_LEVELS], errors=None, mask=None)
-
-    def close(self) -> None:
-        """Close the source dataset."""
-        self.ds.close()
-
-
-_PROCESS_WORKER: _BlockWorker | None = None
-
-
-def _process_init(gdal_cache_mb: int, *args: object) -> None:
-    global _PROCESS_WORKER
-    rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(gdal_cache_mb))
-    _PROCESS_WORKER = _BlockWorker(*args)  # type: ignore[arg-type]
-
-
-def _process_run(br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
-    assert _PROCESS_WORKER is not None
-    return _PROCESS_WORKER.run(br, bc)
-
-
-def _use_processes(opts: TileOptions, dst: str, todo: int) -> bool:
-    """Processes give real parallelism (numpy + codecs hold the GIL too often for threads);
-    they need a destination every process can open (not ``memory://``) and enough blocks."""
-    if opts.executor != "auto":
-        return opts.executor == "processes"
-    return opts.n_workers > 1 and todo >= 4 * opts.n_workers and not dst.startswith("memory:")
-
-
-def read_window(ds: rasterio.DatasetReader, band: int, grid: BlockGrid, br: int, bc: int):
-    """The source samples of block ``(br, bc)`` that lie inside the DEM."""
-    r0, c0, h, w = grid.block_window(br, bc)
-    return ds.read(band, window=Window(c0, r0, w, h))
+def needed_k(height: int, width: int) -> int:
+    """The smallest ``k`` whose block covers a ``height x width`` DEM in one block."""
+    n = max(height, width) - 1
+    return 1 if n <= 2 else math.ceil(math.log2(n))
 
 
 def tile(
     src: str | os.PathLike,
-    dst: str | os.PathLike,
+    dst: str | os.PathLike | Location | zarr.abc.store.Store,
     options: TileOptions | None = None,
     progress: Callable[[TileProgress], None] | None = None,
 ) -> TerrainStore:
-    """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened."""
+    """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened.
+
+    ``dst`` is a local path, an fsspec URL or a zarr Store. A Ctrl-C raises
+    :class:`TilingInterrupted` (a ``KeyboardInterrupt``) and leaves a resumable store.
+    """
     opts = options or TileOptions()
-    src, dst = str(src), str(dst)
+    src = str(src)
+    loc = as_location(dst)
     # GDAL sizes its block cache once, on first use: this caps it for a fresh process (the
     # CLI's run, the worker processes); the option is restored afterwards.
     previous = rasterio.env.get_gdal_config("GDAL_CACHEMAX")
     rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(opts.gdal_cache_mb))
     try:
-        return _tile(src, dst, opts, progress)
+        return _tile(src, loc, opts, progress)
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, TilingInterrupted):
+            raise
+        raise TilingInterrupted(
+            f"tiling {src!r} into {loc.url!r} was interrupted; the store is kept unfinished: "
+            "run the same tile() call again to resume"
+        ) from exc
     finally:
         if previous is None:
             rasterio._env.del_gdal_config("GDAL_CACHEMAX")
@@ -416,195 +265,153 @@ def tile(
             rasterio.env.set_gdal_config("GDAL_CACHEMAX", previous)
 
 
-def _tile(
-    src: str, dst: str, opts: TileOptions, progress: Callable[[TileProgress], None] | None
-) -> TerrainStore:
-    with _open_source(src, opts.band) as ds:
-        meta = _source_meta(ds, src, opts)
-    grid = meta.grid
-    if _exists(dst) is False and not is_url(dst):
-        parent = os.path.dirname(os.path.abspath(dst))
-        if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
-            raise StoreError(f"cannot write {dst!r}: {parent!r} is not a writable directory")
-    group, resuming = _prepare_destination(dst, meta, opts)
-    if resuming:
-        meta = replace(read_meta(group), complete=False)
-    params = BlockParams(
-        k=meta.k,
-        dtype=meta.dtype,
-        storage_dtype=meta.storage_dtype,
-        nodata=meta.nodata,
-        precision=meta.precision,
-        error_cap=meta.error_cap,
+def _clamp_block_size(ds: rasterio.DatasetReader, opts: TileOptions, notes: list[str]):
+    k = needed_k(ds.height, ds.width)
+    if opts.k <= k:
+        return opts
+    new = grid_side(k)
+    msg = (
+        f"block size {opts.block_size} is larger than a {ds.height}x{ds.width} DEM needs; "
+        f"using {new} (one block covers the DEM; the output is the same up to the block size)"
     )
-    _run_blocks(src, dst, opts, grid, params, group, progress)
-    try:
-        _finish(group, meta, grid)
-    except SourceError:
-        _remove_store(dst)  # an all-nodata source: leave nothing that looks like a store
-        raise
-    return TerrainStore(dst)
+    log.warning("%s", msg)
+    notes.append(msg)
+    return replace(opts, block_size=new)
 
 
-def _shard_order(grid: BlockGrid) -> list[list[tuple[int, int]]]:
-    """Blocks grouped by the shard of the small levels they belong to, shards row-major."""
-    rows, cols = grid.shape
-    sr, sc = min(rows, SHARD_BLOCKS), min(cols, SHARD_BLOCKS)
-    groups = []
-    for r0 in range(0, rows, sr):
-        for c0 in range(0, cols, sc):
-            groups.append(
-                [
-                    (r, c)
-                    for r in range(r0, min(r0 + sr, rows))
-                    for c in range(c0, min(c0 + sc, cols))
-                ]
-            )
-    return groups
+def _tile(
+    src: str, loc: Location, opts: TileOptions, progress: Callable[[TileProgress], None] | None
+) -> TerrainStore:
+    summary = TileSummary()
+    with _open_source(src, opts.band) as ds:
+        opts = _clamp_block_size(ds, opts, summary.notes)
+        meta = _source_meta(ds, src, opts)
+        fingerprint = source_fingerprint(ds, opts.band)
+    meta = replace(meta, format_version=FORMAT_VERSION)
+    job = job_identity(fingerprint, opts, meta)
+    meta = replace(meta, extra={"generation": uuid.uuid4().hex, "job": job})
+    summary.block_size = meta.block_size
+    bad_parent = loc.parent_writable()
+    if bad_parent is not None and not loc.exists():
+        raise StoreError(f"cannot write {loc.url!r}: {bad_parent!r} is not a writable directory")
+    if opts.repair:
+        from tiler.assemble import repair_store
 
-
-def _run_blocks(
-    src: str,
-    dst: str,
-    opts: TileOptions,
-    grid: BlockGrid,
-    params: BlockParams,
-    group: zarr.Group,
-    progress: Callable[[TileProgress], None] | None,
-) -> None:
-    done = group["index/done"][...]
-    total = grid.rows * grid.cols
-    skipped = int(done.sum())
-    itemsize = np.dtype(params.dtype).itemsize
-    t0 = time.perf_counter()
-    n_done, bytes_done = skipped, 0
-    workers = opts.n_workers
-    args = (src, opts.band, dst, grid, params)
-    local = threading.local()
-    thread_workers: list[_BlockWorker] = []
-
-    def thread_run(br: int, bc: int) -> tuple[tuple[int, int], BlockResult]:
-        w = getattr(local, "worker", None)
-        if w is None:
-            w = local.worker = _BlockWorker(*args)
-            thread_workers.append(w)
-        return w.run(br, bc)
-
-    def report() -> None:
-        if progress:
-            progress(TileProgress(n_done, total, bytes_done, time.perf_counter() - t0, skipped))
-
-    report()
-    if _use_processes(opts, dst, total - skipped):
-        pool = ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_process_init,
-            initargs=(opts.gdal_cache_mb, *args),
+        return repair_store(src, loc, opts, job, progress, summary)
+    kind, old, why = inspect_destination(loc)
+    if kind == "foreign":
+        verb = "overwrite" if opts.overwrite else "write into"
+        raise StoreExistsError(
+            f"refusing to {verb} {loc.url!r}: it exists and is not a terrastream store ({why}); "
+            "choose another destination (nothing was written)."
         )
-        run = _process_run
-    else:
-        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="terrastream-tile")
-        run = thread_run
-    try:
-        for shard in _shard_order(grid):
-            todo = [b for b in shard if not done[b]]
-            if not todo:
-                continue
-            results: dict[tuple[int, int], BlockResult] = {}
-            pending: set[Future] = set()
-            it = iter(todo)
-            while True:
-                while len(pending) < 2 * workers:
-                    b = next(it, None)
-                    if b is None:
-                        break
-                    pending.add(pool.submit(run, *b))
-                if not pending:
-                    break
-                finished, pending = wait(
-                    pending, timeout=WAIT_TIMEOUT_S, return_when=FIRST_COMPLETED
-                )
-                if not finished:
-                    raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
-                for fut in finished:
-                    try:
-                        b, res = fut.result()  # re-raises a worker's exception here
-                    except BrokenProcessPool as exc:
-                        raise StoreError(
-                            "a tiling worker process died (out of memory, killed, or a script "
-                            "calling tile() without an `if __name__ == '__main__':` guard; "
-                            "executor='threads' avoids processes); rerun to resume"
-                        ) from exc
-                    results[b] = res
-                    r0, c0, h, w = grid.block_window(*b)
-                    bytes_done += h * w * itemsize
-                    n_done += 1
-                    report()
-            _write_shard(group, params.k, results)
-    except BaseException:
-        pool.shutdown(wait=True, cancel_futures=True)
-        raise
-    finally:
-        for w in thread_workers:
-            w.close()
-    pool.shutdown(wait=True)
-
-
-def _write_shard(group: zarr.Group, k: int, results: dict[tuple[int, int], BlockResult]) -> None:
-    """Write a shard's small levels and index rows, then mark its blocks done (main thread)."""
-    rows = [b[0] for b in results]
-    cols = [b[1] for b in results]
-    r0, r1, c0, c1 = min(rows), max(rows) + 1, min(cols), max(cols) + 1
-    for i in range(min(SHARDED_LEVELS, k + 1)):
-        arr = group[f"levels/{i}"]
-        region = arr[r0:r1, c0:c1]
-        for (br, bc), res in results.items():
-            region[br - r0, bc - c0] = res.levels[i]
-        arr[r0:r1, c0:c1] = region
-    sl = (slice(r0, r1), slice(c0, c1))
-    cols_ = {
-        "exists": lambda r: r.exists,
-        "has_nodata": lambda r: r.has_nodata,
-        "zmin": lambda r: r.zmin,
-        "zmax": lambda r: r.zmax,
-        "digest": lambda r: r.digest,
-    }
-    for name, get in cols_.items():
-        arr = group[f"index/{name}"]
-        region = arr[sl]
-        for (br, bc), res in results.items():
-            region[br - r0, bc - c0] = get(res)
-        arr[sl] = region
-    done = group["index/done"]
-    region = done[sl]
-    for br, bc in results:
-        region[br - r0, bc - c0] = True
-    done[sl] = region
-
-
-def _finish(group: zarr.Group, meta: StoreMeta, grid: BlockGrid) -> None:
-    """Check every block is done, write windows and checksums, then mark the store complete."""
-    done = group["index/done"][...]
-    if not done.all():
-        missing = int((~done).sum())
-        raise StoreCorruptError(f"{missing} block(s) are not done; the store stays unfinished")
-    exists = group["index/exists"][...]
-    if not exists.any():
-        raise SourceError(
-            f"{meta.source.get('path')!r} holds no terrain: every sample is nodata or NaN; "
-            "nothing was written"
+    if kind == "store" and old.complete and not opts.overwrite:
+        raise StoreExistsError(
+            f"{loc.url!r} already holds a finished store; tile with overwrite (--overwrite) to "
+            "replace it."
         )
-    win = np.zeros((grid.rows, grid.cols, 4), dtype=np.int32)
-    for br, bc in grid.blocks():
-        win[br, bc] = grid.block_window(br, bc)
-    group["index/window"][...] = win
-    digests = group["index/digest"][...]
-    checksum = hashlib.blake2b(digests.astype("<u8").tobytes(), digest_size=16).hexdigest()
-    zmin = group["index/zmin"][...]
-    zmax = group["index/zmax"][...]
-    source = dict(meta.source, checksum=f"blake2b-128:{checksum}")
-    extra = dict(meta.extra)
-    extra["value_range"] = [float(np.nanmin(zmin)), float(np.nanmax(zmax))]
-    write_meta(group, replace(meta, source=source, complete=True, extra=extra))
-    log.info("store complete: %s", ATTR)
+    from tiler.assemble import build
+
+    with WriterLease(loc, opts.lease_timeout_s) as lease:
+        if kind == "store" and opts.overwrite and loc.can_rename:
+            token = uuid.uuid4().hex[:12]
+            tmp = loc.sibling(f".tmp-{token}")
+            _clean_siblings(loc)
+            try:
+                build(src, tmp, meta, opts, progress, summary, lease, resume=False)
+            except BaseException:
+                tmp.remove()
+                raise
+            lease.stop()
+            trash = loc.sibling(f".old-{token}")
+            loc.rename_to(trash)
+            tmp.rename_to(loc)
+            trash.remove()
+            log.info("replaced %s with the new store (directory swap)", loc.url)
+        elif kind == "store" and opts.overwrite:
+            _clear(loc)
+            lease.reassert()
+            build(src, loc, meta, opts, progress, summary, lease, resume=False)
+        elif kind == "store" and old.extra.get("state") in ("tiling", "finishing"):
+            check_same_job(loc.url, old.extra.get("job"), job)
+            log.info("resuming unfinished store %s", loc.url)
+            build(src, loc, meta, opts, progress, summary, lease, resume=True)
+        else:
+            if kind == "store":
+                check_unfinished_is_recreatable(loc, old, job)
+            _clear(loc)
+            lease.reassert()
+            build(src, loc, meta, opts, progress, summary, lease, resume=False)
+    store = TerrainStore(loc)
+    store.tile_summary = summary
+    return store
+
+
+def check_unfinished_is_recreatable(loc: Location, old: StoreMeta, job: dict) -> None:
+    """An unfinished store without a resumable state: same job (or a layout kill) recreates it."""
+    if old.extra.get("state") == "layout":
+        log.info("%s was interrupted while its layout was created: creating it again", loc.url)
+        return
+    check_same_job(loc.url, old.extra.get("job"), job)
+
+
+def inspect_destination(loc: Location) -> tuple[str, StoreMeta | None, str]:
+    """``("absent" | "store" | "foreign", meta, reason)`` of what is stored at ``loc``."""
+    if not loc.exists():
+        return "absent", None, ""
+    if loc.is_local:
+        p = loc.path
+        if not p.is_dir():
+            return "foreign", None, "it is a file"
+        names = {c.name for c in p.iterdir() if not c.name.endswith(".partial")}
+        if not names - {LEASE_KEY}:
+            return "absent", None, ""
+        if "zarr.json" not in names:
+            return "foreign", None, "a non-empty directory without zarr.json"
+    elif not loc.key_exists("zarr.json"):
+        return "foreign", None, "no zarr.json"
+    try:
+        return "store", read_meta(loc.open_group("r")), ""
+    except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
+        return "foreign", None, str(exc)
+
+
+def _clear(loc: Location) -> None:
+    """Remove everything at ``loc`` but the writer lease."""
+    if loc.is_local:
+        if loc.path.is_dir():
+            for child in loc.path.iterdir():
+                if child.name != LEASE_KEY:
+                    Location(str(child)).remove()
+        return
+    loc.remove()
+
+
+def _clean_siblings(loc: Location) -> None:
+    """Remove leftovers of interrupted overwrites (``<dst>.tmp-*``, ``<dst>.old-*``)."""
+    p = loc.path
+    for sib in p.parent.glob(p.name + ".tmp-*"):
+        Location(str(sib)).remove()
+    for sib in p.parent.glob(p.name + ".old-*"):
+        Location(str(sib)).remove()
+
+
+def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
+    """Create the root group with the metadata in state ``layout`` (one write)."""
+    import json
+
+    attrs = json.loads(json.dumps(meta.to_json(), allow_nan=False))
+    try:
+        return zarr.open_group(loc.target, mode="a", attributes={ATTR: attrs})
+    except (OSError, ValueError) as exc:
+        raise StoreError(f"cannot create a store at {loc.url!r}: {exc}") from exc
+
+
+def create_store(loc: Location, meta: StoreMeta, opts: TileOptions) -> zarr.Group:
+    """Create the root, every array and the journal; leave the store in state ``tiling``."""
+    meta = replace(meta, extra=dict(meta.extra, state="layout"))
+    group = fresh_group(loc, meta)
+    create_layout(group, meta, opts.compression_level)
+    create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
+    write_meta(group, replace(meta, extra=dict(meta.extra, state="tiling")))
+    return group

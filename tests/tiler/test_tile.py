@@ -131,7 +131,7 @@ def test_store_opens_in_plain_zarr(dem_factory, tmp_path):
     tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
     g = zarr.open_group(tmp_path / "s.zarr", mode="r")
     meta = g.attrs[ATTR]
-    assert meta["format_version"] == 1 and meta["k"] == 4 and meta["complete"] is True
+    assert meta["format_version"] == 2 and meta["k"] == 4 and meta["complete"] is True
     assert g["levels/4"].shape == (3, 3, 17**2 - 9**2)
     assert g["level_index"][3, 3] == 4 and g["order_index"].shape == (17, 17)
 

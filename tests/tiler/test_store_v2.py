@@ -1,0 +1,317 @@
+"""Format 2: checksummed arrays, dimension names, locations, codecs, info, verify and repair."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+import zarr
+from conftest import fractal
+from storetools import diff_stores, flip_bit
+
+from tiler import codecs
+from tiler.errors import (
+    ChunkChecksumError,
+    JobMismatchError,
+    MissingChunkError,
+    StoreChangedError,
+    StoreCorruptError,
+    StoreExistsError,
+    StoreLockedError,
+    StoreVersionError,
+    TilingInterrupted,
+)
+from tiler.info import store_info
+from tiler.lease import LEASE_KEY, WriterLease
+from tiler.location import Location
+from tiler.store import open_store
+from tiler.tile import TileOptions, tile
+from tiler.verify import verify_store
+
+
+def test_every_array_has_crc32c_and_dimension_names(dem_factory, tmp_path):
+    tile(dem_factory(fractal((40, 40), 1)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    g = zarr.open_group(tmp_path / "s.zarr", mode="r")
+    names = [f"levels/{i}" for i in range(5)] + ["errors", "mask", "level_index"]
+    names += [f"index/{n}" for n in ("exists", "done", "has_nodata", "zmin", "zmax", "digest")]
+    for name in [*names, "index/window", "order_index"]:
+        meta = json.loads((tmp_path / "s.zarr" / name / "zarr.json").read_text())
+        text = json.dumps(meta["codecs"])
+        assert "crc32c" in text, name
+        assert meta.get("dimension_names") and None not in meta["dimension_names"], name
+        if name in ("levels/0", "levels/4"):  # sharded: inner chunks and the shard index
+            assert text.count("crc32c") == 2, name
+        assert g[name].shape[0] == (17 if name.endswith("_index") else 3)
+    assert not (tmp_path / "s.zarr" / "journal").exists()
+    assert not (tmp_path / "s.zarr" / LEASE_KEY).exists()
+
+
+def test_location_kinds(tmp_path):
+    for target in (tmp_path / "x", "memory://loc-test/x", zarr.storage.MemoryStore()):
+        loc = Location(target)
+        assert not loc.key_exists("a/b")
+        loc.put_bytes("a/b", b"1")
+        assert loc.get_bytes("a/b") == b"1" and loc.key_exists("a/b")
+        assert not loc.put_if_absent("a/b", b"2") and loc.get_bytes("a/b") == b"1"
+        assert loc.put_if_absent("a/c", b"3")
+        assert loc.list_keys("a") == ["a/b", "a/c"]
+        assert loc.total_size("a") == 2
+        loc.delete_key("a/b")
+        assert loc.get_bytes("a/b") is None
+        loc.delete_prefix("a")
+        assert loc.list_keys("a") == []
+    local = Location(tmp_path / "x")
+    assert local.is_local and local.can_rename and local.picklable() == str(tmp_path / "x")
+    mem = Location("memory://loc-test/x")
+    assert mem.is_memory and not mem.can_share_with_processes
+    with pytest.raises(OSError, match="cannot be shared"):
+        mem.picklable()
+
+
+def test_zarr_store_object_as_destination(dem_factory):
+    data = fractal((30, 30), 2)
+    ms = zarr.storage.MemoryStore()
+    store = tile(dem_factory(data), ms, TileOptions(block_size=17))
+    np.testing.assert_array_equal(store.read_block((0, 0))[:17, :17], data[:17, :17])
+    assert verify_store(ms).ok
+
+
+def test_codec_registry():
+    assert set(codecs.names()) >= {"int-residual", "float-xor"}
+    with pytest.raises(StoreVersionError, match="'zfp-9' is unknown"):
+        codecs.get("zfp-9")
+    rng = np.random.default_rng(0)
+    g = rng.integers(-500, 500, (17, 17)).astype(np.int16)
+    c = codecs.for_dtype(g.dtype)
+    raws = c.encode(g, 4)
+    np.testing.assert_array_equal(c.decode_grid(raws, g.dtype, 4), g)
+
+
+def test_format_1_store_still_reads(dem_factory, tmp_path, monkeypatch):
+    import tiler.tile as tile_mod
+
+    data = fractal((40, 40), 3)
+    monkeypatch.setattr(tile_mod, "FORMAT_VERSION", 1)
+    tile(dem_factory(data), tmp_path / "v1.zarr", TileOptions(block_size=17))
+    monkeypatch.undo()
+    text = (tmp_path / "v1.zarr" / "errors" / "zarr.json").read_text()
+    assert "crc32c" not in text
+    s = open_store(tmp_path / "v1.zarr")
+    assert s.meta.format_version == 1 and not s.checksummed
+    np.testing.assert_array_equal(s.read_block((1, 1))[:8, :8], data[16:24, 16:24])
+    assert store_info(tmp_path / "v1.zarr")["checksums"] == "none (format 1)"
+    assert store_info(tmp_path / "v1.zarr")["blocks_with_nodata"] == 0
+
+
+def test_info_counts_nodata_not_padding(dem_factory, tmp_path):
+    data = fractal((40, 40), 4)  # 40 = 2*16+8: the last block row/column is padded
+    tile(dem_factory(data), tmp_path / "a.zarr", TileOptions(block_size=17))
+    assert store_info(tmp_path / "a.zarr")["blocks_with_nodata"] == 0
+    data[5, 5] = -9999
+    tile(dem_factory(data, "b.tif", nodata=-9999), tmp_path / "b.zarr", TileOptions(block_size=17))
+    info = store_info(tmp_path / "b.zarr")
+    assert info["blocks_with_nodata"] == 1 and info["checksums"] == "crc32c on every chunk"
+
+
+def test_block_size_larger_than_needed_is_clamped(dem_factory, tmp_path, caplog):
+    with caplog.at_level(logging.WARNING):
+        s = tile(
+            dem_factory(fractal((20, 20), 5)), tmp_path / "s.zarr", TileOptions(block_size=16385)
+        )
+    assert s.meta.block_size == 33
+    assert "block size 16385 is larger than a 20x20 DEM needs; using 33" in caplog.text
+    assert s.tile_summary.notes
+
+
+def test_quiet_store_verifies_clean(dem_factory, tmp_path):
+    src = dem_factory(fractal((40, 40), 6), nodata=None)
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    rep = verify_store(tmp_path / "s.zarr", source=src)
+    assert rep.ok and rep.source_checked and rep.chunks_checked > 20, rep.problems
+
+
+def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path):
+    data = fractal((150, 150), 7)
+    src = dem_factory(data)
+    opts = TileOptions(block_size=65)
+    tile(src, tmp_path / "ref.zarr", opts)
+    tile(src, tmp_path / "s.zarr", opts)
+    rng = np.random.default_rng(1)
+    chunk = tmp_path / "s.zarr" / "levels" / "6" / "c" / "1" / "2" / "0"
+    flip_bit(chunk, rng)
+    with pytest.raises(ChunkChecksumError, match=r"level 6 of block \(1, 2\)") as ei:
+        open_store(tmp_path / "s.zarr").read_block((1, 2))
+    assert ei.value.level == 6 and ei.value.block == (1, 2) and ei.value.array == "levels/6"
+    rep = verify_store(tmp_path / "s.zarr")
+    assert not rep.ok and rep.bad_blocks == {(1, 2)}
+    fixed = tile(src, tmp_path / "s.zarr", TileOptions(block_size=65, repair=True))
+    assert fixed.tile_summary.blocks_repaired == 1
+    assert verify_store(tmp_path / "s.zarr").ok
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def test_missing_chunk_is_an_error_not_fill(dem_factory, tmp_path):
+    tile(dem_factory(fractal((40, 40), 8)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    (tmp_path / "s.zarr" / "errors" / "c" / "0" / "1" / "0" / "0").unlink()
+    s = open_store(tmp_path / "s.zarr")
+    with pytest.raises(MissingChunkError, match=r"errors of block \(0, 1\)"):
+        s.read_errors((0, 1))
+    s.read_errors((0, 0))  # the others still read
+
+
+def test_missing_array_refused_on_open(dem_factory, tmp_path):
+    import shutil
+
+    tile(dem_factory(fractal((40, 40), 9)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    shutil.rmtree(tmp_path / "s.zarr" / "levels" / "4")
+    with pytest.raises(StoreCorruptError, match="no array 'levels/4'"):
+        open_store(tmp_path / "s.zarr")
+
+
+def _interrupt(monkeypatch, n):
+    import tiler.tile as tile_mod
+
+    real = tile_mod.process_block
+    count = {"n": 0}
+
+    def flaky(window, params):
+        count["n"] += 1
+        if count["n"] > n:
+            raise KeyboardInterrupt("simulated Ctrl-C")
+        return real(window, params)
+
+    monkeypatch.setattr(tile_mod, "process_block", flaky)
+
+
+def test_ctrl_c_raises_tiling_interrupted_and_resumes_exactly(dem_factory, tmp_path, monkeypatch):
+    src = dem_factory(fractal((100, 100), 10))
+    opts = TileOptions(block_size=17, workers=1, executor="threads")
+    _interrupt(monkeypatch, 11)
+    with pytest.raises(TilingInterrupted, match="run the same tile"):
+        tile(src, tmp_path / "s.zarr", opts)
+    monkeypatch.undo()
+    seen = []
+    s = tile(src, tmp_path / "s.zarr", opts, progress=seen.append)
+    assert s.tile_summary.blocks_skipped == 11 == seen[-1].blocks_skipped
+    assert s.tile_summary.blocks_computed == 49 - 11
+    tile(src, tmp_path / "ref.zarr", opts)
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def test_resume_with_other_source_or_option_refused(dem_factory, tmp_path, monkeypatch):
+    a = dem_factory(fractal((60, 60), 11), "a.tif")
+    b = dem_factory(fractal((60, 60), 12), "b.tif")
+    opts = TileOptions(block_size=17, workers=1, executor="threads")
+    _interrupt(monkeypatch, 3)
+    with pytest.raises(KeyboardInterrupt):
+        tile(a, tmp_path / "s.zarr", opts)
+    monkeypatch.undo()
+    with pytest.raises(JobMismatchError, match="source_fingerprint: store has '[0-9a-f]+', this"):
+        tile(b, tmp_path / "s.zarr", opts)
+    with pytest.raises(JobMismatchError, match="compression_level: store has 5, this run has 7"):
+        tile(a, tmp_path / "s.zarr", TileOptions(block_size=17, compression_level=7))
+    tile(a, tmp_path / "s.zarr", opts)  # the original job still finishes
+
+
+def test_killed_during_layout_is_recreated(dem_factory, tmp_path):
+    from dataclasses import replace
+
+    import tiler.tile as tile_mod
+
+    src = dem_factory(fractal((40, 40), 13))
+    tile(src, tmp_path / "ref.zarr", TileOptions(block_size=17))
+    meta = open_store(tmp_path / "ref.zarr").meta
+    meta = replace(meta, complete=False, extra=dict(meta.extra, state="layout"))
+    tile_mod.fresh_group(Location(tmp_path / "s.zarr"), meta)  # the kill: root written only
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def test_second_writer_refused_and_stale_lease_taken_over(dem_factory, tmp_path, caplog):
+    src = dem_factory(fractal((40, 40), 14))
+    loc = Location(tmp_path / "s.zarr")
+    other = WriterLease(loc, timeout_s=30).acquire()  # another live writer
+    try:
+        with pytest.raises(StoreLockedError, match=r"being written by process \d+ on host"):
+            tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    finally:
+        other.stop()  # a dead writer: its lease stays, its heartbeat stops
+    rec = json.loads(loc.get_bytes(LEASE_KEY))
+    rec["heartbeat"] = time.time() - 100
+    loc.put_bytes(LEASE_KEY, json.dumps(rec).encode())
+    with caplog.at_level(logging.WARNING):
+        tile(src, tmp_path / "s.zarr", TileOptions(block_size=17, lease_timeout_s=30))
+    assert "taking over the stale writer lease" in caplog.text
+    assert not loc.key_exists(LEASE_KEY)
+
+
+def test_overwrite_under_open_reader(dem_factory, tmp_path):
+    a = dem_factory(fractal((40, 40), 15), "a.tif")
+    b = dem_factory(fractal((40, 40), 16), "b.tif")
+    tile(a, tmp_path / "s.zarr", TileOptions(block_size=17))
+    reader = open_store(tmp_path / "s.zarr")
+    before = reader.read_block((0, 0))
+    tile(b, tmp_path / "s.zarr", TileOptions(block_size=17, overwrite=True))
+    with pytest.raises(StoreChangedError, match="replaced or rewritten"):
+        reader.read_block((0, 0))
+    assert not np.array_equal(open_store(tmp_path / "s.zarr").read_block((0, 0)), before)
+    assert not list(tmp_path.glob("s.zarr.*"))  # no temporary or old directory left
+
+
+def test_overwrite_refuses_while_another_writer_holds_the_lease(dem_factory, tmp_path):
+    src = dem_factory(fractal((40, 40), 17))
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    other = WriterLease(Location(tmp_path / "s.zarr"), timeout_s=30).acquire()
+    try:
+        with pytest.raises(StoreLockedError):
+            tile(src, tmp_path / "s.zarr", TileOptions(block_size=17, overwrite=True))
+        assert open_store(tmp_path / "s.zarr").meta.complete  # untouched
+    finally:
+        other.release()
+
+
+def test_finished_store_needs_overwrite(dem_factory, tmp_path):
+    src = dem_factory(fractal((30, 30), 18))
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    with pytest.raises(StoreExistsError, match="overwrite"):
+        tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+
+
+def test_tile_from_a_plain_script_without_main_guard(dem_factory, tmp_path):
+    src = dem_factory(fractal((120, 120), 19))
+    script = tmp_path / "plain.py"
+    script.write_text(
+        textwrap.dedent(
+            f"""
+            import logging
+            logging.basicConfig(level=logging.INFO)
+            from tiler.tile import TileOptions, tile
+            s = tile({str(src)!r}, {str(tmp_path / "s.zarr")!r},
+                     TileOptions(block_size=17, workers=2, executor="processes"))
+            print("blocks", s.tile_summary.blocks_computed, s.tile_summary.executor)
+            """
+        )
+    )
+    import os
+
+    env = dict(os.environ, PYTHONPATH=os.getcwd())
+    r = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    assert "blocks 64 threads" in r.stdout
+    assert "no `if __name__ == '__main__':` guard" in r.stderr
+
+
+def test_all_fill_index_chunks_are_written(dem_factory, tmp_path):
+    # one exactly fitting block: has_nodata is all False (= the fill value) and must be stored
+    s = tile(dem_factory(fractal((17, 17), 20)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    assert not s.index.has_nodata.any()
+    assert (tmp_path / "s.zarr" / "index" / "has_nodata" / "c" / "0" / "0").is_file()
+    assert verify_store(tmp_path / "s.zarr").ok

@@ -1,0 +1,284 @@
+"""Building a store end to end: create or resume, run the blocks, assemble the shards and index.
+
+``build`` runs one job into a location the caller holds the writer lease of; ``finish`` turns a
+store whose every block has a journal entry into a complete store (shards of the small levels and
+the index built from the journal, the journal deleted, ``complete: true`` written last);
+``repair_store`` recomputes only the blocks ``verify_store`` reports damaged.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import zarr
+
+from tiler.errors import SourceError, StoreCorruptError
+from tiler.grid import BlockGrid
+from tiler.location import Location
+from tiler.resume import (
+    JOURNAL,
+    JournalEntry,
+    create_journal,
+    done_blocks,
+    small_levels,
+    unpack,
+)
+from tiler.run import open_for_write, progress_reporter, run_blocks
+from tiler.schema import INDEX_DTYPES, expected_table, index_chunk, shard_shape
+from tiler.store import StoreMeta, read_meta, write_meta
+
+log = logging.getLogger("tiler.tile")
+
+
+def block_params(meta: StoreMeta) -> Any:
+    """The ``BlockParams`` of a store's metadata."""
+    from tiler.tile import BlockParams
+
+    return BlockParams(
+        k=meta.k,
+        dtype=meta.dtype,
+        storage_dtype=meta.storage_dtype,
+        nodata=meta.nodata,
+        precision=meta.precision,
+        error_cap=meta.error_cap,
+        encoding=meta.encoding,
+    )
+
+
+def build(
+    src: str,
+    loc: Location,
+    meta: StoreMeta,
+    opts: Any,
+    progress: Callable | None,
+    summary: Any,
+    lease: Any,
+    *,
+    resume: bool,
+) -> None:
+    """Create (or resume) the store at ``loc`` and run it to completion."""
+    from tiler.tile import create_store
+
+    if resume:
+        group = loc.open_group("r+")
+        old = read_meta(group)
+        meta = replace(meta, extra={k: v for k, v in old.extra.items() if k != "state"})
+        n = loc.remove_partial_files()
+        if n:
+            log.info("removed %d leftover temporary file(s) of the interrupted run", n)
+        summary.resumed = True
+        if old.extra.get("state") == "finishing":
+            finish(group, loc, meta)
+            summary.blocks_total = summary.blocks_skipped = meta.grid.rows * meta.grid.cols
+            return
+    else:
+        group = create_store(loc, meta, opts)
+    grid = meta.grid
+    done = done_blocks(group[JOURNAL])
+    todo = [b for b in grid.blocks() if not done[b]]
+    total = grid.rows * grid.cols
+    skipped = total - len(todo)
+    if resume:
+        log.info(
+            "resuming: %d of %d block(s) already done, %d to compute", skipped, total, len(todo)
+        )
+    summary.blocks_total, summary.blocks_skipped, summary.blocks_computed = (
+        total,
+        skipped,
+        len(todo),
+    )
+    report = progress_reporter(total, skipped, progress)
+    report(0, 0)
+    summary.executor = run_blocks(
+        src, loc, opts, grid, block_params(meta), todo, done, report, lease
+    )
+    try:
+        finish(group, loc, meta)
+    except SourceError:
+        loc.remove()  # an all-nodata source: leave nothing that looks like a store
+        raise
+
+
+def _region_entries(
+    jarr: zarr.Array, r0: int, r1: int, c0: int, c1: int, meta: StoreMeta
+) -> dict[tuple[int, int], JournalEntry]:
+    raw = jarr[r0:r1, c0:c1]
+    out = {}
+    for br in range(r0, r1):
+        for bc in range(c0, c1):
+            e = unpack(raw[br - r0, bc - c0], meta.k, meta.storage_dtype)
+            if e is None:
+                raise StoreCorruptError(f"block ({br}, {bc}) has no journal entry")
+            out[br, bc] = e
+    return out
+
+
+def write_small_levels(
+    loc: Location,
+    meta: StoreMeta,
+    entries: dict[tuple[int, int], JournalEntry],
+    region: tuple[int, int, int, int],
+) -> None:
+    """Write the small levels of one shard region from journal entries (other blocks: kept)."""
+    r0, r1, c0, c1 = region
+    for i in range(small_levels(meta.k)):
+        arr = open_for_write(loc.target, f"levels/{i}")
+        if len(entries) == (r1 - r0) * (c1 - c0):
+            data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
+        else:  # repair: the blocks that are fine are read back (they verified clean)
+            data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
+            for br in range(r0, r1):
+                for bc in range(c0, c1):
+                    if (br, bc) not in entries:
+                        data[br - r0, bc - c0] = arr[br, bc]
+        for (br, bc), e in entries.items():
+            data[br - r0, bc - c0] = e.levels[i]
+        arr[r0:r1, c0:c1] = data
+
+
+def finish(group: zarr.Group, loc: Location, meta: StoreMeta) -> None:
+    """Assemble shards and index from the journal, drop it, then mark the store complete."""
+    grid = meta.grid
+    rows, cols = grid.shape
+    if JOURNAL in group:
+        jarr = group[JOURNAL]
+        done = done_blocks(jarr)
+        if not done.all():
+            missing = int((~done).sum())
+            raise StoreCorruptError(f"{missing} block(s) are not done; the store stays unfinished")
+        index = {n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in INDEX_DTYPES.items()}
+        sr, sc = shard_shape(rows, cols)
+        for r0 in range(0, rows, sr):
+            for c0 in range(0, cols, sc):
+                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
+                entries = _region_entries(jarr, r0, r1, c0, c1, meta)
+                write_small_levels(loc, meta, entries, (r0, r1, c0, c1))
+                for b, e in entries.items():
+                    for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
+                        index[name][b] = getattr(e, name)
+        index["done"][...] = True
+        if not index["exists"].any():
+            raise SourceError(
+                f"{meta.source.get('path')!r} holds no terrain: every sample is nodata or NaN; "
+                "nothing was written"
+            )
+        write_index(loc, grid, index)
+        write_meta(group, replace(meta, extra=dict(meta.extra, state="finishing")))
+        loc.delete_prefix(JOURNAL)
+    complete(group, meta)
+
+
+def write_index(loc: Location, grid: BlockGrid, index: dict[str, np.ndarray]) -> None:
+    """Write the index arrays and the block windows."""
+    for name, values in index.items():
+        open_for_write(loc.target, f"index/{name}")[...] = values
+    win = np.zeros((grid.rows, grid.cols, 4), dtype=np.int32)
+    for br, bc in grid.blocks():
+        win[br, bc] = grid.block_window(br, bc)
+    open_for_write(loc.target, "index/window")[...] = win
+
+
+def complete(group: zarr.Group, meta: StoreMeta) -> None:
+    """Write the source checksum and value range, and ``complete: true`` (last)."""
+    digests = group["index/digest"][...]
+    checksum = hashlib.blake2b(digests.astype("<u8").tobytes(), digest_size=16).hexdigest()
+    zmin = group["index/zmin"][...]
+    zmax = group["index/zmax"][...]
+    source = dict(meta.source, checksum=f"blake2b-128:{checksum}")
+    extra = {k: v for k, v in meta.extra.items() if k != "state"}
+    extra["value_range"] = [float(np.nanmin(zmin)), float(np.nanmax(zmax))]
+    write_meta(group, replace(meta, source=source, complete=True, extra=extra))
+    log.info("store complete: %s", group.store)
+
+
+def repair_store(
+    src: str, loc: Location, opts: Any, job: dict, progress: Callable | None, summary: Any
+) -> Any:
+    """Recompute the blocks ``verify_store`` finds damaged, from ``src``; return the store."""
+    from tiler.lease import WriterLease
+    from tiler.resume import check_same_job
+    from tiler.store import TerrainStore
+    from tiler.verify import verify_store
+
+    report = verify_store(loc)
+    if report.unrepairable:
+        raise StoreCorruptError(
+            f"{loc.url!r} cannot be repaired ({'; '.join(report.unrepairable)}); tile the DEM "
+            "again with overwrite"
+        )
+    with WriterLease(loc, opts.lease_timeout_s) as lease:
+        group = loc.open_group("r+")
+        meta = read_meta(group)
+        old_job = dict(meta.extra.get("job") or {})
+        check_same_job(
+            loc.url,
+            old_job,
+            {
+                **job,
+                "compression_level": old_job.get("compression_level", job["compression_level"]),
+            },
+        )
+        bad = sorted(report.bad_blocks)
+        for name in report.bad_tables:
+            open_for_write(loc.target, name)[...] = expected_table(name, meta.k)
+        summary.blocks_total = meta.grid.rows * meta.grid.cols
+        summary.blocks_repaired = summary.blocks_computed = len(bad)
+        if bad:
+            log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, src)
+            write_meta(group, replace(meta, complete=False, extra=dict(meta.extra, state="repair")))
+            create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
+            grid = meta.grid
+            done = np.ones(grid.shape, bool)
+            for b in bad:
+                done[b] = False
+            report_fn = progress_reporter(len(bad), 0, progress)
+            summary.executor = run_blocks(
+                src, loc, opts, grid, block_params(meta), bad, done, report_fn, lease
+            )
+            _patch(group, loc, meta, bad)
+            loc.delete_prefix(JOURNAL)
+            complete(group, meta)
+    store = TerrainStore(loc)
+    store.tile_summary = summary
+    return store
+
+
+def _patch(group: zarr.Group, loc: Location, meta: StoreMeta, bad: list[tuple[int, int]]) -> None:
+    """Write the repaired blocks' small levels and index rows (other blocks kept)."""
+    grid = meta.grid
+    rows, cols = grid.shape
+    jarr = group[JOURNAL]
+    entries = {}
+    for b in bad:
+        e = unpack(jarr[b], meta.k, meta.storage_dtype)
+        if e is None:
+            raise StoreCorruptError(f"repair of block {b} did not complete")
+        entries[b] = e
+    sr, sc = shard_shape(rows, cols)
+    shards: dict[tuple[int, int], dict] = {}
+    for b, e in entries.items():
+        shards.setdefault((b[0] // sr, b[1] // sc), {})[b] = e
+    for (s0, s1), ents in shards.items():
+        r0, c0 = s0 * sr, s1 * sc
+        write_small_levels(loc, meta, ents, (r0, min(r0 + sr, rows), c0, min(c0 + sc, cols)))
+    index = {}
+    ir, ic = index_chunk(rows, cols)
+    for name, (dt, fv) in INDEX_DTYPES.items():
+        arr = group[f"index/{name}"]
+        index[name] = np.full((rows, cols), fv, dtype=dt)
+        for r0 in range(0, rows, ir):
+            for c0 in range(0, cols, ic):
+                sl = (slice(r0, r0 + ir), slice(c0, c0 + ic))
+                with contextlib.suppress(ValueError, OSError, RuntimeError):
+                    index[name][sl] = arr[sl]  # a damaged chunk's blocks are all repaired
+    for b, e in entries.items():
+        for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
+            index[name][b] = getattr(e, name)
+    index["done"][...] = True
+    write_index(loc, grid, index)

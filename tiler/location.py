@@ -1,0 +1,367 @@
+"""Where a store lives: one place turning a str, Path or zarr ``Store`` into what the tiler needs.
+
+A :class:`Location` answers: does the store exist, remove it, open it as a zarr group, is it a
+local directory (and its path), a picklable form for worker processes, renaming where the backend
+allows it (local directories), and small raw-key operations (get, put, put-if-absent, delete,
+exists, list) used by the lease, the resume journal and the verifier. Three kinds of target:
+
+- a local path (str or ``os.PathLike``): plain file operations;
+- an fsspec URL (``memory://``, ``http(s)://``, ``s3://`` ...): the fsspec filesystem of the URL;
+- a zarr ``Store`` object: its async API, run on a private event loop per call.
+
+Adding a backend means adding one branch here (see docs/FORMAT.md, "Store backends").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import os
+import shutil
+import threading
+from collections.abc import Coroutine
+from pathlib import Path
+from typing import Any, TypeVar
+
+import zarr
+from zarr.abc.store import Store
+from zarr.buffer import default_buffer_prototype
+
+from tiler.errors import StoreError
+
+T = TypeVar("T")
+
+
+def is_url(path: str | os.PathLike) -> bool:
+    """True for fsspec URLs such as ``memory://``, ``http://``, ``s3://``."""
+    return "://" in str(path)
+
+
+def _run(coro: Coroutine[Any, Any, T]) -> T:
+    """Run a coroutine to completion from sync code (own loop; a helper thread if one runs)."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(coro)
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["v"] = asyncio.run(coro)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
+            box["e"] = exc
+
+    t = threading.Thread(target=target, name="terrastream-location-io")
+    t.start()
+    t.join(timeout=600)
+    if t.is_alive():
+        raise StoreError("a store operation did not finish within 600 s")
+    if "e" in box:
+        raise box["e"]
+    return box["v"]
+
+
+class Location:
+    """A store location: local directory, fsspec URL or zarr ``Store`` object."""
+
+    def __init__(self, target: str | os.PathLike | Store | Location) -> None:
+        if isinstance(target, Location):
+            target = target.target
+        self.target: str | Store
+        if isinstance(target, Store):
+            self.target = target
+        elif isinstance(target, str | os.PathLike):
+            self.target = str(target)
+        else:
+            raise StoreError(
+                f"a store location must be a path, a URL or a zarr Store, got {type(target)!r}"
+            )
+
+    # ---- identity ------------------------------------------------------------------------
+    @property
+    def url(self) -> str:
+        """A display string: the path or URL, or the Store's repr."""
+        return self.target if isinstance(self.target, str) else repr(self.target)
+
+    def __repr__(self) -> str:
+        return f"Location({self.url!r})"
+
+    def __str__(self) -> str:
+        return self.url
+
+    @property
+    def is_local(self) -> bool:
+        """True for a local directory path."""
+        return isinstance(self.target, str) and not is_url(self.target)
+
+    @property
+    def is_memory(self) -> bool:
+        """True for process-local memory (``memory://`` or a zarr ``MemoryStore``)."""
+        if isinstance(self.target, str):
+            return self.target.startswith("memory:")
+        return isinstance(self.target, zarr.storage.MemoryStore)
+
+    @property
+    def path(self) -> Path:
+        """The local directory (raises for other kinds)."""
+        if not self.is_local:
+            raise StoreError(f"{self.url!r} is not a local directory")
+        return Path(self.target)  # type: ignore[arg-type]
+
+    def picklable(self) -> str:
+        """A form worker processes can reopen (a path or URL); raises for memory and objects."""
+        if not isinstance(self.target, str) or self.is_memory:
+            raise StoreError(f"{self.url!r} cannot be shared with worker processes")
+        return self.target
+
+    @property
+    def can_share_with_processes(self) -> bool:
+        """Whether separate processes can open this location."""
+        return isinstance(self.target, str) and not self.is_memory
+
+    @property
+    def can_rename(self) -> bool:
+        """Whether :meth:`rename_to` is atomic here (local directories)."""
+        return self.is_local
+
+    # ---- whole-store operations ----------------------------------------------------------
+    def open_group(self, mode: str = "r") -> zarr.Group:
+        """Open the root zarr group."""
+        return zarr.open_group(self.target, mode=mode)  # type: ignore[arg-type]
+
+    def _fs(self) -> tuple[Any, str]:
+        import fsspec
+
+        return fsspec.core.url_to_fs(self.target)
+
+    def exists(self) -> bool:
+        """True if anything is stored at this location."""
+        if self.is_local:
+            return os.path.exists(self.target)  # type: ignore[arg-type]
+        if isinstance(self.target, str):
+            fs, path = self._fs()
+            return bool(fs.exists(path))
+        return self.key_exists("zarr.json")
+
+    def remove(self) -> None:
+        """Remove everything stored at this location (no checks: callers decide)."""
+        if self.is_local:
+            p = self.path
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
+            return
+        if isinstance(self.target, str):
+            fs, path = self._fs()
+            if fs.exists(path):
+                fs.rm(path, recursive=True)
+            return
+        _run(self.target.delete_dir(""))
+
+    def sibling(self, suffix: str) -> Location:
+        """A new local location next to this one (``<path><suffix>``)."""
+        return Location(str(self.path) + suffix)
+
+    def rename_to(self, other: Location) -> None:
+        """Atomically rename this local directory to ``other`` (which must not exist)."""
+        if not (self.is_local and other.is_local):
+            raise StoreError(f"cannot rename {self.url!r}: only local directories can be renamed")
+        os.rename(self.path, other.path)
+
+    def parent_writable(self) -> str | None:
+        """For a local path: None if its parent is a writable directory, else that parent."""
+        if not self.is_local:
+            return None
+        parent = os.path.dirname(os.path.abspath(self.target))  # type: ignore[arg-type]
+        if os.path.isdir(parent) and os.access(parent, os.W_OK):
+            return None
+        return parent
+
+    # ---- raw keys ------------------------------------------------------------------------
+    def _key_path(self, key: str) -> str:
+        if self.is_local:
+            return os.path.join(self.target, *key.split("/"))  # type: ignore[arg-type]
+        _, path = self._fs()
+        return f"{path.rstrip('/')}/{key}"
+
+    def get_bytes(self, key: str) -> bytes | None:
+        """The bytes stored under ``key``, or None if it does not exist."""
+        if isinstance(self.target, Store):
+            buf = _run(self.target.get(key, prototype=default_buffer_prototype()))
+            return None if buf is None else buf.to_bytes()
+        if self.is_local:
+            try:
+                with open(self._key_path(key), "rb") as f:
+                    return f.read()
+            except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
+                return None
+        fs, _ = self._fs()
+        try:
+            return fs.cat_file(self._key_path(key))
+        except FileNotFoundError:
+            return None
+
+    def put_bytes(self, key: str, data: bytes) -> None:
+        """Store ``data`` under ``key`` (local: written to a temporary file, then renamed)."""
+        if isinstance(self.target, Store):
+            buf = default_buffer_prototype().buffer.from_bytes(data)
+            _run(self.target.set(key, buf))
+            return
+        if self.is_local:
+            path = self._key_path(key)
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+            with open(tmp, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+            return
+        fs, _ = self._fs()
+        fs.pipe_file(self._key_path(key), data)
+
+    def put_if_absent(self, key: str, data: bytes) -> bool:
+        """Create ``key`` only if it does not exist; True if this call created it.
+
+        Atomic for local directories (``O_EXCL``) and zarr Stores that implement
+        ``set_if_not_exists``; best effort (check, then write) for fsspec URLs.
+        """
+        if self.is_local:
+            path = self._key_path(key)
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            try:
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                return False
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            return True
+        if isinstance(self.target, Store):
+            store = self.target
+            buf = default_buffer_prototype().buffer.from_bytes(data)
+
+            async def go() -> bool:
+                await store.set_if_not_exists(key, buf)
+                got = await store.get(key, prototype=default_buffer_prototype())
+                return got is not None and got.to_bytes() == data
+
+            return _run(go())
+        if self.key_exists(key):
+            return False
+        self.put_bytes(key, data)
+        return self.get_bytes(key) == data
+
+    def delete_key(self, key: str) -> None:
+        """Delete ``key`` if it exists."""
+        if isinstance(self.target, Store):
+            _run(self.target.delete(key))
+            return
+        if self.is_local:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(self._key_path(key))
+            return
+        fs, _ = self._fs()
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm_file(self._key_path(key))
+
+    def delete_prefix(self, prefix: str) -> None:
+        """Delete every key under ``prefix`` (a zarr array or group path)."""
+        if isinstance(self.target, Store):
+            _run(self.target.delete_dir(prefix))
+            return
+        if self.is_local:
+            p = self._key_path(prefix)
+            if os.path.isdir(p):
+                shutil.rmtree(p)
+            return
+        fs, _ = self._fs()
+        p = self._key_path(prefix)
+        if fs.exists(p):
+            fs.rm(p, recursive=True)
+
+    def key_exists(self, key: str) -> bool:
+        """True if ``key`` exists."""
+        if isinstance(self.target, Store):
+            return bool(_run(self.target.exists(key)))
+        if self.is_local:
+            return os.path.isfile(self._key_path(key))
+        fs, _ = self._fs()
+        return bool(fs.exists(self._key_path(key)))
+
+    def list_keys(self, prefix: str = "") -> list[str]:
+        """Every key under ``prefix`` (raises NotImplementedError where listing is impossible)."""
+        if isinstance(self.target, Store):
+            store = self.target
+
+            async def go() -> list[str]:
+                return [k async for k in store.list_prefix(prefix)]
+
+            return _run(go())
+        if self.is_local:
+            root = self.path
+            base = root / prefix if prefix else root
+            if not base.exists():
+                return []
+            return sorted(p.relative_to(root).as_posix() for p in base.rglob("*") if p.is_file())
+        if str(self.target).startswith(("http://", "https://")):
+            raise NotImplementedError(f"{self.url!r} cannot be listed over HTTP")
+        fs, root = self._fs()
+        root = root.rstrip("/")
+        base = f"{root}/{prefix}" if prefix else root
+        if not fs.exists(base):
+            return []
+        return sorted(p[len(root) + 1 :] for p in fs.find(base))
+
+    def total_size(self, prefix: str = "") -> int:
+        """Total bytes stored under ``prefix`` (0 where the backend cannot list, e.g. HTTP)."""
+        if self.is_local:
+            base = self.path / prefix if prefix else self.path
+            if base.is_file():
+                return base.stat().st_size
+            return sum(p.stat().st_size for p in base.rglob("*") if p.is_file())
+        if isinstance(self.target, Store):
+            store = self.target
+
+            async def go() -> int:
+                n = 0
+                async for key in store.list_prefix(prefix):
+                    n += int(await store.getsize(key))
+                return n
+
+            try:
+                return _run(go())
+            except NotImplementedError:
+                return 0
+        if str(self.target).startswith(("http://", "https://")):
+            return 0
+        fs, root = self._fs()
+        base = f"{root.rstrip('/')}/{prefix}" if prefix else root
+        if not fs.exists(base):
+            return 0
+        return int(sum(d["size"] for d in fs.find(base, detail=True).values()))
+
+    def remove_partial_files(self) -> int:
+        """Delete leftover ``*.partial`` temporary files of interrupted writes (local only)."""
+        if not self.is_local or not self.path.is_dir():
+            return 0
+        n = 0
+        for p in self.path.rglob("*.partial"):
+            p.unlink(missing_ok=True)
+            n += 1
+        return n
+
+    def change_token(self) -> object:
+        """A cheap value that changes when the root metadata is replaced (reader check)."""
+        if self.is_local:
+            try:
+                st = os.stat(self._key_path("zarr.json"))
+            except FileNotFoundError:
+                return None
+            return (st.st_ino, st.st_mtime_ns, st.st_size)
+        data = self.get_bytes("zarr.json")
+        return None if data is None else hashlib.blake2b(data, digest_size=16).digest()
+
+
+def as_location(target: str | os.PathLike | Store | Location) -> Location:
+    """The :class:`Location` of a path, URL, zarr Store or Location."""
+    return target if isinstance(target, Location) else Location(target)

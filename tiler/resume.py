@@ -1,0 +1,178 @@
+"""Exact resume: the per-block journal and the job identity checked before a run continues.
+
+Each worker writes a block's big levels, errors and mask, then the block's *journal entry* last:
+one chunk (crc32c-checked) of the ``journal`` array holding the block's small levels (the sharded
+levels 0..5) and its index row. A block is done exactly when its journal entry reads back
+intact, so a run killed at any moment loses only the blocks in flight. When every block is done
+the finish step builds the shards and the index from the journal, deletes the journal and marks
+the store complete; the result is byte-identical to an uninterrupted run.
+
+The run's state is ``meta.extra["state"]``: ``"layout"`` (arrays being created: a rerun starts
+again), ``"tiling"`` (resumable), ``"finishing"`` (journal consumed: a rerun only finishes).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rasterio
+import zarr
+from rasterio.windows import Window
+
+from tiler.errors import JobMismatchError
+from tiler.layout import level_size
+from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs
+
+JOURNAL = "journal"
+_ROW = np.dtype([("exists", "u1"), ("has_nodata", "u1"), ("zmin", "<f8"), ("zmax", "<f8"),
+                 ("digest", "<u8"), ("mark", "u1")])  # fmt: skip
+
+
+@dataclass(frozen=True)
+class JournalEntry:
+    """A block's small levels and index row."""
+
+    levels: list[np.ndarray]
+    exists: bool
+    has_nodata: bool
+    zmin: float
+    zmax: float
+    digest: int
+
+
+def small_levels(k: int) -> int:
+    """How many levels are sharded (and journaled): ``min(6, k + 1)``."""
+    return min(SHARDED_LEVELS, k + 1)
+
+
+def entry_nbytes(k: int, storage_dtype: str) -> int:
+    """Bytes of one journal entry."""
+    n = sum(level_size(i) for i in range(small_levels(k)))
+    return n * np.dtype(storage_dtype).itemsize + _ROW.itemsize
+
+
+def create_journal(group: zarr.Group, rows: int, cols: int, k: int, storage_dtype: str) -> None:
+    """Create the (empty) journal array."""
+    n = entry_nbytes(k, storage_dtype)
+    group.create_array(
+        JOURNAL,
+        shape=(rows, cols, n),
+        chunks=(1, 1, n),
+        dtype="uint8",
+        fill_value=0,
+        compressors=codecs(FORMAT_VERSION, 5, 1),
+        config=WRITE_CONFIG,
+        chunk_key_encoding={"name": "default", "separator": "."},  # one flat directory
+        overwrite=True,
+    )
+
+
+def pack(entry: JournalEntry, storage_dtype: str) -> np.ndarray:
+    """The entry as the bytes of one journal chunk (last byte 1 marks a written entry)."""
+    dt = np.dtype(storage_dtype).newbyteorder("<")
+    parts = [np.ascontiguousarray(v, dtype=dt).view(np.uint8) for v in entry.levels]
+    row = np.zeros(1, _ROW)
+    row["exists"], row["has_nodata"] = entry.exists, entry.has_nodata
+    row["zmin"], row["zmax"], row["digest"], row["mark"] = (
+        entry.zmin,
+        entry.zmax,
+        entry.digest,
+        1,
+    )
+    return np.concatenate([*parts, row.view(np.uint8)])
+
+
+def unpack(raw: np.ndarray, k: int, storage_dtype: str) -> JournalEntry | None:
+    """Inverse of :func:`pack`; None for an unwritten entry."""
+    raw = np.asarray(raw, dtype=np.uint8)
+    if raw[-1] != 1:
+        return None
+    dt = np.dtype(storage_dtype).newbyteorder("<")
+    levels, off = [], 0
+    for i in range(small_levels(k)):
+        n = level_size(i) * dt.itemsize
+        levels.append(raw[off : off + n].view(dt).astype(np.dtype(storage_dtype)))
+        off += n
+    row = raw[off:].view(_ROW)[0]
+    return JournalEntry(
+        levels=levels,
+        exists=bool(row["exists"]),
+        has_nodata=bool(row["has_nodata"]),
+        zmin=float(row["zmin"]),
+        zmax=float(row["zmax"]),
+        digest=int(row["digest"]),
+    )
+
+
+def done_blocks(arr: zarr.Array) -> np.ndarray:
+    """``(rows, cols)`` bool: blocks whose journal entry is written and intact."""
+    rows, cols, _ = arr.shape
+    try:
+        return arr[:, :, -1] == 1
+    except (ValueError, OSError, RuntimeError):
+        pass  # a torn or damaged entry: check block by block
+    out = np.zeros((rows, cols), bool)
+    for br in range(rows):
+        for bc in range(cols):
+            try:
+                out[br, bc] = arr[br, bc, -1] == 1
+            except (ValueError, OSError, RuntimeError):
+                out[br, bc] = False
+    return out
+
+
+def source_fingerprint(ds: rasterio.DatasetReader, band: int) -> str:
+    """blake2b-128 of the source's shape, dtype, georeferencing, nodata and three sample windows.
+
+    Cheap (three reads of at most 256x256) yet it tells two different DEMs of the same size
+    apart; the per-block digests of the finished store cover every sample.
+    """
+    h = hashlib.blake2b(digest_size=16)
+    h.update(repr((ds.height, ds.width, ds.dtypes[band - 1], tuple(ds.transform)[:6])).encode())
+    h.update(repr((ds.crs.to_wkt() if ds.crs else None, ds.nodatavals[band - 1])).encode())
+    n = 256
+    for r, c in ((0, 0), (ds.height // 2, ds.width // 2), (ds.height - 1, ds.width - 1)):
+        r0, c0 = max(0, min(r, ds.height - n)), max(0, min(c, ds.width - n))
+        win = Window(c0, r0, min(n, ds.width - c0), min(n, ds.height - r0))
+        h.update(np.ascontiguousarray(ds.read(band, window=win)).tobytes())
+    return h.hexdigest()
+
+
+def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
+    """What must match for a rerun to continue an unfinished store."""
+    return {
+        "source_fingerprint": fingerprint,
+        "height": meta.height,
+        "width": meta.width,
+        "dtype": meta.dtype,
+        "nodata": "NaN" if meta.nodata is not None and np.isnan(meta.nodata) else meta.nodata,
+        "block_size": meta.block_size,
+        "band": opts.band,
+        "precision": meta.precision,
+        "error_cap": meta.error_cap,
+        "compression_level": opts.compression_level,
+        "encoding": meta.encoding,
+        "format_version": meta.format_version,
+    }
+
+
+def check_same_job(url: str, old: dict[str, Any] | None, new: dict[str, Any]) -> None:
+    """Raise JobMismatchError naming every differing item and both of its values."""
+    if old is None:
+        raise JobMismatchError(
+            f"{url!r} holds an unfinished store from an older terrastream (no job identity); "
+            "it cannot be resumed: remove it or tile with overwrite to start again."
+        )
+    diffs = [
+        f"{key}: store has {old.get(key)!r}, this run has {value!r}"
+        for key, value in new.items()
+        if old.get(key) != value
+    ]
+    if diffs:
+        raise JobMismatchError(
+            f"{url!r} holds an unfinished store of another job ({'; '.join(diffs)}); rerun with "
+            "the original source and settings to finish it, or tile with overwrite to start again."
+        )

@@ -1,0 +1,268 @@
+"""Running blocks: per-thread/per-process workers, the executor choice, the progress loop.
+
+A worker reads a block's window, encodes it, writes its big levels, errors and mask, and writes
+its journal entry last (the per-block commit, see ``tiler.resume``). The main thread only waits,
+mirrors finished blocks into ``index/done`` and reports progress.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import re
+import sys
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+import numpy as np
+import rasterio.env
+import zarr
+
+from tiler.errors import StoreError
+from tiler.grid import BlockGrid
+from tiler.location import Location
+from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
+from tiler.schema import WRITE_CONFIG, index_chunk
+from tiler.source import _open_source, read_window
+
+log = logging.getLogger("tiler.tile")
+WAIT_TIMEOUT_S = 600.0
+MIRROR_INTERVAL_S = 0.5
+
+
+def open_for_write(target: Any, name: str) -> zarr.Array:
+    """Open one array of a store for writing, writing every chunk (even all-fill ones)."""
+    return zarr.open_array(target, path=name, mode="r+").with_config(WRITE_CONFIG)
+
+
+class BlockWorker:
+    """Reads, encodes and writes blocks for one thread or process (own dataset and arrays)."""
+
+    def __init__(self, src: str, band: int, target: Any, grid: BlockGrid, params: Any):
+        self.src, self.band, self.grid, self.params = src, band, grid, params
+        self.ds = _open_source(src, band)
+        self.small = small_levels(params.k)
+        names = [f"levels/{i}" for i in range(self.small, params.k + 1)]
+        self.arrays = {n: open_for_write(target, n) for n in [*names, "errors", "mask", JOURNAL]}
+
+    def run(self, br: int, bc: int) -> tuple[int, int]:
+        """Encode block ``(br, bc)``; write its data, then its journal entry (the commit)."""
+        from tiler import tile as tile_mod  # tests patch tile_mod.process_block
+
+        res = tile_mod.process_block(
+            read_window(self.ds, self.band, self.grid, br, bc), self.params
+        )
+        for i in range(self.small, self.params.k + 1):
+            self.arrays[f"levels/{i}"][br, bc] = res.levels[i]
+        self.arrays["errors"][br, bc] = res.errors
+        if res.mask is not None:
+            self.arrays["mask"][br, bc] = res.mask
+        entry = JournalEntry(
+            levels=res.levels[: self.small],
+            exists=res.exists,
+            has_nodata=res.has_nodata,
+            zmin=res.zmin,
+            zmax=res.zmax,
+            digest=res.digest,
+        )
+        self.arrays[JOURNAL][br, bc] = pack(entry, self.params.storage_dtype)
+        return br, bc
+
+    def close(self) -> None:
+        """Close the source dataset."""
+        self.ds.close()
+
+
+_PROCESS_WORKER: BlockWorker | None = None
+
+
+def _process_init(gdal_cache_mb: int, *args: Any) -> None:
+    global _PROCESS_WORKER
+    rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(gdal_cache_mb))
+    _PROCESS_WORKER = BlockWorker(*args)
+
+
+def _process_run(br: int, bc: int) -> tuple[int, int]:
+    assert _PROCESS_WORKER is not None
+    return _PROCESS_WORKER.run(br, bc)
+
+
+_GUARD = re.compile(r"""__name__\s*==\s*['"]__main__['"]""")
+
+
+def processes_unsafe() -> str | None:
+    """Why worker processes cannot be started safely here (None if they can).
+
+    Spawned workers re-import the main script: a script calling ``tile()`` at module level
+    without an ``if __name__ == "__main__":`` guard would run again in every worker.
+    """
+    if multiprocessing.parent_process() is not None:
+        return "tile() runs inside a worker process"
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if not path:
+        return None  # interactive session or python -c: workers do not re-run it
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read()
+    except OSError:
+        return None
+    if _GUARD.search(text):
+        return None
+    return f"the main script {path!r} has no `if __name__ == '__main__':` guard"
+
+
+def choose_executor(opts: Any, loc: Location, todo: int) -> str:
+    """``"processes"`` or ``"threads"`` for this run (logs why processes are not used)."""
+    want = opts.executor
+    if want == "auto":
+        big = opts.n_workers > 1 and todo >= 4 * opts.n_workers
+        want = "processes" if big and loc.can_share_with_processes else "threads"
+    if want == "processes":
+        if not loc.can_share_with_processes:
+            log.warning("%s cannot be shared with worker processes: using threads", loc.url)
+            return "threads"
+        why = processes_unsafe()
+        if why:
+            log.warning("using threads instead of worker processes: %s", why)
+            return "threads"
+    return want
+
+
+def run_blocks(
+    src: str,
+    loc: Location,
+    opts: Any,
+    grid: BlockGrid,
+    params: Any,
+    todo: list[tuple[int, int]],
+    done: np.ndarray,
+    report: Callable[[int, int], None],
+    lease: Any,
+) -> str:
+    """Compute ``todo`` blocks; ``done`` (bool grid) is updated and mirrored to ``index/done``."""
+    target = loc.picklable() if loc.can_share_with_processes else loc.target
+    workers = opts.n_workers
+    args = (src, opts.band, target, grid, params)
+    executor = choose_executor(opts, loc, len(todo))
+    local = threading.local()
+    thread_workers: list[BlockWorker] = []
+    done_arr = open_for_write(target, "index/done")
+    itemsize = np.dtype(params.dtype).itemsize
+
+    def thread_run(br: int, bc: int) -> tuple[int, int]:
+        w = getattr(local, "worker", None)
+        if w is None:
+            w = local.worker = BlockWorker(*args)
+            thread_workers.append(w)
+        return w.run(br, bc)
+
+    if executor == "processes":
+        pool: Any = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_process_init,
+            initargs=(opts.gdal_cache_mb, *args),
+        )
+        run: Any = _process_run
+    else:
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="terrastream-tile")
+        run = thread_run
+    pending: set[Future] = set()
+    it = iter(todo)
+
+    unmirrored: list[tuple[int, int]] = []
+    last_mirror = [time.monotonic()]
+
+    def collect(finished: set[Future], *, flush: bool = False) -> None:
+        blocks = []
+        for fut in finished:
+            if fut.cancelled() or fut.exception() is not None:
+                continue
+            blocks.append(fut.result())
+        unmirrored.extend(blocks)
+        # index/done mirrors the journal (the journal is what resuming trusts): rewrite its
+        # chunks at most every MIRROR_INTERVAL_S
+        if flush or time.monotonic() - last_mirror[0] > MIRROR_INTERVAL_S:
+            mark_done(done_arr, done, unmirrored, grid)
+            unmirrored.clear()
+            last_mirror[0] = time.monotonic()
+        for b in blocks:
+            _, _, h, w = grid.block_window(*b)
+            report(1, h * w * itemsize)
+
+    try:
+        while True:
+            while len(pending) < 2 * workers:
+                b = next(it, None)
+                if b is None:
+                    break
+                pending.add(pool.submit(run, *b))
+            if not pending:
+                break
+            finished, pending = wait_futures(
+                pending, timeout=WAIT_TIMEOUT_S, return_when=FIRST_COMPLETED
+            )
+            if not finished:
+                raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
+            collect(finished)
+            for fut in finished:
+                try:
+                    fut.result()  # re-raises a worker's exception here
+                except BrokenProcessPool as exc:
+                    raise StoreError(
+                        "a tiling worker process died (out of memory or killed); rerun the "
+                        "same call to resume (finished blocks are kept)"
+                    ) from exc
+            lease.check()
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        collect({f for f in pending if f.done()}, flush=True)  # finished blocks stay done
+        raise
+    finally:
+        for w in thread_workers:
+            w.close()
+    pool.shutdown(wait=True)
+    collect(set(), flush=True)
+    return executor
+
+
+def mark_done(arr: zarr.Array, done: np.ndarray, blocks: list[tuple[int, int]], grid) -> None:
+    """Set ``done`` for ``blocks`` and rewrite the touched chunks of ``index/done``."""
+    if not blocks:
+        return
+    ir, ic = index_chunk(*grid.shape)
+    chunks = set()
+    for br, bc in blocks:
+        done[br, bc] = True
+        chunks.add((br // ir, bc // ic))
+    for cr, cc in chunks:
+        sl = (slice(cr * ir, (cr + 1) * ir), slice(cc * ic, (cc + 1) * ic))
+        arr[sl] = done[sl]
+
+
+def progress_reporter(
+    total: int, skipped: int, progress: Callable | None
+) -> Callable[[int, int], None]:
+    """A ``report(n_blocks, n_bytes)`` callable feeding ``TileProgress`` to ``progress``."""
+    from tiler.tile import TileProgress
+
+    t0 = time.perf_counter()
+    state = {"done": skipped, "bytes": 0}
+
+    def report(n: int, nbytes: int) -> None:
+        state["done"] += n
+        state["bytes"] += nbytes
+        if progress:
+            progress(
+                TileProgress(
+                    state["done"], total, state["bytes"], time.perf_counter() - t0, skipped
+                )
+            )
+
+    return report

@@ -1,0 +1,179 @@
+"""The store's arrays: names, codecs (checksummed), fill values, chunk keys; creating the layout.
+
+Format 2 puts the zarr v3 ``crc32c`` codec last in every array's codec chain (inside the shards
+too, whose index carries its own crc32c), writes every chunk (``write_empty_chunks``) and uses a
+fill value no written chunk holds (levels: the storage dtype's maximum; errors: NaN), so a chunk
+read back as the fill value is a *missing* chunk, never silently zeros.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec, Crc32cCodec
+
+from tiler import static_error
+from tiler.layout import level_index, level_size, order_index
+
+FORMAT_VERSION = 2
+ATTR = "terrastream"
+SHARDED_LEVELS = 6  # levels 0..5 (<= 800 values a block) are sharded
+SHARD_BLOCKS = 16  # blocks per shard edge for small levels
+INDEX_CHUNK = 256
+INDEX_NAMES = ("exists", "done", "has_nodata", "zmin", "zmax", "window", "digest")
+DEFAULT_CLEVEL = 5
+WRITE_CONFIG = {"write_empty_chunks": True}
+INDEX_DTYPES = {
+    "exists": ("bool", False),
+    "done": ("bool", False),
+    "has_nodata": ("bool", False),
+    "zmin": ("float64", np.nan),
+    "zmax": ("float64", np.nan),
+    "digest": ("uint64", 0),
+}
+
+
+def compressor(level: int = DEFAULT_CLEVEL, typesize: int = 2, bits: bool = False) -> BloscCodec:
+    """Blosc (zstd inside) with byte shuffle, or bit shuffle for index tables.
+
+    Chosen by measurement (BENCHMARKS.md): on zigzagged residuals, byte shuffle + zstd beats
+    plain zstd by 15-35 %; blosc is in the zarr v3 specification, unlike numcodecs filters.
+    """
+    return BloscCodec(
+        cname="zstd",
+        clevel=level,
+        shuffle="bitshuffle" if bits else "shuffle",
+        typesize=typesize,
+        blocksize=0,
+    )
+
+
+def codecs(format_version: int, level: int, typesize: int, bits: bool = False) -> list[Any]:
+    """The bytes-to-bytes codecs of an array: blosc, then crc32c from format 2 on."""
+    out: list[Any] = [compressor(level, typesize, bits)]
+    if format_version >= 2:
+        out.append(Crc32cCodec())
+    return out
+
+
+def level_fill(storage_dtype: str | np.dtype) -> int:
+    """Fill value of the level arrays: the storage dtype's maximum (never a whole written chunk)."""
+    return int(np.iinfo(np.dtype(storage_dtype)).max)
+
+
+def shard_shape(rows: int, cols: int) -> tuple[int, int]:
+    """Blocks per shard of the small levels (rows, cols)."""
+    return min(rows, SHARD_BLOCKS), min(cols, SHARD_BLOCKS)
+
+
+def index_chunk(rows: int, cols: int) -> tuple[int, int]:
+    """Blocks per chunk of the index arrays (rows, cols)."""
+    return min(rows, INDEX_CHUNK), min(cols, INDEX_CHUNK)
+
+
+def array_names(k: int) -> list[str]:
+    """Every array of a store with ``k + 1`` levels."""
+    names = [f"levels/{i}" for i in range(k + 1)]
+    names += ["errors", "mask", *[f"index/{n}" for n in INDEX_NAMES], "level_index", "order_index"]
+    return names
+
+
+def chunk_key(name: str, block: tuple[int, int], rows: int, cols: int) -> str:
+    """The store key of the chunk (or shard) holding ``block``'s data in array ``name``."""
+    br, bc = block
+    if name.startswith("levels/"):
+        if int(name.split("/")[1]) < SHARDED_LEVELS:
+            sr, sc = shard_shape(rows, cols)
+            return f"{name}/c/{br // sr}/{bc // sc}/0"
+        return f"{name}/c/{br}/{bc}/0"
+    if name in ("errors", "mask"):
+        return f"{name}/c/{br}/{bc}/0/0"
+    if name.startswith("index/"):
+        ir, ic = index_chunk(rows, cols)
+        tail = "/0" if name == "index/window" else ""
+        return f"{name}/c/{br // ir}/{bc // ic}{tail}"
+    return f"{name}/c/0/0"
+
+
+def create_layout(group: zarr.Group, meta: Any, comp_level: int) -> None:
+    """Create every array of an empty store (no data written)."""
+    v = meta.format_version
+    grid = meta.grid
+    rows, cols = grid.shape
+    side = grid.side
+    itemsize = np.dtype(meta.storage_dtype).itemsize
+    fill = level_fill(meta.storage_dtype) if v >= 2 else 0
+    cfg = WRITE_CONFIG if v >= 2 else None
+    for i in range(meta.levels):
+        n = level_size(i)
+        kw: dict[str, Any] = {}
+        if i < SHARDED_LEVELS:
+            kw["shards"] = (*shard_shape(rows, cols), n)
+        group.create_array(
+            f"levels/{i}",
+            shape=(rows, cols, n),
+            chunks=(1, 1, n),
+            dtype=meta.storage_dtype,
+            compressors=codecs(v, comp_level, itemsize),
+            fill_value=fill,
+            dimension_names=("block_row", "block_col", "value"),
+            config=cfg,
+            **kw,
+        )
+    e = sum(static_error.field_sizes(meta.k, meta.error_cap))
+    group.create_array(
+        "errors",
+        shape=(rows, cols, len(meta.error_fields), e),
+        chunks=(1, 1, len(meta.error_fields), e),
+        dtype="float16",
+        compressors=codecs(v, comp_level, 2),
+        fill_value=np.nan if v >= 2 else 0,
+        dimension_names=("block_row", "block_col", "field", "node"),
+        config=cfg,
+    )
+    group.create_array(
+        "mask",
+        shape=(rows, cols, side, side),
+        chunks=(1, 1, side, side),
+        dtype="bool",
+        compressors=codecs(v, comp_level, 1, bits=True),
+        fill_value=True,
+        dimension_names=("block_row", "block_col", "row", "col"),
+    )
+    ic = index_chunk(rows, cols)
+    for name, (dtype, fv) in INDEX_DTYPES.items():
+        group.create_array(
+            f"index/{name}",
+            shape=(rows, cols),
+            chunks=ic,
+            dtype=dtype,
+            fill_value=fv,
+            compressors=codecs(v, comp_level, np.dtype(dtype).itemsize) if v >= 2 else "auto",
+            dimension_names=("block_row", "block_col"),
+            config=cfg,
+        )
+    group.create_array(
+        "index/window",
+        shape=(rows, cols, 4),
+        chunks=(*ic, 4),
+        dtype="int32",
+        fill_value=0,
+        compressors=codecs(v, comp_level, 4) if v >= 2 else "auto",
+        dimension_names=("block_row", "block_col", "field"),
+        config=cfg,
+    )
+    for name, table in (("level_index", level_index(meta.k)), ("order_index", order_index(meta.k))):
+        group.create_array(
+            name,
+            data=np.asarray(table),
+            chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
+            compressors=codecs(v, 9, table.dtype.itemsize, bits=True),
+            dimension_names=("row", "col"),
+        )
+
+
+def expected_table(name: str, k: int) -> np.ndarray:
+    """The content ``level_index`` or ``order_index`` must have."""
+    return level_index(k) if name == "level_index" else order_index(k)

@@ -1,0 +1,336 @@
+"""``verify_store``: read every chunk of a store and report each damaged or missing block.
+
+Checks, in order: the root metadata; every array's presence, shape and dtype; every chunk of the
+index, the levels, the errors and the masks of blocks with nodata (crc32c in format 2, and
+missing chunks, which zarr would otherwise return as fill values); the ``level_index`` and
+``order_index`` tables against their definition; the source checksum against the block digests;
+and, with ``source``, every block's digest recomputed from the source raster.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tiler.errors import StoreError
+from tiler.layout import level_size
+from tiler.location import Location, as_location
+from tiler.schema import (
+    INDEX_NAMES,
+    SHARDED_LEVELS,
+    chunk_key,
+    expected_table,
+    index_chunk,
+    level_fill,
+    shard_shape,
+)
+from tiler.store import StoreMeta, read_meta
+
+_READ_ERRORS = (ValueError, OSError, RuntimeError, KeyError)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One finding: ``kind`` is checksum, missing, mismatch, metadata or source."""
+
+    kind: str
+    array: str
+    block: tuple[int, int] | None
+    level: int | None
+    message: str
+
+
+@dataclass
+class VerifyReport:
+    """The result of :func:`verify_store`; ``ok`` is True when nothing was found."""
+
+    location: str
+    format_version: int | None = None
+    checksummed: bool = False
+    complete: bool = False
+    chunks_checked: int = 0
+    blocks_total: int = 0
+    source_checked: bool = False
+    problems: list[Problem] = field(default_factory=list)
+    bad_blocks: set[tuple[int, int]] = field(default_factory=set)
+    bad_tables: list[str] = field(default_factory=list)
+    unrepairable: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when no problem was found."""
+        return not self.problems
+
+    def add(self, kind: str, array: str, block: Any, level: int | None, msg: str) -> None:
+        """Record a problem (and its block as bad)."""
+        b = None if block is None else (int(block[0]), int(block[1]))
+        self.problems.append(Problem(kind, array, b, level, msg))
+        if b is not None:
+            self.bad_blocks.add(b)
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready dict (blocks as lists)."""
+        return {
+            "location": self.location,
+            "ok": self.ok,
+            "format_version": self.format_version,
+            "checksummed": self.checksummed,
+            "complete": self.complete,
+            "chunks_checked": self.chunks_checked,
+            "blocks_total": self.blocks_total,
+            "source_checked": self.source_checked,
+            "bad_blocks": sorted([list(b) for b in self.bad_blocks]),
+            "bad_tables": self.bad_tables,
+            "unrepairable": self.unrepairable,
+            "problems": [
+                {
+                    "kind": p.kind,
+                    "array": p.array,
+                    "block": None if p.block is None else list(p.block),
+                    "level": p.level,
+                    "message": p.message,
+                }
+                for p in self.problems
+            ],
+        }
+
+
+def verify_store(
+    location: str | os.PathLike | Location | Any, *, source: str | os.PathLike | None = None
+) -> VerifyReport:
+    """Check every chunk and the metadata of a store (and, given ``source``, the block digests)."""
+    loc = as_location(location)
+    rep = VerifyReport(location=loc.url)
+    try:
+        group = loc.open_group("r")
+        meta = read_meta(group)
+    except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
+        rep.add("metadata", "", None, None, f"root metadata unreadable: {exc}")
+        rep.unrepairable.append(f"root metadata unreadable: {exc}")
+        return rep
+    rep.format_version, rep.checksummed, rep.complete = (
+        meta.format_version,
+        meta.checksummed,
+        meta.complete,
+    )
+    grid = meta.grid
+    rows, cols = grid.shape
+    rep.blocks_total = rows * cols
+    arrays = _open_arrays(group, meta, rep)
+    idx = _check_index(arrays, loc, meta, rep)
+    for i in range(meta.levels):
+        if f"levels/{i}" in arrays:
+            _check_level(arrays[f"levels/{i}"], i, loc, meta, rep)
+    if "errors" in arrays:
+        _check_blocks(arrays["errors"], "errors", loc, meta, rep, grid.blocks())
+    if "mask" in arrays and "has_nodata" in idx:
+        need = [b for b in grid.blocks() if idx["has_nodata"][b]]
+        _check_blocks(arrays["mask"], "mask", loc, meta, rep, need, has_nodata=True)
+    for name in ("level_index", "order_index"):
+        if name not in arrays:
+            continue
+        rep.chunks_checked += 1
+        try:
+            ok = np.array_equal(arrays[name][...], expected_table(name, meta.k))
+        except _READ_ERRORS as exc:
+            ok, why = False, str(exc)
+        else:
+            why = "content differs from its definition"
+        if not ok:
+            rep.add("mismatch", name, None, None, f"table {name!r} is damaged: {why}")
+            rep.bad_tables.append(name)
+    if "digest" in idx and meta.complete:
+        checksum = hashlib.blake2b(idx["digest"].astype("<u8").tobytes(), digest_size=16)
+        want = meta.source.get("checksum")
+        if want and want != f"blake2b-128:{checksum.hexdigest()}":
+            rep.add(
+                "metadata",
+                "index/digest",
+                None,
+                None,
+                "the source checksum in the metadata does not match the block digests",
+            )
+    if source is not None and "digest" in idx:
+        _check_source(str(source), meta, idx["digest"], rep)
+    return rep
+
+
+def _open_arrays(group: Any, meta: StoreMeta, rep: VerifyReport) -> dict[str, Any]:
+    rows, cols = meta.grid.shape
+    side = meta.block_size
+    want: dict[str, tuple] = {
+        f"levels/{i}": (rows, cols, level_size(i)) for i in range(meta.levels)
+    }
+    want["errors"] = None  # type: ignore[assignment]
+    want["mask"] = (rows, cols, side, side)
+    for n in INDEX_NAMES:
+        want[f"index/{n}"] = (rows, cols, 4) if n == "window" else (rows, cols)
+    want["level_index"] = want["order_index"] = (side, side)
+    out = {}
+    for name, shape in want.items():
+        try:
+            arr = group[name]
+        except _READ_ERRORS as exc:
+            msg = f"array {name!r} is missing or its metadata is damaged: {exc}"
+            rep.add("metadata", name, None, None, msg)
+            rep.unrepairable.append(msg)
+            continue
+        if shape is not None and tuple(arr.shape) != shape:
+            msg = f"array {name!r} has shape {tuple(arr.shape)}, expected {shape}"
+            rep.add("metadata", name, None, None, msg)
+            rep.unrepairable.append(msg)
+            continue
+        out[name] = arr
+    return out
+
+
+def _check_index(arrays: dict, loc: Location, meta: StoreMeta, rep: VerifyReport) -> dict:
+    rows, cols = meta.grid.shape
+    ir, ic = index_chunk(rows, cols)
+    out = {}
+    for n in INDEX_NAMES:
+        arr = arrays.get(f"index/{n}")
+        if arr is None:
+            continue
+        vals = None
+        for r0 in range(0, rows, ir):
+            for c0 in range(0, cols, ic):
+                rep.chunks_checked += 1
+                sl = (slice(r0, r0 + ir), slice(c0, c0 + ic))
+                blocks = [
+                    (r, c)
+                    for r in range(r0, min(r0 + ir, rows))
+                    for c in range(c0, min(c0 + ic, cols))
+                ]
+                key = chunk_key(f"index/{n}", (r0, c0), rows, cols)
+                try:
+                    part = arr[sl]
+                except _READ_ERRORS as exc:
+                    _bad_all(rep, "checksum", f"index/{n}", blocks, f"chunk {key!r}: {exc}")
+                    continue
+                if meta.checksummed and meta.complete and not loc.key_exists(key):
+                    _bad_all(rep, "missing", f"index/{n}", blocks, f"chunk {key!r} is missing")
+                    continue
+                if vals is None:
+                    vals = np.empty(arr.shape, dtype=arr.dtype)
+                vals[sl] = part
+        if vals is not None:
+            out[n] = vals
+    if meta.complete and "done" in out:
+        for b in zip(*np.nonzero(~out["done"]), strict=True):
+            rep.add("mismatch", "index/done", b, None, f"block {b} is not marked done")
+    if "window" in out:
+        grid = meta.grid
+        for b in grid.blocks():
+            if tuple(out["window"][b]) != grid.block_window(*b):
+                rep.add("mismatch", "index/window", b, None, f"block {b} has a wrong window")
+    return out
+
+
+def _bad_all(rep: VerifyReport, kind: str, array: str, blocks: list, msg: str) -> None:
+    rep.problems.append(Problem(kind, array, None, None, f"{array}: {msg}"))
+    rep.bad_blocks.update(blocks)
+
+
+def _check_level(arr: Any, level: int, loc: Location, meta: StoreMeta, rep: VerifyReport) -> None:
+    rows, cols = meta.grid.shape
+    if level >= SHARDED_LEVELS:
+        _check_blocks(arr, f"levels/{level}", loc, meta, rep, meta.grid.blocks(), level=level)
+        return
+    sr, sc = shard_shape(rows, cols)
+    fill = level_fill(meta.storage_dtype)
+    for r0 in range(0, rows, sr):
+        for c0 in range(0, cols, sc):
+            r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
+            rep.chunks_checked += 1
+            try:
+                region = arr[r0:r1, c0:c1]
+            except _READ_ERRORS:
+                region = None
+            for br in range(r0, r1):
+                for bc in range(c0, c1):
+                    if region is None:
+                        try:
+                            v = arr[br, bc]
+                        except _READ_ERRORS as exc:
+                            rep.add(
+                                "checksum",
+                                f"levels/{level}",
+                                (br, bc),
+                                level,
+                                f"level {level} of block {(br, bc)}: {exc}",
+                            )
+                            continue
+                    else:
+                        v = region[br - r0, bc - c0]
+                    if meta.checksummed and np.all(v == fill):
+                        rep.add(
+                            "missing",
+                            f"levels/{level}",
+                            (br, bc),
+                            level,
+                            f"level {level} of block {(br, bc)} is missing",
+                        )
+
+
+def _check_blocks(
+    arr: Any,
+    name: str,
+    loc: Location,
+    meta: StoreMeta,
+    rep: VerifyReport,
+    blocks: list,
+    level: int | None = None,
+    has_nodata: bool = False,
+) -> None:
+    rows, cols = meta.grid.shape
+    fill = level_fill(meta.storage_dtype) if name.startswith("levels/") else None
+    what = f"level {level}" if level is not None else name
+    for b in blocks:
+        rep.chunks_checked += 1
+        try:
+            v = arr[b]
+        except _READ_ERRORS as exc:
+            rep.add("checksum", name, b, level, f"{what} of block {b}: {exc}")
+            continue
+        if not meta.checksummed and not has_nodata:
+            continue
+        if fill is not None:
+            suspect = bool(np.all(v == fill))
+        elif name == "errors":
+            suspect = bool(np.all(np.isnan(v)))
+        else:
+            suspect = bool(v.all())  # a mask of a block with nodata has a False somewhere
+        if suspect and (has_nodata or not loc.key_exists(chunk_key(name, b, rows, cols))):
+            rep.add("missing", name, b, level, f"{what} of block {b} is missing")
+
+
+def _check_source(src: str, meta: StoreMeta, digests: np.ndarray, rep: VerifyReport) -> None:
+    from tiler.source import _open_source, read_window
+
+    rep.source_checked = True
+    grid = meta.grid
+    with _open_source(src, 1) as ds:
+        if (ds.height, ds.width) != (meta.height, meta.width):
+            rep.add(
+                "source",
+                "index/digest",
+                None,
+                None,
+                f"source {src!r} is {ds.height}x{ds.width}, the store {meta.height}x{meta.width}",
+            )
+            return
+        for b in grid.blocks():
+            data = np.asarray(read_window(ds, 1, grid, *b), dtype=np.dtype(meta.dtype))
+            h, w = data.shape
+            d = hashlib.blake2b(
+                data.tobytes() + np.array([h, w], np.int64).tobytes(), digest_size=8
+            ).digest()
+            if int.from_bytes(d, "little") != int(digests[b]):
+                rep.add(
+                    "source", "index/digest", b, None, f"block {b} differs from the source {src!r}"
+                )
