@@ -26,8 +26,12 @@ class SessionConfig:
     culling: str = "qiu"
     extension_L: float | None = None  # default: one block edge
     latency_ms: float = 0.0  # added to every store request (benchmarks)
-    retries: int = 3
-    backoff_s: float = 0.05
+    retries: int = 3  # failures in a row before a block is reported failed
+    backoff_s: float = 0.05  # first retry delay; doubles per failure in a row
+    max_backoff_s: float = 1.0  # retry delay cap (a failed block is retried at this pace)
+    heal: bool = True  # keep retrying failed blocks while wanted (False: give up after retries)
+    raise_on_failure: bool = True  # update() raises LoadError once when a block fails
+    warm_start: bool = False  # the first update() runs warm_up() for its camera first
     wait_timeout_s: float = 30.0
     linger_s: float | None = None  # unload unwanted levels after this long; None: only when
     # the budget needs the room (least recently wanted first)
@@ -43,6 +47,8 @@ class SessionConfig:
             ("patch_log2", self.patch_log2 >= 0),
             ("latency_ms", self.latency_ms >= 0),
             ("retries", self.retries >= 1),
+            ("backoff_s", self.backoff_s >= 0 and math.isfinite(self.backoff_s)),
+            ("max_backoff_s", self.max_backoff_s >= 0 and math.isfinite(self.max_backoff_s)),
             ("wait_timeout_s", self.wait_timeout_s > 0),
             ("linger_s", self.linger_s is None or self.linger_s >= 0),
             ("horizon_s", self.horizon_s >= 0),
@@ -74,15 +80,22 @@ class FrameStats:
     missing_levels: int
     resident_bytes: int
     io_errors: int
+    holes: int = 0  # visible blocks with no resident level (nothing of them can be drawn)
+    failed_blocks: int = 0  # visible blocks whose reads failed ``retries`` times in a row
 
 
 @dataclass(frozen=True)
 class Frame:
-    """What a frame may draw: ``blocks[b] = (resident level, needed level)``, and its stats."""
+    """What a frame may draw: ``blocks[b] = (resident level, needed level)``, and its stats.
+
+    A resident level of -1 is a hole (counted in ``stats.holes``); ``failed`` names the
+    visible blocks whose reads keep failing (they are still retried).
+    """
 
     camera: Camera
     blocks: dict[Block, tuple[int, int]]
     stats: FrameStats
+    failed: frozenset[Block] = frozenset()
 
 
 @dataclass
@@ -99,4 +112,7 @@ class _Totals:
     warmup: dict = field(default_factory=dict)
     io_errors: int = 0
     cancelled: int = 0
+    hole_frames: int = 0
+    failed_frames: int = 0
+    failed_ever: set = field(default_factory=set)
     used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
