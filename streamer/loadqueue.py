@@ -34,6 +34,7 @@ class LoadQueue:
         self._heap: list[tuple[tuple, Block]] = []
         self.failures: dict[Block, int] = {}  # failures in a row
         self.retry_at: dict[Block, float] = {}
+        self.failed_at: dict[Block, float] = {}  # time of the latest failure
         self.cancelled = 0
 
     def __len__(self) -> int:
@@ -87,6 +88,7 @@ class LoadQueue:
         """Record a failed read of ``b``; returns its failures in a row."""
         n = self.failures.get(b, 0) + 1
         self.failures[b] = n
+        self.failed_at[b] = now
         if self.retryable(b):
             delay = min(self.backoff_s * 2 ** (n - 1), self.max_backoff_s)
             self.retry_at[b] = now + delay
@@ -96,10 +98,18 @@ class LoadQueue:
         """A read of ``b`` worked: forget its failures."""
         self.failures.pop(b, None)
         self.retry_at.pop(b, None)
+        self.failed_at.pop(b, None)
 
     def is_failed(self, b: Block) -> bool:
         """``b`` failed ``retries`` times in a row (and has not been read since)."""
         return self.failures.get(b, 0) >= self.retries
+
+    def given_up(self, b: Block, since: float) -> bool:
+        """Whether a waiter that started at ``since`` stops waiting for ``b``: it is failed
+        and, when healing, a retry since then failed too (without healing it never returns)."""
+        if not self.is_failed(b):
+            return False
+        return not self.heal or self.failed_at.get(b, 0.0) >= since
 
     def failed_blocks(self) -> set[Block]:
         """Every block currently failed."""

@@ -271,8 +271,9 @@ class Session:
 
         ``dt`` is the time since the previous pose (default ``1/fps``), used for the velocity
         that stretches the frustum extension. ``wait=True`` blocks until every visible block
-        holds its needed level or has failed ``retries`` times in a row (bounded by
-        ``wait_timeout_s``). With ``warm_start``, the first call runs :meth:`warm_up` first.
+        holds its needed level or has failed ``retries`` times in a row and once more during
+        this wait (bounded by ``wait_timeout_s``). With ``warm_start``, the first call runs
+        :meth:`warm_up` first.
         """
         self._check_open()
         if self.config.warm_start and self.totals.frames == 0 and not self.totals.warmup:
@@ -322,7 +323,8 @@ class Session:
         """Wait until every block of ``needed`` is loaded or failed (see :meth:`update`)."""
         self._mark_demand(needed)
         cfg = self.config
-        deadline = time.monotonic() + cfg.wait_timeout_s
+        start = time.monotonic()
+        deadline = start + cfg.wait_timeout_s
         q = self.loader.queue
         while True:
             if cfg.workers == 0:
@@ -331,7 +333,7 @@ class Session:
                 self.loader.pump()
             with self._cv:
                 now = time.monotonic()
-                missing = [(b, lv) for b, lv in self._missing(needed) if not q.is_failed(b)]
+                missing = [(b, lv) for b, lv in self._missing(needed) if not q.given_up(b, start)]
                 if not missing:
                     return
                 if cfg.workers == 0 and not q.next_retry(now):
