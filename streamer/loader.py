@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -105,13 +105,24 @@ class Loader:
 
     def reschedule(self) -> None:
         """Rebuild the queue from the cache's wants (caller holds the lock)."""
-        self.prio = {}
+        for _ in self.reschedule_steps():
+            pass
+
+    def reschedule_steps(self, chunk: int = 64) -> Iterator[None]:
+        """:meth:`reschedule` in steps of at most ``chunk`` blocks; the caller holds the lock
+        during each step and may release it between them. Keys computed in an earlier step
+        may be slightly stale by the swap; a job is re-checked when it is taken."""
+        prio: dict[Block, float] = {}
         items = []
-        for b, want, _pin, prio in self.cache.wanted():
-            self.prio[b] = prio
-            if self.cache.level(b) >= want and b in self.errors:
-                continue
-            items.append((self.key(b), b))
+        for part in self.cache.wanted_steps(chunk):
+            for b, want, _pin, p in part:
+                prio[b] = p
+                self.prio[b] = p
+                if self.cache.level(b) >= want and b in self.errors:
+                    continue
+                items.append((self.key(b), b))
+            yield
+        self.prio = prio
         self.queue.rebuild(items)
         self.totals.cancelled = self.queue.cancelled
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
@@ -49,6 +49,7 @@ from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
 
 log = logging.getLogger(__name__)
+_DONE = object()
 
 
 class Session:
@@ -67,6 +68,7 @@ class Session:
         self.grid = self.store.grid
         itemsize = np.dtype(self.store.meta.dtype).itemsize
         self.level_bytes = [level_size(i) * itemsize for i in range(self.store.k + 1)]
+        self._cum_bytes = [sum(self.level_bytes[: i + 1]) for i in range(self.store.k + 1)]
         field_name = FIELD_FOR_METRIC.get(self.config.metric, "qiu")
         self.loader = Loader(self.store, self.config, self.level_bytes, field_name, read_hook)
         self.cache = self.loader.cache
@@ -161,13 +163,22 @@ class Session:
         camera, velocity, visible = req
         plan = self.planner.prefetch(camera, velocity, visible)  # no lock held
         cfg = self.config
+        # applied in short steps: the lock is released between them so that update() and
+        # the loaders never wait long for it
+        self._stepwise(self.cache.prefetch_steps(plan.wants))
         with self._cv:
-            self.cache.set_prefetch(plan.wants)
             if cfg.linger_s is not None:
                 self.cache.trim(int(cfg.linger_s * cfg.fps))
             self._prefetch_blocks = plan.ring
-            self.loader.reschedule()
+        self._stepwise(self.loader.reschedule_steps())
         self.loader.pump()
+
+    def _stepwise(self, steps: Iterator[None]) -> None:
+        """Run a generator's steps, each under the lock."""
+        while True:
+            with self._cv:
+                if next(steps, _DONE) is _DONE:
+                    return
 
     def _request_plan(self, camera: Camera, velocity: Any, visible: set[Block]) -> None:
         with self._cv:
@@ -387,7 +398,7 @@ class Session:
             frame=self.totals.frames,
             visible_blocks=len(needed),
             prefetch_blocks=self._prefetch_blocks,
-            needed_bytes=sum(sum(self.level_bytes[: lv + 1]) for lv in needed.values()),
+            needed_bytes=sum(self._cum_bytes[lv] for lv in needed.values()),
             realtime_bytes=realtime,
             prefetched_bytes=prefetched,
             io_ms=io_s * 1000.0,
@@ -441,7 +452,7 @@ class Session:
         """Totals over every frame so far (the ``summary`` object of ``--json``)."""
         t = self.totals
         with self._cv:
-            used_bytes = sum(sum(self.level_bytes[: top + 1]) for top in t.used.values())
+            used_bytes = sum(self._cum_bytes[top] for top in t.used.values() if top >= 0)
             failed_now = sorted(self.loader.queue.failed_blocks())
         return {
             "frames": t.frames,
