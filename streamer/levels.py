@@ -1,7 +1,8 @@
 """Fast per-frame needed levels: the patch errors of many blocks kept in slot arrays (pure).
 
-:func:`streamer.lod.select_many` returns every leaf node; a streamer only needs each block's
-needed level, every frame, for many blocks. :class:`PatchErrorTable` keeps, per refinable depth
+The reference selection (``select_many`` in ``tests/streamer/lod_reference.py``) returns every
+leaf node; a streamer only needs each block's needed level, every frame, for many blocks.
+:class:`PatchErrorTable` keeps, per refinable depth
 ``d`` (``d + patch_log2 < k``), the max stored error of each depth-``d`` node's descendants at
 depth ``d + patch_log2`` (the error of drawing that node as a patch), for every block that has
 its errors, in one ``(slots, 2**d, 2**d)`` float32 array. A frame's levels are then one
