@@ -74,6 +74,8 @@ class Loader:
         self.raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded
         self.decoding: set[Block] = set()
         self.demanded: set[tuple[Block, int]] = set()
+        self.due: dict[tuple[Block, int], float] = {}  # level -> due time of its first frame
+        self.frame_late = 0
         self.prio: dict[Block, float] = {}
         self.unreported: list[tuple[Block, BaseException]] = []
         self.last_error: dict[Block, BaseException] = {}
@@ -269,6 +271,9 @@ class Loader:
                     self._drop_raw(b)  # evicted or unwanted meanwhile
                     return
                 self.totals.loaded_bytes += nbytes
+                due = self.due.pop((b, nxt), None)
+                if due is not None and time.monotonic() > due:
+                    self.frame_late += nbytes
                 if (b, nxt) in self.demanded:
                     self.frame_realtime += nbytes
                 else:

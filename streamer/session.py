@@ -79,6 +79,9 @@ class Session:
         )
         self._cv = self.loader.cv
         self._prev: Camera | None = None
+        self._clock0: float | None = None  # when frame 0 was shown (its update returned)
+        self._due = 0.0  # due time of the frame being made
+        self._stall_set = "triangle" if self.config.culling == "qiu" else "hull"
         self._request: tuple | None = None
         self._planning = False
         self._plan_error: BaseException | None = None
@@ -291,6 +294,9 @@ class Session:
             self.warm_up(camera)
         t0, c0 = time.perf_counter(), time.thread_time()
         self._raise_background_error()
+        now = time.monotonic()
+        f = self.totals.frames
+        self._due = now if self._clock0 is None else self._clock0 + f / self.config.fps
         cfg = self.config
         dt = 1.0 / cfg.fps if dt is None else float(dt)
         velocity = (
@@ -325,10 +331,12 @@ class Session:
         return [(b, lv) for b, lv in needed.items() if cache.level(b) < lv or b not in errors]
 
     def _mark_demand(self, needed: dict[Block, int]) -> None:
+        ld = self.loader
         with self._cv:
             for b, lv in needed.items():
                 for level in range(self.cache.level(b) + 1, lv + 1):
-                    self.loader.demanded.add((b, level))
+                    ld.demanded.add((b, level))
+                    ld.due.setdefault((b, level), self._due)
 
     def _wait_for(self, needed: dict[Block, int]) -> None:
         """Wait until every block of ``needed`` is loaded or failed (see :meth:`update`)."""
@@ -379,6 +387,7 @@ class Session:
             for b, lv in missing:
                 for level in range(self.cache.level(b) + 1, lv + 1):
                     ld.demanded.add((b, level))
+                    ld.due.setdefault((b, level), self._due)
             blocks = {b: (self.cache.level(b), lv) for b, lv in needed.items()}
             used = self.totals.used
             for b, (have, lv) in blocks.items():
@@ -386,6 +395,7 @@ class Session:
                 if top > used.get(b, -1):
                     used[b] = top
             realtime, prefetched, io_s = ld.frame_realtime, ld.frame_prefetched, ld.frame_io_s
+            late, ld.frame_late = ld.frame_late, 0
             ld.frame_realtime = ld.frame_prefetched = 0
             ld.frame_io_s = 0.0
             news, ld.unreported = ld.unreported, []
@@ -393,6 +403,7 @@ class Session:
             resident = self.cache.nbytes
             errors = self.totals.io_errors
         holes = sum(1 for have, _ in blocks.values() if have < 0)
+        short = max((lv - have for have, lv in blocks.values()), default=0)
         t3, c3 = time.perf_counter(), time.thread_time()
         stats = FrameStats(
             frame=self.totals.frames,
@@ -411,6 +422,9 @@ class Session:
             io_errors=errors,
             holes=holes,
             failed_blocks=len(failed),
+            stall_set=self._stall_set,
+            late_bytes=late,
+            levels_short=max(0, short),
         )
         frame = Frame(camera=camera, blocks=blocks, stats=stats, failed=failed)
         self._record(frame)
@@ -427,19 +441,9 @@ class Session:
         return frame
 
     def _record(self, frame: Frame) -> None:
-        st, t = frame.stats, self.totals
-        t.needed_bytes += st.needed_bytes
-        t.realtime_bytes += st.realtime_bytes
-        if t.frames > 0:
-            t.realtime_bytes_after_first += st.realtime_bytes
-        t.prefetched_bytes += st.prefetched_bytes
-        t.stall_frames += int(st.stalled)
-        t.hole_frames += int(st.holes > 0)
-        t.failed_frames += int(st.failed_blocks > 0)
-        t.failed_ever.update(frame.failed)
-        t.max_update_ms = max(t.max_update_ms, st.update_ms)
-        t.max_update_cpu_ms = max(t.max_update_cpu_ms, st.update_cpu_ms)
-        t.frames += 1
+        self.totals.add(frame)
+        if self._clock0 is None:
+            self._clock0 = time.monotonic()  # the frame clock starts once frame 0 is shown
 
     # -- results ---------------------------------------------------------------------------
 
@@ -454,29 +458,13 @@ class Session:
         with self._cv:
             used_bytes = sum(self._cum_bytes[top] for top in t.used.values() if top >= 0)
             failed_now = sorted(self.loader.queue.failed_blocks())
-        return {
-            "frames": t.frames,
-            "stall_frames": t.stall_frames,
-            "needed_bytes": t.needed_bytes,
-            "realtime_bytes": t.realtime_bytes,
-            "realtime_bytes_after_first_frame": t.realtime_bytes_after_first,
-            "prefetched_bytes": t.prefetched_bytes,
-            "loaded_bytes": t.loaded_bytes,
-            "used_bytes": used_bytes,
-            "wasted_bytes": max(0, t.loaded_bytes - used_bytes),
-            "peak_resident_bytes": self.cache.peak_nbytes,
-            "budget_bytes": self.cache.budget,
-            "max_update_ms": t.max_update_ms,
-            "max_update_cpu_ms": t.max_update_cpu_ms,
-            "io_errors": t.io_errors,
-            "cancelled_loads": t.cancelled,
-            "warmup_ms": t.warmup.get("ms", 0.0),
-            "warmup_bytes": int(t.warmup.get("bytes", 0)),
-            "hole_frames": t.hole_frames,
-            "failed_frames": t.failed_frames,
-            "failed_blocks": [list(b) for b in failed_now],
-            "failed_blocks_ever": len(t.failed_ever),
-        }
+        return t.summary(
+            used_bytes=used_bytes,
+            peak_resident_bytes=self.cache.peak_nbytes,
+            budget_bytes=self.cache.budget,
+            stall_set=self._stall_set,
+            failed_now=failed_now,
+        )
 
 
 def open_session(
