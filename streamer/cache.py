@@ -10,6 +10,7 @@ levels (lowest priority first); pinned levels are never evicted.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +47,9 @@ class LevelCache:
         self.frame = 0
         self.evicted_bytes = 0
         self.reserved = 0  # bytes of levels being fetched (counted in nbytes)
+        self._pinned: set[Block] = set()
+        self._cum: list[int] = []
+        self._cum_key: list[int] | None = None
 
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
@@ -80,36 +84,86 @@ class LevelCache:
     def set_pins(self, pins: dict[Block, int], level_bytes: list[int]) -> None:
         """Replace the pinned levels (what this frame draws); other wants stay.
 
-        Raises ``BudgetError`` (changing nothing) if the pins alone exceed the budget.
+        Raises ``BudgetError`` (changing nothing) if the pins alone exceed the budget. Costs
+        O(pins + previous pins), not O(cached blocks): it runs on the caller's thread.
         """
-        need = sum(sum(level_bytes[: pin + 1]) for pin in pins.values())
+        cum = self._cumulative(level_bytes)
+        need = sum(cum[pin] for pin in pins.values() if pin >= 0)
         if need > self.budget:
             raise BudgetError(
                 f"the visible blocks need {_mib(need)} at their levels but the budget is "
                 f"{_mib(self.budget)}; raise --budget-mb or the error threshold"
             )
         self.frame += 1
-        for b, e in self._entries.items():
+        entries = self._entries
+        for b in self._pinned:
             if b not in pins:
-                e.pin = -1
+                e = entries.get(b)
+                if e is not None:
+                    e.pin = -1
+                    if not e.levels and e.want < 0:
+                        del entries[b]
         for b, pin in pins.items():
-            e = self._entries.setdefault(b, _Entry())
+            e = entries.get(b)
+            if e is None:
+                e = entries[b] = _Entry()
             e.pin = pin
-            e.want = max(e.want, pin)
+            if pin > e.want:
+                e.want = pin
             e.last_wanted = self.frame
-        self._forget_empty()
+        self._pinned = set(pins)
+
+    def _cumulative(self, level_bytes: list[int]) -> list[int]:
+        """``cum[L]`` = bytes of levels ``0..L`` (cached per ``level_bytes`` list)."""
+        if self._cum_key is not level_bytes:
+            self._cum = [sum(level_bytes[: i + 1]) for i in range(len(level_bytes))]
+            self._cum_key = level_bytes
+        return self._cum
 
     def set_prefetch(self, wants: dict[Block, tuple[int, float]]) -> None:
         """Replace the levels to load ahead: ``block -> (level, priority)``; pins stay."""
-        for b, e in self._entries.items():
-            if b not in wants:
-                e.want, e.priority = e.pin, 0.0
-        for b, (lv, prio) in wants.items():
-            e = self._entries.setdefault(b, _Entry())
-            e.want, e.priority = max(lv, e.pin), prio
-            if lv >= 0:
-                e.last_wanted = self.frame
-        self._forget_empty()
+        for _ in self.prefetch_steps(wants):
+            pass
+
+    def prefetch_steps(
+        self, wants: dict[Block, tuple[int, float]], chunk: int = 64
+    ) -> Iterator[None]:
+        """:meth:`set_prefetch` in steps of at most ``chunk`` blocks: the owner holds its lock
+        during each step and may release it between steps (a reader between steps sees some
+        wants old and some new, never a broken entry)."""
+        entries = self._entries
+        keys = list(entries)
+        for i in range(0, len(keys), chunk):
+            for b in keys[i : i + chunk]:
+                e = entries.get(b)
+                if e is not None and b not in wants:
+                    e.want, e.priority = e.pin, 0.0
+                    if not e.levels and e.want < 0:
+                        del entries[b]
+            yield
+        items = list(wants.items())
+        for i in range(0, len(items), chunk):
+            for b, (lv, prio) in items[i : i + chunk]:
+                e = entries.get(b)
+                if e is None:
+                    e = entries[b] = _Entry()
+                e.want, e.priority = max(lv, e.pin), prio
+                if lv >= 0:
+                    e.last_wanted = self.frame
+                elif not e.levels and e.want < 0:
+                    del entries[b]
+            yield
+
+    def wanted_steps(self, chunk: int = 64) -> Iterator[list[tuple[Block, int, int, float]]]:
+        """:meth:`wanted` in steps of at most ``chunk`` blocks (see :meth:`prefetch_steps`)."""
+        keys = list(self._entries)
+        for i in range(0, len(keys), chunk):
+            out = []
+            for b in keys[i : i + chunk]:
+                e = self._entries.get(b)
+                if e is not None and e.want >= 0:
+                    out.append((b, e.want, e.pin, e.priority))
+            yield out
 
     def _forget_empty(self) -> None:
         for b in [b for b, e in self._entries.items() if not e.levels and e.want < 0]:

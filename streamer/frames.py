@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from streamer.cache import Block
 from streamer.camera import Camera
@@ -26,8 +27,12 @@ class SessionConfig:
     culling: str = "qiu"
     extension_L: float | None = None  # default: one block edge
     latency_ms: float = 0.0  # added to every store request (benchmarks)
-    retries: int = 3
-    backoff_s: float = 0.05
+    retries: int = 3  # failures in a row before a block is reported failed
+    backoff_s: float = 0.05  # first retry delay; doubles per failure in a row
+    max_backoff_s: float = 1.0  # retry delay cap (a failed block is retried at this pace)
+    heal: bool = True  # keep retrying failed blocks while wanted (False: give up after retries)
+    raise_on_failure: bool = True  # update() raises LoadError once when a block fails
+    warm_start: bool = False  # the first update() runs warm_up() for its camera first
     wait_timeout_s: float = 30.0
     linger_s: float | None = None  # unload unwanted levels after this long; None: only when
     # the budget needs the room (least recently wanted first)
@@ -43,6 +48,8 @@ class SessionConfig:
             ("patch_log2", self.patch_log2 >= 0),
             ("latency_ms", self.latency_ms >= 0),
             ("retries", self.retries >= 1),
+            ("backoff_s", self.backoff_s >= 0 and math.isfinite(self.backoff_s)),
+            ("max_backoff_s", self.max_backoff_s >= 0 and math.isfinite(self.max_backoff_s)),
             ("wait_timeout_s", self.wait_timeout_s > 0),
             ("linger_s", self.linger_s is None or self.linger_s >= 0),
             ("horizon_s", self.horizon_s >= 0),
@@ -74,15 +81,29 @@ class FrameStats:
     missing_levels: int
     resident_bytes: int
     io_errors: int
+    holes: int = 0  # visible blocks with no resident level (nothing of them can be drawn)
+    stall_set: str = "triangle"  # the set stalled/missing_levels/holes count: "triangle"
+    # (Qiu's projected view triangle, culling="qiu") or "hull" (Jung & Han's frustum hull,
+    # culling="hull": what the renderer draws)
+    late_bytes: int = 0  # arrived since the previous frame after the frame that first needed
+    # them was due (frame 0 due when update() is called, frame i at frame 0's end + i/fps)
+    levels_short: int = 0  # largest (needed - resident) level gap over visible blocks (0: none
+    # drawn coarser than needed; a hole counts needed + 1)
+    failed_blocks: int = 0  # visible blocks whose reads failed ``retries`` times in a row
 
 
 @dataclass(frozen=True)
 class Frame:
-    """What a frame may draw: ``blocks[b] = (resident level, needed level)``, and its stats."""
+    """What a frame may draw: ``blocks[b] = (resident level, needed level)``, and its stats.
+
+    A resident level of -1 is a hole (counted in ``stats.holes``); ``failed`` names the
+    visible blocks whose reads keep failing (they are still retried).
+    """
 
     camera: Camera
     blocks: dict[Block, tuple[int, int]]
     stats: FrameStats
+    failed: frozenset[Block] = frozenset()
 
 
 @dataclass
@@ -99,4 +120,65 @@ class _Totals:
     warmup: dict = field(default_factory=dict)
     io_errors: int = 0
     cancelled: int = 0
+    hole_frames: int = 0
+    late_bytes: int = 0
+    coarse_frames: dict = field(default_factory=dict)  # levels short -> frames
+    failed_frames: int = 0
+    failed_ever: set = field(default_factory=set)
     used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
+
+    def add(self, frame: Frame) -> None:
+        """Add one frame's figures."""
+        st = frame.stats
+        self.needed_bytes += st.needed_bytes
+        self.realtime_bytes += st.realtime_bytes
+        if self.frames > 0:
+            self.realtime_bytes_after_first += st.realtime_bytes
+        self.prefetched_bytes += st.prefetched_bytes
+        self.stall_frames += int(st.stalled)
+        self.hole_frames += int(st.holes > 0)
+        self.late_bytes += st.late_bytes
+        if st.levels_short > 0:
+            self.coarse_frames[st.levels_short] = self.coarse_frames.get(st.levels_short, 0) + 1
+        self.failed_frames += int(st.failed_blocks > 0)
+        self.failed_ever.update(frame.failed)
+        self.max_update_ms = max(self.max_update_ms, st.update_ms)
+        self.max_update_cpu_ms = max(self.max_update_cpu_ms, st.update_cpu_ms)
+        self.frames += 1
+
+    def summary(
+        self,
+        *,
+        used_bytes: int,
+        peak_resident_bytes: int,
+        budget_bytes: int,
+        stall_set: str,
+        failed_now: list[Block],
+    ) -> dict[str, Any]:
+        """The ``summary()`` mapping of a session (see :meth:`streamer.session.Session.summary`)."""
+        return {
+            "frames": self.frames,
+            "stall_frames": self.stall_frames,
+            "stall_set": stall_set,
+            "needed_bytes": self.needed_bytes,
+            "realtime_bytes": self.realtime_bytes,
+            "realtime_bytes_after_first_frame": self.realtime_bytes_after_first,
+            "late_bytes": self.late_bytes,
+            "coarse_frames_by_levels": {str(k): v for k, v in sorted(self.coarse_frames.items())},
+            "prefetched_bytes": self.prefetched_bytes,
+            "loaded_bytes": self.loaded_bytes,
+            "used_bytes": used_bytes,
+            "wasted_bytes": max(0, self.loaded_bytes - used_bytes),
+            "peak_resident_bytes": peak_resident_bytes,
+            "budget_bytes": budget_bytes,
+            "max_update_ms": self.max_update_ms,
+            "max_update_cpu_ms": self.max_update_cpu_ms,
+            "io_errors": self.io_errors,
+            "cancelled_loads": self.cancelled,
+            "warmup_ms": self.warmup.get("ms", 0.0),
+            "warmup_bytes": int(self.warmup.get("bytes", 0)),
+            "hole_frames": self.hole_frames,
+            "failed_frames": self.failed_frames,
+            "failed_blocks": [list(b) for b in failed_now],
+            "failed_blocks_ever": len(self.failed_ever),
+        }

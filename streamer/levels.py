@@ -1,7 +1,8 @@
 """Fast per-frame needed levels: the patch errors of many blocks kept in slot arrays (pure).
 
-:func:`streamer.lod.select_many` returns every leaf node; a streamer only needs each block's
-needed level, every frame, for many blocks. :class:`PatchErrorTable` keeps, per refinable depth
+The reference selection (``select_many`` in ``tests/streamer/lod_reference.py``) returns every
+leaf node; a streamer only needs each block's needed level, every frame, for many blocks.
+:class:`PatchErrorTable` keeps, per refinable depth
 ``d`` (``d + patch_log2 < k``), the max stored error of each depth-``d`` node's descendants at
 depth ``d + patch_log2`` (the error of drawing that node as a patch), for every block that has
 its errors, in one ``(slots, 2**d, 2**d)`` float32 array. A frame's levels are then one
@@ -11,7 +12,7 @@ The result equals ``select_many(..., polygon=None)``'s ``needed_level`` (tested)
 
 from __future__ import annotations
 
-import math
+import threading
 from collections.abc import Sequence
 
 import numpy as np
@@ -20,12 +21,18 @@ from streamer.camera import Camera
 from streamer.errors import LodError
 from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
+from tiler.quadtree import half_diagonal, node_centres, sphere_radius, split_children
 
 Block = tuple[int, int]
 
 
 class PatchErrorTable:
-    """Pooled patch errors of blocks, addressable by block, growing as blocks are added."""
+    """Pooled patch errors of blocks, addressable by block, growing as blocks are added.
+
+    One writer at a time (:meth:`add` and :meth:`remove` take the table's own lock) and any
+    number of lock-free readers: a block's rows are filled before the block is published, and
+    growing copies the arrays (readers keep the list they started with).
+    """
 
     def __init__(self, k: int, patch_log2: int, capacity: int = 64) -> None:
         if patch_log2 < 0:
@@ -39,6 +46,7 @@ class PatchErrorTable:
         ]
         self._slot: dict[Block, int] = {}
         self._free: list[int] = list(range(self._cap - 1, -1, -1))
+        self._write = threading.Lock()
 
     def __contains__(self, block: Block) -> bool:
         return block in self._slot
@@ -51,28 +59,32 @@ class PatchErrorTable:
         if len(field) != self.k:
             raise LodError(f"field must hold {self.k} depths, got {len(field)}")
         block = (int(block[0]), int(block[1]))
-        if block in self._slot:
-            return
-        if not self._free:
-            self._grow()
-        s = self._free.pop()
-        self._slot[block] = s
         p = self.patch_log2
+        pooled = []
         for d in range(self.depths):
             src = np.asarray(field[d + p], dtype=np.float32)
             n, nd = src.shape[0], 1 << d
             if n >= nd:
                 r = n // nd
-                pooled = src.reshape(nd, r, nd, r).max(axis=(1, 3))
+                pooled.append(src.reshape(nd, r, nd, r).max(axis=(1, 3)))
             else:  # stored at a coarser resolution (beyond the cap): repeat
-                pooled = np.repeat(np.repeat(src, nd // n, axis=0), nd // n, axis=1)
-            self._arrays[d][s] = pooled
+                pooled.append(np.repeat(np.repeat(src, nd // n, axis=0), nd // n, axis=1))
+        with self._write:
+            if block in self._slot:
+                return
+            if not self._free:
+                self._grow()
+            s = self._free.pop()
+            for d in range(self.depths):
+                self._arrays[d][s] = pooled[d]
+            self._slot[block] = s  # published last: readers never see a half-filled slot
 
     def remove(self, block: Block) -> None:
         """Forget a block (its slot is reused)."""
-        s = self._slot.pop((int(block[0]), int(block[1])), None)
-        if s is not None:
-            self._free.append(s)
+        with self._write:
+            s = self._slot.pop((int(block[0]), int(block[1])), None)
+            if s is not None:
+                self._free.append(s)
 
     def slots(self, blocks: Sequence[Block] | np.ndarray) -> np.ndarray:
         """Slot of each block (``LodError`` for a block whose errors were never added)."""
@@ -89,14 +101,12 @@ class PatchErrorTable:
     ) -> np.ndarray:
         """Patch errors (float64) of nodes ``(depth, rows, cols)`` of the blocks in ``slots``;
         0 at full resolution (``depth + patch_log2 >= k``)."""
-        if depth >= self.depths:
-            return np.zeros(len(slots))
-        return self._arrays[depth][slots, rows, cols].astype(np.float64)
+        return _delta(self._arrays, self.depths, slots, depth, rows, cols)
 
     def _grow(self) -> None:
         old = self._cap
         self._cap *= 2
-        self._arrays = [
+        self._arrays = [  # new arrays: readers holding the old list stay consistent
             np.concatenate([a, np.zeros((old, *a.shape[1:]), np.float32)]) for a in self._arrays
         ]
         self._free.extend(range(self._cap - 1, old - 1, -1))
@@ -120,31 +130,37 @@ class PatchErrorTable:
             return levels, rho_max
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
         slots = self.slots(blk)
+        arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
-        bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1])
-        diag = math.hypot(grid.dx, grid.dy)
         idx = np.arange(m)
         rows = np.zeros(m, dtype=np.int64)
         cols = np.zeros(m, dtype=np.int64)
-        child_r = np.array([0, 0, 1, 1])
-        child_c = np.array([0, 1, 0, 1])
         for d in range(self.depths):
-            size = float(1 << (k - d))
             levels[idx] = d + p  # every block still holding nodes reaches this depth
-            delta = self.delta(slots[idx], d, rows, cols)
-            cx = bx0[idx] + (cols + 0.5) * (size * grid.dx)
-            cy = by1[idx] - (rows + 0.5) * (size * grid.dy)
-            half = 0.5 * size * diag
+            delta = _delta(arrays, self.depths, slots[idx], d, rows, cols)
+            cx, cy = node_centres(grid, blk[idx, 0], blk[idx, 1], d, rows, cols)
             centres = np.stack([cx, cy, zmid[idx]], axis=1)
-            rho = np.asarray(fn(delta, centres, np.hypot(half, zhalf[idx]), camera))
+            radius = sphere_radius(half_diagonal(grid, d), zhalf[idx])
+            rho = np.asarray(fn(delta, centres, radius, camera))
             np.maximum.at(rho_max, idx, np.where(np.isfinite(rho), rho, 1e30))
             split = ~(rho <= tau)
             if not split.any():
                 break
-            idx = np.repeat(idx[split], 4)
-            rows = (2 * rows[split][:, None] + child_r).ravel()
-            cols = (2 * cols[split][:, None] + child_c).ravel()
+            idx, rows, cols = split_children(idx, rows, cols, split)
         else:
             levels[idx] = k  # nodes split down to full resolution
         return levels, rho_max
+
+
+def _delta(
+    arrays: list[np.ndarray],
+    depths: int,
+    slots: np.ndarray,
+    depth: int,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> np.ndarray:
+    if depth >= depths:
+        return np.zeros(len(slots))
+    return arrays[depth][slots, rows, cols].astype(np.float64)

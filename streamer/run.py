@@ -11,10 +11,10 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from streamer.session import FrameStats, Session
 from tiler.store import TerrainStore
 
 PATH_KINDS = ("default", "line", "circle", "canyon", "teleports")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -119,6 +120,30 @@ def make_path(
     raise PathError(f"unknown path kind {kind!r}; choose one of {', '.join(PATH_KINDS)}")
 
 
+def paced(items: Iterable[T], fps: float) -> Iterator[T]:
+    """Yield ``items`` at ``fps`` on the wall clock, as a viewer shows frames.
+
+    Item 0 comes at once; the clock starts when the caller asks for item 1 (frame 0 shown,
+    after any wait), and item ``i`` is due ``i / fps`` after that: the generator sleeps until
+    then (a late caller gets the next item at once). Example::
+
+        for cam in paced(cameras, fps=60):
+            frame = session.update(cam, 1 / 60)
+    """
+    rate = float(fps)
+    if not (rate > 0 and math.isfinite(rate)):
+        raise PathError(f"fps must be a positive number, got {fps!r}")
+    t0 = 0.0
+    for i, item in enumerate(items):
+        if i == 1:
+            t0 = time.perf_counter()  # frame 0 has been shown
+        if i >= 1:
+            delay = t0 + i / rate - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        yield item
+
+
 def run_flythrough(
     session: Session,
     cameras: list[Camera],
@@ -136,16 +161,8 @@ def run_flythrough(
     rows = []
     if first_wait and cameras:
         session.warm_up(cameras[0])
-    t0 = time.perf_counter()
-    for i, cam in enumerate(cameras):
-        if realtime and i > 0:
-            due = t0 + i / fps
-            delay = due - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
+    for i, cam in enumerate(paced(cameras, fps) if realtime else cameras):
         frame = session.update(cam, 1.0 / fps, wait=first_wait and i == 0)
-        if i == 0:
-            t0 = time.perf_counter()  # the clock starts once frame 0 is shown (after its wait)
         row = asdict(frame.stats)
         rows.append(row)
         if on_frame is not None:

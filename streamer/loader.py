@@ -1,0 +1,336 @@
+"""Loading block levels on a named thread pool into the byte-budgeted cache.
+
+A :class:`Loader` owns the shared state of a session (cache, queue, error table, counters) and
+its lock. Work is *pumped*: whenever there may be something to do (an update, a finished read,
+a waiter waking for a retry) up to ``workers`` jobs are taken from the queue and submitted to a
+``concurrent.futures.ThreadPoolExecutor`` (threads ``terrastream-load_N``); a completion
+callback records the outcome and pumps again. Nothing polls.
+
+A job reads one thing of one block with no lock held: its error field (level ``-1``) or one raw
+level (up to ``PER_BLOCK`` levels of a block in flight at once), then decodes the levels that
+follow the resident ones, in order, also without the lock. The lock guards only bookkeeping:
+dict and heap updates, never a read, a decode or a plan.
+
+Only the errors a read can raise are counted as read failures (:data:`READ_ERRORS`): ``OSError``
+(which includes the tiler's ``StoreError`` family and timeouts) and zarr's own errors. Anything
+else is a bug: it is kept and re-raised by the session's next ``update``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import numpy as np
+import zarr.errors
+
+from streamer.cache import Block, LevelCache
+from streamer.frames import SessionConfig, _Totals
+from streamer.levels import PatchErrorTable
+from streamer.loadqueue import LoadQueue
+from tiler.errors import StoreError
+from tiler.store import TerrainStore
+
+log = logging.getLogger(__name__)
+
+PER_BLOCK = 4  # raw levels of one block fetched at once
+
+#: Errors a block read can raise; anything else surfaces as a bug.
+READ_ERRORS: tuple[type[BaseException], ...] = (OSError, StoreError, zarr.errors.BaseZarrError)
+
+Job = tuple[Block, int]
+
+
+class Loader:
+    """Shared loading state, the work queue and the pool that drains it (see module doc)."""
+
+    def __init__(
+        self,
+        store: TerrainStore,
+        config: SessionConfig,
+        level_bytes: list[int],
+        field_name: str,
+        read_hook: Callable[[Block, int], None] | None = None,
+    ) -> None:
+        self.store = store
+        self.config = config
+        self.level_bytes = level_bytes
+        self.field_name = field_name
+        self.read_hook = read_hook
+        self.cache = LevelCache(int(config.budget_mb * 2**20))
+        self.errors = PatchErrorTable(store.k, config.patch_log2)
+        self.queue = LoadQueue(
+            retries=config.retries,
+            backoff_s=config.backoff_s,
+            max_backoff_s=config.max_backoff_s,
+            heal=config.heal,
+        )
+        self.totals = _Totals()
+        self.cv = threading.Condition(threading.Lock())
+        self.fetching: dict[Block, set[int]] = {}  # levels being read (-1: errors)
+        self.raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded
+        self.decoding: set[Block] = set()
+        self.demanded: set[tuple[Block, int]] = set()
+        self.due: dict[tuple[Block, int], float] = {}  # level -> due time of its first frame
+        self.frame_late = 0
+        self.prio: dict[Block, float] = {}
+        self.unreported: list[tuple[Block, BaseException]] = []
+        self.last_error: dict[Block, BaseException] = {}
+        self.frame_realtime = 0
+        self.frame_prefetched = 0
+        self.frame_io_s = 0.0
+        self.bug: BaseException | None = None
+        self.closed = False
+        self._in_flight = 0
+        self._pool = (
+            ThreadPoolExecutor(config.workers, thread_name_prefix="terrastream-load")
+            if config.workers
+            else None
+        )
+
+    # -- queue keys ------------------------------------------------------------------------
+
+    def key(self, b: Block, level: int | None = None) -> tuple:
+        """Queue order: errors first, then pinned levels, coarse before fine, by screen error
+        (caller holds the lock)."""
+        _want, pin = self.cache.want(b)
+        nxt = self.cache.level(b) + 1 if level is None else level
+        prio = -self.prio.get(b, 0.0)
+        return (0 if b not in self.errors else 1, 0 if nxt <= pin else 1, nxt, prio, b)
+
+    def push(self, b: Block, level: int | None = None) -> None:
+        """Queue ``b`` for its next load (caller holds the lock)."""
+        self.queue.push(b, self.key(b, level))
+
+    def reschedule(self) -> None:
+        """Rebuild the queue from the cache's wants (caller holds the lock)."""
+        for _ in self.reschedule_steps():
+            pass
+
+    def reschedule_steps(self, chunk: int = 64) -> Iterator[None]:
+        """:meth:`reschedule` in steps of at most ``chunk`` blocks; the caller holds the lock
+        during each step and may release it between them. Keys computed in an earlier step
+        may be slightly stale by the swap; a job is re-checked when it is taken."""
+        prio: dict[Block, float] = {}
+        items = []
+        for part in self.cache.wanted_steps(chunk):
+            for b, want, _pin, p in part:
+                prio[b] = p
+                self.prio[b] = p
+                if self.cache.level(b) >= want and b in self.errors:
+                    continue
+                items.append((self.key(b), b))
+            yield
+        self.prio = prio
+        self.queue.rebuild(items)
+        self.totals.cancelled = self.queue.cancelled
+
+    # -- taking jobs -----------------------------------------------------------------------
+
+    def fetchable(self, b: Block) -> int | None:
+        """Next level of ``b`` to fetch (-1: its errors), or None (caller holds the lock)."""
+        busy = self.fetching.get(b, set())
+        if b not in self.errors:
+            return None if -1 in busy else -1
+        want, _pin = self.cache.want(b)
+        pending = self.raw.get(b, {})
+        if len(busy) >= PER_BLOCK:
+            return None
+        for level in range(self.cache.level(b) + 1, min(want, self.store.k) + 1):
+            if level not in busy and level not in pending:
+                return level
+        return None
+
+    def _take(self, b: Block) -> int | None:
+        level = self.fetchable(b)
+        if level is None:
+            return None
+        if level >= 0 and not self.cache.reserve(b, self.level_bytes[level]):
+            return None  # no room: pinned data fills the budget
+        self.fetching.setdefault(b, set()).add(level)
+        more = self.fetchable(b)
+        if more is not None:
+            self.push(b, more)  # its next level can be fetched by another job
+        return level
+
+    def next_job(self) -> Job | None:
+        """Pop the most urgent ``(block, level)`` to fetch (caller holds the lock)."""
+        return self.queue.pop(time.monotonic(), self._take)
+
+    def pump(self) -> None:
+        """Submit jobs while workers are free (takes the lock briefly)."""
+        if self._pool is None:
+            return
+        with self.cv:
+            while not self.closed and self._in_flight < self.config.workers:
+                job = self.next_job()
+                if job is None:
+                    return
+                self._in_flight += 1
+                try:
+                    fut = self._pool.submit(self.run_job, job)
+                except RuntimeError:  # the pool shut down meanwhile
+                    self._in_flight -= 1
+                    self._unreserve(job)
+                    return
+                fut.add_done_callback(self._done)
+
+    def _done(self, fut: Future) -> None:
+        exc = None if fut.cancelled() else fut.exception()
+        with self.cv:
+            self._in_flight -= 1
+            if exc is not None and self.bug is None:
+                self.bug = exc  # not a read error: re-raised by the next update
+            self.cv.notify_all()
+        if exc is None:
+            self.pump()
+
+    def _unreserve(self, job: Job) -> None:
+        b, level = job
+        self.fetching.get(b, set()).discard(level)
+        if level >= 0:
+            self.cache.release(self.level_bytes[level])
+
+    # -- running a job ---------------------------------------------------------------------
+
+    def run_job(self, job: Job) -> None:
+        """Fetch ``job`` and decode what became decodable, then requeue its block."""
+        b, level = job
+        try:
+            self._fetch(b, level)
+        finally:
+            with self.cv:
+                self.fetching.get(b, set()).discard(level)
+                self._requeue(b)
+
+    def _fetch(self, b: Block, level: int) -> None:
+        t0 = time.perf_counter()
+        try:
+            if self.config.latency_ms:
+                time.sleep(self.config.latency_ms / 1000.0)
+            if self.read_hook is not None:
+                self.read_hook(b, level)
+            if level < 0:
+                data = self.store.read_errors(b)[self.field_name]
+            else:
+                data = self.store.read_level_raw(b, level)
+        except READ_ERRORS as exc:
+            with self.cv:
+                if level >= 0:
+                    self.cache.release(self.level_bytes[level])
+                self.totals.io_errors += 1
+                was_failed = self.queue.is_failed(b)
+                count = self.queue.failed_read(b, time.monotonic())
+                self.last_error[b] = exc
+                if self.queue.is_failed(b) and not was_failed:
+                    self.unreported.append((b, exc))
+                self.frame_io_s += time.perf_counter() - t0
+            log.warning("reading block %s level %d failed (%d): %s", b, level, count, exc)
+            return
+        if level < 0:
+            self.errors.add(b, data)  # the table has its own writer lock; readers need none
+        with self.cv:
+            self.queue.succeeded(b)
+            self.last_error.pop(b, None)
+            self.frame_io_s += time.perf_counter() - t0
+            if level < 0:
+                self.cv.notify_all()
+                return
+            self.raw.setdefault(b, {})[level] = data
+            if b in self.decoding:
+                return
+            self.decoding.add(b)
+        try:
+            self._decode_ready(b)
+        finally:
+            with self.cv:
+                self.decoding.discard(b)
+
+    def _decode_ready(self, b: Block) -> None:
+        """Decode ``b``'s fetched levels that follow its resident ones, in order (no lock held
+        while decoding)."""
+        while True:
+            t0 = time.perf_counter()
+            with self.cv:
+                nxt = self.cache.level(b) + 1
+                raw = self.raw.get(b, {}).pop(nxt, None)
+                if raw is None:
+                    return
+                levels = self.cache.levels(b)
+            decoded = self.store.decode_next(_storage(self.store, levels), raw)
+            values = self.store.to_heights(decoded)
+            with self.cv:
+                self.frame_io_s += time.perf_counter() - t0
+                nbytes = int(values.nbytes)
+                if self.cache.level(b) != nxt - 1 or not self.cache.add_level(
+                    b, nxt, values, reserved=True
+                ):
+                    self._drop_raw(b)  # evicted or unwanted meanwhile
+                    return
+                self.totals.loaded_bytes += nbytes
+                due = self.due.pop((b, nxt), None)
+                if due is not None and time.monotonic() > due:
+                    self.frame_late += nbytes
+                if (b, nxt) in self.demanded:
+                    self.frame_realtime += nbytes
+                else:
+                    self.frame_prefetched += nbytes
+                self.cv.notify_all()
+
+    def _drop_raw(self, b: Block) -> None:
+        """Forget fetched but undecodable levels of ``b`` (caller holds the lock)."""
+        for level in self.raw.pop(b, {}):
+            self.cache.release(self.level_bytes[level])
+
+    def _requeue(self, b: Block) -> None:
+        """Put ``b`` back in the queue if it still wants more (caller holds the lock)."""
+        if not self.queue.retryable(b):
+            return
+        if self.queue.backing_off(b, time.monotonic()) or self.fetchable(b) is not None:
+            self.push(b)
+        elif not self.fetching.get(b) and b in self.raw and b not in self.decoding:
+            self._drop_raw(b)  # levels fetched beyond a gap that will not be filled
+
+    # -- inline loading (workers=0) and shutdown -------------------------------------------
+
+    def load_inline(self, allowance: int | None) -> None:
+        """``workers=0``: run jobs on the caller's thread, up to ``allowance`` bytes."""
+        spent = 0
+        while allowance is None or spent < allowance:
+            with self.cv:
+                job = self.next_job()
+            if job is None:
+                return
+            before = self.totals.loaded_bytes
+            self.run_job(job)
+            spent += self.totals.loaded_bytes - before
+
+    def busy(self) -> bool:
+        """Whether jobs are queued or running (caller holds the lock)."""
+        return bool(len(self.queue) or self._in_flight or self.decoding)
+
+    def close(self, timeout_s: float) -> list[str]:
+        """Stop taking jobs, wait (bounded) for running ones; names of threads still alive."""
+        with self.cv:
+            self.closed = True
+            self.queue.clear()
+            self.cv.notify_all()
+        if self._pool is None:
+            return []
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        threads = list(getattr(self._pool, "_threads", ()))
+        deadline = time.monotonic() + timeout_s
+        for t in threads:
+            t.join(timeout=max(0.0, deadline - time.monotonic()))
+        return [t.name for t in threads if t.is_alive()]
+
+
+def _storage(store: TerrainStore, levels: list[np.ndarray]) -> list[np.ndarray]:
+    """Decoded heights back to the store's value units (quantised stores keep integers)."""
+    p = store.meta.precision
+    if not p:
+        return levels
+    return [np.rint(v.astype(np.float64) / p).astype(np.int32) for v in levels]

@@ -1,0 +1,121 @@
+"""The load queue: blocks by urgency, with cancellation and per-block retry backoff.
+
+Pure bookkeeping (no threads, no I/O; the session's lock guards it). A block is queued with a
+key (smaller = more urgent); :meth:`LoadQueue.rebuild` replaces the whole queue when the plan
+changes and counts the blocks that dropped out (cancelled loads). A failed read puts its block
+in backoff: ``backoff_s * 2**(n-1)`` after the ``n``-th failure in a row, capped at
+``max_backoff_s``. After ``retries`` failures in a row the block is *failed* (reported in the
+frame and the summary); when ``heal`` is on it is still retried, at the capped backoff, for as
+long as it is wanted, and a success clears it. With ``heal`` off a failed block is never
+retried (the behaviour before healing; kept as the positive control of the fault tests).
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Callable, Iterable
+from typing import TypeVar
+
+from streamer.cache import Block
+
+T = TypeVar("T")
+
+
+class LoadQueue:
+    """Blocks waiting for a load, most urgent first (see module doc)."""
+
+    def __init__(
+        self, *, retries: int, backoff_s: float, max_backoff_s: float, heal: bool = True
+    ) -> None:
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self.max_backoff_s = max(backoff_s, max_backoff_s)
+        self.heal = heal
+        self._heap: list[tuple[tuple, Block]] = []
+        self.failures: dict[Block, int] = {}  # failures in a row
+        self.retry_at: dict[Block, float] = {}
+        self.failed_at: dict[Block, float] = {}  # time of the latest failure
+        self.cancelled = 0
+
+    def __len__(self) -> int:
+        return len(self._heap)
+
+    def clear(self) -> None:
+        """Drop every queued block."""
+        self._heap.clear()
+
+    def retryable(self, b: Block) -> bool:
+        """False for a failed block when healing is off."""
+        return self.heal or self.failures.get(b, 0) < self.retries
+
+    def push(self, b: Block, key: tuple) -> None:
+        """Queue ``b`` with ``key`` (ignored for a block that may not be retried)."""
+        if self.retryable(b):
+            heapq.heappush(self._heap, (key, b))
+
+    def rebuild(self, items: Iterable[tuple[tuple, Block]]) -> None:
+        """Replace the queue; blocks no longer in it count as cancelled."""
+        before = {b for _, b in self._heap}
+        self._heap = [(k, b) for k, b in items if self.retryable(b)]
+        heapq.heapify(self._heap)
+        self.cancelled += len(before - {b for _, b in self._heap})
+
+    def backing_off(self, b: Block, now: float) -> bool:
+        """Whether ``b`` waits for its next retry."""
+        return self.retry_at.get(b, 0.0) > now
+
+    def pop(self, now: float, take: Callable[[Block], T | None]) -> tuple[Block, T] | None:
+        """The most urgent block ``take`` accepts (``take`` returns its job or None), skipping
+        blocks in backoff (they stay queued) and dropping those ``take`` refuses."""
+        waiting = []
+        found = None
+        while self._heap:
+            key, b = heapq.heappop(self._heap)
+            if not self.retryable(b):
+                continue
+            if self.backing_off(b, now):
+                waiting.append((key, b))
+                continue
+            job = take(b)
+            if job is not None:
+                found = (b, job)
+                break
+        for item in waiting:
+            heapq.heappush(self._heap, item)
+        return found
+
+    def failed_read(self, b: Block, now: float) -> int:
+        """Record a failed read of ``b``; returns its failures in a row."""
+        n = self.failures.get(b, 0) + 1
+        self.failures[b] = n
+        self.failed_at[b] = now
+        if self.retryable(b):
+            delay = min(self.backoff_s * 2 ** (n - 1), self.max_backoff_s)
+            self.retry_at[b] = now + delay
+        return n
+
+    def succeeded(self, b: Block) -> None:
+        """A read of ``b`` worked: forget its failures."""
+        self.failures.pop(b, None)
+        self.retry_at.pop(b, None)
+        self.failed_at.pop(b, None)
+
+    def is_failed(self, b: Block) -> bool:
+        """``b`` failed ``retries`` times in a row (and has not been read since)."""
+        return self.failures.get(b, 0) >= self.retries
+
+    def given_up(self, b: Block, since: float) -> bool:
+        """Whether a waiter that started at ``since`` stops waiting for ``b``: it is failed
+        and, when healing, a retry since then failed too (without healing it never returns)."""
+        if not self.is_failed(b):
+            return False
+        return not self.heal or self.failed_at.get(b, 0.0) >= since
+
+    def failed_blocks(self) -> set[Block]:
+        """Every block currently failed."""
+        return {b for b, n in self.failures.items() if n >= self.retries}
+
+    def next_retry(self, now: float) -> float | None:
+        """Seconds until the earliest pending retry (None if none)."""
+        ahead = [t - now for t in self.retry_at.values() if t > now]
+        return min(ahead) if ahead else None

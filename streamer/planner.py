@@ -1,0 +1,146 @@
+"""Which blocks, at which levels, for which pose (pure: no threads, no I/O).
+
+A :class:`Planner` answers two questions for a camera pose:
+
+* :meth:`Planner.needed` — the visible set ``M`` (Qiu's projected triangle, or Jung & Han's
+  hull) and the level each of its blocks needs to be drawn at ``tau``;
+* :meth:`Planner.prefetch` — the blocks ``N`` of the frustum extension (of this pose and of the
+  pose ``horizon_s`` ahead along the velocity) and the level each would need at
+  ``tau * lookahead``, with its screen error as priority.
+
+Blocks whose static errors are not known yet need the patch level (``patch_log2``). The error
+table is read lock-free (see :class:`streamer.levels.PatchErrorTable`), so planning holds no
+lock the loaders take.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from streamer.cache import Block
+from streamer.camera import Camera
+from streamer.frames import SessionConfig
+from streamer.frustum import (
+    block_edge,
+    blocks_meeting,
+    extension_triangle,
+    frustum_hull,
+    view_triangle,
+)
+from streamer.levels import PatchErrorTable
+from tiler.grid import BlockGrid
+from tiler.quadtree import block_zranges
+
+
+@dataclass(frozen=True)
+class PrefetchPlan:
+    """Blocks to hold ahead of time: ``wants[b] = (level, screen error)``; ``ring`` = |N - M|."""
+
+    wants: dict[Block, tuple[int, float]]
+    ring: int
+
+
+class Planner:
+    """Visible and prefetch sets and their levels for a store's grid (see module doc)."""
+
+    def __init__(
+        self,
+        grid: BlockGrid,
+        k: int,
+        exists: np.ndarray,
+        zmin: np.ndarray,
+        zmax: np.ndarray,
+        errors: PatchErrorTable,
+        config: SessionConfig,
+    ) -> None:
+        self.grid = grid
+        self.k = k
+        self.exists = np.asarray(exists, dtype=bool)
+        self.zr = block_zranges(zmin, zmax)
+        ok = self.exists & np.isfinite(zmin) & np.isfinite(zmax)
+        lo = float(np.min(np.asarray(zmin)[ok])) if ok.any() else 0.0
+        hi = float(np.max(np.asarray(zmax)[ok])) if ok.any() else 0.0
+        self.zrange = (lo, hi)
+        self.errors = errors
+        self.config = config
+
+    def _zr_of(self, blocks: list[Block]) -> np.ndarray:
+        b = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+        return self.zr[b[:, 0], b[:, 1]]
+
+    def _existing(self, polygon: np.ndarray) -> list[Block]:
+        ids = blocks_meeting(polygon, self.grid).tolist()
+        return [b for b in map(tuple, ids) if self.exists[b]]
+
+    def visible(self, camera: Camera) -> list[Block]:
+        """Blocks meeting the projected frustum (Qiu's triangle or Jung & Han's hull)."""
+        if self.config.culling == "qiu":
+            return self._existing(view_triangle(camera))
+        return self._existing(frustum_hull(camera, self.zrange))
+
+    def levels(
+        self, camera: Camera, blocks: list[Block], tau: float
+    ) -> tuple[dict[Block, int], dict[Block, float]]:
+        """Needed level and largest screen error of each block at ``tau`` (patch level and 0
+        for blocks whose errors are not known yet)."""
+        floor = min(self.config.patch_log2, self.k)
+        needed = dict.fromkeys(blocks, floor)
+        rho = dict.fromkeys(blocks, 0.0)
+        have = [b for b in blocks if b in self.errors]
+        if have:
+            zr = self._zr_of(have)
+            lv, r = self.errors.needed_levels(self.grid, have, camera, tau, self.config.metric, zr)
+            needed.update(zip(have, lv.tolist(), strict=True))
+            rho.update(zip(have, r.tolist(), strict=True))
+        return needed, rho
+
+    def needed(self, camera: Camera, tau: float | None = None) -> dict[Block, int]:
+        """The visible blocks and the level each needs to be drawn at ``tau``."""
+        t = self.config.tau if tau is None else tau
+        return self.levels(camera, self.visible(camera), t)[0]
+
+    def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
+        """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity``."""
+        out = [camera]
+        cfg = self.config
+        v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
+        if cfg.prefetch and cfg.horizon_s > 0 and np.any(v):
+            ahead = np.asarray(camera.position, dtype=np.float64) + v * cfg.horizon_s
+            out.append(replace(camera, position=tuple(ahead.tolist())))
+        return out
+
+    def prefetch(
+        self,
+        camera: Camera,
+        velocity: np.ndarray | None,
+        visible: set[Block],
+        tau: float | None = None,
+    ) -> PrefetchPlan:
+        """The blocks ``N`` (``visible`` plus the extension) and the level each would need at
+        ``tau * lookahead`` from either pose (see module doc)."""
+        cfg = self.config
+        t = cfg.tau if tau is None else tau
+        n = set(visible)
+        poses = self.poses(camera, velocity)
+        if cfg.prefetch:
+            v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
+            edge = block_edge(self.grid) if cfg.extension_L is None else cfg.extension_L
+            for cam in poses:
+                n.update(self._existing(extension_triangle(cam, edge, velocity=v, fps=cfg.fps)))
+        blocks = sorted(n)
+        wants: dict[Block, tuple[int, float]] = dict.fromkeys(blocks, (0, 0.0))
+        have = [b for b in blocks if b in self.errors]
+        if have:
+            t_ahead = t * (cfg.lookahead if cfg.prefetch else 1.0)
+            levels = np.zeros(len(have), dtype=np.int64)
+            rho = np.zeros(len(have))
+            zr = self._zr_of(have)
+            for cam in poses:
+                lv, r = self.errors.needed_levels(self.grid, have, cam, t_ahead, cfg.metric, zr)
+                np.maximum(levels, lv, out=levels)
+                np.maximum(rho, r, out=rho)
+            for b, lv, r in zip(have, levels.tolist(), rho.tolist(), strict=True):
+                wants[b] = (lv, r)
+        return PrefetchPlan(wants=wants, ring=len(n) - len(visible))

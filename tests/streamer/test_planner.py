@@ -1,0 +1,154 @@
+"""The pure parts of a session: the planner (blocks and levels for a pose), the load queue
+(keys, cancellation, backoff, healing), the quadtree geometry helper, and Session.set_tau."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_levels import CAMERAS, _field
+
+from streamer.errors import StreamerError
+from streamer.frames import SessionConfig
+from streamer.levels import PatchErrorTable
+from streamer.loadqueue import LoadQueue
+from streamer.planner import Planner
+from tiler.grid import BlockGrid
+from tiler.quadtree import block_zranges, half_diagonal, node_centres, split_children
+
+K, P = 7, 2
+GRID = BlockGrid(height=8 * 128 + 1, width=8 * 128 + 1, k=K, x0=0.0, y0=1000.0, dx=1.5, dy=1.5)
+
+
+def planner(config: SessionConfig, with_errors: bool = True) -> tuple[Planner, PatchErrorTable]:
+    rng = np.random.default_rng(0)
+    exists = np.ones((8, 8), bool)
+    exists[0, 0] = False
+    zmin = rng.random((8, 8)) * 50
+    zmax = zmin + 100
+    zmin[0, 0] = zmax[0, 0] = np.nan
+    table = PatchErrorTable(K, config.patch_log2)
+    if with_errors:
+        for r in range(8):
+            for c in range(8):
+                table.add((r, c), _field(rng, K, 4))
+    return Planner(GRID, K, exists, zmin, zmax, table, config), table
+
+
+def test_needed_is_the_visible_set_at_the_table_levels():
+    cfg = SessionConfig(patch_log2=P, tau=20.0)
+    pl, table = planner(cfg)
+    cam = CAMERAS[0]
+    needed = pl.needed(cam)
+    assert needed, "the oblique camera sees blocks"
+    assert (0, 0) not in needed  # a block without terrain is never planned
+    assert set(needed) == set(pl.visible(cam))
+    blocks = sorted(needed)
+    zr = block_zranges(pl.zr[..., 0], pl.zr[..., 1], np.array(blocks))
+    ref, _ = table.needed_levels(GRID, blocks, cam, 20.0, "qiu", zr)
+    assert [needed[b] for b in blocks] == ref.tolist()
+    finer = pl.needed(cam, tau=0.5)
+    assert all(finer[b] >= needed[b] for b in blocks)
+    assert any(finer[b] > needed[b] for b in blocks)
+
+
+def test_blocks_without_errors_need_the_patch_level():
+    pl, _ = planner(SessionConfig(patch_log2=P), with_errors=False)
+    needed = pl.needed(CAMERAS[0])
+    assert needed
+    assert set(needed.values()) == {P}
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_prefetch_plan_holds_the_visible_set_and_a_ring(prefetch):
+    cfg = SessionConfig(patch_log2=P, prefetch=prefetch)
+    pl, _ = planner(cfg)
+    cam = CAMERAS[0]
+    visible = set(pl.visible(cam))
+    plan = pl.prefetch(cam, np.array([30.0, 0.0, 0.0]), visible)
+    assert visible <= set(plan.wants)
+    assert plan.ring == len(plan.wants) - len(visible)
+    assert (plan.ring > 0) == prefetch
+    assert len(pl.poses(cam, np.array([30.0, 0.0, 0.0]))) == (2 if prefetch else 1)
+    assert len(pl.poses(cam, None)) == 1
+    # loading ahead at tau * lookahead: never coarser than what the frame needs
+    needed = pl.needed(cam)
+    assert all(plan.wants[b][0] >= lv for b, lv in needed.items())
+
+
+def test_queue_orders_by_key_and_counts_cancellations():
+    q = LoadQueue(retries=3, backoff_s=0.1, max_backoff_s=1.0)
+    q.push((0, 1), (1, 0))
+    q.push((0, 2), (0, 5))
+    q.push((0, 3), (2, 0))
+    assert q.pop(0.0, lambda b: "job") == ((0, 2), "job")
+    assert q.pop(0.0, lambda b: None if b == (0, 1) else "job") == ((0, 3), "job")  # (0,1) dropped
+    assert len(q) == 0
+    q.push((1, 1), (0,))
+    q.rebuild([((0,), (2, 2))])
+    assert q.cancelled == 1
+
+
+def test_queue_backoff_doubles_caps_and_heals():
+    q = LoadQueue(retries=3, backoff_s=0.1, max_backoff_s=0.3)
+    b = (4, 4)
+    delays = []
+    for n in range(1, 6):
+        assert q.failed_read(b, 10.0) == n
+        delays.append(round(q.retry_at[b] - 10.0, 6))
+    assert delays == [0.1, 0.2, 0.3, 0.3, 0.3]
+    assert q.is_failed(b) and q.failed_blocks() == {b}
+    q.push(b, (0,))
+    assert q.pop(10.0, lambda b: "job") is None  # backing off: stays queued
+    assert len(q) == 1
+    assert q.pop(10.5, lambda b: "job") == (b, "job")  # healing: still retried
+    assert q.given_up(b, since=9.0) and not q.given_up(b, since=11.0)
+    q.succeeded(b)
+    assert not q.is_failed(b) and q.next_retry(0.0) is None
+
+
+def test_queue_without_healing_gives_up_for_good():
+    """The positive control's mode: after ``retries`` failures a block is never retried."""
+    q = LoadQueue(retries=1, backoff_s=0.1, max_backoff_s=1.0, heal=False)
+    b = (1, 2)
+    q.failed_read(b, 0.0)
+    q.push(b, (0,))
+    assert len(q) == 0
+    assert q.given_up(b, since=1e9)
+
+
+def test_quadtree_geometry_known_answers():
+    grid = BlockGrid(height=9, width=17, k=3, x0=100.0, y0=200.0, dx=2.0, dy=1.0)
+    cx, cy = node_centres(grid, np.array([0]), np.array([1]), 0, np.array([0]), np.array([0]))
+    assert (cx[0], cy[0]) == (100.0 + 8 * 2.0 + 4 * 2.0, 200.0 - 4 * 1.0)
+    cx, cy = node_centres(grid, np.array([0]), np.array([0]), 2, np.array([3]), np.array([1]))
+    assert (cx[0], cy[0]) == (100.0 + 1.5 * 2 * 2.0, 200.0 - 3.5 * 2 * 1.0)
+    assert half_diagonal(grid, 0) == pytest.approx(0.5 * 8 * np.hypot(2.0, 1.0))
+    owner, r, c = split_children(
+        np.array([7, 9]), np.array([1, 0]), np.array([2, 0]), np.array([True, False])
+    )
+    assert owner.tolist() == [7] * 4 and r.tolist() == [2, 2, 3, 3] and c.tolist() == [4, 5, 4, 5]
+    zr = block_zranges(np.array([[1.0, np.nan]]), np.array([[5.0, np.nan]]))
+    assert zr.tolist() == [[[1.0, 5.0], [1.0, 5.0]]]  # no terrain: the whole store's range
+
+
+def test_set_tau_changes_what_is_streamed(tmp_path):
+    from conftest import fractal, write_dem
+
+    from streamer.paths import default_flythrough
+    from streamer.session import open_session
+    from tiler.tile import TileOptions, tile
+
+    src = write_dem(tmp_path / "d.tif", fractal((257, 321), 3), cell=10.0)
+    store = tile(src, tmp_path / "s.zarr", TileOptions(block_size=33, executor="threads"))
+    z0, z1 = store.meta.extra["value_range"]
+    cam = default_flythrough(store.grid, z0, z1, 1, 60.0, viewport=(320, 240))[0]
+    with open_session(store, budget_mb=16, workers=2, tau=8.0) as s:
+        coarse = s.update(cam, wait=True)
+        s.set_tau(0.25)
+        assert s.config.tau == 0.25 and s.planner.config.tau == 0.25
+        fine = s.update(cam, wait=True)
+        with pytest.raises(StreamerError, match="invalid tau"):
+            s.set_tau(-1.0)
+    need = {b: n for b, (_, n) in coarse.blocks.items()}
+    assert any(fine.blocks[b][1] > need[b] for b in need)
+    assert all(have >= n for have, n in fine.blocks.values())  # and it was loaded

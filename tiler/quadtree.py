@@ -1,0 +1,79 @@
+"""Quadtree node geometry of blocks (pure numpy, no store, no thread).
+
+A block of ``(2**k + 1)**2`` samples is the root of a quadtree; a node at depth ``d`` spans
+``2**(k - d)`` sample steps. These helpers give node centres in world coordinates, node half
+diagonals, bounding-sphere radii and the per-block height ranges those spheres are built from,
+so every caller (streamer planning, renderer selection) uses one rule.
+
+The height-range rule (:func:`block_zranges`): a block's ``(zmin, zmax)`` from the grid index;
+a block without terrain (NaN in the index) gets the range of the whole store, so a sphere
+around it is never smaller than the terrain it might hold and never NaN.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from tiler.grid import BlockGrid
+
+
+def node_span(k: int, depth: int) -> int:
+    """Sample steps spanned by one edge of a depth-``depth`` node of a ``2**k`` block."""
+    return 1 << (k - depth)
+
+
+def half_diagonal(grid: BlockGrid, depth: int) -> float:
+    """Half the ground diagonal of a node at ``depth`` (world units)."""
+    return 0.5 * float(node_span(grid.k, depth)) * math.hypot(grid.dx, grid.dy)
+
+
+def node_centres(
+    grid: BlockGrid,
+    block_rows: np.ndarray,
+    block_cols: np.ndarray,
+    depth: int,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World ``(x, y)`` centres of nodes ``(depth, rows, cols)`` of blocks (vectorised)."""
+    xmin, _, _, ymax = grid.block_bounds(block_rows, block_cols)
+    s = float(node_span(grid.k, depth))
+    cx = xmin + (np.asarray(cols, dtype=np.float64) + 0.5) * (s * grid.dx)
+    cy = ymax - (np.asarray(rows, dtype=np.float64) + 0.5) * (s * grid.dy)
+    return cx, cy
+
+
+def sphere_radius(half_diag: float | np.ndarray, zhalf: np.ndarray) -> np.ndarray:
+    """Radius of the sphere around a node: its half diagonal and half its height range."""
+    return np.hypot(half_diag, zhalf)
+
+
+def block_zranges(
+    zmin: np.ndarray, zmax: np.ndarray, blocks: np.ndarray | None = None
+) -> np.ndarray:
+    """``(..., 2)`` float64 ``(zmin, zmax)`` of blocks from the index arrays (see module doc).
+
+    ``blocks`` ``(n, 2)`` selects blocks (default: the whole grid, shape ``(rows, cols, 2)``).
+    """
+    lo = np.asarray(zmin, dtype=np.float64)
+    hi = np.asarray(zmax, dtype=np.float64)
+    finite = np.isfinite(lo) & np.isfinite(hi)
+    g0 = float(lo[finite].min()) if finite.any() else 0.0
+    g1 = float(hi[finite].max()) if finite.any() else 0.0
+    zr = np.stack([np.where(finite, lo, g0), np.where(finite, hi, g1)], axis=-1)
+    if blocks is None:
+        return zr
+    b = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+    return zr[b[:, 0], b[:, 1]]
+
+
+def split_children(
+    idx: np.ndarray, rows: np.ndarray, cols: np.ndarray, split: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The four children ``(owner, rows, cols)`` of the nodes where ``split`` is True."""
+    owner = np.repeat(idx[split], 4)
+    r = (2 * rows[split][:, None] + np.array([0, 0, 1, 1])).ravel()
+    c = (2 * cols[split][:, None] + np.array([0, 1, 0, 1])).ravel()
+    return owner, r, c
