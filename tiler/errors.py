@@ -37,3 +37,7 @@ class StoreVersionError(StoreError):
 
 class StoreCorruptError(StoreError):
     """The store's metadata or data are damaged or inconsistent."""
+
+
+class KernelUnavailableError(TilerError, ImportError):
+    """The compiled kernels were required (``TERRASTREAM_KERNELS=numba``) but cannot load."""
