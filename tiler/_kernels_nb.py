@@ -36,13 +36,19 @@ def _jit(fn):
 
 
 @_jit
-def bound_nodes(f, valid, k, tt, out):  # noqa: C901 - one pass, all depths
+def bound_nodes(f, valid, k, tt, out):
     """Node maxima of |f - level-d surface| for every depth into ``out`` (float32, flat).
 
     ``f``: float32 ``(side, side)``; ``tt[d, i] = float32(i / s_d)``; depth ``d`` occupies
     ``out[(4**d - 1) // 3 :][: 4**d]``. Mirrors ``static_error.bound_errors_numpy``.
+
+    One pass over the rows for all depths: per depth, the node-row's corners are expanded to
+    per-column arrays when a node row starts, so the per-sample loop is branch-free over the
+    whole row (vectorised), keeping a running column max ``run`` that is reduced per node when
+    the node row ends (its first row gives the top edges, its first column the left ones).
     """
     side = f.shape[0]
+    w = side - 1
     total = out.shape[0]
     inner = np.zeros(total, np.float32)
     top = np.zeros(total, np.float32)
@@ -50,7 +56,19 @@ def bound_nodes(f, valid, k, tt, out):  # noqa: C901 - one pass, all depths
     tl = np.zeros(total, np.float32)
     one = np.float32(1.0)
     zero = np.float32(0.0)
-    for y in range(side - 1):
+    uu = np.zeros((k, w), np.float32)  # u of each column, per depth
+    omu = np.zeros((k, w), np.float32)  # 1 - u
+    aa = np.zeros((k, w), np.float32)
+    ba = np.zeros((k, w), np.float32)
+    ca = np.zeros((k, w), np.float32)
+    qq = np.zeros((k, w), np.float32)
+    run = np.zeros((k, w), np.float32)
+    for d in range(k):
+        s = 1 << (k - d)
+        for x in range(w):
+            uu[d, x] = tt[d, x & (s - 1)]
+            omu[d, x] = one - uu[d, x]
+    for y in range(w):
         off = 0
         for d in range(k):
             sh = k - d
@@ -59,40 +77,54 @@ def bound_nodes(f, valid, k, tt, out):  # noqa: C901 - one pass, all depths
             i = y >> sh
             iv = y & (s - 1)
             v = tt[d, iv]
-            r0 = i * s
-            r1 = r0 + s
             base = off + i * n
-            for j in range(n):
-                x0 = j * s
-                a = f[r0, x0]
-                b = f[r0, x0 + s]
-                c = f[r1, x0]
-                dd = f[r1, x0 + s]
-                ba = b - a
-                ca = c - a
-                q = b + c - a - dd
-                vca = v * ca
-                acc = zero
-                for iu in range(s):
-                    u = tt[d, iu]
-                    g = f[y, x0 + iu] - a
-                    g = g - u * ba
-                    g = g - vca
-                    m1 = min(u, v)
-                    m2 = min(one - u - v, zero)
-                    e = max(abs(g + q * m1), abs(g - q * m2))
-                    if not valid[y, x0 + iu]:
-                        e = zero
-                    if iu == 0:
-                        if e > left[base + j]:
-                            left[base + j] = e
-                        if iv == 0:
-                            tl[base + j] = e
-                    acc = max(acc, e)
-                if acc > inner[base + j]:
-                    inner[base + j] = acc
-                if iv == 0:
-                    top[base + j] = acc
+            ud, od, ad, bd, cd, qd, rd = uu[d], omu[d], aa[d], ba[d], ca[d], qq[d], run[d]
+            if iv == 0:
+                r0 = i * s
+                for j in range(n):
+                    x0 = j * s
+                    a = f[r0, x0]
+                    b = f[r0, x0 + s]
+                    c = f[r0 + s, x0]
+                    dd = f[r0 + s, x0 + s]
+                    bma = b - a
+                    cma = c - a
+                    q = b + c - a - dd
+                    for x in range(x0, x0 + s):
+                        ad[x] = a
+                        bd[x] = bma
+                        cd[x] = cma
+                        qd[x] = q
+                        rd[x] = zero
+            fy = f[y]
+            vy = valid[y]
+            for x in range(w):
+                u = ud[x]
+                g = fy[x] - ad[x]
+                g = g - u * bd[x]
+                g = g - v * cd[x]
+                m1 = u if u < v else v
+                t = od[x] - v
+                m2 = t if t < zero else zero
+                e1 = abs(g + qd[x] * m1)
+                e2 = abs(g - qd[x] * m2)
+                e = e1 if e1 > e2 else e2
+                e = e if vy[x] else zero
+                rd[x] = rd[x] if rd[x] > e else e
+            if iv == 0:
+                for j in range(n):
+                    m = zero
+                    for x in range(j * s, j * s + s):
+                        m = max(m, rd[x])
+                    top[base + j] = m
+                    tl[base + j] = rd[j * s]
+            if iv == s - 1:
+                for j in range(n):
+                    m = zero
+                    for x in range(j * s, j * s + s):
+                        m = max(m, rd[x])
+                    inner[base + j] = m
+                    left[base + j] = rd[j * s]
             off += n * n
     # last row and column: linear interpolation along the border, then combine
     last = side - 1
@@ -211,13 +243,18 @@ def fill_int(g, valid, k, fill):
                 g[y, x] = fill
     for lev in range(1, k + 1):
         h = 1 << (k - lev)
-        for y in range(0, last + 1, h):
-            odd_r = (y // h) & 1
-            for x in range(0, last + 1, h):
-                odd_c = (x // h) & 1
-                if (odd_r or odd_c) and not valid[y, x]:
-                    kind = 0 if not odd_r else (1 if not odd_c else 2)
-                    g[y, x] = _predict_int(g, y, x, h, kind)
+        for r in range(0, (last >> (k - lev)) + 1):
+            y = r * h
+            if r & 1:
+                for x in range(0, last + 1, 2 * h):
+                    if not valid[y, x]:
+                        g[y, x] = _predict_int(g, y, x, h, 1)
+                    if x < last and not valid[y, x + h]:
+                        g[y, x + h] = _predict_int(g, y, x + h, h, 2)
+            else:
+                for x in range(h, last + 1, 2 * h):
+                    if not valid[y, x]:
+                        g[y, x] = _predict_int(g, y, x, h, 0)
 
 
 @_jit
@@ -230,13 +267,18 @@ def fill_float(g, valid, k, fill):
                 g[y, x] = fill
     for lev in range(1, k + 1):
         h = 1 << (k - lev)
-        for y in range(0, last + 1, h):
-            odd_r = (y // h) & 1
-            for x in range(0, last + 1, h):
-                odd_c = (x // h) & 1
-                if (odd_r or odd_c) and not valid[y, x]:
-                    kind = 0 if not odd_r else (1 if not odd_c else 2)
-                    g[y, x] = _predict_float(g, y, x, h, kind)
+        for r in range(0, (last >> (k - lev)) + 1):
+            y = r * h
+            if r & 1:
+                for x in range(0, last + 1, 2 * h):
+                    if not valid[y, x]:
+                        g[y, x] = _predict_float(g, y, x, h, 1)
+                    if x < last and not valid[y, x + h]:
+                        g[y, x + h] = _predict_float(g, y, x + h, h, 2)
+            else:
+                for x in range(h, last + 1, 2 * h):
+                    if not valid[y, x]:
+                        g[y, x] = _predict_float(g, y, x, h, 0)
 
 
 @_jit
@@ -258,15 +300,15 @@ def encode_int(g, k, bits, out):
     p = 4
     for lev in range(1, k + 1):
         h = 1 << (k - lev)
-        for y in range(0, last + 1, h):
-            odd_r = (y // h) & 1
-            x0 = 0 if odd_r else h
-            step = h if odd_r else 2 * h
-            for x in range(x0, last + 1, step):
-                odd_c = (x // h) & 1
-                kind = 0 if not odd_r else (1 if not odd_c else 2)
+        for r in range(0, (last >> (k - lev)) + 1):
+            y = r * h
+            odd = r & 1
+            x = 0 if odd else h
+            while x <= last:
+                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
                 out[p] = _zz(np.int64(g[y, x]) - _predict_int(g, y, x, h, kind), bits)
                 p += 1
+                x += h if odd else 2 * h
 
 
 @_jit
@@ -280,16 +322,16 @@ def encode_float(g, gbits, k, scratch, sbits, out):
     p = 4
     for lev in range(1, k + 1):
         h = 1 << (k - lev)
-        for y in range(0, last + 1, h):
-            odd_r = (y // h) & 1
-            x0 = 0 if odd_r else h
-            step = h if odd_r else 2 * h
-            for x in range(x0, last + 1, step):
-                odd_c = (x // h) & 1
-                kind = 0 if not odd_r else (1 if not odd_c else 2)
+        for r in range(0, (last >> (k - lev)) + 1):
+            y = r * h
+            odd = r & 1
+            x = 0 if odd else h
+            while x <= last:
+                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
                 scratch[0] = _predict_float(g, y, x, h, kind)
                 out[p] = gbits[y, x] ^ sbits[0]
                 p += 1
+                x += h if odd else 2 * h
 
 
 @_jit
@@ -313,15 +355,15 @@ def decode_int(seq, g, k, first):
         p = 4
     for lev in range(max(first, 1), k + 1):
         h = 1 << (k - lev)
-        for y in range(0, last + 1, h):
-            odd_r = (y // h) & 1
-            x0 = 0 if odd_r else h
-            step = h if odd_r else 2 * h
-            for x in range(x0, last + 1, step):
-                odd_c = (x // h) & 1
-                kind = 0 if not odd_r else (1 if not odd_c else 2)
+        for r in range(0, (last >> (k - lev)) + 1):
+            y = r * h
+            odd = r & 1
+            x = 0 if odd else h
+            while x <= last:
+                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
                 g[y, x] = _unzz(np.int64(seq[p])) + _predict_int(g, y, x, h, kind)
                 p += 1
+                x += h if odd else 2 * h
 
 
 @_jit
@@ -337,13 +379,13 @@ def decode_float(seq, g, gbits, k, first, scratch, sbits):
         p = 4
     for lev in range(max(first, 1), k + 1):
         h = 1 << (k - lev)
-        for y in range(0, last + 1, h):
-            odd_r = (y // h) & 1
-            x0 = 0 if odd_r else h
-            step = h if odd_r else 2 * h
-            for x in range(x0, last + 1, step):
-                odd_c = (x // h) & 1
-                kind = 0 if not odd_r else (1 if not odd_c else 2)
+        for r in range(0, (last >> (k - lev)) + 1):
+            y = r * h
+            odd = r & 1
+            x = 0 if odd else h
+            while x <= last:
+                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
                 scratch[0] = _predict_float(g, y, x, h, kind)
                 gbits[y, x] = seq[p] ^ sbits[0]
                 p += 1
+                x += h if odd else 2 * h
