@@ -389,3 +389,59 @@ def decode_float(seq, g, gbits, k, first, scratch, sbits):
                 gbits[y, x] = seq[p] ^ sbits[0]
                 p += 1
                 x += h if odd else 2 * h
+
+
+@_jit
+def recentre(g, ref, out):
+    """``out = float32(float64(g) - ref)``; returns ``max |float64(g) - ref|``."""
+    span = 0.0
+    for y in range(g.shape[0]):
+        for x in range(g.shape[1]):
+            dv = np.float64(g[y, x]) - ref
+            out[y, x] = dv
+            a = abs(dv)
+            if a > span:
+                span = a
+    return span
+
+
+@_jit
+def monotone_pack(flat, k, cap, mult, out):
+    """Qiu's Eq. 3 in place on a depth-packed field, then ``value * mult`` packed as
+    ``static_error.pack_field`` does (tile maxima beyond ``cap``) into ``out`` (float64)."""
+    offs = np.zeros(k + 1, np.int64)
+    for d in range(k):
+        offs[d + 1] = offs[d] + (1 << (2 * d))
+    for d in range(k - 1, 0, -1):
+        n = 1 << d
+        m = n >> 1
+        co = offs[d]
+        po = offs[d - 1]
+        for i in range(m):
+            r0 = co + 2 * i * n
+            r1 = r0 + n
+            for j in range(m):
+                c = max(
+                    max(flat[r0 + 2 * j], flat[r0 + 2 * j + 1]),
+                    max(flat[r1 + 2 * j], flat[r1 + 2 * j + 1]),
+                )
+                if c > flat[po + i * m + j]:
+                    flat[po + i * m + j] = c
+    p = 0
+    for d in range(k):
+        n = 1 << d
+        if d <= cap:
+            for idx in range(n * n):
+                out[p + idx] = flat[offs[d] + idx] * mult
+            p += n * n
+        else:
+            nc = 1 << cap
+            r = n >> cap
+            for ci in range(nc):
+                for cj in range(nc):
+                    m = flat[offs[d] + ci * r * n + cj * r] * mult
+                    for yy in range(ci * r, ci * r + r):
+                        for xx in range(cj * r, cj * r + r):
+                            m = max(m, flat[offs[d] + yy * n + xx] * mult)
+                    out[p + ci * nc + cj] = m
+            p += nc * nc

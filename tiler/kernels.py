@@ -85,20 +85,44 @@ def _split_depths(flat: np.ndarray, k: int) -> list[np.ndarray]:
     return out
 
 
-def bound_nodes(mod: ModuleType, f: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
-    """Per-depth float32 node maxima of |f - surface| (``f`` float32, already re-centred)."""
+def split_depths(flat: np.ndarray, k: int) -> list[np.ndarray]:
+    """Views ``(2**d, 2**d)`` of a depth-packed field (depths ``0..k-1`` one after another)."""
+    return _split_depths(flat, k)
+
+
+def recentre(mod: ModuleType, grid: np.ndarray, ref: float) -> tuple[np.ndarray, float]:
+    """``float32(grid - ref)`` (subtraction in float64) and ``max |grid - ref|``."""
+    g = np.ascontiguousarray(grid)
+    out = np.empty(g.shape, dtype=np.float32)
+    span = mod.recentre(g, float(ref), out) if g.size else 0.0
+    return out, float(span)
+
+
+def bound_flat(mod: ModuleType, f: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """Depth-packed float32 node maxima of |f - surface| (``f`` float32, re-centred)."""
     out = np.empty(((4**k) - 1) // 3, dtype=np.float32)
     mod.bound_nodes(
         np.ascontiguousarray(f), np.ascontiguousarray(valid, dtype=bool), k, _tables(k), out
     )
-    return _split_depths(out, k)
+    return out
 
 
-def qiu_nodes(mod: ModuleType, grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
-    """Per-depth float64 Qiu H (before monotonicity)."""
+def qiu_flat(mod: ModuleType, grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """Depth-packed float64 Qiu H (before monotonicity)."""
     out = np.empty(((4**k) - 1) // 3, dtype=np.float64)
     mod.qiu_nodes(np.ascontiguousarray(grid), np.ascontiguousarray(valid, dtype=bool), k, out)
-    return _split_depths(out, k)
+    return out
+
+
+def monotone_pack(mod: ModuleType, flat: np.ndarray, k: int, cap: int, mult: float) -> np.ndarray:
+    """Monotone (Eq. 3), times ``mult``, packed with tile maxima beyond ``cap`` (float64).
+
+    ``flat`` (float64, depth-packed) is made monotone in place.
+    """
+    sizes = [4 ** min(d, cap) for d in range(k)]
+    out = np.empty(sum(sizes), dtype=np.float64)
+    mod.monotone_pack(flat, k, cap, float(mult), out)
+    return out
 
 
 def fill(mod: ModuleType, grid: np.ndarray, valid: np.ndarray, k: int, value: float) -> np.ndarray:

@@ -50,7 +50,7 @@ def qiu_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
     mod = kernels.active()
     if mod is None or not _finite(grid):
         return qiu_errors_numpy(grid, valid, k)
-    return kernels.qiu_nodes(mod, grid, valid, k)
+    return kernels.split_depths(kernels.qiu_flat(mod, grid, valid, k), k)
 
 
 def _finite(grid: np.ndarray) -> bool:
@@ -169,12 +169,25 @@ def _edge_dev(f_edge: np.ndarray, c_edge: np.ndarray, t: np.ndarray) -> np.ndarr
     return np.abs(f_edge - np.append(interp, c_edge[-1]))
 
 
-def _recentre(grid: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, float]:
+def _recentre(grid: np.ndarray, valid: np.ndarray, mod=None) -> tuple[np.ndarray, float]:
     """float32 heights relative to the valid median, and a margin covering their rounding."""
-    ref = float(np.median(grid[valid])) if valid.any() else 0.0
+    if valid.all():
+        ref = float(np.median(grid)) if grid.size else 0.0
+    else:
+        ref = float(np.median(grid[valid])) if valid.any() else 0.0
+    if mod is not None:
+        f, span = kernels.recentre(mod, grid, ref)
+        return f, 64.0 * np.finfo(np.float32).eps * span
     f64 = grid.astype(np.float64) - ref
     span = float(np.max(np.abs(f64))) if f64.size else 0.0
     return f64.astype(np.float32), 64.0 * np.finfo(np.float32).eps * span
+
+
+def _bound_flat(mod, grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """Depth-packed float64 bound field (compiled path), before monotonicity."""
+    f, margin = _recentre(grid, valid, mod)
+    node = kernels.bound_flat(mod, f, valid, k)
+    return np.where(node > 0, node.astype(np.float64) + margin, 0.0)
 
 
 def bound_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
@@ -186,9 +199,7 @@ def bound_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray
     mod = kernels.active()
     if mod is None or not _finite(grid):
         return bound_errors_numpy(grid, valid, k)
-    f, margin = _recentre(grid, valid)
-    nodes = kernels.bound_nodes(mod, f, valid, k)
-    return [np.where(node > 0, node.astype(np.float64) + margin, 0.0) for node in nodes]
+    return kernels.split_depths(_bound_flat(mod, grid, valid, k), k)
 
 
 def bound_errors_numpy(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
@@ -306,6 +317,11 @@ def subtree_error(field: list[np.ndarray], depth: int, row: int, col: int, below
 
 def block_errors(grid: np.ndarray, valid: np.ndarray, k: int, cap: int) -> np.ndarray:
     """Both packed monotone fields of one block: a ``(2, total)`` float16 array (qiu, bound)."""
+    mod = kernels.active()
+    if mod is not None and _finite(grid):
+        q = kernels.monotone_pack(mod, kernels.qiu_flat(mod, grid, valid, k), k, cap, _MARGIN)
+        b = kernels.monotone_pack(mod, _bound_flat(mod, grid, valid, k), k, cap, _MARGIN)
+        return np.stack([round_up_f16(q), round_up_f16(b)])
     # a relative 1e-9 margin covers float64 rounding in the arithmetic before the f16 round-up
     q = pack_field([e * _MARGIN for e in make_monotone(qiu_errors(grid, valid, k))], cap)
     b = pack_field([e * _MARGIN for e in make_monotone(bound_errors(grid, valid, k))], cap)

@@ -61,6 +61,15 @@ def _block(case: str, k: int, dtype: str, seed: int) -> tuple[np.ndarray, np.nda
     return grid, valid
 
 
+def _with_numpy(fn, *args):
+    """``fn(*args)`` with the numpy backend (then back to numba)."""
+    os.environ[kernels.ENV] = "numpy"
+    try:
+        return fn(*args)
+    finally:
+        os.environ[kernels.ENV] = "numba"
+
+
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
@@ -101,6 +110,9 @@ def test_kernels_equal_numpy(numba_backend, k, case, dtype):
         for depth in range(k):
             assert a[depth].dtype == b[depth].dtype == np.float64
             np.testing.assert_array_equal(a[depth], b[depth], err_msg=f"{fast.__name__} d={depth}")
+    for cap in sorted({0, k // 2, k - 1}):
+        got = static_error.block_errors(filled, valid, k, cap)
+        assert _same_bits(got, _with_numpy(static_error.block_errors, filled, valid, k, cap))
 
 
 @pytest.mark.parametrize("dtype", ["int16", "float32"])
@@ -117,12 +129,7 @@ def test_kernels_equal_numpy_1025(numba_backend, dtype):
         map(_same_bits, encoding.encode_levels(filled, k), encoding.encode_levels_numpy(filled, k))
     )
     got = static_error.block_errors(filled, valid, k, 6)
-    os.environ[kernels.ENV] = "numpy"
-    try:
-        want = static_error.block_errors(filled, valid, k, 6)
-    finally:
-        os.environ[kernels.ENV] = "numba"
-    assert _same_bits(got, want)
+    assert _same_bits(got, _with_numpy(static_error.block_errors, filled, valid, k, 6))
 
 
 def test_exactness_checks_see_one_ulp_and_one_bit(numba_backend):
