@@ -255,7 +255,7 @@ def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = N
     dtype = np.dtype(dtype)
     if level is None:
         level = len(stored) - 1
-    mod = kernels.active()
+    mod = kernels.active(load=False)
     if mod is not None and _sizes_ok(stored, level):
         g = np.empty((grid_side(level),) * 2, dtype=dtype)
         kernels.decode(
@@ -295,7 +295,7 @@ def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]
     """Decoded (height) values of each stored level, in sequence order."""
     dtype = np.dtype(dtype)
     last = len(stored) - 1
-    if kernels.active() is not None and _sizes_ok(stored, last):
+    if kernels.active(load=False) is not None and _sizes_ok(stored, last):
         return [lv.copy() for lv in decompose(decode_grid(stored, dtype, last), last)]
     return decode_levels_numpy(stored, dtype)
 
@@ -317,7 +317,7 @@ def decode_next_level(levels: list[np.ndarray], raw: np.ndarray, dtype: np.dtype
     n = len(levels)
     if n == 0:
         return _from_stored0(raw, dtype)
-    mod = kernels.active()
+    mod = kernels.active(load=False)
     if mod is not None and np.size(raw) == level_end(n) - level_start(n) + 1:
         g = np.empty((grid_side(n),) * 2, dtype=dtype)
         g[::2, ::2] = reconstruct(levels, n - 1)

@@ -6,13 +6,16 @@ bit-identical results. ``TERRASTREAM_KERNELS`` picks the backend: ``auto`` (defa
 importable), ``numba`` (required: an error if missing) or ``numpy``.
 
 numba is imported, and the kernels loaded from its on-disk cache (compiled on the first use
-ever), only when a kernel is first called: importing this module costs nothing, so commands
-that do not tile or decode never pay for the JIT.
+ever), only when a tiling kernel is first called: importing this module costs nothing. Decoding
+(the read path) uses the kernels in ``auto`` mode only once they are loaded in the process, so a
+reader never waits for numba's import (0.3-1 s) on its first block. Short jobs can skip numba
+altogether (:func:`choose`); long ones can load it in the background first (:func:`warm_up`).
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from functools import cache
 from types import ModuleType
 
@@ -21,6 +24,10 @@ import numpy as np
 from tiler.errors import KernelUnavailableError
 
 ENV = "TERRASTREAM_KERNELS"
+_NB_MODULE = "tiler._kernels_nb"
+# numba's import + loading the cached kernels (~0.3-1 s) against ~60-200 ms saved per 1025^2
+# block (bench/kernels.py): below ~8 such blocks numpy finishes first.
+MIN_SAMPLES = 8 * 1025 * 1025
 BACKENDS = ("auto", "numba", "numpy")
 _UINT = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}
 
@@ -44,10 +51,15 @@ def requested() -> str:
     return name
 
 
-def active() -> ModuleType | None:
-    """The numba kernel module if it is to be used, else ``None`` (use numpy)."""
+def active(load: bool = True) -> ModuleType | None:
+    """The numba kernel module if it is to be used, else ``None`` (use numpy).
+
+    ``load=False`` (the read path): in ``auto`` mode, only if numba is already loaded.
+    """
     name = requested()
     if name == "numpy":
+        return None
+    if not load and name == "auto" and _NB_MODULE not in sys.modules:
         return None
     mod = _load_numba()
     if mod is None and name == "numba":
@@ -61,6 +73,34 @@ def active() -> ModuleType | None:
 def backend() -> str:
     """``"numba"`` or ``"numpy"``: the backend the next kernel call will use."""
     return "numpy" if active() is None else "numba"
+
+
+def choose(samples: int) -> str:
+    """Backend for a job of ``samples`` source samples: an explicit ``TERRASTREAM_KERNELS``
+    wins; in ``auto`` mode numba only for jobs big enough to repay its start-up (and if
+    importable)."""
+    name = requested()
+    if name != "auto":
+        return name
+    if samples < MIN_SAMPLES:
+        return "numpy"
+    return "numba" if _load_numba() is not None else "numpy"
+
+
+def warm_up(dtype: np.dtype | str = "int16") -> bool:
+    """Import numba and load (or compile) the kernels for ``dtype`` now, e.g. in a background
+    thread before a pool forks; returns whether the compiled kernels are available."""
+    from tiler import encoding, static_error
+
+    if active() is None:
+        return False
+    g = np.zeros((5, 5), dtype=np.dtype(dtype))
+    v = np.ones((5, 5), dtype=bool)
+    v[1, 1] = False
+    f = encoding.fill_invalid(g, v, 2)
+    encoding.decode_grid(encoding.encode_levels(f, 2), g.dtype)
+    static_error.block_errors(f, v, 2, 1)
+    return True
 
 
 def _depth_tables(k: int) -> np.ndarray:

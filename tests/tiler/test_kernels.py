@@ -190,12 +190,27 @@ def test_numba_is_not_imported_until_a_kernel_runs():
         "import sys, numpy as np\n"
         "import cli.main, tiler.store, tiler.info, tiler.encoding, tiler.static_error\n"
         "print('numba' in sys.modules)\n"
+        "s = tiler.encoding.encode_levels_numpy(np.arange(9, dtype=np.int16).reshape(3, 3), 1)\n"
+        "tiler.encoding.decode_grid(s, 'int16')  # the read path never loads numba itself\n"
+        "print('numba' in sys.modules)\n"
         "tiler.encoding.encode_levels(np.zeros((3, 3), np.int16), 1)\n"
         "print('numba' in sys.modules)\n"
     )
     r = _run(code)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["False", "True"]
+    assert r.stdout.split() == ["False", "False", "True"]
+
+
+def test_choose_and_warm_up(monkeypatch):
+    monkeypatch.setenv(kernels.ENV, "auto")
+    assert kernels.choose(1201 * 1201) == "numpy"  # one SRTM tile: numba's start-up costs more
+    assert kernels.choose(16385 * 16385) == "numba"
+    monkeypatch.setenv(kernels.ENV, "numba")
+    assert kernels.choose(10) == "numba"
+    assert kernels.warm_up("float32") is True
+    monkeypatch.setenv(kernels.ENV, "numpy")
+    assert kernels.choose(16385 * 16385) == "numpy"
+    assert kernels.warm_up() is False
 
 
 def test_unwritable_cache_dir_still_runs(tmp_path):
