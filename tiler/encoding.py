@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from tiler import kernels
 from tiler.errors import SourceError
-from tiler.layout import grid_side, reconstruct, subgrid
+from tiler.layout import decompose, grid_side, level_end, level_start, reconstruct, subgrid
 
 INT_RESIDUAL = "int-residual"
 FLOAT_XOR = "float-xor"
@@ -151,10 +152,27 @@ def fill_invalid(grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
     Level-0 corners that are invalid take the mean of the block's valid samples (0 if none).
     Returns a new array of the grid's dtype; valid samples are unchanged.
     """
-    dtype = grid.dtype
     if valid.all():
         return grid.copy()
     fill0 = float(np.mean(grid[valid], dtype=np.float64)) if valid.any() else 0.0
+    mod = kernels.active()
+    if mod is not None and grid.shape == (grid_side(k),) * 2:
+        return kernels.fill(
+            mod, grid, valid, k, fill0 if grid.dtype.kind == "f" else np.floor(fill0)
+        )
+    return _fill_invalid_numpy(grid, valid, k, fill0)
+
+
+def fill_invalid_numpy(grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """Reference (numpy) form of :func:`fill_invalid`."""
+    if valid.all():
+        return grid.copy()
+    fill0 = float(np.mean(grid[valid], dtype=np.float64)) if valid.any() else 0.0
+    return _fill_invalid_numpy(grid, valid, k, fill0)
+
+
+def _fill_invalid_numpy(grid: np.ndarray, valid: np.ndarray, k: int, fill0: float) -> np.ndarray:
+    dtype = grid.dtype
     g = subgrid(grid, k, 0).copy()
     v0 = subgrid(valid, k, 0)
     if dtype.kind == "f":
@@ -174,8 +192,20 @@ def fill_invalid(grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
 def encode_levels(grid: np.ndarray, k: int) -> list[np.ndarray]:
     """Residual-encode a (filled) ``2**k+1`` block into ``k+1`` level arrays.
 
-    The arrays have the same-size unsigned dtype (:func:`storage_dtype_for`).
+    The arrays have the same-size unsigned dtype (:func:`storage_dtype_for`); with the compiled
+    kernels they are consecutive views of one buffer (the block's sequence).
     """
+    if grid.shape != (grid_side(k),) * 2:
+        raise ValueError(f"expected a {grid_side(k)}x{grid_side(k)} block, got {grid.shape}")
+    mod = kernels.active()
+    if mod is None:
+        return encode_levels_numpy(grid, k)
+    seq = kernels.encode(mod, grid, k)
+    return [seq[level_start(i) : level_end(i) + 1] for i in range(k + 1)]
+
+
+def encode_levels_numpy(grid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Reference (numpy) form of :func:`encode_levels`."""
     dtype = grid.dtype
     if grid.shape != (grid_side(k),) * 2:
         raise ValueError(f"expected a {grid_side(k)}x{grid_side(k)} block, got {grid.shape}")
@@ -225,6 +255,30 @@ def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = N
     dtype = np.dtype(dtype)
     if level is None:
         level = len(stored) - 1
+    mod = kernels.active(load=False)
+    if mod is not None and _sizes_ok(stored, level):
+        g = np.empty((grid_side(level),) * 2, dtype=dtype)
+        kernels.decode(
+            mod, np.concatenate([np.asarray(s) for s in stored[: level + 1]]), g, level, 0
+        )
+        return g
+    return decode_grid_numpy(stored, dtype, level)
+
+
+def _sizes_ok(stored: list[np.ndarray], level: int) -> bool:
+    """Whether levels ``0..level`` have the layout's sizes (else numpy raises the error)."""
+    return len(stored) > level >= 0 and all(
+        np.size(stored[i]) == level_end(i) - level_start(i) + 1 for i in range(level + 1)
+    )
+
+
+def decode_grid_numpy(
+    stored: list[np.ndarray], dtype: np.dtype, level: int | None = None
+) -> np.ndarray:
+    """Reference (numpy) form of :func:`decode_grid`."""
+    dtype = np.dtype(dtype)
+    if level is None:
+        level = len(stored) - 1
     g = _from_stored0(stored[0], dtype).reshape(2, 2)
     for i in range(1, level + 1):
         g = _next_grid(g, stored[i], dtype)
@@ -240,6 +294,15 @@ def level_values(grid: np.ndarray) -> np.ndarray:
 def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]:
     """Decoded (height) values of each stored level, in sequence order."""
     dtype = np.dtype(dtype)
+    last = len(stored) - 1
+    if kernels.active(load=False) is not None and _sizes_ok(stored, last):
+        return [lv.copy() for lv in decompose(decode_grid(stored, dtype, last), last)]
+    return decode_levels_numpy(stored, dtype)
+
+
+def decode_levels_numpy(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]:
+    """Reference (numpy) form of :func:`decode_levels`."""
+    dtype = np.dtype(dtype)
     out = [_from_stored0(stored[0], dtype)]
     g = out[0].reshape(2, 2)
     for i in range(1, len(stored)):
@@ -250,6 +313,23 @@ def decode_levels(stored: list[np.ndarray], dtype: np.dtype) -> list[np.ndarray]
 
 def decode_next_level(levels: list[np.ndarray], raw: np.ndarray, dtype: np.dtype) -> np.ndarray:
     """Decode level ``len(levels)`` from its stored values and the decoded levels before it."""
+    dtype = np.dtype(dtype)
+    n = len(levels)
+    if n == 0:
+        return _from_stored0(raw, dtype)
+    mod = kernels.active(load=False)
+    if mod is not None and np.size(raw) == level_end(n) - level_start(n) + 1:
+        g = np.empty((grid_side(n),) * 2, dtype=dtype)
+        g[::2, ::2] = reconstruct(levels, n - 1)
+        kernels.decode(mod, np.asarray(raw), g, n, n)
+        return level_values(g)
+    return decode_next_level_numpy(levels, raw, dtype)
+
+
+def decode_next_level_numpy(
+    levels: list[np.ndarray], raw: np.ndarray, dtype: np.dtype
+) -> np.ndarray:
+    """Reference (numpy) form of :func:`decode_next_level`."""
     dtype = np.dtype(dtype)
     n = len(levels)
     if n == 0:

@@ -69,3 +69,7 @@ class JobMismatchError(StoreExistsError):
 
 class TilingInterrupted(TilerError, KeyboardInterrupt):
     """Tiling was interrupted (Ctrl-C); the store is resumable by rerunning the same call."""
+
+
+class KernelUnavailableError(TilerError, ImportError):
+    """The compiled kernels were required (``TERRASTREAM_KERNELS=numba``) but cannot load."""

@@ -118,7 +118,7 @@ def create_layout(group: zarr.Group, meta: Any, comp_level: int) -> None:
             dtype=meta.storage_dtype,
             compressors=codecs(v, comp_level, itemsize),
             fill_value=fill,
-            dimension_names=("block_row", "block_col", "value"),
+            dimension_names=("block_row", "block_col", f"value_{i}"),  # per-level lengths
             config=cfg,
             **kw,
         )

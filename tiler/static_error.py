@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tiler import kernels
 from tiler.layout import subgrid
 
 FIELDS = ("qiu", "bound")
@@ -42,7 +43,23 @@ def _node_max(d: np.ndarray, n: int) -> np.ndarray:
 
 
 def qiu_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
-    """Qiu's ``H`` (Eq. 4) for every node, depth ``0..k-1``, as ``(2**d, 2**d)`` float64 arrays."""
+    """Qiu's ``H`` (Eq. 4) for every node, depth ``0..k-1``, as ``(2**d, 2**d)`` float64 arrays.
+
+    Compiled when numba is available (:mod:`tiler.kernels`), identical to :func:`qiu_errors_numpy`.
+    """
+    mod = kernels.active()
+    if mod is None or not _finite(grid):
+        return qiu_errors_numpy(grid, valid, k)
+    return kernels.split_depths(kernels.qiu_flat(mod, grid, valid, k), k)
+
+
+def _finite(grid: np.ndarray) -> bool:
+    """Kernels assume finite heights (NaN ordering differs); the numpy path handles the rest."""
+    return grid.dtype.kind != "f" or bool(np.isfinite(grid).all())
+
+
+def qiu_errors_numpy(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Reference (numpy) form of :func:`qiu_errors`."""
     out = []
     for depth in range(k):
         c = subgrid(grid, k, depth).astype(np.float64)
@@ -152,19 +169,47 @@ def _edge_dev(f_edge: np.ndarray, c_edge: np.ndarray, t: np.ndarray) -> np.ndarr
     return np.abs(f_edge - np.append(interp, c_edge[-1]))
 
 
+def _recentre(grid: np.ndarray, valid: np.ndarray, mod=None) -> tuple[np.ndarray, float]:
+    """float32 heights relative to the valid median, and a margin covering their rounding."""
+    if valid.all():
+        ref = float(np.median(grid)) if grid.size else 0.0
+    else:
+        ref = float(np.median(grid[valid])) if valid.any() else 0.0
+    if mod is not None:
+        f, span = kernels.recentre(mod, grid, ref)
+        return f, 64.0 * np.finfo(np.float32).eps * span
+    f64 = grid.astype(np.float64) - ref
+    span = float(np.max(np.abs(f64))) if f64.size else 0.0
+    return f64.astype(np.float32), 64.0 * np.finfo(np.float32).eps * span
+
+
+def _bound_flat(mod, grid: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """Depth-packed float64 bound field (compiled path), before monotonicity."""
+    f, margin = _recentre(grid, valid, mod)
+    node = kernels.bound_flat(mod, f, valid, k)
+    return np.where(node > 0, node.astype(np.float64) + margin, 0.0)
+
+
 def bound_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
     """Largest |sample - level-d surface| per node (either diagonal), depth ``0..k-1``.
+
+    Compiled (one pass over the block for all depths) when numba is available, identical to
+    :func:`bound_errors_numpy`.
+    """
+    mod = kernels.active()
+    if mod is None or not _finite(grid):
+        return bound_errors_numpy(grid, valid, k)
+    return kernels.split_depths(_bound_flat(mod, grid, valid, k), k)
+
+
+def bound_errors_numpy(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Reference (numpy) form of :func:`bound_errors`.
 
     Nodes are viewed as ``(n, s, n, s)`` blocks of the grid (no gathers); the block's last row
     and column, and the edges nodes share, are added afterwards.
     """
     side = grid.shape[0]
-    # float32 relative to a reference height, with a margin covering the rounding
-    ref = float(np.median(grid[valid])) if valid.any() else 0.0
-    f64 = grid.astype(np.float64) - ref
-    span = float(np.max(np.abs(f64))) if f64.size else 0.0
-    margin = 64.0 * np.finfo(np.float32).eps * span
-    f = f64.astype(np.float32)
+    f, margin = _recentre(grid, valid)
     inval = ~valid
     out = []
     for depth in range(k):
@@ -272,6 +317,11 @@ def subtree_error(field: list[np.ndarray], depth: int, row: int, col: int, below
 
 def block_errors(grid: np.ndarray, valid: np.ndarray, k: int, cap: int) -> np.ndarray:
     """Both packed monotone fields of one block: a ``(2, total)`` float16 array (qiu, bound)."""
+    mod = kernels.active()
+    if mod is not None and _finite(grid):
+        q = kernels.monotone_pack(mod, kernels.qiu_flat(mod, grid, valid, k), k, cap, _MARGIN)
+        b = kernels.monotone_pack(mod, _bound_flat(mod, grid, valid, k), k, cap, _MARGIN)
+        return np.stack([round_up_f16(q), round_up_f16(b)])
     # a relative 1e-9 margin covers float64 rounding in the arithmetic before the f16 round-up
     q = pack_field([e * _MARGIN for e in make_monotone(qiu_errors(grid, valid, k))], cap)
     b = pack_field([e * _MARGIN for e in make_monotone(bound_errors(grid, valid, k))], cap)

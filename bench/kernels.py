@@ -1,0 +1,246 @@
+"""Per-block kernel timings: numba kernels vs the numpy reference, in one run, plus CLI start-up.
+
+Usage::
+
+    python bench/kernels.py [--reps 15] [--sizes 257,1025] [--out bench/results/kernels.json]
+                            [--no-startup] [--quick]
+
+For each block (synthetic int16 and float32 blocks from ``tiler.synth.synth_array``, and a
+1025² window of the real SRTM tile when present) and each hot operation (``fill_invalid`` on the
+block with ~10 % nodata, ``encode_levels``, ``decode_grid`` of all levels and of levels
+``0..k-2``, ``qiu_errors``, ``bound_errors``, ``block_errors``, and the tiler's whole
+``process_block``) it alternates numpy and numba calls ``--reps`` times (``TERRASTREAM_KERNELS``
+switched between calls) and reports medians and the numpy/numba ratio. The machine may be
+shared: medians of interleaved repetitions keep the ratio honest even when absolute times move.
+
+Start-up (``--no-startup`` skips it): ``python -m cli.main info`` on a small store, this tree vs
+``/work/main`` (median of 7 runs), and the first kernel call in a fresh process with an empty
+numba cache (compiles), with the cache filled (loads), and with the numpy backend.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+
+from tiler import encoding, kernels, static_error  # noqa: E402
+from tiler.layout import parse_block_size  # noqa: E402
+from tiler.synth import synth_array  # noqa: E402
+
+DEFAULT_OUT = REPO / "bench" / "results" / "kernels.json"
+REAL = Path("/work/shared/data/N44W072.hgt")
+MAIN = Path("/work/main")
+
+
+def _blocks(sizes: list[int]) -> list[tuple[str, np.ndarray]]:
+    out = []
+    for side in sizes:
+        for dt in ("int16", "float32"):
+            g = synth_array(slice(0, side), slice(0, side), side, seed=3, dtype=dt)
+            out.append((f"synth-{side}-{dt}", g))
+    if REAL.exists() and 1025 in sizes:
+        import rasterio
+        from rasterio.windows import Window
+
+        with rasterio.open(REAL) as ds:
+            out.append(("N44W072-1025-int16", ds.read(1, window=Window(100, 100, 1025, 1025))))
+    return out
+
+
+def _nodata_mask(side: int) -> np.ndarray:
+    """~10 % invalid: a disc and a band of scattered samples (covers corners of some nodes)."""
+    yy, xx = np.mgrid[0:side, 0:side]
+    valid = (yy - side * 0.3) ** 2 + (xx - side * 0.6) ** 2 > (side * 0.15) ** 2
+    rng = np.random.default_rng(1)
+    valid &= rng.random((side, side)) > 0.03
+    return valid
+
+
+def _ops(grid: np.ndarray, k: int) -> dict[str, Any]:
+    from tiler.tile import BlockParams, process_block
+
+    side = grid.shape[0]
+    valid_all = np.ones_like(grid, dtype=bool)
+    valid = _nodata_mask(side)
+    holes = grid.copy()
+    if grid.dtype.kind == "f":
+        holes[~valid] = np.nan
+        filled_src = np.where(valid, grid, 0).astype(grid.dtype)
+    else:
+        holes[~valid] = -32768
+        filled_src = holes
+    filled = encoding.fill_invalid_numpy(filled_src, valid, k)
+    stored = encoding.encode_levels_numpy(filled, k)
+    cap = static_error.default_cap(k)
+    nodata = None if grid.dtype.kind == "f" else -32768.0
+    params = BlockParams(
+        k, grid.dtype.name, "uint16" if grid.dtype.itemsize == 2 else "uint32", nodata, None, cap
+    )
+    return {
+        "fill_invalid": lambda: encoding.fill_invalid(filled_src, valid, k),
+        "encode_levels": lambda: encoding.encode_levels(grid, k),
+        "decode_grid": lambda: encoding.decode_grid(stored, grid.dtype),
+        "decode_grid_coarse": lambda: encoding.decode_grid(stored, grid.dtype, k - 2),
+        "qiu_errors": lambda: static_error.qiu_errors(grid, valid_all, k),
+        "bound_errors": lambda: static_error.bound_errors(grid, valid_all, k),
+        "block_errors": lambda: static_error.block_errors(grid, valid_all, k, cap),
+        "process_block": lambda: process_block(grid, params),
+        "process_block_nodata": lambda: process_block(holes, params),
+    }
+
+
+def _time(fn, mode: str) -> float:
+    os.environ[kernels.ENV] = mode
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def bench_kernels(sizes: list[int], reps: int) -> list[dict[str, Any]]:
+    """Interleaved numpy/numba medians for every op and block."""
+    rows = []
+    for name, grid in _blocks(sizes):
+        k = parse_block_size(grid.shape[0])
+        for op, fn in _ops(grid, k).items():
+            _time(fn, "numba")  # compile / load from the cache outside the timed region
+            _time(fn, "numpy")
+            tn, tb = [], []
+            for _ in range(reps):
+                tn.append(_time(fn, "numpy"))
+                tb.append(_time(fn, "numba"))
+            row = {
+                "block": name,
+                "op": op,
+                "numpy_ms": 1e3 * statistics.median(tn),
+                "numba_ms": 1e3 * statistics.median(tb),
+                "reps": reps,
+            }
+            row["speedup"] = row["numpy_ms"] / row["numba_ms"]
+            rows.append(row)
+            print(
+                f"{name:22s} {op:22s} numpy {row['numpy_ms']:8.2f} ms  numba "
+                f"{row['numba_ms']:8.2f} ms  x{row['speedup']:6.1f}",
+                flush=True,
+            )
+    os.environ.pop(kernels.ENV, None)
+    return rows
+
+
+_FIRST_CALL = """
+import time, numpy as np
+t0 = time.perf_counter()
+from tiler import encoding, static_error
+g = (np.arange(65 * 65, dtype=np.int16) % 97).reshape(65, 65)
+v = np.ones((65, 65), bool)
+t1 = time.perf_counter()
+encoding.encode_levels(encoding.fill_invalid(g, v, 6), 6)
+static_error.block_errors(g, v, 6, 2)
+t2 = time.perf_counter()
+print(t1 - t0, t2 - t1)
+"""
+
+
+def _run(cmd: list[str], env: dict[str, str], cwd: Path) -> float:
+    t = time.perf_counter()
+    subprocess.run(cmd, env=env, cwd=cwd, check=True, capture_output=True)
+    return time.perf_counter() - t
+
+
+def bench_startup(runs: int = 7) -> dict[str, Any]:
+    """`info` wall time (this tree vs main) and first-kernel latency cold/warm/numpy."""
+    from tiler.synth import synth_dem
+    from tiler.tile import TileOptions, tile
+
+    out: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "s.tif"
+        synth_dem(src, 513)
+        store = Path(tmp) / "s.zarr"
+        tile(src, store, TileOptions(block_size=257, workers=1))
+        base = {k: v for k, v in os.environ.items() if k not in (kernels.ENV, "PYTHONPATH")}
+        cmd = [sys.executable, "-m", "cli.main", "info", str(store)]
+        for label, tree in (("this_tree", REPO), ("main", MAIN)):
+            if not tree.exists():
+                continue
+            env = {**base, "PYTHONPATH": str(tree)}
+            _run(cmd, env, tree)  # page cache
+            times = [_run(cmd, env, tree) for _ in range(runs)]
+            out[f"info_{label}_s"] = statistics.median(times)
+        env = {**base, "PYTHONPATH": str(REPO), "NUMBA_CACHE_DIR": str(Path(tmp) / "nbcache")}
+        probe = [sys.executable, "-c", _FIRST_CALL]
+        for label, extra in (
+            ("cold_cache", {}),
+            ("warm_cache", {}),
+            ("numpy", {kernels.ENV: "numpy"}),
+        ):
+            t = time.perf_counter()
+            r = subprocess.run(
+                probe, env={**env, **extra}, cwd=REPO, check=True, capture_output=True, text=True
+            )
+            wall = time.perf_counter() - t
+            imp, first = (float(x) for x in r.stdout.split())
+            out[f"first_call_{label}"] = {"wall_s": wall, "import_s": imp, "first_block_s": first}
+        env_i = {**base, "PYTHONPATH": str(REPO)}
+        r = subprocess.run(
+            [sys.executable, "-X", "importtime", "-m", "cli.main", "info", str(store)],
+            env=env_i,
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        out["info_imports_numba"] = "numba" in r.stderr
+    for key, val in out.items():
+        print(f"{key:28s} {val}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark, print the table, write the JSON."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument("--sizes", default="257,1025")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--no-startup", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="257 only, 3 reps, no start-up")
+    a = ap.parse_args(argv)
+    if kernels.active() is None:
+        print("numba is not importable: nothing to compare", file=sys.stderr)
+        return 1
+    sizes = [257] if a.quick else [int(s) for s in a.sizes.split(",")]
+    reps = 3 if a.quick else a.reps
+    result: dict[str, Any] = {
+        "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+        },
+        "command": " ".join([Path(sys.argv[0]).name, *(argv or sys.argv[1:])]),
+        "kernels": bench_kernels(sizes, reps),
+    }
+    if not (a.quick or a.no_startup):
+        result["startup"] = bench_startup()
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
