@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
 
 from render import measure  # noqa: E402
 from render.pipeline import draw_timed, heights_fn, open_render_session, resident_levels  # noqa: E402
@@ -28,7 +28,7 @@ from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
-DEFAULT_STORES = ["bench/work/s4097.zarr", "bench/work/s16385.zarr", "bench/work/n44.zarr"]
+DEFAULT_STORES = [str(S4097), str(S16385), str(N44W072_EQC)]
 PAPERS = (
     "Qiu et al. Table 2 (Puget Sound 4097^2, 1024x768): 98 k triangles at tau=1, 33 k at tau=2; "
     "Lee & Shin: 152 k at tau=1."
@@ -99,7 +99,7 @@ def main() -> None:
     ap.add_argument("--metric", default="qiu")
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--no-error", action="store_true", help="skip the measured error")
-    ap.add_argument("--out", default=str(ROOT / "bench/results/render.json"))
+    ap.add_argument("--out", default=str(RESULTS / "render.json"))
     a = ap.parse_args()
     taus = [1.0, 4.0] if a.quick else [0.5, 1.0, 2.0, 4.0]
     frames = 2 if a.quick else a.frames
@@ -148,7 +148,13 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
-            {"rows": rows, "summary": summary, "papers": PAPERS, "seconds": time.time() - t0},
+            {
+                "rows": rows,
+                "summary": summary,
+                "papers": PAPERS,
+                "seconds": time.time() - t0,
+                "machine": machine_info(),
+            },
             indent=1,
         )
     )
