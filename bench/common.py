@@ -1,6 +1,8 @@
 """Shared benchmark helpers: where the data is and what machine ran the benchmark.
 
-Every ``bench/*.py`` takes its paths from here, so no script names a machine's absolute path:
+Every ``bench/*.py`` puts the repository first on ``sys.path`` and imports this module as
+``bench.common`` (``bench/render.py`` would shadow the ``render`` package otherwise); it takes its
+paths from here, so no script names a machine's absolute path:
 
 * ``SHARED_DATA`` — real DEMs (``N44W072.hgt``): ``$TERRASTREAM_SHARED_DATA``, default
   ``../shared/data`` beside the repository (the same rule as ``tests/conftest.py``);
@@ -21,8 +23,6 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 #: the environment variable naming the folder of real DEMs
 DATA_ENV = "TERRASTREAM_SHARED_DATA"

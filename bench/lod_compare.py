@@ -21,9 +21,8 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import N44W072_EQC, RESULTS, S4097, machine_info  # noqa: E402
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import N44W072_EQC, RESULTS, S4097, machine_info  # noqa: E402
 from render.strategies.compare import HEADER, compare, plot_pareto  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from tiler.store import open_store  # noqa: E402

@@ -66,9 +66,8 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
 from streamer.run import RunResult, make_path, plot_run  # noqa: E402
 from streamer.session import Session, SessionConfig  # noqa: E402
 from tiler.store import open_store  # noqa: E402

@@ -19,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
 from render import measure  # noqa: E402
 from render.pipeline import draw_timed, heights_fn, open_render_session, resident_levels  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402

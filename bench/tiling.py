@@ -45,8 +45,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
 
 DEFAULT_OUT = RESULTS / "tiling.json"
 DEFAULT_REAL = REAL_HGT
