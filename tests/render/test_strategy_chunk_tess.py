@@ -23,13 +23,6 @@ SIZE = (128, 96)
 X0, Y0 = 500015.0, 5000000.0 - 15
 
 
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
-
-
 def _strategy(path, chunk_log2: int = 3, size=SIZE, name="chunk-tessellation"):
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=size, patch_log2=2), ctx=CTX)

@@ -29,13 +29,6 @@ X0, Y0 = 500015.0, 5000000.0 - 15
 K = 5  # 33-sample blocks
 
 
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
-
-
 def _strategy(path, size=SIZE, page_floats: int | None = None, levels=None):
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=size, patch_log2=2), ctx=CTX)

@@ -35,13 +35,6 @@ SIZE = (128, 96)
 X0, Y0 = 500015.0, 5000000.0 - 15
 
 
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
-
-
 def _renderer(path, resident: dict | None = None) -> TerrainRenderer:
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)

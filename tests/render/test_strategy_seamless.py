@@ -37,13 +37,6 @@ X0, Y0 = 500015.0, 5000000.0 - 15
 OBLIQUE = ((X0 + 600, Y0 - 4200, 1600.0), (X0 + 2400, 4997600, 700.0))
 
 
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
-
-
 def _strategy(path, res_log2: int = 3, caps: dict | None = None) -> SeamlessPatches:
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
