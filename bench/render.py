@@ -22,8 +22,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
 from render import measure  # noqa: E402
-from render.pipeline import draw_timed, heights_fn, open_render_session, resident_levels  # noqa: E402
+from render.measure import heights_fn  # noqa: E402
+from render.pipeline import draw_timed, open_render_session  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
+from render.step import stream_step  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
@@ -43,15 +45,13 @@ def bench_store(path: str, taus, metric: str, frames: int, size, measure_err: bo
     rows = []
     for fi, cam in enumerate(cams):
         with open_render_session(store, 0.0, metric, r.p) as s:
-            frame = s.update(cam, wait=True)
-            r.sync(frame.blocks, s)
-            ref_res = resident_levels(frame)
+            ref_res = stream_step(s, r, cam)[1]
         ref_p, _ = r.select(cam, 0.0, metric, resident=ref_res, full=True)
         ref = draw_timed(r, cam, ref_p, 2)
         ref_img = r.image()
         for tau in taus:
             with open_render_session(store, tau, metric, r.p) as s:
-                res = resident_levels(s.update(cam, wait=True))
+                res = stream_step(s, None, cam)[1]  # the levels a tau session holds
             sel = []
             for _ in range(3):
                 p, ms = r.select(cam, tau, metric, resident=res)

@@ -9,6 +9,8 @@ from contextlib import contextmanager
 import typer
 
 EXIT_USER_ERROR = 2
+#: the CLI's names for library parameters an error message may name (render.errors.CAMERA_PARAMS)
+FLAG_NAMES = {"position": "--camera", "look_at": "--look-at", "yaw": "--yaw", "pitch": "--pitch"}
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
@@ -25,7 +27,9 @@ def fail_on_errors() -> Iterator[None]:
     try:
         yield
     except known_errors() as exc:
-        typer.echo(f"error: {exc}", err=True)
+        message = getattr(exc, "message", None)  # errors naming library parameters
+        text = message(FLAG_NAMES) if callable(message) else str(exc)
+        typer.echo(f"error: {text}", err=True)
         raise typer.Exit(EXIT_USER_ERROR) from exc
 
 

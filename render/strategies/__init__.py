@@ -1,4 +1,4 @@
-"""LOD strategies over the renderer (``--lod NAME``): every strategy draws from the same store,
+"""LOD strategies over the renderer, chosen by name: every strategy draws from the same store,
 streaming session, ``HeightPool`` and level/order-index fetch, returns the renderer's
 ``RenderStats`` and is measured the same way (docs/RENDER.md, "Strategies").
 
@@ -31,7 +31,7 @@ STRATEGIES: dict[str, str] = {
 
 
 class UnknownStrategyError(RenderError):
-    """``--lod NAME`` names no registered strategy."""
+    """A strategy name that is not registered."""
 
 
 def strategy_names() -> list[str]:
