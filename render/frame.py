@@ -172,6 +172,11 @@ class FrameServices:
         """The finest level of ``block`` in the height pool (-1 when it is not on the GPU)."""
         return self.pool.level(block)
 
+    @property
+    def height_bytes(self) -> int:
+        """Bytes of heights in the pool's pages (the GPU bytes every frame reports)."""
+        return self.pool.used_bytes
+
     def bind_heights(self, page: int) -> None:
         """Bind height-pool page ``page`` as the ``Heights`` buffer (binding 0)."""
         self.pool.pages[page].buffer.bind_to_storage_buffer(HEIGHTS_BINDING)

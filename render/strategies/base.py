@@ -92,7 +92,7 @@ def frame_stats(
         patches=counts.patches,
         selection_ms=options.selection_ms,
         frame_ms=frame_ms,
-        gpu_bytes=services.pool.used_bytes + extra_gpu_bytes,
+        gpu_bytes=services.height_bytes + extra_gpu_bytes,
         clamped=counts.clamped,
         violations=counts.violations,
         max_level=counts.max_level,

@@ -68,16 +68,31 @@ def check_no_gl_error(c, when: str) -> None:
         pytest.fail(f"OpenGL error {err} {when}", pytrace=False)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _gl_current(request):
+    """For modules of ``gl`` tests: the shared context is current while their module-scoped
+    fixtures are made (autouse fixtures come first within a scope)."""
+    marks = getattr(request.module, "pytestmark", [])
+    marks = marks if isinstance(marks, list) else [marks]
+    if not any(m.name == "gl" for m in marks):
+        yield
+        return
+    with gl_context():
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _gl_errors(request):
-    """For ``gl``-marked tests: no GL error is pending before the test, and none after it."""
+    """For ``gl``-marked tests: the shared context is current, no GL error is pending before
+    the test and none after it."""
     if request.node.get_closest_marker("gl") is None:
         yield
         return
     c = gl_context()
-    check_no_gl_error(c, "pending before the test")
-    yield
-    check_no_gl_error(c, "left by the test")
+    with c:  # current again: code under test (the CLI) may have made its own context current
+        check_no_gl_error(c, "pending before the test")
+        yield
+        check_no_gl_error(c, "left by the test")
 
 
 @pytest.fixture

@@ -8,9 +8,10 @@ import math
 
 import numpy as np
 
-from render.strategies.base import Block
 from render.strategies.geometry_splitting.pure import projected_error
 from streamer.camera import Camera
+
+Block = tuple[int, int]
 
 #: relative sphere margin of the frustum test (float32 safety); the GPU's ``CULL_MARGIN``
 CULL_MARGIN = 1e-4

@@ -9,10 +9,11 @@ from functools import cache
 
 import numpy as np
 
-from render.strategies.base import Block
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
 from streamer.lod import exact_projected
+
+Block = tuple[int, int]
 
 #: the paper's 12 triangles, in the bit order of its ``Block`` structure
 TRIANGLES = ("TL", "TR", "BL", "BR", "LT", "LB", "RT", "RB", "T", "B", "L", "R")

@@ -12,10 +12,11 @@ from numpy.typing import ArrayLike
 
 from render.errors import SelectionError
 from render.select import DiscCull
-from render.strategies.base import Block
 from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
+
+Block = tuple[int, int]
 
 # -- ε = ρ l / d ----------------------------------------------------------------------------
 
