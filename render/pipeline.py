@@ -173,11 +173,15 @@ def tradeoff(
     log: Callable[[str], None] | None = None,
     lod: str = DEFAULT,
     stream_tau: float | None = None,
+    options: ViewOptions | None = None,
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
     reference mesh); measure cost and error. The data is streamed by the renderer's session at
     ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
-    :func:`render.strategies.stream_metric`."""
+    :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
+    ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept)."""
+    if options is not None:
+        lod, metric, patch_log2 = options.lod, options.metric, options.patch_log2
     check_name(lod)
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
@@ -326,9 +330,13 @@ def flythrough(
     save_every: int = 1,
     on_frame: Callable[[FlyRow], None] | None = None,
     lod: str = DEFAULT,
+    options: ViewOptions | None = None,
 ) -> tuple[list[FlyRow], dict[str, Any]]:
     """Stream and render each camera with strategy ``lod``; write PNG frames and
-    ``frames.csv`` into ``out_dir``."""
+    ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
+    ``metric`` and ``patch_log2``)."""
+    if options is not None:
+        lod, tau, metric, patch_log2 = options.lod, options.tau, options.metric, options.patch_log2
     check_name(lod)
     from PIL import Image
 

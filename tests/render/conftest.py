@@ -55,6 +55,13 @@ def gl_context():
     return _CONTEXT[0]
 
 
+def make_current(c):
+    """Make ``c`` the current context and leave it so (code under test, e.g. the CLI, may have
+    made its own context current; ``with ctx`` would restore that one on exit)."""
+    c.__enter__()
+    return c
+
+
 @pytest.fixture(scope="session")
 def ctx():
     """The shared GL context (see :func:`gl_context`)."""
@@ -77,8 +84,8 @@ def _gl_current(request):
     if not any(m.name == "gl" for m in marks):
         yield
         return
-    with gl_context():
-        yield
+    make_current(gl_context())
+    yield
 
 
 @pytest.fixture(autouse=True)
@@ -88,11 +95,10 @@ def _gl_errors(request):
     if request.node.get_closest_marker("gl") is None:
         yield
         return
-    c = gl_context()
-    with c:  # current again: code under test (the CLI) may have made its own context current
-        check_no_gl_error(c, "pending before the test")
-        yield
-        check_no_gl_error(c, "left by the test")
+    c = make_current(gl_context())
+    check_no_gl_error(c, "pending before the test")
+    yield
+    check_no_gl_error(c, "left by the test")
 
 
 @pytest.fixture

@@ -193,7 +193,8 @@ class SeamlessPatches(Strategy[PatchLayout]):
 
     def triangles(self, camera: Camera, sel: PatchLayout) -> tuple[np.ndarray, np.ndarray]:
         """Every drawn triangle read back from the GPU: global ``(col, row)`` corners
-        ``(m, 3, 2)`` int64 and fetched heights ``(m, 3)`` (-1e30 where masked)."""
+        ``(m, 3, 2)`` int64 and fetched heights ``(m, 3)`` (:data:`render.gpu.MASKED` where
+        masked)."""
         cap = self.triangle_count(sel)
         prog = self.probe_prog
         tri, h = self.read_triangles(
