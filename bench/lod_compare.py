@@ -21,17 +21,13 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import N44W072_EQC, RESULTS, S4097, machine_info  # noqa: E402
 from render.strategies.compare import HEADER, compare, plot_pareto  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
-DEFAULT_STORES = [
-    str(ROOT / "bench/work/s4097.zarr"),
-    str(ROOT / "bench/work/prefetch/n44w072_eqc_b257.zarr"),
-]
+DEFAULT_STORES = [str(S4097), str(N44W072_EQC)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--size", default="1024x768")
     ap.add_argument("--lods", default=None, help="comma-separated strategies (default: all)")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results"))
+    ap.add_argument("--out", default=str(RESULTS))
     a = ap.parse_args(argv)
     taus = [1.0, 4.0] if a.quick else [float(t) for t in a.taus.split(",")]
     frames = 4 if a.quick else a.frames
@@ -68,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         results[path] = rows
     js = out / f"lod_compare{tag}.json"
     js.write_text(json.dumps(results, indent=1))
+    (out / f"lod_compare{tag}_machine.json").write_text(json.dumps(machine_info(), indent=1))
     print(f"wrote {js}")
     return 0
 

@@ -66,19 +66,14 @@ from typing import Any
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
 from streamer.run import RunResult, make_path, plot_run  # noqa: E402
 from streamer.session import Session, SessionConfig  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
-WORK = REPO / "bench" / "work"
 PWORK = WORK / "prefetch"
-RESULTS = REPO / "bench" / "results"
 DEFAULT_OUT = RESULTS / "prefetch.json"
-REAL_HGT = Path("/work/shared/data/N44W072.hgt")
 TERRASTREAM = str(Path(sys.executable).with_name("terrastream"))
 MB = float(1 << 20)
 FPS = 60.0

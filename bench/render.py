@@ -19,16 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
 from render import measure  # noqa: E402
-from render.pipeline import draw_timed, heights_fn, open_render_session, resident_levels  # noqa: E402
+from render.measure import heights_fn  # noqa: E402
+from render.pipeline import draw_timed, open_render_session  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
+from render.step import stream_step  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
-DEFAULT_STORES = ["bench/work/s4097.zarr", "bench/work/s16385.zarr", "bench/work/n44.zarr"]
+DEFAULT_STORES = [str(S4097), str(S16385), str(N44W072_EQC)]
 PAPERS = (
     "Qiu et al. Table 2 (Puget Sound 4097^2, 1024x768): 98 k triangles at tau=1, 33 k at tau=2; "
     "Lee & Shin: 152 k at tau=1."
@@ -44,15 +45,13 @@ def bench_store(path: str, taus, metric: str, frames: int, size, measure_err: bo
     rows = []
     for fi, cam in enumerate(cams):
         with open_render_session(store, 0.0, metric, r.p) as s:
-            frame = s.update(cam, wait=True)
-            r.sync(frame.blocks, s)
-            ref_res = resident_levels(frame)
+            ref_res = stream_step(s, r, cam)[1]
         ref_p, _ = r.select(cam, 0.0, metric, resident=ref_res, full=True)
         ref = draw_timed(r, cam, ref_p, 2)
         ref_img = r.image()
         for tau in taus:
             with open_render_session(store, tau, metric, r.p) as s:
-                res = resident_levels(s.update(cam, wait=True))
+                res = stream_step(s, None, cam)[1]  # the levels a tau session holds
             sel = []
             for _ in range(3):
                 p, ms = r.select(cam, tau, metric, resident=res)
@@ -99,7 +98,7 @@ def main() -> None:
     ap.add_argument("--metric", default="qiu")
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--no-error", action="store_true", help="skip the measured error")
-    ap.add_argument("--out", default=str(ROOT / "bench/results/render.json"))
+    ap.add_argument("--out", default=str(RESULTS / "render.json"))
     a = ap.parse_args()
     taus = [1.0, 4.0] if a.quick else [0.5, 1.0, 2.0, 4.0]
     frames = 2 if a.quick else a.frames
@@ -148,7 +147,13 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
-            {"rows": rows, "summary": summary, "papers": PAPERS, "seconds": time.time() - t0},
+            {
+                "rows": rows,
+                "summary": summary,
+                "papers": PAPERS,
+                "seconds": time.time() - t0,
+                "machine": machine_info(),
+            },
             indent=1,
         )
     )

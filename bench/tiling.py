@@ -45,13 +45,11 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
 
-WORK = REPO / "bench" / "work"
-DEFAULT_OUT = REPO / "bench" / "results" / "tiling.json"
-DEFAULT_REAL = Path("/work/shared/data/N44W072.hgt")
+DEFAULT_OUT = RESULTS / "tiling.json"
+DEFAULT_REAL = REAL_HGT
 MB = float(1 << 20)
 SAMPLE_S = 0.02
 SEED = 0

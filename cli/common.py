@@ -53,6 +53,8 @@ class _State:
 
 
 state = _State()
+#: the CLI's names for library parameters an error message may name (render.errors.CAMERA_PARAMS)
+FLAG_NAMES = {"position": "--camera", "look_at": "--look-at", "yaw": "--yaw", "pitch": "--pitch"}
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
@@ -131,7 +133,8 @@ def one_line(exc: BaseException) -> str:
     """The error as one line: the message of a library error, ``Type: message`` otherwise;
     numpy scalar reprs (``np.float64(1.5)``) shown as their values; a message that only says
     "see previous exception" (rasterio) gets the first cause's message instead."""
-    raw = str(exc)
+    message = getattr(exc, "message", None)  # errors naming library parameters (render)
+    raw = message(FLAG_NAMES) if callable(message) else str(exc)
     if _PREVIOUS.search(raw) and (cause := root_cause(exc)):
         raw = _PREVIOUS.sub("", raw).rstrip(". ") + ": " + cause
     text = _NUMPY_REPR.sub(r"\1", " ".join(raw.split())) or type(exc).__name__

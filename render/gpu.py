@@ -19,7 +19,10 @@ import numpy as np
 from render.errors import GLStateError, GLUnavailableError
 from tiler.layout import grid_side, level_end, level_start, sequence_index
 
+#: the one masked-height sentinel (GLSL: ``MASKED_HEIGHT``, defined by render/shaders.py)
 MASKED = np.float32(-1.0e30)
+#: read-back heights at or below this are masked (far below any terrain, far above MASKED)
+MASKED_BELOW = -1.0e29
 MIN_PAGE_FLOATS = 1 << 20
 
 

@@ -19,6 +19,7 @@ from render.mesh import edge_strip_triangles
 from render.select import Patches
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
+from tiler.store import TerrainStore
 
 CHUNK = 1 << 21  # samples evaluated at once
 
@@ -247,3 +248,19 @@ def crack_pixels(
             break
         reach = grow
     return int((clear & footprint & ~reach).sum())
+
+
+def heights_fn(store: TerrainStore, patches: Patches) -> Callable[[int], np.ndarray]:
+    """Full-resolution float64 grids (NaN where masked) of ``patches.blocks[i]``, cached."""
+    cache: dict[int, np.ndarray] = {}
+
+    def get(i: int) -> np.ndarray:
+        if i not in cache:
+            b = tuple(int(v) for v in patches.blocks[i])
+            g = store.read_block(b).astype(np.float64)
+            if store.index.has_nodata[b]:
+                g[~store.read_mask(b)] = np.nan
+            cache[i] = g
+        return cache[i]
+
+    return get

@@ -13,11 +13,14 @@ import numpy as np
 
 from render import measure
 from render.errors import RenderError
+from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
-from render.select import Patches
+from render.step import frame_step, stream_step
+from render.step import resident_levels as resident_levels  # re-exported
 from render.strategies import DEFAULT, check_name, get_strategy, stream_metric
+from render.strategies.base import DrawOptions
 from streamer.camera import Camera
-from streamer.session import Frame, Session, open_session
+from streamer.session import Session, open_session
 from tiler.layout import grid_side, level_size
 from tiler.store import TerrainStore
 
@@ -53,25 +56,24 @@ def open_render_session(
     )
 
 
-def resident_levels(frame: Frame) -> dict[Block, int]:
-    """The finest resident level of each visible block of a streaming frame."""
-    return {b: res for b, (res, _need) in frame.blocks.items() if res >= 0}
+@dataclass(frozen=True)
+class ViewOptions:
+    """What the rendering commands pass down as one value (instead of keyword relays): the
+    strategy, τ and metric it selects with, the patch size, and how frames are drawn."""
 
+    lod: str = DEFAULT
+    tau: float = 1.0
+    metric: str = "qiu"
+    patch_log2: int = 4
+    wireframe: bool = False
+    lod_colour: bool = False
 
-def heights_fn(store: TerrainStore, patches: Patches) -> Callable[[int], np.ndarray]:
-    """Full-resolution float64 grids (NaN where masked) of ``patches.blocks[i]``, cached."""
-    cache: dict[int, np.ndarray] = {}
+    def __post_init__(self) -> None:
+        check_name(self.lod)
 
-    def get(i: int) -> np.ndarray:
-        if i not in cache:
-            b = tuple(int(v) for v in patches.blocks[i])
-            g = store.read_block(b).astype(np.float64)
-            if store.index.has_nodata[b]:
-                g[~store.read_mask(b)] = np.nan
-            cache[i] = g
-        return cache[i]
-
-    return get
+    def draw_options(self) -> DrawOptions:
+        """The :class:`DrawOptions` of these options."""
+        return DrawOptions(wireframe=self.wireframe, lod_colour=self.lod_colour)
 
 
 def draw_timed(
@@ -100,19 +102,18 @@ def render_view(
     lod_colour: bool = False,
     renderer: TerrainRenderer | None = None,
     lod: str = DEFAULT,
+    options: ViewOptions | None = None,
 ) -> tuple[np.ndarray, RenderStats]:
-    """Stream what the view needs (waiting for it) and render it once with strategy ``lod``."""
-    check_name(lod)
+    """Stream what the view needs (waiting for it) and render it once with strategy ``lod``
+    (``options``, when given, replaces the keyword settings)."""
+    o = options or ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour)
     r = renderer or TerrainRenderer(
-        store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
+        store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2)
     )
-    with open_render_session(store, tau, stream_metric(lod, metric), r.p) as session:
-        frame = session.update(camera, wait=True)
-        r.sync(frame.blocks, session)
-        strat = get_strategy(lod, r)
-        sel, ms = strat.select(camera, tau, metric, resident=resident_levels(frame))
-        st = strat.draw(camera, sel, wireframe=wireframe, lod_colour=lod_colour, selection_ms=ms)
-    return r.image(), st
+    strat = get_strategy(o.lod, r)
+    with open_render_session(store, o.tau, stream_metric(o.lod, o.metric), r.p) as session:
+        step = frame_step(session, strat, camera, o.tau, o.metric, options=o.draw_options())
+    return r.image(), step.stats
 
 
 def nadir_for(camera: Camera, zmid: float) -> Camera:
@@ -172,11 +173,15 @@ def tradeoff(
     log: Callable[[str], None] | None = None,
     lod: str = DEFAULT,
     stream_tau: float | None = None,
+    options: ViewOptions | None = None,
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
     reference mesh); measure cost and error. The data is streamed by the renderer's session at
     ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
-    :func:`render.strategies.stream_metric`."""
+    :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
+    ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept)."""
+    if options is not None:
+        lod, metric, patch_log2 = options.lod, options.metric, options.patch_log2
     check_name(lod)
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
@@ -184,11 +189,7 @@ def tradeoff(
     zlo, zhi = r.terrain_zrange
     nadir = nadir_for(camera, 0.5 * (zlo + zhi))
     with open_render_session(store, 0.0, metric, r.p) as ref_session:
-        ref_res = []
-        for cam in (camera, nadir):
-            frame = ref_session.update(cam, wait=True)
-            r.sync(frame.blocks, ref_session)
-            ref_res.append(resident_levels(frame))
+        ref_res = [stream_step(ref_session, r, cam)[1] for cam in (camera, nadir)]
     ref_p, _ = r.select(camera, 0.0, metric, resident=ref_res[0], full=True)
     ref_st = draw_timed(r, camera, ref_p, repeats)
     ref_img = r.image()
@@ -200,9 +201,9 @@ def tradeoff(
     for tau in taus:
         st_tau = tau if stream_tau is None else stream_tau
         with open_render_session(store, st_tau, stream_metric(lod, metric), r.p) as s:
-            frame = s.update(camera, wait=True)
-            res = resident_levels(frame)
-            nad_res = resident_levels(s.update(nadir, wait=True))
+            # the levels each tau's session would hold (the data is on the GPU already)
+            frame, res = stream_step(s, None, camera)
+            nad_res = stream_step(s, None, nadir)[1]
             loaded = s.summary()["loaded_bytes"]
         patches, sel_ms = strat.select(camera, tau, metric, resident=res)
         for _ in range(max(0, repeats - 1)):
@@ -329,9 +330,13 @@ def flythrough(
     save_every: int = 1,
     on_frame: Callable[[FlyRow], None] | None = None,
     lod: str = DEFAULT,
+    options: ViewOptions | None = None,
 ) -> tuple[list[FlyRow], dict[str, Any]]:
     """Stream and render each camera with strategy ``lod``; write PNG frames and
-    ``frames.csv`` into ``out_dir``."""
+    ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
+    ``metric`` and ``patch_log2``)."""
+    if options is not None:
+        lod, tau, metric, patch_log2 = options.lod, options.tau, options.metric, options.patch_log2
     check_name(lod)
     from PIL import Image
 
@@ -353,10 +358,8 @@ def flythrough(
         fps=fps,
     ) as session:
         for i, cam in enumerate(cameras):
-            frame = session.update(cam, 1.0 / fps, wait=i == 0)
-            r.sync(frame.blocks, session)
-            patches, ms = strat.select(cam, tau, metric, resident=resident_levels(frame))
-            st = strat.draw(cam, patches, selection_ms=ms)
+            step = frame_step(session, strat, cam, tau, metric, dt=1.0 / fps, wait=i == 0)
+            frame, st, ms = step.frame, step.stats, step.selection_ms
             if save_every and i % save_every == 0:
                 Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
             fs = frame.stats

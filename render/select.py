@@ -13,7 +13,7 @@ drawn at level ``R`` (counted as clamped).
 ``(slots, 2**d, 2**d)`` array per depth (like :class:`streamer.levels.PatchErrorTable`), so a
 pass looks all its nodes' errors up with one fancy index and nothing is stacked per frame. The
 circle test is :func:`streamer.frustum.polygon_meets_circles`'s arithmetic with the polygon's
-part computed once per frame (:class:`_Cull`).
+part computed once per frame (:class:`DiscCull`).
 
 :func:`stitch` then gives every patch edge the snap ``t = max(0, s_n - s)`` where ``s`` and
 ``s_n`` are the log2 cell spacings of the patch and of the leaf across that edge (same or
@@ -45,7 +45,7 @@ _CHILD_C = np.array([0, 1, 0, 1])
 PatchTable = PatchErrorTable  # the streamer's table: the same pooled patch errors
 
 
-class _Cull:
+class DiscCull:
     """:func:`streamer.frustum.polygon_meets_circles` for one polygon and many calls: the same
     arithmetic (so the same answers), with the polygon's part done once."""
 
@@ -173,7 +173,7 @@ def select_patches(
     zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
     bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 4
     diag = math.hypot(grid.dx, grid.dy)
-    cull = _Cull(polygon) if polygon is not None and len(polygon) else None
+    cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
     parts: list[tuple] = []

@@ -23,8 +23,9 @@ import moderngl
 import numpy as np
 
 from render.errors import RenderError
-from render.pipeline import resident_levels
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
+from render.step import frame_step
+from render.strategies.base import DrawOptions
 from streamer.camera import Camera
 from streamer.session import LoadError, open_session
 from tiler.store import TerrainStore
@@ -351,13 +352,14 @@ def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget
                 session.config = replace(session.config, tau=state["tau"])
             last_frame = scripted and n == frames - 1
             try:
-                frame = session.update(cam, dt if n else None, wait=n == 0 or last_frame)
+                step = frame_step(
+                    session, strat, cam, state["tau"], metric, dt=dt if n else None,
+                    wait=n == 0 or last_frame, options=DrawOptions(wireframe=state["wire"]),
+                )  # fmt: skip
             except LoadError as exc:  # reported once; the session keeps going without it
                 log.warning("%s", exc)
                 continue
-            r.sync(frame.blocks, session)
-            patches, ms = strat.select(cam, state["tau"], metric, resident=resident_levels(frame))
-            last = strat.draw(cam, patches, wireframe=state["wire"], selection_ms=ms)
+            frame, last = step.frame, step.stats
             ctx.copy_framebuffer(ctx.screen, r.fbo)
             ctx.screen.use()
             fps = 1.0 / frame_s if frame_s > 0.0 else 0.0

@@ -14,13 +14,14 @@ from tiler.store import TerrainStore
 
 
 def parse_triple(text: str, name: str) -> tuple[float, float, float]:
-    """``"1,2,3"`` → ``(1.0, 2.0, 3.0)``; a clear error otherwise."""
+    """``"1,2,3"`` → ``(1.0, 2.0, 3.0)``; a clear error naming parameter ``name`` otherwise."""
     try:
         vals = tuple(float(v) for v in text.split(","))
     except ValueError:
         vals = ()
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
-        raise CameraSpecError(f"{name} must be three numbers x,y,z, got {text!r}")
+        template = "{" + name + "} must be three numbers x,y,z, got {got}"
+        raise CameraSpecError(template, got=repr(text))
     return vals  # type: ignore[return-value]
 
 
@@ -65,7 +66,7 @@ def nadir_camera(
             far=height * 4 + (zhi - _zrange(store)[0]) * 2,
         )
     except CameraError as exc:
-        raise CameraSpecError(str(exc)) from exc
+        raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
 def _camera(eye, target, size, fov, reach) -> Camera:
@@ -74,7 +75,7 @@ def _camera(eye, target, size, fov, reach) -> Camera:
             eye, target, viewport=size, fov_y=fov, near=max(0.5, reach * 1e-4), far=reach * 1.5
         )
     except CameraError as exc:
-        raise CameraSpecError(str(exc)) from exc
+        raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
 def make_camera(
@@ -87,12 +88,13 @@ def make_camera(
     pitch: float | None = None,
     fov: float = 45.0,
 ) -> Camera:
-    """The camera the ``render``/``tradeoff`` options describe (default: the overview)."""
+    """The camera ``position`` (``"x,y,z"``) looking at ``look_at`` (``"x,y,z"``) or along
+    ``yaw``/``pitch`` (default: the overview); :class:`CameraSpecError` names these parameters."""
     if position is None:
         if look_at is not None or yaw is not None or pitch is not None:
-            raise CameraSpecError("--look-at/--yaw/--pitch need --camera x,y,z")
+            raise CameraSpecError("{look_at}/{yaw}/{pitch} need {position} x,y,z")
         return overview_camera(store, size, fov)
-    eye = parse_triple(position, "--camera")
+    eye = parse_triple(position, "position")
     x0, y0, x1, y1 = store.grid.extent
     zlo, zhi = _zrange(store)
     reach = (
@@ -102,8 +104,8 @@ def make_camera(
     )
     if look_at is not None:
         if yaw is not None or pitch is not None:
-            raise CameraSpecError("give either --look-at or --yaw/--pitch, not both")
-        return _camera(eye, parse_triple(look_at, "--look-at"), size, fov, reach)
+            raise CameraSpecError("give either {look_at} or {yaw}/{pitch}, not both")
+        return _camera(eye, parse_triple(look_at, "look_at"), size, fov, reach)
     try:
         return Camera(
             eye,
@@ -115,4 +117,4 @@ def make_camera(
             far=reach * 1.5,
         )
     except CameraError as exc:
-        raise CameraSpecError(str(exc)) from exc
+        raise CameraSpecError("{detail}", detail=str(exc)) from exc

@@ -1,15 +1,17 @@
-"""LOD strategies over the renderer (``--lod NAME``): every strategy draws from the same store,
+"""LOD strategies over the renderer, chosen by name: every strategy draws from the same store,
 streaming session, ``HeightPool`` and level/order-index fetch, returns the renderer's
-``RenderStats`` and is measured the same way (docs/RENDER.md, "Strategies").
+``RenderStats`` and is measured the same way (docs/RENDER.md, "Strategies"). A strategy is a
+:class:`Strategy` over :class:`render.frame.FrameServices`; to add one see docs/RENDER.md,
+"Adding a strategy" (its package, one line in :data:`STRATEGIES`).
 
-* ``qiu`` (default) — :mod:`render.strategies.qiu`, the renderer's CLOD patches (Qiu et al.);
+* ``qiu`` (default) — :mod:`render.strategies.qiu`, Qiu et al.'s CLOD patches;
 * ``jung-han`` — :mod:`render.strategies.jung_han`, 3×3-vertex blocks, CPU simplification;
 * ``geometry-splitting`` — :mod:`render.strategies.geometry_splitting`, Lee & Shin, quadtree
   expanded on the GPU with transform feedback;
 * ``chunk-tessellation`` — :mod:`render.strategies.chunk_tess`, Kim, Lee & Shin;
 * ``seamless-patches`` — :mod:`render.strategies.seamless`, Livny, Kogan & El-Sana.
 
-Strategy modules are imported on first use (each compiles its own shaders).
+Strategy packages are imported on first use (each compiles its own shaders).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ STRATEGIES: dict[str, str] = {
 
 
 class UnknownStrategyError(RenderError):
-    """``--lod NAME`` names no registered strategy."""
+    """A strategy name that is not registered."""
 
 
 def strategy_names() -> list[str]:

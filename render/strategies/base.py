@@ -1,45 +1,118 @@
 """The strategy interface and the generic measurement of a drawn triangle mesh.
 
-A strategy (:class:`Strategy`) turns a camera, τ and the resident levels into a *selection*
-(whatever it draws from), draws it with a :class:`render.renderer.TerrainRenderer` (same store,
-same ``HeightPool`` and level/order-index fetch, same framebuffer) and returns the renderer's
-:class:`render.renderer.RenderStats`. For the measured screen error every strategy gives the
-drawn surface on the CPU: :meth:`Strategy.screen_errors` (the CLOD patches use the exact CPU twin
-in :mod:`render.measure`; other strategies read their drawn triangles back — with transform
-feedback when the GPU makes them — and rasterise them on the sample lattice with
-:func:`triangle_screen_errors`).
+A strategy (:class:`Strategy`, generic over its selection type ``S``) turns a camera, τ and the
+resident levels into a *selection* (whatever it draws from) and draws it through the frame
+services (:class:`render.frame.FrameServices`: same store, ``HeightPool``, level/order-index
+fetch and framebuffer). :meth:`Strategy.draw` is shared: it runs the strategy's draw calls
+(:meth:`Strategy.render`) in one timed frame and assembles :class:`render.frame.RenderStats`
+from the selection's :class:`SelectionCounts` (:func:`frame_stats`). For the measured screen
+error every strategy gives the drawn surface on the CPU: :meth:`Strategy.screen_errors` (the
+CLOD patches use the exact CPU twin in :mod:`render.measure`; other strategies read their drawn
+triangles back — with transform feedback when the GPU makes them — and rasterise them on the
+sample lattice with :func:`triangle_screen_errors`).
 """
 
 from __future__ import annotations
 
-import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
 
 import moderngl
 import numpy as np
 
 from render import measure
-from render.errors import RenderError
-from render.gpu import check_gl
-from render.renderer import RenderStats, TerrainRenderer
+from render.frame import FrameServices, RenderStats
+from render.gpu import MASKED_BELOW
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
 from tiler.layout import level_index
 from tiler.store import TerrainStore
 
 Block = tuple[int, int]
+S = TypeVar("S")
 
 
-class Strategy(ABC):
-    """One LOD method over a renderer. Subclasses set ``name`` and implement the hooks."""
+@dataclass(frozen=True)
+class DrawOptions:
+    """How a selection is drawn: wireframe overlay, LOD colours, the clear colour (default:
+    the renderer's) and the selection's CPU ms to report in the stats."""
+
+    wireframe: bool = False
+    lod_colour: bool = False
+    clear: tuple[int, int, int] | None = None
+    selection_ms: float = 0.0
+
+    @classmethod
+    def of(cls, options: DrawOptions | None = None, **kw: Any) -> DrawOptions:
+        """``options`` (default: the defaults) with the keyword fields ``kw`` replaced."""
+        base = options or cls()
+        return cls(**{**base.__dict__, **kw}) if kw else base
+
+
+@dataclass(frozen=True)
+class SelectionCounts:
+    """A selection's figures for :class:`render.frame.RenderStats`."""
+
+    triangles: int
+    patches: int
+    clamped: int
+    violations: int
+    max_level: int
+    min_level: int
+
+    @classmethod
+    def of_levels(
+        cls, triangles: int, patches: int, clamped: int, violations: int, levels: np.ndarray
+    ) -> SelectionCounts:
+        """Counts with the level range of ``levels`` (-1, -1 when empty)."""
+        lv = np.asarray(levels)
+        return cls(
+            triangles=int(triangles),
+            patches=int(patches),
+            clamped=int(clamped),
+            violations=int(violations),
+            max_level=int(lv.max()) if lv.size else -1,
+            min_level=int(lv.min()) if lv.size else -1,
+        )
+
+
+def frame_stats(
+    services: FrameServices,
+    counts: SelectionCounts,
+    frame_ms: float,
+    options: DrawOptions,
+    extra_gpu_bytes: int = 0,
+) -> RenderStats:
+    """The one assembly of a drawn frame's :class:`RenderStats` (GPU bytes = the height pool's
+    plus ``extra_gpu_bytes``)."""
+    return RenderStats(
+        triangles=counts.triangles,
+        patches=counts.patches,
+        selection_ms=options.selection_ms,
+        frame_ms=frame_ms,
+        gpu_bytes=services.height_bytes + extra_gpu_bytes,
+        clamped=counts.clamped,
+        violations=counts.violations,
+        max_level=counts.max_level,
+        min_level=counts.min_level,
+    )
+
+
+class Strategy(ABC, Generic[S]):
+    """One LOD method over the frame services ``r``. Subclasses set ``name`` (and ``what``,
+    the GL-error context of a draw), build ``prog``/``wire`` and implement the hooks."""
 
     name = ""
     #: the session's metric argument is honoured (otherwise the strategy has its own error)
     uses_metric = True
+    #: what a draw is doing, for GL error messages
+    what = "drawing a frame"
+    prog: moderngl.Program
+    wire: moderngl.Program
 
-    def __init__(self, renderer: TerrainRenderer) -> None:
+    def __init__(self, renderer: FrameServices) -> None:
         self.r = renderer
 
     @abstractmethod
@@ -50,26 +123,55 @@ class Strategy(ABC):
         metric: str = "qiu",
         *,
         resident: dict[Block, int] | None = None,
-    ) -> tuple[Any, float]:
+    ) -> tuple[S, float]:
         """The selection at ``tau`` and its CPU ms."""
         ...
 
     @abstractmethod
-    def draw(self, camera: Camera, sel: Any, **kw: Any) -> RenderStats:
-        """Draw the selection (``wireframe``, ``lod_colour``, ``clear``, ``selection_ms``)."""
+    def render(self, prog: moderngl.Program, sel: S) -> None:
+        """Issue the draw calls of ``sel`` with ``prog`` (the frame is begun and timed by
+        :meth:`draw`; ``prog`` is ``self.prog``, ``self.wire`` or a read-back program)."""
         ...
 
     @abstractmethod
-    def screen_errors(self, camera: Camera, sel: Any) -> np.ndarray:
+    def counts(self, sel: S) -> SelectionCounts:
+        """Triangles, patches, clamped nodes, violations and level range of ``sel``."""
+        ...
+
+    def extra_frame_ms(self, sel: S) -> float:
+        """GPU ms spent on ``sel`` outside the draw (e.g. a GPU selection), added to it."""
+        return 0.0
+
+    def draw_gpu_bytes(self) -> int:
+        """GPU bytes a drawn frame reports besides the height pool's."""
+        return 0
+
+    def draw(
+        self, camera: Camera, sel: S, options: DrawOptions | None = None, **kw: Any
+    ) -> RenderStats:
+        """Draw the selection in one timed frame; ``options`` (:class:`DrawOptions`) or its
+        fields as keywords (``wireframe``, ``lod_colour``, ``clear``, ``selection_ms``)."""
+        o = DrawOptions.of(options, **kw)
+        prog = self.wire if o.wireframe else self.prog
+        ms = self.r.timed_frame(
+            camera, prog, lambda: self.render(prog, sel), clear=o.clear,
+            lod_colour=o.lod_colour or o.wireframe, what=self.what,
+        )  # fmt: skip
+        return frame_stats(
+            self.r, self.counts(sel), self.extra_frame_ms(sel) + ms, o, self.draw_gpu_bytes()
+        )
+
+    @abstractmethod
+    def screen_errors(self, camera: Camera, sel: S) -> np.ndarray:
         """Measured pixel errors of every full-resolution sample under the drawn surface."""
         ...
 
     @abstractmethod
-    def drawn_blocks(self, sel: Any) -> set[Block]:
+    def drawn_blocks(self, sel: S) -> set[Block]:
         """The blocks the selection draws from."""
         ...
 
-    def used_levels(self, camera: Camera, sel: Any) -> dict[Block, int]:
+    def used_levels(self, camera: Camera, sel: S) -> dict[Block, int]:
         """The finest store level the drawn surface reads in each block, from the drawn
         triangles (``self.triangles(camera, sel)``; strategies without it override this)."""
         tri, _ = self.triangles(camera, sel)  # type: ignore[attr-defined]
@@ -80,26 +182,6 @@ class Strategy(ABC):
         meshes, quadtree textures); counted in the comparison's GPU bytes."""
         return 0
 
-    def timed_frame(
-        self,
-        camera: Camera,
-        prog: moderngl.Program,
-        body: Callable[[], None],
-        *,
-        clear: tuple[int, int, int] | None,
-        lod_colour: bool,
-        what: str,
-    ) -> float:
-        """Begin the renderer's frame for ``prog``, run ``body`` (the draw calls), wait for the
-        GPU and check for GL errors; the frame's wall time in ms."""
-        r = self.r
-        t0 = r.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour)
-        body()
-        r.ctx.finish()
-        ms = (time.perf_counter() - t0) * 1000.0
-        check_gl(r.ctx, what)
-        return ms
-
     def read_triangles(
         self,
         camera: Camera,
@@ -108,35 +190,11 @@ class Strategy(ABC):
         body: Callable[[], None],
         what: str,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Run ``body`` (draw calls with ``prog``, whose geometry shader is
-        :data:`render.shaders.TRIANGLE_PROBE`) with the rasteriser discarded; every triangle's
-        global ``(col, row)`` corners ``(m, 3, 2)`` int64 and heights ``(m, 3)`` (-1e30 masked).
-        More than ``cap`` triangles is an error."""
-        r = self.r
-        r.fbo.use()  # an EGL context has no default framebuffer
-        r._uniforms(prog, camera)
-        r.level_tex.use(1)
-        r.order_tex.use(2)
-        out = r.ctx.buffer(reserve=16 + max(cap, 1) * 36)
-        out.write(np.zeros(4, np.uint32).tobytes())
-        out.bind_to_storage_buffer(3)
-        prog["cap"].value = cap
-        r.ctx.enable(moderngl.RASTERIZER_DISCARD)
-        try:
-            body()
-        finally:
-            r.ctx.disable(moderngl.RASTERIZER_DISCARD)
-        raw = out.read()
-        out.release()
-        check_gl(r.ctx, what)
-        count = int(np.frombuffer(raw[:4], np.uint32)[0])
-        if count > cap:
-            raise RenderError(f"{what}: the GPU made {count} triangles, expected at most {cap}")
-        a = np.frombuffer(raw[16:], np.float32)[: 9 * count].reshape(-1, 3, 3).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+        """:meth:`render.frame.FrameServices.read_triangles` (kept for the strategies)."""
+        return self.r.read_triangles(camera, prog, cap, body, what)
 
     @abstractmethod
-    def surface(self, camera: Camera, sel: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def surface(self, camera: Camera, sel: S) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The drawn surface at full-resolution samples: global ``(rows, cols, heights)``
         (used for popping; a sample may appear more than once)."""
         ...
@@ -202,7 +260,8 @@ def triangle_screen_errors(
     true_h: GlobalHeights,
 ) -> np.ndarray:
     """The renderer's measured screen error for a triangle mesh given as global integer sample
-    ``(col, row)`` corners ``(m, 3, 2)`` and drawn heights ``(m, 3)`` (NaN or <= -1e29: hidden).
+    ``(col, row)`` corners ``(m, 3, 2)`` and drawn heights ``(m, 3)`` (NaN or <=
+    :data:`render.gpu.MASKED_BELOW`: hidden).
 
     Every lattice sample a triangle covers is evaluated (linear interpolation of the drawn
     heights); a sample covered by two triangles (shared edges) is counted once per triangle,
@@ -210,7 +269,7 @@ def triangle_screen_errors(
     :func:`render.measure.screen_errors`.
     """
     h = np.asarray(tri_h, dtype=np.float64)
-    ok = np.isfinite(h).all(axis=1) & (h > -1e29).all(axis=1)
+    ok = np.isfinite(h).all(axis=1) & (h > MASKED_BELOW).all(axis=1)
     tri = np.asarray(tri_cr, dtype=np.int64)[ok]
     h = h[ok]
     if not len(tri):

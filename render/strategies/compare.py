@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 
 from render import measure
-from render.pipeline import open_render_session, resident_levels, tradeoff
+from render.pipeline import open_render_session, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
+from render.step import frame_step, stream_step
 from render.strategies import get_strategy, strategy_names
 from render.strategies.base import Strategy
 from streamer.camera import Camera
@@ -148,16 +149,13 @@ def compare(
             tri, cpu, gpu = [], [], []
             with open_render_session(store, 0.0, metric, r.p) as s:
                 for cam in cameras:
-                    frame = s.update(cam, wait=True)
-                    r.sync(frame.blocks, s)
-                    sel, ms = strat.select(cam, tau, metric, resident=resident_levels(frame))
-                    st = strat.draw(cam, sel, selection_ms=ms)
-                    tri.append(st.triangles)
-                    cpu.append(ms)
-                    gpu.append(st.frame_ms)
+                    step = frame_step(s, strat, cam, tau, metric)
+                    tri.append(step.stats.triangles)
+                    cpu.append(step.selection_ms)
+                    gpu.append(step.stats.frame_ms)
 
                 def prepare(cam: Camera, s=s) -> None:
-                    r.sync(s.update(cam, wait=True).blocks, s)
+                    stream_step(s, r, cam)
 
                 pop, pop_moved = popping(strat, pop_cams, tau, metric, prepare)
             row.update(

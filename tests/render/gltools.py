@@ -5,19 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
-
-from render.errors import GLUnavailableError
 
 
 def make_context():
-    """The module's headless EGL context, or skip the module with the reason."""
-    from render.gpu import create_context
+    """The shared headless EGL context (``conftest.gl_context``): without one the module is
+    skipped with the reason, or fails with ``CI=true``."""
+    from conftest import gl_context
 
-    try:
-        return create_context()
-    except GLUnavailableError as exc:
-        pytest.skip(f"no headless OpenGL 4.5 context: {exc}", allow_module_level=True)
+    return gl_context()
 
 
 def rough(n: int, seed: int, amp: float = 8.0) -> np.ndarray:

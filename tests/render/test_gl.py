@@ -17,13 +17,6 @@ CTX = make_context()
 SIZE = (128, 96)
 
 
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
-
-
 def _renderer(path, p: int = 2, size=SIZE) -> TerrainRenderer:
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=size, patch_log2=p), ctx=CTX)

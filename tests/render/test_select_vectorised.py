@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from select_reference import RefPatchTable, ref_select_patches, ref_stitch
 
-from render.select import Patches, PatchTable, _Cull, select_patches, stitch
+from render.select import DiscCull, Patches, PatchTable, select_patches, stitch
 from streamer.camera import Camera
 from streamer.errors import LodError
 from streamer.frustum import frustum_hull, polygon_meets_circles, view_triangle
@@ -136,7 +136,7 @@ def test_cull_matches_polygon_meets_circles():
             cx = rng.uniform(499000, 505000, 4000)
             cy = rng.uniform(4.994e6, 5.001e6, 4000)
             for r in (1.0, 60.0, 700.0):
-                meets, inside = _Cull(poly)(cx, cy, r)
+                meets, inside = DiscCull(poly)(cx, cy, r)
                 assert np.array_equal(meets, polygon_meets_circles(poly, cx, cy, r))
                 # a disc inside: every disc within it (a descendant's) meets the polygon too
                 a = rng.uniform(0, 2 * np.pi, inside.sum())

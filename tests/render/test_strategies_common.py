@@ -26,13 +26,6 @@ NAMES = strategy_names()
 OPTIONS = {"chunk-tessellation": {"chunk_log2": 3}, "seamless-patches": {"res_log2": 3}}
 
 
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
-
-
 def _strategy(path, name, size=SIZE):
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=size, patch_log2=2), ctx=CTX)

@@ -16,16 +16,7 @@ from render.strategies import get_strategy
 from render.strategies.base import GlobalHeights
 from render.strategies.seamless import (
     SeamlessPatches,
-    edge_epsilon,
     edge_resolution,
-    mesh_kinds,
-    mesh_of,
-    precision,
-    rotate,
-    strip_mesh,
-    strip_triangles,
-    tile_mesh,
-    tile_triangles,
 )
 from streamer.camera import Camera
 from tiler.store import open_store
@@ -35,13 +26,6 @@ CTX = make_context()
 SIZE = (128, 96)
 X0, Y0 = 500015.0, 5000000.0 - 15
 OBLIQUE = ((X0 + 600, Y0 - 4200, 1600.0), (X0 + 2400, 4997600, 700.0))
-
-
-@pytest.fixture(autouse=True)
-def _gl_errors():
-    assert CTX.error == "GL_NO_ERROR"
-    yield
-    assert CTX.error == "GL_NO_ERROR"
 
 
 def _strategy(path, res_log2: int = 3, caps: dict | None = None) -> SeamlessPatches:
@@ -67,15 +51,6 @@ def _oblique() -> Camera:
     return Camera.look_at(*OBLIQUE, viewport=SIZE, near=5.0)
 
 
-def _patch(c: int, res: tuple[int, int, int, int]) -> np.ndarray:
-    """All ``(u, v)`` triangles of one patch with tile resolutions ``res`` (N, E, S, W)."""
-    parts = []
-    for e in range(4):
-        for m in (tile_mesh(c, res[e]), strip_mesh(c, res[e], res[(e + 1) % 4])):
-            parts.append(rotate(m[..., :2].astype(np.int64), e, c))
-    return np.concatenate(parts)
-
-
 def _area2(t: np.ndarray) -> np.ndarray:
     e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
@@ -93,92 +68,7 @@ def _edge_use(tri: np.ndarray) -> Counter:
 # -- cached meshes ---------------------------------------------------------------------------
 
 
-def test_tile_and_strip_triangle_counts_per_resolution_pair():
-    c = 5
-    assert [len(tile_mesh(c, r)) for r in range(1, 6)] == [0, 4, 24, 112, 480]
-    assert [tile_triangles(r) for r in range(1, 6)] == [0, 4, 24, 112, 480]
-    for ra, rb in itertools.product(range(1, c + 1), repeat=2):
-        assert len(strip_mesh(c, ra, rb)) == strip_triangles(ra, rb) == 2 ** max(ra, rb)
-    # four equal tiles and their four strips are the full 2 n^2 grid
-    for r in range(1, c + 1):
-        assert len(_patch(c, (r, r, r, r))) == 2 * 4**r
-    # mixed: 4 + 24 + 112 + 480 tiles; strips N-E 8, E-S 16, S-W 32, W-N 32
-    assert len(_patch(c, (2, 3, 4, 5))) == 620 + 8 + 16 + 32 + 32
-    assert len(mesh_kinds(c)) == c + c * c
-
-
-def test_cached_meshes_have_no_degenerate_triangles():
-    c = 5
-    size = 1 << c
-    for kind in mesh_kinds(c):
-        m = mesh_of(c, kind)
-        if not len(m):
-            continue
-        uv, r = m[..., :2].astype(np.int64), m[..., 2]
-        assert (_area2(uv) != 0).all(), kind
-        # every vertex is a sample of the lattice of the resolution it is tagged with
-        q = size >> r
-        assert ((uv[..., 0] % q == 0) & (uv[..., 1] % q == 0)).all(), kind
-        # the north tile / north-east strip lies in the north triangle / around its diagonal
-        u, v = uv[..., 0], uv[..., 1]
-        if kind[0] == "tile":
-            assert ((v <= u) & (v <= size - u)).all()
-        else:
-            assert ((u >= size // 2) & (v <= size // 2)).all()
-
-
-@pytest.mark.parametrize("c", [2, 3])
-def test_every_patch_is_a_watertight_triangulation_of_its_square(c):
-    size = 1 << c
-    for res in itertools.product(range(1, c + 1), repeat=4):
-        tri = _patch(c, res)
-        area = _area2(tri)
-        assert (area != 0).all() and np.abs(area).sum() == 2 * size * size, res
-        use = _edge_use(tri)
-        border: dict[int, set] = {0: set(), 1: set(), 2: set(), 3: set()}
-        for (a, b), n in use.items():
-            on = [
-                a[1] == b[1] == 0,
-                a[0] == b[0] == size,
-                a[1] == b[1] == size,
-                a[0] == b[0] == 0,
-            ]
-            assert n == (1 if any(on) else 2), (res, a, b, n)  # no T-junction, no hole
-            for e in range(4):
-                if on[e]:
-                    border[e] |= {a, b}
-        # a patch edge's vertices depend only on that edge's resolution
-        for e, r in enumerate(res):
-            t = np.arange(0, size + 1, size >> r)
-            full = [(x, 0) for x in t], [(size, x) for x in t], [(x, size) for x in t]
-            want = (*full, [(0, x) for x in t])[e]
-            assert border[e] == set(want), (res, e)
-
-
-def test_rotation_sends_north_to_east():
-    c = 3
-    pts = np.array([[0, 0], [8, 0], [4, 0], [4, 4], [2, 1]])
-    np.testing.assert_array_equal(rotate(pts, 1, c), [[8, 0], [8, 8], [8, 4], [4, 4], [7, 2]])
-    np.testing.assert_array_equal(rotate(pts, 0, c), pts)
-    np.testing.assert_array_equal(rotate(rotate(pts, 2, c), 2, c), pts)
-
-
 # -- ε = ρ l / d -----------------------------------------------------------------------------
-
-
-def test_epsilon_and_edge_resolution_known_answers():
-    # ρ = 2 f δ / (τ 2^c l): f = 500 px, δ = 2 m, τ = 1 px, c = 5, l = 100 m
-    rho = precision(2.0, 100.0, 1.0, 500.0, 5)
-    assert rho == pytest.approx(2 * 500 * 2 / (32 * 100))  # 0.625
-    assert edge_epsilon(rho, 100.0, 50.0) == pytest.approx(1.25)  # > 1: split
-    assert edge_epsilon(rho, 100.0, 250.0) == pytest.approx(0.25)
-    # ε 2^c rounded up to a power of two, at least 2 cells, at most 2^c
-    eps = np.array([0.0, 0.01, 0.1, 0.25, 0.2501, 0.5, 1.0, 3.0, np.inf])
-    assert edge_resolution(eps, 5).tolist() == [1, 1, 2, 3, 4, 4, 5, 5, 5]
-    # τ = 0: infinite precision unless the edge is exact; the eye on the edge: ε = ∞
-    assert np.isinf(precision(1.0, 10.0, 0.0, 500.0, 5))
-    assert precision(0.0, 10.0, 0.0, 500.0, 5) == 0.0
-    assert np.isinf(edge_epsilon(0.1, 10.0, 0.0)) and edge_epsilon(0.0, 10.0, 0.0) == 0.0
 
 
 def test_selection_uses_epsilon_of_the_stored_errors(tmp_path):

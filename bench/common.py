@@ -1,0 +1,70 @@
+"""Shared benchmark helpers: where the data is and what machine ran the benchmark.
+
+Every ``bench/*.py`` puts the repository first on ``sys.path`` and imports this module as
+``bench.common`` (``bench/render.py`` would shadow the ``render`` package otherwise); it takes its
+paths from here, so no script names a machine's absolute path:
+
+* ``SHARED_DATA`` — real DEMs (``N44W072.hgt``): ``$TERRASTREAM_SHARED_DATA``, default
+  ``../shared/data`` beside the repository (the same rule as ``tests/conftest.py``);
+* ``WORK`` — generated sources and stores (``bench/work``, git-ignored), ``RESULTS`` — the
+  committed JSON and plots (``bench/results``).
+
+:func:`machine_info` is the one machine record every benchmark writes beside its figures.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import platform
+import sys
+from importlib import import_module
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: the environment variable naming the folder of real DEMs
+DATA_ENV = "TERRASTREAM_SHARED_DATA"
+SHARED_DATA = Path(os.environ.get(DATA_ENV, REPO.parent / "shared" / "data"))
+WORK = REPO / "bench" / "work"
+RESULTS = REPO / "bench" / "results"
+#: the real SRTM tile of BENCHMARKS.md
+REAL_HGT = SHARED_DATA / "N44W072.hgt"
+#: the stores of the rendering and LOD benchmarks (made by bench/tiling.py / bench/prefetch.py)
+S4097 = WORK / "s4097.zarr"
+S16385 = WORK / "s16385.zarr"
+N44W072_EQC = WORK / "prefetch" / "n44w072_eqc_b257.zarr"
+
+_VERSIONS = ("numpy", "zarr", "rasterio", "rio_cogeo", "moderngl", "numba")
+
+
+def machine_info() -> dict[str, Any]:
+    """Date, CPUs, memory, platform, Python and the versions of the libraries that matter
+    (a library that is not installed is left out)."""
+    info: dict[str, Any] = {
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "cpu_count": os.cpu_count(),
+        "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "python": sys.version.split()[0],
+    }
+    try:
+        import psutil
+
+        info["memory_gb"] = round(psutil.virtual_memory().total / 2**30, 1)
+    except ImportError:
+        pass
+    for name in _VERSIONS:
+        try:
+            info[name] = import_module(name).__version__
+        except (ImportError, AttributeError):
+            continue
+    try:
+        import rasterio
+
+        info["gdal"] = rasterio.__gdal_version__
+    except ImportError:
+        pass
+    return info

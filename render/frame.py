@@ -1,0 +1,374 @@
+"""Frame services: what every LOD strategy draws with (docs/RENDER.md, "Frame services").
+
+:class:`FrameServices` owns one store's GPU state and offers it through a small, typed, public
+interface; no strategy reaches into it otherwise:
+
+* the **framebuffer** (:meth:`~FrameServices.begin_frame`, :meth:`~FrameServices.timed_frame`,
+  :meth:`~FrameServices.image`);
+* the **height pool** (:meth:`~FrameServices.sync`, :meth:`~FrameServices.upload`,
+  :meth:`~FrameServices.bind_heights`, :meth:`~FrameServices.slot`,
+  :meth:`~FrameServices.drawable`);
+* the **index textures** and **camera uniforms** (:meth:`~FrameServices.set_camera`: integer
+  camera cell, fraction, MVP, spacing, sun, z range, viewport, and the level/order textures);
+* **triangle read-back** (:meth:`~FrameServices.read_triangles`, transform feedback into an SSBO
+  with the rasteriser off);
+* **patch tables** (:meth:`~FrameServices.patch_table`, :meth:`~FrameServices.fill_table`:
+  pooled stored errors per node size, dropped with their blocks), **patch instances**
+  (:meth:`~FrameServices.instances`: the instance layout of ``render/glsl/fetch.glsl``) and a
+  per-renderer cache of shared programs and meshes (:meth:`~FrameServices.shared`).
+
+Positions are computed on the GPU relative to the camera from integer sample indices (see
+docs/RENDER.md), so shared vertices are bit-identical and far-from-origin scenes keep their
+precision. Qiu's CLOD itself lives in :mod:`render.strategies.qiu`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import moderngl
+import numpy as np
+
+from render.errors import RenderError
+from render.gpu import HeightPool, check_gl, create_context
+from render.select import Patches, PatchTable
+from streamer.camera import Camera
+from tiler.layout import level_index, order_index
+from tiler.store import TerrainStore
+
+Block = tuple[int, int]
+T = TypeVar("T")
+CLEAR = (255, 0, 255)  # magenta: contrasts with every terrain colour
+#: binding points of the shared buffers and textures (render/glsl/*.glsl)
+HEIGHTS_BINDING, LEVEL_TEX_UNIT, ORDER_TEX_UNIT, TRIANGLES_BINDING = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Renderer settings; ``patch_log2`` is the one patch size of the renderer and of the
+    session streaming for it (:func:`render.pipeline.open_render_session` takes it from here)."""
+
+    size: tuple[int, int] = (1024, 768)
+    patch_log2: int = 4
+    clear: tuple[int, int, int] = (135, 170, 210)
+    sun: tuple[float, float, float] = (-0.5, 0.6, 0.65)
+    linger_frames: int = 30  # keep blocks that left the view this long on the GPU
+
+    def __post_init__(self) -> None:
+        w, h = self.size
+        if not (1 <= w <= 16384 and 1 <= h <= 16384):
+            raise RenderError(f"viewport {w}x{h} is outside 1..16384 pixels per side")
+        if not 0 <= self.patch_log2 <= 7:
+            raise RenderError(f"patch_log2 must be in 0..7, got {self.patch_log2}")
+
+
+@dataclass(frozen=True)
+class RenderStats:
+    """One rendered frame's figures."""
+
+    triangles: int
+    patches: int
+    selection_ms: float
+    frame_ms: float
+    gpu_bytes: int
+    clamped: int  # nodes drawn coarser than wanted because the level was not resident
+    violations: int
+    max_level: int
+    min_level: int
+
+
+@dataclass(frozen=True)
+class Slot:
+    """Where a block's level sequence lives in the height pool."""
+
+    page: int  # the pool page (bind it with :meth:`FrameServices.bind_heights`)
+    offset: int  # base of the block's sequence in the page, in floats
+    level: int  # finest level uploaded
+
+
+class FrameServices:
+    """One store's GPU state: framebuffer, height pool, index textures, camera uniforms,
+    triangle read-back, patch tables and programs (the interface every strategy uses)."""
+
+    def __init__(
+        self,
+        store: TerrainStore,
+        config: RenderConfig | None = None,
+        *,
+        ctx: moderngl.Context | None = None,
+    ) -> None:
+        self.store = store
+        self.config = config or RenderConfig()
+        self.grid = store.grid
+        self.k = store.k
+        self.p = min(self.config.patch_log2, self.k)
+        self.ctx = ctx or create_context()
+        ctx = self.ctx
+        w, h = self.config.size
+        self.fbo = ctx.framebuffer(
+            color_attachments=[ctx.renderbuffer((w, h), 4)],
+            depth_attachment=ctx.depth_renderbuffer((w, h)),
+        )
+        self.fbo.use()
+        li = np.ascontiguousarray(level_index(self.k), dtype=np.uint8)
+        oi = np.ascontiguousarray(order_index(self.k), dtype=np.int32)
+        side = li.shape[0]
+        self.level_tex = ctx.texture((side, side), 1, li.tobytes(), dtype="u1")
+        self.order_tex = ctx.texture((side, side), 1, oi.tobytes(), dtype="i4")
+        for t in (self.level_tex, self.order_tex):
+            t.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.pool = HeightPool(ctx, self.k)
+        self._tables: dict[str, PatchTable] = {}
+        self._shared: dict[str, Any] = {}
+        self._masks: dict[Block, np.ndarray | None] = {}
+        self._seen: dict[Block, int] = {}
+        self._frame = 0
+        idx = store.index
+        self._zr = np.stack([idx.zmin, idx.zmax], axis=-1)
+        vr = store.meta.extra.get("value_range")
+        zmin, zmax = (float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax)))
+        self.zrange = (float(vr[0]), float(vr[1])) if vr else (zmin, zmax)
+        self.terrain_zrange = (zmin, zmax)
+        check_gl(ctx, "creating the renderer")
+
+    # -- height pool ---------------------------------------------------------------------------
+
+    def mask(self, block: Block) -> np.ndarray | None:
+        """The block's validity mask (None when it has no nodata or padding)."""
+        if block not in self._masks:
+            has = bool(self.store.index.has_nodata[block])
+            self._masks[block] = self.store.read_mask(block) if has else None
+        return self._masks[block]
+
+    def upload(self, block: Block, levels: list[np.ndarray]) -> int:
+        """Put a block's decoded levels on the GPU (only the new ones); return its GPU level."""
+        self._seen[block] = self._frame
+        return self.pool.upload(block, levels, self.mask(block))
+
+    def sync(self, frame_blocks: dict[Block, tuple[int, int]], session) -> None:
+        """Upload what a streaming frame holds (``Frame.blocks``) and drop long-gone blocks."""
+        self._frame += 1
+        for b, (res, _need) in frame_blocks.items():
+            self._seen[b] = self._frame
+            if res > self.pool.level(b):
+                self.upload(b, session.levels(b)[: res + 1])
+        for b in list(self.pool.slots):
+            if self._frame - self._seen.get(b, -(10**9)) > self.config.linger_frames:
+                self.pool.release(b)
+                self._seen.pop(b, None)
+                for t in self._tables.values():
+                    t.remove(b)
+
+    def slot(self, block: Block) -> Slot:
+        """The block's place in the height pool (KeyError if it is not on the GPU)."""
+        s = self.pool.slots[block]
+        return Slot(page=s.page, offset=s.offset, level=s.level)
+
+    def gpu_level(self, block: Block) -> int:
+        """The finest level of ``block`` in the height pool (-1 when it is not on the GPU)."""
+        return self.pool.level(block)
+
+    @property
+    def height_bytes(self) -> int:
+        """Bytes of heights in the pool's pages (the GPU bytes every frame reports)."""
+        return self.pool.used_bytes
+
+    def bind_heights(self, page: int) -> None:
+        """Bind height-pool page ``page`` as the ``Heights`` buffer (binding 0)."""
+        self.pool.pages[page].buffer.bind_to_storage_buffer(HEIGHTS_BINDING)
+
+    def drawable(self, resident: dict[Block, int] | None = None) -> list[tuple[Block, int]]:
+        """``(block, level)`` sorted: the blocks a frame may draw and the finest level of each —
+        the lower of the cap in ``resident`` (default: what the GPU holds) and the GPU's level;
+        a block is drawn when both are >= 0."""
+        pool = self.pool
+        levels = resident if resident is not None else {b: s.level for b, s in pool.slots.items()}
+        pairs = sorted(
+            (tuple(b), min(int(lv), pool.level(b))) for b, lv in levels.items() if lv >= 0
+        )
+        return [(b, lv) for b, lv in pairs if lv >= 0]
+
+    def block_zranges(self, blocks: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` stored ``(zmin, zmax)`` of the ``(n, 2)`` blocks, 0 where not finite."""
+        blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+        zr = self._zr[(blk[:, 0], blk[:, 1])]
+        return np.where(np.isfinite(zr), zr, 0.0)
+
+    # -- patch tables and programs -------------------------------------------------------------
+
+    def patch_table(self, name: str, patch_log2: int | None = None) -> PatchTable:
+        """The renderer's pooled patch-error table ``name`` for nodes of ``2**patch_log2``
+        cells (default: the renderer's patch size), made on first use; blocks leaving the GPU
+        leave every table."""
+        t = self._tables.get(name)
+        if t is None:
+            size = self.p if patch_log2 is None else patch_log2
+            t = self._tables[name] = PatchTable(self.k, size)
+        return t
+
+    def fill_table(self, table: PatchTable, blocks: list[Block], field: str) -> None:
+        """Add the stored error ``field`` of the ``blocks`` not yet in ``table``."""
+        for b in blocks:
+            if b not in table:
+                table.add(b, self.store.read_errors(b)[field])
+
+    def shared(self, key: str, make: Callable[[FrameServices], T]) -> T:
+        """The object (programs, meshes) cached under ``key`` on this renderer, built by
+        ``make(self)`` on first use and shared by every strategy instance drawing with it."""
+        obj = self._shared.get(key)
+        if obj is None:
+            obj = self._shared[key] = make(self)
+            check_gl(self.ctx, f"building {key!r}")
+        return obj
+
+    # -- camera, frames, read-back ---------------------------------------------------------------
+
+    def set_camera(self, prog: moderngl.Program, camera: Camera) -> None:
+        """Set ``prog``'s camera and terrain uniforms (those it declares) and bind the level and
+        order index textures (units 1 and 2)."""
+        g = self.grid
+        cx, cy, cz = camera.position
+        ci = math.floor((cx - g.x0) / g.dx)
+        ri = math.floor((g.y0 - cy) / g.dy)
+        fx = cx - (g.x0 + ci * g.dx)
+        fy = cy - (g.y0 - ri * g.dy)
+        mvp = camera.projection_matrix() @ camera.view_matrix()
+        values = {
+            "k": self.k,
+            "patch_log2": self.p,
+            "cam_cell": (ci, ri),
+            "cam_frac": (fx, fy, cz),
+            "spacing": (g.dx, g.dy),
+            "mvp": mvp.T.astype("f4").tobytes(),
+            "sun": self.config.sun,
+            "zrange": self.zrange,
+            "viewport": (self.config.size[0] / 2, self.config.size[1] / 2),
+        }
+        for name, v in values.items():
+            if name in prog:
+                if isinstance(v, bytes):
+                    prog[name].write(v)
+                else:
+                    prog[name].value = v
+        self.level_tex.use(LEVEL_TEX_UNIT)
+        self.order_tex.use(ORDER_TEX_UNIT)
+
+    def instances(self, patches: Patches) -> dict[int, np.ndarray]:
+        """Per height-pool page, the ``(n, 8)`` int32 instance attributes of its patches (block
+        origin, node origin, slot base, level, cells_log2, packed snaps: ``fetch.glsl``)."""
+        k = self.k
+        blk = patches.blocks[patches.block]
+        e = np.left_shift(1, k - patches.depth)
+        pages = np.empty(len(patches), dtype=np.int64)
+        base = np.empty(len(patches), dtype=np.int64)
+        for i, b in enumerate(map(tuple, patches.blocks.tolist())):
+            m = patches.block == i
+            s = self.pool.slots[b]
+            pages[m], base[m] = s.page, s.offset
+        sn = patches.snap
+        packed = sn[:, 0] | (sn[:, 1] << 4) | (sn[:, 2] << 8) | (sn[:, 3] << 12)
+        inst = np.stack(
+            [
+                blk[:, 1] << k,
+                blk[:, 0] << k,
+                patches.col * e,
+                patches.row * e,
+                base,
+                patches.level,
+                patches.cells_log2,
+                packed,
+            ],
+            1,
+        ).astype(np.int32)
+        return {int(p): inst[pages == p] for p in np.unique(pages)}
+
+    def begin_frame(
+        self,
+        camera: Camera,
+        prog: moderngl.Program,
+        *,
+        clear: tuple[int, int, int] | None = None,
+        lod_colour: bool = False,
+    ) -> float:
+        """Bind and clear the framebuffer, set the camera uniforms and the index textures for
+        ``prog``; returns the frame's start time (``perf_counter``)."""
+        if tuple(camera.viewport) != tuple(self.config.size):
+            raise RenderError(
+                f"camera viewport {camera.viewport} differs from the renderer's {self.config.size}"
+            )
+        ctx = self.ctx
+        self.fbo.use()
+        t0 = time.perf_counter()
+        c = clear or self.config.clear
+        self.fbo.clear(c[0] / 255, c[1] / 255, c[2] / 255, 1.0, depth=1.0)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        self.set_camera(prog, camera)
+        if "lod_colour" in prog:
+            prog["lod_colour"].value = int(lod_colour)
+        return t0
+
+    def timed_frame(
+        self,
+        camera: Camera,
+        prog: moderngl.Program,
+        body: Callable[[], None],
+        *,
+        clear: tuple[int, int, int] | None,
+        lod_colour: bool,
+        what: str,
+    ) -> float:
+        """Begin the frame for ``prog``, run ``body`` (the draw calls), wait for the GPU and
+        check for GL errors; the frame's wall time in ms."""
+        t0 = self.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour)
+        body()
+        self.ctx.finish()
+        ms = (time.perf_counter() - t0) * 1000.0
+        check_gl(self.ctx, what)
+        return ms
+
+    def read_triangles(
+        self,
+        camera: Camera,
+        prog: moderngl.Program,
+        cap: int,
+        body: Callable[[], None],
+        what: str,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Run ``body`` (draw calls with ``prog``, whose geometry shader is
+        ``triangle_probe.geom``) with the rasteriser discarded; every triangle's global
+        ``(col, row)`` corners ``(m, 3, 2)`` int64 and heights ``(m, 3)``
+        (:data:`render.gpu.MASKED` where masked). More than ``cap`` triangles is an error."""
+        self.fbo.use()  # an EGL context has no default framebuffer
+        self.set_camera(prog, camera)
+        out = self.ctx.buffer(reserve=16 + max(cap, 1) * 36)
+        out.write(np.zeros(4, np.uint32).tobytes())
+        out.bind_to_storage_buffer(TRIANGLES_BINDING)
+        prog["cap"].value = cap
+        self.ctx.enable(moderngl.RASTERIZER_DISCARD)
+        try:
+            body()
+        finally:
+            self.ctx.disable(moderngl.RASTERIZER_DISCARD)
+        raw = out.read()
+        out.release()
+        check_gl(self.ctx, what)
+        count = int(np.frombuffer(raw[:4], np.uint32)[0])
+        if count > cap:
+            raise RenderError(f"{what}: the GPU made {count} triangles, expected at most {cap}")
+        a = np.frombuffer(raw[16:], np.float32)[: 9 * count].reshape(-1, 3, 3).astype(np.float64)
+        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+
+    def image(self) -> np.ndarray:
+        """The framebuffer as an ``(h, w, 3)`` uint8 array, top row first."""
+        w, h = self.config.size
+        data = self.fbo.read(components=3, alignment=1)
+        return np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3)[::-1].copy()
+
+    def close(self) -> None:
+        """Release the height pool's GPU buffers."""
+        self.pool.close()

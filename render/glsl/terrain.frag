@@ -1,0 +1,11 @@
+#version 450
+in vec3 v_normal;
+in float v_h;
+in float v_masked;
+flat in int v_level;
+out vec4 f_colour;
+#include "shade.glsl"
+void main() {
+    if (v_masked > 0.0) discard;
+    f_colour = vec4(shade(v_normal, v_h, v_level), 1.0);
+}

@@ -1,0 +1,164 @@
+"""``geometry-splitting``, the pure part (no GL): the quadtree texture (σ roughness per Eq. 3,
+exact deepest-depth errors, height ranges; :func:`stored_tree`) and Eq. 1's projected error."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from render.errors import RenderError
+from streamer.camera import Camera
+
+# --- the quadtree texture (CPU, once per block) -----------------------------------------------
+
+
+def roughness(deltas: list[np.ndarray]) -> list[np.ndarray]:
+    """Lee & Shin's Eq. 3, recursively: ``σ_l = max(δ_l, 2 max σ_(l+1))`` (``σ_k = 0``)."""
+    sig = [np.asarray(x, dtype=np.float64) for x in deltas]
+    for d in range(len(sig) - 2, -1, -1):
+        m = 1 << d
+        child = sig[d + 1].reshape(m, 2, m, 2).max(axis=(1, 3))
+        sig[d] = np.maximum(sig[d], 2.0 * child)
+    return sig
+
+
+def _round_up32(x: np.ndarray) -> np.ndarray:
+    f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+
+
+def _half(x: np.ndarray, up: bool) -> np.ndarray:
+    f = x.astype(np.float16)
+    if up:
+        return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float16(np.inf)), f)
+    return np.where(f.astype(np.float64) > x, np.nextafter(f, np.float16(-np.inf)), f)
+
+
+@dataclass
+class BlockTree:
+    """One block's quadtree texture as the GPU sees it (per depth ``0..k-1``)."""
+
+    sigma: list[np.ndarray]  # float32, rounded up
+    zmin: list[np.ndarray]  # float16, rounded down
+    zmax: list[np.ndarray]  # float16, rounded up
+
+    def packed(self) -> np.ndarray:
+        """``(nodes, 2)`` uint32 in depth order: σ bits, ``packHalf2x16(zmin, zmax)``."""
+        s = np.concatenate([x.ravel() for x in self.sigma]).astype(np.float32).view(np.uint32)
+        lo = np.concatenate([x.ravel() for x in self.zmin]).view(np.uint16).astype(np.uint32)
+        hi = np.concatenate([x.ravel() for x in self.zmax]).view(np.uint16).astype(np.uint32)
+        return np.stack([s, lo | (hi << 16)], 1)
+
+
+def quad_errors(h: np.ndarray, valid: np.ndarray | None, depths) -> dict[int, np.ndarray]:
+    """``δ`` per depth in ``depths`` of a full-resolution ``(2**k+1)²`` grid: the largest
+    vertical distance of a valid sample (its own last row and column included) from the node's
+    quad, cut along its a-d diagonal (samples x nodes arrays, vectorised over the nodes)."""
+    h = np.asarray(h, dtype=np.float64)
+    n = h.shape[0] - 1
+    ok = np.ones(h.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
+    out = {}
+    for d in depths:
+        m, s = 1 << d, n >> d
+        a, b, c, dd = h[:n:s, :n:s], h[:n:s, s::s], h[s::s, :n:s], h[s::s, s::s]
+        t = np.arange(s) / s
+        v, u = t[:, None, None, None], t[None, :, None, None]
+        # (sample row, sample col, node row, node col): the long axes innermost
+        err = np.ascontiguousarray(h[:n, :n].reshape(m, s, m, s).transpose(1, 3, 0, 2))
+        # the a-d triangulation is L - q min(u, v), L = a + u (b - a) + v (c - a),
+        # q = b + c - a - d (as tiler.static_error), updated in place
+        err -= a
+        err -= u * (b - a)
+        err -= v * (c - a)
+        err += np.minimum(u, v) * (b + c - a - dd)
+        np.abs(err, out=err)
+        err[~ok[:n, :n].reshape(m, s, m, s).transpose(1, 3, 0, 2)] = 0.0
+        node = err.max(axis=(0, 1))
+        # a node's south (east) edge is the next node's north (west) edge: same samples, same
+        # segment, same errors; only the block's last row (column) is computed apart
+        t1 = np.arange(s + 1) / s
+        along = np.arange(m)[:, None] * s + np.arange(s + 1)[None, :]  # (m, s + 1) samples
+        south = np.empty((m, m))
+        south[:-1] = err[0, :, 1:, :].max(axis=0)
+        last = np.abs(h[n][along] - (c[-1][:, None] * (1 - t1) + dd[-1][:, None] * t1))
+        south[-1] = np.where(ok[n][along], last, 0.0).max(axis=1)
+        east = np.empty((m, m))
+        east[:, :-1] = err[:, 0, :, 1:].max(axis=0)
+        last = np.abs(h[:, n][along] - (b[:, -1][:, None] * (1 - t1) + dd[:, -1][:, None] * t1))
+        east[:, -1] = np.where(ok[:, n][along], last, 0.0).max(axis=1)
+        out[d] = np.maximum(node, np.maximum(south, east))
+    return out
+
+
+def _per_node(arr: np.ndarray, d: int) -> np.ndarray:
+    """A stored per-depth field ``(2**min(d, cap))²`` at every depth-``d`` node ``(2**d)²``
+    (beyond the store's cap one value covers a tile of nodes)."""
+    rep = (1 << d) // arr.shape[0]
+    return np.repeat(np.repeat(np.asarray(arr, dtype=np.float64), rep, 0), rep, 1)
+
+
+def stored_tree(
+    bound: list[np.ndarray], grid: np.ndarray, exact: dict[int, np.ndarray] | None = None
+) -> BlockTree:
+    """One block's quadtree texture from what the store already holds: ``bound`` (the tiler's
+    per-node error field, depths ``0..k-1``: the largest vertical distance of any valid
+    full-resolution sample from the node's quad, either diagonal, rounded up) as ``δ``, and the
+    block's level-``R`` grid ``(2**R+1)²`` (its resident level) for the height ranges: a node of
+    depth ``d <= R`` spans ``[min, max]`` of its 4 corners ``∓ δ`` (every sample lies within
+    ``δ`` of the quad, which lies between its corners); deeper nodes take their depth-``R``
+    ancestor's range (they cannot split there). ``exact`` replaces ``δ`` at some depths (the
+    store keeps one value per tile of nodes below its cap depth, see :func:`quad_errors`)."""
+    k = len(bound)
+    g = np.asarray(grid, dtype=np.float64)
+    rr = (g.shape[0] - 1).bit_length() - 1
+    if g.shape != ((1 << rr) + 1,) * 2 or not 0 <= rr <= k:
+        raise RenderError(f"expected a (2**R+1)² grid with R <= {k}, got {g.shape}")
+    deltas = [_per_node(bound[d], d) for d in range(k)]
+    for d, e in (exact or {}).items():
+        deltas[d] = np.minimum(deltas[d], e)  # both bound the quad's error; keep the tighter
+    sig = roughness(deltas)
+    zmin, zmax = [], []
+    for d in range(k):
+        a = min(d, rr, k - 1)  # the depth whose corners bound this node
+        c = g[:: 1 << (rr - a), :: 1 << (rr - a)] if a <= rr else g
+        quad = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+        lo, hi = quad.min(axis=0) - deltas[a], quad.max(axis=0) + deltas[a]
+        rep = 1 << (d - a)
+        zmin.append(np.repeat(np.repeat(lo, rep, 0), rep, 1))
+        zmax.append(np.repeat(np.repeat(hi, rep, 0), rep, 1))
+    return BlockTree(
+        sigma=[_round_up32(x) for x in sig],
+        zmin=[_half(z, False) for z in zmin],
+        zmax=[_half(z, True) for z in zmax],
+    )
+
+
+def projected_error(
+    centre_rel: np.ndarray,
+    sigma: np.ndarray,
+    size: np.ndarray,
+    camera: Camera,
+    dx: float,
+    dy: float,
+) -> np.ndarray:
+    """Eq. 1's ``max σ̄``: the largest pixel distance between the projections of ``v`` and
+    ``v + (0, 0, σ)`` over a node's centre and 4 edge midpoints (camera-relative centres
+    ``(m, 3)``, node edge ``size`` in samples); ``inf`` when a point is at or behind the eye."""
+    c = np.asarray(centre_rel, dtype=np.float64)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), c.shape[:1])
+    h = 0.5 * np.broadcast_to(np.asarray(size, dtype=np.float64), c.shape[:1])
+    mvp = camera.projection_matrix() @ camera.view_matrix()
+    vp = np.array(camera.viewport, np.float64) / 2.0
+    z = np.zeros_like(h)
+    rho = np.zeros(len(c))
+    for ox, oy in ((z, z), (h, z), (-h, z), (z, h), (z, -h)):
+        p = c + np.stack([ox * dx, oy * dy, z], 1)
+        q = p + np.stack([z, z, sig], 1)
+        a = np.c_[p, np.ones(len(p))] @ mvp.T
+        b = np.c_[q, np.ones(len(q))] @ mvp.T
+        behind = (a[:, 3] <= 0.0) | (b[:, 3] <= 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dist = np.hypot(*(vp[:, None] * (b[:, :2] / b[:, 3:] - a[:, :2] / a[:, 3:]).T))
+        rho = np.maximum(rho, np.where(behind, np.inf, dist))
+    return rho

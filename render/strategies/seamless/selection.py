@@ -1,0 +1,332 @@
+"""``seamless-patches``, the selection (pure numpy, no GL): the paper's ε = ρ·l/d per edge, the
+top-down traversal and the resolution of shared edges into :class:`PatchLayout`. It reads the
+frame services' store, drawable blocks and terrain z range (``st.r``) and nothing on the GPU."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from render.errors import SelectionError
+from render.select import DiscCull
+from render.strategies.seamless.meshes import DIRS
+from streamer.camera import Camera
+from streamer.frustum import frustum_hull
+
+Block = tuple[int, int]
+
+# -- ε = ρ l / d ----------------------------------------------------------------------------
+
+
+def precision(
+    delta: ArrayLike, length: ArrayLike, tau: float, focal_px: float, res_log2: int
+) -> np.ndarray:
+    """The edge's precision factor ``ρ = 2 f δ / (τ 2**c l)`` (∞ at τ = 0 unless δ = 0)."""
+    delta = np.asarray(delta, dtype=np.float64)
+    num = 2.0 * focal_px * delta
+    den = float(tau) * float(1 << res_log2) * np.asarray(length, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(num == 0.0, 0.0, num / den)
+    return np.where(np.isnan(rho), np.inf, rho)
+
+
+def edge_epsilon(rho: ArrayLike, length: ArrayLike, dist: ArrayLike) -> np.ndarray:
+    """The paper's ``ε = ρ l / d`` (0 when ρ = 0, ∞ when d = 0 < ρ)."""
+    rho = np.asarray(rho, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        eps = rho * np.asarray(length, dtype=np.float64) / np.asarray(dist, dtype=np.float64)
+    return np.where(rho == 0.0, 0.0, np.where(np.isnan(eps), np.inf, eps))
+
+
+def edge_resolution(eps: ArrayLike, res_log2: int) -> np.ndarray:
+    """log2 of the edge's cells: ``ε 2**c`` rounded up to a power of two, clipped to 1..c."""
+    x = np.asarray(eps, dtype=np.float64) * float(1 << res_log2)
+    x = np.where(np.isfinite(x), x, float(1 << res_log2))
+    m, e = np.frexp(np.maximum(x, 1.0))
+    up = np.where(m == 0.5, e - 1, e)
+    return np.clip(up, 1, res_log2).astype(np.int64)
+
+
+# -- selection ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class PatchLayout:
+    """Leaf patches of one frame and their edge levels (N, E, S, W)."""
+
+    blocks: np.ndarray  # (m, 2) block ids
+    block: np.ndarray  # (n,) index into blocks
+    depth: np.ndarray
+    row: np.ndarray  # node row/col inside the block at its depth
+    col: np.ndarray
+    edge_level: np.ndarray  # (n, 4) store level of each edge's tile
+    eps: np.ndarray  # (n, 4) ε of each edge
+    res_log2: int
+    clamped: int
+    violations: int
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    @property
+    def edge_res(self) -> np.ndarray:
+        """``(n, 4)`` log2 cells of each tile."""
+        return self.edge_level - self.depth[:, None]
+
+
+class _Frame:
+    """One selection's fixed inputs: blocks, caps, error grids, z ranges, camera, τ."""
+
+    def __init__(self, st, camera: Camera, tau: float, resident: dict | None) -> None:
+        r = st.r
+        self.k, self.c, self.grid = r.k, st.c, r.grid
+        self.camera, self.tau = camera, float(tau)
+        pairs = r.drawable(resident)
+        self.skipped = sum(1 for _, lv in pairs if lv < 1)
+        pairs = [(b, lv) for b, lv in pairs if lv >= 1]
+        self.blk = np.array([b for b, _ in pairs], dtype=np.int64).reshape(-1, 2)
+        self.cap = np.array([lv for _, lv in pairs], dtype=np.int64)
+        capd = dict(pairs)
+        capn = [min([lv] + [capd[n] for n in _block_nbrs(b) if n in capd]) for b, lv in pairs]
+        self.dmax = np.minimum(self.k - self.c, np.array(capn, dtype=np.int64) - 1)
+        g = self.grid
+        self.zr = st.zr
+        self.win = r.store.index.window
+        self.table = st.table
+        r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
+        self.slots = self.table.slots(self.blk) if len(self.blk) else np.zeros(0, np.int64)
+        keys = self.blk[:, 0] * g.cols + self.blk[:, 1]
+        self.border = np.argsort(keys)
+        self.bkeys = keys[self.border]
+        self.focal = camera.focal_px
+        self.eye = camera.eye
+        poly = frustum_hull(camera, r.terrain_zrange)
+        self.cull = DiscCull(poly) if poly is not None and len(poly) else None
+        self.diag = math.hypot(g.dx, g.dy)
+
+    def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
+        """Stored error (``bound``, level ``d + 1``) of the depth-``d`` nodes at global node
+        ``(gr, gc)``; -1 outside the drawn blocks."""
+        g, m = self.grid, len(self.blk)
+        out = np.full(len(gr), -1.0)
+        ok = (gr >= 0) & (gc >= 0) & (gr < g.rows << d) & (gc < g.cols << d)
+        if not m or not ok.any():
+            return out
+        key = (gr[ok] >> d) * g.cols + (gc[ok] >> d)
+        pos = np.minimum(np.searchsorted(self.bkeys, key), m - 1)
+        hit = self.bkeys[pos] == key
+        mask = (1 << d) - 1
+        sub = np.flatnonzero(ok)[hit]
+        slots = self.slots[self.border[pos[hit]]]
+        out[sub] = self.table.delta(slots, d, gr[sub] & mask, gc[sub] & mask)
+        return out
+
+    def epsilon(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """``(n, 4)`` ε of the nodes' edges N, E, S, W."""
+        g, k = self.grid, self.k
+        size = 1 << (k - d)
+        br, bc = self.blk[idx, 0], self.blk[idx, 1]
+        gr, gc = (br << d) + rows, (bc << d) + cols
+        nr_, nc_ = g.rows << d, g.cols << d
+        own = self.node_delta(d, gr, gc)
+        ex, ey, ez = self.eye
+        out = np.zeros((len(idx), 4))
+        corners = (
+            (gr, gc, gr, gc + 1),
+            (gr, gc + 1, gr + 1, gc + 1),
+            (gr + 1, gc, gr + 1, gc + 1),
+            (gr, gc, gr + 1, gc),
+        )
+        for e, (dr, dc) in enumerate(DIRS):
+            nr, nc = gr + dr, gc + dc
+            inb = (nr >= 0) & (nr < nr_) & (nc >= 0) & (nc < nc_)
+            nrc, ncc = np.clip(nr, 0, nr_ - 1), np.clip(nc, 0, nc_ - 1)
+            delta = np.maximum(own, self.node_delta(d, nr, nc))
+            zo, zn = self.zr[br, bc], self.zr[nrc >> d, ncc >> d]
+            zlo = np.where(inb, np.minimum(zo[:, 0], zn[:, 0]), zo[:, 0])
+            zhi = np.where(inb, np.maximum(zo[:, 1], zn[:, 1]), zo[:, 1])
+            r0, c0, r1, c1 = corners[e]
+            xa, ya = g.sample_xy(r0 * size, c0 * size)
+            xb, yb = g.sample_xy(r1 * size, c1 * size)
+            hx = np.maximum(np.maximum(np.minimum(xa, xb) - ex, 0.0), ex - np.maximum(xa, xb))
+            hy = np.maximum(np.maximum(np.minimum(ya, yb) - ey, 0.0), ey - np.maximum(ya, yb))
+            v = np.maximum(np.maximum(ez - zhi, zlo - ez), 0.0)
+            dist = np.sqrt(hx * hx + hy * hy + v * v)
+            length = np.hypot(xb - xa, yb - ya)
+            rho = precision(np.maximum(delta, 0.0), length, self.tau, self.focal, self.c)
+            out[:, e] = edge_epsilon(rho, length, dist)
+        return out
+
+    def visible(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Nodes whose bounding circle meets the ground frustum and that are not all padding."""
+        g = self.grid
+        size = 1 << (self.k - d)
+        keep = np.ones(len(idx), dtype=bool)
+        if self.win is not None and len(idx):
+            w = self.win[self.blk[idx, 0], self.blk[idx, 1]]
+            keep &= (rows * size < w[:, 2] - 1) & (cols * size < w[:, 3] - 1)
+        if self.cull is not None and len(idx):
+            bx0, _, _, by1 = g.block_bounds(self.blk[idx, 0], self.blk[idx, 1])
+            cx = bx0 + (cols + 0.5) * (size * g.dx)
+            cy = by1 - (rows + 0.5) * (size * g.dy)
+            meets, _ = self.cull(cx, cy, 0.5 * size * self.diag)
+            keep &= meets
+        return keep
+
+    def splittable(self, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Nodes whose children can be drawn and be finer (resident levels, bottom depth)."""
+        return (d + 1 <= self.dmax[idx]) & (d + self.c < self.cap[idx])
+
+
+def _block_nbrs(b: Block) -> list[Block]:
+    return [(b[0] + dr, b[1] + dc) for dr, dc in DIRS]
+
+
+class _Leaves:
+    """The growing leaf list (per traversal pass) and the clamped count."""
+
+    def __init__(self) -> None:
+        self.parts: list[tuple] = []
+        self.clamped = 0
+
+
+def _traverse(fr: _Frame, seeds: dict[int, tuple], out: _Leaves) -> None:
+    """Top-down from ``seeds`` (depth -> (idx, rows, cols)): split while some edge has ε > 1."""
+    k, c = fr.k, fr.c
+    carry = None
+    for d in range(0, k - c + 1):
+        parts = [p for p in (carry, seeds.get(d)) if p is not None and len(p[0])]
+        carry = None
+        if not parts:
+            continue
+        idx, rows, cols = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        keep = fr.visible(idx, d, rows, cols)
+        idx, rows, cols = idx[keep], rows[keep], cols[keep]
+        if not len(idx):
+            continue
+        eps = fr.epsilon(idx, d, rows, cols)
+        want = (eps > 1.0).any(axis=1)
+        can = fr.splittable(idx, np.full(len(idx), d))
+        split = want & can
+        out.clamped += int(np.count_nonzero(want & ~can & (d < k - c)))
+        leaf = ~split
+        out.parts.append(
+            (idx[leaf], np.full(int(leaf.sum()), d), rows[leaf], cols[leaf], eps[leaf])
+        )
+        if split.any():
+            si, sr, sc = idx[split], rows[split], cols[split]
+            carry = _children(si, sr, sc)
+
+
+def _children(idx, rows, cols):
+    return (
+        np.repeat(idx, 4),
+        (2 * rows[:, None] + np.array([0, 0, 1, 1])).ravel(),
+        (2 * cols[:, None] + np.array([0, 1, 0, 1])).ravel(),
+    )
+
+
+def _edge_groups(d: np.ndarray, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
+    """``(n, 4)`` group id (``leaf * 4 + edge`` of the group's coarsest member) of every leaf
+    edge: a maximal shared edge is one leaf's edge and the same-size or smaller leaves' edges
+    across it. The leaf across each edge is found at every depth with one ``searchsorted``."""
+    n = len(d)
+    if n == 0:
+        return np.zeros((0, 4), np.int64)
+    big = int(d.max())
+    nr = (int((gr >> d).max()) + 2) << big
+    nc = (int((gc >> d).max()) + 2) << big
+    keys = (d * nr + gr) * nc + gc
+    order = np.argsort(keys)
+    sk = keys[order]
+    own = np.arange(4 * n).reshape(n, 4)
+    out = own.copy()
+    for e, (dr, dc) in enumerate(DIRS):
+        r, c = gr + dr, gc + dc
+        inside = (r >= 0) & (c >= 0)
+        r, c = np.maximum(r, 0), np.maximum(c, 0)
+        best = np.full(n, -1)
+        best_d = np.full(n, -1)
+        for dd in np.unique(d).tolist():
+            shift = np.maximum(d - dd, 0)
+            q = (dd * nr + (r >> shift)) * nc + (c >> shift)
+            pos = np.minimum(np.searchsorted(sk, q), n - 1)
+            hit = (sk[pos] == q) & inside & (dd <= d) & (dd > best_d)
+            best = np.where(hit, order[pos], best)
+            best_d = np.where(hit, dd, best_d)
+        opp = (e + 2) % 4
+        same = best_d == d
+        coarse = (best >= 0) & ~same
+        j = np.maximum(best, 0) * 4 + opp
+        out[:, e] = np.where(same, np.minimum(own[:, e], j), np.where(coarse, j, own[:, e]))
+    return out
+
+
+def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
+    """Group every shared edge, split coarse patches that cannot match, assign edge levels."""
+    c = fr.c
+    for _ in range(max_rounds):
+        if leaves.parts:
+            idx, d, rows, cols, eps = (
+                np.concatenate([p[i] for p in leaves.parts]) for i in range(5)
+            )
+        else:
+            idx = d = rows = cols = np.zeros(0, np.int64)
+            eps = np.zeros((0, 4))
+        idx, d, rows, cols = (a.astype(np.int64) for a in (idx, d, rows, cols))
+        n = len(idx)
+        gr = (fr.blk[idx, 0] << d) + rows
+        gc = (fr.blk[idx, 1] << d) + cols
+        hi = np.minimum(d + c, fr.cap[idx])
+        lo = d + 1
+        want = np.minimum(d[:, None] + edge_resolution(eps, c), hi[:, None])
+        can = fr.splittable(idx, d)
+        gid = _edge_groups(d, gr, gc)
+        g = gid.ravel()
+        lo_e, hi_e = np.repeat(lo, 4), np.repeat(hi, 4)
+        lo_g = np.full(4 * n, -(1 << 30))
+        hi_g = np.full(4 * n, 1 << 30)
+        want_g = np.full(4 * n, -(1 << 30))
+        deep_g = np.full(4 * n, -1)
+        size_g = np.zeros(4 * n, np.int64)
+        np.maximum.at(lo_g, g, lo_e)
+        np.minimum.at(hi_g, g, hi_e)
+        np.maximum.at(want_g, g, want.ravel())
+        np.maximum.at(deep_g, g, np.repeat(d, 4))
+        np.add.at(size_g, g, 1)
+        shared = size_g > 1
+        j = np.arange(4 * n) // 4  # the group's coarsest leaf
+        stuck = shared & ((lo_g > hi_g) | (want_g > hi_g))
+        split = stuck & (hi[j] == hi_g) & can[j] & (deep_g > d[j])
+        if not split.any():
+            bad = lo_g[g] > hi_g[g]
+            level = np.where(
+                bad,
+                np.clip(want_g[g], lo_e, hi_e),
+                np.clip(want_g[g], lo_g[g], hi_g[g]),
+            ).reshape(n, 4)
+            return PatchLayout(
+                blocks=fr.blk,
+                block=idx,
+                depth=d,
+                row=rows,
+                col=cols,
+                edge_level=level.astype(np.int64),
+                eps=eps,
+                res_log2=c,
+                clamped=leaves.clamped + fr.skipped,
+                violations=int(np.count_nonzero(shared & (lo_g > hi_g))),
+            )
+        v = np.unique(j[split])
+        keep = np.ones(n, dtype=bool)
+        keep[v] = False
+        leaves.parts = [(idx[keep], d[keep], rows[keep], cols[keep], eps[keep])]
+        seeds: dict[int, tuple] = {}
+        for dv in np.unique(d[v]).tolist():
+            m = v[d[v] == dv]
+            seeds[dv + 1] = _children(idx[m], rows[m], cols[m])
+        _traverse(fr, seeds, leaves)
+    raise SelectionError(f"seamless patches did not settle in {max_rounds} rounds")

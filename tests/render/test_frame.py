@@ -1,0 +1,113 @@
+"""The frame services' public interface, the shared draw with DrawOptions, the one frame step
+and the options value of the pipeline (GL)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gltools import make_context, rough, tile_dem
+
+from render.frame import Slot
+from render.pipeline import ViewOptions, open_render_session, render_view
+from render.renderer import RenderConfig, TerrainRenderer
+from render.step import frame_step, stream_step
+from render.strategies import get_strategy, strategy_names
+from render.strategies.base import DrawOptions
+from streamer.camera import Camera
+from tiler.store import open_store
+
+pytestmark = pytest.mark.gl
+CTX = make_context()
+SIZE = (96, 72)
+
+
+@pytest.fixture(scope="module")
+def store_path(tmp_path_factory):
+    return tile_dem(tmp_path_factory.mktemp("frame"), rough(65, 5), 33)
+
+
+def _camera() -> Camera:
+    return Camera.look_at(
+        (500015.0 + 900, 5000000 - 2600, 1400.0), (500015 + 960, 4999040, 800.0),
+        viewport=SIZE, near=5.0, far=1e5,
+    )  # fmt: skip
+
+
+def test_slots_levels_and_instances_are_public(store_path, make_renderer):
+    r = make_renderer(store_path, size=SIZE, patch_log2=2)
+    b = r.store.blocks()[0]
+    s = r.slot(b)
+    assert isinstance(s, Slot) and s.level == r.store.k == r.gpu_level(b)
+    assert r.gpu_level((99, 99)) == -1 and r.height_bytes > 0
+    p, _ = r.select(_camera(), 1.0)
+    inst = r.instances(p)
+    assert sum(len(v) for v in inst.values()) == len(p) and all(
+        v.shape[1] == 8 for v in inst.values()
+    )
+    t = r.patch_table("bound@test", 1)
+    assert r.patch_table("bound@test", 1) is t
+    r.fill_table(t, [b], "bound")
+    assert b in t
+
+
+@pytest.mark.parametrize("name", strategy_names())
+def test_draw_options_equal_keywords(store_path, make_renderer, name):
+    r = make_renderer(store_path, size=SIZE, patch_log2=2)
+    st = get_strategy(name, r)
+    cam = _camera()
+    sel, _ = st.select(cam, 1.0)
+    a = st.draw(cam, sel, wireframe=True, selection_ms=1.5)
+    img_a = r.image()
+    b = st.draw(cam, sel, DrawOptions(wireframe=True, selection_ms=1.5))
+    assert (a.triangles, a.patches, a.selection_ms) == (b.triangles, b.patches, 1.5)
+    np.testing.assert_array_equal(img_a, r.image())
+    assert DrawOptions.of(DrawOptions(lod_colour=True), clear=(1, 2, 3)) == DrawOptions(
+        lod_colour=True, clear=(1, 2, 3)
+    )
+
+
+def test_frame_step_is_the_manual_sequence(store_path):
+    s = open_store(store_path)
+    cam = _camera()
+    images, stats = [], []
+    for use_step in (False, True):
+        r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+        st = get_strategy("qiu", r)
+        with open_render_session(s, 1.0, "qiu", r.p) as session:
+            if use_step:
+                step = frame_step(session, st, cam, 1.0)
+                res, out = step.resident, step.stats
+                assert step.selection_ms == out.selection_ms
+            else:
+                frame = session.update(cam, wait=True)
+                r.sync(frame.blocks, session)
+                res = {b: v for b, (v, _) in frame.blocks.items() if v >= 0}
+                sel, ms = st.select(cam, 1.0, "qiu", resident=res)
+                out = st.draw(cam, sel, selection_ms=ms)
+        images.append(r.image())
+        stats.append((out.triangles, out.patches, out.max_level, out.min_level, sorted(res)))
+        r.close()
+    assert stats[0] == stats[1] and stats[0][0] > 0
+    np.testing.assert_array_equal(images[0], images[1])
+
+
+def test_stream_step_without_a_renderer_uploads_nothing(store_path):
+    r = TerrainRenderer(open_store(store_path), RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    with open_render_session(r.store, 1.0, "qiu", r.p) as session:
+        frame, res = stream_step(session, None, _camera())
+        assert res and all(r.gpu_level(b) == -1 for b in res)
+        stream_step(session, r, _camera())
+        assert all(r.gpu_level(b) == lv for b, lv in res.items())
+    r.close()
+
+
+def test_view_options_equal_keywords(store_path):
+    s = open_store(store_path)
+    cam = _camera()
+    a_img, a = render_view(s, cam, tau=2.0, patch_log2=3, lod="jung-han", wireframe=True)
+    o = ViewOptions(lod="jung-han", tau=2.0, patch_log2=3, wireframe=True)
+    b_img, b = render_view(s, cam, options=o)
+    assert (a.triangles, a.patches) == (b.triangles, b.patches) and a.triangles > 0
+    np.testing.assert_array_equal(a_img, b_img)
+    with pytest.raises(Exception, match="unknown LOD strategy 'nope'"):
+        ViewOptions(lod="nope")

@@ -1,0 +1,36 @@
+"""Pure known-answer tests of ``chunk_tess`` (no GL: they run without an EGL context)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from render.strategies.chunk_tess import kim_metric, outer_factors, tess_triangles
+from streamer.camera import Camera
+
+SIZE = (128, 96)
+
+
+def test_outer_factors_follow_the_neighbour_levels():
+    # 8 cells; north neighbour 2x coarser, east same, south 4x coarser, west same
+    assert outer_factors(3, (1, 0, 2, 0)) == (8, 4, 8, 2)  # (W, N, E, S) = GL outer 0..3
+    assert tess_triangles(np.array([3]), np.array([[1, 0, 2, 0]]))[0] == 2 * 36 + 24 + 22
+    # unsnapped: the same count as the 2 n^2 grid
+    n = tess_triangles(np.arange(0, 7), np.zeros((7, 4), np.int64))
+    assert n.tolist() == [2 * 4**c for c in range(7)]
+
+
+def test_kim_metric_projects_the_nearest_sphere_point():
+    cam = Camera((0.0, 0.0, 1000.0), pitch=-90.0, viewport=SIZE, near=1.0, far=1e5)
+    # sphere of radius 100 straight below: nearest point (0, 0, 100) at 900 m
+    rho = kim_metric(np.array([10.0]), np.array([[0.0, 0.0, 0.0]]), np.array([100.0]), cam)
+    assert rho[0] == 0.0  # seen from straight above a vertical error does not move the point
+    off = np.array([[300.0, 0.0, 0.0]])
+    got = kim_metric(np.array([10.0]), off, np.array([100.0]), cam)[0]
+    to_eye = cam.eye - off[0]
+    p = off[0] + 100.0 * to_eye / np.linalg.norm(to_eye)
+    x0, y0, _ = cam.project(p[None])
+    x1, y1, _ = cam.project((p + [0, 0, 10.0])[None])
+    assert got == pytest.approx(float(np.hypot(x1 - x0, y1 - y0)[0])) and got > 0
+    inside = kim_metric(np.array([1.0]), np.array([[0.0, 0.0, 950.0]]), np.array([100.0]), cam)
+    assert np.isinf(inside[0])

@@ -1,0 +1,129 @@
+"""Pure known-answer tests of ``geometry_splitting`` (no GL: they run without an EGL context)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from render.errors import RenderError
+from render.strategies.geometry_splitting import (
+    projected_error,
+    quad_errors,
+    roughness,
+    stored_tree,
+)
+from streamer.camera import Camera
+from tiler.static_error import bound_errors
+
+SIZE = (128, 96)
+
+
+def _brute_delta(h: np.ndarray, d: int, ok: np.ndarray | None = None) -> np.ndarray:
+    """Node errors by explicit loops: every (valid) sample against its quad's two triangles."""
+    n = h.shape[0] - 1
+    s = n >> d
+    out = np.zeros((1 << d, 1 << d))
+    for r in range(1 << d):
+        for c in range(1 << d):
+            a, b = h[r * s, c * s], h[r * s, c * s + s]
+            cc, dd = h[r * s + s, c * s], h[r * s + s, c * s + s]
+            for j in range(s + 1):
+                for i in range(s + 1):
+                    u, v = i / s, j / s
+                    q = (
+                        a + u * (b - a) + v * (dd - b)
+                        if u >= v
+                        else a + v * (cc - a) + u * (dd - cc)
+                    )
+                    if ok is None or ok[r * s + j, c * s + i]:
+                        out[r, c] = max(out[r, c], abs(h[r * s + j, c * s + i] - q))
+    return out
+
+
+def test_doubling_rule_on_a_known_tree():
+    # δ of a 2-depth tree: the centre of the north-west depth-1 node is 8 m off its quad
+    sig = roughness([np.array([[8.0]]), np.array([[8.0, 0.0], [0.0, 0.0]])])
+    assert sig[1].tolist() == [[8.0, 0.0], [0.0, 0.0]]  # depth k - 1: σ = δ
+    assert sig[0].tolist() == [[16.0]]  # the doubling wins over δ_0 = 8
+    # rough and curved trees: σ follows the recursion, both branches occur
+    rng = np.random.default_rng(5)
+    noise = rng.integers(0, 40, (17, 17)).astype(np.float64)
+    curved = np.add.outer(np.arange(17.0) ** 2, np.zeros(17)) + rng.integers(0, 2, (17, 17))
+    by_delta = by_double = 0
+    for g in (noise, curved):
+        deltas = [_brute_delta(g, d) for d in range(4)]
+        sig = roughness(deltas)
+        for d in range(4):
+            if d < 3:
+                child = 2 * sig[d + 1].reshape(1 << d, 2, 1 << d, 2).max(axis=(1, 3))
+                np.testing.assert_array_equal(sig[d], np.maximum(deltas[d], child))
+                by_delta += int((deltas[d] > child).sum())
+                by_double += int((child > deltas[d]).sum())
+            else:
+                np.testing.assert_array_equal(sig[d], deltas[d])  # σ_k = 0 below
+    assert by_delta > 0 and by_double > 0
+
+
+@pytest.mark.parametrize("level", [4, 2, 0])
+def test_stored_tree_bounds_the_true_errors_and_heights(level):
+    # the quadtree texture from the tiler's bound field and the level-R grid: σ >= the exact
+    # doubling of the exact δ, σ_l >= 2 σ_(l+1) after float32 rounding, ranges enclose
+    g = np.random.default_rng(5).integers(0, 40, (17, 17)).astype(np.float64)
+    bound = bound_errors(g, np.ones_like(g, bool), 4)
+    assert all((b >= _brute_delta(g, d) - 1e-9).all() for d, b in enumerate(bound))
+    tree = stored_tree(bound, g[:: 1 << (4 - level), :: 1 << (4 - level)])
+    exact = roughness([_brute_delta(g, d) for d in range(4)])
+    for d in range(4):
+        assert (tree.sigma[d] >= exact[d]).all()
+        if d < 3:
+            kids = tree.sigma[d + 1].reshape(1 << d, 2, 1 << d, 2).max(axis=(1, 3))
+            assert (tree.sigma[d] >= 2 * kids).all()
+        assert (tree.zmin[d] <= _pool(g, d, np.min)).all()
+        assert (tree.zmax[d] >= _pool(g, d, np.max)).all()
+    # exact δ where the store tiles its values: the brute force, and never looser
+    qe = quad_errors(g, None, range(4))
+    for d in range(4):
+        np.testing.assert_allclose(qe[d], _brute_delta(g, d), rtol=1e-12)
+    ok = np.random.default_rng(1).random(g.shape) > 0.2  # masked samples are ignored
+    qm = quad_errors(g, ok, range(4))
+    for d in range(4):
+        np.testing.assert_allclose(qm[d], _brute_delta(g, d, ok), rtol=1e-12)
+    tight = stored_tree([np.full_like(b, 1e3) for b in bound], g, {3: qe[3]})
+    assert (tight.sigma[3] == _round_up32_ref(qe[3])).all() and (tight.sigma[2] >= 1e3).all()
+    # the ranges come from the corners: a flat grid gives exact ranges and σ = 0
+    flat = stored_tree([np.zeros((1 << d, 1 << d)) for d in range(4)], np.full((3, 3), 7.0))
+    assert all((z == 7.0).all() for z in flat.zmin + flat.zmax)
+    assert all((x == 0).all() for x in flat.sigma)
+    with pytest.raises(RenderError, match="2\\*\\*R"):
+        stored_tree(bound, np.zeros((4, 4)))
+
+
+def _round_up32_ref(x):
+    f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+
+
+def _pool(g, d, fn):
+    n = g.shape[0] - 1
+    s = n >> d
+    return np.array(
+        [[fn(g[r * s : r * s + s + 1, c * s : c * s + s + 1]) for c in range(1 << d)]
+         for r in range(1 << d)]
+    )  # fmt: skip
+
+
+def test_projected_error_is_the_five_point_projection():
+    cam = Camera.look_at((0.0, -3000.0, 1500.0), (0.0, 0.0, 0.0), viewport=SIZE, near=1.0)
+    c = np.array([[100.0, 50.0, 20.0]])
+    got = projected_error(c - cam.eye, 70.0, 8, cam, 30.0, 30.0)[0]
+    want = 0.0
+    for ox, oy in ((0, 0), (120, 0), (-120, 0), (0, 120), (0, -120)):
+        p = c[0] + [ox, oy, 0.0]
+        x0, y0, _ = cam.project(p[None])
+        x1, y1, _ = cam.project((p + [0, 0, 70.0])[None])
+        want = max(want, float(np.hypot(x1 - x0, y1 - y0)[0]))
+    assert got == pytest.approx(want, rel=1e-9) and got > 0.5
+    behind = projected_error(
+        np.array([[0.0, 0.0, 0.0]]) + [0, -4000.0, -1500.0], 1.0, 8, cam, 30, 30
+    )
+    assert np.isinf(behind[0])
