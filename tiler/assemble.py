@@ -95,11 +95,12 @@ def build(
     )
     report = progress_reporter(total, skipped, progress)
     report(0, 0)
+    asm = ShardAssembler(group, loc, meta, done)
     summary.executor = run_blocks(
-        src, loc, opts, grid, block_params(meta), todo, done, report, lease
+        src, loc, opts, grid, block_params(meta), todo, done, report, lease, asm.blocks_done
     )
     try:
-        finish(group, loc, meta)
+        finish(group, loc, meta, asm)
     except SourceError:
         loc.remove()  # an all-nodata source: leave nothing that looks like a store
         raise
@@ -142,26 +143,75 @@ def write_small_levels(
         arr[r0:r1, c0:c1] = data
 
 
-def finish(group: zarr.Group, loc: Location, meta: StoreMeta) -> None:
+class ShardAssembler:
+    """Writes each shard of the small levels from the journal once all its blocks are done.
+
+    Called from the tiling loop's thread, so shard writes overlap the workers' computing; it
+    also gathers the index rows. Shards already complete when a run resumes are written by
+    :meth:`finish_all`.
+    """
+
+    def __init__(self, group: zarr.Group, loc: Location, meta: StoreMeta, done: np.ndarray):
+        self.loc, self.meta, self.jarr = loc, meta, group[JOURNAL]
+        rows, cols = meta.grid.shape
+        self.sr, self.sc = shard_shape(rows, cols)
+        self.rows, self.cols = rows, cols
+        self.remaining = {}
+        for r0 in range(0, rows, self.sr):
+            for c0 in range(0, cols, self.sc):
+                region = done[r0 : r0 + self.sr, c0 : c0 + self.sc]
+                self.remaining[r0 // self.sr, c0 // self.sc] = int((~region).sum())
+        self.flushed: set[tuple[int, int]] = set()
+        self.index = {
+            n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in INDEX_DTYPES.items()
+        }
+
+    def blocks_done(self, blocks: list[tuple[int, int]]) -> None:
+        """Count finished blocks; write every shard that became complete."""
+        touched = set()
+        for br, bc in blocks:
+            s = (br // self.sr, bc // self.sc)
+            self.remaining[s] -= 1
+            touched.add(s)
+        for s in touched:
+            if self.remaining[s] == 0 and s not in self.flushed:
+                self.flush(s)
+
+    def flush(self, s: tuple[int, int]) -> None:
+        """Write shard ``s`` of levels 0..5 and record its blocks' index rows."""
+        r0, c0 = s[0] * self.sr, s[1] * self.sc
+        r1, c1 = min(r0 + self.sr, self.rows), min(c0 + self.sc, self.cols)
+        entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta)
+        write_small_levels(self.loc, self.meta, entries, (r0, r1, c0, c1))
+        for b, e in entries.items():
+            for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
+                self.index[name][b] = getattr(e, name)
+        self.flushed.add(s)
+
+    def finish_all(self) -> None:
+        """Write every shard not written yet."""
+        for s in self.remaining:
+            if s not in self.flushed:
+                self.flush(s)
+
+
+def finish(
+    group: zarr.Group, loc: Location, meta: StoreMeta, asm: ShardAssembler | None = None
+) -> None:
     """Assemble shards and index from the journal, drop it, then mark the store complete."""
     grid = meta.grid
-    rows, cols = grid.shape
     if JOURNAL in group:
-        jarr = group[JOURNAL]
-        done = done_blocks(jarr)
-        if not done.all():
-            missing = int((~done).sum())
-            raise StoreCorruptError(f"{missing} block(s) are not done; the store stays unfinished")
-        index = {n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in INDEX_DTYPES.items()}
-        sr, sc = shard_shape(rows, cols)
-        for r0 in range(0, rows, sr):
-            for c0 in range(0, cols, sc):
-                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
-                entries = _region_entries(jarr, r0, r1, c0, c1, meta)
-                write_small_levels(loc, meta, entries, (r0, r1, c0, c1))
-                for b, e in entries.items():
-                    for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
-                        index[name][b] = getattr(e, name)
+        if asm is None or any(asm.remaining.values()):
+            done = done_blocks(group[JOURNAL])
+            if not done.all():
+                missing = int((~done).sum())
+                raise StoreCorruptError(
+                    f"{missing} block(s) are not done; the store stays unfinished"
+                )
+            asm = asm or ShardAssembler(group, loc, meta, done)
+        # (each shard's journal entries are checked again when it is written)
+        asm.finish_all()
+        index = asm.index
         index["done"][...] = True
         if not index["exists"].any():
             raise SourceError(
