@@ -315,3 +315,39 @@ def test_all_fill_index_chunks_are_written(dem_factory, tmp_path):
     assert not s.index.has_nodata.any()
     assert (tmp_path / "s.zarr" / "index" / "has_nodata" / "c" / "0" / "0").is_file()
     assert verify_store(tmp_path / "s.zarr").ok
+
+
+def test_verify_over_http_and_memory(dem_factory, tmp_path):
+    from rangeserver import LoopbackServer
+
+    src = dem_factory(fractal((40, 40), 21))
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    tile(src, "memory://verify-test/s.zarr", TileOptions(block_size=17))
+    assert verify_store("memory://verify-test/s.zarr", source=src).ok
+    with LoopbackServer(tmp_path) as url:
+        rep = verify_store(f"{url}/s.zarr")
+        assert rep.ok and rep.chunks_checked > 20, rep.problems
+        (tmp_path / "s.zarr" / "errors" / "c" / "1" / "1" / "0" / "0").unlink()
+        rep = verify_store(f"{url}/s.zarr")
+        assert rep.bad_blocks == {(1, 1)} and rep.problems[0].kind == "missing"
+
+
+def test_killed_while_finishing_is_finished_by_a_rerun(dem_factory, tmp_path, monkeypatch):
+    import tiler.assemble as assemble
+
+    src = dem_factory(fractal((60, 60), 22))
+    opts = TileOptions(block_size=17, executor="threads")
+    tile(src, tmp_path / "ref.zarr", opts)
+
+    def killed(group, meta):
+        raise KeyboardInterrupt("killed after the journal was consumed")
+
+    monkeypatch.setattr(assemble, "complete", killed)
+    with pytest.raises(TilingInterrupted):
+        tile(src, tmp_path / "s.zarr", opts)
+    monkeypatch.undo()
+    meta = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())["attributes"]
+    assert meta["terrastream"]["state"] == "finishing"
+    s = tile(src, tmp_path / "s.zarr", opts)
+    assert s.tile_summary.blocks_computed == 0 and s.tile_summary.resumed
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
