@@ -30,7 +30,7 @@ from tiler.resume import (
     unpack,
 )
 from tiler.run import open_for_write, progress_reporter, run_blocks
-from tiler.schema import INDEX_DTYPES, expected_table, index_chunk, shard_shape
+from tiler.schema import INDEX_DTYPES, chunk_key, expected_table, index_chunk, shard_shape
 from tiler.store import StoreMeta, read_meta, write_meta
 
 log = logging.getLogger("tiler.tile")
@@ -140,6 +140,9 @@ def write_small_levels(
                         data[br - r0, bc - c0] = arr[br, bc]
         for (br, bc), e in entries.items():
             data[br - r0, bc - c0] = e.levels[i]
+        # the region is one whole shard: drop the old one first, so a damaged shard index is
+        # never read back for a partial update
+        loc.delete_key(chunk_key(f"levels/{i}", (r0, c0), *meta.grid.shape))
         arr[r0:r1, c0:c1] = data
 
 

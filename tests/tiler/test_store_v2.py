@@ -351,3 +351,26 @@ def test_killed_while_finishing_is_finished_by_a_rerun(dem_factory, tmp_path, mo
     s = tile(src, tmp_path / "s.zarr", opts)
     assert s.tile_summary.blocks_computed == 0 and s.tile_summary.resumed
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def test_damaged_shard_index_marks_its_blocks_and_is_repaired(dem_factory, tmp_path):
+    import shutil
+
+    src = dem_factory(fractal((150, 150), 23))
+    opts = TileOptions(block_size=65, executor="threads")
+    tile(src, tmp_path / "ref.zarr", opts)
+    shutil.copytree(tmp_path / "ref.zarr", tmp_path / "s.zarr")
+    shard = tmp_path / "s.zarr" / "levels" / "2" / "c" / "0" / "0" / "0"
+    data = bytearray(shard.read_bytes())
+    data[-3] ^= 1  # inside the shard index (at the end of the shard)
+    shard.write_bytes(bytes(data))
+    rep = verify_store(tmp_path / "s.zarr")
+    assert len(rep.bad_blocks) == 9 and rep.problems[0].kind == "checksum"
+    tile(src, tmp_path / "s.zarr", replace_opts(opts, repair=True))
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def replace_opts(opts: TileOptions, **kw) -> TileOptions:
+    from dataclasses import replace
+
+    return replace(opts, **kw)
