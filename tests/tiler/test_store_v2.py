@@ -374,3 +374,21 @@ def replace_opts(opts: TileOptions, **kw) -> TileOptions:
     from dataclasses import replace
 
     return replace(opts, **kw)
+
+
+def test_overwrite_and_resume_on_memory_url(dem_factory, monkeypatch):
+    a = dem_factory(fractal((60, 60), 24), "a.tif")
+    b = dem_factory(fractal((60, 60), 25), "b.tif")
+    url = "memory://ow-test/s.zarr"
+    opts = TileOptions(block_size=17, executor="threads", workers=1)
+    _interrupt(monkeypatch, 5)
+    with pytest.raises(TilingInterrupted):
+        tile(a, url, opts)
+    monkeypatch.undo()
+    s = tile(a, url, opts)
+    assert s.tile_summary.blocks_skipped == 5
+    s2 = tile(b, url, replace_opts(opts, overwrite=True))
+    assert verify_store(url, source=b).ok and s2.meta.generation != s.meta.generation
+    with pytest.raises(StoreChangedError):
+        s.read_block((0, 0))
+    assert not Location(url).key_exists(LEASE_KEY)
