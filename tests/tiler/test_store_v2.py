@@ -150,8 +150,10 @@ def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path):
     assert ei.value.level == 6 and ei.value.block == (1, 2) and ei.value.array == "levels/6"
     rep = verify_store(tmp_path / "s.zarr")
     assert not rep.ok and rep.bad_blocks == {(1, 2)}
+    reader = open_store(tmp_path / "s.zarr")  # open across the repair: same generation
     fixed = tile(src, tmp_path / "s.zarr", TileOptions(block_size=65, repair=True))
     assert fixed.tile_summary.blocks_repaired == 1
+    np.testing.assert_array_equal(reader.read_block((1, 2)), fixed.read_block((1, 2)))
     assert verify_store(tmp_path / "s.zarr").ok
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
 
