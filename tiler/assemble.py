@@ -73,8 +73,9 @@ def build(
         if n:
             log.info("removed %d leftover temporary file(s) of the interrupted run", n)
         summary.resumed = True
-        if old.extra.get("state") == "finishing":
-            finish(group, loc, meta)
+        if old.extra.get("state") == "finishing":  # shards and index are final already
+            loc.delete_prefix(JOURNAL)  # (what is left of it)
+            complete(group, meta)
             summary.blocks_total = summary.blocks_skipped = meta.grid.rows * meta.grid.cols
             return
     else:

@@ -350,6 +350,17 @@ def test_killed_while_finishing_is_finished_by_a_rerun(dem_factory, tmp_path, mo
     monkeypatch.undo()
     meta = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())["attributes"]
     assert meta["terrastream"]["state"] == "finishing"
+    # and killed half-way through deleting the journal (a deleted chunk must not matter)
+    arr = zarr.open_array(
+        tmp_path / "s.zarr",
+        path="journal",
+        mode="w",
+        shape=(4, 4, 8),
+        chunks=(1, 1, 8),
+        dtype="uint8",
+        fill_value=0,
+    )
+    arr[0, 0] = np.ones(8, np.uint8)
     s = tile(src, tmp_path / "s.zarr", opts)
     assert s.tile_summary.blocks_computed == 0 and s.tile_summary.resumed
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
