@@ -30,7 +30,7 @@ from tiler.resume import (
     unpack,
 )
 from tiler.run import open_for_write, progress_reporter, run_blocks
-from tiler.schema import INDEX_DTYPES, expected_table, index_chunk, shard_shape
+from tiler.schema import INDEX_DTYPES, chunk_key, expected_table, index_chunk, shard_shape
 from tiler.store import StoreMeta, read_meta, write_meta
 
 log = logging.getLogger("tiler.tile")
@@ -73,8 +73,9 @@ def build(
         if n:
             log.info("removed %d leftover temporary file(s) of the interrupted run", n)
         summary.resumed = True
-        if old.extra.get("state") == "finishing":
-            finish(group, loc, meta)
+        if old.extra.get("state") == "finishing":  # shards and index are final already
+            loc.delete_prefix(JOURNAL)  # (what is left of it)
+            complete(group, meta)
             summary.blocks_total = summary.blocks_skipped = meta.grid.rows * meta.grid.cols
             return
     else:
@@ -95,11 +96,12 @@ def build(
     )
     report = progress_reporter(total, skipped, progress)
     report(0, 0)
+    asm = ShardAssembler(group, loc, meta, done)
     summary.executor = run_blocks(
-        src, loc, opts, grid, block_params(meta), todo, done, report, lease
+        src, loc, opts, grid, block_params(meta), todo, done, report, lease, asm.blocks_done
     )
     try:
-        finish(group, loc, meta)
+        finish(group, loc, meta, asm)
     except SourceError:
         loc.remove()  # an all-nodata source: leave nothing that looks like a store
         raise
@@ -139,29 +141,81 @@ def write_small_levels(
                         data[br - r0, bc - c0] = arr[br, bc]
         for (br, bc), e in entries.items():
             data[br - r0, bc - c0] = e.levels[i]
+        # the region is one whole shard: drop the old one first, so a damaged shard index is
+        # never read back for a partial update
+        loc.delete_key(chunk_key(f"levels/{i}", (r0, c0), *meta.grid.shape))
         arr[r0:r1, c0:c1] = data
 
 
-def finish(group: zarr.Group, loc: Location, meta: StoreMeta) -> None:
+class ShardAssembler:
+    """Writes each shard of the small levels from the journal once all its blocks are done.
+
+    Called from the tiling loop's thread, so shard writes overlap the workers' computing; it
+    also gathers the index rows. Shards already complete when a run resumes are written by
+    :meth:`finish_all`.
+    """
+
+    def __init__(self, group: zarr.Group, loc: Location, meta: StoreMeta, done: np.ndarray):
+        self.loc, self.meta, self.jarr = loc, meta, group[JOURNAL]
+        rows, cols = meta.grid.shape
+        self.sr, self.sc = shard_shape(rows, cols)
+        self.rows, self.cols = rows, cols
+        self.remaining = {}
+        for r0 in range(0, rows, self.sr):
+            for c0 in range(0, cols, self.sc):
+                region = done[r0 : r0 + self.sr, c0 : c0 + self.sc]
+                self.remaining[r0 // self.sr, c0 // self.sc] = int((~region).sum())
+        self.flushed: set[tuple[int, int]] = set()
+        self.index = {
+            n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in INDEX_DTYPES.items()
+        }
+
+    def blocks_done(self, blocks: list[tuple[int, int]]) -> None:
+        """Count finished blocks; write every shard that became complete."""
+        touched = set()
+        for br, bc in blocks:
+            s = (br // self.sr, bc // self.sc)
+            self.remaining[s] -= 1
+            touched.add(s)
+        for s in touched:
+            if self.remaining[s] == 0 and s not in self.flushed:
+                self.flush(s)
+
+    def flush(self, s: tuple[int, int]) -> None:
+        """Write shard ``s`` of levels 0..5 and record its blocks' index rows."""
+        r0, c0 = s[0] * self.sr, s[1] * self.sc
+        r1, c1 = min(r0 + self.sr, self.rows), min(c0 + self.sc, self.cols)
+        entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta)
+        write_small_levels(self.loc, self.meta, entries, (r0, r1, c0, c1))
+        for b, e in entries.items():
+            for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
+                self.index[name][b] = getattr(e, name)
+        self.flushed.add(s)
+
+    def finish_all(self) -> None:
+        """Write every shard not written yet."""
+        for s in self.remaining:
+            if s not in self.flushed:
+                self.flush(s)
+
+
+def finish(
+    group: zarr.Group, loc: Location, meta: StoreMeta, asm: ShardAssembler | None = None
+) -> None:
     """Assemble shards and index from the journal, drop it, then mark the store complete."""
     grid = meta.grid
-    rows, cols = grid.shape
     if JOURNAL in group:
-        jarr = group[JOURNAL]
-        done = done_blocks(jarr)
-        if not done.all():
-            missing = int((~done).sum())
-            raise StoreCorruptError(f"{missing} block(s) are not done; the store stays unfinished")
-        index = {n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in INDEX_DTYPES.items()}
-        sr, sc = shard_shape(rows, cols)
-        for r0 in range(0, rows, sr):
-            for c0 in range(0, cols, sc):
-                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
-                entries = _region_entries(jarr, r0, r1, c0, c1, meta)
-                write_small_levels(loc, meta, entries, (r0, r1, c0, c1))
-                for b, e in entries.items():
-                    for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
-                        index[name][b] = getattr(e, name)
+        if asm is None or any(asm.remaining.values()):
+            done = done_blocks(group[JOURNAL])
+            if not done.all():
+                missing = int((~done).sum())
+                raise StoreCorruptError(
+                    f"{missing} block(s) are not done; the store stays unfinished"
+                )
+            asm = asm or ShardAssembler(group, loc, meta, done)
+        # (each shard's journal entries are checked again when it is written)
+        asm.finish_all()
+        index = asm.index
         index["done"][...] = True
         if not index["exists"].any():
             raise SourceError(

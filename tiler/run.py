@@ -144,8 +144,10 @@ def run_blocks(
     done: np.ndarray,
     report: Callable[[int, int], None],
     lease: Any,
+    on_done: Callable[[list[tuple[int, int]]], None] | None = None,
 ) -> str:
-    """Compute ``todo`` blocks; ``done`` (bool grid) is updated and mirrored to ``index/done``."""
+    """Compute ``todo`` blocks; ``done`` (bool grid) is updated and mirrored to ``index/done``;
+    ``on_done`` is called in this thread with each batch of finished blocks."""
     target = loc.picklable() if loc.can_share_with_processes else loc.target
     workers = opts.n_workers
     args = (src, opts.band, target, grid, params)
@@ -179,7 +181,7 @@ def run_blocks(
     unmirrored: list[tuple[int, int]] = []
     last_mirror = [time.monotonic()]
 
-    def collect(finished: set[Future], *, flush: bool = False) -> None:
+    def collect(finished: set[Future], *, flush: bool = False, final: bool = False) -> None:
         blocks = []
         for fut in finished:
             if fut.cancelled() or fut.exception() is not None:
@@ -195,6 +197,8 @@ def run_blocks(
         for b in blocks:
             _, _, h, w = grid.block_window(*b)
             report(1, h * w * itemsize)
+        if on_done is not None and blocks and not final:
+            on_done(blocks)  # e.g. write a shard whose blocks are all done (main thread)
 
     try:
         while True:
@@ -222,7 +226,7 @@ def run_blocks(
             lease.check()
     except BaseException:
         pool.shutdown(wait=True, cancel_futures=True)
-        collect({f for f in pending if f.done()}, flush=True)  # finished blocks stay done
+        collect({f for f in pending if f.done()}, flush=True, final=True)  # they stay done
         raise
     finally:
         for w in thread_workers:

@@ -54,7 +54,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-WAIT_TIMEOUT_S = 600.0
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pytest
 from conftest import fractal, write_dem
-from faults import record
+from faults import LONG, record
 
 from tiler.errors import StoreError
 from tiler.store import open_store
@@ -67,7 +67,8 @@ def test_two_writers_second_refused(tmp_path):
     record("two writers", injected=1, detected=1, lost=0)
 
 
-def test_overwrite_under_an_open_reader(tmp_path):
+@pytest.mark.parametrize("round_", range(5 if LONG else 1))
+def test_overwrite_under_an_open_reader(tmp_path, round_):
     a = write_dem(tmp_path / "a.tif", fractal((130, 130), 3))
     b = write_dem(tmp_path / "b.tif", fractal((130, 130), 4))
     dst = tmp_path / "s.zarr"

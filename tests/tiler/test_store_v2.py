@@ -150,8 +150,10 @@ def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path):
     assert ei.value.level == 6 and ei.value.block == (1, 2) and ei.value.array == "levels/6"
     rep = verify_store(tmp_path / "s.zarr")
     assert not rep.ok and rep.bad_blocks == {(1, 2)}
+    reader = open_store(tmp_path / "s.zarr")  # open across the repair: same generation
     fixed = tile(src, tmp_path / "s.zarr", TileOptions(block_size=65, repair=True))
     assert fixed.tile_summary.blocks_repaired == 1
+    np.testing.assert_array_equal(reader.read_block((1, 2)), fixed.read_block((1, 2)))
     assert verify_store(tmp_path / "s.zarr").ok
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
 
@@ -315,3 +317,123 @@ def test_all_fill_index_chunks_are_written(dem_factory, tmp_path):
     assert not s.index.has_nodata.any()
     assert (tmp_path / "s.zarr" / "index" / "has_nodata" / "c" / "0" / "0").is_file()
     assert verify_store(tmp_path / "s.zarr").ok
+
+
+def test_verify_over_http_and_memory(dem_factory, tmp_path):
+    from rangeserver import LoopbackServer
+
+    src = dem_factory(fractal((40, 40), 21))
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    tile(src, "memory://verify-test/s.zarr", TileOptions(block_size=17))
+    assert verify_store("memory://verify-test/s.zarr", source=src).ok
+    with LoopbackServer(tmp_path) as url:
+        rep = verify_store(f"{url}/s.zarr")
+        assert rep.ok and rep.chunks_checked > 20, rep.problems
+        (tmp_path / "s.zarr" / "errors" / "c" / "1" / "1" / "0" / "0").unlink()
+        rep = verify_store(f"{url}/s.zarr")
+        assert rep.bad_blocks == {(1, 1)} and rep.problems[0].kind == "missing"
+
+
+def test_killed_while_finishing_is_finished_by_a_rerun(dem_factory, tmp_path, monkeypatch):
+    import tiler.assemble as assemble
+
+    src = dem_factory(fractal((60, 60), 22))
+    opts = TileOptions(block_size=17, executor="threads")
+    tile(src, tmp_path / "ref.zarr", opts)
+
+    def killed(group, meta):
+        raise KeyboardInterrupt("killed after the journal was consumed")
+
+    monkeypatch.setattr(assemble, "complete", killed)
+    with pytest.raises(TilingInterrupted):
+        tile(src, tmp_path / "s.zarr", opts)
+    monkeypatch.undo()
+    meta = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())["attributes"]
+    assert meta["terrastream"]["state"] == "finishing"
+    # and killed half-way through deleting the journal (a deleted chunk must not matter)
+    arr = zarr.open_array(
+        tmp_path / "s.zarr",
+        path="journal",
+        mode="w",
+        shape=(4, 4, 8),
+        chunks=(1, 1, 8),
+        dtype="uint8",
+        fill_value=0,
+    )
+    arr[0, 0] = np.ones(8, np.uint8)
+    s = tile(src, tmp_path / "s.zarr", opts)
+    assert s.tile_summary.blocks_computed == 0 and s.tile_summary.resumed
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def test_damaged_shard_index_marks_its_blocks_and_is_repaired(dem_factory, tmp_path):
+    import shutil
+
+    src = dem_factory(fractal((150, 150), 23))
+    opts = TileOptions(block_size=65, executor="threads")
+    tile(src, tmp_path / "ref.zarr", opts)
+    shutil.copytree(tmp_path / "ref.zarr", tmp_path / "s.zarr")
+    shard = tmp_path / "s.zarr" / "levels" / "2" / "c" / "0" / "0" / "0"
+    data = bytearray(shard.read_bytes())
+    data[-3] ^= 1  # inside the shard index (at the end of the shard)
+    shard.write_bytes(bytes(data))
+    rep = verify_store(tmp_path / "s.zarr")
+    assert len(rep.bad_blocks) == 9 and rep.problems[0].kind == "checksum"
+    tile(src, tmp_path / "s.zarr", replace_opts(opts, repair=True))
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
+def replace_opts(opts: TileOptions, **kw) -> TileOptions:
+    from dataclasses import replace
+
+    return replace(opts, **kw)
+
+
+def test_overwrite_and_resume_on_memory_url(dem_factory, monkeypatch):
+    a = dem_factory(fractal((60, 60), 24), "a.tif")
+    b = dem_factory(fractal((60, 60), 25), "b.tif")
+    url = "memory://ow-test/s.zarr"
+    opts = TileOptions(block_size=17, executor="threads", workers=1)
+    _interrupt(monkeypatch, 5)
+    with pytest.raises(TilingInterrupted):
+        tile(a, url, opts)
+    monkeypatch.undo()
+    s = tile(a, url, opts)
+    assert s.tile_summary.blocks_skipped == 5
+    s2 = tile(b, url, replace_opts(opts, overwrite=True))
+    assert verify_store(url, source=b).ok and s2.meta.generation != s.meta.generation
+    with pytest.raises(StoreChangedError):
+        s.read_block((0, 0))
+    assert not Location(url).key_exists(LEASE_KEY)
+
+
+@pytest.fixture(params=["local", "memory", "http"])
+def store_url(request, dem_factory, tmp_path):
+    """The same small store reachable as a local path, a memory:// URL and over HTTP."""
+    data = fractal((50, 50), 26)
+    src = dem_factory(data)
+    opts = TileOptions(block_size=17, executor="threads")
+    if request.param == "memory":
+        url = f"memory://fixture-{tmp_path.name}/s.zarr"
+        tile(src, url, opts)
+        yield url, data, src
+        return
+    tile(src, tmp_path / "s.zarr", opts)
+    if request.param == "local":
+        yield str(tmp_path / "s.zarr"), data, src
+        return
+    from rangeserver import LoopbackServer
+
+    with LoopbackServer(tmp_path) as base:
+        yield f"{base}/s.zarr", data, src
+
+
+def test_every_backend_reads_verifies_and_checks_generation(store_url):
+    url, data, src = store_url
+    s = open_store(url)
+    for b in s.grid.blocks():
+        r0, c0, h, w = s.grid.block_window(*b)
+        np.testing.assert_array_equal(s.read_block(b)[:h, :w], data[r0 : r0 + h, c0 : c0 + w])
+    s.check_unchanged(force=True)  # quiet: nothing changed
+    assert verify_store(url, source=src).ok
+    assert s.nbytes()["total"] > 0 or url.startswith("http")  # HTTP cannot list
