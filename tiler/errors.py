@@ -37,3 +37,11 @@ class StoreVersionError(StoreError):
 
 class StoreCorruptError(StoreError):
     """The store's metadata or data are damaged or inconsistent."""
+
+
+class GeographicStoreError(StoreError, ValueError):
+    """A store whose x/y are degrees (geographic CRS): it cannot be streamed or rendered."""
+
+
+class RemoteStoreError(StoreError, ConnectionError):
+    """A remote store whose server cannot serve what reading a store needs (byte ranges)."""

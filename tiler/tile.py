@@ -48,7 +48,14 @@ from tiler.errors import (
 )
 from tiler.grid import BlockGrid
 from tiler.layout import grid_side, parse_block_size
-from tiler.source import _open_source, _source_meta, read_window
+from tiler.source import (
+    SourceLike,
+    _open_source,
+    _source_meta,
+    check_source_options,
+    plan_source,
+    read_window,
+)
 from tiler.store import (
     ATTR,
     SHARD_BLOCKS,
@@ -78,6 +85,10 @@ class TileOptions:
     error_cap: int | None = None  # default: k - 4
     gdal_cache_mb: int = 64  # GDAL's block cache (its default, 5 % of RAM, dominates RSS)
     executor: str = "auto"  # "threads", "processes" or "auto" (processes for big local jobs)
+    # sources (tiler.source): reproject to this CRS while reading ("auto", "EPSG:...", WKT)
+    dst_crs: str | None = None
+    resampling: str = "bilinear"
+    resolution: float | None = None  # target pixel size, target CRS units (with dst_crs)
 
     def __post_init__(self) -> None:
         parse_block_size(self.block_size)
@@ -95,6 +106,7 @@ class TileOptions:
             )
         if not 1 <= self.compression_level <= 9:
             raise SourceError(f"compression level must be in 1..9, got {self.compression_level}")
+        check_source_options(self)
 
     @property
     def k(self) -> int:
@@ -319,20 +331,21 @@ def _use_processes(opts: TileOptions, dst: str, todo: int) -> bool:
 
 
 def tile(
-    src: str | os.PathLike,
+    src: SourceLike,
     dst: str | os.PathLike,
     options: TileOptions | None = None,
     progress: Callable[[TileProgress], None] | None = None,
 ) -> TerrainStore:
-    """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened."""
+    """Tile ``src`` (anything rasterio opens, or a sequence of them forming one mosaic, see
+    tiler.mosaic) into a zarr v3 store at ``dst``, reprojected if ``options.dst_crs``."""
     opts = options or TileOptions()
-    src, dst = str(src), str(dst)
+    dst = str(dst)
     # GDAL sizes its block cache once, on first use: this caps it for a fresh process (the
     # CLI's run, the worker processes); the option is restored afterwards.
     previous = rasterio.env.get_gdal_config("GDAL_CACHEMAX")
     rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(opts.gdal_cache_mb))
     try:
-        return _tile(src, dst, opts, progress)
+        return _tile(plan_source(src, opts), dst, opts, progress)  # hook: tiler.source
     finally:
         if previous is None:
             rasterio._env.del_gdal_config("GDAL_CACHEMAX")
