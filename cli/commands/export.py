@@ -1,0 +1,42 @@
+"""``terrastream export``: a GeoTIFF rebuilt from a store."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cli.common import fail_on_errors
+
+
+def export(
+    store: Annotated[str, typer.Argument(help="A terrastream store.")],
+    out: Annotated[Path, typer.Argument(help="Output GeoTIFF.")],
+    level: Annotated[
+        int | None, typer.Option("--level", help="Level to export (default: the finest).")
+    ] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
+    ] = False,
+) -> None:
+    """Rebuild a GeoTIFF of the whole DEM from a store (bit-identical when lossless).
+
+    Example: terrastream export n44.zarr n44.tif --level 8
+    """
+    from tiler.export import export_geotiff
+    from tiler.store import open_store
+
+    with fail_on_errors():
+        if out.exists() and not overwrite:
+            raise typer.BadParameter(
+                f"{out} exists; pass --overwrite to replace it", param_hint="OUT"
+            )
+        s = open_store(store)
+        export_geotiff(s, out, level)
+        typer.echo(f"wrote {out} (level {s.k if level is None else level} of {s.k})")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``export`` to ``app``."""
+    app.command("export")(export)

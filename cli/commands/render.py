@@ -1,0 +1,80 @@
+"""``terrastream render``: one view of a store to a PNG."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cli.common import fail_on_errors
+from cli.options import (
+    CameraOpt,
+    FovOpt,
+    LodOpt,
+    LookAtOpt,
+    Metric,
+    MetricOpt,
+    PatchOpt,
+    PitchOpt,
+    SizeOpt,
+    YawOpt,
+    parse_size,
+)
+
+
+def render(
+    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output PNG.")] = Path("view.png"),
+    camera: CameraOpt = None,
+    look_at: LookAtOpt = None,
+    yaw: YawOpt = None,
+    pitch: PitchOpt = None,
+    fov: FovOpt = 45.0,
+    size: SizeOpt = "1024x768",
+    tau: Annotated[float, typer.Option("--tau", min=0.0, help="Screen error, px.")] = 1.0,
+    metric: MetricOpt = Metric.qiu,
+    patch_log2: PatchOpt = 4,
+    wireframe: Annotated[bool, typer.Option("--wireframe", help="Overlay edges.")] = False,
+    lod_colour: Annotated[bool, typer.Option("--lod-colour", help="Tint by level.")] = False,
+    lod: LodOpt = "qiu",
+) -> None:
+    """Render one view of a store to a PNG (default: an oblique overview of the whole DEM).
+
+    Example: terrastream render demo.zarr --camera 500000,4990000,3000 --look-at
+    505000,4995000,500 --tau 1 -o view.png
+    """
+    from PIL import Image
+
+    from render.pipeline import render_view
+    from render.views import make_camera
+    from tiler.store import open_store
+
+    with fail_on_errors():
+        viewport = parse_size(size)
+        s = open_store(store)
+        cam = make_camera(
+            s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
+        )
+        img, st = render_view(
+            s,
+            cam,
+            tau=tau,
+            metric=metric.value,
+            patch_log2=patch_log2,
+            wireframe=wireframe,
+            lod_colour=lod_colour,
+            lod=lod,
+        )
+        Image.fromarray(img).save(out)
+        typer.echo(
+            f"wrote {out}: {st.triangles:,} triangles in {st.patches} patches (levels "
+            f"{st.min_level}..{st.max_level}), selection {st.selection_ms:.2f} ms, GPU "
+            f"{st.frame_ms:.1f} ms, {st.gpu_bytes / 2**20:.1f} MB of heights on the GPU"
+            + (f", {st.clamped} nodes clamped to resident levels" if st.clamped else "")
+        )
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``render`` to ``app``."""
+    app.command("render")(render)

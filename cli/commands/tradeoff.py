@@ -1,0 +1,87 @@
+"""``terrastream tradeoff``: what tau costs and buys for one view."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cli.common import fail_on_errors
+from cli.options import (
+    CameraOpt,
+    FovOpt,
+    LodOpt,
+    LookAtOpt,
+    Metric,
+    MetricOpt,
+    PatchOpt,
+    PitchOpt,
+    SizeOpt,
+    YawOpt,
+    parse_size,
+    parse_taus,
+)
+
+
+def tradeoff(
+    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    camera: CameraOpt = None,
+    look_at: LookAtOpt = None,
+    yaw: YawOpt = None,
+    pitch: PitchOpt = None,
+    fov: FovOpt = 45.0,
+    size: SizeOpt = "1024x768",
+    taus: Annotated[str, typer.Option("--taus", help="Comma-separated taus, px.")] = "0.5,1,2,4,8",
+    metric: MetricOpt = Metric.qiu,
+    patch_log2: PatchOpt = 4,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed draws per tau.")] = 3,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write one row per tau.")] = None,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Write a PNG plot.")] = None,
+    lod: LodOpt = "qiu",
+) -> None:
+    """Measure what tau costs and buys against the full-resolution render of the same view.
+
+    Example: terrastream tradeoff demo.zarr --taus 0.5,1,2,4,8 --json t.json --plot t.png
+    """
+    from render.pipeline import TABLE_HEADER, plot_tradeoff
+    from render.pipeline import tradeoff as run
+    from render.views import make_camera
+    from tiler.store import open_store
+
+    with fail_on_errors():
+        viewport = parse_size(size)
+        values = parse_taus(taus)
+        s = open_store(store)
+        cam = make_camera(
+            s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
+        )
+        typer.echo(TABLE_HEADER)
+        rows = run(
+            s,
+            cam,
+            values,
+            metric=metric.value,
+            patch_log2=patch_log2,
+            repeats=repeats,
+            log=typer.echo,
+            lod=lod,
+        )
+        if rows:
+            typer.echo(
+                f"reference (full resolution): {rows[0].reference_triangles:,} triangles, "
+                f"{rows[0].reference_frame_ms:.1f} ms GPU"
+            )
+        if json_out:
+            json_out.write_text(json.dumps([asdict(r) for r in rows], indent=1))
+            typer.echo(f"wrote {json_out}")
+        if plot:
+            plot_tradeoff(rows, plot, title=f"{Path(store).name} {viewport[0]}x{viewport[1]}")
+            typer.echo(f"wrote {plot}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``tradeoff`` to ``app``."""
+    app.command("tradeoff")(tradeoff)

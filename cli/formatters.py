@@ -1,0 +1,72 @@
+"""Human-readable output of the commands (tables and summaries); no I/O."""
+
+from __future__ import annotations
+
+
+def human_bytes(n: float) -> str:
+    """``1536`` → ``1.5 KiB``."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def format_info(d: dict) -> str:
+    """The human-readable ``info`` table."""
+    lines = [
+        f"store          {d['url']}",
+        f"format         v{d['format_version']}, written by terrastream {d['tool_version']}",
+        f"source         {d['source']} ({d['checksum']})",
+        f"samples        {d['height']} x {d['width']} {d['dtype']}"
+        + (f", quantised to {d['precision']} m" if d["precision"] else ", lossless"),
+        f"blocks         {d['block_rows']} x {d['block_cols']} of {d['block_size']}^2 "
+        f"({d['blocks_with_terrain']} with terrain, {d['blocks_with_nodata']} with nodata)",
+        f"levels         {d['levels']} (encoding {d['encoding']}, {d['compressor']})",
+        f"nodata         {d['nodata']}",
+        f"crs            {d['crs']}",
+        f"extent         x {d['extent'][0]:.3f} .. {d['extent'][2]:.3f}, "
+        f"y {d['extent'][1]:.3f} .. {d['extent'][3]:.3f}",
+        f"values         {d['value_range'][0]:g} .. {d['value_range'][1]:g}"
+        + (f" {d['vertical_units']}" if d["vertical_units"] else ""),
+        "",
+        "level  values/block      stored     share",
+    ]
+    total = d["bytes"]["total"]
+    for row in d["bytes_per_level"]:
+        lines.append(
+            f"{row['level']:>5}  {row['values_per_block']:>12}  {human_bytes(row['bytes']):>10}"
+            f"  {100 * row['bytes'] / max(total, 1):6.2f} %"
+        )
+    b = d["bytes"]
+    lines += [
+        "",
+        f"levels {human_bytes(b['levels'])}, errors {human_bytes(b['errors'])}, "
+        f"mask {human_bytes(b['mask'])}, index {human_bytes(b['index'])}, "
+        f"metadata {human_bytes(b['metadata'])}",
+        f"total {human_bytes(total)} = {d['ratio_to_raw']:.3f} x raw "
+        f"({human_bytes(d['raw_bytes'])})",
+    ]
+    return "\n".join(lines)
+
+
+def format_summary(d: dict) -> str:
+    """The stream summary block."""
+    mb = 1 / 2**20
+    needed = max(d["needed_bytes"], 1)
+    used = max(d["used_bytes"], 1)
+    return "\n".join(
+        [
+            f"frames {d['frames']}, stall frames {d['stall_frames']}, io errors {d['io_errors']}",
+            f"warm-up before frame 0: {d['warmup_bytes'] * mb:.2f} MB in {d['warmup_ms']:.0f} ms",
+            f"needed {d['needed_bytes'] * mb:.1f} MB over all frames; real-time loaded "
+            f"{d['realtime_bytes'] * mb:.3f} MB "
+            f"({100 * d['realtime_bytes_after_first_frame'] / needed:.3f} % of needed after "
+            "frame 1)",
+            f"loaded {d['loaded_bytes'] * mb:.2f} MB, used {d['used_bytes'] * mb:.2f} MB "
+            f"(loaded/used {d['loaded_bytes'] / used:.2f}), wasted {d['wasted_bytes'] * mb:.2f} MB",
+            f"peak resident {d['peak_resident_bytes'] * mb:.2f} MB of a "
+            f"{d['budget_bytes'] * mb:.0f} MB budget; max update {d['max_update_ms']:.2f} ms "
+            f"(CPU {d['max_update_cpu_ms']:.2f} ms)",
+        ]
+    )
