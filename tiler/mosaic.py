@@ -20,13 +20,14 @@ import math
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import rasterio
 import rasterio.errors
 from rasterio.crs import CRS
 from rasterio.enums import Resampling
+from rasterio.features import geometry_mask
 from rasterio.transform import Affine
 from rasterio.vrt import WarpedVRT
 from rasterio.warp import transform as warp_transform
@@ -58,6 +59,8 @@ class SourceInfo:
     units: str | None
     size_bytes: int | None
     footprint: tuple[int, int, int, int] = (0, 0, 0, 0)  # row0, col0, row1, col1 on the target
+    # when reprojecting: the hull of the source's sample centres in target coordinates (a ring)
+    hull: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -235,9 +238,28 @@ def _plan_aligned(
 
 
 def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> SourceInfo:
-    from dataclasses import replace
-
     return replace(info, footprint=(r0, c0, r1, c1))
+
+
+HULL_POINTS = 64  # points per edge of a source's sample-centre hull
+
+
+def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, float], ...]:
+    """The ring through the source's outer sample centres, in target coordinates.
+
+    Reprojected samples outside it would be extrapolated (GDAL holds edge values constant
+    there), so they are left out: the store ends where the source's samples end.
+    """
+    t = Affine(*info.transform)
+    n = HULL_POINTS
+    last_r, last_c = info.height - 1, info.width - 1
+    edge = np.linspace(0.0, 1.0, n, endpoint=False)
+    rows = np.concatenate([0 * edge, edge * last_r, 0 * edge + last_r, (1 - edge) * last_r])
+    cols = np.concatenate([edge * last_c, 0 * edge + last_c, (1 - edge) * last_c, 0 * edge])
+    xs, ys = t * (cols + 0.5, rows + 0.5)
+    tx, ty = warp_transform(src_crs, target, xs.tolist(), ys.tolist())
+    ring = list(zip(tx, ty, strict=True))
+    return tuple((*ring, ring[0]))
 
 
 def _union_bounds(infos: Sequence[SourceInfo]) -> tuple[float, float, float, float]:
@@ -298,7 +320,7 @@ def _plan_warped(
         c1 = min(width, math.ceil((sb[2] - left) / res[0]) + 2)
         r0 = max(0, math.floor((top - sb[3]) / res[1]) - 2)
         r1 = min(height, math.ceil((top - sb[1]) / res[1]) + 2)
-        placed.append(_with_footprint(i, r0, c0, r1, c1))
+        placed.append(replace(_with_footprint(i, r0, c0, r1, c1), hull=_hull(i, src_crs, target)))
     return MosaicSpec(
         sources=tuple(placed),
         band=band,
@@ -413,6 +435,13 @@ class MosaicReader:
                 nodata = spec.sources[i].nodata
             data = ds.read(spec.band, window=win)
             valid = _valid(data, nodata)
+            if spec.warp and spec.sources[i].hull:
+                valid &= geometry_mask(
+                    [{"type": "Polygon", "coordinates": [spec.sources[i].hull]}],
+                    out_shape=data.shape,
+                    transform=spec.affine * Affine.translation(ic0, ir0),
+                    invert=True,
+                )
             sub = (slice(ir0 - r0, ir1 - r0), slice(ic0 - c0, ic1 - c0))
             take = valid & ~filled[sub]
             out[sub][take] = data[take].astype(self.dtype)

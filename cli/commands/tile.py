@@ -2,16 +2,73 @@
 
 from __future__ import annotations
 
+from enum import Enum
+from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from cli.common import fail_on_errors
 
+Resampling = Enum(
+    "Resampling",
+    {n: n for n in ("nearest", "bilinear", "cubic", "cubic_spline", "lanczos", "average")},
+    type=str,
+)
+
+
+def _sources_and_destination(paths: list[str], from_list: Path | None) -> tuple[list[str], str]:
+    """Split ``SRC... DST`` and append the ``--from-list`` file's paths."""
+    from tiler.errors import SourceError
+    from tiler.source import read_source_list
+
+    if not paths:
+        raise typer.BadParameter("give at least a destination store", param_hint="SRC... DST")
+    srcs, dst = list(paths[:-1]), paths[-1]
+    if from_list is not None:
+        try:
+            srcs += read_source_list(from_list)
+        except SourceError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--from-list") from exc
+    if not srcs:
+        raise typer.BadParameter(
+            "give at least one source DEM before the destination (or --from-list FILE)",
+            param_hint="SRC... DST",
+        )
+    return srcs, dst
+
 
 def tile(
-    src: Annotated[str, typer.Argument(help="Source DEM: any raster rasterio opens.")],
-    dst: Annotated[str, typer.Argument(help="Destination store (directory or fsspec URL).")],
+    paths: Annotated[
+        list[str],
+        typer.Argument(
+            help="SRC... DST: source DEMs (any raster rasterio opens; several form one mosaic, "
+            "the first listed wins where they overlap) and the destination store.",
+            metavar="SRC... DST",
+        ),
+    ],
+    from_list: Annotated[
+        Path | None,
+        typer.Option("--from-list", help="Text file with more sources, one path per line."),
+    ] = None,
+    dst_crs: Annotated[
+        str | None,
+        typer.Option(
+            "--dst-crs",
+            help="Reproject while tiling: 'auto' (UTM zone of the centre, else a local "
+            "projection), EPSG:code, PROJ string or WKT.",
+        ),
+    ] = None,
+    resampling: Annotated[
+        Resampling, typer.Option("--resampling", help="Resampling used with --dst-crs.")
+    ] = Resampling.bilinear,
+    resolution: Annotated[
+        float | None,
+        typer.Option(
+            "--resolution",
+            help="Target pixel size in target CRS units (default: the source's finer side).",
+        ),
+    ] = None,
     block_size: Annotated[
         int, typer.Option("--block-size", help="Block edge in samples, 2^k+1.")
     ] = 1025,
@@ -35,14 +92,22 @@ def tile(
     """Tile a DEM into a non-redundant level store.
 
     Example: terrastream tile N44W072.hgt n44.zarr --block-size 257
+
+    Several sources form one mosaic: terrastream tile N44W072.hgt N44W073.hgt n44.zarr
+    (or --from-list tiles.txt). A geographic DEM (degrees) needs --dst-crs auto to be streamed
+    and rendered.
     """
     from tqdm import tqdm
 
     from tiler.tile import TileOptions, TileProgress
     from tiler.tile import tile as run_tile
 
+    src, dst = _sources_and_destination(paths, from_list)
     with fail_on_errors():
         opts = TileOptions(
+            dst_crs=dst_crs,
+            resampling=resampling.value,
+            resolution=resolution,
             block_size=block_size,
             band=band,
             precision=precision,
