@@ -10,6 +10,7 @@ import rasterio
 from rasterio.transform import Affine
 from rasterio.windows import Window
 
+from tiler.encoding import decode_grid, dequantise
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
 
@@ -77,6 +78,7 @@ def export_geotiff(
     except rasterio.errors.RasterioIOError as exc:
         raise StoreError(f"cannot write {str(out)!r}: {exc}") from exc
     with dst:
+        _write_vertical(dst, store)
         for br in range(grid.rows):
             r0 = br * bstep
             nrows = min(bstep + 1, height - r0)
@@ -86,7 +88,7 @@ def export_geotiff(
                 ncols = min(bstep + 1, width - c0)
                 if not store.index.exists[br, bc]:
                     continue
-                g = store.read_block((br, bc), level)[:nrows, :ncols]
+                g = stored_block(store, (br, bc), level)[:nrows, :ncols]
                 if store.index.has_nodata[br, bc]:
                     valid = store.read_mask((br, bc))[::step, ::step][:nrows, :ncols]
                     g = np.where(valid, g, fill)
@@ -94,6 +96,26 @@ def export_geotiff(
             dst.write(band, 1, window=Window(0, r0, width, nrows))
             if progress:
                 progress(br + 1, grid.rows)
+
+
+def stored_block(store: TerrainStore, block: tuple[int, int], level: int) -> np.ndarray:
+    """A block's grid at ``level`` in the source dtype, before any vertical scale/offset (the
+    integers a scaled DEM stores; ``read_block`` gives metres)."""
+    raws = store.read_levels_raw(block, level)
+    values = decode_grid(raws, store.meta.value_dtype, level)
+    if store.meta.precision:
+        return dequantise(values, store.meta.precision, store.dtype)
+    return values.astype(store.dtype, copy=False)
+
+
+def _write_vertical(dst: rasterio.io.DatasetWriter, store: TerrainStore) -> None:
+    """Carry the band's scale/offset and units over, so the export reads as the source did."""
+    v = store.meta.extra.get("vertical")
+    if v:
+        dst.scales = (float(v["scale"]),)
+        dst.offsets = (float(v["offset"]),)
+    if store.meta.vertical_units:
+        dst.units = (store.meta.vertical_units,)
 
 
 def _fill_value(dtype: np.dtype, nodata: float | None):

@@ -36,6 +36,7 @@ from tiler.errors import (
 )
 from tiler.grid import BlockGrid
 from tiler.layout import grid_side, level_index, level_size, order_index
+from tiler.vertical import to_metres
 
 FORMAT_VERSION = 1
 ATTR = "terrastream"
@@ -352,10 +353,13 @@ class TerrainStore:
         return decode_next_level(levels, raw, self._value_dtype)
 
     def to_heights(self, values: np.ndarray) -> np.ndarray:
-        """Convert decoded storage values to the source dtype (dequantises ``--precision``)."""
+        """Convert decoded storage values to the source dtype (dequantises ``--precision``);
+        to float64 metres when the store records a band scale/offset or non-metre units."""
         if self.meta.precision:
-            return dequantise(values, self.meta.precision, self.dtype)
-        return values.astype(self.dtype, copy=False)
+            out = dequantise(values, self.meta.precision, self.dtype)
+        else:
+            out = values.astype(self.dtype, copy=False)
+        return to_metres(self.meta, out)  # hook: tiler.vertical (identity for plain metres)
 
     def read_levels(self, block: tuple[int, int], max_level: int) -> list[np.ndarray]:
         """Decoded heights of levels ``0..max_level`` of a block (sequence order, source dtype)."""

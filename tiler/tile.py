@@ -67,6 +67,7 @@ from tiler.store import (
     read_meta,
     write_meta,
 )
+from tiler.vertical import height_transform
 
 log = logging.getLogger(__name__)
 WAIT_TIMEOUT_S = 600.0
@@ -129,6 +130,8 @@ class BlockParams:
     nodata: float | None
     precision: float | None
     error_cap: int
+    z_scale: float = 1.0  # metres = value * z_scale + z_offset (tiler.vertical)
+    z_offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -194,6 +197,9 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     if exists:
         vals = grid[valid]
         zmin, zmax = float(vals.min()), float(vals.max())
+        if (params.z_scale, params.z_offset) != (1.0, 0.0):  # heights in metres (tiler.vertical)
+            a, b = params.z_scale, params.z_offset
+            zmin, zmax = sorted((zmin * a + b, zmax * a + b))
     else:
         zmin = zmax = float("nan")
     if params.precision:
@@ -201,6 +207,8 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     grid = fill_invalid(grid, valid, k)
     levels = encode_levels(grid, k)
     err_grid = grid.astype(np.float64) * params.precision if params.precision else grid
+    if params.z_scale != 1.0:  # errors in metres (tiler.vertical)
+        err_grid = err_grid.astype(np.float64) * abs(params.z_scale)
     errors = static_error.block_errors(err_grid, valid, k, params.error_cap)
     return BlockResult(
         levels=levels,
@@ -373,6 +381,8 @@ def _tile(
         nodata=meta.nodata,
         precision=meta.precision,
         error_cap=meta.error_cap,
+        z_scale=height_transform(meta)[0],
+        z_offset=height_transform(meta)[1],
     )
     _run_blocks(src, dst, opts, grid, params, group, progress)
     try:

@@ -2,7 +2,8 @@
 
 The store keeps the source's integers (lossless) and records ``{"scale", "offset", "units",
 "metres_per_unit"}`` under the metadata's ``vertical`` key; heights in metres are
-``(value * scale + offset) * metres_per_unit``, computed in float64.
+``value * a + b`` with ``a = scale * metres_per_unit`` and ``b = offset * metres_per_unit``,
+computed in float64 (:func:`height_transform`), the same everywhere (reads, zmin/zmax, errors).
 """
 
 from __future__ import annotations
