@@ -438,4 +438,7 @@ def open_store(url: str | os.PathLike, *, allow_incomplete: bool = False) -> Ter
     """Open a finished store (local path or fsspec URL such as ``http://``, ``memory://``)."""
     if not is_url(url) and not os.path.exists(url):
         raise StoreError(f"no store at {str(url)!r}: the path does not exist")
+    from tiler.remote import check_range_support
+
+    check_range_support(str(url))  # hook: tiler.remote (HTTP servers must serve byte ranges)
     return TerrainStore(url, allow_incomplete=allow_incomplete)
