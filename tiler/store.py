@@ -188,7 +188,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
             dtype=meta.storage_dtype,
             compressors=comp,
             fill_value=0,
-            dimension_names=("block_row", "block_col", "value"),
+            dimension_names=("block_row", "block_col", f"value_{i}"),  # per-level lengths
             **kw,
         )
     e = sum(static_error.field_sizes(meta.k, meta.error_cap))
@@ -199,6 +199,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
         dtype="float16",
         compressors=[compressor(comp_level, 2)],
         fill_value=0,
+        dimension_names=("block_row", "block_col", "error_field", "error_value"),
     )
     group.create_array(
         "mask",
@@ -207,6 +208,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
         dtype="bool",
         compressors=[compressor(comp_level, 1, bits=True)],
         fill_value=True,
+        dimension_names=("block_row", "block_col", "row", "col"),
     )
     ic = (min(rows, INDEX_CHUNK), min(cols, INDEX_CHUNK))
     for name, dtype, fill in (
@@ -218,10 +220,20 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
         ("digest", "uint64", 0),
     ):
         group.create_array(
-            f"index/{name}", shape=(rows, cols), chunks=ic, dtype=dtype, fill_value=fill
+            f"index/{name}",
+            shape=(rows, cols),
+            chunks=ic,
+            dtype=dtype,
+            fill_value=fill,
+            dimension_names=("block_row", "block_col"),
         )
     group.create_array(
-        "index/window", shape=(rows, cols, 4), chunks=(*ic, 4), dtype="int32", fill_value=0
+        "index/window",
+        shape=(rows, cols, 4),
+        chunks=(*ic, 4),
+        dtype="int32",
+        fill_value=0,
+        dimension_names=("block_row", "block_col", "row0_col0_rows_cols"),
     )
     for name, table in (("level_index", level_index(meta.k)), ("order_index", order_index(meta.k))):
         group.create_array(
@@ -229,6 +241,7 @@ def create_layout(group: zarr.Group, meta: StoreMeta, comp_level: int) -> None:
             data=np.asarray(table),
             chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
             compressors=[compressor(9, table.dtype.itemsize, bits=True)],
+            dimension_names=("row", "col"),
         )
 
 

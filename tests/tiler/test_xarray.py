@@ -124,3 +124,15 @@ def test_real_float_dem_with_nodata(tmp_path):
         assert h.rio.crs == ds.crs
         assert tuple(h.rio.transform())[:6] == pytest.approx(tuple(ds.transform)[:6])
     np.testing.assert_array_equal(h.values.astype(np.float64), ref)
+
+
+def test_raw_arrays_open_with_plain_xarray(store):
+    """Every zarr array names its dimensions, so xarray.open_zarr reads each group."""
+    s, _ = store
+    root = xr.open_zarr(s.url, consolidated=False)
+    assert {"errors", "mask", "level_index", "order_index"} <= set(root.data_vars)
+    index = xr.open_zarr(s.url, group="index", consolidated=False)
+    assert {"exists", "zmin", "zmax", "window", "digest", "done"} <= set(index.data_vars)
+    np.testing.assert_array_equal(index.exists.values, s.index.exists)
+    levels = xr.open_zarr(s.url, group="levels", consolidated=False)
+    assert levels[str(s.k)].dims == ("block_row", "block_col", f"value_{s.k}")
