@@ -131,6 +131,15 @@ def tile(
         finally:
             bar.close()
         typer.echo(f"wrote {dst}: {store.grid.rows}x{store.grid.cols} blocks, {store.k + 1} levels")
+        rep = store.meta.extra.get("reprojection")
+        if rep:
+            from tiler.crs import crs_name
+
+            src_crs = crs_name(store.meta.extra.get("source_crs_wkt"))
+            typer.echo(
+                f"reprojected from {src_crs} to {rep['crs']} ({rep['requested']}), "
+                f"{rep['resolution'][0]:g} m pixels, {rep['resampling']} resampling"
+            )
 
 
 def register(app: typer.Typer) -> None:

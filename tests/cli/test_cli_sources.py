@@ -55,6 +55,7 @@ def test_tile_dst_crs_auto_and_bad_values(tmp_path):
     )
     r = run("tile", src, tmp_path / "g.zarr", "--dst-crs", "auto", "--block-size", "17")
     assert r.exit_code == 0, r.output
+    assert "reprojected from EPSG:4326 to EPSG:32632 (auto)" in r.output
     assert crs_name(open_store(tmp_path / "g.zarr").meta.crs_wkt) == "EPSG:32632"
     r = run("tile", src, tmp_path / "x.zarr", "--dst-crs", "EPSG:0")
     assert r.exit_code != 0 and "'EPSG:0' is not understood" in r.output
