@@ -41,6 +41,7 @@ from tiler.store import is_url
 
 ALIGN_TOL = 1e-3  # pixels: how far a source's origin may sit off the mosaic's pixel grid
 MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
+WARP_TOLERANCE = 0.01  # source pixels of transform approximation (GDAL: 0.125); see notes
 
 
 @dataclass(frozen=True)
@@ -399,6 +400,7 @@ class MosaicReader:
                 src_nodata=info.nodata,
                 nodata=spec.nodata,
                 dtype=spec.dtype,
+                tolerance=WARP_TOLERANCE,
             )
         self._open[i] = (ds, vrt)
         return vrt or ds
