@@ -107,11 +107,6 @@ def read_info(path: str, band: int) -> SourceInfo:
                 f"{path!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2"
             )
         t = ds.transform
-        if abs(t.b) > 1e-12 * abs(t.a) or abs(t.d) > 1e-12 * abs(t.e) or t.e >= 0:
-            raise SourceError(
-                f"{path!r} has a rotated or south-up geotransform {tuple(t)[:6]}; warp it "
-                "north-up (or give a target CRS to reproject it)"
-            )
         nodata = ds.nodatavals[band - 1]
         units = ds.units[band - 1] if ds.units else None
         size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None
@@ -197,6 +192,13 @@ def plan_mosaic(
 def _plan_aligned(
     infos: list[SourceInfo], band: int, dtype: np.dtype, src_crs: CRS | None
 ) -> MosaicSpec:
+    for info in infos:
+        a, b, _, d, e, _ = info.transform
+        if abs(b) > 1e-12 * abs(a) or abs(d) > 1e-12 * abs(e) or e >= 0:
+            raise SourceError(
+                f"{info.path!r} has a rotated or south-up geotransform {info.transform}; give a "
+                "target CRS to reproject it north-up while tiling"
+            )
     a, _, c, _, e, f = infos[0].transform
     for info in infos:
         ia, ie = info.transform[0], info.transform[4]
@@ -243,6 +245,7 @@ def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> Sou
 
 
 HULL_POINTS = 64  # points per edge of a source's sample-centre hull
+HULL_EPS = 1e-3  # source pixels the hull is widened by, so samples on it are kept (no ties)
 
 
 def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, float], ...]:
@@ -253,33 +256,42 @@ def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, flo
     """
     t = Affine(*info.transform)
     n = HULL_POINTS
-    last_r, last_c = info.height - 1, info.width - 1
+    e = HULL_EPS
+    r0, c0, r1, c1 = -e, -e, info.height - 1 + e, info.width - 1 + e
     edge = np.linspace(0.0, 1.0, n, endpoint=False)
-    rows = np.concatenate([0 * edge, edge * last_r, 0 * edge + last_r, (1 - edge) * last_r])
-    cols = np.concatenate([edge * last_c, 0 * edge + last_c, (1 - edge) * last_c, 0 * edge])
+    rows = np.concatenate(
+        [r0 + 0 * edge, r0 + edge * (r1 - r0), r1 + 0 * edge, r1 - edge * (r1 - r0)]
+    )
+    cols = np.concatenate(
+        [c0 + edge * (c1 - c0), c1 + 0 * edge, c1 - edge * (c1 - c0), c0 + 0 * edge]
+    )
     xs, ys = t * (cols + 0.5, rows + 0.5)
     tx, ty = warp_transform(src_crs, target, xs.tolist(), ys.tolist())
     ring = list(zip(tx, ty, strict=True))
     return tuple((*ring, ring[0]))
 
 
+def _bounds(info: SourceInfo) -> tuple[float, float, float, float]:
+    """``(left, bottom, right, top)`` of a source's pixel corners (any affine transform)."""
+    t = Affine(*info.transform)
+    xs, ys = zip(
+        *(t * p for p in ((0, 0), (info.width, 0), (0, info.height), (info.width, info.height))),
+        strict=True,
+    )
+    return min(xs), min(ys), max(xs), max(ys)
+
+
 def _union_bounds(infos: Sequence[SourceInfo]) -> tuple[float, float, float, float]:
-    lefts, bottoms, rights, tops = [], [], [], []
-    for i in infos:
-        a, _, c, _, e, f = i.transform
-        lefts.append(c)
-        rights.append(c + a * i.width)
-        tops.append(f)
-        bottoms.append(f + e * i.height)
-    return min(lefts), min(bottoms), max(rights), max(tops)
+    b = np.array([_bounds(i) for i in infos])
+    return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
 
 
 def _finest_pixel(info: SourceInfo, bounds: tuple[float, ...], src_crs: CRS, target: CRS) -> float:
     """The source's finer pixel side, in target units, at the centre of the extent: the
     default resolution, so reprojection loses no detail along either axis."""
-    a, e = info.transform[0], info.transform[4]
+    a, b, _, d, e, _ = info.transform
     cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
-    xs, ys = warp_transform(src_crs, target, [cx, cx + a, cx], [cy, cy, cy + e])
+    xs, ys = warp_transform(src_crs, target, [cx, cx + a, cx + b], [cy, cy + d, cy + e])
     dx = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
     dy = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
     return min(dx, dy)
@@ -315,8 +327,7 @@ def _plan_warped(
     t = Affine(res[0], 0.0, left, 0.0, -res[1], top)
     placed = []
     for i in infos:
-        a, _, c, _, e, f = i.transform
-        sb = transform_bounds(src_crs, target, c, f + e * i.height, c + a * i.width, f, 51)
+        sb = transform_bounds(src_crs, target, *_bounds(i), densify_pts=51)
         c0 = max(0, math.floor((sb[0] - left) / res[0]) - 2)
         c1 = min(width, math.ceil((sb[2] - left) / res[0]) + 2)
         r0 = max(0, math.floor((top - sb[3]) / res[1]) - 2)

@@ -151,3 +151,31 @@ def test_srtm_auto_is_zone_19_and_close_to_the_source(tmp_path):
     err = resampling_error(store, src, stride=3)
     # measured (see notes): rms 1.6 m, p99 5.4 m, max 37 m on this rough 3" tile
     assert err["rms"] < 2.5 and err["p99"] < 8.0, err
+
+
+def test_south_up_source_is_refused_unless_reprojected(tmp_path):
+    from rasterio.transform import Affine
+
+    data = np.arange(20 * 30, dtype=np.int16).reshape(20, 30)
+    path = tmp_path / "south_up.tif"
+    x0, y0 = 499980.0, 4999980.0  # on the 30 m grid the target snaps to
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=30,
+        height=20,
+        count=1,
+        dtype="int16",
+        crs="EPSG:32633",
+        transform=Affine(30.0, 0.0, x0, 0.0, 30.0, y0),
+    ) as dst:
+        dst.write(data, 1)
+    with pytest.raises(SourceError, match="south-up"):
+        tile(path, tmp_path / "a.zarr", TileOptions(block_size=17))
+    opts = TileOptions(block_size=33, dst_crs="EPSG:32633", resampling="nearest", resolution=30.0)
+    s = tile(path, tmp_path / "b.zarr", opts)
+    assert (s.meta.height, s.meta.width) == (20, 30)
+    assert s.meta.geotransform == (30.0, 0.0, x0, 0.0, -30.0, y0 + 600.0)
+    np.testing.assert_array_equal(s.read_block((0, 0))[:20, :30], data[::-1])
+    assert s.read_mask((0, 0))[:20, :30].all()  # edge samples on the hull are kept
