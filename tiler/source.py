@@ -127,6 +127,12 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
         }
     vertical = vertical_meta(first.scale, first.offset, first.units)
     if vertical:
+        if opts.precision:
+            raise SourceError(
+                f"--precision with a band scale/offset or vertical units other than metres "
+                f"({vertical}) is not supported for {label!r}; drop --precision (the heights "
+                "are then stored losslessly)"
+            )
         extra["vertical"] = vertical
     if len(spec.sources) > 1:
         extra["mosaic"] = {"count": len(spec.sources), "overlap_rule": "first-valid"}

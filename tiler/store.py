@@ -36,7 +36,7 @@ from tiler.errors import (
 )
 from tiler.grid import BlockGrid
 from tiler.layout import grid_side, level_index, level_size, order_index
-from tiler.vertical import to_metres
+from tiler.vertical import from_metres, to_metres
 
 FORMAT_VERSION = 1
 ATTR = "terrastream"
@@ -362,7 +362,9 @@ class TerrainStore:
             ) from exc
 
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
-        """Decode the next level from its raw values and the decoded levels ``0..L-1``."""
+        """Decode the next level from its raw values and the decoded levels ``0..L-1``
+        (metres of a scaled store are taken back to its stored values first)."""
+        levels = [from_metres(self.meta, v, self._value_dtype) for v in levels]  # tiler.vertical
         return decode_next_level(levels, raw, self._value_dtype)
 
     def to_heights(self, values: np.ndarray) -> np.ndarray:

@@ -90,3 +90,14 @@ def to_metres(meta: Any, values: np.ndarray) -> np.ndarray:
     if (a, b) == (1.0, 0.0):
         return values
     return np.asarray(values, dtype=np.float64) * a + b
+
+
+def from_metres(meta: Any, values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Inverse of :func:`to_metres`: the stored values (``dtype``) behind heights in metres;
+    exact for values that came from :func:`to_metres` (integers rounded, floats re-cast)."""
+    a, b = height_transform(meta)
+    if (a, b) == (1.0, 0.0):
+        return values
+    v = (np.asarray(values, dtype=np.float64) - b) / a
+    dtype = np.dtype(dtype)
+    return (np.rint(v) if dtype.kind in "iu" else v).astype(dtype)

@@ -7,6 +7,7 @@ import pytest
 import rasterio
 from conftest import fractal, write_dem
 
+from tiler.errors import SourceError
 from tiler.export import export_geotiff
 from tiler.info import store_info
 from tiler.tile import TileOptions, tile
@@ -85,3 +86,24 @@ def test_plain_metres_record_nothing_and_unknown_units_are_flagged(caplog):
         extra = {"vertical": {"scale": 2.0, "offset": 1.0, "metres_per_unit": 0.5}}
 
     np.testing.assert_array_equal(to_metres(Meta, np.array([0, 3], np.int16)), [0.5, 3.5])
+
+
+@pytest.mark.parametrize(
+    ("dtype", "scale", "units"), [("int16", 0.1, "m"), ("float32", 1.0, "ft")], ids=["dm", "ft"]
+)
+def test_incremental_decode_from_metres(tmp_path, dtype, scale, units):
+    """The streamer decodes level L from cached heights (metres) and the raw level L."""
+    data = fractal((33, 33), seed=10, dtype=dtype)
+    src = scaled_dem(tmp_path / "s.tif", data, scale=scale, units=units)
+    store = tile(src, tmp_path / "s.zarr", TileOptions(block_size=33))
+    full = store.read_levels((0, 0), store.k)
+    for level in range(1, store.k + 1):
+        raw = store.read_level_raw((0, 0), level)
+        got = store.to_heights(store.decode_next(full[:level], raw))
+        np.testing.assert_array_equal(got, full[level])
+
+
+def test_precision_with_a_vertical_scale_is_refused(tmp_path):
+    src = scaled_dem(tmp_path / "f.tif", fractal((20, 20), dtype="float32"), units="ft")
+    with pytest.raises(SourceError, match="precision with a band scale"):
+        tile(src, tmp_path / "f.zarr", TileOptions(block_size=17, precision=0.01))
