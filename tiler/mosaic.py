@@ -20,7 +20,7 @@ import math
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import rasterio
@@ -38,6 +38,7 @@ from tiler.crs import choose_crs, parse_dst_crs, parse_resampling
 from tiler.encoding import parse_dtype
 from tiler.errors import SourceError, SourceNotFoundError
 from tiler.store import is_url
+from tiler.vertical import metres_per_unit
 
 ALIGN_TOL = 1e-3  # pixels: how far a source's origin may sit off the mosaic's pixel grid
 MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
@@ -80,7 +81,6 @@ class MosaicSpec:
     warp: bool = False
     resampling: str = "bilinear"
     dst_crs: str | None = None  # as requested ("auto" or WKT)
-    extra: dict = field(default_factory=dict, compare=False)
 
     @property
     def affine(self) -> Affine:
@@ -172,8 +172,11 @@ def plan_mosaic(
         raise SourceError("no source rasters given")
     infos = [read_info(p, band) for p in paths]
     dtype = parse_dtype(np.result_type(*[np.dtype(i.dtype) for i in infos]))
-    _same([(i.scale, i.offset) for i in infos], "height scale/offset", infos)
-    _same([i.units for i in infos], "vertical units", infos)
+    _same(
+        [(i.scale, i.offset, metres_per_unit(i.units)) for i in infos],
+        "height scale, offset and metres per vertical unit",
+        infos,
+    )
     crss = [CRS.from_wkt(i.crs_wkt) if i.crs_wkt else None for i in infos]
     for c, info in zip(crss, infos, strict=True):
         if c != crss[0]:

@@ -213,3 +213,15 @@ def test_reprojected_mosaic_matches_the_reprojected_single_file(tmp_path):
     assert (va != vb).sum() <= 0.002 * va.sum()  # only the outer hull's chords differ
     diff = np.abs(ha - hb)[both]
     assert diff.max() <= 1 and (diff > 0).mean() < 1e-3, (diff.max(), (diff > 0).mean())
+
+
+def test_sources_with_different_height_scales_are_refused(tmp_path):
+    a = write_dem(tmp_path / "a.tif", fractal((20, 20)), origin=(X0, Y0), cell=CELL)
+    b = write_dem(tmp_path / "b.tif", fractal((20, 20)), origin=(X0 + 19 * CELL, Y0), cell=CELL)
+    with rasterio.open(b, "r+") as ds:
+        ds.units = ("m",)  # metres spelled out: the same as no unit
+    plan_mosaic([a, b])
+    with rasterio.open(b, "r+") as ds:
+        ds.scales = (0.1,)
+    with pytest.raises(SourceError, match="disagree on height scale"):
+        plan_mosaic([a, b])
