@@ -225,3 +225,24 @@ def test_sources_with_different_height_scales_are_refused(tmp_path):
         ds.scales = (0.1,)
     with pytest.raises(SourceError, match="disagree on height scale"):
         plan_mosaic([a, b])
+
+
+def test_a_hundred_tiles_from_a_list_equal_the_single_file(tmp_path):
+    """Many small SRTM-like tiles (shared edges) listed in a file: one store, equal to the
+    single file; a reader never holds more than MAX_OPEN of them open."""
+    from tiler.mosaic import MAX_OPEN
+
+    data = fractal((91, 91), seed=15)
+    spans = [(9 * i, 9 * i + 10) for i in range(10)]
+    pieces = cut(tmp_path, data, spans, spans)
+    assert len(pieces) == 100
+    lst = tmp_path / "tiles.txt"
+    lst.write_text("".join(f"{p.name}\n" for p in reversed(pieces)))
+    whole = write_dem(tmp_path / "whole.tif", data, origin=(X0, Y0), cell=CELL)
+    opts = TileOptions(block_size=33, workers=2, executor="threads")
+    ref = tile(whole, tmp_path / "whole.zarr", opts)
+    got = tile(read_source_list(lst), tmp_path / "list.zarr", opts)
+    assert_same_store(got, ref)
+    with MosaicReader(plan_mosaic(read_source_list(lst))) as reader:
+        np.testing.assert_array_equal(reader.read_window(0, 0, 91, 91), data)
+        assert len(reader._open) <= MAX_OPEN < 100
