@@ -39,7 +39,9 @@ log = logging.getLogger("tiler.tile")
 def block_params(meta: StoreMeta) -> Any:
     """The ``BlockParams`` of a store's metadata."""
     from tiler.tile import BlockParams
+    from tiler.vertical import height_transform
 
+    a, b = height_transform(meta)
     return BlockParams(
         k=meta.k,
         dtype=meta.dtype,
@@ -48,6 +50,8 @@ def block_params(meta: StoreMeta) -> Any:
         precision=meta.precision,
         error_cap=meta.error_cap,
         encoding=meta.encoding,
+        z_scale=a,
+        z_offset=b,
     )
 
 

@@ -73,3 +73,11 @@ class TilingInterrupted(TilerError, KeyboardInterrupt):
 
 class KernelUnavailableError(TilerError, ImportError):
     """The compiled kernels were required (``TERRASTREAM_KERNELS=numba``) but cannot load."""
+
+
+class GeographicStoreError(StoreError, ValueError):
+    """A store whose x/y are degrees (geographic CRS): it cannot be streamed or rendered."""
+
+
+class RemoteStoreError(StoreError, ConnectionError):
+    """A remote store whose server cannot serve what reading a store needs (byte ranges)."""

@@ -1,4 +1,18 @@
-"""Rebuild a GeoTIFF of the whole DEM from a store at any level, block row by block row."""
+"""Rebuild a GeoTIFF or a COG of the whole DEM from a store at any level, block row by block row.
+
+COG overviews are the store's own coarser levels, not a resampling pass: overview ``j`` holds
+level ``L - j``, i.e. every ``2**j``-th sample of the exported level, bit for bit.
+
+Coarse-level georeferencing. A level keeps the *samples* (vertices) at rows and columns
+``0, s, 2s, …`` (``s = 2**(k-L)``). :func:`export_geotiff` at a coarse level writes a transform
+that keeps each kept sample's centre where it was in the source (pixel size ``s`` times
+larger, origin moved by ``-(s-1)/2`` source pixels). Inside a COG, GDAL defines an overview's
+georeferencing itself: the same extent as the full raster with ``s`` times larger pixels, so
+overview pixel ``i`` is centred ``(s-1)/2`` source pixels right of (and below) the sample
+``i*s`` it holds. That is at most half an overview pixel, the usual convention of
+nearest-neighbour overviews (``gdaladdo -r nearest`` picks a sample off-centre too); for exact
+positions at a coarse level use ``export_geotiff(level=L)`` or the xarray backend.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +24,7 @@ import rasterio
 from rasterio.transform import Affine
 from rasterio.windows import Window
 
+from tiler.encoding import decode_grid, dequantise
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
 
@@ -26,8 +41,10 @@ def export_geotiff(
     out: str | os.PathLike,
     level: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    creation: dict | None = None,
 ) -> None:
     """Write the DEM at ``level`` (default finest) to a tiled GeoTIFF; nodata restored.
+    ``creation`` overrides GDAL creation options (e.g. ``{"compress": "zstd"}``).
 
     At the finest level of a lossless store the samples are bit-identical to the source's, with
     the same CRS and transform. Coarser levels keep every ``2**(k-level)``-th sample, so the
@@ -69,6 +86,7 @@ def export_geotiff(
         profile.pop("blockxsize")
         profile.pop("blockysize")
         profile["tiled"] = False
+    profile.update(creation or {})
     grid = store.grid
     bstep = grid.step // step  # block step in output samples
     fill = _fill_value(dtype, nodata)
@@ -77,6 +95,7 @@ def export_geotiff(
     except rasterio.errors.RasterioIOError as exc:
         raise StoreError(f"cannot write {str(out)!r}: {exc}") from exc
     with dst:
+        _write_vertical(dst, store)
         for br in range(grid.rows):
             r0 = br * bstep
             nrows = min(bstep + 1, height - r0)
@@ -86,7 +105,7 @@ def export_geotiff(
                 ncols = min(bstep + 1, width - c0)
                 if not store.index.exists[br, bc]:
                     continue
-                g = store.read_block((br, bc), level)[:nrows, :ncols]
+                g = stored_block(store, (br, bc), level)[:nrows, :ncols]
                 if store.index.has_nodata[br, bc]:
                     valid = store.read_mask((br, bc))[::step, ::step][:nrows, :ncols]
                     g = np.where(valid, g, fill)
@@ -96,7 +115,149 @@ def export_geotiff(
                 progress(br + 1, grid.rows)
 
 
+def stored_block(store: TerrainStore, block: tuple[int, int], level: int) -> np.ndarray:
+    """A block's grid at ``level`` in the source dtype, before any vertical scale/offset (the
+    integers a scaled DEM stores; ``read_block`` gives metres)."""
+    raws = store.read_levels_raw(block, level)
+    values = decode_grid(raws, store.meta.value_dtype, level)
+    if store.meta.precision:
+        return dequantise(values, store.meta.precision, store.dtype)
+    return values.astype(store.dtype, copy=False)
+
+
+def _write_vertical(dst: rasterio.io.DatasetWriter, store: TerrainStore) -> None:
+    """Carry the band's scale/offset and units over, so the export reads as the source did."""
+    v = store.meta.extra.get("vertical")
+    if v:
+        dst.scales = (float(v["scale"]),)
+        dst.offsets = (float(v["offset"]),)
+    if store.meta.vertical_units:
+        dst.units = (store.meta.vertical_units,)
+
+
 def _fill_value(dtype: np.dtype, nodata: float | None):
     if nodata is None:
         return np.zeros((), dtype=dtype)[()]
     return np.asarray(nodata).astype(dtype)[()]
+
+
+COG_BLOCK = 512  # COG tile edge; overviews are added until the level fits one tile
+_GDAL_TYPES = {
+    "uint8": "Byte",
+    "int8": "Int8",
+    "uint16": "UInt16",
+    "int16": "Int16",
+    "uint32": "UInt32",
+    "int32": "Int32",
+    "float32": "Float32",
+    "float64": "Float64",
+}
+
+
+def cog_levels(store: TerrainStore, level: int) -> list[int]:
+    """Store levels a COG of ``level`` holds: ``level`` then coarser ones, down to the first
+    whose raster fits one ``COG_BLOCK`` tile."""
+    out = [level]
+    while out[-1] > 0 and max(export_shape(store, out[-1])[:2]) > COG_BLOCK:
+        out.append(out[-1] - 1)
+    return out
+
+
+def export_cog(
+    store: TerrainStore,
+    out: str | os.PathLike,
+    level: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    tmpdir: str | os.PathLike | None = None,
+) -> list[int]:
+    """Write the DEM at ``level`` (default finest) as a Cloud Optimized GeoTIFF whose overviews
+    are the store's coarser levels (see the module doc); return the levels it holds.
+
+    Each level is first written to a temporary tiled GeoTIFF (in ``tmpdir``, by default beside
+    ``out``; about 1.33x the output's raw size), then GDAL's COG driver assembles them.
+    """
+    import tempfile
+    from xml.sax.saxutils import escape
+
+    import rasterio.shutil
+
+    k = store.k
+    level = k if level is None else int(level)
+    if not 0 <= level <= k:
+        raise StoreError(f"--level must be in 0..{k} for this store, got {level}")
+    levels = cog_levels(store, level)
+    total = sum(store.grid.rows for _ in levels)
+    done = 0
+
+    def step_progress(i: int, n: int) -> None:
+        if progress:
+            progress(done + i, total)
+
+    where = tmpdir or os.path.dirname(os.path.abspath(out))
+    try:
+        tmp = tempfile.TemporaryDirectory(prefix=".terrastream-cog-", dir=where)
+    except OSError as exc:
+        raise StoreError(f"cannot write temporary files in {str(where)!r}: {exc}") from exc
+    with tmp as d:
+        paths = []
+        fast = {"compress": "zstd", "zstd_level": 1, "predictor": 1}
+        for lv in levels:
+            path = os.path.join(d, f"level_{lv}.tif")
+            export_geotiff(store, path, lv, step_progress, creation=fast)
+            done += store.grid.rows
+            paths.append(path)
+        with rasterio.open(paths[0]) as full:
+            width, height = full.width, full.height
+            nodata = full.nodata
+            gt = full.transform.to_gdal()
+            crs_wkt = full.crs.to_wkt() if full.crs else None
+        dtype = np.dtype(store.meta.dtype)
+        band = [f'<VRTRasterBand dataType="{_GDAL_TYPES[dtype.name]}" band="1">']
+        if nodata is not None:
+            band.append(f"<NoDataValue>{_xml_number(nodata)}</NoDataValue>")
+        v = store.meta.extra.get("vertical")
+        if v:
+            band.append(
+                f"<Offset>{float(v['offset'])!r}</Offset><Scale>{float(v['scale'])!r}</Scale>"
+            )
+        if store.meta.vertical_units:
+            band.append(f"<UnitType>{escape(store.meta.vertical_units)}</UnitType>")
+        band.append(
+            f"<SimpleSource><SourceFilename>{escape(paths[0])}</SourceFilename>"
+            f"<SourceBand>1</SourceBand>"
+            f'<SrcRect xOff="0" yOff="0" xSize="{width}" ySize="{height}"/>'
+            f'<DstRect xOff="0" yOff="0" xSize="{width}" ySize="{height}"/></SimpleSource>'
+        )
+        for p in paths[1:]:
+            band.append(
+                f"<Overview><SourceFilename>{escape(p)}</SourceFilename>"
+                "<SourceBand>1</SourceBand></Overview>"
+            )
+        band.append("</VRTRasterBand>")
+        xml = [f'<VRTDataset rasterXSize="{width}" rasterYSize="{height}">']
+        if crs_wkt:
+            xml.append(f"<SRS>{escape(crs_wkt)}</SRS>")
+        xml.append(f"<GeoTransform>{', '.join(repr(float(x)) for x in gt)}</GeoTransform>")
+        xml += band
+        xml.append("</VRTDataset>")
+        vrt = os.path.join(d, "cog.vrt")
+        with open(vrt, "w", encoding="utf-8") as f:
+            f.write("\n".join(xml))
+        try:
+            rasterio.shutil.copy(
+                vrt,
+                str(out),
+                driver="COG",
+                BLOCKSIZE=COG_BLOCK,
+                COMPRESS="DEFLATE",
+                PREDICTOR="YES",
+                OVERVIEWS="FORCE_USE_EXISTING",
+                BIGTIFF="IF_SAFER",
+            )
+        except rasterio.errors.RasterioError as exc:
+            raise StoreError(f"cannot write the COG {str(out)!r}: {exc}") from exc
+    return levels
+
+
+def _xml_number(v: float) -> str:
+    return "nan" if np.isnan(v) else repr(float(v))

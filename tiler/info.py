@@ -7,8 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from tiler.crs import crs_name, is_geographic
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
+from tiler.vertical import height_transform
 
 
 def store_info(url: str | os.PathLike) -> dict[str, Any]:
@@ -27,6 +29,9 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         epsg = c.to_epsg()
         crs = f"EPSG:{epsg}" if epsg else c.to_string()[:80]
     vr = m.extra.get("value_range", [float("nan"), float("nan")])
+    vertical = m.extra.get("vertical")
+    a, b = height_transform(m)
+    stored_range = sorted([(vr[0] - b) / a, (vr[1] - b) / a]) if vertical else None
     return {
         "url": s.url,
         "format_version": m.format_version,
@@ -54,6 +59,15 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         "extent": list(s.grid.extent),
         "value_range": vr,
         "vertical_units": m.vertical_units,
+        # heights: value_range is in metres; the stored values are (metres - offset) / scale
+        "vertical": vertical,  # {"scale", "offset", "units", "metres_per_unit"} or None
+        "value_range_stored": stored_range,
+        "source_crs": crs_name(m.extra.get("source_crs_wkt"))
+        if m.extra.get("source_crs_wkt")
+        else crs,
+        "reprojection": m.extra.get("reprojection"),  # {"requested", "crs", ...} or None
+        "crs_geographic": is_geographic(m.crs_wkt),
+        "sources": m.extra.get("mosaic", {}).get("count", 1),
         "bytes_per_level": [
             {"level": i, "values_per_block": level_size(i), "bytes": b}
             for i, b in enumerate(per_level)

@@ -14,11 +14,11 @@ again), ``"tiling"`` (resumable), ``"finishing"`` (journal consumed: a rerun onl
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+import os
+from dataclasses import astuple, dataclass, replace
 from typing import Any
 
 import numpy as np
-import rasterio
 import zarr
 from rasterio.windows import Window
 
@@ -124,15 +124,20 @@ def done_blocks(arr: zarr.Array) -> np.ndarray:
     return out
 
 
-def source_fingerprint(ds: rasterio.DatasetReader, band: int) -> str:
+def source_fingerprint(ds: Any, band: int) -> str:
     """blake2b-128 of the source's shape, dtype, georeferencing, nodata and three sample windows.
 
     Cheap (three reads of at most 256x256) yet it tells two different DEMs of the same size
     apart; the per-block digests of the finished store cover every sample.
     """
     h = hashlib.blake2b(digest_size=16)
-    h.update(repr((ds.height, ds.width, ds.dtypes[band - 1], tuple(ds.transform)[:6])).encode())
-    h.update(repr((ds.crs.to_wkt() if ds.crs else None, ds.nodatavals[band - 1])).encode())
+    spec = getattr(ds, "spec", None)  # a tiler.mosaic.MosaicReader: every source and the warp
+    if spec is not None:
+        parts = [(os.path.basename(s.path), *astuple(s)[1:]) for s in spec.sources]
+        h.update(repr((astuple(replace(spec, sources=())), parts)).encode())
+    else:
+        h.update(repr((ds.height, ds.width, ds.dtypes[band - 1], tuple(ds.transform)[:6])).encode())
+        h.update(repr((ds.crs.to_wkt() if ds.crs else None, ds.nodatavals[band - 1])).encode())
     n = 256
     for r, c in ((0, 0), (ds.height // 2, ds.width // 2), (ds.height - 1, ds.width - 1)):
         r0, c0 = max(0, min(r, ds.height - n)), max(0, min(c, ds.width - n))

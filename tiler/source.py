@@ -1,94 +1,183 @@
-"""Source reading for the tiler: open a raster, derive the store metadata, read block windows."""
+"""Source reading for the tiler: plan the sources, derive the store metadata, read block windows.
+
+A source is one raster or many (a mosaic, see :mod:`tiler.mosaic`), optionally reprojected to
+a target CRS while it is read. :func:`plan_source` turns what the user gave into a picklable
+:class:`~tiler.mosaic.MosaicSpec` that every worker re-opens with :func:`_open_source`.
+"""
 
 from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 import rasterio
-import rasterio.errors
 from rasterio.windows import Window
 
 from tiler import static_error
-from tiler.encoding import encoding_for, parse_dtype, storage_dtype_for
-from tiler.errors import SourceError, SourceNotFoundError
+from tiler.crs import crs_name, is_geographic
+from tiler.encoding import encoding_for, storage_dtype_for
+from tiler.errors import SourceError
 from tiler.grid import BlockGrid
-from tiler.store import StoreMeta, is_url, tool_version
+from tiler.mosaic import MosaicReader, MosaicSpec, plan_mosaic
+from tiler.store import StoreMeta, tool_version
+from tiler.vertical import vertical_meta
 
 if TYPE_CHECKING:
     from tiler.tile import TileOptions
 
 log = logging.getLogger("tiler.tile")
 
+SourceLike = str | os.PathLike | Sequence[str | os.PathLike] | MosaicSpec
 
-def _open_source(src: str | os.PathLike, band: int) -> rasterio.DatasetReader:
-    path = str(src)
-    if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
-        raise SourceNotFoundError(f"source raster {path!r} does not exist")
+
+def read_source_list(path: str | os.PathLike) -> list[str]:
+    """Paths listed one per line in a text file (blank lines and ``#`` comments skipped).
+
+    Relative paths are taken relative to the list file's folder.
+    """
+    path = str(path)
     try:
-        ds = rasterio.open(path)
-    except rasterio.errors.RasterioIOError as exc:
-        raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
-    if band > ds.count:
-        ds.close()
-        raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
-    return ds
+        with open(path, encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    except OSError as exc:
+        raise SourceError(f"cannot read the source list {path!r}: {exc}") from exc
+    base = os.path.dirname(os.path.abspath(path))
+    out = []
+    for line in lines:
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        out.append(s if "://" in s or s.startswith("/") else os.path.join(base, s))
+    if not out:
+        raise SourceError(f"the source list {path!r} names no rasters")
+    return out
 
 
-def _source_meta(ds: rasterio.DatasetReader, src: str, opts: TileOptions) -> StoreMeta:
-    if ds.height < 2 or ds.width < 2:
-        raise SourceError(
-            f"{src!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2 to be tiled"
-        )
-    dtype = parse_dtype(ds.dtypes[opts.band - 1])
+def plan_source(src: SourceLike, opts: TileOptions) -> MosaicSpec:
+    """The picklable plan of the source(s) for ``opts`` (target CRS, resolution, resampling)."""
+    if isinstance(src, MosaicSpec):
+        return src
+    paths = [str(src)] if isinstance(src, str | os.PathLike) else [str(p) for p in src]
+    return plan_mosaic(
+        paths,
+        band=opts.band,
+        dst_crs=opts.dst_crs,
+        resolution=opts.resolution,
+        resampling=opts.resampling,
+    )
+
+
+def _open_source(src: SourceLike, band: int) -> MosaicReader:
+    """A window reader over the planned source(s); close it (or use ``with``) when done."""
+    if not isinstance(src, MosaicSpec):
+        paths = [str(src)] if isinstance(src, str | os.PathLike) else [str(p) for p in src]
+        src = plan_mosaic(paths, band=band)
+    return MosaicReader(src)
+
+
+def source_label(spec: MosaicSpec) -> dict:
+    """The ``source`` entry of the store metadata: name, path(s), total size."""
+    first = spec.sources[0]
+    n = len(spec.sources)
+    sizes = [s.size_bytes for s in spec.sources]
+    out = {
+        "name": os.path.basename(first.path.rstrip("/")) + (f" + {n - 1} more" if n > 1 else ""),
+        "path": first.path,
+        "size_bytes": None if None in sizes else sum(sizes),
+    }
+    if n > 1:
+        out["paths"] = [s.path for s in spec.sources]
+    return out
+
+
+def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreMeta:
+    spec = ds.spec
+    label = source_label(spec)["name"]
+    dtype = np.dtype(spec.dtype)
     if opts.precision and dtype.kind != "f":
         raise SourceError(
-            f"--precision applies to float DEMs; {src!r} is {dtype.name}, which is stored "
+            f"--precision applies to float DEMs; {label!r} is {dtype.name}, which is stored "
             "losslessly already. Drop --precision."
         )
     value = np.dtype(np.int32) if opts.precision else dtype
     storage = storage_dtype_for(value)
-    nodata = ds.nodatavals[opts.band - 1]
     k = opts.k
     cap = static_error.default_cap(k) if opts.error_cap is None else opts.error_cap
     if not 0 <= cap <= max(0, k - 1):
         raise SourceError(f"error cap must be in 0..{k - 1} for k={k}, got {cap}")
-    t = ds.transform
-    if ds.crs is not None and ds.crs.is_geographic:
+    if is_geographic(spec.crs_wkt):
         log.warning(
-            "%s is in a geographic CRS: x and y are degrees while heights are metres, so "
-            "streaming and rendering see a squashed DEM; reproject it to a projected CRS "
-            "(e.g. gdalwarp -t_srs EPSG:32618) before tiling for those",
-            src,
+            "%s is in a geographic CRS (%s): x and y are degrees while heights are metres; the "
+            "store is lossless but cannot be streamed or rendered. Reproject while tiling with "
+            "a target CRS ('auto' picks the UTM zone) for those.",
+            label,
+            crs_name(spec.crs_wkt),
         )
-    if abs(t.b) > 1e-12 * abs(t.a) or abs(t.d) > 1e-12 * abs(t.e):
-        raise SourceError(f"{src!r} has a rotated geotransform {tuple(t)[:6]}; warp it north-up")
-    units = ds.units[opts.band - 1] if ds.units else None
-    size = os.path.getsize(src) if not is_url(src) and os.path.isfile(src) else None
+    first = spec.sources[0]
+    extra: dict = {"source_crs_wkt": spec.source_crs_wkt}
+    if spec.warp:
+        extra["reprojection"] = {
+            "requested": "auto" if spec.dst_crs == "auto" else crs_name(spec.dst_crs),
+            "crs": crs_name(spec.crs_wkt),
+            "resampling": spec.resampling,
+            "resolution": [spec.transform[0], -spec.transform[4]],
+        }
+    vertical = vertical_meta(first.scale, first.offset, first.units)
+    if vertical:
+        if opts.precision:
+            raise SourceError(
+                f"--precision with a band scale/offset or vertical units other than metres "
+                f"({vertical}) is not supported for {label!r}; drop --precision (the heights "
+                "are then stored losslessly)"
+            )
+        extra["vertical"] = vertical
+    if len(spec.sources) > 1:
+        extra["mosaic"] = {"count": len(spec.sources), "overlap_rule": "first-valid"}
     return StoreMeta(
         format_version=1,
         k=k,
-        height=ds.height,
-        width=ds.width,
+        height=spec.height,
+        width=spec.width,
         dtype=dtype.name,
         storage_dtype=storage.name,
         encoding=encoding_for(value),
         precision=opts.precision,
-        nodata=None if nodata is None else float(nodata),
-        crs_wkt=ds.crs.to_wkt() if ds.crs else None,
-        geotransform=(t.a, t.b, t.c, t.d, t.e, t.f),
-        vertical_units=units or None,
-        source={"name": os.path.basename(src.rstrip("/")), "path": src, "size_bytes": size},
+        nodata=spec.nodata,
+        crs_wkt=spec.crs_wkt,
+        geotransform=spec.transform,
+        vertical_units=first.units,
+        source=source_label(spec),
         tool_version=tool_version(),
         error_cap=cap,
         error_fields=static_error.FIELDS,
         compressor={"name": "blosc-zstd-shuffle", "level": opts.compression_level},
+        extra=extra,
     )
 
 
-def read_window(ds: rasterio.DatasetReader, band: int, grid: BlockGrid, br: int, bc: int):
+def read_window(
+    ds: MosaicReader | rasterio.DatasetReader, band: int, grid: BlockGrid, br: int, bc: int
+) -> np.ndarray:
     """The source samples of block ``(br, bc)`` that lie inside the DEM."""
     r0, c0, h, w = grid.block_window(br, bc)
     return ds.read(band, window=Window(c0, r0, w, h))
+
+
+def check_source_options(opts: TileOptions) -> None:
+    """Validate the source options of ``TileOptions`` (target CRS, resampling, resolution)."""
+    from tiler.crs import parse_dst_crs, parse_resampling
+
+    if opts.dst_crs is not None:
+        parse_dst_crs(opts.dst_crs)
+    parse_resampling(opts.resampling)
+    if opts.resolution is not None:
+        if opts.dst_crs is None:
+            raise SourceError(
+                f"a resolution ({opts.resolution}) applies when reprojecting; give a target CRS"
+            )
+        r = opts.resolution
+        if not (isinstance(r, int | float) and np.isfinite(r) and r > 0):
+            raise SourceError(f"resolution must be a positive number of target units, got {r}")

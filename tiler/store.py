@@ -57,6 +57,7 @@ from tiler.schema import (
     index_chunk,
     level_fill,
 )
+from tiler.vertical import from_metres, to_metres
 
 __all__ = [
     "ATTR",
@@ -410,12 +411,15 @@ class TerrainStore:
         return out
 
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
-        """Decode the next level from its raw values and the decoded levels ``0..L-1``."""
+        """Decode the next level from its raw values and the decoded levels ``0..L-1``
+        (metres of a scaled store are taken back to its stored values first)."""
+        levels = [from_metres(self.meta, v, self._value_dtype) for v in levels]  # tiler.vertical
         return self.codec.decode_next(levels, raw)
 
     def to_heights(self, values: np.ndarray) -> np.ndarray:
-        """Convert decoded storage values to the source dtype (dequantises ``--precision``)."""
-        return self.codec.to_heights(values)
+        """Convert decoded storage values to the source dtype (dequantises ``--precision``);
+        to float64 metres when the store records a band scale/offset or non-metre units."""
+        return to_metres(self.meta, self.codec.to_heights(values))  # identity for plain metres
 
     def read_levels(self, block: tuple[int, int], max_level: int) -> list[np.ndarray]:
         """Decoded heights of levels ``0..max_level`` of a block (sequence order, source dtype)."""
@@ -478,4 +482,7 @@ def open_store(
     loc = as_location(url)
     if loc.is_local and not os.path.exists(loc.path):
         raise StoreError(f"no store at {loc.url!r}: the path does not exist")
+    from tiler.remote import check_range_support
+
+    check_range_support(loc.url)  # HTTP servers must serve byte ranges
     return TerrainStore(loc, allow_incomplete=allow_incomplete)

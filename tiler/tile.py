@@ -36,9 +36,17 @@ from tiler.errors import (
 from tiler.layout import grid_side, parse_block_size
 from tiler.lease import DEFAULT_TIMEOUT_S, LEASE_KEY, WriterLease
 from tiler.location import Location, as_location
+from tiler.mosaic import MosaicReader, MosaicSpec
 from tiler.resume import check_same_job, create_journal, job_identity, source_fingerprint
 from tiler.schema import ATTR, FORMAT_VERSION, create_layout
-from tiler.source import _open_source, _source_meta, read_window
+from tiler.source import (
+    SourceLike,
+    _open_source,
+    _source_meta,
+    check_source_options,
+    plan_source,
+    read_window,
+)
 from tiler.store import StoreMeta, TerrainStore, read_meta, write_meta
 
 __all__ = [
@@ -75,6 +83,10 @@ class TileOptions:
     executor: str = "auto"  # "threads", "processes" or "auto" (processes for big local jobs)
     repair: bool = False
     lease_timeout_s: float = DEFAULT_TIMEOUT_S
+    # sources (tiler.source): reproject to this CRS while reading ("auto", "EPSG:...", WKT)
+    dst_crs: str | None = None
+    resampling: str = "bilinear"
+    resolution: float | None = None  # target pixel size, target CRS units (with dst_crs)
 
     def __post_init__(self) -> None:
         parse_block_size(self.block_size)
@@ -96,6 +108,7 @@ class TileOptions:
             raise SourceError(f"lease timeout must be > 0 seconds, got {self.lease_timeout_s}")
         if self.repair and self.overwrite:
             raise SourceError("repair and overwrite exclude each other: repair keeps the store")
+        check_source_options(self)
 
     @property
     def k(self) -> int:
@@ -119,6 +132,8 @@ class BlockParams:
     precision: float | None
     error_cap: int
     encoding: str = ""  # level codec name ("" = the default for the value dtype)
+    z_scale: float = 1.0  # metres = value * z_scale + z_offset (tiler.vertical)
+    z_offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -203,6 +218,9 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     if exists:
         vals = grid[valid]
         zmin, zmax = float(vals.min()), float(vals.max())
+        if (params.z_scale, params.z_offset) != (1.0, 0.0):  # heights in metres (tiler.vertical)
+            a, b = params.z_scale, params.z_offset
+            zmin, zmax = sorted((zmin * a + b, zmax * a + b))
     else:
         zmin = zmax = float("nan")
     if params.precision:
@@ -211,6 +229,8 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     codec = codecs.get(params.encoding) if params.encoding else codecs.for_dtype(grid.dtype)
     levels = codec.encode(grid, k)
     err_grid = grid.astype(np.float64) * params.precision if params.precision else grid
+    if params.z_scale != 1.0:  # errors in metres (tiler.vertical)
+        err_grid = err_grid.astype(np.float64) * abs(params.z_scale)
     errors = static_error.block_errors(err_grid, valid, k, params.error_cap)
     return BlockResult(
         levels=levels,
@@ -231,30 +251,31 @@ def needed_k(height: int, width: int) -> int:
 
 
 def tile(
-    src: str | os.PathLike,
+    src: SourceLike,
     dst: str | os.PathLike | Location | zarr.abc.store.Store,
     options: TileOptions | None = None,
     progress: Callable[[TileProgress], None] | None = None,
 ) -> TerrainStore:
-    """Tile ``src`` (anything rasterio opens) into a zarr v3 store at ``dst``; return it opened.
+    """Tile ``src`` (anything rasterio opens, or a sequence of them forming one mosaic, see
+    :mod:`tiler.mosaic`) into a zarr v3 store at ``dst``, reprojected if ``options.dst_crs``.
 
     ``dst`` is a local path, an fsspec URL or a zarr Store. A Ctrl-C raises
     :class:`TilingInterrupted` (a ``KeyboardInterrupt``) and leaves a resumable store.
     """
     opts = options or TileOptions()
-    src = str(src)
+    label = str(src) if isinstance(src, str | os.PathLike) else "the mosaic"
     loc = as_location(dst)
     # GDAL sizes its block cache once, on first use: this caps it for a fresh process (the
     # CLI's run, the worker processes); the option is restored afterwards.
     previous = rasterio.env.get_gdal_config("GDAL_CACHEMAX")
     rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(opts.gdal_cache_mb))
     try:
-        return _tile(src, loc, opts, progress)
+        return _tile(plan_source(src, opts), loc, opts, progress)  # tiler.source plans the mosaic
     except KeyboardInterrupt as exc:
         if isinstance(exc, TilingInterrupted):
             raise
         raise TilingInterrupted(
-            f"tiling {src!r} into {loc.url!r} was interrupted; the store is kept unfinished: "
+            f"tiling {label!r} into {loc.url!r} was interrupted; the store is kept unfinished: "
             "run the same tile() call again to resume"
         ) from exc
     finally:
@@ -264,7 +285,7 @@ def tile(
             rasterio.env.set_gdal_config("GDAL_CACHEMAX", previous)
 
 
-def _clamp_block_size(ds: rasterio.DatasetReader, opts: TileOptions, notes: list[str]):
+def _clamp_block_size(ds: MosaicReader, opts: TileOptions, notes: list[str]):
     k = needed_k(ds.height, ds.width)
     if opts.k <= k:
         return opts
@@ -279,7 +300,10 @@ def _clamp_block_size(ds: rasterio.DatasetReader, opts: TileOptions, notes: list
 
 
 def _tile(
-    src: str, loc: Location, opts: TileOptions, progress: Callable[[TileProgress], None] | None
+    src: MosaicSpec,
+    loc: Location,
+    opts: TileOptions,
+    progress: Callable[[TileProgress], None] | None,
 ) -> TerrainStore:
     summary = TileSummary()
     with _open_source(src, opts.band) as ds:
@@ -288,7 +312,7 @@ def _tile(
         fingerprint = source_fingerprint(ds, opts.band)
     meta = replace(meta, format_version=FORMAT_VERSION)
     job = job_identity(fingerprint, opts, meta)
-    meta = replace(meta, extra={"generation": uuid.uuid4().hex, "job": job})
+    meta = replace(meta, extra={**meta.extra, "generation": uuid.uuid4().hex, "job": job})
     summary.block_size = meta.block_size
     bad_parent = loc.parent_writable()
     if bad_parent is not None and not loc.exists():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -9,6 +10,13 @@ import typer
 
 from cli.checks import open_store_arg, output_file
 from cli.common import UsageError, fail_on_errors
+
+
+class ExportFormat(StrEnum):
+    """Output formats of ``export``."""
+
+    cog = "cog"
+    gtiff = "gtiff"
 
 
 def export(
@@ -20,12 +28,21 @@ def export(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
     ] = False,
+    fmt: Annotated[
+        ExportFormat | None,
+        typer.Option(
+            "--format",
+            help="cog: Cloud Optimized GeoTIFF, overviews from the store's coarser levels "
+            "(default for .tif/.tiff); gtiff: a plain tiled GeoTIFF.",
+        ),
+    ] = None,
 ) -> None:
     """Rebuild a GeoTIFF of the whole DEM from a store (bit-identical when lossless).
 
     Example: terrastream export n44.zarr n44.tif --level 8
+    (a COG whose overviews are levels 7, 6, ...; --format gtiff for a plain GeoTIFF)
     """
-    from tiler.export import export_geotiff
+    from tiler.export import export_cog, export_geotiff
 
     with fail_on_errors():
         output_file(out, "OUT", overwrite=overwrite)
@@ -34,8 +51,19 @@ def export(
             raise UsageError(
                 f"--level must be in 0..{s.k} for this store, got {level}", hint="--level"
             )
-        export_geotiff(s, out, level)
-        typer.echo(f"wrote {out} (level {s.k if level is None else level} of {s.k})")
+        if fmt is None:
+            fmt = (
+                ExportFormat.cog if out.suffix.lower() in (".tif", ".tiff") else ExportFormat.gtiff
+            )
+        if fmt is ExportFormat.cog:
+            levels = export_cog(s, out, level)
+            typer.echo(
+                f"wrote {out}: COG of level {levels[0]} of {s.k}, overviews = levels "
+                f"{', '.join(map(str, levels[1:])) or 'none'}"
+            )
+        else:
+            export_geotiff(s, out, level)
+            typer.echo(f"wrote {out} (level {s.k if level is None else level} of {s.k})")
 
 
 def register(app: typer.Typer) -> None:

@@ -1,0 +1,181 @@
+"""Geographic DEMs: choosing a metric CRS, reprojecting while tiling, refusing degree stores."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+from conftest import shared_file, write_dem
+from rasterio.crs import CRS
+
+from tiler.accuracy import resampling_error
+from tiler.crs import (
+    auto_crs,
+    crs_name,
+    parse_dst_crs,
+    parse_resampling,
+    require_projected,
+    utm_epsg,
+)
+from tiler.errors import GeographicStoreError, SourceError, StoreError
+from tiler.tile import TileOptions, tile
+
+
+@pytest.mark.parametrize(
+    ("lon", "lat", "epsg"),
+    [
+        (-71.5, 44.5, 32619),  # N44W072 (White Mountains): zone 19, not 18
+        (11.5, 49.5, 32632),  # N49E011: zone 32
+        (-70.6, -33.4, 32719),  # Santiago: south
+        (-180.0, 10.0, 32601),
+        (179.99, 10.0, 32660),
+        (0.0, 0.0, 32631),
+    ],
+    ids=["N44W072", "N49E011", "south", "west-edge", "east-edge", "origin"],
+)
+def test_utm_zone_of_a_point(lon, lat, epsg):
+    assert utm_epsg(lon, lat) == epsg
+
+
+@pytest.mark.parametrize(
+    ("bounds", "expect"),
+    [
+        ((-72.0, 44.0, -71.0, 45.0), "EPSG:32619"),
+        ((11.0, 49.0, 12.0, 50.0), "EPSG:32632"),
+        ((-73.0, 44.0, -71.0, 45.0), "EPSG:32619"),  # 1 degree into zone 18: still fits
+        ((-10.0, 35.0, 30.0, 60.0), "aeqd"),  # Europe: no single zone
+        ((10.0, 84.5, 20.0, 86.0), "aeqd"),  # beyond UTM's latitudes
+    ],
+    ids=["N44W072", "N49E011", "margin", "continent", "polar"],
+)
+def test_auto_crs_utm_when_the_extent_fits_a_zone(bounds, expect):
+    crs = auto_crs(bounds)
+    if expect.startswith("EPSG"):
+        assert crs == CRS.from_string(expect)
+    else:
+        proj = crs.to_proj4()
+        assert "+proj=aeqd" in proj
+        lon_c = (bounds[0] + bounds[2]) / 2
+        assert f"+lon_0={lon_c:g}" in proj.replace(".000000", "")
+
+
+def test_parse_dst_crs_and_resampling():
+    assert parse_dst_crs("auto") == "auto" and parse_dst_crs(" AUTO ") == "auto"
+    assert CRS.from_wkt(parse_dst_crs("EPSG:32619")).to_epsg() == 32619
+    with pytest.raises(SourceError, match="'EPSG:999999' is not understood"):
+        parse_dst_crs("EPSG:999999")
+    with pytest.raises(SourceError, match="is geographic"):
+        parse_dst_crs("EPSG:4326")
+    assert parse_resampling("Cubic") == "cubic"
+    with pytest.raises(SourceError, match="'sinc' is not one of"):
+        parse_resampling("sinc")
+    with pytest.raises(SourceError, match="applies when reprojecting"):
+        TileOptions(resolution=30.0)
+    with pytest.raises(SourceError, match="not understood"):
+        TileOptions(dst_crs="nonsense")
+
+
+LON0, LAT0, CELL_DEG = -71.9, 44.9, 1.0 / 120.0
+
+
+def smooth_geographic(tmp_path, name="geo.tif", shift_px=0, n=121):
+    """A smooth float surface on a 30-arcsecond geographic grid (analytic, so resampling
+    error is interpolation error only)."""
+    rows, cols = np.mgrid[0:n, 0:n].astype(np.float64)
+    lon = LON0 + (cols + 0.5) * CELL_DEG
+    lat = LAT0 - (rows + 0.5) * CELL_DEG
+    z = 500 + 200 * np.sin(2 * np.pi * lon / 0.5) * np.cos(2 * np.pi * lat / 0.4)
+    return write_dem(
+        tmp_path / name,
+        z.astype(np.float32),
+        crs="EPSG:4326",
+        origin=(LON0 + shift_px * CELL_DEG, LAT0),
+        cell=CELL_DEG,
+    )
+
+
+def test_geographic_store_tiles_losslessly_but_is_refused(tmp_path):
+    src = smooth_geographic(tmp_path)
+    store = tile(src, tmp_path / "deg.zarr", TileOptions(block_size=33))
+    with rasterio.open(src) as ds:
+        np.testing.assert_array_equal(store.read_block((0, 0))[:33, :33], ds.read(1)[:33, :33])
+    with pytest.raises(GeographicStoreError) as e:
+        require_projected(store)
+    msg = str(e.value)
+    assert isinstance(e.value, StoreError) and isinstance(e.value, ValueError)
+    assert "EPSG:4326" in msg and "deg.zarr" in msg
+    assert f"terrastream tile {src} DST --dst-crs auto" in msg
+    with pytest.raises(GeographicStoreError):
+        require_projected(store.meta)  # the metadata alone is enough
+
+
+def test_projected_store_is_accepted(tmp_path):
+    src = write_dem(tmp_path / "utm.tif", np.zeros((20, 20), np.int16) + 7)
+    require_projected(tile(src, tmp_path / "utm.zarr", TileOptions(block_size=17)))
+
+
+def test_auto_reprojection_picks_utm_and_is_accurate(tmp_path):
+    src = smooth_geographic(tmp_path)
+    store = tile(src, tmp_path / "utm.zarr", TileOptions(block_size=65, dst_crs="auto"))
+    assert crs_name(store.meta.crs_wkt) == "EPSG:32619"
+    assert CRS.from_wkt(store.meta.extra["source_crs_wkt"]).to_epsg() == 4326
+    rep = store.meta.extra["reprojection"]
+    assert rep["requested"] == "auto" and rep["resampling"] == "bilinear"
+    dx, dy = rep["resolution"]
+    assert dx == dy and 600 < dx < 700  # the finer side of a 30" pixel at 44.4 N (~660 m)
+    require_projected(store)  # now streamable
+    err = resampling_error(store, src)
+    assert err["n"] > 0.95 * 121 * 121
+    # bilinear there and back on a 60-pixel wavelength: interpolation error only
+    assert err["max"] < 2.0 and err["rms"] < 0.6, err  # measured: 1.39 and 0.51
+    # positive control: the same surface one pixel off is measured as far off
+    shifted = smooth_geographic(tmp_path, "shifted.tif", shift_px=1)
+    assert resampling_error(store, shifted)["max"] > 10 * err["max"]
+
+
+def test_explicit_crs_resolution_and_resampling(tmp_path):
+    src = smooth_geographic(tmp_path, n=61)
+    opts = TileOptions(block_size=33, dst_crs="EPSG:32618", resolution=1000.0, resampling="cubic")
+    store = tile(src, tmp_path / "z18.zarr", opts)
+    assert crs_name(store.meta.crs_wkt) == "EPSG:32618"
+    a, _, c, _, e, f = store.meta.geotransform
+    assert (a, e) == (1000.0, -1000.0) and c % 1000 == 0 and f % 1000 == 0  # snapped grid
+    assert store.meta.extra["reprojection"]["resampling"] == "cubic"
+
+
+@pytest.mark.shared_data
+def test_srtm_auto_is_zone_19_and_close_to_the_source(tmp_path):
+    src = shared_file("N44W072.hgt")
+    store = tile(src, tmp_path / "n44.zarr", TileOptions(block_size=257, dst_crs="auto"))
+    assert crs_name(store.meta.crs_wkt) == "EPSG:32619"
+    err = resampling_error(store, src, stride=3)
+    # measured (see notes): rms 1.47 m, p99 5.2 m, max 31 m on this rough 3" tile
+    assert err["rms"] < 2.5 and err["p99"] < 8.0, err
+
+
+def test_south_up_source_is_refused_unless_reprojected(tmp_path):
+    from rasterio.transform import Affine
+
+    data = np.arange(20 * 30, dtype=np.int16).reshape(20, 30)
+    path = tmp_path / "south_up.tif"
+    x0, y0 = 499980.0, 4999980.0  # on the 30 m grid the target snaps to
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=30,
+        height=20,
+        count=1,
+        dtype="int16",
+        crs="EPSG:32633",
+        transform=Affine(30.0, 0.0, x0, 0.0, 30.0, y0),
+    ) as dst:
+        dst.write(data, 1)
+    with pytest.raises(SourceError, match="south-up"):
+        tile(path, tmp_path / "a.zarr", TileOptions(block_size=17))
+    opts = TileOptions(block_size=33, dst_crs="EPSG:32633", resampling="nearest", resolution=30.0)
+    s = tile(path, tmp_path / "b.zarr", opts)
+    assert (s.meta.height, s.meta.width) == (20, 30)
+    assert s.meta.geotransform == (30.0, 0.0, x0, 0.0, -30.0, y0 + 600.0)
+    np.testing.assert_array_equal(s.read_block((0, 0))[:20, :30], data[::-1])
+    assert s.read_mask((0, 0))[:20, :30].all()  # edge samples on the hull are kept

@@ -1,0 +1,89 @@
+"""COG export: valid per rio-cogeo, overviews are the store's own levels, georeferencing known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+from conftest import fractal, shared_file, write_dem
+from rio_cogeo.cogeo import cog_validate
+from typer.testing import CliRunner
+
+from cli.main import app
+from tiler.export import cog_levels, export_cog, export_geotiff
+from tiler.tile import TileOptions, tile
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cog")
+    data = fractal((1300, 1100), seed=12)
+    data[100:140, 200:260] = -32768
+    src = write_dem(d / "dem.tif", data, nodata=-32768)
+    return tile(src, d / "dem.zarr", TileOptions(block_size=257, workers=2)), src, d
+
+
+def test_cog_is_valid_and_lossless(store, tmp_path):
+    s, src, _ = store
+    out = tmp_path / "dem_cog.tif"
+    levels = export_cog(s, out)
+    assert levels == [8, 7, 6]  # 1300 -> 650 -> 325: stops once a level fits a 512 tile
+    valid, errors, warnings = cog_validate(str(out), strict=True)  # warnings count as errors
+    assert valid and not errors and not warnings, (errors, warnings)
+    with rasterio.open(src) as a, rasterio.open(out) as b:
+        np.testing.assert_array_equal(b.read(1), a.read(1))
+        assert b.transform == a.transform and b.crs == a.crs and b.nodata == a.nodata
+        assert b.overviews(1) == [2, 4]
+
+
+def test_overviews_are_the_store_levels_not_resampled(store, tmp_path):
+    s, src, _ = store
+    out = tmp_path / "dem_cog.tif"
+    export_cog(s, out)
+    with rasterio.open(src) as a:
+        full = a.read(1)
+    for j, lv in enumerate(cog_levels(s, s.k)[1:]):
+        step = 1 << (s.k - lv)
+        with rasterio.open(out, overview_level=j) as ov:
+            got = ov.read(1)
+        # bit for bit every step-th source sample: no averaging, no shift in the samples
+        np.testing.assert_array_equal(got, full[::step, ::step])
+        export_geotiff(s, tmp_path / f"l{lv}.tif", lv, creation={"compress": "none"})
+        with rasterio.open(tmp_path / f"l{lv}.tif") as lvl, rasterio.open(out) as cog:
+            np.testing.assert_array_equal(lvl.read(1), got)
+            # georeferencing: the level export keeps sample centres; GDAL's overview grid
+            # puts pixel i (step-1)/2 source pixels further right/down (documented)
+            t_level = lvl.transform
+            ov_x0 = cog.transform.c  # an overview shares the full raster's corner...
+            assert t_level.c == pytest.approx(ov_x0 - (step - 1) / 2 * cog.transform.a)
+            x_sample, _ = cog.transform * (0.5, 0.5)  # ...and sample 0's centre is here
+            assert (t_level * (0.5, 0.5))[0] == pytest.approx(x_sample)
+
+
+def test_positive_control_a_plain_geotiff_is_not_a_cog(store, tmp_path):
+    s, _, _ = store
+    export_geotiff(s, tmp_path / "plain.tif")
+    valid, errors, warnings = cog_validate(str(tmp_path / "plain.tif"), strict=True)
+    assert not valid and any("overviews" in e for e in errors + warnings)
+
+
+def test_cli_export_defaults_to_cog_for_tif(store, tmp_path):
+    s, _, _ = store
+    runner = CliRunner()
+    r = runner.invoke(app, ["export", s.url, str(tmp_path / "a.tif")])
+    assert r.exit_code == 0, r.output
+    assert "COG of level 8 of 8, overviews = levels 7, 6" in r.output
+    assert cog_validate(str(tmp_path / "a.tif"), strict=True)[0]
+    r = runner.invoke(app, ["export", s.url, str(tmp_path / "b.tif"), "--format", "gtiff"])
+    assert r.exit_code == 0, r.output
+    assert not cog_validate(str(tmp_path / "b.tif"), strict=True)[0]
+
+
+@pytest.mark.shared_data
+def test_srtm_cog_validates(tmp_path):
+    src = shared_file("N44W072.hgt")
+    s = tile(src, tmp_path / "n44.zarr", TileOptions(block_size=257, workers=2))
+    export_cog(s, tmp_path / "n44.tif")
+    assert cog_validate(str(tmp_path / "n44.tif"), strict=True) == (True, [], [])
+    with rasterio.open(src) as a, rasterio.open(tmp_path / "n44.tif") as b:
+        np.testing.assert_array_equal(a.read(1), b.read(1))

@@ -1,0 +1,145 @@
+"""Remote stores over HTTP: a server without (suffix) range support gets a clear error."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from functools import partial
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+import pytest
+import requests
+from conftest import fractal, write_dem
+from rangeserver import LoopbackServer, RangeHandler
+from typer.testing import CliRunner
+
+from cli.main import app
+from tiler.errors import RemoteStoreError, StoreError
+from tiler.remote import _check_cached, check_range_support
+from tiler.store import TerrainStore, open_store
+from tiler.tile import TileOptions, tile
+
+
+class QuietPlain(SimpleHTTPRequestHandler):
+    """What ``python -m http.server`` runs: ignores Range, sends whole files with 200."""
+
+    def log_message(self, *args) -> None:
+        pass
+
+
+class NoSuffixRanges(RangeHandler):
+    """Serves ``bytes=a-b`` but answers suffix ranges ``bytes=-N`` with 400 (like some CDNs)."""
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server API)
+        if re.match(r"bytes=-\d+$", self.headers.get("Range", "") or ""):
+            self.send_error(400, "suffix ranges not supported")
+            return
+        super().do_GET()
+
+
+@contextmanager
+def serve(directory, handler):
+    server = ThreadingHTTPServer(("127.0.0.1", 0), partial(handler, directory=str(directory)))
+    server.daemon_threads = True
+    t = threading.Thread(target=server.serve_forever, name="test-http-plain", daemon=True)
+    t.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+        t.join(timeout=5)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    d = tmp_path_factory.mktemp("remote")
+    src = write_dem(d / "dem.tif", fractal((80, 80), seed=13))
+    tile(src, d / "s.zarr", TileOptions(block_size=33))
+    return d
+
+
+@pytest.fixture(autouse=True)
+def _fresh_cache():
+    _check_cached.cache_clear()
+    yield
+    _check_cached.cache_clear()
+
+
+def test_plain_http_server_is_named_as_the_cause(served):
+    with serve(served, QuietPlain) as url:
+        with pytest.raises(RemoteStoreError, match="does not support HTTP range requests") as e:
+            open_store(f"{url}/s.zarr")
+        assert "python -m http.server" in str(e.value)
+        assert isinstance(e.value, StoreError) and isinstance(e.value, ConnectionError)
+        # positive control: without the check, the same server gives the far-away symptom
+        # users met (a checksum complaint about a block), not the cause
+        s = TerrainStore(f"{url}/s.zarr")
+        with pytest.raises(StoreError, match="checksum"):
+            s.read_block((0, 0))
+
+
+def test_server_without_suffix_ranges(served):
+    with (
+        serve(served, NoSuffixRanges) as url,
+        pytest.raises(RemoteStoreError, match=r"not suffix ranges \(`bytes=-N`\)"),
+    ):
+        open_store(f"{url}/s.zarr")
+
+
+def test_range_server_opens_and_reads(served):
+    local = open_store(served / "s.zarr")
+    with LoopbackServer(served) as url:
+        s = open_store(f"{url}/s.zarr")
+        np.testing.assert_array_equal(s.read_block((1, 1)), local.read_block((1, 1)))
+        with pytest.raises(StoreError, match="was not found"):
+            check_range_support(f"{url}/missing.zarr")
+
+
+def test_non_http_urls_are_not_probed():
+    check_range_support("memory://x")  # nothing to ask: no error, no request
+    check_range_support("/some/local/path")
+
+
+def test_cli_info_exits_non_zero_with_the_cause(served):
+    with serve(served, QuietPlain) as url:
+        r = CliRunner().invoke(app, ["info", f"{url}/s.zarr"])
+    assert r.exit_code != 0
+    assert "does not support HTTP range requests" in r.output
+    assert "checksum" not in r.output
+
+
+def test_real_python_m_http_server(served):
+    """The very server users try: ``python -m http.server`` in a subprocess."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"],
+        cwd=served,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                requests.get(url, timeout=1)
+                break
+            except requests.ConnectionError:
+                if time.monotonic() > deadline:
+                    pytest.fail("python -m http.server did not start within 20 s")
+                time.sleep(0.1)
+        with pytest.raises(RemoteStoreError, match="does not support HTTP range requests"):
+            open_store(f"{url}/s.zarr")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

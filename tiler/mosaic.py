@@ -1,0 +1,474 @@
+"""Many rasters as one DEM, read window by window, optionally reprojected on the fly.
+
+:func:`plan_mosaic` opens each source once for its header and returns a picklable
+:class:`MosaicSpec` (the target grid and every source's footprint on it), so worker processes
+can re-open it. :class:`MosaicReader` reads any window of the target grid: it picks the sources
+whose footprint meets the window and reads only that part of each (through a ``WarpedVRT``
+when reprojecting). No source is read whole and the mosaic never exists in memory or on disk;
+a window costs at most its own size per overlapping source, whatever the number of files.
+
+Overlap rule: **the first source in the given order that has a valid sample at a position
+wins** (like ``rasterio.merge``'s ``first``); later sources only fill the earlier ones' nodata
+and gaps. Without reprojection, sources must share CRS, pixel size and pixel grid, so adjacent
+SRTM tiles that share their edge row are placed exactly on it. Positions no source covers are
+nodata.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import rasterio
+import rasterio.errors
+from rasterio.crs import CRS
+from rasterio.enums import Resampling
+from rasterio.features import geometry_mask
+from rasterio.transform import Affine
+from rasterio.vrt import WarpedVRT
+from rasterio.warp import transform as warp_transform
+from rasterio.warp import transform_bounds
+from rasterio.windows import Window
+
+from tiler.crs import choose_crs, parse_dst_crs, parse_resampling
+from tiler.encoding import parse_dtype
+from tiler.errors import SourceError, SourceNotFoundError
+from tiler.store import is_url
+from tiler.vertical import metres_per_unit
+
+ALIGN_TOL = 1e-3  # pixels: how far a source's origin may sit off the mosaic's pixel grid
+MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
+WARP_TOLERANCE = 0.01  # source pixels of transform approximation (GDAL: 0.125); see notes
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """One source raster's header: what the mosaic needs to place and read it."""
+
+    path: str
+    width: int
+    height: int
+    transform: tuple[float, float, float, float, float, float]  # Affine order a..f
+    crs_wkt: str | None
+    dtype: str
+    nodata: float | None
+    scale: float
+    offset: float
+    units: str | None
+    size_bytes: int | None
+    footprint: tuple[int, int, int, int] = (0, 0, 0, 0)  # row0, col0, row1, col1 on the target
+    # when reprojecting: the hull of the source's sample centres in target coordinates (a ring)
+    hull: tuple[tuple[float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class MosaicSpec:
+    """Picklable description of a mosaic on its target grid (what a worker re-opens)."""
+
+    sources: tuple[SourceInfo, ...]
+    band: int
+    width: int
+    height: int
+    transform: tuple[float, float, float, float, float, float]
+    crs_wkt: str | None
+    dtype: str
+    nodata: float | None
+    source_crs_wkt: str | None
+    warp: bool = False
+    resampling: str = "bilinear"
+    dst_crs: str | None = None  # as requested ("auto" or WKT)
+
+    @property
+    def affine(self) -> Affine:
+        """The target grid's transform (pixel corners)."""
+        return Affine(*self.transform)
+
+
+def _open(path: str) -> rasterio.DatasetReader:
+    if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
+        raise SourceNotFoundError(f"source raster {path!r} does not exist")
+    try:
+        return rasterio.open(path)
+    except rasterio.errors.RasterioIOError as exc:
+        raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
+
+
+def read_info(path: str, band: int) -> SourceInfo:
+    """Header of one source (opened and closed again)."""
+    with _open(path) as ds:
+        if band > ds.count:
+            raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
+        if ds.height < 2 or ds.width < 2:
+            raise SourceError(
+                f"{path!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2"
+            )
+        t = ds.transform
+        nodata = ds.nodatavals[band - 1]
+        units = ds.units[band - 1] if ds.units else None
+        size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None
+        return SourceInfo(
+            path=path,
+            width=ds.width,
+            height=ds.height,
+            transform=(t.a, t.b, t.c, t.d, t.e, t.f),
+            crs_wkt=ds.crs.to_wkt() if ds.crs else None,
+            dtype=parse_dtype(ds.dtypes[band - 1]).name,
+            nodata=None if nodata is None else float(nodata),
+            scale=float(ds.scales[band - 1]) if ds.scales else 1.0,
+            offset=float(ds.offsets[band - 1]) if ds.offsets else 0.0,
+            units=units or None,
+            size_bytes=size,
+        )
+
+
+def _same(values: list, what: str, infos: Sequence[SourceInfo]) -> object:
+    first = values[0]
+    for v, info in zip(values, infos, strict=True):
+        if v != first:
+            raise SourceError(
+                f"sources disagree on {what}: {infos[0].path!r} has {first!r}, "
+                f"{info.path!r} has {v!r}; a mosaic needs one {what}"
+            )
+    return first
+
+
+def _mosaic_nodata(infos: Sequence[SourceInfo], dtype: np.dtype, covered: bool) -> float | None:
+    """The first source's nodata; if none has one: None when the sources cover the whole
+    grid, else NaN (floats) or the dtype's minimum (integers) for the gaps."""
+    for info in infos:
+        if info.nodata is not None:
+            return info.nodata
+    if covered:
+        return None
+    return float("nan") if dtype.kind == "f" else float(np.iinfo(dtype).min)
+
+
+def _covers(rects: Sequence[tuple[int, int, int, int]], height: int, width: int) -> bool:
+    """True when the union of ``(r0, c0, r1, c1)`` rectangles covers ``height x width``."""
+    rows = sorted({0, height, *(r[0] for r in rects), *(r[2] for r in rects)})
+    cols = sorted({0, width, *(r[1] for r in rects), *(r[3] for r in rects)})
+    ri = {v: i for i, v in enumerate(rows)}
+    ci = {v: i for i, v in enumerate(cols)}
+    cover = np.zeros((len(rows) - 1, len(cols) - 1), dtype=bool)
+    for r0, c0, r1, c1 in rects:
+        cover[ri[r0] : ri[r1], ci[c0] : ci[c1]] = True
+    return bool(cover.all())
+
+
+def plan_mosaic(
+    paths: Sequence[str | os.PathLike],
+    band: int = 1,
+    dst_crs: str | None = None,
+    resolution: float | tuple[float, float] | None = None,
+    resampling: str = "bilinear",
+) -> MosaicSpec:
+    """Read every source's header and lay them out on one target grid (see module doc)."""
+    paths = [str(p) for p in paths]
+    if not paths:
+        raise SourceError("no source rasters given")
+    infos = [read_info(p, band) for p in paths]
+    dtype = parse_dtype(np.result_type(*[np.dtype(i.dtype) for i in infos]))
+    _same(
+        [(i.scale, i.offset, metres_per_unit(i.units)) for i in infos],
+        "height scale, offset and metres per vertical unit",
+        infos,
+    )
+    crss = [CRS.from_wkt(i.crs_wkt) if i.crs_wkt else None for i in infos]
+    for c, info in zip(crss, infos, strict=True):
+        if c != crss[0]:
+            raise SourceError(
+                f"sources are in different CRSs ({infos[0].path!r}: {crss[0]}, {info.path!r}: "
+                f"{c}); give a target CRS to reproject them onto one grid"
+            )
+    src_crs = crss[0]
+    if dst_crs is None and resolution is not None:
+        raise SourceError("a resolution applies when reprojecting; give a target CRS too")
+    if dst_crs is None:
+        return _plan_aligned(infos, band, dtype, src_crs)
+    return _plan_warped(infos, band, dtype, src_crs, parse_dst_crs(dst_crs), resolution, resampling)
+
+
+def _plan_aligned(
+    infos: list[SourceInfo], band: int, dtype: np.dtype, src_crs: CRS | None
+) -> MosaicSpec:
+    for info in infos:
+        a, b, _, d, e, _ = info.transform
+        if abs(b) > 1e-12 * abs(a) or abs(d) > 1e-12 * abs(e) or e >= 0:
+            raise SourceError(
+                f"{info.path!r} has a rotated or south-up geotransform {info.transform}; give a "
+                "target CRS to reproject it north-up while tiling"
+            )
+    a, _, c, _, e, f = infos[0].transform
+    for info in infos:
+        ia, ie = info.transform[0], info.transform[4]
+        if abs(ia - a) > 1e-9 * abs(a) or abs(ie - e) > 1e-9 * abs(e):
+            raise SourceError(
+                f"sources have different pixel sizes ({infos[0].path!r}: {a:g} x {-e:g}, "
+                f"{info.path!r}: {ia:g} x {-ie:g}); give a target CRS and resolution to "
+                "resample them onto one grid"
+            )
+    offsets = []
+    for info in infos:
+        col = (info.transform[2] - c) / a
+        row = (info.transform[5] - f) / e
+        if abs(col - round(col)) > ALIGN_TOL or abs(row - round(row)) > ALIGN_TOL:
+            raise SourceError(
+                f"{info.path!r} is not on the pixel grid of {infos[0].path!r} (offset of "
+                f"{col:.4f}, {row:.4f} pixels); give a target CRS to resample them onto one grid"
+            )
+        offsets.append((round(row), round(col)))
+    r_min = min(r for r, _ in offsets)
+    c_min = min(c_ for _, c_ in offsets)
+    placed = tuple(
+        _with_footprint(i, r - r_min, c_ - c_min, r - r_min + i.height, c_ - c_min + i.width)
+        for i, (r, c_) in zip(infos, offsets, strict=True)
+    )
+    height = max(p.footprint[2] for p in placed)
+    width = max(p.footprint[3] for p in placed)
+    t = Affine(a, 0.0, c + c_min * a, 0.0, e, f + r_min * e)
+    return MosaicSpec(
+        sources=placed,
+        band=band,
+        width=width,
+        height=height,
+        transform=tuple(t)[:6],
+        crs_wkt=src_crs.to_wkt() if src_crs else None,
+        dtype=dtype.name,
+        nodata=_mosaic_nodata(infos, dtype, _covers([p.footprint for p in placed], height, width)),
+        source_crs_wkt=src_crs.to_wkt() if src_crs else None,
+    )
+
+
+def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> SourceInfo:
+    return replace(info, footprint=(r0, c0, r1, c1))
+
+
+HULL_POINTS = 64  # points per edge of a source's sample-centre hull
+HULL_EPS = 1e-3  # source pixels the hull is widened by, so samples on it are kept (no ties)
+
+
+def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, float], ...]:
+    """The ring through the source's outer sample centres, in target coordinates.
+
+    Reprojected samples outside it would be extrapolated (GDAL holds edge values constant
+    there), so they are left out: the store ends where the source's samples end.
+    """
+    t = Affine(*info.transform)
+    n = HULL_POINTS
+    e = HULL_EPS
+    r0, c0, r1, c1 = -e, -e, info.height - 1 + e, info.width - 1 + e
+    edge = np.linspace(0.0, 1.0, n, endpoint=False)
+    rows = np.concatenate(
+        [r0 + 0 * edge, r0 + edge * (r1 - r0), r1 + 0 * edge, r1 - edge * (r1 - r0)]
+    )
+    cols = np.concatenate(
+        [c0 + edge * (c1 - c0), c1 + 0 * edge, c1 - edge * (c1 - c0), c0 + 0 * edge]
+    )
+    xs, ys = t * (cols + 0.5, rows + 0.5)
+    tx, ty = warp_transform(src_crs, target, xs.tolist(), ys.tolist())
+    ring = list(zip(tx, ty, strict=True))
+    return tuple((*ring, ring[0]))
+
+
+def _bounds(info: SourceInfo) -> tuple[float, float, float, float]:
+    """``(left, bottom, right, top)`` of a source's pixel corners (any affine transform)."""
+    t = Affine(*info.transform)
+    xs, ys = zip(
+        *(t * p for p in ((0, 0), (info.width, 0), (0, info.height), (info.width, info.height))),
+        strict=True,
+    )
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def _union_bounds(infos: Sequence[SourceInfo]) -> tuple[float, float, float, float]:
+    b = np.array([_bounds(i) for i in infos])
+    return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+
+def _finest_pixel(info: SourceInfo, bounds: tuple[float, ...], src_crs: CRS, target: CRS) -> float:
+    """The source's finer pixel side, in target units, at the centre of the extent: the
+    default resolution, so reprojection loses no detail along either axis."""
+    a, b, _, d, e, _ = info.transform
+    cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
+    xs, ys = warp_transform(src_crs, target, [cx, cx + a, cx + b], [cy, cy + d, cy + e])
+    dx = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
+    dy = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
+    return min(dx, dy)
+
+
+def _plan_warped(
+    infos: list[SourceInfo],
+    band: int,
+    dtype: np.dtype,
+    src_crs: CRS | None,
+    dst_crs: str,
+    resolution: float | tuple[float, float] | None,
+    resampling: str,
+) -> MosaicSpec:
+    resampling = parse_resampling(resampling)
+    bounds = _union_bounds(infos)
+    target = choose_crs(dst_crs, src_crs, bounds)
+    if resolution is not None:
+        res = (resolution, resolution) if np.isscalar(resolution) else tuple(resolution)
+        if not all(math.isfinite(r) and r > 0 for r in res):
+            raise SourceError(f"resolution must be positive target CRS units, got {resolution}")
+    else:
+        r = float(f"{_finest_pixel(infos[0], bounds, src_crs, target):.3g}")
+        res = (r, r)
+    left, bottom, right, top = transform_bounds(src_crs, target, *bounds, densify_pts=51)
+    # snap to multiples of the resolution (gdalwarp -tap), so separate runs share one grid
+    left = math.floor(left / res[0]) * res[0]
+    right = math.ceil(right / res[0]) * res[0]
+    bottom = math.floor(bottom / res[1]) * res[1]
+    top = math.ceil(top / res[1]) * res[1]
+    width = round((right - left) / res[0])
+    height = round((top - bottom) / res[1])
+    t = Affine(res[0], 0.0, left, 0.0, -res[1], top)
+    placed = []
+    for i in infos:
+        sb = transform_bounds(src_crs, target, *_bounds(i), densify_pts=51)
+        c0 = max(0, math.floor((sb[0] - left) / res[0]) - 2)
+        c1 = min(width, math.ceil((sb[2] - left) / res[0]) + 2)
+        r0 = max(0, math.floor((top - sb[3]) / res[1]) - 2)
+        r1 = min(height, math.ceil((top - sb[1]) / res[1]) + 2)
+        placed.append(replace(_with_footprint(i, r0, c0, r1, c1), hull=_hull(i, src_crs, target)))
+    return MosaicSpec(
+        sources=tuple(placed),
+        band=band,
+        width=width,
+        height=height,
+        transform=tuple(t)[:6],
+        crs_wkt=target.to_wkt(),
+        dtype=dtype.name,
+        nodata=_mosaic_nodata(infos, dtype, covered=False),
+        source_crs_wkt=src_crs.to_wkt() if src_crs else None,
+        warp=True,
+        resampling=resampling,
+        dst_crs=dst_crs,
+    )
+
+
+def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
+    valid = np.ones(data.shape, dtype=bool)
+    if data.dtype.kind == "f":
+        valid &= np.isfinite(data)
+    if nodata is not None and not np.isnan(nodata):
+        valid &= data != np.asarray(nodata).astype(data.dtype)
+    return valid
+
+
+class MosaicReader:
+    """Reads windows of a :class:`MosaicSpec`'s target grid; one per thread or process."""
+
+    def __init__(self, spec: MosaicSpec, max_open: int = MAX_OPEN) -> None:
+        self.spec = spec
+        self.max_open = max(1, int(max_open))
+        self._open: OrderedDict[int, tuple[rasterio.DatasetReader, WarpedVRT | None]] = (
+            OrderedDict()
+        )
+        fp = np.array([s.footprint for s in spec.sources], dtype=np.int64).reshape(-1, 4)
+        self._fp = fp
+        self.dtype = np.dtype(spec.dtype)
+        self.height, self.width = spec.height, spec.width
+
+    def __enter__(self) -> MosaicReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close every open source."""
+        while self._open:
+            _, (ds, vrt) = self._open.popitem()
+            if vrt is not None:
+                vrt.close()
+            ds.close()
+
+    def _dataset(self, i: int) -> rasterio.DatasetReader | WarpedVRT:
+        if i in self._open:
+            self._open.move_to_end(i)
+            ds, vrt = self._open[i]
+            return vrt or ds
+        while len(self._open) >= self.max_open:
+            _, (old, old_vrt) = self._open.popitem(last=False)
+            if old_vrt is not None:
+                old_vrt.close()
+            old.close()
+        spec = self.spec
+        ds = _open(spec.sources[i].path)
+        vrt = None
+        if spec.warp:
+            info = spec.sources[i]
+            vrt = WarpedVRT(
+                ds,
+                crs=CRS.from_wkt(spec.crs_wkt),
+                transform=spec.affine,
+                width=spec.width,
+                height=spec.height,
+                resampling=Resampling[spec.resampling],
+                src_nodata=info.nodata,
+                nodata=spec.nodata,
+                dtype=spec.dtype,
+                tolerance=WARP_TOLERANCE,
+            )
+        self._open[i] = (ds, vrt)
+        return vrt or ds
+
+    def sources_for(self, r0: int, c0: int, h: int, w: int) -> list[int]:
+        """Indices (in priority order) of the sources whose footprint meets the window."""
+        fp = self._fp
+        hit = (fp[:, 0] < r0 + h) & (fp[:, 2] > r0) & (fp[:, 1] < c0 + w) & (fp[:, 3] > c0)
+        return np.nonzero(hit)[0].tolist()
+
+    def read_window(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+        """Samples of rows ``r0..r0+h`` and columns ``c0..c0+w`` of the target grid."""
+        spec = self.spec
+        hits = self.sources_for(r0, c0, h, w)
+        if len(hits) == 1 and not spec.warp:
+            fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[hits[0]])
+            if fr0 <= r0 and fc0 <= c0 and r0 + h <= fr1 and c0 + w <= fc1:  # inside one source
+                win = Window(c0 - fc0, r0 - fr0, w, h)
+                data = self._dataset(hits[0]).read(spec.band, window=win)
+                return data.astype(self.dtype, copy=False)
+        fill = np.asarray(spec.nodata if spec.nodata is not None else 0).astype(self.dtype)
+        out = np.full((h, w), fill, dtype=self.dtype)
+        filled = np.zeros((h, w), dtype=bool)
+        for i in hits:
+            fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[i])
+            ir0, ir1 = max(r0, fr0), min(r0 + h, fr1)
+            ic0, ic1 = max(c0, fc0), min(c0 + w, fc1)
+            ds = self._dataset(i)
+            if spec.warp:
+                win = Window(ic0, ir0, ic1 - ic0, ir1 - ir0)
+                nodata = spec.nodata
+            else:  # aligned: the footprint is the source's own pixel grid
+                win = Window(ic0 - fc0, ir0 - fr0, ic1 - ic0, ir1 - ir0)
+                nodata = spec.sources[i].nodata
+            data = ds.read(spec.band, window=win)
+            valid = _valid(data, nodata)
+            if spec.warp and spec.sources[i].hull:
+                valid &= geometry_mask(
+                    [{"type": "Polygon", "coordinates": [spec.sources[i].hull]}],
+                    out_shape=data.shape,
+                    transform=spec.affine * Affine.translation(ic0, ir0),
+                    invert=True,
+                )
+            sub = (slice(ir0 - r0, ir1 - r0), slice(ic0 - c0, ic1 - c0))
+            take = valid & ~filled[sub]
+            out[sub][take] = data[take].astype(self.dtype)
+            filled[sub] |= take
+            if filled.all():
+                break
+        return out
+
+    def read(self, band: int, window: Window) -> np.ndarray:
+        """``DatasetReader.read``-like access for one band and a window (what the tiler uses)."""
+        if band != self.spec.band:
+            raise SourceError(f"this mosaic reads band {self.spec.band}, not band {band}")
+        (r0, r1), (c0, c1) = window.toranges()
+        return self.read_window(int(r0), int(c0), int(r1 - r0), int(c1 - c0))
