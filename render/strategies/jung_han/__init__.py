@@ -118,9 +118,11 @@ from render.strategies.jung_han.pure import (
     vertex_deltas,
     vertex_errors,
 )
+from render.strategies.jung_han.selection import JungHanSelector
 
 __all__ = [
     "JungHan",
+    "JungHanSelector",
     "TRIANGLES",
     "TEMPLATE",
     "OWN",

@@ -84,6 +84,7 @@ from render.strategies.seamless.selection import (
     edge_epsilon,
     edge_resolution,
     precision,
+    select_layout,
 )
 
 __all__ = [
@@ -96,6 +97,7 @@ __all__ = [
     "mesh_of",
     "precision",
     "rotate",
+    "select_layout",
     "strip_mesh",
     "strip_triangles",
     "tile_mesh",

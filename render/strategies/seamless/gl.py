@@ -23,13 +23,7 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.seamless.meshes import mesh_kinds, mesh_of, rotate
-from render.strategies.seamless.selection import (
-    PatchLayout,
-    _Frame,
-    _Leaves,
-    _resolve,
-    _traverse,
-)
+from render.strategies.seamless.selection import PatchLayout, select_layout
 from streamer.camera import Camera
 
 HERE = Path(__file__).parent
@@ -102,11 +96,7 @@ class SeamlessPatches(Strategy[PatchLayout]):
         """Leaf patches and edge levels at ``tau`` (``metric`` is ignored) and the CPU ms."""
         check_tau(tau)
         t0 = time.perf_counter()
-        fr = _Frame(self, camera, tau, resident)
-        leaves = _Leaves()
-        m = len(fr.blk)
-        _traverse(fr, {0: (np.arange(m), np.zeros(m, np.int64), np.zeros(m, np.int64))}, leaves)
-        sel = _resolve(fr, leaves)
+        sel = select_layout(self, camera, tau, resident)
         return sel, (time.perf_counter() - t0) * 1000.0
 
     # instances

@@ -330,3 +330,13 @@ def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
             seeds[dv + 1] = _children(idx[m], rows[m], cols[m])
         _traverse(fr, seeds, leaves)
     raise SelectionError(f"seamless patches did not settle in {max_rounds} rounds")
+
+
+def select_layout(st, camera: Camera, tau: float, resident: dict | None) -> PatchLayout:
+    """The leaf patches and edge levels of strategy ``st`` (its frame services ``st.r``, tile
+    resolutions ``st.c``, error table ``st.table`` and block z ranges ``st.zr``) at ``tau``."""
+    fr = _Frame(st, camera, tau, resident)
+    leaves = _Leaves()
+    m = len(fr.blk)
+    _traverse(fr, {0: (np.arange(m), np.zeros(m, np.int64), np.zeros(m, np.int64))}, leaves)
+    return _resolve(fr, leaves)
