@@ -89,8 +89,11 @@ class PatchErrorTable:
     def slots(self, blocks: Sequence[Block] | np.ndarray) -> np.ndarray:
         """Slot of each block (``LodError`` for a block whose errors were never added)."""
         get = self._slot.get
-        keys = np.asarray(blocks, dtype=np.int64).reshape(-1, 2).tolist()
-        arr = np.fromiter((get(tuple(b), -1) for b in keys), np.int64, len(keys))
+        if isinstance(blocks, np.ndarray):
+            keys = [tuple(b) for b in blocks.reshape(-1, 2).tolist()]
+        else:
+            keys = [(int(b[0]), int(b[1])) for b in blocks]
+        arr = np.array([get(b, -1) for b in keys], dtype=np.int64)
         if (arr < 0).any():
             b = keys[int(np.argmin(arr))]
             raise LodError(f"block {tuple(b)} has no errors in the patch table")
@@ -129,7 +132,7 @@ class PatchErrorTable:
         if m == 0 or self.depths == 0:
             return levels, rho_max
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
-        slots = self.slots(blk)
+        slots = self.slots(blocks)
         arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
