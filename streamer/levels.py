@@ -21,7 +21,13 @@ from streamer.camera import Camera
 from streamer.errors import LodError
 from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
-from tiler.quadtree import half_diagonal, node_centres, sphere_radius, split_children
+from tiler.quadtree import (
+    block_origins,
+    half_diagonal,
+    node_centres_at,
+    sphere_radius,
+    split_children,
+)
 
 Block = tuple[int, int]
 
@@ -136,13 +142,14 @@ class PatchErrorTable:
         arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
+        bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
         idx = np.arange(m)
         rows = np.zeros(m, dtype=np.int64)
         cols = np.zeros(m, dtype=np.int64)
         for d in range(self.depths):
             levels[idx] = d + p  # every block still holding nodes reaches this depth
             delta = _delta(arrays, self.depths, slots[idx], d, rows, cols)
-            cx, cy = node_centres(grid, blk[idx, 0], blk[idx, 1], d, rows, cols)
+            cx, cy = node_centres_at(grid, bx0[idx], by1[idx], d, rows, cols)
             centres = np.stack([cx, cy, zmid[idx]], axis=1)
             radius = sphere_radius(half_diagonal(grid, d), zhalf[idx])
             rho = np.asarray(fn(delta, centres, radius, camera))

@@ -71,8 +71,9 @@ class Planner:
         return self.zr[b[:, 0], b[:, 1]]
 
     def _existing(self, polygon: np.ndarray) -> list[Block]:
-        ids = blocks_meeting(polygon, self.grid).tolist()
-        return [b for b in map(tuple, ids) if self.exists[b]]
+        ids = blocks_meeting(polygon, self.grid)
+        ids = ids[self.exists[ids[:, 0], ids[:, 1]]]
+        return list(map(tuple, ids.tolist()))
 
     def visible(self, camera: Camera) -> list[Block]:
         """Blocks meeting the projected frustum (Qiu's triangle or Jung & Han's hull)."""
