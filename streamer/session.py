@@ -383,7 +383,12 @@ class Session:
         """What this frame may draw, its I/O figures and the caller's timings."""
         ld = self.loader
         level, errors_table, due = self.cache.level, ld.errors, self._due
+        hull = None
+        if self.config.account_hull and self._stall_set == "triangle":
+            hull = self.planner.needed(camera, culling="hull")
         with self._cv:  # one pass over the visible blocks; dict work only
+            if hull is not None:
+                hull = any(level(b) < lv or b not in errors_table for b, lv in hull.items())
             blocks = {b: (level(b), lv) for b, lv in needed.items()}
             missing = [
                 (b, lv) for b, (have, lv) in blocks.items() if have < lv or b not in errors_table
@@ -427,6 +432,7 @@ class Session:
             failed_blocks=len(failed),
             stall_set=self._stall_set,
             late_bytes=late,
+            hull_stalled=hull,
             levels_short=max(0, short),
         )
         frame = Frame(camera=camera, blocks=blocks, stats=stats, failed=failed)

@@ -65,3 +65,22 @@ def test_a_hole_counts_one_level_more_than_needed(store):
         f = s.update(cams(store, 1)[0])  # nothing resident yet
     assert f.stats.holes == f.stats.visible_blocks > 0
     assert f.stats.levels_short == max(need for _, need in f.blocks.values()) + 1
+
+
+def test_account_hull_counts_stalls_over_the_drawn_set_too(store):
+    """A qiu-culling session with ``account_hull`` also says whether the hull set (what the
+    renderer draws, a superset of the triangle's blocks here) had all its levels."""
+    path = cams(store, 30, speed=3000.0)
+    with open_session(store, budget_mb=16, workers=1, latency_ms=3, account_hull=True) as s:
+        rows = [s.update(c, 1 / 60, wait=i == 0).stats for i, c in enumerate(path)]
+        summary = s.summary()
+        pl = s.planner
+        assert all(set(pl.visible(c, "qiu")) <= set(pl.visible(c, "hull")) for c in path)
+    assert all(r.hull_stalled is not None for r in rows)
+    # the hull holds the triangle's blocks here, so a triangle stall is a hull stall
+    assert all(r.hull_stalled for r in rows if r.stalled)
+    assert summary["stall_frames_hull"] == sum(r.hull_stalled for r in rows)
+    assert summary["stall_frames_hull"] >= summary["stall_frames"]
+    with open_session(store, budget_mb=16, workers=1) as s:
+        assert s.update(path[0]).stats.hull_stalled is None
+        assert s.summary()["stall_frames_hull"] is None
