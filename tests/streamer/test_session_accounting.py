@@ -69,18 +69,22 @@ def test_a_hole_counts_one_level_more_than_needed(store):
 
 def test_account_hull_counts_stalls_over_the_drawn_set_too(store):
     """A qiu-culling session with ``account_hull`` also says whether the hull set (what the
-    renderer draws, a superset of the triangle's blocks here) had all its levels."""
+    renderer draws) had all its levels; deterministic with ``workers=0`` (nothing loads after
+    update() returns), so each frame's figure is checked against the cache."""
     path = cams(store, 30, speed=3000.0)
-    with open_session(store, budget_mb=16, workers=1, latency_ms=3, account_hull=True) as s:
-        rows = [s.update(c, 1 / 60, wait=i == 0).stats for i, c in enumerate(path)]
+    opts = {"workers": 0, "inline_bytes_per_frame": 3000, "account_hull": True}
+    rows, expected = [], []
+    with open_session(store, budget_mb=16, **opts) as s:
+        for i, c in enumerate(path):
+            rows.append(s.update(c, 1 / 60, wait=i == 0).stats)
+            hull = s.planner.needed(c, culling="hull")
+            expected.append(
+                any(s.cache.level(b) < lv or b not in s.loader.errors for b, lv in hull.items())
+            )
         summary = s.summary()
-        pl = s.planner
-        assert all(set(pl.visible(c, "qiu")) <= set(pl.visible(c, "hull")) for c in path)
-    assert all(r.hull_stalled is not None for r in rows)
-    # the hull holds the triangle's blocks here, so a triangle stall is a hull stall
-    assert all(r.hull_stalled for r in rows if r.stalled)
-    assert summary["stall_frames_hull"] == sum(r.hull_stalled for r in rows)
-    assert summary["stall_frames_hull"] >= summary["stall_frames"]
+    assert [r.hull_stalled for r in rows] == expected
+    assert any(expected) and not all(expected)  # the flight exercises both cases
+    assert summary["stall_frames_hull"] == sum(expected)
     with open_session(store, budget_mb=16, workers=1) as s:
         assert s.update(path[0]).stats.hull_stalled is None
         assert s.summary()["stall_frames_hull"] is None
