@@ -38,6 +38,8 @@ class SessionConfig:
     # the budget needs the room (least recently wanted first)
     horizon_s: float = 0.5  # also plan for where the camera will be this far ahead
     inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame (None: all)
+    account_hull: bool = False  # culling="qiu": also count stalls over the frustum hull (the
+    # set the renderer draws) in FrameStats.hull_stalled (costs a second plan per frame)
 
     def __post_init__(self) -> None:
         checks = [
@@ -87,6 +89,8 @@ class FrameStats:
     # culling="hull": what the renderer draws)
     late_bytes: int = 0  # arrived since the previous frame after the frame that first needed
     # them was due (frame 0 due when update() is called, frame i at frame 0's end + i/fps)
+    hull_stalled: bool | None = None  # account_hull: a block of the hull set lacked its level
+    # (None: not accounted)
     levels_short: int = 0  # largest (needed - resident) level gap over visible blocks (0: none
     # drawn coarser than needed; a hole counts needed + 1)
     failed_blocks: int = 0  # visible blocks whose reads failed ``retries`` times in a row
@@ -122,6 +126,7 @@ class _Totals:
     cancelled: int = 0
     hole_frames: int = 0
     late_bytes: int = 0
+    hull_stall_frames: int | None = None
     coarse_frames: dict = field(default_factory=dict)  # levels short -> frames
     failed_frames: int = 0
     failed_ever: set = field(default_factory=set)
@@ -138,6 +143,8 @@ class _Totals:
         self.stall_frames += int(st.stalled)
         self.hole_frames += int(st.holes > 0)
         self.late_bytes += st.late_bytes
+        if st.hull_stalled is not None:
+            self.hull_stall_frames = (self.hull_stall_frames or 0) + int(st.hull_stalled)
         if st.levels_short > 0:
             self.coarse_frames[st.levels_short] = self.coarse_frames.get(st.levels_short, 0) + 1
         self.failed_frames += int(st.failed_blocks > 0)
@@ -160,6 +167,7 @@ class _Totals:
             "frames": self.frames,
             "stall_frames": self.stall_frames,
             "stall_set": stall_set,
+            "stall_frames_hull": self.hull_stall_frames,  # None unless account_hull
             "needed_bytes": self.needed_bytes,
             "realtime_bytes": self.realtime_bytes,
             "realtime_bytes_after_first_frame": self.realtime_bytes_after_first,

@@ -21,7 +21,13 @@ from streamer.camera import Camera
 from streamer.errors import LodError
 from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
-from tiler.quadtree import half_diagonal, node_centres, sphere_radius, split_children
+from tiler.quadtree import (
+    block_origins,
+    half_diagonal,
+    node_centres_at,
+    sphere_radius,
+    split_children,
+)
 
 Block = tuple[int, int]
 
@@ -89,8 +95,11 @@ class PatchErrorTable:
     def slots(self, blocks: Sequence[Block] | np.ndarray) -> np.ndarray:
         """Slot of each block (``LodError`` for a block whose errors were never added)."""
         get = self._slot.get
-        keys = np.asarray(blocks, dtype=np.int64).reshape(-1, 2).tolist()
-        arr = np.fromiter((get(tuple(b), -1) for b in keys), np.int64, len(keys))
+        if isinstance(blocks, np.ndarray):
+            keys = [tuple(b) for b in blocks.reshape(-1, 2).tolist()]
+        else:
+            keys = [(int(b[0]), int(b[1])) for b in blocks]
+        arr = np.array([get(b, -1) for b in keys], dtype=np.int64)
         if (arr < 0).any():
             b = keys[int(np.argmin(arr))]
             raise LodError(f"block {tuple(b)} has no errors in the patch table")
@@ -129,17 +138,18 @@ class PatchErrorTable:
         if m == 0 or self.depths == 0:
             return levels, rho_max
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
-        slots = self.slots(blk)
+        slots = self.slots(blocks)
         arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
+        bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
         idx = np.arange(m)
         rows = np.zeros(m, dtype=np.int64)
         cols = np.zeros(m, dtype=np.int64)
         for d in range(self.depths):
             levels[idx] = d + p  # every block still holding nodes reaches this depth
             delta = _delta(arrays, self.depths, slots[idx], d, rows, cols)
-            cx, cy = node_centres(grid, blk[idx, 0], blk[idx, 1], d, rows, cols)
+            cx, cy = node_centres_at(grid, bx0[idx], by1[idx], d, rows, cols)
             centres = np.stack([cx, cy, zmid[idx]], axis=1)
             radius = sphere_radius(half_diagonal(grid, d), zhalf[idx])
             rho = np.asarray(fn(delta, centres, radius, camera))

@@ -161,22 +161,29 @@ class Loader:
         return self.queue.pop(time.monotonic(), self._take)
 
     def pump(self) -> None:
-        """Submit jobs while workers are free (takes the lock briefly)."""
+        """Submit jobs while workers are free. Jobs are taken under the lock (heap pops and
+        reservations only); submitting and attaching the completion callback happen after it
+        is released, so a callback can never run while this thread holds the lock."""
         if self._pool is None:
             return
         with self.cv:
+            jobs = []
             while not self.closed and self._in_flight < self.config.workers:
                 job = self.next_job()
                 if job is None:
-                    return
+                    break
                 self._in_flight += 1
-                try:
-                    fut = self._pool.submit(self.run_job, job)
-                except RuntimeError:  # the pool shut down meanwhile
-                    self._in_flight -= 1
-                    self._unreserve(job)
-                    return
-                fut.add_done_callback(self._done)
+                jobs.append(job)
+        for k, job in enumerate(jobs):
+            try:
+                fut = self._pool.submit(self.run_job, job)
+            except RuntimeError:  # the pool shut down meanwhile: give the jobs back
+                with self.cv:
+                    for j in jobs[k:]:
+                        self._in_flight -= 1
+                        self._unreserve(j)
+                return
+            fut.add_done_callback(self._done)
 
     def _done(self, fut: Future) -> None:
         exc = None if fut.cancelled() else fut.exception()

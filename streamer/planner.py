@@ -71,12 +71,14 @@ class Planner:
         return self.zr[b[:, 0], b[:, 1]]
 
     def _existing(self, polygon: np.ndarray) -> list[Block]:
-        ids = blocks_meeting(polygon, self.grid).tolist()
-        return [b for b in map(tuple, ids) if self.exists[b]]
+        ids = blocks_meeting(polygon, self.grid)
+        ids = ids[self.exists[ids[:, 0], ids[:, 1]]]
+        return list(map(tuple, ids.tolist()))
 
-    def visible(self, camera: Camera) -> list[Block]:
-        """Blocks meeting the projected frustum (Qiu's triangle or Jung & Han's hull)."""
-        if self.config.culling == "qiu":
+    def visible(self, camera: Camera, culling: str | None = None) -> list[Block]:
+        """Blocks meeting the projected frustum: Qiu's triangle (``culling="qiu"``) or Jung &
+        Han's hull (``"hull"``); default the session's culling."""
+        if (culling or self.config.culling) == "qiu":
             return self._existing(view_triangle(camera))
         return self._existing(frustum_hull(camera, self.zrange))
 
@@ -96,10 +98,12 @@ class Planner:
             rho.update(zip(have, r.tolist(), strict=True))
         return needed, rho
 
-    def needed(self, camera: Camera, tau: float | None = None) -> dict[Block, int]:
+    def needed(
+        self, camera: Camera, tau: float | None = None, culling: str | None = None
+    ) -> dict[Block, int]:
         """The visible blocks and the level each needs to be drawn at ``tau``."""
         t = self.config.tau if tau is None else tau
-        return self.levels(camera, self.visible(camera), t)[0]
+        return self.levels(camera, self.visible(camera, culling), t)[0]
 
     def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
         """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity``."""

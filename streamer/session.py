@@ -382,16 +382,24 @@ class Session:
     ) -> Frame:
         """What this frame may draw, its I/O figures and the caller's timings."""
         ld = self.loader
-        with self._cv:
-            missing = self._missing(needed)
+        level, errors_table, due = self.cache.level, ld.errors, self._due
+        hull = None
+        if self.config.account_hull and self._stall_set == "triangle":
+            hull = self.planner.needed(camera, culling="hull")
+        with self._cv:  # one pass over the visible blocks; dict work only
+            if hull is not None:
+                hull = any(level(b) < lv or b not in errors_table for b, lv in hull.items())
+            blocks = {b: (level(b), lv) for b, lv in needed.items()}
+            missing = [
+                (b, lv) for b, (have, lv) in blocks.items() if have < lv or b not in errors_table
+            ]
             for b, lv in missing:
-                for level in range(self.cache.level(b) + 1, lv + 1):
-                    ld.demanded.add((b, level))
-                    ld.due.setdefault((b, level), self._due)
-            blocks = {b: (self.cache.level(b), lv) for b, lv in needed.items()}
+                for lvl in range(blocks[b][0] + 1, lv + 1):
+                    ld.demanded.add((b, lvl))
+                    ld.due.setdefault((b, lvl), due)
             used = self.totals.used
             for b, (have, lv) in blocks.items():
-                top = min(lv, have)
+                top = lv if lv < have else have
                 if top > used.get(b, -1):
                     used[b] = top
             realtime, prefetched, io_s = ld.frame_realtime, ld.frame_prefetched, ld.frame_io_s
@@ -399,7 +407,7 @@ class Session:
             ld.frame_realtime = ld.frame_prefetched = 0
             ld.frame_io_s = 0.0
             news, ld.unreported = ld.unreported, []
-            failed = frozenset(b for b in needed if ld.queue.is_failed(b))
+            failed = frozenset(b for b in ld.queue.failed_blocks() if b in needed)
             resident = self.cache.nbytes
             errors = self.totals.io_errors
         holes = sum(1 for have, _ in blocks.values() if have < 0)
@@ -424,6 +432,7 @@ class Session:
             failed_blocks=len(failed),
             stall_set=self._stall_set,
             late_bytes=late,
+            hull_stalled=hull,
             levels_short=max(0, short),
         )
         frame = Frame(camera=camera, blocks=blocks, stats=stats, failed=failed)

@@ -29,6 +29,29 @@ def half_diagonal(grid: BlockGrid, depth: int) -> float:
     return 0.5 * float(node_span(grid.k, depth)) * math.hypot(grid.dx, grid.dy)
 
 
+def block_origins(
+    grid: BlockGrid, block_rows: np.ndarray, block_cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """World ``(xmin, ymax)`` corners of blocks (the corner of sample ``(0, 0)``)."""
+    xmin, _, _, ymax = grid.block_bounds(block_rows, block_cols)
+    return xmin, ymax
+
+
+def node_centres_at(
+    grid: BlockGrid,
+    xmin: np.ndarray,
+    ymax: np.ndarray,
+    depth: int,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World ``(x, y)`` centres of nodes of blocks whose :func:`block_origins` are given."""
+    s = float(node_span(grid.k, depth))
+    cx = xmin + (np.asarray(cols, dtype=np.float64) + 0.5) * (s * grid.dx)
+    cy = ymax - (np.asarray(rows, dtype=np.float64) + 0.5) * (s * grid.dy)
+    return cx, cy
+
+
 def node_centres(
     grid: BlockGrid,
     block_rows: np.ndarray,
@@ -38,11 +61,8 @@ def node_centres(
     cols: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """World ``(x, y)`` centres of nodes ``(depth, rows, cols)`` of blocks (vectorised)."""
-    xmin, _, _, ymax = grid.block_bounds(block_rows, block_cols)
-    s = float(node_span(grid.k, depth))
-    cx = xmin + (np.asarray(cols, dtype=np.float64) + 0.5) * (s * grid.dx)
-    cy = ymax - (np.asarray(rows, dtype=np.float64) + 0.5) * (s * grid.dy)
-    return cx, cy
+    xmin, ymax = block_origins(grid, block_rows, block_cols)
+    return node_centres_at(grid, xmin, ymax, depth, rows, cols)
 
 
 def sphere_radius(half_diag: float | np.ndarray, zhalf: np.ndarray) -> np.ndarray:

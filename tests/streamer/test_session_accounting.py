@@ -65,3 +65,26 @@ def test_a_hole_counts_one_level_more_than_needed(store):
         f = s.update(cams(store, 1)[0])  # nothing resident yet
     assert f.stats.holes == f.stats.visible_blocks > 0
     assert f.stats.levels_short == max(need for _, need in f.blocks.values()) + 1
+
+
+def test_account_hull_counts_stalls_over_the_drawn_set_too(store):
+    """A qiu-culling session with ``account_hull`` also says whether the hull set (what the
+    renderer draws) had all its levels; deterministic with ``workers=0`` (nothing loads after
+    update() returns), so each frame's figure is checked against the cache."""
+    path = cams(store, 30, speed=3000.0)
+    opts = {"workers": 0, "inline_bytes_per_frame": 3000, "account_hull": True}
+    rows, expected = [], []
+    with open_session(store, budget_mb=16, **opts) as s:
+        for i, c in enumerate(path):
+            rows.append(s.update(c, 1 / 60, wait=i == 0).stats)
+            hull = s.planner.needed(c, culling="hull")
+            expected.append(
+                any(s.cache.level(b) < lv or b not in s.loader.errors for b, lv in hull.items())
+            )
+        summary = s.summary()
+    assert [r.hull_stalled for r in rows] == expected
+    assert any(expected) and not all(expected)  # the flight exercises both cases
+    assert summary["stall_frames_hull"] == sum(expected)
+    with open_session(store, budget_mb=16, workers=1) as s:
+        assert s.update(path[0]).stats.hull_stalled is None
+        assert s.summary()["stall_frames_hull"] is None
