@@ -142,6 +142,54 @@ def bench_kernels(sizes: list[int], reps: int) -> list[dict[str, Any]]:
     return rows
 
 
+def breakdown(grid: np.ndarray, reps: int) -> dict[str, float]:
+    """Median ms of each step of ``process_block`` (numba backend) for one block, and of
+    compressing its levels with today's codec and the recommended one (bench/codecs.py)."""
+    from numcodecs import Blosc
+
+    from tiler.tile import BlockParams, process_block
+
+    os.environ[kernels.ENV] = "numba"
+    mod = kernels.active()
+    k = parse_block_size(grid.shape[0])
+    cap = static_error.default_cap(k)
+    valid = np.ones(grid.shape, bool)
+    params = BlockParams(k, grid.dtype.name, f"uint{8 * grid.dtype.itemsize}", None, None, cap)
+    levels = encoding.encode_levels(grid, k)
+    ts = grid.dtype.itemsize
+    now = Blosc(cname="zstd", clevel=5, shuffle=Blosc.SHUFFLE, blocksize=0, typesize=ts)
+    rec = Blosc(cname="zstd", clevel=3, shuffle=Blosc.SHUFFLE, blocksize=1 << 20, typesize=ts)
+    qflat = kernels.qiu_flat(mod, grid, valid, k)
+    f, margin = static_error._recentre(grid, valid, mod)
+    node = kernels.bound_flat(mod, f, valid, k)
+    steps = {
+        "process_block (total)": lambda: process_block(grid, params),
+        "encode_levels": lambda: encoding.encode_levels(grid, k),
+        "qiu kernel": lambda: kernels.qiu_flat(mod, grid, valid, k),
+        "median + recentre": lambda: static_error._recentre(grid, valid, mod),
+        "bound kernel": lambda: kernels.bound_flat(mod, f, valid, k),
+        "bound float64 + margin": lambda: np.where(node > 0, node.astype(np.float64) + margin, 0),
+        "monotone + pack + f16 (x2)": lambda: [
+            static_error.round_up_f16(kernels.monotone_pack(mod, qflat.copy(), k, cap, 1.0))
+            for _ in range(2)
+        ],
+        "digest (blake2b)": lambda: __import__("hashlib").blake2b(grid.tobytes(), digest_size=8),
+        "blosc levels zstd5 (today)": lambda: [now.encode(lv) for lv in levels],
+        "blosc levels zstd3 1MiB (rec.)": lambda: [rec.encode(lv) for lv in levels],
+    }
+    times: dict[str, list[float]] = {name: [] for name in steps}
+    for _ in range(reps):
+        for name, fn in steps.items():
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    os.environ.pop(kernels.ENV, None)
+    out = {name: 1e3 * statistics.median(v) for name, v in times.items()}
+    for name, ms in out.items():
+        print(f"  {name:32s} {ms:8.2f} ms")
+    return out
+
+
 _FIRST_CALL = """
 import time, numpy as np
 t0 = time.perf_counter()
@@ -221,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--no-startup", action="store_true")
     ap.add_argument("--startup-only", action="store_true", help="only the start-up section")
+    ap.add_argument(
+        "--breakdown", action="store_true", help="only the per-step profile of a 1025^2 block"
+    )
     ap.add_argument("--quick", action="store_true", help="257 only, 3 reps, no start-up")
     a = ap.parse_args(argv)
     if kernels.active() is None:
@@ -236,10 +287,15 @@ def main(argv: list[str] | None = None) -> int:
             "python": platform.python_version(),
         },
         "command": " ".join([Path(sys.argv[0]).name, *(argv or sys.argv[1:])]),
-        "kernels": [] if a.startup_only else bench_kernels(sizes, reps),
+        "kernels": [] if (a.startup_only or a.breakdown) else bench_kernels(sizes, reps),
     }
-    if not (a.quick or a.no_startup):
+    if not (a.quick or a.no_startup or a.breakdown):
         result["startup"] = bench_startup()
+    if a.breakdown:
+        for name, grid in _blocks([1025]):
+            if grid.dtype == np.int16:
+                print(name)
+                result.setdefault("breakdown", {})[name] = breakdown(grid, max(reps, 5))
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {a.out}")
