@@ -18,21 +18,24 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 _FM = {"nnan", "ninf", "nsz"}
+# nogil: a decode on a streamer's loader thread must not stall the caller's (planning) thread
+_OPTS = {"fastmath": _FM, "nogil": True}
 
 
 def _jit(fn):
-    """``njit(cache=True)``; if no cache directory is writable, a per-user temp one, else none."""
+    """``njit(cache=True, nogil=True)``; if no cache directory is writable, a per-user temp one,
+    else none."""
     try:
-        return numba.njit(cache=True, fastmath=_FM)(fn)
+        return numba.njit(cache=True, **_OPTS)(fn)
     except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
         fallback = os.path.join(tempfile.gettempdir(), f"terrastream-numba-{os.getuid()}")
         try:
             os.makedirs(fallback, exist_ok=True)
             numba.config.CACHE_DIR = fallback
-            return numba.njit(cache=True, fastmath=_FM)(fn)
+            return numba.njit(cache=True, **_OPTS)(fn)
         except (OSError, RuntimeError):
             log.warning("numba cannot cache compiled kernels (%s); compiling in memory", exc)
-            return numba.njit(cache=False, fastmath=_FM)(fn)
+            return numba.njit(cache=False, **_OPTS)(fn)
 
 
 @_jit
