@@ -13,9 +13,10 @@ block with ~10 % nodata, ``encode_levels``, ``decode_grid`` of all levels and of
 switched between calls) and reports medians and the numpy/numba ratio. The machine may be
 shared: medians of interleaved repetitions keep the ratio honest even when absolute times move.
 
-Start-up (``--no-startup`` skips it): ``python -m cli.main info`` on a small store, this tree vs
-``/work/main`` (median of 7 runs), and the first kernel call in a fresh process with an empty
-numba cache (compiles), with the cache filled (loads), and with the numpy backend.
+Start-up (``--no-startup`` skips it, ``--startup-only`` runs only it): ``python -m cli.main
+info`` on a small store, this tree vs ``/work/main`` alternately (median of 7 runs each), and
+the first kernel call in a fresh process with an empty numba cache (compiles), with the cache
+filled (loads), and with the numpy backend.
 """
 
 from __future__ import annotations
@@ -141,6 +142,54 @@ def bench_kernels(sizes: list[int], reps: int) -> list[dict[str, Any]]:
     return rows
 
 
+def breakdown(grid: np.ndarray, reps: int) -> dict[str, float]:
+    """Median ms of each step of ``process_block`` (numba backend) for one block, and of
+    compressing its levels with today's codec and the recommended one (bench/codecs.py)."""
+    from numcodecs import Blosc
+
+    from tiler.tile import BlockParams, process_block
+
+    os.environ[kernels.ENV] = "numba"
+    mod = kernels.active()
+    k = parse_block_size(grid.shape[0])
+    cap = static_error.default_cap(k)
+    valid = np.ones(grid.shape, bool)
+    params = BlockParams(k, grid.dtype.name, f"uint{8 * grid.dtype.itemsize}", None, None, cap)
+    levels = encoding.encode_levels(grid, k)
+    ts = grid.dtype.itemsize
+    now = Blosc(cname="zstd", clevel=5, shuffle=Blosc.SHUFFLE, blocksize=0, typesize=ts)
+    rec = Blosc(cname="zstd", clevel=3, shuffle=Blosc.SHUFFLE, blocksize=1 << 20, typesize=ts)
+    qflat = kernels.qiu_flat(mod, grid, valid, k)
+    f, margin = static_error._recentre(grid, valid, mod)
+    node = kernels.bound_flat(mod, f, valid, k)
+    steps = {
+        "process_block (total)": lambda: process_block(grid, params),
+        "encode_levels": lambda: encoding.encode_levels(grid, k),
+        "qiu kernel": lambda: kernels.qiu_flat(mod, grid, valid, k),
+        "median + recentre": lambda: static_error._recentre(grid, valid, mod),
+        "bound kernel": lambda: kernels.bound_flat(mod, f, valid, k),
+        "bound float64 + margin": lambda: np.where(node > 0, node.astype(np.float64) + margin, 0),
+        "monotone + pack + f16 (x2)": lambda: [
+            static_error.round_up_f16(kernels.monotone_pack(mod, qflat.copy(), k, cap, 1.0))
+            for _ in range(2)
+        ],
+        "digest (blake2b)": lambda: __import__("hashlib").blake2b(grid.tobytes(), digest_size=8),
+        "blosc levels zstd5 (today)": lambda: [now.encode(lv) for lv in levels],
+        "blosc levels zstd3 1MiB (rec.)": lambda: [rec.encode(lv) for lv in levels],
+    }
+    times: dict[str, list[float]] = {name: [] for name in steps}
+    for _ in range(reps):
+        for name, fn in steps.items():
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    os.environ.pop(kernels.ENV, None)
+    out = {name: 1e3 * statistics.median(v) for name, v in times.items()}
+    for name, ms in out.items():
+        print(f"  {name:32s} {ms:8.2f} ms")
+    return out
+
+
 _FIRST_CALL = """
 import time, numpy as np
 t0 = time.perf_counter()
@@ -174,13 +223,15 @@ def bench_startup(runs: int = 7) -> dict[str, Any]:
         tile(src, store, TileOptions(block_size=257, workers=1))
         base = {k: v for k, v in os.environ.items() if k not in (kernels.ENV, "PYTHONPATH")}
         cmd = [sys.executable, "-m", "cli.main", "info", str(store)]
-        for label, tree in (("this_tree", REPO), ("main", MAIN)):
-            if not tree.exists():
-                continue
-            env = {**base, "PYTHONPATH": str(tree)}
-            _run(cmd, env, tree)  # page cache
-            times = [_run(cmd, env, tree) for _ in range(runs)]
-            out[f"info_{label}_s"] = statistics.median(times)
+        trees = [(lbl, t) for lbl, t in (("this_tree", REPO), ("main", MAIN)) if t.exists()]
+        times: dict[str, list[float]] = {lbl: [] for lbl, _ in trees}
+        for i in range(runs + 1):  # alternate the trees; the first round warms the page cache
+            for lbl, tree in trees:
+                t = _run(cmd, {**base, "PYTHONPATH": str(tree)}, tree)
+                if i:
+                    times[lbl].append(t)
+        for lbl, ts in times.items():
+            out[f"info_{lbl}_s"] = statistics.median(ts)
         env = {**base, "PYTHONPATH": str(REPO), "NUMBA_CACHE_DIR": str(Path(tmp) / "nbcache")}
         probe = [sys.executable, "-c", _FIRST_CALL]
         for label, extra in (
@@ -217,6 +268,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default="257,1025")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--no-startup", action="store_true")
+    ap.add_argument("--startup-only", action="store_true", help="only the start-up section")
+    ap.add_argument(
+        "--breakdown", action="store_true", help="only the per-step profile of a 1025^2 block"
+    )
     ap.add_argument("--quick", action="store_true", help="257 only, 3 reps, no start-up")
     a = ap.parse_args(argv)
     if kernels.active() is None:
@@ -232,10 +287,15 @@ def main(argv: list[str] | None = None) -> int:
             "python": platform.python_version(),
         },
         "command": " ".join([Path(sys.argv[0]).name, *(argv or sys.argv[1:])]),
-        "kernels": bench_kernels(sizes, reps),
+        "kernels": [] if (a.startup_only or a.breakdown) else bench_kernels(sizes, reps),
     }
-    if not (a.quick or a.no_startup):
+    if not (a.quick or a.no_startup or a.breakdown):
         result["startup"] = bench_startup()
+    if a.breakdown:
+        for name, grid in _blocks([1025]):
+            if grid.dtype == np.int16:
+                print(name)
+                result.setdefault("breakdown", {})[name] = breakdown(grid, max(reps, 5))
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {a.out}")

@@ -18,21 +18,24 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 _FM = {"nnan", "ninf", "nsz"}
+# nogil: a decode on a streamer's loader thread must not stall the caller's (planning) thread
+_OPTS = {"fastmath": _FM, "nogil": True}
 
 
 def _jit(fn):
-    """``njit(cache=True)``; if no cache directory is writable, a per-user temp one, else none."""
+    """``njit(cache=True, nogil=True)``; if no cache directory is writable, a per-user temp one,
+    else none."""
     try:
-        return numba.njit(cache=True, fastmath=_FM)(fn)
+        return numba.njit(cache=True, **_OPTS)(fn)
     except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
         fallback = os.path.join(tempfile.gettempdir(), f"terrastream-numba-{os.getuid()}")
         try:
             os.makedirs(fallback, exist_ok=True)
             numba.config.CACHE_DIR = fallback
-            return numba.njit(cache=True, fastmath=_FM)(fn)
+            return numba.njit(cache=True, **_OPTS)(fn)
         except (OSError, RuntimeError):
             log.warning("numba cannot cache compiled kernels (%s); compiling in memory", exc)
-            return numba.njit(cache=False, fastmath=_FM)(fn)
+            return numba.njit(cache=False, **_OPTS)(fn)
 
 
 @_jit
@@ -79,23 +82,22 @@ def bound_nodes(f, valid, k, tt, out):
             v = tt[d, iv]
             base = off + i * n
             ud, od, ad, bd, cd, qd, rd = uu[d], omu[d], aa[d], ba[d], ca[d], qq[d], run[d]
-            if iv == 0:
-                r0 = i * s
-                for j in range(n):
-                    x0 = j * s
-                    a = f[r0, x0]
-                    b = f[r0, x0 + s]
-                    c = f[r0 + s, x0]
-                    dd = f[r0 + s, x0 + s]
-                    bma = b - a
-                    cma = c - a
-                    q = b + c - a - dd
-                    for x in range(x0, x0 + s):
-                        ad[x] = a
-                        bd[x] = bma
-                        cd[x] = cma
-                        qd[x] = q
-                        rd[x] = zero
+            if iv == 0:  # flat loops: vector stores (scalar ones stall the vector loads)
+                fa = f[i * s]
+                fc = f[i * s + s]
+                msk = ~(s - 1)
+                for x in range(w):
+                    x0 = x & msk
+                    a = fa[x0]
+                    b = fa[x0 + s]
+                    c = fc[x0]
+                    dd = fc[x0 + s]
+                    ad[x] = a
+                    bd[x] = b - a
+                    cd[x] = c - a
+                    qd[x] = b + c - a - dd
+                for x in range(w):
+                    rd[x] = zero
             fy = f[y]
             vy = valid[y]
             for x in range(w):

@@ -146,6 +146,19 @@ def test_exactness_checks_see_one_ulp_and_one_bit(numba_backend):
     assert not _same_bits(encoding.decode_grid(flipped, "float32"), grid)
 
 
+def test_kernels_release_the_gil_and_cache():
+    """Every kernel is nogil (a loader thread's decode never stalls the caller's thread)."""
+    from numba.core.registry import CPUDispatcher
+
+    from tiler import _kernels_nb
+
+    found = [v for v in vars(_kernels_nb).values() if isinstance(v, CPUDispatcher)]
+    assert len(found) >= 12
+    for disp in found:
+        assert disp.targetoptions.get("nogil") is True, disp.__name__
+        assert type(disp._cache).__name__ == "FunctionCache", disp.__name__  # on disk
+
+
 def test_backend_selection(monkeypatch):
     monkeypatch.setenv(kernels.ENV, "numpy")
     assert kernels.backend() == "numpy" and kernels.active() is None
