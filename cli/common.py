@@ -186,7 +186,7 @@ class _Argument(TyperArgument):
     def _usage_display_name(self) -> str:
         name = self.display_name_raw
         name = name if self.required else f"[{name}]"
-        return name + ("..." if self.nargs != 1 else "")
+        return name + ("..." if self.nargs != 1 and "..." not in name else "")
 
     def display_type_rich(self, ctx: click.Context) -> str | None:
         return None

@@ -62,7 +62,7 @@ def test_help_is_readable_and_documents_exit_statuses(command):
 
 def test_usage_line_shows_argument_names():
     r = run("tile", "--help", env={"COLUMNS": "200"})
-    assert "tile [OPTIONS] SRC DST" in r.output and "{src}" not in r.output
+    assert "tile [OPTIONS] SRC... DST" in r.output and "{src}" not in r.output
 
 
 def test_choices_come_from_the_registries():

@@ -125,18 +125,3 @@ def make_renderer(ctx) -> Callable:
 
 
 _GL_OUTCOMES: dict[str, int] = {}
-
-
-def pytest_runtest_logreport(report) -> None:
-    """Count the outcomes of ``gl`` tests (a skip or failure at setup counts as the test's)."""
-    if "gl" not in report.keywords:
-        return
-    if report.when == "call" or (report.when == "setup" and not report.passed):
-        _GL_OUTCOMES[report.outcome] = _GL_OUTCOMES.get(report.outcome, 0) + 1
-
-
-def pytest_terminal_summary(terminalreporter) -> None:
-    """Say how many GL tests ran (CI must not be green with every GL test skipped)."""
-    if _GL_OUTCOMES:
-        parts = ", ".join(f"{n} {k}" for k, n in sorted(_GL_OUTCOMES.items()))
-        terminalreporter.write_line(f"GL tests: {parts}")
