@@ -124,4 +124,3 @@ def make_renderer(ctx) -> Callable:
         r.close()
 
 
-_GL_OUTCOMES: dict[str, int] = {}
