@@ -21,8 +21,12 @@ def is_local(url: str | os.PathLike) -> bool:
     return "://" not in text and not text.startswith("memory:")
 
 
-def open_store_arg(url: str, hint: str = "STORE") -> Any:
-    """The store at ``url`` opened; a local path that does not exist is a usage error."""
+def open_store_arg(url: str, hint: str = "STORE", *, projected: bool = False) -> Any:
+    """The store at ``url`` opened; a local path that does not exist is a usage error.
+
+    ``projected``: the command streams or renders, so a geographic store (x/y in degrees) is
+    refused before any camera or session is made (``tiler.crs.require_projected``).
+    """
     from tiler.store import open_store
 
     if is_local(url) and not Path(url).exists():
@@ -30,7 +34,12 @@ def open_store_arg(url: str, hint: str = "STORE") -> Any:
             f"no store at {url!r}: the path does not exist (make one with terrastream tile)",
             hint=hint,
         )
-    return open_store(url)
+    store = open_store(url)
+    if projected:
+        from tiler.crs import require_projected
+
+        require_projected(store)
+    return store
 
 
 def input_file(path: Path | None, hint: str) -> Path | None:

@@ -37,6 +37,7 @@ from render.errors import RenderError
 from render.gpu import HeightPool, check_gl, create_context
 from render.select import Patches, PatchTable
 from streamer.camera import Camera
+from tiler.crs import require_projected
 from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
 
@@ -101,6 +102,7 @@ class FrameServices:
         *,
         ctx: moderngl.Context | None = None,
     ) -> None:
+        require_projected(store)  # x/y in degrees beside heights in metres draws streaks
         self.store = store
         self.config = config or RenderConfig()
         self.grid = store.grid

@@ -45,8 +45,10 @@ from streamer.frames import Frame, FrameStats, SessionConfig
 from streamer.loader import READ_ERRORS, Loader
 from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
+from tiler.crs import require_projected
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
+from tiler.vertical import height_dtype
 
 log = logging.getLogger(__name__)
 _DONE = object()
@@ -64,9 +66,11 @@ class Session:
         read_hook: Callable[[Block, int], None] | None = None,
     ) -> None:
         self.store = store if isinstance(store, TerrainStore) else open_store(store)
+        require_projected(self.store)  # degrees beside metres cannot be streamed
         self._config = config or SessionConfig()
         self.grid = self.store.grid
-        itemsize = np.dtype(self.store.meta.dtype).itemsize
+        # decoded bytes: heights of a scaled store (band scale/offset, feet) decode to float64
+        itemsize = np.dtype(height_dtype(self.store.meta)).itemsize
         self.level_bytes = [level_size(i) * itemsize for i in range(self.store.k + 1)]
         self._cum_bytes = [sum(self.level_bytes[: i + 1]) for i in range(self.store.k + 1)]
         field_name = FIELD_FOR_METRIC.get(self.config.metric, "qiu")

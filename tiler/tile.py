@@ -38,7 +38,7 @@ from tiler.lease import DEFAULT_TIMEOUT_S, LEASE_KEY, WriterLease
 from tiler.location import Location, as_location
 from tiler.mosaic import MosaicReader, MosaicSpec
 from tiler.resume import check_same_job, create_journal, job_identity, source_fingerprint
-from tiler.schema import ATTR, FORMAT_VERSION, create_layout
+from tiler.schema import ATTR, DEFAULT_CLEVEL, FORMAT_VERSION, create_layout
 from tiler.source import (
     SourceLike,
     _open_source,
@@ -77,7 +77,7 @@ class TileOptions:
     precision: float | None = None
     workers: int = 0  # 0 = one per CPU core
     overwrite: bool = False
-    compression_level: int = 5  # blosc/zstd clevel
+    compression_level: int = DEFAULT_CLEVEL  # blosc/zstd clevel (tiler.schema)
     error_cap: int | None = None  # default: k - 4
     gdal_cache_mb: int = 64  # GDAL's block cache (its default, 5 % of RAM, dominates RSS)
     executor: str = "auto"  # "threads", "processes" or "auto" (processes for big local jobs)

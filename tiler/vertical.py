@@ -101,3 +101,11 @@ def from_metres(meta: Any, values: np.ndarray, dtype: np.dtype) -> np.ndarray:
     v = (np.asarray(values, dtype=np.float64) - b) / a
     dtype = np.dtype(dtype)
     return (np.rint(v) if dtype.kind in "iu" else v).astype(dtype)
+
+
+def height_dtype(meta: Any) -> np.dtype:
+    """The dtype of decoded heights: float64 when a scale/offset or non-metre unit applies
+    (:func:`to_metres`), else the source dtype."""
+    if height_transform(meta) != (1.0, 0.0):
+        return np.dtype(np.float64)
+    return np.dtype(meta.dtype)

@@ -16,7 +16,8 @@ from cli.commands import (
     synth,
     tile,
     tradeoff,
+    verify,
     view,
 )
 
-COMMANDS = (tile, info, synth, export, stream, render, tradeoff, flythrough, view, compare)
+COMMANDS = (tile, info, verify, synth, export, stream, render, tradeoff, flythrough, view, compare)

@@ -72,7 +72,7 @@ def compare(
         input_file(path, "--path")
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
-        s = open_store_arg(store)
+        s = open_store_arg(store, projected=True)
         cams = make_path(s, path_kind, frames=frames, path_file=path, viewport=viewport)
         typer.echo(HEADER)
         rows = run(

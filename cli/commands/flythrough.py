@@ -63,7 +63,7 @@ def flythrough(
         viewport = parse_size(size)
         input_file(path, "--path")
         output_dir(out, "--out")
-        s = open_store_arg(store)
+        s = open_store_arg(store, projected=True)
         cams = make_path(s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport)
         every_line = max(1, frames // 10)
         typer.echo(

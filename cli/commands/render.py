@@ -63,7 +63,7 @@ def render(
     with fail_on_errors():
         viewport = parse_size(size)
         output_file(out, "--out", suffixes=image_suffixes())
-        s = open_store_arg(store)
+        s = open_store_arg(store, projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )

@@ -68,7 +68,7 @@ def stream(
         input_file(path, "--path")
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
-        s = open_store_arg(store)
+        s = open_store_arg(store, projected=True)
         cams = make_path(
             s,
             path_kind,

@@ -98,7 +98,14 @@ def tile(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing store.")
     ] = False,
-    level: Annotated[int, integer("--clevel", "Compression level (blosc zstd).", min=1, max=9)] = 5,
+    repair: Annotated[
+        bool,
+        typer.Option(
+            "--repair",
+            help="Recompute only the blocks `terrastream verify` finds damaged, from SRC.",
+        ),
+    ] = False,
+    level: Annotated[int, integer("--clevel", "Compression level (blosc zstd).", min=1, max=9)] = 3,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print a JSON summary instead of a line.")
     ] = False,
@@ -129,6 +136,7 @@ def tile(
             precision=precision,
             workers=workers,
             overwrite=overwrite,
+            repair=repair,
             compression_level=level,
         )
         bar = Progress("tiling", "block")

@@ -64,7 +64,7 @@ def tradeoff(
         values = parse_taus(taus)
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
-        s = open_store_arg(store)
+        s = open_store_arg(store, projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )

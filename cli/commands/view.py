@@ -69,7 +69,7 @@ def view(
         if screenshot is not None and frames is None:
             raise UsageError("--screenshot needs --frames N")
         output_file(screenshot, "--screenshot", suffixes=image_suffixes() if screenshot else None)
-        s = open_store_arg(store)
+        s = open_store_arg(store, projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )

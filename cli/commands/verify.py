@@ -1,0 +1,66 @@
+"""``terrastream verify``: check every chunk and the metadata of a store."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cli.checks import input_file, is_local, open_store_arg
+from cli.common import EXIT_RUNTIME, fail_on_errors
+
+MAX_LISTED = 20  # problems printed one per line; the rest are counted (all are in --json)
+
+
+def verify(
+    store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
+    source: Annotated[
+        Path | None,
+        typer.Option("--source", help="Also recompute every block's digest from this source DEM."),
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
+) -> None:
+    """Check every chunk's checksum, the index and the metadata; exit 1 if anything is wrong.
+
+    A damaged store is mended from its source with ``terrastream tile SRC STORE --repair``.
+
+    Example: terrastream verify n44.zarr --source N44W072.hgt
+    """
+    from tiler.verify import verify_store
+
+    with fail_on_errors():
+        if is_local(store) and not Path(store).exists():
+            open_store_arg(store)  # the usage error
+        input_file(source, "--source")
+        rep = verify_store(store, source=source)
+        if as_json:
+            typer.echo(json.dumps(rep.to_json(), indent=2))
+        else:
+            for p in rep.problems[:MAX_LISTED]:
+                where = f" block {p.block}" if p.block is not None else ""
+                level = f" level {p.level}" if p.level is not None else ""
+                typer.echo(f"{p.kind}: {p.array or 'store'}{where}{level}: {p.message}")
+            if len(rep.problems) > MAX_LISTED:
+                typer.echo(f"... and {len(rep.problems) - MAX_LISTED} more (--json lists all)")
+            checks = "crc32c checksums" if rep.checksummed else "no checksums (format 1)"
+            status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
+            typer.echo(
+                f"{store}: {status}; {rep.chunks_checked} chunks checked ({checks}), "
+                f"{rep.blocks_total} blocks"
+                + (", source digests compared" if rep.source_checked else "")
+            )
+        if not rep.ok:
+            if not as_json:
+                typer.echo(
+                    f"error: {store} is damaged; rerun `terrastream tile SRC {store} --repair` "
+                    "to recompute the bad blocks from the source",
+                    err=True,
+                )
+            raise typer.Exit(EXIT_RUNTIME)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``verify`` to ``app``."""
+    app.command("verify")(verify)

@@ -1,0 +1,60 @@
+"""``verify`` and ``tile --repair`` through the CLI: quiet on a good store, loud on a bad one."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import fractal
+from typer.testing import CliRunner
+
+from cli.main import app
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tiler"))
+from storetools import chunk_files, flip_bit  # noqa: E402
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture
+def store(dem_factory, tmp_path):
+    src = dem_factory(fractal((90, 70), 5))
+    dst = tmp_path / "s.zarr"
+    r = run("tile", src, dst, "--block-size", "129", "--workers", "1")
+    assert r.exit_code == 0, r.output
+    return src, dst
+
+
+def test_verify_is_quiet_on_a_good_store(store):
+    src, dst = store
+    r = run("verify", dst, "--source", src)
+    assert r.exit_code == 0, r.output
+    assert ": ok;" in r.output and "crc32c checksums" in r.output and "source digests" in r.output
+
+
+def test_verify_names_a_flipped_bit_and_repair_mends_it(store):
+    src, dst = store
+    chunk = chunk_files(dst, "levels/6")[0]  # unsharded from level 6: one chunk per block
+    before = chunk.read_bytes()
+    flip_bit(chunk, np.random.default_rng(1))  # the positive control: break one chunk
+    r = run("verify", dst)
+    assert r.exit_code == 1, r.output
+    assert "checksum" in r.output and "levels/6" in r.output and "--repair" in r.output
+    r = run("verify", dst, "--json")
+    assert r.exit_code == 1 and len(json.loads(r.output)["bad_blocks"]) == 1
+    r = run("tile", src, dst, "--block-size", "129", "--repair")
+    assert r.exit_code == 0, r.output
+    assert chunk.read_bytes() == before  # recomputed byte for byte
+    assert run("verify", dst).exit_code == 0
+
+
+def test_verify_of_a_missing_store_is_a_usage_error(tmp_path):
+    r = run("verify", tmp_path / "nope.zarr")
+    assert r.exit_code == 2 and "nope.zarr" in r.output
