@@ -12,6 +12,28 @@ def human_bytes(n: float) -> str:
     return f"{n:.1f} TiB"
 
 
+def _crs_note(d: dict) -> str:
+    """How the CRS came about, or why the store cannot be viewed."""
+    rep = d.get("reprojection")
+    if rep:
+        return f" (reprojected from {d.get('source_crs')}, {rep['requested']}, {rep['resampling']})"
+    if d.get("crs_geographic"):
+        return " (geographic: tiles losslessly, but to stream or render retile with --dst-crs auto)"
+    return ""
+
+
+def _vertical_note(d: dict) -> str:
+    """The stored integers behind heights in metres (band scale/offset, feet)."""
+    v, raw = d.get("vertical"), d.get("value_range_stored")
+    if not v:
+        return ""
+    stored = f"{raw[0]:g} .. {raw[1]:g} " if raw else ""
+    return (
+        f" (stored {stored}{d['dtype']} x {v['scale']:g} + {v['offset']:g} "
+        f"{v.get('units') or 'm'}, {v.get('metres_per_unit') or 1:g} m per unit)"
+    )
+
+
 def format_info(d: dict) -> str:
     """The human-readable ``info`` table."""
     lines = [
@@ -24,11 +46,13 @@ def format_info(d: dict) -> str:
         f"({d['blocks_with_terrain']} with terrain, {d['blocks_with_nodata']} with nodata)",
         f"levels         {d['levels']} (encoding {d['encoding']}, {d['compressor']})",
         f"nodata         {'none' if d['nodata'] is None else format(d['nodata'], 'g')}",
-        f"crs            {d['crs']}",
+        f"checksums      {d.get('checksums', 'none')}",
+        f"crs            {d['crs']}" + _crs_note(d),
         f"extent         x {d['extent'][0]:.3f} .. {d['extent'][2]:.3f}, "
         f"y {d['extent'][1]:.3f} .. {d['extent'][3]:.3f}",
         f"values         {d['value_range'][0]:g} .. {d['value_range'][1]:g}"
-        + (f" {d['vertical_units']}" if d["vertical_units"] else ""),
+        + (" m" if d.get("vertical") else f" {d['vertical_units']}" if d["vertical_units"] else "")
+        + _vertical_note(d),
         "",
         "level  values/block      stored     share",
     ]

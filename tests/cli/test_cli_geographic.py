@@ -43,3 +43,11 @@ def test_the_python_api_refuses_it_too(stores):
         open_session(str(geo))
     with open_session(str(utm)) as s:  # the quiet case: the reprojected store streams
         assert s.store.meta.crs_wkt and "UTM" in s.store.meta.crs_wkt
+
+
+def test_info_says_where_the_crs_came_from(stores):
+    geo, utm = stores
+    r = runner.invoke(app, ["info", str(geo)])
+    assert r.exit_code == 0 and "geographic: tiles losslessly" in r.output
+    r = runner.invoke(app, ["info", str(utm)])
+    assert r.exit_code == 0 and "EPSG:32619 (reprojected from EPSG:4326, auto" in r.output
