@@ -81,7 +81,6 @@ class Session:
         self._prev: Camera | None = None
         self._clock0: float | None = None  # when frame 0 was shown (its update returned)
         self._due = 0.0  # due time of the frame being made
-        self._stall_set = "triangle" if self.config.culling == "qiu" else "hull"
         self._request: tuple | None = None
         self._planning = False
         self._plan_error: BaseException | None = None
@@ -103,6 +102,11 @@ class Session:
         if cfg.workers != self._config.workers or cfg.budget_mb != self._config.budget_mb:
             raise StreamerError("workers and budget_mb cannot change during a session")
         self._config = self.planner.config = self.loader.config = cfg
+
+    @property
+    def stall_set(self) -> str:
+        """The set stalls and holes are counted over: "triangle" (culling="qiu") or "hull"."""
+        return "triangle" if self._config.culling == "qiu" else "hull"
 
     @property
     def _read_hook(self) -> Callable[[Block, int], None] | None:
@@ -384,7 +388,7 @@ class Session:
         ld = self.loader
         level, errors_table, due = self.cache.level, ld.errors, self._due
         hull = None
-        if self.config.account_hull and self._stall_set == "triangle":
+        if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")
         with self._cv:  # one pass over the visible blocks; dict work only
             if hull is not None:
@@ -430,7 +434,7 @@ class Session:
             io_errors=errors,
             holes=holes,
             failed_blocks=len(failed),
-            stall_set=self._stall_set,
+            stall_set=self.stall_set,
             late_bytes=late,
             hull_stalled=hull,
             levels_short=max(0, short),
@@ -471,7 +475,7 @@ class Session:
             used_bytes=used_bytes,
             peak_resident_bytes=self.cache.peak_nbytes,
             budget_bytes=self.cache.budget,
-            stall_set=self._stall_set,
+            stall_set=self.stall_set,
             failed_now=failed_now,
         )
 
