@@ -289,9 +289,9 @@ class Session:
 
         ``dt`` is the time since the previous pose (default ``1/fps``), used for the velocity
         that stretches the frustum extension. ``wait=True`` blocks until every visible block
-        holds its needed level or has failed ``retries`` times in a row and once more during
-        this wait (bounded by ``wait_timeout_s``). With ``warm_start``, the first call runs
-        :meth:`warm_up` first.
+        holds its needed level or has failed ``retries`` times in a row and ``retries`` more
+        times during this wait (bounded by ``wait_timeout_s``). With ``warm_start``, the first
+        call runs :meth:`warm_up` first.
         """
         self._check_open()
         if self.config.warm_start and self.totals.frames == 0 and not self.totals.warmup:
