@@ -128,8 +128,11 @@ class PatchErrorTable:
         tau: float,
         metric: str | Metric,
         zranges: np.ndarray,
+        *,
+        with_rho: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Needed level of each block (all must be in the table) and its largest screen error."""
+        """Needed level of each block (all must be in the table) and its largest screen error
+        (zeros when ``with_rho`` is False: a caller that only needs levels skips that work)."""
         fn = get_metric(metric)
         k, p = self.k, self.patch_log2
         m = len(blocks)
@@ -153,7 +156,8 @@ class PatchErrorTable:
             centres = np.stack([cx, cy, zmid[idx]], axis=1)
             radius = sphere_radius(half_diagonal(grid, d), zhalf[idx])
             rho = np.asarray(fn(delta, centres, radius, camera))
-            np.maximum.at(rho_max, idx, np.where(np.isfinite(rho), rho, 1e30))
+            if with_rho:
+                np.maximum.at(rho_max, idx, np.where(np.isfinite(rho), rho, 1e30))
             split = ~(rho <= tau)
             if not split.any():
                 break

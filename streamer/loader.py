@@ -31,7 +31,7 @@ from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, _Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
-from tiler.errors import StoreError
+from tiler.errors import StoreCorruptError, StoreError
 from tiler.store import TerrainStore
 
 log = logging.getLogger(__name__)
@@ -220,10 +220,7 @@ class Loader:
                 time.sleep(self.config.latency_ms / 1000.0)
             if self.read_hook is not None:
                 self.read_hook(b, level)
-            if level < 0:
-                data = self.store.read_errors(b)[self.field_name]
-            else:
-                data = self.store.read_level_raw(b, level)
+            data = self._read_errors(b) if level < 0 else self.store.read_level_raw(b, level)
         except READ_ERRORS as exc:
             with self.cv:
                 if level >= 0:
@@ -255,6 +252,21 @@ class Loader:
         finally:
             with self.cv:
                 self.decoding.discard(b)
+
+    def _read_errors(self, b: Block) -> list[np.ndarray]:
+        """The block's error field. A chunk that zarr or its codecs cannot decode raises
+        ``ValueError``/``RuntimeError`` there; like ``TerrainStore.read_level_raw`` does for
+        levels, that becomes a ``StoreCorruptError`` (a read error), here at the store call
+        only, so the same types raised anywhere else still surface as bugs."""
+        try:
+            return self.store.read_errors(b)[self.field_name]
+        except (ValueError, RuntimeError) as exc:
+            if isinstance(exc, READ_ERRORS):
+                raise
+            raise StoreCorruptError(
+                f"cannot read the {self.field_name!r} errors of block {b} from "
+                f"{self.store.url!r}: {exc}"
+            ) from exc
 
     def _decode_ready(self, b: Block) -> None:
         """Decode ``b``'s fetched levels that follow its resident ones, in order (no lock held

@@ -34,7 +34,7 @@ class LoadQueue:
         self._heap: list[tuple[tuple, Block]] = []
         self.failures: dict[Block, int] = {}  # failures in a row
         self.retry_at: dict[Block, float] = {}
-        self.failed_at: dict[Block, float] = {}  # time of the latest failure
+        self.failed_at: dict[Block, list[float]] = {}  # times of the latest failures
         self.cancelled = 0
 
     def __len__(self) -> int:
@@ -88,7 +88,9 @@ class LoadQueue:
         """Record a failed read of ``b``; returns its failures in a row."""
         n = self.failures.get(b, 0) + 1
         self.failures[b] = n
-        self.failed_at[b] = now
+        times = self.failed_at.setdefault(b, [])
+        times.append(now)
+        del times[: -self.retries]  # the last ``retries`` are enough
         if self.retryable(b):
             delay = min(self.backoff_s * 2 ** (n - 1), self.max_backoff_s)
             self.retry_at[b] = now + delay
@@ -106,10 +108,13 @@ class LoadQueue:
 
     def given_up(self, b: Block, since: float) -> bool:
         """Whether a waiter that started at ``since`` stops waiting for ``b``: it is failed
-        and, when healing, a retry since then failed too (without healing it never returns)."""
+        and, when healing, ``retries`` more reads since then failed too (a fresh round of
+        retries; without healing a failed block never returns)."""
         if not self.is_failed(b):
             return False
-        return not self.heal or self.failed_at.get(b, 0.0) >= since
+        if not self.heal:
+            return True
+        return sum(t >= since for t in self.failed_at.get(b, ())) >= self.retries
 
     def failed_blocks(self) -> set[Block]:
         """Every block currently failed."""

@@ -83,17 +83,19 @@ class Planner:
         return self._existing(frustum_hull(camera, self.zrange))
 
     def levels(
-        self, camera: Camera, blocks: list[Block], tau: float
+        self, camera: Camera, blocks: list[Block], tau: float, *, with_rho: bool = True
     ) -> tuple[dict[Block, int], dict[Block, float]]:
         """Needed level and largest screen error of each block at ``tau`` (patch level and 0
-        for blocks whose errors are not known yet)."""
+        for blocks whose errors are not known yet; errors all 0 without ``with_rho``)."""
         floor = min(self.config.patch_log2, self.k)
         needed = dict.fromkeys(blocks, floor)
         rho = dict.fromkeys(blocks, 0.0)
         have = [b for b in blocks if b in self.errors]
         if have:
             zr = self._zr_of(have)
-            lv, r = self.errors.needed_levels(self.grid, have, camera, tau, self.config.metric, zr)
+            lv, r = self.errors.needed_levels(
+                self.grid, have, camera, tau, self.config.metric, zr, with_rho=with_rho
+            )
             needed.update(zip(have, lv.tolist(), strict=True))
             rho.update(zip(have, r.tolist(), strict=True))
         return needed, rho
@@ -103,7 +105,7 @@ class Planner:
     ) -> dict[Block, int]:
         """The visible blocks and the level each needs to be drawn at ``tau``."""
         t = self.config.tau if tau is None else tau
-        return self.levels(camera, self.visible(camera, culling), t)[0]
+        return self.levels(camera, self.visible(camera, culling), t, with_rho=False)[0]
 
     def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
         """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity``."""

@@ -85,7 +85,6 @@ class Session:
         self._prev: Camera | None = None
         self._clock0: float | None = None  # when frame 0 was shown (its update returned)
         self._due = 0.0  # due time of the frame being made
-        self._stall_set = "triangle" if self.config.culling == "qiu" else "hull"
         self._request: tuple | None = None
         self._planning = False
         self._plan_error: BaseException | None = None
@@ -107,6 +106,11 @@ class Session:
         if cfg.workers != self._config.workers or cfg.budget_mb != self._config.budget_mb:
             raise StreamerError("workers and budget_mb cannot change during a session")
         self._config = self.planner.config = self.loader.config = cfg
+
+    @property
+    def stall_set(self) -> str:
+        """The set stalls and holes are counted over: "triangle" (culling="qiu") or "hull"."""
+        return "triangle" if self._config.culling == "qiu" else "hull"
 
     @property
     def _read_hook(self) -> Callable[[Block, int], None] | None:
@@ -289,9 +293,9 @@ class Session:
 
         ``dt`` is the time since the previous pose (default ``1/fps``), used for the velocity
         that stretches the frustum extension. ``wait=True`` blocks until every visible block
-        holds its needed level or has failed ``retries`` times in a row and once more during
-        this wait (bounded by ``wait_timeout_s``). With ``warm_start``, the first call runs
-        :meth:`warm_up` first.
+        holds its needed level or has failed ``retries`` times in a row and ``retries`` more
+        times during this wait (bounded by ``wait_timeout_s``). With ``warm_start``, the first
+        call runs :meth:`warm_up` first.
         """
         self._check_open()
         if self.config.warm_start and self.totals.frames == 0 and not self.totals.warmup:
@@ -388,7 +392,7 @@ class Session:
         ld = self.loader
         level, errors_table, due = self.cache.level, ld.errors, self._due
         hull = None
-        if self.config.account_hull and self._stall_set == "triangle":
+        if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")
         with self._cv:  # one pass over the visible blocks; dict work only
             if hull is not None:
@@ -434,7 +438,7 @@ class Session:
             io_errors=errors,
             holes=holes,
             failed_blocks=len(failed),
-            stall_set=self._stall_set,
+            stall_set=self.stall_set,
             late_bytes=late,
             hull_stalled=hull,
             levels_short=max(0, short),
@@ -475,7 +479,7 @@ class Session:
             used_bytes=used_bytes,
             peak_resident_bytes=self.cache.peak_nbytes,
             budget_bytes=self.cache.budget,
-            stall_set=self._stall_set,
+            stall_set=self.stall_set,
             failed_now=failed_now,
         )
 

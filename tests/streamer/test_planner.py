@@ -101,7 +101,13 @@ def test_queue_backoff_doubles_caps_and_heals():
     assert q.pop(10.0, lambda b: "job") is None  # backing off: stays queued
     assert len(q) == 1
     assert q.pop(10.5, lambda b: "job") == (b, "job")  # healing: still retried
-    assert q.given_up(b, since=9.0) and not q.given_up(b, since=11.0)
+    assert q.given_up(b, since=9.0)  # 5 failures since: more than a round of 3
+    assert not q.given_up(b, since=11.0)
+    q.failed_read(b, 12.0)
+    q.failed_read(b, 12.5)
+    assert not q.given_up(b, since=11.0)  # 2 of a fresh round of 3
+    q.failed_read(b, 13.0)
+    assert q.given_up(b, since=11.0)
     q.succeeded(b)
     assert not q.is_failed(b) and q.next_retry(0.0) is None
 

@@ -15,7 +15,7 @@ import pytest
 from conftest import fractal, write_dem
 
 from streamer.paths import default_flythrough
-from streamer.session import open_session
+from streamer.session import LoadError, open_session
 from tiler.tile import TileOptions, tile
 
 LONG = os.environ.get("TERRASTREAM_RELIABILITY_LONG") == "1"
@@ -177,3 +177,30 @@ def test_a_bug_in_a_read_surfaces_instead_of_counting_as_an_io_error(store):
                 s.update(cam)
                 time.sleep(0.05)
         assert s.summary()["io_errors"] == 0
+
+
+def test_an_undecodable_error_chunk_is_a_read_error_not_a_bug(store, monkeypatch):
+    """zarr/numcodecs raise ValueError/RuntimeError for a chunk they cannot decode: counted
+    and retried as a read failure (the block is reported failed), not raised as a bug."""
+    calls = {"n": 0}
+    real = type(store).read_errors
+
+    def broken(self, block):
+        calls["n"] += 1
+        if block == target:
+            raise RuntimeError("error during blosc decompression: -1")
+        return real(self, block)
+
+    z0, z1 = store.meta.extra["value_range"]
+    cam = default_flythrough(store.grid, z0, z1, 1, 60.0, viewport=(160, 120))[0]
+    with open_session(store, budget_mb=8, workers=1, retries=2, backoff_s=0.001) as s:
+        target = s.planner.visible(cam)[0]
+        monkeypatch.setattr(type(store), "read_errors", broken)
+        with pytest.raises(LoadError, match="blosc decompression") as info:  # noqa: PT012
+            for _ in range(4):
+                s.update(cam, wait=True)
+        f = info.value.frame  # the frame the failure was reported with
+        assert target in f.failed
+        assert f.blocks[target][0] == -1 and f.stats.holes >= 1
+        assert s.summary()["io_errors"] >= 2
+        assert [list(target)] == s.summary()["failed_blocks"]
