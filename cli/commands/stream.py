@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
-from cli.common import fail_on_errors
+from cli.common import EXIT_RUNTIME, fail_on_errors
 from cli.formatters import format_summary
 from cli.options import (
     METRIC_DEFAULT,
@@ -79,6 +79,7 @@ def stream(
             viewport=viewport,
         )
         cfg = dict(fps=fps, prefetch=not no_prefetch, latency_ms=latency_ms, tau=tau, metric=metric)
+        cfg["raise_on_failure"] = False  # keep flying: failures are in the frames and summary
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting
         every = every or max(1, frames // 20)
         header = (
@@ -113,6 +114,19 @@ def stream(
         if plot:
             plot_run(result, plot)
             typer.echo(f"wrote {plot}")
+        failed = result.summary.get("failed_blocks") or []
+        if failed or not result.summary.get("loaded_bytes"):
+            why = (
+                f"{len(failed)} block(s) were still unreadable at the end (first: {failed[0]})"
+                if failed
+                else "no level could be loaded"
+            )
+            typer.echo(
+                f"error: the flight over {store!r} is incomplete: {why}; run `terrastream verify "
+                f"{store}` or check the server (the summary above counts the read errors)",
+                err=True,
+            )
+            raise typer.Exit(EXIT_RUNTIME)
 
 
 def register(app: typer.Typer) -> None:

@@ -194,3 +194,18 @@ def test_registry_defaults_and_lazy_imports():
     code += "'zarr', 'streamer.run') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"  # `terrastream --version` / `tile` start fast
+
+
+def test_stream_keeps_going_on_read_errors_and_fails_when_blocks_stay_unreadable(store, tmp_path):
+    import shutil
+
+    r = run("stream", store, "--frames", "20", "--fps", "100", "--size", "64x48")
+    assert r.exit_code == 0, r.output  # the quiet case
+    assert "io errors 0" in r.stdout and "blocks failed at the end 0" in r.stdout
+    broken = tmp_path / "broken.zarr"
+    shutil.copytree(store, broken)
+    shutil.rmtree(broken / "levels" / "0" / "c")  # the positive control: every block's level 0
+    r = run("stream", broken, "--frames", "20", "--fps", "100", "--size", "64x48")
+    assert r.exit_code == 1, r.output
+    assert "frames 20" in r.stdout  # it flew the whole path and printed its summary
+    assert "still unreadable at the end" in r.output and "terrastream verify" in r.output
