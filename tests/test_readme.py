@@ -43,7 +43,7 @@ def run_block(source: str, cwd: Path) -> subprocess.CompletedProcess:
 
 def streamed(stdout: str) -> bool:
     """The streaming example's line says data arrived and most frames were drawable."""
-    m = re.search(r"(\d+) of (\d+) frames stalled, ([\d.]+) MiB loaded", stdout)
+    m = re.search(r"(\d+) of (\d+) frames stalled, ([\d.]+) MiB", stdout)
     if not m:
         return False
     stalled, frames, mib = int(m[1]), int(m[2]), float(m[3])
