@@ -1,0 +1,85 @@
+"""The cost of ``Session.update`` on the caller's thread (issue 14): wall and thread-CPU time.
+
+Builds a 2049² synthetic store (blocks of 129²) in ``bench/work`` once, flies the default path
+unpaced (``update()`` back to back while 4 loader threads fill behind it) and reports p50/p99/max
+of the wall time around each call and of the caller's CPU time (``time.thread_time``), which is
+the figure that does not depend on what else the machine runs. Prints a table and writes
+``bench/results/session_update.json``.
+
+Usage: python bench/session_update.py [--frames 10000] [--workers 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from streamer.run import make_path  # noqa: E402
+from streamer.session import open_session  # noqa: E402
+from tiler.store import open_store  # noqa: E402
+from tiler.synth import synth_dem  # noqa: E402
+from tiler.tile import TileOptions, tile  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=10_000)
+    ap.add_argument("--workers", type=int, default=4)
+    a = ap.parse_args(argv)
+    root = WORK / "session_update"
+    root.mkdir(parents=True, exist_ok=True)
+    src, dst = root / "dem.tif", root / "s.zarr"
+    if not src.exists():
+        synth_dem(src, 2049, seed=3)
+    if not (dst / "zarr.json").exists():
+        tile(src, dst, TileOptions(block_size=129, workers=2, executor="threads"))
+    store = open_store(dst)
+    cams = make_path(store, "default", frames=a.frames, fps=60)
+    wall, cpu = np.zeros(a.frames), np.zeros(a.frames)
+    with open_session(store, budget_mb=128, workers=a.workers) as s:
+        s.warm_up(cams[0])
+        for i, cam in enumerate(cams):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            s.update(cam, 1 / 60)
+            wall[i], cpu[i] = time.perf_counter() - t0, time.thread_time() - c0
+        summary = s.summary()
+    rows = {}
+    print(f"# {a.frames} frames, {a.workers} loaders, 2049² store of 129² blocks, unpaced")
+    print(f"{'':6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
+    for name, arr in (("wall", wall), ("cpu", cpu)):
+        ms = arr * 1e3
+        rows[name] = {
+            "p50_ms": float(np.percentile(ms, 50)),
+            "p99_ms": float(np.percentile(ms, 99)),
+            "max_ms": float(ms.max()),
+        }
+        r = rows[name]
+        print(f"{name:6} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['max_ms']:8.3f}")
+    out = RESULTS / "session_update.json"
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    out.write_text(
+        json.dumps(
+            {
+                "frames": a.frames,
+                "workers": a.workers,
+                "update": rows,
+                "stall_frames": summary["stall_frames"],
+                "loaded_bytes": summary["loaded_bytes"],
+                "machine": machine_info(),
+            },
+            indent=1,
+        )
+    )
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
