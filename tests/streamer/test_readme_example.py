@@ -59,7 +59,8 @@ def test_the_readme_streaming_example_streams(demo_dir, monkeypatch):
 
 
 def test_the_example_without_warm_start_and_pacing_stalls(demo_dir, monkeypatch):
-    """Positive control: the old text (no warm start, no pacing) stalls on most frames."""
+    """Positive control: the old text (no warm start, no pacing) stalls on far more frames than
+    the example is allowed (the detector the example's test relies on fires)."""
     monkeypatch.chdir(demo_dir)
     old = EXAMPLE.replace(", warm_start=True", "").replace("paced(cameras, fps=60)", "cameras")
     assert old != EXAMPLE
@@ -67,7 +68,7 @@ def test_the_example_without_warm_start_and_pacing_stalls(demo_dir, monkeypatch)
     with contextlib.redirect_stdout(io.StringIO()):
         exec(compile(old, "README.md", "exec"), namespace)  # noqa: S102 - the example
     summary = namespace["session"].summary()
-    assert summary["stall_frames"] > 300, summary
+    assert summary["stall_frames"] > 60, summary  # 207-486 of 600 measured; the example: <= 60
 
 
 def test_paced_keeps_the_frame_clock():
