@@ -67,4 +67,17 @@ def machine_info() -> dict[str, Any]:
         info["gdal"] = rasterio.__gdal_version__
     except ImportError:
         pass
+    if hasattr(os, "getloadavg"):
+        info["loadavg_at_start"] = os.getloadavg()  # timings are only comparable within a run
+    info["git_head"] = git_head()
     return info
+
+
+def git_head() -> str | None:
+    """The commit the benchmark ran on (read from .git, no subprocess), or None."""
+    try:
+        head = (REPO / ".git" / "HEAD").read_text().strip()
+        ref = head.split(" ", 1)[1] if head.startswith("ref:") else None
+        return (REPO / ".git" / ref).read_text().strip() if ref else head
+    except (OSError, IndexError):
+        return None

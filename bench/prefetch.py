@@ -56,7 +56,6 @@ import gc
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -67,7 +66,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
+from bench.common import REAL_HGT, REPO, RESULTS, WORK, git_head, machine_info  # noqa: E402
 from streamer.run import RunResult, make_path, plot_run  # noqa: E402
 from streamer.session import Session, SessionConfig  # noqa: E402
 from tiler.store import open_store  # noqa: E402
@@ -722,32 +721,6 @@ def qiu_table(records: list[dict[str, Any]]) -> tuple[str, list[dict[str, Any]]]
     return "\n".join(lines), data
 
 
-def machine_info() -> dict[str, Any]:
-    info: dict[str, Any] = {
-        "platform": platform.platform(),
-        "python": sys.version.split()[0],
-        "numpy": np.__version__,
-        "cpus": os.cpu_count(),
-        "loadavg_at_start": os.getloadavg(),
-        "note": "shared 2-core machine, other benchmarks running concurrently: timings noisy",
-    }
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                info["cpu"] = line.split(":", 1)[1].strip()
-                break
-    info["git_head_at_start"] = _git_head()
-    return info
-
-
-def _git_head() -> str | None:
-    with contextlib.suppress(OSError, IndexError):
-        head = (REPO / ".git" / "HEAD").read_text().strip()
-        ref = head.split(" ", 1)[1] if head.startswith("ref:") else None
-        return (REPO / ".git" / ref).read_text().strip() if ref else head
-    return None
-
-
 def _code_mtimes() -> dict[str, float]:
     """Modification times of the code a run imports (to flag edits during a long run)."""
     out = {}
@@ -874,7 +847,7 @@ def main(argv: list[str] | None = None) -> int:
         "started_utc": started,
         "finished_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
-        "machine": {**machine, "git_head_at_end": _git_head()},
+        "machine": {**machine, "git_head_at_end": git_head()},
         "code_changed_during_run": [f for f, t in _code_mtimes().items() if mtimes.get(f) != t],
         "settings": {
             "fps": FPS,

@@ -28,11 +28,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import cProfile
-import datetime as _dt
 import io
 import json
 import os
-import platform
 import pstats
 import resource
 import shutil
@@ -46,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, REPO, RESULTS, WORK  # noqa: E402
+from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info  # noqa: E402
 
 DEFAULT_OUT = RESULTS / "tiling.json"
 DEFAULT_REAL = REAL_HGT
@@ -660,29 +658,6 @@ def tiler_sources_digest() -> str:
         h.update(f.name.encode())
         h.update(f.read_bytes())
     return h.hexdigest()
-
-
-def machine_info() -> dict[str, Any]:
-    import numpy
-    import psutil
-    import rasterio
-    import rio_cogeo
-    import zarr
-
-    return {
-        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "cpu_count": os.cpu_count(),
-        "cpu_affinity": len(os.sched_getaffinity(0)),
-        "memory_gb": round(psutil.virtual_memory().total / 2**30, 1),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": sys.version.split()[0],
-        "numpy": numpy.__version__,
-        "zarr": zarr.__version__,
-        "rasterio": rasterio.__version__,
-        "gdal": rasterio.__gdal_version__,
-        "rio_cogeo": rio_cogeo.__version__,
-    }
 
 
 # --------------------------------------------------------------------------- main
