@@ -47,6 +47,19 @@ CLEAR = (255, 0, 255)  # magenta: contrasts with every terrain colour
 HEIGHTS_BINDING, LEVEL_TEX_UNIT, ORDER_TEX_UNIT, TRIANGLES_BINDING = 0, 1, 2, 3
 
 
+def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, float, float]:
+    """The colour ramp's ``(offset, scale, sea_scale)`` for heights stored relative to
+    ``zref``: hypsometric ``t = (h - offset) * scale`` over ``zrange``; when the range crosses
+    0, land is ``[0, zmax]`` and the sea ramp ``-h * sea_scale`` covers ``[zmin, 0)``; a
+    constant range has scale 0 (one colour)."""
+    lo, hi = (float(v) for v in zrange)
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return 0.0, 0.0, 0.0
+    if lo < 0.0 < hi:
+        return -zref, 1.0 / hi, 1.0 / -lo
+    return lo - zref, (1.0 / (hi - lo) if hi > lo else 0.0), 0.0
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Renderer settings; ``patch_log2`` is the one patch size of the renderer and of the
@@ -244,8 +257,10 @@ class FrameServices:
             "cam_frac": (fx, fy, cz),
             "spacing": (g.dx, g.dy),
             "mvp": mvp.T.astype("f4").tobytes(),
+            "depth_log": (camera.near, 1.0 / math.log2(camera.far / camera.near)),
             "sun": self.config.sun,
             "zrange": self.zrange,
+            "ramp_map": ramp_map(self.zrange),
             "viewport": (self.config.size[0] / 2, self.config.size[1] / 2),
         }
         for name, v in values.items():
