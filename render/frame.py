@@ -34,7 +34,7 @@ import moderngl
 import numpy as np
 
 from render.errors import RenderError
-from render.gpu import HeightPool, check_gl, create_context
+from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
 from render.select import Patches, PatchTable
 from streamer.camera import Camera
 from tiler.layout import level_index, order_index
@@ -47,17 +47,17 @@ CLEAR = (255, 0, 255)  # magenta: contrasts with every terrain colour
 HEIGHTS_BINDING, LEVEL_TEX_UNIT, ORDER_TEX_UNIT, TRIANGLES_BINDING = 0, 1, 2, 3
 
 
-def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, float, float]:
+def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, float, float, float]:
     """The colour ramp's ``(offset, scale, sea_scale)`` for heights stored relative to
     ``zref``: hypsometric ``t = (h - offset) * scale`` over ``zrange``; when the range crosses
     0, land is ``[0, zmax]`` and the sea ramp ``-h * sea_scale`` covers ``[zmin, 0)``; a
-    constant range has scale 0 (one colour)."""
+    constant range has scale 0 (one colour); the fourth value is sea level (0) minus ``zref``."""
     lo, hi = (float(v) for v in zrange)
     if not (math.isfinite(lo) and math.isfinite(hi)):
-        return 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0, -zref
     if lo < 0.0 < hi:
-        return -zref, 1.0 / hi, 1.0 / -lo
-    return lo - zref, (1.0 / (hi - lo) if hi > lo else 0.0), 0.0
+        return -zref, 1.0 / hi, 1.0 / -lo, -zref
+    return lo - zref, (1.0 / (hi - lo) if hi > lo else 0.0), 0.0, -zref
 
 
 @dataclass(frozen=True)
@@ -134,7 +134,6 @@ class FrameServices:
         self.order_tex = ctx.texture((side, side), 1, oi.tobytes(), dtype="i4")
         for t in (self.level_tex, self.order_tex):
             t.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.pool = HeightPool(ctx, self.k)
         self._tables: dict[str, PatchTable] = {}
         self._shared: dict[str, Any] = {}
         self._masks: dict[Block, np.ndarray | None] = {}
@@ -146,6 +145,12 @@ class FrameServices:
         zmin, zmax = (float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax)))
         self.zrange = (float(vr[0]), float(vr[1])) if vr else (zmin, zmax)
         self.terrain_zrange = (zmin, zmax)
+        mid = 0.5 * (zmin + zmax)
+        #: the store's reference height: the pool holds float32(h - zref) (subtracted in
+        #: float64), the shaders get the camera's height above it; an integer, so integer DEMs
+        #: stay exact in float32
+        self.zref = float(round(mid)) if math.isfinite(mid) else 0.0
+        self.pool = HeightPool(ctx, self.k, zref=self.zref)
         check_gl(ctx, "creating the renderer")
 
     # -- height pool ---------------------------------------------------------------------------
@@ -260,7 +265,8 @@ class FrameServices:
             "depth_log": (camera.near, 1.0 / math.log2(camera.far / camera.near)),
             "sun": self.config.sun,
             "zrange": self.zrange,
-            "ramp_map": ramp_map(self.zrange),
+            "cam_z": cz - self.zref,
+            "ramp_map": ramp_map(self.zrange, self.zref),
             "viewport": (self.config.size[0] / 2, self.config.size[1] / 2),
         }
         for name, v in values.items():
@@ -376,7 +382,13 @@ class FrameServices:
         if count > cap:
             raise RenderError(f"{what}: the GPU made {count} triangles, expected at most {cap}")
         a = np.frombuffer(raw[16:], np.float32)[: 9 * count].reshape(-1, 3, 3).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+        return np.rint(a[..., :2]).astype(np.int64), self.absolute(a[..., 2])
+
+    def absolute(self, h: np.ndarray) -> np.ndarray:
+        """Heights read back from the GPU (relative to :attr:`zref`) as float64 world heights;
+        masked ones stay :data:`render.gpu.MASKED`."""
+        h = np.asarray(h, dtype=np.float64)
+        return np.where(h > MASKED_BELOW, h + self.zref, h)
 
     def image(self) -> np.ndarray:
         """The framebuffer as an ``(h, w, 3)`` uint8 array, top row first."""

@@ -141,13 +141,13 @@ class PatchGrid:
             out = r.ctx.buffer(reserve=n * 12)
             vao.transform(out, moderngl.POINTS, vertices=self.vertices, instances=len(inst))
             arr = np.frombuffer(out.read(), dtype=np.float32).reshape(-1, 3)
-            hs.append(arr[:, 0])
+            hs.append(r.absolute(arr[:, 0]))
             gs.append(arr[:, 1:].astype(np.int64))
             for o in (vao, buf, out):
                 o.release()
         check_gl(r.ctx, "probing heights")
         if not hs:
-            return np.zeros(0, np.float32), np.zeros((0, 2), np.int64)
+            return np.zeros(0, np.float64), np.zeros((0, 2), np.int64)
         return np.concatenate(hs), np.concatenate(gs)
 
 

@@ -360,7 +360,7 @@ class GeometrySplitting(Strategy[Selection]):
         out.release()
         check_gl(r.ctx, "reading split triangles back")
         a = np.concatenate(parts).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+        return np.rint(a[..., :2]).astype(np.int64), r.absolute(a[..., 2])
 
     def screen_errors(self, camera: Camera, sel: Selection) -> np.ndarray:
         tri, h = self.triangles(camera, sel)
