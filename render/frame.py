@@ -60,6 +60,34 @@ def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, flo
     return lo - zref, (1.0 / (hi - lo) if hi > lo else 0.0), 0.0, -zref
 
 
+def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
+    """Per depth ``d <= k``, ``(2**d, 2**d)`` booleans: the node's closed footprint (borders
+    included) holds both valid and masked samples of the ``(2**k+1)²`` mask ``valid``."""
+    v = np.asarray(valid, dtype=bool)
+    quad = (v[:-1, :-1], v[1:, :-1], v[:-1, 1:], v[1:, 1:])
+    anyv = quad[0] | quad[1] | quad[2] | quad[3]
+    anym = ~(quad[0] & quad[1] & quad[2] & quad[3])
+    out = [anyv & anym]
+    for d in range(k - 1, -1, -1):
+        n = 1 << d
+        anyv = anyv.reshape(n, 2, n, 2).any(axis=(1, 3))
+        anym = anym.reshape(n, 2, n, 2).any(axis=(1, 3))
+        out.append(anyv & anym)
+    return out[::-1]
+
+
+def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.ndarray]:
+    """``field`` (one array per depth ``0..k-1``, tiled below its cap) with the nodes of
+    ``mixed`` at ``inf`` (a tile is raised when any of its nodes is mixed); level ``k`` has no
+    stored error, so a mask boundary is drawn at full resolution."""
+    out = []
+    for d, arr in enumerate(field):
+        n, m = arr.shape[0], mixed[d].shape[0]
+        tiles = mixed[d].reshape(n, m // n, n, m // n).any(axis=(1, 3))
+        out.append(np.where(tiles, np.float32(np.inf), arr).astype(arr.dtype))
+    return out
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Renderer settings; ``patch_log2`` is the one patch size of the renderer and of the
@@ -229,10 +257,22 @@ class FrameServices:
         return t
 
     def fill_table(self, table: PatchTable, blocks: list[Block], field: str) -> None:
-        """Add the stored error ``field`` of the ``blocks`` not yet in ``table``."""
+        """Add the error ``field`` (:meth:`read_errors`) of the ``blocks`` not yet in ``table``."""
         for b in blocks:
             if b not in table:
-                table.add(b, self.store.read_errors(b)[field])
+                table.add(b, self.read_errors(b)[field])
+
+    def read_errors(self, block: Block) -> dict[str, list[np.ndarray]]:
+        """The block's stored error fields with every node (depths ``0..k-1``) whose closed
+        footprint holds both valid and masked samples raised to ``inf`` (docs/RENDER.md,
+        "Precision and extremes"): a mask boundary is refined to full resolution at every τ,
+        so terrain beside nodata is drawn from its valid samples and no hole is bridged."""
+        errors = self.store.read_errors(block)
+        mask = self.mask(block)
+        if mask is None or mask.all() or not mask.any():
+            return errors
+        mixed = mixed_nodes(mask, self.k)
+        return {name: raise_mixed(field, mixed) for name, field in errors.items()}
 
     def shared(self, key: str, make: Callable[[FrameServices], T]) -> T:
         """The object (programs, meshes) cached under ``key`` on this renderer, built by

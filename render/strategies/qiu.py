@@ -89,6 +89,10 @@ def _programs(ctx: moderngl.Context) -> dict[str, moderngl.Program]:
             fragment_shader=shaders.FRAGMENT_WIRE,
         ),
         "probe": ctx.program(vertex_shader=shaders.PROBE, varyings=["out_h", "out_g"]),
+        "tri_probe": ctx.program(
+            vertex_shader=shaders.source("patch_probe.vert"),
+            geometry_shader=shaders.TRIANGLE_PROBE,
+        ),
     }
 
 
@@ -104,6 +108,8 @@ class PatchGrid:
         self.vertices = (n + 1) ** 2
         progs = _programs(ctx)
         self.prog, self.wire, self.probe_prog = progs["prog"], progs["wire"], progs["probe"]
+        self.tri_probe = progs["tri_probe"]
+        self.cells = n
 
     def vao(self, prog: moderngl.Program, inst: np.ndarray, indexed: bool = True):
         """A vertex array of the patch mesh with ``inst`` as per-instance attributes."""
@@ -213,6 +219,16 @@ class QiuStrategy(Strategy[Patches]):
 
     def drawn_blocks(self, sel: Patches) -> set[Block]:
         return patch_blocks(sel)
+
+    def triangles(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray]:
+        """Every drawn triangle read back from the GPU (snapped ones included): global
+        ``(col, row)`` corners ``(m, 3, 2)`` and fetched heights ``(m, 3)`` (``MASKED`` where
+        a corner is masked: that triangle is not drawn)."""
+        cap = len(sel) * 2 * self.grid.cells**2
+        prog = self.grid.tri_probe
+        return self.r.read_triangles(
+            camera, prog, cap, lambda: self.render(prog, sel), "reading patch triangles back"
+        )
 
     def surface(self, camera: Camera, sel: Patches):
         step = self.r.grid.step
