@@ -37,6 +37,7 @@ from render.errors import RenderError
 from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
 from render.select import Patches, PatchTable
 from streamer.camera import Camera
+from streamer.nodata import mixed_nodes, raise_mixed
 from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
 
@@ -58,34 +59,6 @@ def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, flo
     if lo < 0.0 < hi:
         return -zref, 1.0 / hi, 1.0 / -lo, -zref
     return lo - zref, (1.0 / (hi - lo) if hi > lo else 0.0), 0.0, -zref
-
-
-def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
-    """Per depth ``d <= k``, ``(2**d, 2**d)`` booleans: the node's closed footprint (borders
-    included) holds both valid and masked samples of the ``(2**k+1)²`` mask ``valid``."""
-    v = np.asarray(valid, dtype=bool)
-    quad = (v[:-1, :-1], v[1:, :-1], v[:-1, 1:], v[1:, 1:])
-    anyv = quad[0] | quad[1] | quad[2] | quad[3]
-    anym = ~(quad[0] & quad[1] & quad[2] & quad[3])
-    out = [anyv & anym]
-    for d in range(k - 1, -1, -1):
-        n = 1 << d
-        anyv = anyv.reshape(n, 2, n, 2).any(axis=(1, 3))
-        anym = anym.reshape(n, 2, n, 2).any(axis=(1, 3))
-        out.append(anyv & anym)
-    return out[::-1]
-
-
-def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.ndarray]:
-    """``field`` (one array per depth ``0..k-1``, tiled below its cap) with the nodes of
-    ``mixed`` at ``inf`` (a tile is raised when any of its nodes is mixed); level ``k`` has no
-    stored error, so a mask boundary is drawn at full resolution."""
-    out = []
-    for d, arr in enumerate(field):
-        n, m = arr.shape[0], mixed[d].shape[0]
-        tiles = mixed[d].reshape(n, m // n, n, m // n).any(axis=(1, 3))
-        out.append(np.where(tiles, np.float32(np.inf), arr).astype(arr.dtype))
-    return out
 
 
 @dataclass(frozen=True)

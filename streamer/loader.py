@@ -31,6 +31,7 @@ from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, _Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
+from streamer.nodata import boundary_errors
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
 
@@ -221,7 +222,7 @@ class Loader:
             if self.read_hook is not None:
                 self.read_hook(b, level)
             if level < 0:
-                data = self.store.read_errors(b)[self.field_name]
+                data = boundary_errors(self.store, b, self.field_name)  # nodata: refine
             else:
                 data = self.store.read_level_raw(b, level)
         except READ_ERRORS as exc:

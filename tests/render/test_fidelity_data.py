@@ -139,3 +139,20 @@ def test_checkerboard_nodata_at_tau_4_draws_the_terrain_and_not_the_holes(checke
     r.close()
     assert drawn >= 0.99, f"{drawn:.1%} of the terrain samples drawn"
     assert bridged <= 0.01, f"{bridged:.1%} of the nodata samples covered"
+
+
+def test_the_session_streams_what_the_nodata_boundaries_need(checkerboard):
+    """Through the frame step the session loads full resolution at the mask boundaries (the
+    loader raises the same errors), so nothing is drawn coarser than wanted."""
+    from render.pipeline import render_view
+
+    path, valid = checkerboard
+    s = open_store(path)
+    x0, y0, x1, y1 = s.grid.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 9500.0), pitch=-90.0, viewport=(256, 256),
+                 near=1.0, far=1e5)  # fmt: skip
+    full, _ = render_view(s, cam, tau=0.0, patch_log2=2)
+    img, stats = render_view(s, cam, tau=4.0, patch_log2=2)
+    clear = np.array(RenderConfig().clear)
+    share = (~(img == clear).all(-1)).mean() / (~(full == clear).all(-1)).mean()
+    assert stats.clamped == 0 and share >= 0.99, (stats.clamped, share)
