@@ -34,9 +34,10 @@ import moderngl
 import numpy as np
 
 from render.errors import RenderError
-from render.gpu import HeightPool, check_gl, create_context
+from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
 from render.select import Patches, PatchTable
 from streamer.camera import Camera
+from streamer.nodata import mixed_nodes, raise_mixed
 from tiler.crs import require_projected
 from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
@@ -46,6 +47,19 @@ T = TypeVar("T")
 CLEAR = (255, 0, 255)  # magenta: contrasts with every terrain colour
 #: binding points of the shared buffers and textures (render/glsl/*.glsl)
 HEIGHTS_BINDING, LEVEL_TEX_UNIT, ORDER_TEX_UNIT, TRIANGLES_BINDING = 0, 1, 2, 3
+
+
+def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, float, float, float]:
+    """The colour ramp's ``(offset, scale, sea_scale)`` for heights stored relative to
+    ``zref``: hypsometric ``t = (h - offset) * scale`` over ``zrange``; when the range crosses
+    0, land is ``[0, zmax]`` and the sea ramp ``-h * sea_scale`` covers ``[zmin, 0)``; a
+    constant range has scale 0 (one colour); the fourth value is sea level (0) minus ``zref``."""
+    lo, hi = (float(v) for v in zrange)
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return 0.0, 0.0, 0.0, -zref
+    if lo < 0.0 < hi:
+        return -zref, 1.0 / hi, 1.0 / -lo, -zref
+    return lo - zref, (1.0 / (hi - lo) if hi > lo else 0.0), 0.0, -zref
 
 
 @dataclass(frozen=True)
@@ -123,7 +137,6 @@ class FrameServices:
         self.order_tex = ctx.texture((side, side), 1, oi.tobytes(), dtype="i4")
         for t in (self.level_tex, self.order_tex):
             t.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.pool = HeightPool(ctx, self.k)
         self._tables: dict[str, PatchTable] = {}
         self._shared: dict[str, Any] = {}
         self._masks: dict[Block, np.ndarray | None] = {}
@@ -135,6 +148,12 @@ class FrameServices:
         zmin, zmax = (float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax)))
         self.zrange = (float(vr[0]), float(vr[1])) if vr else (zmin, zmax)
         self.terrain_zrange = (zmin, zmax)
+        mid = 0.5 * (zmin + zmax)
+        #: the store's reference height: the pool holds float32(h - zref) (subtracted in
+        #: float64), the shaders get the camera's height above it; an integer, so integer DEMs
+        #: stay exact in float32
+        self.zref = float(round(mid)) if math.isfinite(mid) else 0.0
+        self.pool = HeightPool(ctx, self.k, zref=self.zref)
         check_gl(ctx, "creating the renderer")
 
     # -- height pool ---------------------------------------------------------------------------
@@ -213,10 +232,22 @@ class FrameServices:
         return t
 
     def fill_table(self, table: PatchTable, blocks: list[Block], field: str) -> None:
-        """Add the stored error ``field`` of the ``blocks`` not yet in ``table``."""
+        """Add the error ``field`` (:meth:`read_errors`) of the ``blocks`` not yet in ``table``."""
         for b in blocks:
             if b not in table:
-                table.add(b, self.store.read_errors(b)[field])
+                table.add(b, self.read_errors(b)[field])
+
+    def read_errors(self, block: Block) -> dict[str, list[np.ndarray]]:
+        """The block's stored error fields with every node (depths ``0..k-1``) whose closed
+        footprint holds both valid and masked samples raised to ``inf`` (docs/RENDER.md,
+        "Precision and extremes"): a mask boundary is refined to full resolution at every τ,
+        so terrain beside nodata is drawn from its valid samples and no hole is bridged."""
+        errors = self.store.read_errors(block)
+        mask = self.mask(block)
+        if mask is None or mask.all() or not mask.any():
+            return errors
+        mixed = mixed_nodes(mask, self.k)
+        return {name: raise_mixed(field, mixed) for name, field in errors.items()}
 
     def shared(self, key: str, make: Callable[[FrameServices], T]) -> T:
         """The object (programs, meshes) cached under ``key`` on this renderer, built by
@@ -246,8 +277,11 @@ class FrameServices:
             "cam_frac": (fx, fy, cz),
             "spacing": (g.dx, g.dy),
             "mvp": mvp.T.astype("f4").tobytes(),
+            "depth_log": (camera.near, 1.0 / math.log2(camera.far / camera.near)),
             "sun": self.config.sun,
             "zrange": self.zrange,
+            "cam_z": cz - self.zref,
+            "ramp_map": ramp_map(self.zrange, self.zref),
             "viewport": (self.config.size[0] / 2, self.config.size[1] / 2),
         }
         for name, v in values.items():
@@ -363,7 +397,13 @@ class FrameServices:
         if count > cap:
             raise RenderError(f"{what}: the GPU made {count} triangles, expected at most {cap}")
         a = np.frombuffer(raw[16:], np.float32)[: 9 * count].reshape(-1, 3, 3).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+        return np.rint(a[..., :2]).astype(np.int64), self.absolute(a[..., 2])
+
+    def absolute(self, h: np.ndarray) -> np.ndarray:
+        """Heights read back from the GPU (relative to :attr:`zref`) as float64 world heights;
+        masked ones stay :data:`render.gpu.MASKED`."""
+        h = np.asarray(h, dtype=np.float64)
+        return np.where(h > MASKED_BELOW, h + self.zref, h)
 
     def image(self) -> np.ndarray:
         """The framebuffer as an ``(h, w, 3)`` uint8 array, top row first."""

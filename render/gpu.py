@@ -60,10 +60,18 @@ class _Page:
 
 
 class HeightPool:
-    """Block level sequences on the GPU, addressed by ``(page, base offset)``."""
+    """Block level sequences on the GPU, addressed by ``(page, base offset)``; heights are
+    stored relative to ``zref`` (docs/RENDER.md, "Precision and extremes")."""
 
-    def __init__(self, ctx: moderngl.Context, k: int, max_page_floats: int | None = None) -> None:
+    def __init__(
+        self,
+        ctx: moderngl.Context,
+        k: int,
+        max_page_floats: int | None = None,
+        zref: float = 0.0,
+    ) -> None:
         self.ctx = ctx
+        self.zref = float(zref)  # heights are stored as float32(h - zref), subtracted in float64
         self.k = k
         limit = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27)) // 4
         self.max_page = min(limit, max_page_floats or limit)
@@ -143,7 +151,10 @@ class HeightPool:
             slot = new
             self.slots[block] = slot
         first = slot.level + 1
-        data = np.concatenate([np.asarray(v, dtype=np.float32) for v in levels[first : top + 1]])
+        data = np.concatenate(
+            [(np.asarray(v, dtype=np.float64) - self.zref).astype(np.float32)
+             for v in levels[first : top + 1]]
+        )  # fmt: skip
         if mask is not None and not mask.all():
             seq_mask = np.ones(self._seq.size, dtype=bool)
             seq_mask[self._seq.ravel()] = mask.ravel()

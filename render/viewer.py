@@ -26,6 +26,7 @@ from render.errors import RenderError
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step
 from render.strategies.base import DrawOptions
+from render.views import near_plane
 from streamer.camera import Camera
 from streamer.session import LoadError, open_session
 from tiler.store import TerrainStore
@@ -100,7 +101,9 @@ def camera_at(pose: Pose, store: TerrainStore, size, fov: float = 45.0) -> Camer
     reach = math.hypot(x1 - x0, y1 - y0) + math.hypot(
         pose.x - 0.5 * (x0 + x1), pose.y - 0.5 * (y0 + y1)
     )
-    near = max(0.5, 1e-3 * abs(pose.z - zlo))
+    tan_diag = math.tan(math.radians(fov) / 2) * math.hypot(1.0, size[0] / size[1])
+    cap = max(0.5, 1e-3 * abs(pose.z - zlo))
+    near = near_plane(store, (pose.x, pose.y, pose.z), tan_diag, cap)  # follows the clearance
     return Camera(
         (pose.x, pose.y, pose.z),
         yaw=pose.yaw,

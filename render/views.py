@@ -1,5 +1,10 @@
-"""Cameras for the renderer's commands (pure): the default oblique overview, a nadir view, and
-parsing of ``x,y,z`` triples."""
+"""Cameras for the renderer's commands (pure): the default overview, a nadir view, the near
+plane that follows the camera's clearance above the terrain, and parsing of ``x,y,z`` triples.
+
+Depth precision (docs/RENDER.md, "Precision and extremes"): the fragment shaders write a
+logarithmic depth, so a near plane of a few centimetres and a far plane of 1,000 km coexist;
+the near plane is therefore chosen from the camera's clearance (:func:`near_plane`), not from
+the scene's size."""
 
 from __future__ import annotations
 
@@ -11,6 +16,11 @@ from render.errors import CameraSpecError
 from streamer.camera import Camera
 from streamer.errors import CameraError
 from tiler.store import TerrainStore
+
+#: the smallest near plane (m): log depth resolves it together with a far plane of 1e6 km
+MIN_NEAR = 0.01
+#: elongation (long / short horizontal side) beyond which the overview looks along the DEM
+STRIP_RATIO = 4.0
 
 
 def parse_triple(text: str, name: str) -> tuple[float, float, float]:
@@ -27,23 +37,84 @@ def parse_triple(text: str, name: str) -> tuple[float, float, float]:
 
 def _zrange(store: TerrainStore) -> tuple[float, float]:
     idx = store.index
-    lo, hi = float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax))
+    with np.errstate(invalid="ignore"):
+        lo, hi = float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return 0.0, 0.0
     return lo, hi
 
 
+def _local_top(store: TerrainStore, x: float, y: float, radius: float) -> float:
+    """The highest stored block top within ``radius`` (m) of ``(x, y)`` (the global top when
+    the store gives no block geometry); ``-inf`` when no block is that near."""
+    g, zmax = store.grid, np.asarray(store.index.zmax, dtype=np.float64)
+    if not hasattr(g, "block_bounds"):
+        return _zrange(store)[1]
+    br, bc = np.meshgrid(np.arange(zmax.shape[0]), np.arange(zmax.shape[1]), indexing="ij")
+    x0, y0, x1, y1 = g.block_bounds(br, bc)
+    ddx = np.maximum(np.maximum(x0 - x, x - x1), 0.0)
+    ddy = np.maximum(np.maximum(y0 - y, y - y1), 0.0)
+    near = (np.hypot(ddx, ddy) <= radius) & np.isfinite(zmax)
+    return float(zmax[near].max()) if near.any() else -math.inf
+
+
+def near_plane(
+    store: TerrainStore, eye: tuple[float, float, float], tan_half_diagonal: float, cap: float
+) -> float:
+    """A near plane (at most ``cap``, at least :data:`MIN_NEAR`) that clips no terrain: half the
+    camera's clearance above the highest block top within reach of the near rectangle, divided
+    by ``1 + tan_half_diagonal`` (the rectangle's corners reach that far below the eye)."""
+    reach = cap * (1.0 + tan_half_diagonal) * 2.0
+    top = _local_top(store, eye[0], eye[1], reach)
+    clearance = eye[2] - top
+    if not math.isfinite(clearance):
+        return max(cap, MIN_NEAR)
+    near = 0.5 * clearance / (1.0 + tan_half_diagonal)
+    return float(min(max(near, MIN_NEAR), max(cap, MIN_NEAR)))
+
+
+def _tan_half_diag(size: tuple[int, int], fov: float) -> float:
+    t = math.tan(math.radians(fov) / 2)
+    return t * math.hypot(1.0, size[0] / size[1])
+
+
 def overview_camera(store: TerrainStore, size: tuple[int, int], fov: float = 45.0) -> Camera:
-    """An oblique view of the whole DEM from the south, pitched 35 degrees down."""
+    """A view of the whole DEM above its highest point: from the south pitched 35° down, or,
+    for a DEM more than :data:`STRIP_RATIO` times longer than wide, from beyond its south or
+    west end looking along it (pitched 20° down) so a thin strip is not a sub-pixel line."""
     x0, y0, x1, y1 = store.grid.extent
     zlo, zhi = _zrange(store)
+    w, h = max(x1 - x0, 1e-9), max(y1 - y0, 1e-9)
+    along_x = w > STRIP_RATIO * h
+    strip = along_x or h > STRIP_RATIO * w
+    pitch = math.radians(20.0 if strip else 35.0)
+    heading = np.array([1.0, 0.0]) if along_x else np.array([0.0, 1.0])
+    fwd = np.array([heading[0] * math.cos(pitch), heading[1] * math.cos(pitch), -math.sin(pitch)])
+    right = np.array([heading[1], -heading[0], 0.0])
+    up = np.cross(right, fwd)
     cx, cy, cz = 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (zlo + zhi)
-    radius = 0.5 * math.hypot(x1 - x0, y1 - y0)
-    aspect = size[0] / size[1]
-    half = math.radians(fov) / 2
-    fit = min(math.tan(half), math.tan(half) * aspect)
-    dist = radius / fit * 1.05
-    pitch = math.radians(35.0)
-    eye = (cx, cy - dist * math.cos(pitch), cz + dist * math.sin(pitch))
-    return _camera(eye, (cx, cy, cz), size, fov, dist + 2 * radius)
+    if strip:  # aim at the near end: the far end then lies near the horizon, in view
+        target = np.array([x0, cy, cz]) if along_x else np.array([cx, y0, cz])
+    else:
+        target = np.array([cx, cy, cz])
+    ty = math.tan(math.radians(fov) / 2) * 0.95
+    tx = ty * size[0] / size[1]
+    corners = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (zlo, zhi)])
+    rel = corners - target
+    along, sx, sy = rel @ fwd, rel @ right, rel @ up
+    dist = float(np.max(np.maximum(np.abs(sx) / tx, np.abs(sy) / ty) - along))
+    margin = max(0.05 * (zhi - zlo), 2.0 * max(store.grid.dx, store.grid.dy), 1.0)
+    dist = max(dist, (zhi + margin - target[2]) / math.sin(pitch), 1.0)
+    eye = target - dist * fwd
+    far = float(np.max((corners - eye) @ fwd)) * 1.5 + 1.0
+    near = near_plane(store, tuple(eye), _tan_half_diag(size, fov), max(0.5, 1e-4 * far))
+    try:
+        return Camera(
+            tuple(eye), yaw=90.0 if along_x else 0.0, pitch=-math.degrees(pitch), fov_y=fov,
+            viewport=size, near=near, far=max(far, 2 * near),
+        )  # fmt: skip
+    except CameraError as exc:
+        raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
 def nadir_camera(
@@ -54,7 +125,7 @@ def nadir_camera(
     fov: float = 45.0,
 ) -> Camera:
     """Looking straight down from ``height`` above the terrain's top at ``centre``."""
-    _, zhi = _zrange(store)
+    zlo, zhi = _zrange(store)
     try:
         return Camera(
             (centre[0], centre[1], zhi + height),
@@ -62,18 +133,17 @@ def nadir_camera(
             pitch=-90.0,
             fov_y=fov,
             viewport=size,
-            near=max(0.5, 0.01 * height),
-            far=height * 4 + (zhi - _zrange(store)[0]) * 2,
+            near=max(MIN_NEAR, min(0.5 * height, max(0.5, 0.01 * height))),
+            far=height * 4 + (zhi - zlo) * 2,
         )
     except CameraError as exc:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
-def _camera(eye, target, size, fov, reach) -> Camera:
+def _camera(store, eye, target, size, fov, reach) -> Camera:
+    near = near_plane(store, eye, _tan_half_diag(size, fov), max(0.5, reach * 1e-4))
     try:
-        return Camera.look_at(
-            eye, target, viewport=size, fov_y=fov, near=max(0.5, reach * 1e-4), far=reach * 1.5
-        )
+        return Camera.look_at(eye, target, viewport=size, fov_y=fov, near=near, far=reach * 1.5)
     except CameraError as exc:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
@@ -89,7 +159,8 @@ def make_camera(
     fov: float = 45.0,
 ) -> Camera:
     """The camera ``position`` (``"x,y,z"``) looking at ``look_at`` (``"x,y,z"``) or along
-    ``yaw``/``pitch`` (default: the overview); :class:`CameraSpecError` names these parameters."""
+    ``yaw``/``pitch`` (default: the overview); :class:`CameraSpecError` names these parameters.
+    The near plane follows the camera's clearance above the terrain (:func:`near_plane`)."""
     if position is None:
         if look_at is not None or yaw is not None or pitch is not None:
             raise CameraSpecError("{look_at}/{yaw}/{pitch} need {position} x,y,z")
@@ -105,7 +176,8 @@ def make_camera(
     if look_at is not None:
         if yaw is not None or pitch is not None:
             raise CameraSpecError("give either {look_at} or {yaw}/{pitch}, not both")
-        return _camera(eye, parse_triple(look_at, "look_at"), size, fov, reach)
+        return _camera(store, eye, parse_triple(look_at, "look_at"), size, fov, reach)
+    near = near_plane(store, eye, _tan_half_diag(size, fov), max(0.5, reach * 1e-4))
     try:
         return Camera(
             eye,
@@ -113,7 +185,7 @@ def make_camera(
             pitch=-30.0 if pitch is None else pitch,
             fov_y=fov,
             viewport=size,
-            near=max(0.5, reach * 1e-4),
+            near=near,
             far=reach * 1.5,
         )
     except CameraError as exc:

@@ -31,6 +31,7 @@ from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, _Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
+from streamer.nodata import boundary_errors
 from tiler.errors import StoreCorruptError, StoreError
 from tiler.store import TerrainStore
 
@@ -259,7 +260,8 @@ class Loader:
         levels, that becomes a ``StoreCorruptError`` (a read error), here at the store call
         only, so the same types raised anywhere else still surface as bugs."""
         try:
-            return self.store.read_errors(b)[self.field_name]
+            # mask boundaries raised so nodata is refined at every tau (streamer.nodata)
+            return boundary_errors(self.store, b, self.field_name)
         except (ValueError, RuntimeError) as exc:
             if isinstance(exc, READ_ERRORS):
                 raise

@@ -6,6 +6,7 @@ uniform int k;
 uniform int patch_log2;
 uniform ivec2 cam_cell;     // integer global sample (col, row) near the camera
 uniform vec3 cam_frac;      // camera - that sample's world position (x, y), and camera z
+uniform float cam_z;        // camera z - the store's reference height (heights are relative)
 uniform vec2 spacing;       // dx, dy
 uniform mat4 mvp;           // projection * camera-relative view
 
@@ -48,7 +49,7 @@ Vtx vertex_at(ivec4 a, ivec4 b, int si, int sj) {
     ivec2 g = a.xy + cr;
     v.rel = vec3(float(g.x - cam_cell.x) * spacing.x - cam_frac.x,
                  -float(g.y - cam_cell.y) * spacing.y - cam_frac.y,
-                 h - cam_frac.z);
+                 h - cam_z);
     v.h = h;
     v.level = lv;
     v.g = g;

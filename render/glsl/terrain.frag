@@ -5,7 +5,9 @@ in float v_masked;
 flat in int v_level;
 out vec4 f_colour;
 #include "shade.glsl"
+#include "depth.glsl"
 void main() {
     if (v_masked > 0.0) discard;
+    write_depth();
     f_colour = vec4(shade(v_normal, v_h, v_level), 1.0);
 }

@@ -89,6 +89,10 @@ def _programs(ctx: moderngl.Context) -> dict[str, moderngl.Program]:
             fragment_shader=shaders.FRAGMENT_WIRE,
         ),
         "probe": ctx.program(vertex_shader=shaders.PROBE, varyings=["out_h", "out_g"]),
+        "tri_probe": ctx.program(
+            vertex_shader=shaders.source("patch_probe.vert"),
+            geometry_shader=shaders.TRIANGLE_PROBE,
+        ),
     }
 
 
@@ -104,6 +108,8 @@ class PatchGrid:
         self.vertices = (n + 1) ** 2
         progs = _programs(ctx)
         self.prog, self.wire, self.probe_prog = progs["prog"], progs["wire"], progs["probe"]
+        self.tri_probe = progs["tri_probe"]
+        self.cells = n
 
     def vao(self, prog: moderngl.Program, inst: np.ndarray, indexed: bool = True):
         """A vertex array of the patch mesh with ``inst`` as per-instance attributes."""
@@ -141,13 +147,13 @@ class PatchGrid:
             out = r.ctx.buffer(reserve=n * 12)
             vao.transform(out, moderngl.POINTS, vertices=self.vertices, instances=len(inst))
             arr = np.frombuffer(out.read(), dtype=np.float32).reshape(-1, 3)
-            hs.append(arr[:, 0])
+            hs.append(r.absolute(arr[:, 0]))
             gs.append(arr[:, 1:].astype(np.int64))
             for o in (vao, buf, out):
                 o.release()
         check_gl(r.ctx, "probing heights")
         if not hs:
-            return np.zeros(0, np.float32), np.zeros((0, 2), np.int64)
+            return np.zeros(0, np.float64), np.zeros((0, 2), np.int64)
         return np.concatenate(hs), np.concatenate(gs)
 
 
@@ -213,6 +219,16 @@ class QiuStrategy(Strategy[Patches]):
 
     def drawn_blocks(self, sel: Patches) -> set[Block]:
         return patch_blocks(sel)
+
+    def triangles(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray]:
+        """Every drawn triangle read back from the GPU (snapped ones included): global
+        ``(col, row)`` corners ``(m, 3, 2)`` and fetched heights ``(m, 3)`` (``MASKED`` where
+        a corner is masked: that triangle is not drawn)."""
+        cap = len(sel) * 2 * self.grid.cells**2
+        prog = self.grid.tri_probe
+        return self.r.read_triangles(
+            camera, prog, cap, lambda: self.render(prog, sel), "reading patch triangles back"
+        )
 
     def surface(self, camera: Camera, sel: Patches):
         step = self.r.grid.step

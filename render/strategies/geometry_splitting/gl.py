@@ -15,7 +15,7 @@ import numpy as np
 
 from render import measure, shaders
 from render.errors import RenderError
-from render.frame import FrameServices
+from render.frame import FrameServices, mixed_nodes
 from render.gpu import MASKED_BELOW, check_gl
 from render.select import check_tau
 from render.strategies.base import (
@@ -138,6 +138,11 @@ class GeometrySplitting(Strategy[Selection]):
                 valid = store.read_mask(b) if store.index.has_nodata[b] else None
                 exact = quad_errors(grid, valid, deep)
             self.trees[b] = stored_tree(store.read_errors(b)["bound"], grid, exact)
+            mask = self.r.mask(b)
+            if mask is not None and mask.any() and not mask.all():  # refine mask boundaries
+                mixed = mixed_nodes(mask, self.k)
+                for d, sig in enumerate(self.trees[b].sigma):
+                    sig[mixed[d]] = np.inf
             self._tree_level[b] = lv
         return self.trees[b]
 
@@ -360,7 +365,7 @@ class GeometrySplitting(Strategy[Selection]):
         out.release()
         check_gl(r.ctx, "reading split triangles back")
         a = np.concatenate(parts).astype(np.float64)
-        return np.rint(a[..., :2]).astype(np.int64), a[..., 2]
+        return np.rint(a[..., :2]).astype(np.int64), r.absolute(a[..., 2])
 
     def screen_errors(self, camera: Camera, sel: Selection) -> np.ndarray:
         tri, h = self.triangles(camera, sel)

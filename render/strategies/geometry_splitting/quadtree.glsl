@@ -71,6 +71,7 @@ float projected(Sphere o, int d) {
 }
 
 bool flag(Sphere o, int d) {
+    if (isinf(o.sigma)) return true;  // the node holds valid and masked samples: refine
     if (length(o.c) - o.r < 0.0) return o.sigma != 0.0;
     return tau <= projected(o, d);
 }

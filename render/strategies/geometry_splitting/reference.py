@@ -74,7 +74,7 @@ def expand_reference(
             ok &= lead < t[b, 12 + dr]
         rho = projected_error(c, sig, s, camera, g.dx, g.dy)
         inside = np.linalg.norm(c, axis=1) - rad < 0.0
-        fl = np.where(inside, sig != 0.0, tau <= rho)
+        fl = np.where(inside, sig != 0.0, tau <= rho) | np.isinf(sig)  # inf: a mask boundary
         return ok & fl
 
     n = len(blocks)

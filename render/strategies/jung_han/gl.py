@@ -67,7 +67,8 @@ class JungHan(JungHanSelector, Strategy[JHSelection]):
         attr[:, 0], attr[:, 1] = org_c, org_r
         attr[:, 2], attr[:, 3] = sel.v_cr[:, 0] - org_c, sel.v_cr[:, 1] - org_r
         attr[:, 4], attr[:, 5] = base[vs], sel.v_level
-        attr[:, 8] = sel.v_h.view(np.int32)
+        rel = np.asarray(sel.v_h, dtype=np.float64) - r.zref  # in float64, then float32
+        attr[:, 8] = rel.astype(np.float32).view(np.int32)
         tpage = page[sel.tri_slot]
         for p in np.unique(tpage).tolist():
             vm = page[vs] == p

@@ -121,7 +121,7 @@ class BlockTree:
     footprint without its corners (``dmax``) and the footprint's height range."""
 
     level: int
-    heights: np.ndarray  # (2**level+1)² float32, NaN where masked
+    heights: np.ndarray  # (2**level+1)² float64 (precision far from 0), NaN where masked
     delta: np.ndarray  # same shape, float32
     dmax: list[np.ndarray] = field(default_factory=list)
     zlo: list[np.ndarray] = field(default_factory=list)
@@ -130,7 +130,7 @@ class BlockTree:
     @classmethod
     def build(cls, heights: np.ndarray) -> BlockTree:
         """δ and the index-ordered pyramids of a level grid."""
-        h = np.asarray(heights, dtype=np.float32)
+        h = np.asarray(heights, dtype=np.float64)
         n = h.shape[0]
         rr = (n - 1).bit_length() - 1
         delta = vertex_deltas(h).astype(np.float32)
@@ -237,7 +237,7 @@ class JHSelection:
     v_slot: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, np.int64))
     v_level: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, np.int64))
     v_cr: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 2), np.int64))
-    v_h: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, np.float32))
+    v_h: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, np.float64))
     index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 3), np.int64))
 
     def __len__(self) -> int:

@@ -49,7 +49,7 @@ class JungHanSelector:
         """The block's quadtree data at resident level ``level`` (cached; rebuilt on change)."""
         t = self._trees.get(block)
         if t is None or t.level != level:
-            h = self.r.store.read_block(block, level).astype(np.float32)
+            h = self.r.store.read_block(block, level).astype(np.float64)
             mask = self.r.mask(block)
             if mask is not None:
                 s = 1 << (self.r.k - level)
@@ -300,6 +300,6 @@ class JungHanSelector:
             v_slot=s3[gfirst],
             v_level=np.repeat(tl, 3)[gfirst],
             v_cr=np.stack([vcol[vid], vrow[vid]], -1),
-            v_h=np.nan_to_num(hv[vid], nan=0.0).astype(np.float32),
+            v_h=np.nan_to_num(hv[vid], nan=0.0).astype(np.float64),
             index=ginv.reshape(-1, 3).astype(np.int64),
         )

@@ -36,13 +36,19 @@ class SeamlessPatches(Strategy[PatchLayout]):
     uses_metric = False
     what = "drawing seamless patches"
 
-    def __init__(self, renderer: FrameServices, res_log2: int = 5) -> None:
+    def __init__(
+        self, renderer: FrameServices, res_log2: int = 5, *, spike_guard: bool = False
+    ) -> None:
         super().__init__(renderer)
         if not 1 <= res_log2 <= 7:
             raise RenderError(f"res_log2 must be in 1..7 (2..128 cells per tile), got {res_log2}")
         self.c = min(res_log2, renderer.k)
         ctx = renderer.ctx
         self.table = renderer.patch_table("bound@1", 1)
+        #: not the paper's: also bound each tile's own stored error (docs/RENDER.md,
+        #: "Precision and extremes"); tables of the bound at depth d + r for r = 1..c
+        self.spike_guard = spike_guard
+        self.tables = [renderer.patch_table(f"bound@{i}", i) for i in range(1, self.c + 1)]
         self.kinds = mesh_kinds(self.c)
         meshes = [mesh_of(self.c, kd) for kd in self.kinds]
         self.tri_count = {kd: len(m) for kd, m in zip(self.kinds, meshes, strict=True)}

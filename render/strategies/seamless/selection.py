@@ -97,6 +97,10 @@ class _Frame:
         self.win = r.store.index.window
         self.table = st.table
         r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
+        self.guard = bool(getattr(st, "spike_guard", False))
+        self.tables = st.tables if self.guard else []
+        for t in self.tables:
+            r.fill_table(t, [tuple(b) for b in self.blk.tolist()], "bound")
         self.slots = self.table.slots(self.blk) if len(self.blk) else np.zeros(0, np.int64)
         keys = self.blk[:, 0] * g.cols + self.blk[:, 1]
         self.border = np.argsort(keys)
@@ -107,9 +111,11 @@ class _Frame:
         self.cull = DiscCull(poly) if poly is not None and len(poly) else None
         self.diag = math.hypot(g.dx, g.dy)
 
-    def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
-        """Stored error (``bound``, level ``d + 1``) of the depth-``d`` nodes at global node
-        ``(gr, gc)``; -1 outside the drawn blocks."""
+    def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray, table=None) -> np.ndarray:
+        """Stored error (``bound``, level ``d + 1``; level ``d + r`` from ``table`` =
+        ``tables[r - 1]``) of the depth-``d`` nodes at global node ``(gr, gc)``; -1 outside the
+        drawn blocks."""
+        table = self.table if table is None else table
         g, m = self.grid, len(self.blk)
         out = np.full(len(gr), -1.0)
         ok = (gr >= 0) & (gc >= 0) & (gr < g.rows << d) & (gc < g.cols << d)
@@ -121,7 +127,7 @@ class _Frame:
         mask = (1 << d) - 1
         sub = np.flatnonzero(ok)[hit]
         slots = self.slots[self.border[pos[hit]]]
-        out[sub] = self.table.delta(slots, d, gr[sub] & mask, gc[sub] & mask)
+        out[sub] = table.delta(slots, d, gr[sub] & mask, gc[sub] & mask)
         return out
 
     def epsilon(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -132,6 +138,7 @@ class _Frame:
         gr, gc = (br << d) + rows, (bc << d) + cols
         nr_, nc_ = g.rows << d, g.cols << d
         own = self.node_delta(d, gr, gc)
+        node_dist = self.node_distance(d, gr, gc, self.zr[br, bc]) if self.guard else None
         ex, ey, ez = self.eye
         out = np.zeros((len(idx), 4))
         corners = (
@@ -158,7 +165,34 @@ class _Frame:
             length = np.hypot(xb - xa, yb - ya)
             rho = precision(np.maximum(delta, 0.0), length, self.tau, self.focal, self.c)
             out[:, e] = edge_epsilon(rho, length, dist)
+            if self.guard:
+                out[:, e] = np.maximum(out[:, e], self._guard(d, gr, gc, nr, nc, node_dist))
         return out
+
+    def node_distance(self, d: int, gr: np.ndarray, gc: np.ndarray, zo: np.ndarray):
+        """Distance from the eye to the nearest point of the depth-``d`` nodes' boxes."""
+        g, size = self.grid, 1 << (self.k - d)
+        ex, ey, ez = self.eye
+        xa, ya = g.sample_xy(gr * size, gc * size)
+        xb, yb = g.sample_xy((gr + 1) * size, (gc + 1) * size)
+        hx = np.maximum(np.maximum(np.minimum(xa, xb) - ex, 0.0), ex - np.maximum(xa, xb))
+        hy = np.maximum(np.maximum(np.minimum(ya, yb) - ey, 0.0), ey - np.maximum(ya, yb))
+        v = np.maximum(np.maximum(ez - zo[:, 1], zo[:, 0] - ez), 0.0)
+        return np.sqrt(hx * hx + hy * hy + v * v)
+
+    def _guard(self, d, gr, gc, nr, nc, dist) -> np.ndarray:
+        """The smallest ε that gives the edge a tile whose own stored error (the bound at its
+        level ``d + r``, both sides) projects to ≤ τ at the node's nearest point (2, i.e.
+        split, when even ``r = c`` does not): the paper's linear error-vs-cell model
+        underestimates isolated spikes, whose error does not shrink with the cell."""
+        need = np.full(len(gr), self.c + 1)
+        for r in range(self.c, 0, -1):
+            t = self.tables[r - 1]
+            delta = np.maximum(self.node_delta(d, gr, gc, t), self.node_delta(d, nr, nc, t))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                px = np.where(delta <= 0.0, 0.0, self.focal * delta / dist)
+            need = np.where(px <= self.tau, r, need)
+        return np.where(need > self.c, 2.0, np.ldexp(1.0, need - self.c))
 
     def visible(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Nodes whose bounding circle meets the ground frustum and that are not all padding."""

@@ -1,0 +1,158 @@
+"""Fidelity at the extremes (issue 12), the data side: heights far from zero without jitter
+(heights relative to the store's reference height, subtracted in float64 before float32)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import fractal
+from gltools import make_context, tile_dem
+
+from render import measure
+from render.gpu import MASKED_BELOW
+from render.renderer import RenderConfig, TerrainRenderer
+from render.strategies import get_strategy, strategy_names
+from streamer.camera import Camera
+from tiler.store import open_store
+
+pytestmark = pytest.mark.gl
+CTX = make_context()
+SIZE = (128, 96)
+NAMES = strategy_names()
+OPTIONS = {"chunk-tessellation": {"chunk_log2": 3}, "seamless-patches": {"res_log2": 3}}
+EVEREST = 8848.0
+#: pixel budgets: share of pixels whose largest channel differs by more than 2 levels
+PLATEAU_BUDGET, MOVE_BUDGET = 0.01, 0.01
+
+
+def _relief() -> np.ndarray:
+    """5 cm of relief on a 65² float64 DEM (1 m cells)."""
+    d = fractal((65, 65), seed=4).astype(np.float64)
+    return 0.05 * (d - d.min()) / np.ptp(d)
+
+
+@pytest.fixture(scope="module")
+def plateaus(tmp_path_factory):
+    rel = _relief()
+    return {
+        z0: tile_dem(tmp_path_factory.mktemp(f"p{int(z0)}"), rel + z0, 65, cell=1.0)
+        for z0 in (0.0, EVEREST)
+    }
+
+
+def _image(path, name, z0, dx=0.0):
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    st = get_strategy(name, r, **OPTIONS.get(name, {}))
+    g = r.grid
+    cam = Camera.look_at(
+        (g.x0 + 32 + dx, g.y0 - 75.0, z0 + 12.0), (g.x0 + 32 + dx, g.y0 - 32, z0), viewport=SIZE,
+        near=0.05, far=1e4,
+    )  # fmt: skip
+    sel, _ = st.select(cam, 0.0)
+    st.draw(cam, sel)
+    img = r.image().astype(int)
+    r.close()
+    return img
+
+
+def _changed(a, b) -> float:
+    return float((np.abs(a - b).max(-1) > 2).mean())
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_plateau_at_8848_m_renders_like_the_same_relief_at_0_m(plateaus, name):
+    low = _image(plateaus[0.0], name, 0.0)
+    high = _image(plateaus[EVEREST], name, EVEREST)
+    diff = _changed(low, high)
+    assert diff <= PLATEAU_BUDGET, f"{diff:.1%} of the pixels differ"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_millimetre_camera_move_at_8848_m_changes_few_pixels(plateaus, name):
+    a = _image(plateaus[EVEREST], name, EVEREST)
+    b = _image(plateaus[EVEREST], name, EVEREST, dx=0.001)
+    diff = _changed(a, b)
+    assert diff <= MOVE_BUDGET, f"{diff:.1%} of the pixels changed"
+
+
+# -- nodata at every τ -------------------------------------------------------------------------
+
+NODATA = -9999
+SQUARE = 64
+
+
+def _checkerboard(n: int = 257) -> tuple[np.ndarray, np.ndarray]:
+    """A rough DEM whose 64-sample squares (offset by 32, so they straddle blocks) alternate
+    between terrain and nodata; the DEM and its validity mask."""
+    r, c = np.mgrid[0:n, 0:n]
+    dem = 800 + 40 * np.sin(c / 9.0) * np.cos(r / 7.0) + 0.2 * ((r * 7 + c * 13) % 17)
+    valid = ((r + 32) // SQUARE + (c + 32) // SQUARE) % 2 == 1
+    return np.where(valid, np.rint(dem), NODATA).astype(np.int16), valid
+
+
+@pytest.fixture(scope="module")
+def checkerboard(tmp_path_factory):
+    dem, valid = _checkerboard()
+    return tile_dem(tmp_path_factory.mktemp("cb"), dem, 65, nodata=NODATA), valid
+
+
+def coverage(st, camera: Camera, sel, valid: np.ndarray) -> tuple[float, float]:
+    """Shares of the in-view terrain samples and of the in-view nodata samples that the drawn
+    surface covers (the strategy's CPU twin of what it drew, on the sample lattice)."""
+    if hasattr(st, "triangles"):  # what the GPU drew (qiu's CPU twin is half-open at edges)
+        tri, th = st.triangles(camera, sel)
+        ok = (th > MASKED_BELOW).all(axis=1)
+        rows, cols, h = measure.rasterise(tri[ok], th[ok])
+    else:
+        rows, cols, h = st.surface(camera, sel)
+    covered = np.zeros(valid.shape, bool)
+    inside = (rows >= 0) & (rows < valid.shape[0]) & (cols >= 0) & (cols < valid.shape[1])
+    inside &= np.isfinite(h) & (h > MASKED_BELOW)  # a triangle touching nodata is not drawn
+    covered[rows[inside], cols[inside]] = True
+    g = st.r.grid
+    rr, cc = np.mgrid[0 : valid.shape[0], 0 : valid.shape[1]]
+    x, y = g.sample_xy(rr.ravel(), cc.ravel())
+    seen = camera.in_view(np.c_[x, y, np.full(x.size, 800.0)]).reshape(valid.shape)
+    terrain, holes = valid & seen, ~valid & seen
+    assert terrain.sum() > 1000 and holes.sum() > 1000
+    return covered[terrain].mean(), covered[holes].mean()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_checkerboard_nodata_at_tau_4_draws_the_terrain_and_not_the_holes(checkerboard, name):
+    path, valid = checkerboard
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=(256, 256), patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    st = get_strategy(name, r, **OPTIONS.get(name, {}))
+    g = r.grid
+    x0, y0, x1, y1 = g.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 9500.0), pitch=-90.0, viewport=(256, 256),
+                 near=1.0, far=1e5)  # fmt: skip
+    sel, _ = st.select(cam, 4.0)
+    st.draw(cam, sel)
+    drawn, bridged = coverage(st, cam, sel, valid)
+    r.close()
+    assert drawn >= 0.99, f"{drawn:.1%} of the terrain samples drawn"
+    assert bridged <= 0.01, f"{bridged:.1%} of the nodata samples covered"
+
+
+def test_the_session_streams_what_the_nodata_boundaries_need(checkerboard):
+    """Through the frame step the session loads full resolution at the mask boundaries (the
+    loader raises the same errors), so nothing is drawn coarser than wanted."""
+    from render.pipeline import render_view
+
+    path, valid = checkerboard
+    s = open_store(path)
+    x0, y0, x1, y1 = s.grid.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 9500.0), pitch=-90.0, viewport=(256, 256),
+                 near=1.0, far=1e5)  # fmt: skip
+    full, _ = render_view(s, cam, tau=0.0, patch_log2=2)
+    img, stats = render_view(s, cam, tau=4.0, patch_log2=2)
+    clear = np.array(RenderConfig().clear)
+    share = (~(img == clear).all(-1)).mean() / (~(full == clear).all(-1)).mean()
+    assert stats.clamped == 0 and share >= 0.99, (stats.clamped, share)

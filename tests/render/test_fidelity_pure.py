@@ -1,0 +1,65 @@
+"""Pure known answers of issue 12's pieces (no GL): mask-boundary nodes, raised errors, the
+colour ramp's mapping and the near plane."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from render.frame import ramp_map
+from render.views import MIN_NEAR, near_plane
+from streamer.nodata import mixed_nodes, raise_mixed
+
+
+def test_mixed_nodes_known_answer():
+    valid = np.ones((5, 5), bool)
+    assert not any(m.any() for m in mixed_nodes(valid, 2))  # quiet case
+    valid[0, 0] = False
+    m = mixed_nodes(valid, 2)
+    assert [a.shape for a in m] == [(1, 1), (2, 2), (4, 4)]
+    assert m[2].sum() == 1 and m[2][0, 0] and m[1].sum() == 1 and m[1][0, 0] and m[0][0, 0]
+    valid[:] = False
+    assert not any(a.any() for a in mixed_nodes(valid, 2))  # all nodata: nothing to refine
+    valid[2, :] = True  # a valid row through the middle: both middle-row nodes at depth 1
+    assert mixed_nodes(valid, 2)[1].all()
+
+
+def test_raise_mixed_raises_tiles_below_the_cap():
+    valid = np.ones((9, 9), bool)
+    valid[8, 8] = False  # the south-east corner sample
+    mixed = mixed_nodes(valid, 3)
+    field = [np.zeros((1, 1), np.float32), np.ones((2, 2), np.float32),
+             np.full((2, 2), 2.0, np.float32)]  # depth 2 capped to 2x2 tiles  # fmt: skip
+    out = raise_mixed(field, mixed)
+    assert np.isinf(out[0]).all()
+    assert np.isinf(out[1][1, 1]) and (out[1][[0, 0, 1], [0, 1, 0]] == 1).all()
+    assert np.isinf(out[2][1, 1]) and np.isfinite(out[2]).sum() == 3
+    assert field[1][1, 1] == 1  # the stored field itself is untouched
+
+
+@pytest.mark.parametrize(
+    ("zr", "zref", "expected"),
+    [((5.0, 5.0), 5.0, (0.0, 0.0, 0.0, -5.0)),  # constant: one colour
+     ((-4000.0, -1000.0), -2500.0, (-1500.0, 1 / 3000, 0.0, 2500.0)),  # all negative: land ramp
+     ((-100.0, 400.0), 150.0, (-150.0, 1 / 400, 1 / 100, -150.0))],  # crosses 0: sea below 0
+)  # fmt: skip
+def test_ramp_map_known_answers(zr, zref, expected):
+    assert ramp_map(zr, zref) == pytest.approx(expected)
+
+
+class _Store:
+    class grid:  # noqa: N801 - mimics TerrainStore.grid (no block geometry: global top)
+        extent = (0.0, 0.0, 1000.0, 1000.0)
+
+    class index:  # noqa: N801
+        zmin = np.array([[0.0]])
+        zmax = np.array([[100.0]])
+
+
+def test_near_plane_follows_the_clearance():
+    t = math.tan(math.radians(22.5)) * math.hypot(1, 4 / 3)
+    assert near_plane(_Store(), (0, 0, 100.5), t, 5.0) == pytest.approx(0.25 / (1 + t))
+    assert near_plane(_Store(), (0, 0, 5000.0), t, 5.0) == 5.0  # capped by the scene rule
+    assert near_plane(_Store(), (0, 0, 50.0), t, 5.0) == MIN_NEAR  # inside the terrain
