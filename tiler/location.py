@@ -170,9 +170,9 @@ class Location:
     def _zarr_kwargs(self) -> dict[str, Any]:
         return {"storage_options": self.storage_options} if self.storage_options else {}
 
-    def open_group(self, mode: str = "r") -> zarr.Group:
-        """Open the root zarr group."""
-        return zarr.open_group(self.target, mode=mode, **self._zarr_kwargs())  # type: ignore[arg-type]
+    def open_group(self, mode: str = "r", **kwargs: Any) -> zarr.Group:
+        """Open the root zarr group (``kwargs`` go to ``zarr.open_group``)."""
+        return zarr.open_group(self.target, mode=mode, **self._zarr_kwargs(), **kwargs)  # type: ignore[arg-type]
 
     def open_array(self, path: str, mode: str = "r") -> zarr.Array:
         """Open the array at ``path`` inside the store."""

@@ -445,7 +445,7 @@ def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
 
     attrs = json.loads(json.dumps(meta.to_json(), allow_nan=False))
     try:
-        return zarr.open_group(loc.target, mode="a", attributes={ATTR: attrs})
+        return loc.open_group("a", attributes={ATTR: attrs})
     except (OSError, ValueError) as exc:
         raise StoreError(f"cannot create a store at {loc.url!r}: {exc}") from exc
 

@@ -82,7 +82,11 @@ def test_dask_worker_processes_equal_local_run(tmp_path):
     ref = _reference(src, tmp_path / "ref.zarr", 33)
     out = tmp_path / "dask.zarr"
     with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0"
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
     ) as cluster:
         store = tile(src, out, TileOptions(block_size=33, scheduler=cluster.scheduler_address))
     assert store.tile_summary.executor == "dask"
@@ -133,8 +137,8 @@ def test_persistent_failure_names_the_block(tmp_path, thread_cluster, monkeypatc
         tile(src, tmp_path / "dask.zarr", opts)
     assert "disk on fire" in str(ei.value) and ei.value.block is not None
     assert len(calls) >= 2  # one try and one retry at least
-    from tiler.store import read_meta
     from tiler.location import Location
+    from tiler.store import read_meta
 
     meta = read_meta(Location(str(tmp_path / "dask.zarr")).open_group("r"))
     assert not meta.complete and meta.extra["state"] == "tiling"
