@@ -188,9 +188,9 @@ StorageOptionsOpt = Annotated[
     typer.Option(
         "--storage-options",
         metavar="JSON",
-        help="fsspec storage options for an s3://, gs://... store, as a JSON object, e.g. "
-        '\'{"endpoint_url": "http://127.0.0.1:9000", "anon": false}\' (default: the '
-        "environment, e.g. AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY).",
+        help="fsspec storage options for an s3://, gs://... store: a JSON object with keys "
+        "such as endpoint_url, key, secret, anon (default: the environment, e.g. "
+        "AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY).",
     ),
 ]
 

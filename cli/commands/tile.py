@@ -126,7 +126,7 @@ def tile(
     Example: terrastream tile N44W072.hgt n44.zarr --block-size 257
 
     On a dask cluster, into S3: terrastream tile dem.tif s3://bucket/dem.zarr --scheduler
-    tcp://10.0.0.5:8786 --storage-options '{"endpoint_url": "https://s3.example.com"}'
+    tcp://10.0.0.5:8786 (endpoint and keys from AWS_* variables or --storage-options JSON)
 
     Several sources form one mosaic: terrastream tile N44W072.hgt N44W073.hgt n44.zarr
     (or --from-list tiles.txt). A geographic DEM (degrees) needs --dst-crs auto to be streamed

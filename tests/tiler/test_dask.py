@@ -158,31 +158,33 @@ def test_killed_worker_then_rerun_is_identical_and_skips_finished(tmp_path):
     src = write_dem(tmp_path / "dem.tif", data)
     ref = _reference(src, tmp_path / "ref.zarr", 17)
     out = tmp_path / "dask.zarr"
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
-        with distributed.LocalCluster(
+    with (
+        dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+        distributed.LocalCluster(
             n_workers=2,
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
             dashboard_address="127.0.0.1:0",
-        ) as cluster:
-            with distributed.Client(cluster) as c:
-                pids = list(c.run(os.getpid).values())
-            killed = threading.Event()
+        ) as cluster,
+    ):
+        with distributed.Client(cluster) as c:
+            pids = list(c.run(os.getpid).values())
+        killed = threading.Event()
 
-            def killer() -> None:
-                deadline = time.monotonic() + 120
-                while time.monotonic() < deadline and _journal_entries(out) < 12:
-                    time.sleep(0.02)
-                os.kill(pids[0], signal.SIGKILL)
-                killed.set()
+        def killer() -> None:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and _journal_entries(out) < 12:
+                time.sleep(0.02)
+            os.kill(pids[0], signal.SIGKILL)
+            killed.set()
 
-            t = threading.Thread(target=killer, name="test-killer", daemon=True)
-            t.start()
-            with pytest.raises(BlockFailedError, match="KilledWorker|failed on every try"):
-                tile(src, out, TileOptions(block_size=17, scheduler=cluster.scheduler_address))
-            t.join(timeout=10)
-            assert killed.is_set()
+        t = threading.Thread(target=killer, name="test-killer", daemon=True)
+        t.start()
+        with pytest.raises(BlockFailedError, match="KilledWorker|failed on every try"):
+            tile(src, out, TileOptions(block_size=17, scheduler=cluster.scheduler_address))
+        t.join(timeout=10)
+        assert killed.is_set()
     at_failure = _journal_entries(out)
     assert at_failure >= 12
     with distributed.LocalCluster(

@@ -265,3 +265,37 @@ def test_dask_workers_write_to_s3(tmp_path, bucket):
         store = tile(src, url, TileOptions(block_size=33, scheduler=cluster.scheduler_address))
     assert store.tile_summary.executor == "dask"
     assert _objects(url) == _local(local)
+
+
+def test_reads_use_obstore_by_default_and_fsspec_on_request(
+    tmp_path, bucket, s3_server, monkeypatch
+):
+    """s3:// reads go through zarr's ObjectStore (obstore; measured faster, see
+    bench/results/s3_reads.json); TERRASTREAM_S3_READER=fsspec and options only s3fs knows
+    fall back to fsspec; both read the same values."""
+    pytest.importorskip("obstore")
+    from tiler.location import S3_READER_ENV, open_s3_reader
+    from tiler.store import open_store
+
+    src = _dem(tmp_path)
+    url = f"s3://{bucket}/r.zarr"
+    tile(src, url, TileOptions(block_size=33, workers=1))
+    monkeypatch.delenv(S3_READER_ENV, raising=False)
+    a = open_store(url)
+    assert type(a._group.store).__name__ == "ObjectStore"
+    monkeypatch.setenv(S3_READER_ENV, "fsspec")
+    b = open_store(url)
+    assert type(b._group.store).__name__ == "FsspecStore"
+    for blk in list(a.blocks())[:5]:
+        assert np.array_equal(a.read_block(blk), b.read_block(blk))
+    assert open_s3_reader(url, {"profile": "x"}) is None  # only s3fs knows profiles
+    # endpoint and keys from storage options alone (no AWS_* variables)
+    monkeypatch.delenv(S3_READER_ENV)
+    for k in ENV_KEYS:
+        monkeypatch.delenv(k, raising=False)
+    so = {"endpoint_url": s3_server, "key": "testing", "secret": "testing",
+          "client_kwargs": {"region_name": "us-east-1"}}  # fmt: skip
+    c = open_store(Location(url, so))
+    assert type(c._group.store).__name__ == "ObjectStore"
+    blk = next(iter(a.blocks()))
+    assert np.array_equal(a.read_block(blk), c.read_block(blk))
