@@ -7,7 +7,10 @@ separately started ``dask scheduler`` / ``dask worker`` processes on loopback.
 Each run is a child process (``--one MODE``) running ``tiler.tile.tile``; the parent samples
 the RSS of every process of the run (client, pool/dask workers, scheduler) every 0.2 s and
 reads the client's ``/proc/<pid>/io`` (bytes read/written by the client through any file or
-socket: source metadata, dask messages, the finish step) at the end. Writes
+socket: source metadata, dask messages, the finish step) at the end. Linux adds a reaped
+child's counters to its parent's, so only the ``external`` mode (workers are not the client's
+children) measures the client alone; for ``processes`` and ``localcluster`` the counters
+include the worker processes (``client_io_includes_workers``). Writes
 ``bench/results/scale.json`` and ``bench/results/scale.png`` (time and peak RSS per worker vs
 workers). Work files go to ``bench/work/scale`` (git-ignored).
 """
@@ -186,6 +189,7 @@ def run_mode(mode: str, src: Path, work: Path, workers: int, block: int) -> dict
     res = json.loads(out.strip().splitlines()[-1])
     worker_rss = [rss for pid, (rss, cmd) in peaks.items() if _is_worker(cmd)]
     res.update(
+        client_io_includes_workers=mode != "external",
         mode=mode,
         workers=workers,
         worker_processes=len(worker_rss),

@@ -101,10 +101,25 @@ def worker_setup(gdal_cache_mb: int, kernels_backend: str, dtype: str) -> None:
 
 def _process_init(gdal_cache_mb: int, kernels_backend: str, *args: Any) -> None:
     global _PROCESS_WORKER
-    # Ctrl-C reaches the whole process group: the parent reports it once (TilingInterrupted)
+    # Ctrl-C reaches the whole process group: the parent reports it once (TilingInterrupted).
+    # The worker was started with SIGINT blocked (see _submit): ignore it, then unblock (a
+    # Ctrl-C that arrived while this process was importing is discarded here).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     worker_setup(gdal_cache_mb, kernels_backend, args[4].dtype)
     _PROCESS_WORKER = BlockWorker(*args)
+
+
+def _submit_blocking_sigint(pool: Any, fn: Any, *args: Any) -> Future:
+    """``pool.submit`` with SIGINT blocked in this thread: a worker process the pool spawns now
+    inherits the blocked signal, so a Ctrl-C during its start-up (imports, before the
+    initializer ignores SIGINT) cannot print a traceback. Other threads still take the signal
+    for the parent, and a signal pending here is delivered on unblocking: none is lost."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return pool.submit(fn, *args)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _process_run(br: int, bc: int) -> tuple[int, int]:
@@ -269,7 +284,10 @@ def _run_local(
                 b = next(it, None)
                 if b is None:
                     break
-                pending.add(pool.submit(run, *b))
+                if executor == "processes":
+                    pending.add(_submit_blocking_sigint(pool, run, *b))
+                else:
+                    pending.add(pool.submit(run, *b))
             if not pending:
                 break
             finished, pending = wait_futures(

@@ -229,3 +229,45 @@ def test_distributed_not_imported_for_local_runs(tmp_path):
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
     )
     assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_cli_scheduler_option(tmp_path, thread_cluster):
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    src = _dem(tmp_path)
+    ref = _reference(src, tmp_path / "ref.zarr", 33)
+    out = tmp_path / "cli.zarr"
+    args = ["tile", str(src), str(out), "--block-size", "33", "--json"]
+    r = CliRunner().invoke(app, [*args, "--scheduler", thread_cluster.scheduler_address])
+    assert r.exit_code == 0, r.output
+    assert diff_stores(ref, out) == []
+    r = CliRunner().invoke(app, [*args[:2], str(tmp_path / "x.zarr"), "--scheduler", "fast"])
+    assert r.exit_code == 2 and "'fast'" in r.output
+
+
+def test_ctrl_c_with_worker_processes_prints_one_line(tmp_path):
+    """SIGINT to the whole process group (what a terminal's Ctrl-C does): worker processes
+    ignore it, so the run ends with the CLI's one line and exit 130, no worker tracebacks."""
+    import subprocess
+
+    data = fractal((400, 400), seed=2)
+    src = write_dem(tmp_path / "dem.tif", data)
+    out = tmp_path / "o.zarr"
+    env = dict(os.environ, PYTHONPATH=os.getcwd(), TERRASTREAM_KERNELS="numpy")
+    cmd = [sys.executable, "-m", "cli.main", "tile", str(src), str(out), "--block-size", "17"]
+    cmd += ["--workers", "2", "--scheduler", "processes"]
+    p = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and _journal_entries(out) < 5 and p.poll() is None:
+        time.sleep(0.05)
+    assert p.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "interrupted" in err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
