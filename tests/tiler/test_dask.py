@@ -271,3 +271,18 @@ def test_ctrl_c_with_worker_processes_prints_one_line(tmp_path):
     assert p.returncode == 130, err
     assert "interrupted" in err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+
+
+def test_scheduler_dask_starts_and_stops_a_local_cluster(tmp_path):
+    src = _dem(tmp_path)
+    ref = _reference(src, tmp_path / "ref.zarr", 65)
+    out = tmp_path / "d.zarr"
+    store = tile(src, out, TileOptions(block_size=65, workers=1, scheduler="dask"))
+    assert store.tile_summary.executor == "dask"
+    assert diff_stores(ref, out) == []
+    import psutil
+
+    left = [p for p in psutil.Process().children(recursive=True) if "spawn_main" in " ".join(
+        p.cmdline())]  # fmt: skip
+    _, alive = psutil.wait_procs(left, timeout=30)  # the cluster's worker processes exit
+    assert not alive
