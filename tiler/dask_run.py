@@ -164,7 +164,7 @@ def run_blocks_dask(
             block_of[fut.key] = b
             pending.add(fut)
 
-    def collect(finished: set[Any]) -> None:
+    def collect(finished: set[Any], *, final: bool = False) -> None:
         nonlocal last_mirror
         blocks = [block_of[f.key] for f in finished if f.status == "finished"]
         unmirrored.extend(blocks)
@@ -175,8 +175,8 @@ def run_blocks_dask(
         for b in blocks:
             _, _, h, w = grid.block_window(*b)
             report(1, h * w * itemsize)
-        if on_done is not None and blocks:
-            on_done(blocks)
+        if on_done is not None and blocks and not final:
+            on_done(blocks)  # e.g. write a shard whose blocks are all done
 
     try:
         submit_more()
@@ -203,7 +203,7 @@ def run_blocks_dask(
     except BaseException:
         if pending:
             client.cancel(list(pending))
-        collect({f for f in pending if f.status == "finished"})
+        collect({f for f in pending if f.status == "finished"}, final=True)  # they stay done
         raise
     finally:
         mark_done(done_arr, done, unmirrored, grid)
