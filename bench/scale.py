@@ -225,6 +225,8 @@ def plot(results: list[dict], path: Path) -> None:
     ax[1].set(xlabel="workers", ylabel="MiB", title="peak RSS per worker")
     for a in ax:
         a.legend()
+        a.set_ylim(bottom=0)
+        a.set_xticks(sorted({r["workers"] for r in results}))
         a.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
