@@ -21,7 +21,7 @@ def is_local(url: str | os.PathLike) -> bool:
     return "://" not in text and not text.startswith("memory:")
 
 
-def open_store_arg(url: str, hint: str = "STORE", *, projected: bool = False) -> Any:
+def open_store_arg(url: Any, hint: str = "STORE", *, projected: bool = False) -> Any:
     """The store at ``url`` opened; a local path that does not exist is a usage error.
 
     ``projected``: the command streams or renders, so a geographic store (x/y in degrees) is
@@ -29,9 +29,9 @@ def open_store_arg(url: str, hint: str = "STORE", *, projected: bool = False) ->
     """
     from tiler.store import open_store
 
-    if is_local(url) and not Path(url).exists():
+    if is_local(url) and not Path(str(url)).exists():
         raise UsageError(
-            f"no store at {url!r}: the path does not exist (make one with terrastream tile)",
+            f"no store at {str(url)!r}: the path does not exist (make one with terrastream tile)",
             hint=hint,
         )
     store = open_store(url)

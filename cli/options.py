@@ -181,3 +181,32 @@ def parse_taus(text: str) -> list[float]:
         msg = f"expected comma-separated finite taus >= 0 such as 0.5,1,2, got {text!r}"
         raise UsageError(msg, "--taus")
     return vals
+
+
+StorageOptionsOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--storage-options",
+        metavar="JSON",
+        help="fsspec storage options for an s3://, gs://... store: a JSON object with keys "
+        "such as endpoint_url, key, secret, anon (default: the environment, e.g. "
+        "AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY).",
+    ),
+]
+
+
+def store_location(url: str, storage_options: str | None) -> Any:
+    """``url`` itself, or a ``tiler.location.Location`` carrying the parsed storage options.
+
+    Bad JSON, or options for a local path, is a usage error naming ``--storage-options``.
+    """
+    if storage_options is None or not storage_options.strip():
+        return url
+    from cli.common import UsageError
+    from tiler.errors import StorageOptionsError
+    from tiler.location import Location, parse_storage_options
+
+    try:
+        return Location(url, parse_storage_options(storage_options))
+    except StorageOptionsError as exc:
+        raise UsageError(str(exc), "--storage-options") from exc

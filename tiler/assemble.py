@@ -134,7 +134,7 @@ def write_small_levels(
     """Write the small levels of one shard region from journal entries (other blocks: kept)."""
     r0, r1, c0, c1 = region
     for i in range(small_levels(meta.k)):
-        arr = open_for_write(loc.target, f"levels/{i}")
+        arr = open_for_write(loc, f"levels/{i}")
         if len(entries) == (r1 - r0) * (c1 - c0):
             data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
         else:  # repair: the blocks that are fine are read back (they verified clean)
@@ -235,11 +235,11 @@ def finish(
 def write_index(loc: Location, grid: BlockGrid, index: dict[str, np.ndarray]) -> None:
     """Write the index arrays and the block windows."""
     for name, values in index.items():
-        open_for_write(loc.target, f"index/{name}")[...] = values
+        open_for_write(loc, f"index/{name}")[...] = values
     win = np.zeros((grid.rows, grid.cols, 4), dtype=np.int32)
     for br, bc in grid.blocks():
         win[br, bc] = grid.block_window(br, bc)
-    open_for_write(loc.target, "index/window")[...] = win
+    open_for_write(loc, "index/window")[...] = win
 
 
 def complete(group: zarr.Group, meta: StoreMeta) -> None:
@@ -284,7 +284,7 @@ def repair_store(
         )
         bad = sorted(report.bad_blocks)
         for name in report.bad_tables:
-            open_for_write(loc.target, name)[...] = expected_table(name, meta.k)
+            open_for_write(loc, name)[...] = expected_table(name, meta.k)
         summary.blocks_total = meta.grid.rows * meta.grid.cols
         summary.blocks_repaired = summary.blocks_computed = len(bad)
         if bad:

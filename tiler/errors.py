@@ -81,3 +81,19 @@ class GeographicStoreError(StoreError, ValueError):
 
 class RemoteStoreError(StoreError, ConnectionError):
     """A remote store whose server cannot serve what reading a store needs (byte ranges)."""
+
+
+class StorageOptionsError(TilerError, ValueError):
+    """Storage options that are not a JSON object, or given for a non-URL location."""
+
+
+class SchedulerError(TilerError, ValueError):
+    """A scheduler spec that is not threads/processes/dask/an address, or one not reachable."""
+
+
+class BlockFailedError(TilerError, RuntimeError):
+    """A block's task failed on every retry (``.block`` is its ``(row, col)``)."""
+
+    def __init__(self, message: str, block: tuple[int, int] | None = None) -> None:
+        super().__init__(message)
+        self.block = block

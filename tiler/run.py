@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import re
+import signal
 import sys
 import threading
 import time
@@ -23,6 +25,7 @@ import numpy as np
 import rasterio.env
 import zarr
 
+from tiler import kernels
 from tiler.errors import StoreError
 from tiler.grid import BlockGrid
 from tiler.location import Location
@@ -36,7 +39,12 @@ MIRROR_INTERVAL_S = 0.5
 
 
 def open_for_write(target: Any, name: str) -> zarr.Array:
-    """Open one array of a store for writing, writing every chunk (even all-fill ones)."""
+    """Open one array of a store for writing, writing every chunk (even all-fill ones).
+
+    ``target``: a :class:`Location` (carries storage options), a path/URL or a zarr Store.
+    """
+    if isinstance(target, Location):
+        return target.open_array(name, "r+").with_config(WRITE_CONFIG)
     return zarr.open_array(target, path=name, mode="r+").with_config(WRITE_CONFIG)
 
 
@@ -81,10 +89,37 @@ class BlockWorker:
 _PROCESS_WORKER: BlockWorker | None = None
 
 
-def _process_init(gdal_cache_mb: int, *args: Any) -> None:
-    global _PROCESS_WORKER
+def worker_setup(gdal_cache_mb: int, kernels_backend: str, dtype: str) -> None:
+    """Per-process set-up of a tiling worker: GDAL cache cap, kernel backend (warmed up)."""
+    from tiler import kernels
+
     rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(gdal_cache_mb))
+    os.environ[kernels.ENV] = kernels_backend
+    if kernels_backend == "numba":
+        kernels.warm_up(dtype)
+
+
+def _process_init(gdal_cache_mb: int, kernels_backend: str, *args: Any) -> None:
+    global _PROCESS_WORKER
+    # Ctrl-C reaches the whole process group: the parent reports it once (TilingInterrupted).
+    # The worker was started with SIGINT blocked (see _submit): ignore it, then unblock (a
+    # Ctrl-C that arrived while this process was importing is discarded here).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    worker_setup(gdal_cache_mb, kernels_backend, args[4].dtype)
     _PROCESS_WORKER = BlockWorker(*args)
+
+
+def _submit_blocking_sigint(pool: Any, fn: Any, *args: Any) -> Future:
+    """``pool.submit`` with SIGINT blocked in this thread: a worker process the pool spawns now
+    inherits the blocked signal, so a Ctrl-C during its start-up (imports, before the
+    initializer ignores SIGINT) cannot print a traceback. Other threads still take the signal
+    for the parent, and a signal pending here is delivered on unblocking: none is lost."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return pool.submit(fn, *args)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _process_run(br: int, bc: int) -> tuple[int, int]:
@@ -117,9 +152,21 @@ def processes_unsafe() -> str | None:
     return f"the main script {path!r} has no `if __name__ == '__main__':` guard"
 
 
+def kernels_for(grid: BlockGrid) -> str:
+    """The kernel backend worker processes should use for this DEM (``tiler.kernels.choose``)."""
+    return kernels.choose(grid.height * grid.width)
+
+
+def is_dask_scheduler(spec: str | None) -> bool:
+    """True if ``spec`` asks for dask: ``"dask"`` or a scheduler address (``tcp://host:port``)."""
+    return bool(spec) and (spec == "dask" or "://" in str(spec))
+
+
 def choose_executor(opts: Any, loc: Location, todo: int) -> str:
     """``"processes"`` or ``"threads"`` for this run (logs why processes are not used)."""
     want = opts.executor
+    if getattr(opts, "scheduler", None) in ("threads", "processes"):
+        want = opts.scheduler
     if want == "auto":
         big = opts.n_workers > 1 and todo >= 4 * opts.n_workers
         want = "processes" if big and loc.can_share_with_processes else "threads"
@@ -147,8 +194,37 @@ def run_blocks(
     on_done: Callable[[list[tuple[int, int]]], None] | None = None,
 ) -> str:
     """Compute ``todo`` blocks; ``done`` (bool grid) is updated and mirrored to ``index/done``;
-    ``on_done`` is called in this thread with each batch of finished blocks."""
-    target = loc.picklable() if loc.can_share_with_processes else loc.target
+    ``on_done`` is called in this thread with each batch of finished blocks.
+
+    Returns the executor used: ``threads``, ``processes`` or ``dask`` (``opts.scheduler``).
+    """
+    if is_dask_scheduler(getattr(opts, "scheduler", None)):
+        from tiler.dask_run import run_blocks_dask  # distributed is imported only when asked
+
+        return run_blocks_dask(src, loc, opts, grid, params, todo, done, report, lease, on_done)
+    saved = os.environ.get(kernels.ENV)
+    try:
+        return _run_local(src, loc, opts, grid, params, todo, done, report, lease, on_done)
+    finally:
+        if saved is None:
+            os.environ.pop(kernels.ENV, None)
+        else:
+            os.environ[kernels.ENV] = saved
+
+
+def _run_local(
+    src: str,
+    loc: Location,
+    opts: Any,
+    grid: BlockGrid,
+    params: Any,
+    todo: list[tuple[int, int]],
+    done: np.ndarray,
+    report: Callable[[int, int], None],
+    lease: Any,
+    on_done: Callable[[list[tuple[int, int]]], None] | None,
+) -> str:
+    target = loc.for_workers() if loc.can_share_with_processes else loc.target
     workers = opts.n_workers
     args = (src, opts.band, target, grid, params)
     executor = choose_executor(opts, loc, len(todo))
@@ -165,11 +241,13 @@ def run_blocks(
         return w.run(br, bc)
 
     if executor == "processes":
+        backend = kernels_for(grid)
+        os.environ[kernels.ENV] = backend  # what the spawned workers inherit (and warm up)
         pool: Any = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_process_init,
-            initargs=(opts.gdal_cache_mb, *args),
+            initargs=(opts.gdal_cache_mb, backend, *args),
         )
         run: Any = _process_run
     else:
@@ -206,7 +284,10 @@ def run_blocks(
                 b = next(it, None)
                 if b is None:
                     break
-                pending.add(pool.submit(run, *b))
+                if executor == "processes":
+                    pending.add(_submit_blocking_sigint(pool, run, *b))
+                else:
+                    pending.add(pool.submit(run, *b))
             if not pending:
                 break
             finished, pending = wait_futures(

@@ -28,6 +28,7 @@ import zarr
 from tiler import codecs, static_error
 from tiler.encoding import fill_invalid, quantise
 from tiler.errors import (
+    SchedulerError,
     SourceError,
     StoreError,
     StoreExistsError,
@@ -81,6 +82,10 @@ class TileOptions:
     error_cap: int | None = None  # default: k - 4
     gdal_cache_mb: int = 64  # GDAL's block cache (its default, 5 % of RAM, dominates RSS)
     executor: str = "auto"  # "threads", "processes" or "auto" (processes for big local jobs)
+    # None: ``executor`` decides; "threads"/"processes"; "dask" (a local dask cluster) or the
+    # address of a dask scheduler ("tcp://host:port"), see tiler.dask_run
+    scheduler: str | None = None
+    retries: int = 2  # dask: times a failed block task is retried before the run fails
     repair: bool = False
     lease_timeout_s: float = DEFAULT_TIMEOUT_S
     # sources (tiler.source): reproject to this CRS while reading ("auto", "EPSG:...", WKT)
@@ -102,6 +107,9 @@ class TileOptions:
             raise SourceError(
                 f"executor must be 'auto', 'threads' or 'processes', got {self.executor!r}"
             )
+        check_scheduler(self.scheduler)
+        if self.retries < 0:
+            raise SourceError(f"retries must be >= 0, got {self.retries}")
         if not 1 <= self.compression_level <= 9:
             raise SourceError(f"compression level must be in 1..9, got {self.compression_level}")
         if not (math.isfinite(self.lease_timeout_s) and self.lease_timeout_s > 0):
@@ -119,6 +127,18 @@ class TileOptions:
     def n_workers(self) -> int:
         """Worker threads actually used."""
         return self.workers or (os.cpu_count() or 1)
+
+
+def check_scheduler(spec: str | None) -> None:
+    """Refuse a scheduler spec other than threads, processes, dask or an address."""
+    if spec is None or spec in ("threads", "processes", "dask"):
+        return
+    if isinstance(spec, str) and "://" in spec and spec.split("://", 1)[1]:
+        return
+    raise SchedulerError(
+        f"scheduler must be 'threads', 'processes', 'dask' (a local dask cluster) or a dask "
+        f"scheduler address such as 'tcp://127.0.0.1:8786', got {spec!r}"
+    )
 
 
 @dataclass(frozen=True)
@@ -425,7 +445,7 @@ def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
 
     attrs = json.loads(json.dumps(meta.to_json(), allow_nan=False))
     try:
-        return zarr.open_group(loc.target, mode="a", attributes={ATTR: attrs})
+        return loc.open_group("a", attributes={ATTR: attrs})
     except (OSError, ValueError) as exc:
         raise StoreError(f"cannot create a store at {loc.url!r}: {exc}") from exc
 

@@ -10,6 +10,7 @@ import typer
 
 from cli.checks import open_store_arg, output_file
 from cli.common import UsageError, fail_on_errors
+from cli.options import StorageOptionsOpt, store_location
 
 
 class ExportFormat(StrEnum):
@@ -36,6 +37,7 @@ def export(
             "(default for .tif/.tiff); gtiff: a plain tiled GeoTIFF.",
         ),
     ] = None,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Rebuild a GeoTIFF of the whole DEM from a store (bit-identical when lossless).
 
@@ -46,7 +48,7 @@ def export(
 
     with fail_on_errors():
         output_file(out, "OUT", overwrite=overwrite)
-        s = open_store_arg(store)
+        s = open_store_arg(store_location(store, storage_options))
         if level is not None and not 0 <= level <= s.k:
             raise UsageError(
                 f"--level must be in 0..{s.k} for this store, got {level}", hint="--level"

@@ -11,10 +11,12 @@ import typer
 from cli.checks import is_local, open_store_arg
 from cli.common import fail_on_errors
 from cli.formatters import format_info
+from cli.options import StorageOptionsOpt, store_location
 
 
 def info(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
+    storage_options: StorageOptionsOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Describe a store: blocks, levels, bytes per level, ratio to raw, CRS, extent, values.
@@ -26,7 +28,7 @@ def info(
     with fail_on_errors():
         if is_local(store) and not Path(store).exists():
             open_store_arg(store)  # the usage error
-        d = store_info(store)
+        d = store_info(store_location(store, storage_options))
         if as_json:
             typer.echo(json.dumps(d, indent=2))
             return

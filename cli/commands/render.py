@@ -22,14 +22,17 @@ from cli.options import (
     PatchOpt,
     PitchOpt,
     SizeOpt,
+    StorageOptionsOpt,
     TauOpt,
     YawOpt,
     parse_size,
+    store_location,
 )
 
 
 def render(
     store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    storage_options: StorageOptionsOpt = None,
     out: Annotated[
         Path,
         typer.Option("-o", "--out", metavar="FILE", help="Output image (.png, .jpg, .tif ...)."),
@@ -63,7 +66,7 @@ def render(
     with fail_on_errors():
         viewport = parse_size(size)
         output_file(out, "--out", suffixes=image_suffixes())
-        s = open_store_arg(store, projected=True)
+        s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )

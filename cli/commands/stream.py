@@ -17,16 +17,19 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StorageOptionsOpt,
     TauOpt,
     integer,
     number,
     parse_size,
+    store_location,
 )
 from cli.progress import Progress
 
 
 def stream(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
+    storage_options: StorageOptionsOpt = None,
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
     frames: Annotated[int, integer("--frames", "Frames to fly.", min=1)] = 600,
@@ -68,7 +71,7 @@ def stream(
         input_file(path, "--path")
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
-        s = open_store_arg(store, projected=True)
+        s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(
             s,
             path_kind,

@@ -12,7 +12,7 @@ import typer
 
 from cli.checks import store_destination
 from cli.common import fail_on_errors
-from cli.options import integer, number
+from cli.options import StorageOptionsOpt, integer, number, store_location
 from cli.progress import Progress
 
 Resampling = Enum(
@@ -109,6 +109,21 @@ def tile(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print a JSON summary instead of a line.")
     ] = False,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            "--scheduler",
+            metavar="SPEC",
+            help="threads, processes (local pools; default: chosen by job size), dask (a local "
+            "dask cluster, --workers processes) or a dask scheduler address tcp://host:port "
+            "(workers read the sources and write the store themselves: both must be reachable "
+            "from every worker).",
+        ),
+    ] = None,
+    retries: Annotated[
+        int, integer("--retries", "dask: retries of a failed block before the run fails.", min=0)
+    ] = 2,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Tile a DEM into a non-redundant level store.
 
@@ -116,6 +131,9 @@ def tile(
     terminal, a line every few seconds otherwise).
 
     Example: terrastream tile N44W072.hgt n44.zarr --block-size 257
+
+    On a dask cluster, into S3: terrastream tile dem.tif s3://bucket/dem.zarr --scheduler
+    tcp://10.0.0.5:8786 (endpoint and keys from AWS_* variables or --storage-options JSON)
 
     Several sources form one mosaic: terrastream tile N44W072.hgt N44W073.hgt n44.zarr
     (or --from-list tiles.txt). A geographic DEM (degrees) needs --dst-crs auto to be streamed
@@ -127,7 +145,10 @@ def tile(
     src, dst = _sources_and_destination(paths, from_list)
     with fail_on_errors():
         store_destination(dst)
+        target = store_location(dst, storage_options)
         opts = TileOptions(
+            scheduler=scheduler,
+            retries=retries,
             dst_crs=dst_crs,
             resampling=resampling.value,
             resolution=resolution,
@@ -153,7 +174,7 @@ def tile(
 
         t0 = time.perf_counter()
         try:
-            store = run_tile(src, dst, opts, progress=on_progress)
+            store = run_tile(src, target, opts, progress=on_progress)
         finally:
             bar.close()
         elapsed = time.perf_counter() - t0

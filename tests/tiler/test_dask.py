@@ -1,0 +1,288 @@
+"""Tiling on a dask cluster: byte-identical to the local run, retries, a killed worker, resume.
+
+Every cluster is started and stopped inside the test, on loopback only.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import fractal, write_dem
+from tests.tiler.storetools import diff_stores
+from tiler import tile as tile_mod
+from tiler.errors import BlockFailedError, SchedulerError
+from tiler.tile import TileOptions, tile
+
+distributed = pytest.importorskip("distributed")
+import dask  # noqa: E402  (installed with distributed)
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+def _dem(tmp_path: Path, shape=(150, 170), nodata=True) -> Path:
+    data = fractal(shape, seed=7)
+    if nodata:
+        data[10:40, 60:95] = -9999  # a hole across block borders
+        data[-5:, :7] = -9999
+    return write_dem(tmp_path / "dem.tif", data, nodata=-9999 if nodata else None)
+
+
+def _reference(src: Path, dst: Path, block: int) -> Path:
+    tile(src, dst, TileOptions(block_size=block, workers=1, executor="threads"))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def thread_cluster():
+    """An in-process cluster (2 workers x 2 threads, loopback)."""
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=2,
+        processes=False,
+        protocol="tcp",
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        yield cluster
+
+
+@pytest.mark.parametrize("block", [17, 33])
+def test_dask_equals_local_run(tmp_path, thread_cluster, block):
+    src = _dem(tmp_path)
+    ref = _reference(src, tmp_path / "ref.zarr", block)
+    out = tmp_path / "dask.zarr"
+    seen = []
+    store = tile(
+        src,
+        out,
+        TileOptions(block_size=block, scheduler=thread_cluster.scheduler_address),
+        progress=seen.append,
+    )
+    assert store.tile_summary.executor == "dask"
+    assert diff_stores(ref, out) == []
+    total = store.grid.rows * store.grid.cols
+    assert seen[-1].blocks_done == seen[-1].blocks_total == total
+    assert [p.blocks_done for p in seen] == sorted(p.blocks_done for p in seen)
+    assert store.meta.complete
+
+
+def test_dask_worker_processes_equal_local_run(tmp_path):
+    """Real worker processes (spawned, own source datasets), float DEM with NaN holes."""
+    data = fractal((90, 120), seed=3, dtype="float32")
+    data[5:30, 40:70] = np.nan
+    src = write_dem(tmp_path / "f.tif", data, nodata=float("nan"))
+    ref = _reference(src, tmp_path / "ref.zarr", 33)
+    out = tmp_path / "dask.zarr"
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        store = tile(src, out, TileOptions(block_size=33, scheduler=cluster.scheduler_address))
+    assert store.tile_summary.executor == "dask"
+    assert diff_stores(ref, out) == []
+
+
+_FAILED_ONCE: set[tuple[int, int]] = set()
+_FAIL_LOCK = threading.Lock()
+
+
+def _fail_once(window, params):
+    """process_block that raises the first time it sees each block of row 1."""
+    key = (int(window.sum()), window.shape)
+    with _FAIL_LOCK:
+        first = key not in _FAILED_ONCE
+        _FAILED_ONCE.add(key)
+    if first and int(window[0, 0]) % 2 == 0:
+        raise OSError(f"transient read error (test) {key}")
+    return _ORIGINAL(window, params)
+
+
+_ORIGINAL = tile_mod.process_block
+
+
+def test_failed_task_is_retried(tmp_path, thread_cluster, monkeypatch):
+    src = _dem(tmp_path, nodata=False)
+    ref = _reference(src, tmp_path / "ref.zarr", 33)
+    _FAILED_ONCE.clear()
+    monkeypatch.setattr(tile_mod, "process_block", _fail_once)
+    out = tmp_path / "dask.zarr"
+    tile(src, out, TileOptions(block_size=33, scheduler=thread_cluster.scheduler_address))
+    assert _FAILED_ONCE, "the fault was never injected"
+    assert diff_stores(ref, out) == []
+
+
+def test_persistent_failure_names_the_block(tmp_path, thread_cluster, monkeypatch):
+    src = _dem(tmp_path, nodata=False)
+    calls = []
+
+    def always_fail_block_1_2(window, params):
+        if window.shape == (33, 33) and len(calls) < 1000:
+            calls.append(1)
+        raise OSError("disk on fire (test)")
+
+    monkeypatch.setattr(tile_mod, "process_block", always_fail_block_1_2)
+    opts = TileOptions(block_size=33, scheduler=thread_cluster.scheduler_address, retries=1)
+    with pytest.raises(BlockFailedError, match=r"block \(\d+, \d+\) failed on every try") as ei:
+        tile(src, tmp_path / "dask.zarr", opts)
+    assert "disk on fire" in str(ei.value) and ei.value.block is not None
+    assert len(calls) >= 2  # one try and one retry at least
+    from tiler.location import Location
+    from tiler.store import read_meta
+
+    meta = read_meta(Location(str(tmp_path / "dask.zarr")).open_group("r"))
+    assert not meta.complete and meta.extra["state"] == "tiling"
+
+
+def _journal_entries(store: Path) -> int:
+    from tiler.resume import JOURNAL
+
+    base = store / JOURNAL  # one chunk file per block: c.<row>.<col>
+    return sum(1 for p in base.glob("c.*") if p.is_file()) if base.exists() else 0
+
+
+def test_killed_worker_then_rerun_is_identical_and_skips_finished(tmp_path):
+    """SIGKILL a worker process mid-run (no retry of lost tasks: allowed-failures=0), so the
+    run fails naming a block; the rerun computes only the unfinished blocks, byte-identical."""
+    data = fractal((300, 300), seed=11)
+    src = write_dem(tmp_path / "dem.tif", data)
+    ref = _reference(src, tmp_path / "ref.zarr", 17)
+    out = tmp_path / "dask.zarr"
+    with (
+        dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+        distributed.LocalCluster(
+            n_workers=2,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address="127.0.0.1:0",
+        ) as cluster,
+    ):
+        with distributed.Client(cluster) as c:
+            pids = list(c.run(os.getpid).values())
+        killed = threading.Event()
+
+        def killer() -> None:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and _journal_entries(out) < 12:
+                time.sleep(0.02)
+            os.kill(pids[0], signal.SIGKILL)
+            killed.set()
+
+        t = threading.Thread(target=killer, name="test-killer", daemon=True)
+        t.start()
+        with pytest.raises(BlockFailedError, match="KilledWorker|failed on every try"):
+            tile(src, out, TileOptions(block_size=17, scheduler=cluster.scheduler_address))
+        t.join(timeout=10)
+        assert killed.is_set()
+    at_failure = _journal_entries(out)
+    assert at_failure >= 12
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        store = tile(src, out, TileOptions(block_size=17, scheduler=cluster.scheduler_address))
+    s = store.tile_summary
+    assert s.resumed and s.blocks_skipped >= at_failure > 0
+    assert s.blocks_computed == s.blocks_total - s.blocks_skipped
+    assert diff_stores(ref, out) == []
+
+
+def test_scheduler_spec_checked(tmp_path):
+    with pytest.raises(SchedulerError, match="'fast'"):
+        TileOptions(scheduler="fast")
+    src = _dem(tmp_path)
+    with pytest.raises(SchedulerError, match="cannot be written|cannot write"):
+        tile(src, "memory://x.zarr", TileOptions(block_size=33, scheduler="inproc://nowhere"))
+
+
+def test_unreachable_scheduler_is_a_clear_error(tmp_path):
+    src = _dem(tmp_path)
+    with pytest.raises(SchedulerError, match="cannot reach the dask scheduler"):
+        tile(src, tmp_path / "o.zarr", TileOptions(block_size=33, scheduler="tcp://127.0.0.1:9"))
+
+
+def test_distributed_not_imported_for_local_runs(tmp_path):
+    import subprocess
+
+    src = _dem(tmp_path)
+    code = (
+        "import sys; from tiler.tile import tile, TileOptions; "
+        f"tile({str(src)!r}, {str(tmp_path / 'l.zarr')!r}, TileOptions(block_size=33, "
+        "workers=1)); print('distributed' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_cli_scheduler_option(tmp_path, thread_cluster):
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    src = _dem(tmp_path)
+    ref = _reference(src, tmp_path / "ref.zarr", 33)
+    out = tmp_path / "cli.zarr"
+    args = ["tile", str(src), str(out), "--block-size", "33", "--json"]
+    r = CliRunner().invoke(app, [*args, "--scheduler", thread_cluster.scheduler_address])
+    assert r.exit_code == 0, r.output
+    assert diff_stores(ref, out) == []
+    r = CliRunner().invoke(app, [*args[:2], str(tmp_path / "x.zarr"), "--scheduler", "fast"])
+    assert r.exit_code == 2 and "'fast'" in r.output
+
+
+def test_ctrl_c_with_worker_processes_prints_one_line(tmp_path):
+    """SIGINT to the whole process group (what a terminal's Ctrl-C does): worker processes
+    ignore it, so the run ends with the CLI's one line and exit 130, no worker tracebacks."""
+    import subprocess
+
+    data = fractal((400, 400), seed=2)
+    src = write_dem(tmp_path / "dem.tif", data)
+    out = tmp_path / "o.zarr"
+    env = dict(os.environ, PYTHONPATH=os.getcwd(), TERRASTREAM_KERNELS="numpy")
+    cmd = [sys.executable, "-m", "cli.main", "tile", str(src), str(out), "--block-size", "17"]
+    cmd += ["--workers", "2", "--scheduler", "processes"]
+    p = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and _journal_entries(out) < 5 and p.poll() is None:
+        time.sleep(0.05)
+    assert p.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "interrupted" in err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+
+
+def test_scheduler_dask_starts_and_stops_a_local_cluster(tmp_path):
+    src = _dem(tmp_path)
+    ref = _reference(src, tmp_path / "ref.zarr", 65)
+    out = tmp_path / "d.zarr"
+    store = tile(src, out, TileOptions(block_size=65, workers=1, scheduler="dask"))
+    assert store.tile_summary.executor == "dask"
+    assert diff_stores(ref, out) == []
+    import psutil
+
+    left = [p for p in psutil.Process().children(recursive=True) if "spawn_main" in " ".join(
+        p.cmdline())]  # fmt: skip
+    _, alive = psutil.wait_procs(left, timeout=30)  # the cluster's worker processes exit
+    assert not alive

@@ -1,0 +1,214 @@
+"""Running blocks on a dask cluster (``TileOptions(scheduler="dask" | "tcp://host:port")``).
+
+Every block is one task. A task runs on a dask worker: it opens the source (a picklable
+:class:`~tiler.mosaic.MosaicSpec` or path) and the destination (a path on a shared file system
+or an object-store URL with its storage options), reads its window, encodes it and writes its
+chunks and its journal entry itself (the per-block commit of ``tiler.resume``). A task returns
+only its block id, so no block's data passes through the client; the client mirrors finished
+blocks, feeds the progress callback and, after every task succeeded, the caller finishes the
+store (shards, index, ``complete``). dask retries a failed task ``opts.retries`` times; a task
+that still fails ends the run with :class:`BlockFailedError` naming the block, and the store
+stays resumable (rerun: only blocks without a journal entry are computed again).
+
+``distributed`` is imported only here, i.e. only when a dask scheduler is asked for.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from tiler.errors import BlockFailedError, SchedulerError, StoreError
+from tiler.grid import BlockGrid
+from tiler.location import Location
+
+log = logging.getLogger("tiler.tile")
+WAIT_TIMEOUT_S = 600.0
+IN_FLIGHT_PER_THREAD = 3  # tasks queued per worker thread (keeps workers busy, memory bounded)
+
+
+@dataclass(frozen=True)
+class DaskJob:
+    """What a task needs besides its block id (pickled once per task: a few hundred bytes)."""
+
+    token: str
+    src: Any
+    band: int
+    target: Location
+    grid: BlockGrid
+    params: Any
+    gdal_cache_mb: int
+    kernels_backend: str
+
+
+_LOCAL = threading.local()
+_SETUP_LOCK = threading.Lock()
+_SETUP_DONE: set[tuple[int, str, str]] = set()
+
+
+def run_block_task(job: DaskJob, br: int, bc: int) -> tuple[int, int]:
+    """The dask task: compute block ``(br, bc)`` and write it to the destination (worker side).
+
+    Each worker thread keeps one :class:`~tiler.run.BlockWorker` (open source and arrays) per
+    job, so a dataset is opened once per thread, not once per block.
+    """
+    from tiler.run import BlockWorker, worker_setup
+
+    key = (job.gdal_cache_mb, job.kernels_backend, str(job.params.dtype))
+    with _SETUP_LOCK:
+        if key not in _SETUP_DONE:
+            worker_setup(*key)
+            _SETUP_DONE.add(key)
+    cached = getattr(_LOCAL, "worker", None)
+    if cached is None or cached[0] != job.token:
+        if cached is not None:
+            cached[1].close()
+        cached = _LOCAL.worker = (
+            job.token,
+            BlockWorker(job.src, job.band, job.target, job.grid, job.params),
+        )
+    return cached[1].run(br, bc)
+
+
+def _connect(spec: str, n_workers: int) -> tuple[Any, Any]:
+    """A ``(client, cluster_or_None)``: a new loopback LocalCluster for ``"dask"``, else the
+    scheduler at the address ``spec``."""
+    try:
+        import distributed
+    except ImportError as exc:
+        raise SchedulerError(
+            f"scheduler {spec!r} needs dask's 'distributed' package: "
+            "pip install 'terrastream[dask]'"
+        ) from exc
+    if spec == "dask":
+        cluster = distributed.LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address="127.0.0.1:0",
+        )
+        log.info("started a local dask cluster: %d worker process(es)", n_workers)
+        return distributed.Client(cluster), cluster
+    try:
+        return distributed.Client(spec, timeout="20s"), None
+    except (OSError, TimeoutError) as exc:
+        raise SchedulerError(
+            f"cannot reach the dask scheduler at {spec!r}: {exc}; start one "
+            "(dask-scheduler, dask-worker ADDRESS) or use 'dask' for a local cluster"
+        ) from exc
+
+
+def run_blocks_dask(
+    src: Any,
+    loc: Location,
+    opts: Any,
+    grid: BlockGrid,
+    params: Any,
+    todo: list[tuple[int, int]],
+    done: np.ndarray,
+    report: Callable[[int, int], None],
+    lease: Any,
+    on_done: Callable[[list[tuple[int, int]]], None] | None = None,
+) -> str:
+    """Compute ``todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
+    from tiler.run import MIRROR_INTERVAL_S, kernels_for, mark_done, open_for_write
+
+    if not loc.can_share_with_processes:
+        raise SchedulerError(
+            f"dask workers cannot write into {loc.url!r} (process memory or a Store object); "
+            "use a path on a file system every worker sees, or an object-store URL"
+        )
+    import distributed
+
+    client, cluster = _connect(opts.scheduler, opts.n_workers)
+    job = DaskJob(
+        token=uuid.uuid4().hex,
+        src=src,
+        band=opts.band,
+        target=loc.for_workers(),
+        grid=grid,
+        params=params,
+        gdal_cache_mb=opts.gdal_cache_mb,
+        kernels_backend=kernels_for(grid),
+    )
+    done_arr = open_for_write(loc.for_workers(), "index/done")
+    itemsize = np.dtype(params.dtype).itemsize
+    pending: set[Any] = set()
+    block_of: dict[str, tuple[int, int]] = {}
+    unmirrored: list[tuple[int, int]] = []
+    last_mirror = time.monotonic()
+    it = iter(todo)
+
+    def submit_more() -> None:
+        threads = max(1, sum(client.nthreads().values()))
+        while len(pending) < IN_FLIGHT_PER_THREAD * threads:
+            b = next(it, None)
+            if b is None:
+                return
+            fut = client.submit(
+                run_block_task,
+                job,
+                *b,
+                key=f"terrastream-block-{b[0]}-{b[1]}-{job.token}",
+                retries=opts.retries,
+                pure=False,
+            )
+            block_of[fut.key] = b
+            pending.add(fut)
+
+    def collect(finished: set[Any], *, final: bool = False) -> None:
+        nonlocal last_mirror
+        blocks = [block_of[f.key] for f in finished if f.status == "finished"]
+        unmirrored.extend(blocks)
+        if time.monotonic() - last_mirror > MIRROR_INTERVAL_S:
+            mark_done(done_arr, done, unmirrored, grid)
+            unmirrored.clear()
+            last_mirror = time.monotonic()
+        for b in blocks:
+            _, _, h, w = grid.block_window(*b)
+            report(1, h * w * itemsize)
+        if on_done is not None and blocks and not final:
+            on_done(blocks)  # e.g. write a shard whose blocks are all done
+
+    try:
+        submit_more()
+        while pending:
+            res = distributed.wait(pending, timeout=WAIT_TIMEOUT_S, return_when="FIRST_COMPLETED")
+            finished = set(res.done)
+            if not finished:
+                raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
+            pending -= finished
+            collect(finished)
+            for fut in finished:
+                if fut.status != "finished":
+                    br, bc = block_of[fut.key]
+                    exc = fut.exception() if fut.status == "error" else None
+                    why = f"{type(exc).__name__}: {exc}" if exc is not None else fut.status
+                    raise BlockFailedError(
+                        f"block ({br}, {bc}) failed on every try ({opts.retries} "
+                        f"retries): {why}; the store is kept unfinished: rerun to resume "
+                        "(finished blocks are kept)",
+                        (br, bc),
+                    ) from exc
+            submit_more()
+            lease.check()
+    except BaseException:
+        if pending:
+            client.cancel(list(pending))
+        collect({f for f in pending if f.status == "finished"}, final=True)  # they stay done
+        raise
+    finally:
+        mark_done(done_arr, done, unmirrored, grid)
+        unmirrored.clear()
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return "dask"
