@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render.mesh import edge_strip_triangles
+from render.mesh import edge_strip_triangles, snapped_triangles
 from render.select import Patches
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
@@ -137,6 +137,42 @@ def lod_surface(
             hv = full[tr, tc]
             rows, cols, hh = rasterise(np.stack([tc, tr], -1), hv)
             yield b, rows, cols, hh
+
+
+def patch_triangles(
+    patches: Patches, grid: BlockGrid, heights: Callable[[int], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The CPU twin of the drawn patch mesh: every non-degenerate snapped triangle's global
+    ``(col, row)`` corners ``(m, 3, 2)`` int64 and heights ``(m, 3)`` (NaN where masked)."""
+    k, step = grid.k, grid.step
+    if not len(patches):
+        return np.zeros((0, 3, 2), np.int64), np.zeros((0, 3))
+    cells = patches.cells_log2
+    key = np.concatenate([cells[:, None], k - patches.level[:, None], patches.snap], 1)
+    tris, hs = [], []
+    for grp in np.unique(key, axis=0):
+        c, sl = int(grp[0]), int(grp[1])
+        sel = np.flatnonzero((key == grp).all(axis=1))
+        local = snapped_triangles(c, tuple(int(t) for t in grp[2:]))  # (t, 3, 2) (i, j)
+        if not len(local):
+            continue
+        s, e = 1 << sl, (1 << c) << sl
+        blk = patches.blocks[patches.block[sel]]
+        c0 = patches.col[sel] * e
+        r0 = patches.row[sel] * e
+        lc = c0[:, None, None] + local[None, :, :, 0] * s  # in-block (col, row)
+        lr = r0[:, None, None] + local[None, :, :, 1] * s
+        h = np.empty(lc.shape)
+        for b in np.unique(patches.block[sel]).tolist():
+            m = patches.block[sel] == b
+            h[m] = heights(b)[lr[m], lc[m]]
+        gc = blk[:, 1, None, None] * step + lc
+        gr = blk[:, 0, None, None] * step + lr
+        tris.append(np.stack([gc, gr], -1).reshape(-1, 3, 2))
+        hs.append(h.reshape(-1, 3))
+    if not tris:
+        return np.zeros((0, 3, 2), np.int64), np.zeros((0, 3))
+    return np.concatenate(tris).astype(np.int64), np.concatenate(hs)
 
 
 def _reg(full, r0, c0, s, u, v, n):

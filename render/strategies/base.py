@@ -109,6 +109,10 @@ class Strategy(ABC, Generic[S]):
     uses_metric = True
     #: what a draw is doing, for GL error messages
     what = "drawing a frame"
+    #: the strategy's crack removal is on (False only for the crack detectors' positive
+    #: controls: qiu/chunk edge snaps zeroed, jung-han heights unadjusted and unsplit,
+    #: geometry-splitting without its splitting passes, seamless tiles without edge strips)
+    stitching = True
     prog: moderngl.Program
     wire: moderngl.Program
 
