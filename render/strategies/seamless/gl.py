@@ -98,8 +98,8 @@ class SeamlessPatches(Strategy[PatchLayout]):
         check_tau(tau)
         t0 = time.perf_counter()
         sel = select_layout(self, camera, tau, resident)
-        if not self.stitching:  # every edge at the tile's own resolution: no matching strips
-            own = sel.depth[:, None] + self.c + np.zeros_like(sel.edge_level)
+        if not self.stitching:  # each patch at one resolution of its own: no agreed edges
+            own = sel.edge_level.min(axis=1, keepdims=True) + np.zeros_like(sel.edge_level)
             sel = dataclasses.replace(sel, edge_level=own)
         return sel, (time.perf_counter() - t0) * 1000.0
 
