@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from gltools import make_context, rough, tile_dem
 
-from render import measure
+from render import cracks, measure
 from render.pipeline import heights_fn
 from render.renderer import CLEAR, RenderConfig, TerrainRenderer
+from render.strategies.qiu import unstitched
 from streamer.camera import Camera
 from tiler.store import open_store
 
@@ -120,6 +121,12 @@ def test_level_boundaries_are_stitched(rough_store):
     r.draw(nad, p_ref, clear=CLEAR)
     fp = ~measure.is_clear(r.image(), CLEAR)
     assert measure.crack_pixels(img, fp, CLEAR) == 0
+    # The unsnapped layout's cracks are sub-pixel here (this pixel count cannot fail; the
+    # pixel detectors' positive controls are in test_cracks.py): the exact figure can.
+    heights = heights_fn(r.store, p)
+    assert cracks.watertight(r.grid, *measure.patch_triangles(p, r.grid, heights)).open_edges == 0
+    bare = unstitched(p)
+    assert cracks.watertight(r.grid, *measure.patch_triangles(bare, r.grid, heights)).gap_edges > 0
 
 
 @pytest.mark.parametrize("tau", [0.5, 1, 2, 4])
