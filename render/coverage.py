@@ -45,7 +45,7 @@ def in_view_samples(
     """Global keys (``row * (cols * step + 1) + col``) of the in-view terrain samples and
     in-view nodata samples of the reference selection ``ref``, and the near-clipped count."""
     wg = grid.cols * grid.step + 1
-    terrain, nodata, clipped = [], [], 0
+    terrain, nodata, clipped = [], [], []
     zs = []
     for b, rows, cols, _ in measure.lod_surface(ref, grid.k, heights):
         h = heights(b)[rows, cols]
@@ -57,7 +57,7 @@ def in_view_samples(
         terrain.append((gr[ok] * wg + gc[ok])[keep])
         if ok.any():
             zs.append((float(h[ok].min()), float(h[ok].max())))
-        clipped += _near_clipped(camera, x[ok], y[ok], h[ok])
+        clipped.append((gr[ok] * wg + gc[ok])[_near_clipped(camera, x[ok], y[ok], h[ok])])
         if (~ok).any():
             nodata.append((gr[~ok], gc[~ok], x[~ok], y[~ok]))
     zmid = 0.5 * (min(z[0] for z in zs) + max(z[1] for z in zs)) if zs else 0.0
@@ -66,19 +66,19 @@ def in_view_samples(
         _, _, _, keep = measure.project_in_view(camera, x, y, np.full(x.shape, zmid))
         nd.append((gr * wg + gc)[keep])
     cat = lambda parts: np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)  # noqa: E731
-    return cat(terrain), cat(nd), clipped
+    return cat(terrain), cat(nd), len(cat(clipped))
 
 
-def _near_clipped(camera: Camera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> int:
-    """Points in the lateral view (inside the viewport's sides) in front of the camera but
-    nearer than its near plane."""
+def _near_clipped(camera: Camera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Mask of the points in the lateral view (inside the viewport's sides) in front of the
+    camera but nearer than its near plane."""
     if not len(x):
-        return 0
+        return np.zeros(0, bool)
     w, h = camera.viewport
     px, py, d = camera.project(np.stack([x, y, z], -1))
     with np.errstate(invalid="ignore"):
         lat = (px >= 0) & (px <= w) & (py >= 0) & (py <= h)
-        return int((lat & (d > 0) & (d < camera.near)).sum())
+        return lat & (d > 0) & (d < camera.near)
 
 
 def coverage(
@@ -96,7 +96,8 @@ def coverage(
     if not len(terrain):
         raise EmptyViewError(
             f"the view from {tuple(round(v, 1) for v in camera.position)} (yaw {camera.yaw:g}, "
-            f"pitch {camera.pitch:g}) holds no terrain sample ({len(nodata)} nodata samples): "
+            f"pitch {camera.pitch:g}) holds no terrain sample ({len(nodata)} nodata samples, "
+            f"{clipped} terrain samples nearer than the near plane {camera.near:g}): "
             "its error, crack and coverage figures would be vacuous; aim the camera at the "
             "terrain"
         )

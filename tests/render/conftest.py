@@ -122,5 +122,3 @@ def make_renderer(ctx) -> Callable:
     yield make
     for r in made:
         r.close()
-
-
