@@ -4,7 +4,8 @@ For each store (the 4097^2 and 16385^2 synthetic stores and a real DEM, when pre
 cameras along the default fly-through; per tau: triangles, CPU selection ms, GPU frame ms of
 the LOD render and of the full-resolution render of the same view (same run, llvmpipe), and the
 measured max/p99 screen error (each sample once) and the exact watertightness of the drawn
-mesh (open edges, largest gap: ``render.cracks``). Prints a table and writes bench/results/render.json.
+mesh (open edges, largest gap: ``render.cracks``). Prints a table and writes
+bench/results/render.json.
 
 Usage: python bench/render.py [--quick] [--stores a.zarr,b.zarr] [--metric qiu]
 Make the stores first: terrastream synth X.tif --size 4097 && terrastream tile X.tif X.zarr
