@@ -18,14 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from render import cracks, measure
-from render.errors import RenderError
+from render.errors import EmptyViewError
 from render.select import Patches
+
+__all__ = ["Coverage", "EmptyViewError", "coverage", "in_view_samples"]
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
-
-
-class EmptyViewError(RenderError, ValueError):
-    """The measured view holds no terrain sample: its figures would be vacuous."""
 
 
 @dataclass(frozen=True)
