@@ -186,7 +186,10 @@ def tradeoff(
     options: ViewOptions | None = None,
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
-    reference mesh); measure cost and error. The data is streamed by the renderer's session at
+    reference mesh); measure cost, error (each sample once), cracks of the view's own selection
+    (from the camera and from above), the drawn mesh's watertightness and coverage
+    (docs/RENDER.md, "Measurements"; :class:`render.errors.EmptyViewError` for a view without
+    terrain). The data is streamed by the renderer's session at
     ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
     :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
     ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept)."""

@@ -3,7 +3,9 @@
 
 For each strategy and τ: the renderer's trade-off row (:func:`render.pipeline.tradeoff`) for
 the *middle* camera of the fly-through (measured max/p99 screen error against the
-full-resolution reference, PSNR, crack pixels straight down, bytes resident / on the GPU), plus
+full-resolution reference, each sample once; PSNR; crack pixels of the view's own selection from
+the camera and from above; open/gap edges of the drawn mesh; terrain/nodata coverage; bytes
+resident / on the GPU; docs/RENDER.md "Measurements"), plus
 fly-through means over every camera of the path (triangles, CPU selection ms, GPU ms; every
 frame's data is waited for, so all strategies see the same resident levels) and **popping**.
 The data is streamed at full resolution (a τ = 0 session: every block in view at level ``k``)
