@@ -222,8 +222,8 @@ def tradeoff(
         st = draw_timed(strat, camera, patches, repeats)
         img = r.image()
         err = measure.error_stats(strat.screen_errors(camera, patches))
-        seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint)
         tri, tri_h = strat.triangles(camera, patches)
+        seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint, (tri, tri_h))
         cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h)
         wt = cracks.watertight(r.grid, tri, tri_h)
         drawn = strat.drawn_blocks(patches)
@@ -277,13 +277,15 @@ def drawn_cracks(
     sel: Any,
     ref_p: Any,
     footprint: np.ndarray,
+    triangles: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[int, int]:
     """Crack pixels of the view's own selection ``sel``: seen from ``camera`` (inside the
     reference's ``footprint``) and from above (:func:`render.cracks.above_camera` framing the
-    drawn triangles, inside the reference selection ``ref_p`` drawn from there)."""
+    drawn triangles — ``triangles``, default ``strat.triangles(camera, sel)`` — inside the
+    reference selection ``ref_p`` drawn from there)."""
     strat.draw(camera, sel, clear=CLEAR)
     here = measure.crack_pixels(r.image(), footprint, CLEAR)
-    tri, h = strat.triangles(camera, sel)
+    tri, h = triangles if triangles is not None else strat.triangles(camera, sel)
     above = cracks.above_camera(r.grid, camera, tri, h)
     r.draw(above, ref_p, clear=CLEAR)
     fp_above = ~measure.is_clear(r.image(), CLEAR)
