@@ -6,7 +6,11 @@ store given, prints the table and writes ``bench/results/lod_compare.json`` and
 ``--quick`` writes ``lod_compare_quick*`` instead.
 
 Usage: python bench/lod_compare.py [STORE ...] [--quick] [--taus 0.5,1,2,4]
-       [--frames 8] [--size 1024x768] [--lods a,b]
+       [--frames 8] [--size 1024x768] [--lods a,b] [--view default|low] [--pop-steps 8]
+``--view low``: the default path's cameras lowered to ``--clearance`` (default 150) metres
+above the highest terrain within 2 block edges and pitched ``--pitch`` (default -8) degrees: a
+low oblique view over rough terrain, where τ changes the selection at every τ listed (the
+script prints a ``# unchanged`` line for every strategy and pair of τ where it does not).
 Default stores: the synthetic 4097^2 store and the real N44W072 store of BENCHMARKS.md (a
 missing one is skipped with a message).
 ``--quick``: 256x192, 4 frames, taus 1 and 4 (a smoke run; under 2 minutes on a small store).
@@ -19,15 +23,49 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import N44W072_EQC, RESULTS, S4097, machine_info  # noqa: E402
 from render.strategies.compare import HEADER, compare, plot_pareto  # noqa: E402
-from streamer.run import make_path  # noqa: E402
+from streamer.camera import Camera  # noqa: E402
+from streamer.run import make_path, store_height_fn  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
 DEFAULT_STORES = [str(S4097), str(N44W072_EQC)]
+
+
+def low_oblique(store, cams: list[Camera], clearance: float, pitch: float) -> list[Camera]:
+    """``cams`` moved down to ``clearance`` above the highest terrain near them (the store's
+    level k-4 sampled within two block edges), pitched ``pitch`` degrees."""
+    g = store.grid
+    fn = store_height_fn(store)
+    reach = 2 * g.step * g.dx
+    out = []
+    for c in cams:
+        x, y = c.position[0], c.position[1]
+        pts = np.linspace(-reach, reach, 9)
+        top = max(fn(x + dx, y + dy) for dx in pts for dy in pts)
+        z = top + clearance
+        out.append(replace(c, position=(x, y, z), pitch=pitch, near=max(0.5, clearance / 50)))
+    return out
+
+
+def unchanged_taus(rows: list[dict], taus: list[float]) -> list[str]:
+    """``# unchanged`` lines: per strategy, consecutive τ whose middle view drew the same
+    triangle count (the selection did not change)."""
+    lines = []
+    for name in sorted({r["strategy"] for r in rows}):
+        rs = {r["tau"]: r["triangles"] for r in rows if r["strategy"] == name}
+        for a, b in zip(taus, taus[1:], strict=False):
+            if a in rs and b in rs and rs[a] == rs[b]:
+                lines.append(
+                    f"# unchanged: {name} draws {rs[a]:,} triangles at tau {a:g} and {b:g}"
+                )
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,6 +77,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="1024x768")
     ap.add_argument("--lods", default=None, help="comma-separated strategies (default: all)")
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--view", choices=("default", "low"), default="default")
+    ap.add_argument("--clearance", type=float, default=150.0)
+    ap.add_argument("--pitch", type=float, default=-8.0)
+    ap.add_argument("--pop-steps", type=int, default=8)
     a = ap.parse_args(argv)
     taus = [1.0, 4.0] if a.quick else [float(t) for t in a.taus.split(",")]
     frames = 4 if a.quick else a.frames
@@ -47,17 +89,22 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results = {}
     lods = a.lods.split(",") if a.lods else None
-    tag = "_quick" if a.quick else ""
+    tag = ("_quick" if a.quick else "") + ("_low" if a.view == "low" else "")
     for path in a.stores:
         if not Path(path).exists():
             print(f"# skipping {path}: not found (see BENCHMARKS.md for how to make it)")
             continue
         s = open_store(path)
         cams = make_path(s, "default", frames=frames, viewport=(w, h))
-        print(f"# {path} {w}x{h}, {frames} frames")
+        if a.view == "low":
+            cams = low_oblique(s, cams, a.clearance, a.pitch)
+        print(f"# {path} {w}x{h}, {frames} frames, view {a.view}, pop steps {a.pop_steps}")
+        print(f"# middle camera {cams[len(cams) // 2]}")
         print(HEADER)
         t0 = time.perf_counter()
-        rows = compare(s, cams, taus, strategies=lods, log=print)
+        rows = compare(s, cams, taus, strategies=lods, pop_steps=a.pop_steps, log=print)
+        for line in unchanged_taus(rows, taus):
+            print(line)
         print(f"# {time.perf_counter() - t0:.0f} s")
         name = Path(path).name.split(".")[0]
         plot_pareto(rows, out / f"lod_compare{tag}_{name}.png", title=f"{name} {w}x{h}")

@@ -3,7 +3,9 @@
 For each store (the 4097^2 and 16385^2 synthetic stores and a real DEM, when present), 1024x768
 cameras along the default fly-through; per tau: triangles, CPU selection ms, GPU frame ms of
 the LOD render and of the full-resolution render of the same view (same run, llvmpipe), and the
-measured max/p99 screen error. Prints a table and writes bench/results/render.json.
+measured max/p99 screen error (each sample once) and the exact watertightness of the drawn
+mesh (open edges, largest gap: ``render.cracks``). Prints a table and writes
+bench/results/render.json.
 
 Usage: python bench/render.py [--quick] [--stores a.zarr,b.zarr] [--metric qiu]
 Make the stores first: terrastream synth X.tif --size 4097 && terrastream tile X.tif X.zarr
@@ -21,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
-from render import measure  # noqa: E402
+from render import cracks, measure  # noqa: E402
 from render.measure import heights_fn  # noqa: E402
 from render.pipeline import draw_timed, open_render_session  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
@@ -59,9 +61,11 @@ def bench_store(path: str, taus, metric: str, frames: int, size, measure_err: bo
             st = draw_timed(r, cam, p, 2)
             img = r.image()
             err = measure.ErrorStats(float("nan"), float("nan"), float("nan"), 0)
+            hf = heights_fn(store, p)
             if measure_err:
-                e = measure.screen_errors(p, r.grid, cam, heights_fn(store, p))
+                e = measure.screen_errors(p, r.grid, cam, hf)
                 err = measure.error_stats(e)
+            wt = cracks.watertight(r.grid, *measure.patch_triangles(p, r.grid, hf))
             rows.append(
                 {
                     "store": Path(path).name,
@@ -78,12 +82,16 @@ def bench_store(path: str, taus, metric: str, frames: int, size, measure_err: bo
                     "p99_screen_error_px": err.p99_px,
                     "psnr_db": measure.psnr(img, ref_img),
                     "clamped": st.clamped,
+                    "open_edges": wt.open_edges,
+                    "gap_edges": wt.gap_edges,
+                    "max_gap_m": wt.max_gap_m,
                 }
             )
             print(
                 f"{Path(path).name:>14} {fi:>3} {tau:>4g} {st.triangles:>9,} "
                 f"{np.min(sel):>7.2f} {st.frame_ms:>8.1f} {ref.frame_ms:>8.1f} "
-                f"{ref.triangles:>10,} {err.max_px:>7.2f} {err.p99_px:>7.2f}",
+                f"{ref.triangles:>10,} {err.max_px:>7.2f} {err.p99_px:>7.2f} "
+                f"{wt.open_edges:>5} {wt.max_gap_m:>6.2f}",
                 flush=True,
             )
     r.close()
@@ -105,7 +113,7 @@ def main() -> None:
     size = (1024, 768)
     print(
         f"{'store':>14} {'fr':>3} {'tau':>4} {'triangles':>9} {'sel ms':>7} {'LOD ms':>8} "
-        f"{'full ms':>8} {'full tris':>10} {'max px':>7} {'p99 px':>7}"
+        f"{'full ms':>8} {'full tris':>10} {'max px':>7} {'p99 px':>7} {'open':>5} {'gap m':>6}"
     )
     rows = []
     t0 = time.time()

@@ -22,6 +22,10 @@ class SelectionError(RenderError, ValueError):
     """Invalid input to patch selection or stitching."""
 
 
+class EmptyViewError(RenderError, ValueError):
+    """A measured view holds no terrain sample: its figures would be vacuous."""
+
+
 class CameraSpecError(RenderError, ValueError):
     """A camera description cannot be built (:func:`render.views.make_camera`).
 

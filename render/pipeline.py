@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from render import measure
+from render import coverage, cracks, measure
 from render.errors import RenderError
 from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
@@ -151,7 +151,7 @@ class TradeoffRow:
     samples_in_view: int
     psnr_db: float
     changed_share: float
-    crack_pixels: int
+    crack_pixels: int  # the view's own selection, seen from the camera
     resident_bytes: int
     loaded_bytes: int
     gpu_bytes: int
@@ -159,6 +159,16 @@ class TradeoffRow:
     strategy: str = DEFAULT
     used_bytes: int = 0  # level data (float32) the drawn surface reads, per block up to its level
     own_gpu_bytes: int = 0  # the strategy's own GPU buffers (meshes, quadtree textures)
+    crack_pixels_above: int = 0  # the view's own selection seen from a nadir camera
+    open_edges: int = 0  # drawn edges unshared and not on the outer boundary (render.cracks)
+    gap_edges: int = 0  # of those, the ones whose two sides do not meet in 3-D
+    max_gap_m: float = 0.0  # largest vertical opening of the drawn mesh, metres
+    longest_gap_m: float = 0.0  # longest gap edge, metres
+    terrain_covered: float = 1.0  # share of in-view terrain samples the drawn surface covers
+    nodata_covered: float = 0.0  # share of in-view nodata samples it covers
+    terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
+    nodata_in_view: int = 0
+    near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
 
 
 def tradeoff(
@@ -176,7 +186,10 @@ def tradeoff(
     options: ViewOptions | None = None,
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
-    reference mesh); measure cost and error. The data is streamed by the renderer's session at
+    reference mesh); measure cost, error (each sample once), cracks of the view's own selection
+    (from the camera and from above), the drawn mesh's watertightness and coverage
+    (docs/RENDER.md, "Measurements"; :class:`render.errors.EmptyViewError` for a view without
+    terrain). The data is streamed by the renderer's session at
     ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
     :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
     ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept)."""
@@ -186,16 +199,14 @@ def tradeoff(
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
     )
-    zlo, zhi = r.terrain_zrange
-    nadir = nadir_for(camera, 0.5 * (zlo + zhi))
     with open_render_session(store, 0.0, metric, r.p) as ref_session:
-        ref_res = [stream_step(ref_session, r, cam)[1] for cam in (camera, nadir)]
-    ref_p, _ = r.select(camera, 0.0, metric, resident=ref_res[0], full=True)
+        ref_res = stream_step(ref_session, r, camera)[1]
+    ref_p, _ = r.select(camera, 0.0, metric, resident=ref_res, full=True)
     ref_st = draw_timed(r, camera, ref_p, repeats)
     ref_img = r.image()
-    nad_p, _ = r.select(nadir, 0.0, metric, resident=ref_res[1], full=True)
-    r.draw(nadir, nad_p, clear=CLEAR)
+    r.draw(camera, ref_p, clear=CLEAR)
     footprint = ~measure.is_clear(r.image(), CLEAR)
+    ref_heights = measure.heights_fn(store, ref_p)
     strat = get_strategy(lod, r)
     rows = []
     for tau in taus:
@@ -203,7 +214,6 @@ def tradeoff(
         with open_render_session(store, st_tau, stream_metric(lod, metric), r.p) as s:
             # the levels each tau's session would hold (the data is on the GPU already)
             frame, res = stream_step(s, None, camera)
-            nad_res = stream_step(s, None, nadir)[1]
             loaded = s.summary()["loaded_bytes"]
         patches, sel_ms = strat.select(camera, tau, metric, resident=res)
         for _ in range(max(0, repeats - 1)):
@@ -212,9 +222,10 @@ def tradeoff(
         st = draw_timed(strat, camera, patches, repeats)
         img = r.image()
         err = measure.error_stats(strat.screen_errors(camera, patches))
-        np_, _ = strat.select(nadir, tau, metric, resident=nad_res)
-        strat.draw(nadir, np_, clear=CLEAR)
-        cracks = measure.crack_pixels(r.image(), footprint, CLEAR)
+        tri, tri_h = strat.triangles(camera, patches)
+        seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint, (tri, tri_h))
+        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h)
+        wt = cracks.watertight(r.grid, tri, tri_h)
         drawn = strat.drawn_blocks(patches)
         own = strat.own_gpu_bytes()
         gpu = sum(4 * grid_side(res[b]) ** 2 for b in drawn) + own
@@ -234,7 +245,7 @@ def tradeoff(
             samples_in_view=err.samples,
             psnr_db=measure.psnr(img, ref_img),
             changed_share=measure.changed_share(img, ref_img),
-            crack_pixels=cracks,
+            crack_pixels=seen[0],
             resident_bytes=int(frame.stats.resident_bytes),
             loaded_bytes=int(loaded),
             gpu_bytes=gpu,
@@ -242,6 +253,16 @@ def tradeoff(
             strategy=lod,
             used_bytes=int(used),
             own_gpu_bytes=int(own),
+            crack_pixels_above=seen[1],
+            open_edges=wt.open_edges,
+            gap_edges=wt.gap_edges,
+            max_gap_m=wt.max_gap_m,
+            longest_gap_m=wt.longest_gap_m,
+            terrain_covered=cov.terrain_covered,
+            nodata_covered=cov.nodata_covered,
+            terrain_in_view=cov.terrain_in_view,
+            nodata_in_view=cov.nodata_in_view,
+            near_clipped_samples=cov.near_clipped,
         )
         rows.append(row)
         if log:
@@ -249,19 +270,47 @@ def tradeoff(
     return rows
 
 
+def drawn_cracks(
+    r: TerrainRenderer,
+    strat: Any,
+    camera: Camera,
+    sel: Any,
+    ref_p: Any,
+    footprint: np.ndarray,
+    triangles: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[int, int]:
+    """Crack pixels of the view's own selection ``sel``: seen from ``camera`` (inside the
+    reference's ``footprint``) and from above (:func:`render.cracks.above_camera` framing the
+    drawn triangles — ``triangles``, default ``strat.triangles(camera, sel)`` — inside the
+    reference selection ``ref_p`` drawn from there)."""
+    strat.draw(camera, sel, clear=CLEAR)
+    here = measure.crack_pixels(r.image(), footprint, CLEAR)
+    tri, h = triangles if triangles is not None else strat.triangles(camera, sel)
+    above = cracks.above_camera(r.grid, camera, tri, h)
+    r.draw(above, ref_p, clear=CLEAR)
+    fp_above = ~measure.is_clear(r.image(), CLEAR)
+    strat.draw(above, sel, clear=CLEAR)
+    return here, measure.crack_pixels(r.image(), fp_above, CLEAR)
+
+
 TABLE_HEADER = (
     f"{'tau':>5} {'metric':>12} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'ref ms':>7} "
-    f"{'max px':>7} {'p99 px':>7} {'PSNR':>6} {'changed':>8} {'cracks':>6} {'resident MB':>11}"
+    f"{'max px':>7} {'p99 px':>7} {'PSNR':>6} {'changed':>8} {'cracks':>6} {'above':>6} "
+    f"{'open':>5} {'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'clipped':>7} "
+    f"{'resident MB':>11}"
 )
 
 
 def format_row(r: TradeoffRow) -> str:
-    """One line of the trade-off table."""
+    """One line of the trade-off table (cracks seen from the camera and from above, open and
+    gap edges, largest gap, coverage of terrain and nodata, near-clipped samples)."""
     return (
         f"{r.tau:>5g} {r.metric:>12} {r.triangles:>10,} {r.selection_ms:>7.2f} "
         f"{r.frame_ms:>7.1f} {r.reference_frame_ms:>7.1f} {r.max_screen_error_px:>7.2f} "
         f"{r.p99_screen_error_px:>7.2f} {r.psnr_db:>6.1f} {100 * r.changed_share:>7.2f}% "
-        f"{r.crack_pixels:>6} {r.resident_bytes / 2**20:>11.2f}"
+        f"{r.crack_pixels:>6} {r.crack_pixels_above:>6} {r.open_edges:>5} {r.gap_edges:>5} "
+        f"{r.max_gap_m:>7.2f} {100 * r.terrain_covered:>6.1f}% {100 * r.nodata_covered:>5.1f}% "
+        f"{r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>11.2f}"
     )
 
 

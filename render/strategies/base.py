@@ -109,6 +109,10 @@ class Strategy(ABC, Generic[S]):
     uses_metric = True
     #: what a draw is doing, for GL error messages
     what = "drawing a frame"
+    #: the strategy's crack removal is on (False only for the crack detectors' positive
+    #: controls: qiu/chunk edge snaps zeroed, jung-han heights unadjusted and unsplit,
+    #: geometry-splitting without its splitting passes, seamless tiles without edge strips)
+    stitching = True
     prog: moderngl.Program
     wire: moderngl.Program
 
@@ -171,10 +175,16 @@ class Strategy(ABC, Generic[S]):
         """The blocks the selection draws from."""
         ...
 
+    def triangles(self, camera: Camera, sel: S) -> tuple[np.ndarray, np.ndarray]:
+        """The drawn triangles: global ``(col, row)`` corners ``(m, 3, 2)`` int64 and drawn
+        heights ``(m, 3)`` (NaN or :data:`render.gpu.MASKED` where hidden); the cracks,
+        coverage and watertightness figures are taken from them."""
+        raise NotImplementedError(f"strategy {self.name!r} does not give its drawn triangles")
+
     def used_levels(self, camera: Camera, sel: S) -> dict[Block, int]:
         """The finest store level the drawn surface reads in each block, from the drawn
         triangles (``self.triangles(camera, sel)``; strategies without it override this)."""
-        tri, _ = self.triangles(camera, sel)  # type: ignore[attr-defined]
+        tri, _ = self.triangles(camera, sel)
         return block_levels(self.r.grid, tri)
 
     def own_gpu_bytes(self) -> int:
@@ -264,9 +274,9 @@ def triangle_screen_errors(
     :data:`render.gpu.MASKED_BELOW`: hidden).
 
     Every lattice sample a triangle covers is evaluated (linear interpolation of the drawn
-    heights); a sample covered by two triangles (shared edges) is counted once per triangle,
-    which does not change max or p99 noticeably. Same projection and view test as
-    :func:`render.measure.screen_errors`.
+    heights); a sample covered by several triangles (shared edges) is counted once, with its
+    largest error (:func:`render.measure.sample_errors`), as :func:`render.measure.screen_errors`
+    does, so max, p99 and mean compare across strategies.
     """
     h = np.asarray(tri_h, dtype=np.float64)
     ok = np.isfinite(h).all(axis=1) & (h > MASKED_BELOW).all(axis=1)
@@ -278,5 +288,4 @@ def triangle_screen_errors(
     htrue = true_h(rows, cols)
     good = np.isfinite(htrue) & np.isfinite(hlod)
     rows, cols, hlod, htrue = rows[good], cols[good], hlod[good], htrue[good]
-    x, y = grid.sample_xy(rows, cols)
-    return measure.pixel_errors(camera, x, y, htrue, hlod)
+    return measure.sample_errors(grid, camera, rows, cols, htrue, hlod)

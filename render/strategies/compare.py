@@ -3,27 +3,30 @@
 
 For each strategy and τ: the renderer's trade-off row (:func:`render.pipeline.tradeoff`) for
 the *middle* camera of the fly-through (measured max/p99 screen error against the
-full-resolution reference, PSNR, crack pixels straight down, bytes resident / on the GPU), plus
+full-resolution reference, each sample once; PSNR; crack pixels of the view's own selection from
+the camera and from above; open/gap edges of the drawn mesh; terrain/nodata coverage; bytes
+resident / on the GPU; docs/RENDER.md "Measurements"), plus
 fly-through means over every camera of the path (triangles, CPU selection ms, GPU ms; every
 frame's data is waited for, so all strategies see the same resident levels) and **popping**.
 The data is streamed at full resolution (a τ = 0 session: every block in view at level ``k``)
 so that no strategy is held back by the levels Qiu's metric would have loaded; ``used_bytes``
 is what each strategy's drawn surface actually reads (per block the level data up to the
 finest level it draws, :meth:`Strategy.used_levels`), ``own_gpu_bytes`` its own GPU buffers.
-Popping:
-the camera is moved sideways by one pixel's worth at the depth of the view centre (so the
-scene shifts by ~1 px), the strategy selects again, and ``popping_px`` is the largest screen
-displacement (seen from the moved camera) of the drawn surface at any full-resolution sample
-drawn in both frames, i.e. the jump caused by the LOD change alone. It is taken from the
-middle camera over ``pop_steps`` (8) such consecutive one-pixel moves (a single move rarely
-crosses a LOD threshold): ``popping_px`` is the largest jump, ``popping_moved_steps`` how many
-of the moves changed the drawn surface at all.
+Popping (:func:`popping`) over camera moves that cross LOD changes: ``path`` — consecutive
+cameras of the fly-through itself around its middle (forward motion at the fly-through speed),
+and ``dolly`` — the middle camera moved slowly forward along its view direction across a
+quarter of the depth of the view centre (nodes split on the way: Eq. 7's split distance is
+proportional to the distance). Per motion, ``popping_<motion>_px`` is the largest screen
+displacement (seen from the later camera) of the drawn surface at any full-resolution sample
+drawn in both frames, i.e. the jump caused by the LOD change alone, and
+``popping_<motion>_lod_frames`` how many of the frames changed the drawn surface (a row with 0
+LOD frames says nothing about popping). ``popping_px`` is the larger of the two.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,33 +49,54 @@ def shifted(camera: Camera, depth: float) -> Camera:
     return replace(camera, position=tuple(float(v) for v in pos))
 
 
+def dolly(camera: Camera, distance: float, steps: int) -> list[Camera]:
+    """``steps + 1`` cameras from ``camera`` moving ``distance`` forward along its view."""
+    f = np.asarray(camera.forward, dtype=np.float64)
+    p0 = np.asarray(camera.position, dtype=np.float64)
+    return [
+        replace(camera, position=tuple(float(v) for v in p0 + (distance * i / steps) * f))
+        for i in range(steps + 1)
+    ]
+
+
+@dataclass(frozen=True)
+class Popping:
+    """Popping over a camera motion: the largest surface jump (px per frame), the frames whose
+    drawn surface changed (``lod_frames``) and the frames compared."""
+
+    max_px: float
+    lod_frames: int
+    frames: int
+
+
 def popping(
     strat: Strategy,
     cams: Sequence[Camera],
     tau: float,
     metric: str,
     prepare: Callable[[Camera], None] | None = None,
-) -> tuple[float, int]:
+) -> Popping:
     """Largest screen displacement (px, seen by the later camera) of the drawn surface at
-    samples drawn in both frames, over consecutive pairs of ``cams``; and how many pairs moved
-    anything. ``prepare(cam)`` runs before each selection (e.g. streaming its data in)."""
+    samples drawn in both frames, over consecutive pairs of ``cams``, and how many pairs
+    changed the drawn surface. ``prepare(cam)`` runs before each selection (e.g. streaming its
+    data in)."""
     prev = None
-    worst, moved_pairs = 0.0, 0
+    worst, changed = 0.0, 0
     for cam in cams:
         if prepare:
             prepare(cam)
         sel, _ = strat.select(cam, tau, metric)
         surf = strat.surface(cam, sel)
         if prev is not None and not _same(prev, surf):
+            changed += 1
             rows, cols, ha, hb = common_samples(prev, surf)
             moved = ha != hb  # equal drawn heights do not move on screen
             x, y = strat.r.grid.sample_xy(rows[moved], cols[moved])
             d = measure.pixel_errors(cam, x, y, ha[moved], hb[moved])
-            if d.size and d.max() > 0:
-                moved_pairs += 1
+            if d.size:
                 worst = max(worst, float(d.max()))
         prev = surf
-    return worst, moved_pairs
+    return Popping(worst, changed, max(0, len(cams) - 1))
 
 
 def _same(a, b) -> bool:
@@ -129,14 +153,17 @@ def compare(
     """One row per strategy and τ (the tradeoff keys plus fly-through means and popping)."""
     names = list(strategies or strategy_names())
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=patch_log2))
-    mid = cameras[len(cameras) // 2]
+    i_mid = len(cameras) // 2
+    mid = cameras[i_mid]
     zlo, zhi = r.terrain_zrange
     f = mid.forward
     t = (0.5 * (zlo + zhi) - mid.eye[2]) / f[2] if f[2] < -1e-6 else 1000.0
     depth = max(float(t), mid.near)
-    pop_cams = [mid]
-    for _ in range(pop_steps):
-        pop_cams.append(shifted(pop_cams[-1], depth))
+    lo = max(0, min(i_mid - pop_steps // 2, len(cameras) - pop_steps - 1))
+    motions = {
+        "path": list(cameras[lo : lo + pop_steps + 1]),
+        "dolly": dolly(mid, 0.25 * depth, pop_steps),
+    }
     rows: list[dict[str, Any]] = []
     for name in names:
         strat = get_strategy(name, r)
@@ -157,12 +184,15 @@ def compare(
                 def prepare(cam: Camera, s=s) -> None:
                     stream_step(s, r, cam)
 
-                pop, pop_moved = popping(strat, pop_cams, tau, metric, prepare)
+                pops = {m: popping(strat, c, tau, metric, prepare) for m, c in motions.items()}
+            for m, pop in pops.items():
+                row[f"popping_{m}_px"] = pop.max_px
+                row[f"popping_{m}_lod_frames"] = pop.lod_frames
+                row[f"popping_{m}_frames"] = pop.frames
             row.update(
                 strategy=name,
-                popping_px=pop,
+                popping_px=max(p.max_px for p in pops.values()),
                 popping_steps=pop_steps,
-                popping_moved_steps=pop_moved,
                 fly_frames=len(cameras),
                 fly_triangles=float(np.mean(tri)),
                 fly_cpu_ms=float(np.mean(cpu)),
@@ -177,16 +207,28 @@ def compare(
 
 HEADER = (
     f"{'strategy':>20} {'tau':>5} {'tris/frame':>10} {'CPU ms':>7} {'GPU ms':>7} "
-    f"{'max px':>7} {'p99 px':>7} {'cracks':>6} {'pop px':>6} {'data MB':>7} {'own MB':>6}"
+    f"{'max px':>7} {'p99 px':>7} {'mean px':>7} {'cracks':>6} {'above':>6} {'open':>5} "
+    f"{'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'clipped':>7} "
+    f"{'pop path':>13} {'pop dolly':>13} {'data MB':>7} {'own MB':>6}"
 )
 
 
+def _pop(row: dict[str, Any], m: str) -> str:
+    px = row.get(f"popping_{m}_px", 0.0)
+    return f"{px:.2f} ({row.get(f'popping_{m}_lod_frames', 0)}/{row.get(f'popping_{m}_frames', 0)})"
+
+
 def format_row(row: dict[str, Any]) -> str:
-    """One line of the comparison table."""
+    """One line of the comparison table (popping: largest jump px (LOD-changing frames /
+    frames) per motion)."""
     return (
         f"{row['strategy']:>20} {row['tau']:>5g} {row['fly_triangles']:>10,.0f} "
         f"{row['fly_cpu_ms']:>7.2f} {row['fly_gpu_ms']:>7.1f} {row['max_screen_error_px']:>7.2f} "
-        f"{row['p99_screen_error_px']:>7.2f} {row['crack_pixels']:>6} {row['popping_px']:>6.2f} "
+        f"{row['p99_screen_error_px']:>7.2f} {row['mean_screen_error_px']:>7.3f} "
+        f"{row['crack_pixels']:>6} {row['crack_pixels_above']:>6} {row['open_edges']:>5} "
+        f"{row['gap_edges']:>5} {row['max_gap_m']:>7.2f} {100 * row['terrain_covered']:>6.1f}% "
+        f"{100 * row['nodata_covered']:>5.1f}% {row['near_clipped_samples']:>7} "
+        f"{_pop(row, 'path'):>13} {_pop(row, 'dolly'):>13} "
         f"{row['used_bytes'] / 2**20:>7.2f} {row['own_gpu_bytes'] / 2**20:>6.2f}"
     )
 

@@ -11,6 +11,7 @@ origin, the slot base, the level, the cells and the four edge snaps
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import moderngl
@@ -157,6 +158,11 @@ class PatchGrid:
         return np.concatenate(hs), np.concatenate(gs)
 
 
+def unstitched(sel: Patches) -> Patches:
+    """``sel`` with every edge snap zeroed (the crack detectors' positive control)."""
+    return dataclasses.replace(sel, snap=np.zeros_like(sel.snap))
+
+
 def patch_grid(r: FrameServices) -> PatchGrid:
     """The renderer's :class:`PatchGrid` (made once per renderer)."""
     return r.shared("qiu.patch_grid", PatchGrid)
@@ -193,7 +199,8 @@ class QiuStrategy(Strategy[Patches]):
         self.prog, self.wire = self.grid.prog, self.grid.wire
 
     def select(self, camera, tau, metric="qiu", *, resident=None) -> tuple[Patches, float]:
-        return select_clod(self.r, camera, tau, metric, resident=resident)
+        sel, ms = select_clod(self.r, camera, tau, metric, resident=resident)
+        return (sel if self.stitching else unstitched(sel)), ms
 
     def select_full(self, camera: Camera, resident=None) -> tuple[Patches, float]:
         """Every visible node at full resolution (the reference mesh)."""
@@ -213,6 +220,12 @@ class QiuStrategy(Strategy[Patches]):
         heights = measure.heights_fn(self.r.store, sel)
         return measure.screen_errors(sel, self.r.grid, camera, heights)
 
+    def triangles(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray]:
+        """The drawn triangles (the CPU twin of the instanced, snapped patch grids): global
+        ``(col, row)`` corners ``(m, 3, 2)`` and heights ``(m, 3)`` (NaN where masked)."""
+        heights = measure.heights_fn(self.r.store, sel)
+        return measure.patch_triangles(sel, self.r.grid, heights)
+
     def used_levels(self, camera: Camera, sel: Patches) -> dict[Block, int]:
         """The finest patch level drawn in each block."""
         return patch_levels(sel)
@@ -220,7 +233,7 @@ class QiuStrategy(Strategy[Patches]):
     def drawn_blocks(self, sel: Patches) -> set[Block]:
         return patch_blocks(sel)
 
-    def triangles(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray]:
+    def gpu_triangles(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray]:
         """Every drawn triangle read back from the GPU (snapped ones included): global
         ``(col, row)`` corners ``(m, 3, 2)`` and fetched heights ``(m, 3)`` (``MASKED`` where
         a corner is masked: that triangle is not drawn)."""

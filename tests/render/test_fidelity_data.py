@@ -156,3 +156,34 @@ def test_the_session_streams_what_the_nodata_boundaries_need(checkerboard):
     clear = np.array(RenderConfig().clear)
     share = (~(img == clear).all(-1)).mean() / (~(full == clear).all(-1)).mean()
     assert stats.clamped == 0 and share >= 0.99, (stats.clamped, share)
+
+
+@pytest.mark.parametrize("tau", [0.0, 4.0])
+def test_qius_cpu_twin_is_what_the_gpu_drew(checkerboard, tau):
+    """The crack and coverage figures use qiu's CPU twin of its mesh (``triangles``); it must be
+    the mesh the GPU drew (``gpu_triangles``, read back): same triangles, same heights."""
+    path, _ = checkerboard
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=(256, 256), patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    st = get_strategy("qiu", r)
+    x0, y0, x1, y1 = r.grid.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 9500.0), pitch=-90.0, viewport=(256, 256),
+                 near=1.0, far=1e5)  # fmt: skip
+    sel, _ = st.select(cam, tau)
+    cpu_tri, cpu_h = st.triangles(cam, sel)
+    gpu_tri, gpu_h = st.gpu_triangles(cam, sel)
+    r.close()
+
+    def drawn(tri, h):  # drawn triangles as a sorted set of (corners, heights) rows
+        ok = np.isfinite(h).all(axis=1) & (h > MASKED_BELOW).all(axis=1)
+        u, v = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        area = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+        ok &= area != 0  # snapped-away triangles are degenerate in both
+        rows = np.concatenate([tri[ok].reshape(-1, 6), np.round(h[ok], 3)], axis=1)
+        return rows[np.lexsort(rows.T[::-1])]
+
+    a, b = drawn(cpu_tri, cpu_h), drawn(gpu_tri, gpu_h)
+    assert len(a) > 0 and a.shape == b.shape
+    np.testing.assert_array_equal(a, b)

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from gltools import make_context, rough, tile_dem
 
-from render import measure
+from render import cracks, measure
 from render.pipeline import heights_fn
 from render.renderer import CLEAR, RenderConfig, TerrainRenderer
+from render.strategies.qiu import unstitched
 from streamer.camera import Camera
 from tiler.store import open_store
 
@@ -87,17 +88,36 @@ def test_heights_fetched_on_the_gpu_equal_the_store(rough_store):
     np.testing.assert_array_equal(h, full[gcr[:, 1], gcr[:, 0]])
 
 
+NO_BOUNDARY = pytest.mark.xfail(
+    strict=True,
+    reason="the conservative metric selects one level in these views of the 129² DEM",
+)
+
+
 @pytest.mark.parametrize("tau", [0.5, 1, 2, 4, 8])
-@pytest.mark.parametrize("metric", ["qiu", "conservative"])
-def test_no_cracks_looking_straight_down(rough_store, tau, metric):
+@pytest.mark.parametrize(
+    "metric",
+    ["qiu", "conservative"],
+)
+def test_no_cracks_looking_straight_down(rough_store, tau, metric, request):
+    if metric == "conservative" and tau in (0.5, 1, 2):
+        request.applymarker(NO_BOUNDARY)
     r = _renderer(rough_store, p=2)
     cx, cy = 500015.0 + 1920, 5000000.0 - 15 - 1920  # a corner shared by 4 blocks
-    for h, yaw, dx in ((1400.0, 0.0, 0.0), (1800.0, 30.0, 250.0), (2600.0, 0.0, -400.0)):
+    bare_holes, bounded = 0, 0
+    views = ((1400.0, 0.0, 0.0), (1800.0, 30.0, 250.0), (2600.0, 0.0, -400.0), (1000.0, 0.0, 0.0))
+    for h, yaw, dx in views:
         cam = _nadir(r, cx + dx, cy + dx / 2, h, yaw)
         p, _ = r.select(cam, tau, metric)
         r.draw(cam, p, clear=CLEAR)
         img = r.image()
         assert not measure.is_clear(img, CLEAR).any(), (h, len(np.unique(p.level)))
+        if p.snap.max() > 0:  # a level boundary in view: the positive control
+            bounded += 1
+            r.draw(cam, unstitched(p), clear=CLEAR)
+            bare_holes += int(measure.is_clear(r.image(), CLEAR).sum())
+    assert bounded > 0, "no view of this case has a level boundary"
+    assert bare_holes > 0  # the same views unsnapped show holes
 
 
 def test_level_boundaries_are_stitched(rough_store):
@@ -120,6 +140,12 @@ def test_level_boundaries_are_stitched(rough_store):
     r.draw(nad, p_ref, clear=CLEAR)
     fp = ~measure.is_clear(r.image(), CLEAR)
     assert measure.crack_pixels(img, fp, CLEAR) == 0
+    # The unsnapped layout's cracks are sub-pixel here (this pixel count cannot fail; the
+    # pixel detectors' positive controls are in test_cracks.py): the exact figure can.
+    heights = heights_fn(r.store, p)
+    assert cracks.watertight(r.grid, *measure.patch_triangles(p, r.grid, heights)).open_edges == 0
+    bare = unstitched(p)
+    assert cracks.watertight(r.grid, *measure.patch_triangles(bare, r.grid, heights)).gap_edges > 0
 
 
 @pytest.mark.parametrize("tau", [0.5, 1, 2, 4])

@@ -22,7 +22,7 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.chunk_tess.pure import batch_chunks, kim_metric, tess_triangles
-from render.strategies.qiu import patch_blocks, patch_levels, select_clod
+from render.strategies.qiu import patch_blocks, patch_levels, select_clod, unstitched
 from streamer.camera import Camera
 
 HERE = Path(__file__).parent
@@ -72,9 +72,10 @@ class ChunkTessellation(Strategy[Patches]):
         check_gl(ctx, "creating the chunk-tessellation programs")
 
     def select(self, camera, tau, metric="qiu", *, resident=None) -> tuple[Patches, float]:
-        return select_clod(
+        sel, ms = select_clod(
             self.r, camera, tau, kim_metric, resident=resident, table=self.table, field="bound"
         )
+        return (sel if self.stitching else unstitched(sel)), ms  # unmatched outer factors
 
     def _passes(self, prog: moderngl.Program, patches: Patches):
         """Per height page, in batches of at most :func:`batch_chunks` chunks: ``(vao, n)``."""

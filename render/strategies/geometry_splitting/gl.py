@@ -263,7 +263,7 @@ class GeometrySplitting(Strategy[Selection]):
             stats.bind_to_storage_buffer(7)
             tri, m = self._pass(self.quad_prog, sel.leaf_buf, "4i", ["in_a"], sel.leaves, 4, 32)
             sel.split_counts.append(m)
-            for _ in range(self.k):
+            for _ in range(self.k if self.stitching else 0):
                 self._bind(self.split_prog, camera, tau, block_buf)
                 out, m2 = self._pass(self.split_prog, tri, "4i 4i", ["in_a", "in_b"], m, 2, 32)
                 if m2 == m:

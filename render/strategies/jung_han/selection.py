@@ -37,6 +37,8 @@ Block = tuple[int, int]
 class JungHanSelector:
     """The CPU half of ``jung-han``: ``select`` over the frame services ``r``."""
 
+    stitching = True  # False: no height adjustment nor split (crack positive control)
+
     def __init__(self, renderer, prune: bool = True, culled_collapse: bool = True) -> None:
         self.r = renderer
         self.prune = prune
@@ -258,6 +260,8 @@ class JungHanSelector:
         hv = h_corner[first]
         vrow, vcol = uk // wg, uk % wg
         ids, ends, frac = t_junctions(tri, vcol, vrow)
+        if not self.stitching:  # the positive control: no height adjustment, no split
+            ids = ids[:0]
         if len(ids):
             step = g.step
             tz = np.minimum(
@@ -274,7 +278,8 @@ class JungHanSelector:
                 hv[ids[w]] = np.where(np.isfinite(new) & np.isfinite(old), new, old)
         adjusted = np.stack([vcol[ids], vrow[ids]], -1)
         jh_count = len(tri)
-        tri, slot, tl = conform(tri, slot, tl, vcol, vrow)
+        if self.stitching:
+            tri, slot, tl = conform(tri, slot, tl, vcol, vrow)
         tkey = tri[..., 1] * wg + tri[..., 0]
         inv = np.searchsorted(uk, tkey.ravel())
         tri_h = hv[inv].reshape(-1, 3)

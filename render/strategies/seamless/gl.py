@@ -4,6 +4,7 @@ the package docstring); shaders ``seamless.vert`` and ``seamless_probe.vert`` be
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -103,6 +104,9 @@ class SeamlessPatches(Strategy[PatchLayout]):
         check_tau(tau)
         t0 = time.perf_counter()
         sel = select_layout(self, camera, tau, resident)
+        if not self.stitching:  # each patch at one resolution of its own: no agreed edges
+            own = sel.edge_level.min(axis=1, keepdims=True) + np.zeros_like(sel.edge_level)
+            sel = dataclasses.replace(sel, edge_level=own)
         return sel, (time.perf_counter() - t0) * 1000.0
 
     # instances

@@ -1,0 +1,91 @@
+"""Coverage of the in-view terrain and nodata by the drawn surface; a view without terrain is an
+error; samples the near plane clips are counted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gltools import make_context, tile_dem
+
+from render import coverage, measure
+from render.renderer import RenderConfig, TerrainRenderer
+from streamer.camera import Camera
+from tiler.store import open_store
+
+pytestmark = pytest.mark.gl
+SIZE = (128, 96)
+
+
+@pytest.fixture(scope="module")
+def renderer(tmp_path_factory):
+    dem = np.full((65, 65), 300.0, np.float32)
+    dem += np.add.outer(np.arange(65), np.arange(65)).astype(np.float32)
+    dem[20:30, 20:30] = np.nan
+    ctx = make_context()
+    s = open_store(tile_dem(tmp_path_factory.mktemp("cov"), dem, 33, nodata=np.nan))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    yield r
+    r.close()
+
+
+def _nadir(r, h: float = 2500.0, near: float = 5.0) -> Camera:
+    g = r.grid
+    pos = (g.x0 + 32 * g.dx, g.y0 - 32 * g.dy, h)
+    return Camera(pos, pitch=-90.0, viewport=SIZE, near=near, far=5e4)
+
+
+def _cov(r, cam, tri, h):
+    ref, _ = r.select(cam, 0.0, full=True)
+    return coverage.coverage(r.grid, cam, ref, measure.heights_fn(r.store, ref), tri, h)
+
+
+def _drawn(r, cam, tau):
+    p, _ = r.select(cam, tau, full=tau == 0)
+    return measure.patch_triangles(p, r.grid, measure.heights_fn(r.store, p))
+
+
+def test_the_drawn_surface_covers_the_terrain_and_not_the_hole(renderer):
+    r = renderer
+    cam = _nadir(r)
+    c = _cov(r, cam, *_drawn(r, cam, 0.0))
+    assert c.terrain_in_view > 3000 and c.nodata_in_view == 100
+    assert c.terrain_covered == 1.0 and c.nodata_covered == 0.0 and c.near_clipped == 0
+
+
+def test_dropped_triangles_and_a_covered_hole_are_seen(renderer):
+    r = renderer
+    cam = _nadir(r)
+    tri, h = _drawn(r, cam, 0.5)
+    half = _cov(r, cam, tri[::2], h[::2])  # every other triangle dropped
+    assert half.terrain_covered < 0.9
+    g = r.grid
+    n = 64
+    lid = np.array([[[0, 0], [n, 0], [n, n]], [[0, 0], [n, n], [0, n]]])  # two big triangles
+    c = _cov(r, cam, lid, np.full((2, 3), 300.0))
+    assert c.nodata_covered == 1.0 and c.terrain_covered == 1.0 and g.k == 5
+
+
+def test_a_view_without_terrain_is_an_error(renderer):
+    r = renderer
+    g = r.grid
+    sky = Camera((g.x0 + 32 * g.dx, g.y0 - 32 * g.dy, 2500.0), pitch=60.0, viewport=SIZE)
+    ref, _ = r.select(_nadir(r), 0.0, full=True)  # blocks exist, none in this view
+    with pytest.raises(coverage.EmptyViewError, match="no terrain sample"):
+        coverage.coverage(r.grid, sky, ref, measure.heights_fn(r.store, ref), *_drawn(r, sky, 1))
+
+
+def test_samples_nearer_than_the_near_plane_are_counted(renderer):
+    r = renderer
+    g = r.grid
+    pos = (g.x0 + 32 * g.dx, g.y0 - 64 * g.dy - 600.0, 900.0)  # south, looking north
+    far = Camera(pos, pitch=-30.0, viewport=SIZE, near=5.0, far=5e4)
+    near = Camera(pos, pitch=-30.0, viewport=SIZE, near=1000.0, far=5e4)
+    tri, h = _drawn(r, _nadir(r), 0.5)
+    ref, _ = r.select(_nadir(r), 0.0, full=True)
+    heights = measure.heights_fn(r.store, ref)
+    a = coverage.coverage(r.grid, far, ref, heights, tri, h)
+    b = coverage.coverage(r.grid, near, ref, heights, tri, h)
+    assert a.near_clipped == 0 and b.near_clipped > 100
+    assert b.terrain_in_view + b.near_clipped == a.terrain_in_view
