@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import moderngl
@@ -352,7 +352,7 @@ def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget
             pose = fly(pose, c, dt, speed_for(pose.z, zlo, store.grid.dx))
             cam = camera_at(pose, store, size, fov)
             if session.config.tau != state["tau"]:  # live tau: the session loads for it too
-                session.config = replace(session.config, tau=state["tau"])
+                session.set_tau(state["tau"])
             last_frame = scripted and n == frames - 1
             try:
                 step = frame_step(
