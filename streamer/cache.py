@@ -208,6 +208,11 @@ class LevelCache:
             return False
         return self.nbytes + nbytes <= self.budget or self._room_possible(block, nbytes)
 
+    def room_for(self, block: Block, nbytes: int) -> bool:
+        """Whether ``nbytes`` more for ``block`` fit, evicting only what may go for it: a
+        prefetch load never evicts a more important prefetched level (that would thrash)."""
+        return self.nbytes + nbytes <= self.budget or self._room_possible(block, nbytes)
+
     def _room_possible(self, block: Block, nbytes: int) -> bool:
         freeable = 0
         e_new = self._entries[block]

@@ -11,6 +11,25 @@ from streamer.camera import Camera
 from streamer.errors import StreamerError
 from streamer.lod import get_metric
 
+#: Loading schemes (``SessionConfig.scheme``): which of this project's additions to Qiu et al.'s
+#: prefetching are on. ``(pose_ahead, lookahead, concurrent_levels)``:
+#:
+#: * ``"qiu"`` — Qiu's loading as published: blocks of the extended triangle of *this* pose only,
+#:   each loaded at the level it needs at ``tau`` (no finer), one level of a block at a time;
+#: * ``"qiu+ahead"`` — plus the extension of the pose ``horizon_s`` ahead (ours);
+#: * ``"qiu+fine"`` — plus loading at ``tau * lookahead`` (ours);
+#: * ``"qiu+ahead+fine"`` — both, still one level of a block at a time;
+#: * ``"ours"`` (default) — both, and up to ``PER_BLOCK`` levels of a block read at once.
+#:
+#: ``prefetch=False`` switches the extension off under any scheme (no prefetching at all).
+SCHEMES: dict[str, tuple[bool, bool, bool]] = {
+    "qiu": (False, False, False),
+    "qiu+ahead": (True, False, False),
+    "qiu+fine": (False, True, False),
+    "qiu+ahead+fine": (True, True, False),
+    "ours": (True, True, True),
+}
+
 
 @dataclass(frozen=True)
 class SessionConfig:
@@ -40,6 +59,7 @@ class SessionConfig:
     inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame (None: all)
     account_hull: bool = False  # culling="qiu": also count stalls over the frustum hull (the
     # set the renderer draws) in FrameStats.hull_stalled (costs a second plan per frame)
+    scheme: str = "ours"  # loading scheme, see SCHEMES ("qiu": Qiu et al. as published)
 
     def __post_init__(self) -> None:
         checks = [
@@ -63,6 +83,25 @@ class SessionConfig:
         get_metric(self.metric)
         if self.culling not in ("qiu", "hull"):
             raise StreamerError(f"culling must be 'qiu' or 'hull', got {self.culling!r}")
+        if self.scheme not in SCHEMES:
+            raise StreamerError(
+                f"unknown loading scheme {self.scheme!r}: use one of {', '.join(SCHEMES)}"
+            )
+
+    @property
+    def plan_horizon_s(self) -> float:
+        """The pose-ahead horizon the scheme uses (0 when the scheme has no pose-ahead)."""
+        return self.horizon_s if SCHEMES[self.scheme][0] else 0.0
+
+    @property
+    def plan_lookahead(self) -> float:
+        """The factor on ``tau`` prefetch plans load at (1: the needed level only)."""
+        return self.lookahead if SCHEMES[self.scheme][1] else 1.0
+
+    @property
+    def concurrent_levels(self) -> bool:
+        """Whether several levels of one block may be read at once (else level by level)."""
+        return SCHEMES[self.scheme][2]
 
 
 @dataclass(frozen=True)
@@ -130,6 +169,8 @@ class _Totals:
     coarse_frames: dict = field(default_factory=dict)  # levels short -> frames
     failed_frames: int = 0
     failed_ever: set = field(default_factory=set)
+    reloaded_bytes: int = 0  # levels loaded again after they had been evicted
+    reloaded_levels: int = 0
     used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
 
     def add(self, frame: Frame) -> None:
@@ -189,4 +230,6 @@ class _Totals:
             "failed_frames": self.failed_frames,
             "failed_blocks": [list(b) for b in failed_now],
             "failed_blocks_ever": len(self.failed_ever),
+            "reloaded_bytes": self.reloaded_bytes,
+            "reloaded_levels": self.reloaded_levels,
         }

@@ -7,8 +7,9 @@ a waiter waking for a retry) up to ``workers`` jobs are taken from the queue and
 callback records the outcome and pumps again. Nothing polls.
 
 A job reads one thing of one block with no lock held: its error field (level ``-1``) or one raw
-level (up to ``PER_BLOCK`` levels of a block in flight at once), then decodes the levels that
-follow the resident ones, in order, also without the lock. The lock guards only bookkeeping:
+level (up to ``PER_BLOCK`` levels of a block in flight at once; under a level-by-level scheme
+such as ``"qiu"`` one level, the next only once the previous is decoded), then decodes the levels
+that follow the resident ones, in order, also without the lock. The lock guards only bookkeeping:
 dict and heap updates, never a read, a decode or a plan.
 
 Only the errors a read can raise are counted as read failures (:data:`READ_ERRORS`): ``OSError``
@@ -76,6 +77,7 @@ class Loader:
         self.decoding: set[Block] = set()
         self.demanded: set[tuple[Block, int]] = set()
         self.due: dict[tuple[Block, int], float] = {}  # level -> due time of its first frame
+        self.ever_loaded: set[tuple[Block, int]] = set()  # (block, level) loaded at least once
         self.frame_late = 0
         self.prio: dict[Block, float] = {}
         self.unreported: list[tuple[Block, BaseException]] = []
@@ -138,7 +140,10 @@ class Loader:
             return None if -1 in busy else -1
         want, _pin = self.cache.want(b)
         pending = self.raw.get(b, {})
-        if len(busy) >= PER_BLOCK:
+        if not self.config.concurrent_levels:  # level by level: nothing of b under way
+            if busy or pending or b in self.decoding:
+                return None
+        elif len(busy) >= PER_BLOCK:
             return None
         for level in range(self.cache.level(b) + 1, min(want, self.store.k) + 1):
             if level not in busy and level not in pending:
@@ -149,8 +154,9 @@ class Loader:
         level = self.fetchable(b)
         if level is None:
             return None
-        if level >= 0 and not self.cache.reserve(b, self.level_bytes[level]):
-            return None  # no room: pinned data fills the budget
+        nbytes = self.level_bytes[level] if level >= 0 else 0
+        if level >= 0 and not (self.cache.room_for(b, nbytes) and self.cache.reserve(b, nbytes)):
+            return None  # no room: pinned or more important prefetched data fills the budget
         self.fetching.setdefault(b, set()).add(level)
         more = self.fetchable(b)
         if more is not None:
@@ -292,6 +298,11 @@ class Loader:
                     self._drop_raw(b)  # evicted or unwanted meanwhile
                     return
                 self.totals.loaded_bytes += nbytes
+                if (b, nxt) in self.ever_loaded:  # evicted since it was last loaded
+                    self.totals.reloaded_bytes += nbytes
+                    self.totals.reloaded_levels += 1
+                else:
+                    self.ever_loaded.add((b, nxt))
                 due = self.due.pop((b, nxt), None)
                 if due is not None and time.monotonic() > due:
                     self.frame_late += nbytes

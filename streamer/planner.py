@@ -8,6 +8,11 @@ A :class:`Planner` answers two questions for a camera pose:
   pose ``horizon_s`` ahead along the velocity) and the level each would need at
   ``tau * lookahead``, with its screen error as priority.
 
+``SessionConfig.scheme`` picks which of these are on (:data:`streamer.frames.SCHEMES`): under
+``"qiu"`` (Qiu et al. as published) ``N`` is the extension of this pose only and every block is
+planned at the level it needs at ``tau``; the pose ahead and the ``lookahead`` factor are this
+project's additions.
+
 Blocks whose static errors are not known yet need the patch level (``patch_log2``). The error
 table is read lock-free (see :class:`streamer.levels.PatchErrorTable`), so planning holds no
 lock the loaders take.
@@ -108,12 +113,13 @@ class Planner:
         return self.levels(camera, self.visible(camera, culling), t, with_rho=False)[0]
 
     def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
-        """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity``."""
+        """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity`` (only
+        under a scheme with pose-ahead, see :data:`streamer.frames.SCHEMES`)."""
         out = [camera]
         cfg = self.config
         v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
-        if cfg.prefetch and cfg.horizon_s > 0 and np.any(v):
-            ahead = np.asarray(camera.position, dtype=np.float64) + v * cfg.horizon_s
+        if cfg.prefetch and cfg.plan_horizon_s > 0 and np.any(v):
+            ahead = np.asarray(camera.position, dtype=np.float64) + v * cfg.plan_horizon_s
             out.append(replace(camera, position=tuple(ahead.tolist())))
         return out
 
@@ -139,7 +145,7 @@ class Planner:
         wants: dict[Block, tuple[int, float]] = dict.fromkeys(blocks, (0, 0.0))
         have = [b for b in blocks if b in self.errors]
         if have:
-            t_ahead = t * (cfg.lookahead if cfg.prefetch else 1.0)
+            t_ahead = t * (cfg.plan_lookahead if cfg.prefetch else 1.0)
             levels = np.zeros(len(have), dtype=np.int64)
             rho = np.zeros(len(have))
             zr = self._zr_of(have)
