@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import image_suffixes, open_store_arg, output_file
-from cli.common import fail_on_errors
+from cli.common import UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -80,6 +80,13 @@ def render(
             lod_colour=lod_colour,
             lod=lod,
         )
+        if st.triangles == 0:  # nothing drawn: never a picture of sky with exit 0
+            raise UsageError(
+                f"the view of {store!r} drew no terrain (0 triangles): the camera sees none of "
+                "the DEM, or no level could be loaded; point it at the terrain (--camera, "
+                "--look-at, --pitch) or run `terrastream verify` on the store",
+                hint="--camera",
+            )
         Image.fromarray(img).save(out)
         if as_json:
             d = {"out": str(out), "tau": tau, "metric": metric, "lod": lod, **asdict(st)}

@@ -105,3 +105,18 @@ def test_bad_camera_exits_2(store, args, message):
 def test_missing_store_exits_2(tmp_path):
     res = runner.invoke(app, ["render", str(tmp_path / "nope.zarr")])
     assert res.exit_code == 2 and "error:" in res.output
+
+
+def test_a_view_of_no_terrain_is_an_error_not_a_sky_png(store, tmp_path):
+    from tiler.store import open_store
+
+    x0, y0, x1, y1 = open_store(store).grid.extent
+    out = tmp_path / "sky.png"
+    far_away = f"{x1 + 100 * (x1 - x0)},{y1 + 100 * (y1 - y0)},50"  # looking away from the DEM
+    res = runner.invoke(
+        app,
+        ["render", store, "--size", "96x64", "--camera", far_away, "--yaw", "45", "--pitch", "10",
+         "-o", str(out)],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "drew no terrain" in res.output and not out.exists()
