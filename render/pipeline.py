@@ -297,7 +297,7 @@ TABLE_HEADER = (
     f"{'tau':>5} {'metric':>12} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'ref ms':>7} "
     f"{'max px':>7} {'p99 px':>7} {'PSNR':>6} {'changed':>8} {'cracks':>6} {'above':>6} "
     f"{'open':>5} {'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'clipped':>7} "
-    f"{'resident MB':>11}"
+    f"{'resident MiB':>12}"
 )
 
 
@@ -310,7 +310,7 @@ def format_row(r: TradeoffRow) -> str:
         f"{r.p99_screen_error_px:>7.2f} {r.psnr_db:>6.1f} {100 * r.changed_share:>7.2f}% "
         f"{r.crack_pixels:>6} {r.crack_pixels_above:>6} {r.open_edges:>5} {r.gap_edges:>5} "
         f"{r.max_gap_m:>7.2f} {100 * r.terrain_covered:>6.1f}% {100 * r.nodata_covered:>5.1f}% "
-        f"{r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>11.2f}"
+        f"{r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>12.2f}"
     )
 
 
@@ -329,7 +329,7 @@ def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "")
             ("triangles", [r.triangles for r in rs]),
             ("CPU selection ms", [r.selection_ms for r in rs]),
             ("GPU frame ms (LOD)", [r.frame_ms for r in rs]),
-            ("resident MB", [r.resident_bytes / 2**20 for r in rs]),
+            ("resident MiB", [r.resident_bytes / 2**20 for r in rs]),
             ("measured screen error px", [r.max_screen_error_px for r in rs]),
             ("PSNR dB vs full res", [r.psnr_db for r in rs]),
         ]

@@ -12,7 +12,10 @@ echo "== 2. tile it into a non-redundant zarr store (blocks of 513^2)"
 $TS tile "$OUT/demo.tif" "$OUT/demo.zarr" --block-size 513 --overwrite
 echo "== 3. describe the store"
 $TS info "$OUT/demo.zarr"
-echo "== 4. export the finest level and check it is bit-identical to the source"
+echo "== 3b. check every chunk's checksum and every block's digest against the source"
+$TS verify "$OUT/demo.zarr" --source "$OUT/demo.tif"
+echo "== 4. export the finest level (a COG whose overviews are the store's levels) and check it"
+echo "      is bit-identical to the source"
 $TS export "$OUT/demo.zarr" "$OUT/demo-roundtrip.tif" --overwrite
 .venv/bin/python - "$OUT/demo.tif" "$OUT/demo-roundtrip.tif" <<'PY'
 import sys, numpy as np, rasterio

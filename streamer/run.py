@@ -171,7 +171,7 @@ def run_flythrough(
 
 
 def plot_run(result: RunResult, out: str | Path, title: str = "") -> None:
-    """Plot needed / real-time / prefetched MB and I/O ms per frame (Qiu's Table 3) to a PNG."""
+    """Plot needed / real-time / prefetched MiB and I/O ms per frame (Qiu's Table 3) to a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -181,11 +181,13 @@ def plot_run(result: RunResult, out: str | Path, title: str = "") -> None:
     f = np.arange(len(rows))
     mb = 1 / 2**20
     fig, ax = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
-    ax[0].plot(f, [r["needed_bytes"] * mb for r in rows], label="needed MB (visible levels)")
-    ax[0].plot(f, [r["resident_bytes"] * mb for r in rows], label="resident MB")
+    ax[0].plot(f, [r["needed_bytes"] * mb for r in rows], label="needed MiB (visible levels)")
+    ax[0].plot(f, [r["resident_bytes"] * mb for r in rows], label="resident MiB")
     ax[0].legend(loc="upper right")
-    ax[1].plot(f, [r["realtime_bytes"] * mb for r in rows], label="real-time loaded MB", color="C3")
-    ax[1].plot(f, [r["prefetched_bytes"] * mb for r in rows], label="prefetched MB", color="C2")
+    ax[1].plot(
+        f, [r["realtime_bytes"] * mb for r in rows], label="real-time loaded MiB", color="C3"
+    )
+    ax[1].plot(f, [r["prefetched_bytes"] * mb for r in rows], label="prefetched MiB", color="C2")
     stalls = [i for i, r in enumerate(rows) if r["stalled"]]
     if stalls:
         ax[1].scatter(stalls, [0] * len(stalls), marker="|", color="k", label="stall")
@@ -198,7 +200,7 @@ def plot_run(result: RunResult, out: str | Path, title: str = "") -> None:
     fig.suptitle(
         title
         or f"{s['frames']} frames, {s['stall_frames']} stalls, "
-        f"peak resident {s['peak_resident_bytes'] * mb:.1f} MB"
+        f"peak resident {s['peak_resident_bytes'] * mb:.1f} MiB"
     )
     fig.tight_layout()
     fig.savefig(out, dpi=100)
