@@ -37,12 +37,12 @@ import numcodecs.blosc as blosc  # noqa: E402
 import numpy as np  # noqa: E402
 from numcodecs import Blosc  # noqa: E402
 
+from bench.common import SHARED_DATA as DATA  # noqa: E402  ($TERRASTREAM_SHARED_DATA)
 from tiler.layout import grid_side, parse_block_size  # noqa: E402
 from tiler.static_error import default_cap  # noqa: E402
 from tiler.synth import synth_array  # noqa: E402
 from tiler.tile import BlockParams, process_block  # noqa: E402
 
-DATA = Path(os.environ.get("TERRASTREAM_SHARED_DATA", "/work/shared/data"))
 DEFAULT_OUT = REPO / "bench" / "results" / "codecs.json"
 CURRENT = {
     "levels": ("zstd", 5, "byte", 0),

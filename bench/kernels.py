@@ -14,7 +14,7 @@ switched between calls) and reports medians and the numpy/numba ratio. The machi
 shared: medians of interleaved repetitions keep the ratio honest even when absolute times move.
 
 Start-up (``--no-startup`` skips it, ``--startup-only`` runs only it): ``python -m cli.main
-info`` on a small store, this tree vs ``/work/main`` alternately (median of 7 runs each), and
+info`` on a small store (and on a ``--compare-tree`` checkout, alternately; medians of 7), and
 the first kernel call in a fresh process with an empty numba cache (compiles), with the cache
 filled (loads), and with the numpy backend.
 """
@@ -44,8 +44,10 @@ from tiler.layout import parse_block_size  # noqa: E402
 from tiler.synth import synth_array  # noqa: E402
 
 DEFAULT_OUT = REPO / "bench" / "results" / "kernels.json"
-REAL = Path("/work/shared/data/N44W072.hgt")
-MAIN = Path("/work/main")
+from bench.common import REAL_HGT as REAL  # noqa: E402  ($TERRASTREAM_SHARED_DATA)
+
+#: another checkout to compare `terrastream info` start-up with (--compare-tree; none by default)
+OTHER_TREE: Path | None = None
 
 
 def _blocks(sizes: list[int]) -> list[tuple[str, np.ndarray]]:
@@ -223,7 +225,8 @@ def bench_startup(runs: int = 7) -> dict[str, Any]:
         tile(src, store, TileOptions(block_size=257, workers=1))
         base = {k: v for k, v in os.environ.items() if k not in (kernels.ENV, "PYTHONPATH")}
         cmd = [sys.executable, "-m", "cli.main", "info", str(store)]
-        trees = [(lbl, t) for lbl, t in (("this_tree", REPO), ("main", MAIN)) if t.exists()]
+        pairs = [("this_tree", REPO)] + ([("other_tree", OTHER_TREE)] if OTHER_TREE else [])
+        trees = [(lbl, t) for lbl, t in pairs if t.exists()]
         times: dict[str, list[float]] = {lbl: [] for lbl, _ in trees}
         for i in range(runs + 1):  # alternate the trees; the first round warms the page cache
             for lbl, tree in trees:
@@ -265,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run the benchmark, print the table, write the JSON."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument(
+        "--compare-tree", type=Path, default=None, help="another checkout: time its `info` too"
+    )
     ap.add_argument("--sizes", default="257,1025")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--no-startup", action="store_true")
@@ -274,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--quick", action="store_true", help="257 only, 3 reps, no start-up")
     a = ap.parse_args(argv)
+    global OTHER_TREE
+    OTHER_TREE = a.compare_tree
     if kernels.active() is None:
         print("numba is not importable: nothing to compare", file=sys.stderr)
         return 1
