@@ -4,7 +4,9 @@ The lease is a small JSON object under the key ``lease.json`` of the store: owne
 random token, and a heartbeat time a named thread refreshes every ``timeout / 4`` seconds. A
 second writer finds a fresh lease and is refused (:class:`StoreLockedError`, naming the owner and
 how long until the lease goes stale); a lease whose heartbeat is older than the timeout belongs
-to a dead writer and is taken over (logged). The lease is removed when the writer stops.
+to a dead writer and is taken over (logged). A record that cannot be parsed may be one another
+writer is creating this instant, so it is stale only once it stayed unreadable for
+``UNREADABLE_GRACE_S``. The lease is removed when the writer stops.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from tiler.location import Location
 log = logging.getLogger(__name__)
 LEASE_KEY = "lease.json"
 DEFAULT_TIMEOUT_S = 60.0
+UNREADABLE_GRACE_S = 2.0  # a lease record that stays unparsable this long is stale
+MAX_ATTEMPTS = 200  # bounded: grace-period polls (40) plus a few take-over rounds
 
 
 def read_lease(loc: Location) -> dict[str, Any] | None:
@@ -34,8 +38,10 @@ def read_lease(loc: Location) -> dict[str, Any] | None:
     try:
         d = json.loads(raw)
     except ValueError:
-        return {"host": "?", "pid": -1, "token": "?", "heartbeat": 0.0}
-    return d if isinstance(d, dict) else None
+        d = None
+    if not isinstance(d, dict):
+        return {"host": "?", "pid": -1, "token": "?", "heartbeat": 0.0, "unreadable": True}
+    return d
 
 
 def lease_is_fresh(d: dict[str, Any], timeout_s: float) -> bool:
@@ -44,6 +50,8 @@ def lease_is_fresh(d: dict[str, Any], timeout_s: float) -> bool:
 
 
 def _describe(d: dict[str, Any]) -> str:
+    if d.get("unreadable"):
+        return "a writer whose lease record is unreadable"
     age = time.time() - float(d.get("heartbeat", 0.0))
     return f"process {d.get('pid')} on host {d.get('host')!r} (last heartbeat {age:.0f} s ago)"
 
@@ -90,7 +98,8 @@ class WriterLease:
 
     def acquire(self) -> WriterLease:
         """Take the lease (taking over a stale one) or raise StoreLockedError."""
-        for _ in range(3):
+        unreadable_since: float | None = None
+        for _ in range(MAX_ATTEMPTS):
             if self.loc.put_if_absent(LEASE_KEY, self._payload()):
                 break
             cur = read_lease(self.loc)
@@ -98,22 +107,36 @@ class WriterLease:
                 continue  # released between our two calls: try again
             if cur.get("token") == self.record["token"]:
                 break
-            if lease_is_fresh(cur, self.timeout_s) and not _owner_gone(cur):
+            if cur.get("unreadable"):
+                # Another writer may be creating it this instant (a store whose writes are not
+                # atomic): only a record that stays unreadable for the grace period is stale.
+                now = time.monotonic()
+                unreadable_since = now if unreadable_since is None else unreadable_since
+                if now - unreadable_since < UNREADABLE_GRACE_S:
+                    time.sleep(0.05)
+                    continue
+                reason = f"its record stayed unreadable for {UNREADABLE_GRACE_S:.0f} s"
+            elif lease_is_fresh(cur, self.timeout_s) and not _owner_gone(cur):
                 left = self.timeout_s - (time.time() - float(cur.get("heartbeat", 0.0)))
                 raise StoreLockedError(
                     f"{self.loc.url!r} is being written by {_describe(cur)}; wait for it to "
                     f"finish. If that process is dead, its lease goes stale {left:.0f} s after "
                     f"its last heartbeat (timeout {self.timeout_s:.0f} s) and is then taken over."
                 )
+            elif _owner_gone(cur):
+                reason = "that process no longer exists on this host"
+            else:
+                reason = f"no heartbeat for more than {self.timeout_s:.0f} s"
             log.warning(
                 "taking over the stale writer lease of %s on %s (%s)",
                 _describe(cur),
                 self.loc.url,
-                "that process no longer exists on this host"
-                if _owner_gone(cur)
-                else f"no heartbeat for more than {self.timeout_s:.0f} s",
+                reason,
             )
-            self.loc.delete_key(LEASE_KEY)
+            # Delete only the stale record we judged: a newer writer's fresh lease stays.
+            if read_lease(self.loc) == cur:
+                self.loc.delete_key(LEASE_KEY)
+            unreadable_since = None
         else:
             raise StoreLockedError(f"could not take the writer lease of {self.loc.url!r}")
         self._thread = threading.Thread(

@@ -339,19 +339,13 @@ class Location:
     def put_if_absent(self, key: str, data: bytes) -> bool:
         """Create ``key`` only if it does not exist; True if this call created it.
 
-        Atomic for local directories (``O_EXCL``) and zarr Stores that implement
-        ``set_if_not_exists``; best effort (check, then write) for fsspec URLs.
+        Atomic for local directories (the whole content appears at once: a temporary file is
+        hard-linked into place, so a concurrent reader never sees it empty or half written) and
+        zarr Stores that implement ``set_if_not_exists``; best effort (check, then write) for
+        fsspec URLs.
         """
         if self.is_local:
-            path = self._key_path(key)
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            try:
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            except FileExistsError:
-                return False
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            return True
+            return _link_if_absent(self._key_path(key), data)
         if isinstance(self.target, Store):
             store = self.target
             buf = default_buffer_prototype().buffer.from_bytes(data)
@@ -485,3 +479,32 @@ def as_location(
     if isinstance(target, Location) and not storage_options:
         return target
     return Location(target, storage_options)
+
+
+def _link_if_absent(path: str, data: bytes) -> bool:
+    """Create the file ``path`` holding ``data`` unless it exists; True if this call made it.
+
+    The bytes go to a private temporary file first, which is then hard-linked to ``path``
+    (``link`` fails if ``path`` exists), so the file never exists with partial content. On a
+    filesystem without hard links, ``O_EXCL`` creation (content written just after) is used.
+    """
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+    with open(tmp, "wb") as f:
+        f.write(data)
+    try:
+        os.link(tmp, path)
+        return True
+    except FileExistsError:
+        return False
+    except OSError:  # no hard links here (some FUSE or SMB mounts)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)

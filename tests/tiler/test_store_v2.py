@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -28,7 +31,7 @@ from tiler.errors import (
     TilingInterrupted,
 )
 from tiler.info import store_info
-from tiler.lease import LEASE_KEY, WriterLease
+from tiler.lease import LEASE_KEY, UNREADABLE_GRACE_S, WriterLease
 from tiler.location import Location
 from tiler.schema import DEFAULT_CLEVEL
 from tiler.store import open_store
@@ -254,6 +257,65 @@ def test_second_writer_refused_and_stale_lease_taken_over(dem_factory, tmp_path,
         tile(src, tmp_path / "s.zarr", TileOptions(block_size=17, lease_timeout_s=30))
     assert "taking over the stale writer lease" in caplog.text
     assert not loc.key_exists(LEASE_KEY)
+
+
+def test_lease_being_created_is_not_taken_over(tmp_path):
+    """A lease record that is empty for an instant (another writer creating it) is not stale:
+    the second writer waits for it to become readable and is then refused."""
+    loc = Location(tmp_path / "s.zarr")
+    os.makedirs(tmp_path / "s.zarr")
+    (tmp_path / "s.zarr" / LEASE_KEY).write_bytes(b"")  # created, not yet written
+    other = WriterLease(loc, timeout_s=30)
+    timer = threading.Timer(0.3, lambda: loc.put_bytes(LEASE_KEY, other._payload()))
+    timer.start()
+    try:
+        with pytest.raises(StoreLockedError, match=r"being written by process \d+ on host"):
+            WriterLease(loc, timeout_s=30).acquire()
+    finally:
+        timer.join()
+    assert json.loads(loc.get_bytes(LEASE_KEY))["token"] == other.record["token"]
+
+
+def test_lease_unreadable_for_the_grace_period_is_taken_over(tmp_path, caplog):
+    """Positive control for the test above: a record that stays garbage is a dead writer's."""
+    loc = Location(tmp_path / "s.zarr")
+    os.makedirs(tmp_path / "s.zarr")
+    (tmp_path / "s.zarr" / LEASE_KEY).write_bytes(b'{"host": "x", "pi')
+    t0 = time.monotonic()
+    with caplog.at_level(logging.WARNING):
+        lease = WriterLease(loc, timeout_s=30).acquire()
+    try:
+        assert time.monotonic() - t0 >= UNREADABLE_GRACE_S
+        assert "unreadable" in caplog.text
+        assert json.loads(loc.get_bytes(LEASE_KEY))["token"] == lease.record["token"]
+    finally:
+        lease.release()
+    assert not loc.key_exists(LEASE_KEY)
+
+
+def test_put_if_absent_never_shows_partial_content(tmp_path):
+    """Local put_if_absent makes the file appear whole (a reader polling it never sees b"")."""
+    loc = Location(tmp_path / "x")
+    payload = b"y" * (1 << 22)
+    seen: list[int] = []
+    stop = threading.Event()
+
+    def poll():
+        path = tmp_path / "x" / "k"
+        while not stop.is_set():
+            with contextlib.suppress(FileNotFoundError):
+                seen.append(len(path.read_bytes()))
+
+    t = threading.Thread(target=poll, name="test-poll")
+    t.start()
+    try:
+        assert loc.put_if_absent("k", payload)
+        time.sleep(0.05)
+    finally:
+        stop.set()
+        t.join(timeout=10)
+    assert seen and set(seen) == {len(payload)}
+    assert sorted(p.name for p in (tmp_path / "x").iterdir()) == ["k"]  # no temporary left
 
 
 def test_overwrite_under_open_reader(dem_factory, tmp_path):
