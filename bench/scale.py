@@ -13,6 +13,15 @@ children) measures the client alone; for ``processes`` and ``localcluster`` the 
 include the worker processes (``client_io_includes_workers``). Writes
 ``bench/results/scale.json`` and ``bench/results/scale.png`` (time and peak RSS per worker vs
 workers). Work files go to ``bench/work/scale`` (git-ignored).
+
+    python bench/scale.py --malloc 20          # the allocator probe (bench/results/malloc.json)
+    python bench/scale.py --malloc-tune 0 --modes localcluster --append   # tiler.malloc off
+
+``--malloc ROUNDS`` times one 1025² block's ``process_block`` in fresh processes: a plain one,
+one with dask's worker environment (``MALLOC_TRIM_THRESHOLD_=65536``) and ``tiler.malloc`` off,
+and the same with it on, for both kernel back-ends (minor page faults, CPU and wall ms per
+block). ``--malloc-tune 0`` runs the tiling with ``TERRASTREAM_MALLOC_TUNE=0`` (every run
+records the setting and the load average before and after it).
 """
 
 from __future__ import annotations
@@ -163,12 +172,14 @@ def stop_cluster(procs: list) -> None:
             p.wait(10)
 
 
-def run_mode(mode: str, src: Path, work: Path, workers: int, block: int) -> dict:
+def run_mode(mode: str, src: Path, work: Path, workers: int, block: int, tune: str = "1") -> dict:
     """One measured run in a child process (and its cluster for ``external``)."""
     dst = work / f"{mode}-w{workers}.zarr"
     if dst.exists():
         shutil.rmtree(dst)
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env["TERRASTREAM_MALLOC_TUNE"] = tune
+    load0 = os.getloadavg()
     cluster: list = []
     address = None
     with tempfile.TemporaryDirectory(prefix="scale-") as tmp:
@@ -202,8 +213,85 @@ def run_mode(mode: str, src: Path, work: Path, workers: int, block: int) -> dict
         store_bytes=sum(p.stat().st_size for p in dst.rglob("*") if p.is_file()),
     )  # fmt: skip
     res["blocks_per_s"] = res["blocks"] / res["elapsed_s"]
+    res.update(malloc_tune=tune == "1", loadavg_before=load0, loadavg_after=os.getloadavg())
     shutil.rmtree(dst, ignore_errors=True)
     return res
+
+
+MALLOC_PROBE = """
+import json, os, resource, sys, time
+import numpy as np
+from tiler.run import worker_setup
+from tiler.synth import synth_array
+from tiler.tile import BlockParams, process_block
+worker_setup(256, sys.argv[1], "int16")
+win = synth_array(slice(0, 1025), slice(0, 1025), 16385, 0, 2500.0, 200.0, "int16")
+p = BlockParams(k=10, dtype="int16", storage_dtype="int16", nodata=None, precision=None,
+                error_cap=6)
+process_block(win, p)
+ts, cs = [], []
+f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(int(sys.argv[2])):
+    t0, c0 = time.perf_counter(), time.process_time()
+    process_block(win, p)
+    ts.append(time.perf_counter() - t0)
+    cs.append(time.process_time() - c0)
+n = int(sys.argv[2])
+print(json.dumps({
+    "minflt_per_block": (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / n,
+    "cpu_ms": 1e3 * float(np.median(cs)), "wall_ms": 1e3 * float(np.median(ts)),
+    "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+MALLOC_CASES = {  # name: (MALLOC_TRIM_THRESHOLD_ or None, TERRASTREAM_MALLOC_TUNE)
+    "plain process, tuning off": (None, "0"),
+    "dask worker env, tuning off": ("65536", "0"),
+    "dask worker env, tuning on": ("65536", "1"),
+    "plain process, tuning on": (None, "1"),
+}
+
+
+def malloc_probe(rounds: int, out: Path) -> dict:
+    """Per-block page faults and CPU of ``process_block`` under each allocator setting
+    (fresh process per case; the cases interleave twice so they share the machine's load)."""
+    base = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    base.pop("MALLOC_TRIM_THRESHOLD_", None)
+    rows: dict[str, list[dict]] = {}
+    for _ in range(2):
+        for backend in ("numba", "numpy"):
+            for name, (trim, tune) in MALLOC_CASES.items():
+                env = dict(base, TERRASTREAM_MALLOC_TUNE=tune)
+                if trim is not None:
+                    env["MALLOC_TRIM_THRESHOLD_"] = trim
+                n = rounds if backend == "numba" else max(3, rounds // 4)
+                got = subprocess.run(
+                    [PY, "-c", MALLOC_PROBE, backend, str(n)], env=env, capture_output=True,
+                    text=True, check=True,
+                )  # fmt: skip
+                rows.setdefault(f"{backend}: {name}", []).append(
+                    json.loads(got.stdout.strip().splitlines()[-1])
+                )
+    table = {
+        key: {m: round(min(r[m] for r in runs), 1) for m in runs[0]} for key, runs in rows.items()
+    }
+    print("| kernels: case | minor faults/block | CPU ms/block | wall ms/block |")
+    print("|---|---:|---:|---:|")
+    for key, r in table.items():
+        print(f"| {key} | {r['minflt_per_block']:,.0f} | {r['cpu_ms']:.1f} | {r['wall_ms']:.1f} |")
+    doc = {
+        "command": f"python bench/scale.py --malloc {rounds}",
+        "block": "1025^2 int16 synthetic (process_block only: no read, no write)",
+        "statistic": "min over 2 interleaved processes of the per-process median",
+        "table": table,
+        "runs": rows,
+        "machine": machine_info(),
+    }
+    out.write_text(json.dumps(doc, indent=1))
+    print(f"wrote {out}")
+    return doc
+
+
+def _load(r: dict, key: str) -> str:
+    return f"{r[key][0]:.1f}" if key in r else "?"
 
 
 def plot(results: list[dict], path: Path) -> None:
@@ -344,6 +432,14 @@ def main() -> None:
         metavar="ROUNDS",
         help="measure fsspec vs obstore reads on a loopback S3 server instead",
     )
+    ap.add_argument(
+        "--malloc", type=int, default=0, metavar="ROUNDS",
+        help="measure the allocator probe (tiler.malloc) instead",
+    )  # fmt: skip
+    ap.add_argument(
+        "--malloc-tune", choices=("0", "1"), default="1",
+        help="TERRASTREAM_MALLOC_TUNE for the runs (0: tiler.malloc off)",
+    )  # fmt: skip
     ap.add_argument("--one", choices=MODES, help=argparse.SUPPRESS)
     ap.add_argument("--src", help=argparse.SUPPRESS)
     ap.add_argument("--dst", help=argparse.SUPPRESS)
@@ -351,6 +447,9 @@ def main() -> None:
     a = ap.parse_args()
     if a.s3_reads:
         s3_reads(a.s3_reads, RESULTS / "s3_reads.json")
+        return
+    if a.malloc:
+        malloc_probe(a.malloc, RESULTS / "malloc.json")
         return
     if a.one:
         one(a.one, a.src, a.dst, int(a.workers), a.block, a.address)
@@ -374,7 +473,7 @@ def main() -> None:
         results = [r for r in json.loads(out.read_text())["runs"]]
     for w in (int(x) for x in a.workers.split(",")):
         for mode in a.modes.split(","):
-            r = run_mode(mode, src, work, w, a.block)
+            r = run_mode(mode, src, work, w, a.block, a.malloc_tune)
             results.append(r)
             print(
                 f"{mode:>12} w={w}: {r['elapsed_s']:7.1f} s  {r['blocks_per_s']:.2f} blocks/s  "
@@ -384,16 +483,19 @@ def main() -> None:
                 flush=True,
             )
     header = (
-        "| mode | workers | time s | blocks/s | peak RSS/worker MiB | client RSS MiB | "
-        "client I/O MiB | store MiB |\n|---|---:|---:|---:|---:|---:|---:|---:|"
+        "| mode | workers | malloc tuned | time s | blocks/s | peak RSS/worker MiB | "
+        "client RSS MiB | client I/O MiB | store MiB | load before/after |\n"
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---|"
     )
     print(header)
     for r in results:
         print(
-            f"| {r['mode']} | {r['workers']} | {r['elapsed_s']:.1f} | {r['blocks_per_s']:.2f} | "
+            f"| {r['mode']} | {r['workers']} | {r.get('malloc_tune', '?')} | "
+            f"{r['elapsed_s']:.1f} | {r['blocks_per_s']:.2f} | "
             f"{r['peak_rss_worker_mib']:.0f} | {r['peak_rss_client_mib']:.0f} | "
             f"{(r['client_rchar'] + r['client_wchar']) / 2**20:.1f} | "
-            f"{r['store_bytes'] / 2**20:.0f} |"
+            f"{r['store_bytes'] / 2**20:.0f} | "
+            f"{_load(r, 'loadavg_before')} / {_load(r, 'loadavg_after')} |"
         )
     doc = {
         "commands": (

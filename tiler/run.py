@@ -90,8 +90,12 @@ _PROCESS_WORKER: BlockWorker | None = None
 
 
 def worker_setup(gdal_cache_mb: int, kernels_backend: str, dtype: str) -> None:
-    """Per-process set-up of a tiling worker: GDAL cache cap, kernel backend (warmed up)."""
+    """Per-process set-up of a tiling worker: allocator thresholds (:mod:`tiler.malloc`), GDAL
+    cache cap, kernel backend (warmed up). Never called in the caller's own process."""
     from tiler import kernels
+    from tiler.malloc import tune_allocator
+
+    tune_allocator()
 
     rasterio.env.set_gdal_config("GDAL_CACHEMAX", int(gdal_cache_mb))
     os.environ[kernels.ENV] = kernels_backend
