@@ -30,7 +30,7 @@ def paper_precision(tau: float, focal_px: float, res_log2: int) -> float:
     if tau < 0:
         raise ValueError(f"tau must be >= 0, got {tau}")
     if tau == 0:
-        return math.inf
+        return float("inf")
     return float(focal_px) / (float(tau) * float(1 << res_log2))
 
 
