@@ -179,8 +179,10 @@ class _Frame:
             v = np.maximum(np.maximum(ez - zhi, zlo - ez), 0.0)
             dist = np.sqrt(hx * hx + hy * hy + v * v)
             length = np.hypot(xb - xa, yb - ya)
-            if self.rho_form == "paper":  # one factor for every edge: δ is not used
-                rho = np.full(len(idx), paper_precision(self.tau, self.focal, self.c))
+            if self.rho_form == "paper":  # one factor for every edge; δ only for nodata
+                rho = np.where(  # a mixed node's δ is ∞ (docs/RENDER.md, nodata): ours
+                    np.isinf(delta), np.inf, paper_precision(self.tau, self.focal, self.c)
+                )
             else:
                 rho = precision(np.maximum(delta, 0.0), length, self.tau, self.focal, self.c)
             out[:, e] = edge_epsilon(rho, length, dist)
