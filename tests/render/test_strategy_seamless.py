@@ -12,8 +12,9 @@ from gltools import make_context, rough, tile_dem
 
 from render import cracks, measure
 from render.errors import RenderError
-from render.pipeline import drawn_cracks
+from render.pipeline import drawn_cracks, open_render_session, tradeoff
 from render.renderer import CLEAR, RenderConfig, TerrainRenderer
+from render.step import stream_step
 from render.strategies import get_strategy
 from render.strategies.base import GlobalHeights
 from render.strategies.seamless import (
@@ -416,3 +417,22 @@ def test_paper_rho_is_crack_free_and_unstitched_is_the_control(boundary_view, ta
     wt, (here, above) = out[True]
     assert (wt.open_edges, wt.gap_edges, wt.max_gap_m) == (0, 0, 0.0)
     assert wt.boundary_edges > 0 and here == 0 and above == 0
+
+
+def test_tradeoff_measures_the_form_of_rho_it_is_given(boundary_view):
+    r, cam, _, _ = boundary_view
+    rows = {
+        form: tradeoff(
+            r.store, cam, [4.0], renderer=r, repeats=1, lod="seamless-patches", stream_tau=0.0,
+            lod_options={"rho": form},
+        )[0]
+        for form in ("bound", "paper")
+    }  # fmt: skip
+    with open_render_session(r.store, 0.0, "conservative", r.p) as s:
+        _, res = stream_step(s, None, cam)  # the levels tradeoff's selection saw
+    for form, row in rows.items():
+        st = get_strategy("seamless-patches", r, rho=form)
+        sel, _ = st.select(cam, 4.0, resident=res)
+        assert row.triangles == st.triangle_count(sel) > 0, form
+        assert (row.crack_pixels, row.open_edges, row.gap_edges) == (0, 0, 0)
+    assert rows["bound"].triangles != rows["paper"].triangles
