@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -184,6 +184,7 @@ def tradeoff(
     lod: str = DEFAULT,
     stream_tau: float | None = None,
     options: ViewOptions | None = None,
+    lod_options: Mapping[str, Any] | None = None,
 ) -> list[TradeoffRow]:
     """Render the view at every tau with strategy ``lod`` and at full resolution (the CLOD
     reference mesh); measure cost, error (each sample once), cracks of the view's own selection
@@ -192,7 +193,8 @@ def tradeoff(
     terrain). The data is streamed by the renderer's session at
     ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
     :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
-    ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept)."""
+    ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept);
+    ``lod_options`` are the strategy's constructor options (e.g. ``{"rho": "paper"}``)."""
     if options is not None:
         lod, metric, patch_log2 = options.lod, options.metric, options.patch_log2
     check_name(lod)
@@ -207,7 +209,7 @@ def tradeoff(
     r.draw(camera, ref_p, clear=CLEAR)
     footprint = ~measure.is_clear(r.image(), CLEAR)
     ref_heights = measure.heights_fn(store, ref_p)
-    strat = get_strategy(lod, r)
+    strat = get_strategy(lod, r, **(lod_options or {}))
     rows = []
     for tau in taus:
         st_tau = tau if stream_tau is None else stream_tau

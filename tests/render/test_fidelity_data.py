@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import fractal
@@ -139,6 +141,30 @@ def test_checkerboard_nodata_at_tau_4_draws_the_terrain_and_not_the_holes(checke
     r.close()
     assert drawn >= 0.99, f"{drawn:.1%} of the terrain samples drawn"
     assert bridged <= 0.01, f"{bridged:.1%} of the nodata samples covered"
+
+
+@pytest.mark.parametrize("tau", [1.0, 4.0])
+def test_seamless_paper_rho_keeps_the_nodata_rule(checkerboard, tau):
+    """Livny et al.'s ρ reads nothing from the data, but a node mixing terrain and nodata
+    still gets ρ = ∞ (full resolution at mask boundaries). Positive control: the same patches
+    at their coarsest tiles drop terrain samples."""
+    path, valid = checkerboard
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=(256, 256), patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    st = get_strategy("seamless-patches", r, res_log2=3, rho="paper")
+    g = r.grid
+    x0, y0, x1, y1 = g.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 9500.0), pitch=-90.0, viewport=(256, 256),
+                 near=1.0, far=1e5)  # fmt: skip
+    sel, _ = st.select(cam, tau)
+    drawn, bridged = coverage(st, cam, sel, valid)
+    coarse = dataclasses.replace(sel, edge_level=sel.edge_level * 0 + sel.depth[:, None] + 1)
+    drawn_coarse, _ = coverage(st, cam, coarse, valid)
+    r.close()
+    assert drawn >= 0.99 and bridged <= 0.01, (drawn, bridged)
+    assert drawn_coarse < 0.95, drawn_coarse
 
 
 def test_the_session_streams_what_the_nodata_boundaries_need(checkerboard):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from collections import Counter
 
 import numpy as np
@@ -13,6 +14,7 @@ from render.strategies.seamless import (
     edge_resolution,
     mesh_kinds,
     mesh_of,
+    paper_precision,
     precision,
     rotate,
     strip_mesh,
@@ -128,3 +130,52 @@ def test_epsilon_and_edge_resolution_known_answers():
     assert np.isinf(precision(1.0, 10.0, 0.0, 500.0, 5))
     assert precision(0.0, 10.0, 0.0, 500.0, 5) == 0.0
     assert np.isinf(edge_epsilon(0.1, 10.0, 0.0)) and edge_epsilon(0.0, 10.0, 0.0) == 0.0
+
+
+# -- ρ as published (Livny et al., Section 3 "Level of Detail": one global precision factor) --
+
+
+def test_paper_rho_known_answers():
+    # ρ = f / (τ 2^c): f = 500 px, c = 5
+    assert paper_precision(1.0, 500.0, 5) == pytest.approx(500 / 32)  # 15.625
+    assert paper_precision(2.0, 500.0, 5) == pytest.approx(500 / 64)  # 2 ρ_0 is τ / 2
+    assert paper_precision(0.5, 240.0, 3) == pytest.approx(60.0)
+    assert math.isinf(paper_precision(0.0, 500.0, 5))
+    with pytest.raises(ValueError, match="tau"):
+        paper_precision(-1.0, 500.0, 5)
+    # an edge of 100 m at 2 km: ε = 15.625 · 100 / 2000 = 0.78 -> 25 cells -> 32 (r = 5)
+    eps = edge_epsilon(paper_precision(1.0, 500.0, 5), 100.0, 2000.0)
+    assert eps == pytest.approx(0.78125) and edge_resolution(eps, 5) == 5
+    # at 4 km: ε = 0.39 (Claim 1's R1 range [0, 0.5]) -> 12.5 cells -> 16 (r = 4)
+    assert edge_resolution(edge_epsilon(paper_precision(1.0, 500.0, 5), 100.0, 4000.0), 5) == 4
+
+
+def test_paper_rho_is_the_flat_limit_and_ignores_roughness():
+    f, tau, c, length = 500.0, 1.0, 5, 100.0
+    deltas = np.array([0.0, 0.01, 0.5, 2.0, 10.0, 100.0])  # flat -> rough
+    ours = precision(deltas, length, tau, f, c)
+    paper = paper_precision(tau, f, c)
+    # ours: 0 on flat terrain (never split), strictly increasing with the stored error
+    assert ours[0] == 0.0 and (np.diff(ours) > 0).all()
+    # the paper's: the same factor on flat and rough terrain (nothing is read from the data),
+    # so non-decreasing in roughness; the two coincide where the stored error is half the edge
+    assert paper > 0.0 and np.isfinite(paper)
+    assert precision(length / 2, length, tau, f, c) == pytest.approx(paper)
+    assert ours[deltas < length / 2].max() < paper < ours[deltas > length / 2].min()
+
+
+def test_paper_rho_tau_is_the_projected_cell_in_pixels():
+    # with ε <= 1 the edge's cells (ε 2^c rounded up) project to at most τ px at distance d;
+    # ε > 1 (split) exactly when even the finest tile's cells would project to more than τ
+    rng = np.random.default_rng(0)
+    f, c = 480.0, 5
+    for tau in (0.5, 1.0, 2.0, 4.0):
+        length = rng.uniform(10.0, 5000.0, 2000)
+        dist = rng.uniform(1.0, 1e5, 2000)
+        eps = edge_epsilon(paper_precision(tau, f, c), length, dist)
+        cells = np.left_shift(1, edge_resolution(eps, c))
+        cell_px = f * length / (dist * cells)
+        ok = eps <= 1.0
+        assert ok.any() and (~ok).any()
+        assert (cell_px[ok] <= tau * (1 + 1e-9)).all()
+        assert (f * length[~ok] / (dist[~ok] * 2**c) > tau).all()

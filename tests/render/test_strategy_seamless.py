@@ -10,13 +10,17 @@ import numpy as np
 import pytest
 from gltools import make_context, rough, tile_dem
 
-from render import measure
+from render import cracks, measure
+from render.errors import RenderError
+from render.pipeline import drawn_cracks, open_render_session, tradeoff
 from render.renderer import CLEAR, RenderConfig, TerrainRenderer
+from render.step import stream_step
 from render.strategies import get_strategy
 from render.strategies.base import GlobalHeights
 from render.strategies.seamless import (
     SeamlessPatches,
     edge_resolution,
+    paper_precision,
 )
 from streamer.camera import Camera
 from tiler.store import open_store
@@ -28,12 +32,12 @@ X0, Y0 = 500015.0, 5000000.0 - 15
 OBLIQUE = ((X0 + 600, Y0 - 4200, 1600.0), (X0 + 2400, 4997600, 700.0))
 
 
-def _strategy(path, res_log2: int = 3, caps: dict | None = None) -> SeamlessPatches:
+def _strategy(path, res_log2: int = 3, caps: dict | None = None, **opts) -> SeamlessPatches:
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
     for b in s.blocks():
         r.upload(b, s.read_levels(b, (caps or {}).get(b, s.k)))
-    st = get_strategy("seamless-patches", r, res_log2=res_log2)
+    st = get_strategy("seamless-patches", r, res_log2=res_log2, **opts)
     assert isinstance(st, SeamlessPatches) and st.name == "seamless-patches"
     return st
 
@@ -309,3 +313,126 @@ def test_nothing_in_view_draws_nothing(rough_store):
     assert len(sel) == 0 and ms >= 0
     assert st.draw(cam, sel).triangles == 0 and st.screen_errors(cam, sel).size == 0
     assert st.surface(cam, sel)[0].size == 0 and st.drawn_blocks(sel) == set()
+
+
+# -- ρ as published (rho="paper") ----------------------------------------------------------
+
+
+def _edge_distances(g, cam, zmin: float, zmax: float, n: int) -> list[tuple[float, float]]:
+    """(length, distance) of the root patch's edges N, E, S, W (one block of ``n`` cells)."""
+    out = []
+    for (r0, c0), (r1, c1) in (
+        ((0, 0), (0, n)), ((0, n), (n, n)), ((n, 0), (n, n)), ((0, 0), (n, 0))
+    ):  # fmt: skip
+        xa, ya = g.sample_xy(r0, c0)
+        xb, yb = g.sample_xy(r1, c1)
+        ex, ey, ez = cam.eye
+        hx = max(min(xa, xb) - ex, 0.0, ex - max(xa, xb))
+        hy = max(min(ya, yb) - ey, 0.0, ey - max(ya, yb))
+        d = float(np.sqrt(hx * hx + hy * hy + max(ez - zmax, zmin - ez, 0.0) ** 2))
+        out.append((float(np.hypot(xb - xa, yb - ya)), d))
+    return out
+
+
+def test_paper_rho_refines_flat_terrain_as_published(tmp_path):
+    flat = np.full((33, 33), 800, np.int16)
+    path = tile_dem(tmp_path, flat, 33)
+    paper = _strategy(path, res_log2=5, rho="paper")
+    ours = _strategy(path, res_log2=5)
+    assert paper.rho == "paper" and ours.rho == "bound"
+    g = paper.r.grid
+    cam = Camera.look_at(
+        (g.x0 + 480, g.y0 - 1300, 900.0), (g.x0 + 480, g.y0 - 480, 800.0), viewport=SIZE,
+        near=5.0,
+    )  # fmt: skip
+    tau = 6.0
+    sel, _ = paper.select(cam, tau)
+    assert len(sel) == 1 and sel.depth[0] == 0  # k = c = 5: the root patch only
+    rho = paper_precision(tau, cam.focal_px, 5)
+    assert rho == pytest.approx(cam.focal_px / (6.0 * 32))
+    for e, (length, d) in enumerate(_edge_distances(g, cam, 800.0, 800.0, 32)):
+        assert sel.eps[0, e] == pytest.approx(rho * length / d, rel=1e-5)
+        assert sel.edge_res[0, e] == edge_resolution(sel.eps[0, e], 5)
+    assert sel.edge_res[0, 2] > sel.edge_res[0, 0] > 1  # near (south) finer than far
+    # ours: a flat node is exact at any resolution (δ = 0 -> ε = 0, the coarsest tiles)
+    sel_o, _ = ours.select(cam, tau)
+    assert (sel_o.eps == 0).all() and ours.draw(cam, sel_o).triangles == 8
+    assert paper.draw(cam, sel).triangles > 8
+    # both draw the flat plane exactly
+    assert paper.screen_errors(cam, sel).max() < 1e-6
+
+
+def test_paper_rho_ignores_the_data(tmp_path):
+    # the same grid, flat or rough: ρ is one factor, so ε differs only through d (z ranges)
+    g_rough = _strategy(tile_dem(_mkdir(tmp_path, "r"), rough(33, 5), 33), 5, rho="paper")
+    g_flat = _strategy(
+        tile_dem(_mkdir(tmp_path, "f"), np.full((33, 33), 800, np.int16), 33), 5, rho="paper"
+    )
+    cam = _nadir(X0 + 480, Y0 - 480, 5000.0)  # high above: d is nearly the height for both
+    a, _ = g_rough.select(cam, 2.0)
+    b, _ = g_flat.select(cam, 2.0)
+    np.testing.assert_allclose(a.eps, b.eps, rtol=0.05)
+    np.testing.assert_array_equal(a.edge_res, b.edge_res)
+
+
+def test_rho_must_be_a_known_form(rough_store):
+    with pytest.raises(RenderError, match="rho"):
+        _strategy(rough_store, rho="roughness")
+
+
+@pytest.fixture(scope="module")
+def boundary_view(tmp_path_factory):
+    """A store and an oblique camera whose paper-ρ selection has level boundaries (the view of
+    tests/render/test_cracks.py), with the full-resolution reference and its footprint."""
+    path = tile_dem(tmp_path_factory.mktemp("paper"), rough(257, 5, amp=20.0), 65)
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    x0, y0, x1, _ = r.grid.extent
+    cam = Camera(((x0 + x1) / 2, y0 + 1500, 3000.0), pitch=-30.0, viewport=SIZE, near=5.0, far=1e5)
+    ref, _ = r.select(cam, 0.0, full=True)
+    r.draw(cam, ref, clear=CLEAR)
+    footprint = ~measure.is_clear(r.image(), CLEAR)
+    yield r, cam, ref, footprint
+    r.close()
+
+
+@pytest.mark.parametrize("tau", [1.0, 4.0])
+def test_paper_rho_is_crack_free_and_unstitched_is_the_control(boundary_view, tau):
+    r, cam, ref, footprint = boundary_view
+    st = get_strategy("seamless-patches", r, rho="paper")
+    out = {}
+    for stitching in (False, True):
+        st.stitching = stitching
+        sel, _ = st.select(cam, tau)
+        counts = st.counts(sel)
+        assert counts.max_level > counts.min_level, "the view must have level boundaries"
+        assert sel.violations == 0
+        wt = cracks.watertight(r.grid, *st.triangles(cam, sel))
+        out[stitching] = (wt, drawn_cracks(r, st, cam, sel, ref, footprint))
+    wt, (here, above) = out[False]  # positive control: every detector fires
+    assert wt.gap_edges > 0 and wt.open_edges >= wt.gap_edges and wt.max_gap_m > 1.0
+    assert here > 0 and above > 0
+    wt, (here, above) = out[True]
+    assert (wt.open_edges, wt.gap_edges, wt.max_gap_m) == (0, 0, 0.0)
+    assert wt.boundary_edges > 0 and here == 0 and above == 0
+
+
+def test_tradeoff_measures_the_form_of_rho_it_is_given(boundary_view):
+    r, cam, _, _ = boundary_view
+    rows = {
+        form: tradeoff(
+            r.store, cam, [4.0], renderer=r, repeats=1, lod="seamless-patches", stream_tau=0.0,
+            lod_options={"rho": form},
+        )[0]
+        for form in ("bound", "paper")
+    }  # fmt: skip
+    with open_render_session(r.store, 0.0, "conservative", r.p) as s:
+        _, res = stream_step(s, None, cam)  # the levels tradeoff's selection saw
+    for form, row in rows.items():
+        st = get_strategy("seamless-patches", r, rho=form)
+        sel, _ = st.select(cam, 4.0, resident=res)
+        assert row.triangles == st.triangle_count(sel) > 0, form
+        assert (row.crack_pixels, row.open_edges, row.gap_edges) == (0, 0, 0)
+    assert rows["bound"].triangles != rows["paper"].triangles

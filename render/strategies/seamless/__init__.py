@@ -33,11 +33,12 @@ four triangular tiles (cut by the diagonals) at power-of-two resolutions, stitch
   height on both sides, bit for bit.
 * **ε = ρ·l/d per edge** (the paper's Equation 1). ``l`` is the edge length (world units), ``d``
   the distance from the eye to the edge segment (the segment lifted to the z range of the blocks
-  on both sides). The paper's ρ is a global precision factor; we make it carry τ and the stored
-  roughness so that ε is a screen-space quantity: ``ρ = 2 f δ / (τ 2**c l)`` where ``f`` is the
-  focal length in pixels (viewport height, :attr:`Camera.focal_px`) and ``δ`` the larger of the
-  stored ``bound`` errors of the two depth-``d`` nodes beside the edge drawn at level ``d + 1``
-  (the coarsest tiles; ``PatchTable(k, 1)``). So ``ε 2**c / 2`` is the pixel error of the
+  on both sides). The paper's ρ is a global precision factor; by default (``rho="bound"``,
+  ours) we make it carry τ and the stored roughness so that ε is a screen-space quantity:
+  ``ρ = 2 f δ / (τ 2**c l)`` where ``f`` is the focal length in pixels (viewport height,
+  :attr:`Camera.focal_px`) and ``δ`` the larger of the stored ``bound`` errors of the two
+  depth-``d`` nodes beside the edge drawn at level ``d + 1`` (the coarsest tiles;
+  ``PatchTable(k, 1)``). So ``ε 2**c / 2`` is the pixel error of the
   edge's coarsest tile over τ, and with error proportional to cell size (the paper's linear
   rule) ``ε 2**c`` cells meet τ. Split the patch if any edge has ``ε > 1`` (the finest tile would
   not meet τ); otherwise edge resolution = ``ε 2**c`` rounded up to a power of two (the paper's
@@ -46,6 +47,25 @@ four triangular tiles (cut by the diagonals) at power-of-two resolutions, stitch
   δ > 0 (full resolution); δ = 0 gives ε = 0 (a flat node is exact at any resolution).
   ``--metric`` does not apply (``uses_metric = False``). A leaf at the bottom depth (or held by
   its resident level) may keep ``ε > 1``; it is drawn at its finest level.
+* **ρ as published** (``SeamlessPatches(r, rho="paper")``; the default ``rho="bound"`` is the
+  form above, ours). Section 3, "Level of Detail": "The resolution of an edge is computed based
+  on its length l and the distance d from the viewpoint by using Equation 1, where ρ is a
+  precision factor"; Section 5 (Table 1, Figures 8-9) runs it at ``ρ_0`` and ``2 ρ_0``: one
+  global factor for the whole frame, read from nothing in the data (no roughness, no stored
+  error, no slope), and the paper gives no value for ``ρ_0`` and has no τ. The literal reading
+  keeps ρ a constant and only names ``ρ_0`` in our units: ``ρ = f / (τ 2**c)``, so τ is the
+  largest *projected cell* (sample spacing) in pixels: an edge given ``ε R_max`` cells (rounded
+  up) has cells of at most ``l / (ε 2**c)`` world units at distance ``d``, i.e. at most
+  ``f l / (d ε 2**c) = f / (ρ 2**c) = τ`` px. ``2 ρ_0`` is τ/2. The split (any edge ``ε > 1``)
+  and the edge resolution (``ε R_max`` rounded up; Claim 1's ``R1`` for ``ε ≤ 0.5``, ``R2`` for
+  ``(0.5, 1]``) are the same for both forms, and so are ``l``, ``d`` and the shared-edge
+  resolution below. So with the paper's ρ a flat patch is refined exactly as a rough one, and
+  the measured height error is not bounded by τ (BENCHMARKS.md, "Seamless patches: ρ as
+  published"). ``spike_guard`` combines with either form. One thing of ours stays in the
+  paper's form: an edge beside a node that mixes terrain and nodata (stored error ∞, the
+  project's nodata rule, docs/RENDER.md "Precision and extremes") gets ρ = ∞, so mask
+  boundaries are drawn at full resolution; without it the paper's coarse tiles dropped
+  0.1-1.8 % of the in-view terrain samples of N44W072 (reprojected, padded) at τ = 0.5-4.
 * **Patches of different sizes** (the paper's Claim 1 is proved only for two resolutions, and
   its "branching factor = ratio of resolutions"): a coarse edge of ``2**(k-d)`` samples and the
   finer patches' edges along it must use one sample spacing ``2**(k-L)``. The levels a patch can
@@ -80,9 +100,11 @@ from render.strategies.seamless.meshes import (
     tile_triangles,
 )
 from render.strategies.seamless.selection import (
+    RHO_FORMS,
     PatchLayout,
     edge_epsilon,
     edge_resolution,
+    paper_precision,
     precision,
     select_layout,
 )
@@ -90,11 +112,13 @@ from render.strategies.seamless.selection import (
 __all__ = [
     "DIRS",
     "PatchLayout",
+    "RHO_FORMS",
     "SeamlessPatches",
     "edge_epsilon",
     "edge_resolution",
     "mesh_kinds",
     "mesh_of",
+    "paper_precision",
     "precision",
     "rotate",
     "select_layout",

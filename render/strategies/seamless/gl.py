@@ -24,7 +24,7 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.seamless.meshes import mesh_kinds, mesh_of, rotate
-from render.strategies.seamless.selection import PatchLayout, select_layout
+from render.strategies.seamless.selection import RHO_FORMS, PatchLayout, select_layout
 from streamer.camera import Camera
 
 HERE = Path(__file__).parent
@@ -38,11 +38,21 @@ class SeamlessPatches(Strategy[PatchLayout]):
     what = "drawing seamless patches"
 
     def __init__(
-        self, renderer: FrameServices, res_log2: int = 5, *, spike_guard: bool = False
+        self,
+        renderer: FrameServices,
+        res_log2: int = 5,
+        *,
+        spike_guard: bool = False,
+        rho: str = "bound",
     ) -> None:
         super().__init__(renderer)
         if not 1 <= res_log2 <= 7:
             raise RenderError(f"res_log2 must be in 1..7 (2..128 cells per tile), got {res_log2}")
+        if rho not in RHO_FORMS:
+            raise RenderError(f"rho must be one of {', '.join(RHO_FORMS)}, got {rho!r}")
+        #: the form of ρ in ε = ρ l / d: "bound" (ours, the default) or "paper" (Livny et al.'s
+        #: global precision factor ρ = f / (τ 2**c); the package docstring)
+        self.rho = rho
         self.c = min(res_log2, renderer.k)
         ctx = renderer.ctx
         self.table = renderer.patch_table("bound@1", 1)

@@ -20,6 +20,19 @@ Block = tuple[int, int]
 
 # -- ε = ρ l / d ----------------------------------------------------------------------------
 
+#: the forms of ρ: ``"bound"`` (ours, the stored error over τ) and ``"paper"`` (Livny et al.'s
+#: global precision factor, Section 3 "Level of Detail"); see the package docstring
+RHO_FORMS = ("bound", "paper")
+
+
+def paper_precision(tau: float, focal_px: float, res_log2: int) -> float:
+    """Livny et al.'s ρ as published, one global factor: ``ρ = f / (τ 2**c)`` (∞ at τ = 0)."""
+    if tau < 0:
+        raise ValueError(f"tau must be >= 0, got {tau}")
+    if tau == 0:
+        return float("inf")
+    return float(focal_px) / (float(tau) * float(1 << res_log2))
+
 
 def precision(
     delta: ArrayLike, length: ArrayLike, tau: float, focal_px: float, res_log2: int
@@ -98,6 +111,9 @@ class _Frame:
         self.table = st.table
         r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
         self.guard = bool(getattr(st, "spike_guard", False))
+        self.rho_form = getattr(st, "rho", "bound")
+        if self.rho_form not in RHO_FORMS:
+            raise SelectionError(f"rho must be one of {RHO_FORMS}, got {self.rho_form!r}")
         self.tables = st.tables if self.guard else []
         for t in self.tables:
             r.fill_table(t, [tuple(b) for b in self.blk.tolist()], "bound")
@@ -163,7 +179,12 @@ class _Frame:
             v = np.maximum(np.maximum(ez - zhi, zlo - ez), 0.0)
             dist = np.sqrt(hx * hx + hy * hy + v * v)
             length = np.hypot(xb - xa, yb - ya)
-            rho = precision(np.maximum(delta, 0.0), length, self.tau, self.focal, self.c)
+            if self.rho_form == "paper":  # one factor for every edge; δ only for nodata
+                rho = np.where(  # a mixed node's δ is ∞ (docs/RENDER.md, nodata): ours
+                    np.isinf(delta), np.inf, paper_precision(self.tau, self.focal, self.c)
+                )
+            else:
+                rho = precision(np.maximum(delta, 0.0), length, self.tau, self.focal, self.c)
             out[:, e] = edge_epsilon(rho, length, dist)
             if self.guard:
                 out[:, e] = np.maximum(out[:, e], self._guard(d, gr, gc, nr, nc, node_dist))
