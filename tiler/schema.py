@@ -23,6 +23,10 @@ SHARDED_LEVELS = 6  # levels 0..5 (<= 800 values a block) are sharded
 SHARD_BLOCKS = 16  # blocks per shard edge for small levels
 INDEX_CHUNK = 256
 INDEX_NAMES = ("exists", "done", "has_nodata", "zmin", "zmax", "window", "digest")
+# The level/order index tables: blosc clevel 9 is zstd's ultra level 22, which took 2.0-3.4 s for
+# k = 10's order table (15.8 s for k = 11) on every tiling run for 32 KiB less than clevel 5
+# (76 vs 44 KiB; 56 ms). Measured in BENCHMARKS.md "Tiling".
+TABLE_CLEVEL = 5
 DEFAULT_CLEVEL = 3  # zstd 3 with 1 MiB blosc blocks: the size of zstd 5 in 1/3 the time
 WRITE_CONFIG = {"write_empty_chunks": True}
 INDEX_DTYPES = {
@@ -171,7 +175,7 @@ def create_layout(group: zarr.Group, meta: Any, comp_level: int) -> None:
             name,
             data=np.asarray(table),
             chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
-            compressors=codecs(v, 9, table.dtype.itemsize, bits=True),
+            compressors=codecs(v, TABLE_CLEVEL, table.dtype.itemsize, bits=True),
             dimension_names=("row", "col"),
         )
 
