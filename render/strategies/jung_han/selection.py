@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from render.select import check_tau
+from render.strategies.jung_han import kernels as jh_kernels
 from render.strategies.jung_han.pure import (
     BITS,
     EDGE_QUADS,
@@ -28,7 +29,7 @@ from render.strategies.jung_han.pure import (
     vertex_errors,
 )
 from streamer.camera import Camera
-from streamer.frustum import frustum_hull, polygon_meets_rects
+from streamer.frustum import as_polygon, frustum_hull, polygon_meets_rects
 from tiler.layout import trailing_zeros
 
 Block = tuple[int, int]
@@ -39,11 +40,20 @@ class JungHanSelector:
 
     stitching = True  # False: no height adjustment nor split (crack positive control)
 
-    def __init__(self, renderer, prune: bool = True, culled_collapse: bool = True) -> None:
+    def __init__(
+        self,
+        renderer,
+        prune: bool = True,
+        culled_collapse: bool = True,
+        kernels: str | None = None,
+    ) -> None:
         self.r = renderer
         self.prune = prune
         self.culled_collapse = culled_collapse
+        #: backend of the traversal: None = ``TERRASTREAM_KERNELS`` (auto), "numba", "numpy"
+        self.kernels = kernels
         self._trees: dict[Block, BlockTree] = {}
+        self._forest: jh_kernels.Forest | None = None
 
     # -- per-block data ----------------------------------------------------------------------
 
@@ -89,7 +99,11 @@ class JungHanSelector:
         box = self._box(r0, c0, 1 << k)
         meets = polygon_meets_rects(poly, *box)
         inside = corners_inside(poly, *box)
-        parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
+        mod = jh_kernels.resolve(self.kernels)
+        if mod is None:
+            parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
+        else:
+            parts = self._traverse_nb(mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside)
         tris, tslot, tlev, nodes, flags, clamped = parts
         corner = np.flatnonzero(meets & (lev == 0))
         if len(corner):
@@ -236,6 +250,41 @@ class JungHanSelector:
             tslot.append(cur.slot[j])
             tlev.append(np.full(len(j), d + 1, dtype=np.int64))
         return tris, tslot, tlev, nodes, flags, clamped
+
+    def _traverse_nb(self, mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside):
+        """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``)."""
+        key = tuple(pairs)
+        if self._forest is None or self._forest.key != key:
+            self._forest = jh_kernels.Forest.pack(key, trees)
+        f = self._forest
+        g = self.r.grid
+        roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
+        p = as_polygon(poly)
+        o = p[0] if len(p) else np.zeros(2)
+        pp = p - o
+        ext = np.zeros(4)
+        normals = np.zeros((0, 2))
+        pmin = pmax = np.zeros(0)
+        if len(pp):
+            ext = np.array([pp[:, 0].min(), pp[:, 0].max(), pp[:, 1].min(), pp[:, 1].max()])
+        if len(pp) >= 2:  # as polygon_meets_rects
+            e = np.roll(pp, -1, axis=0) - pp
+            normals = np.stack([-e[:, 1], e[:, 0]], axis=1)
+            proj = pp @ normals.T
+            pmin, pmax = proj.min(axis=0), proj.max(axis=0)
+        q = np.ascontiguousarray(pp)
+        e = np.roll(q, -1, axis=0) - q  # as corners_inside
+        tri, ts, tl, nodes, flags, clamped, self._evaluated = mod.traverse(
+            f.heights, f.delta, f.dmax, f.zlo, f.zhi, f.hoff, f.poff,
+            lev, r0.astype(np.int64), c0.astype(np.int64), roots, inside[roots].astype(np.int64),
+            np.ascontiguousarray(o, dtype=np.float64), ext, np.ascontiguousarray(normals),
+            np.ascontiguousarray(pmin), np.ascontiguousarray(pmax), q, np.ascontiguousarray(e),
+            np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
+            float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
+            float(g.x0), float(g.y0), float(g.dx), float(g.dy), int(self.r.k),
+            bool(self.prune), bool(self.culled_collapse),
+        )  # fmt: skip
+        return [tri], [ts], [tl], [nodes], [flags], int(clamped)
 
     def _assemble(self, blocks, lev, trees, r0, c0, tris, tslot, tlev, nodes, flags):
         """Drawn heights, the crack pass, and the GPU vertex/index arrays."""
