@@ -317,3 +317,153 @@ def traverse(
                     it += 1
     return tri, tslot, tlev, nodes, flags, clamped, evaluated
 
+
+
+@_jit
+def t_junctions(tri, vcol, vrow):
+    """``pure.t_junctions``: ``(ids, ends (a, 2, 2), frac)`` in the reference's order."""
+    m = tri.shape[0]
+    ne = 3 * m
+    p = np.empty((ne, 2), np.int64)
+    qq = np.empty((ne, 2), np.int64)
+    oo = np.empty((ne, 2), np.int64)
+    for j in range(3):
+        for t in range(m):
+            for c in range(2):
+                p[j * m + t, c] = tri[t, j, c]
+                qq[j * m + t, c] = tri[t, (j + 1) % 3, c]
+                oo[j * m + t, c] = tri[t, (j + 2) % 3, c]
+    nv = vcol.shape[0]
+    big = 0
+    for i in range(nv):
+        big = max(big, vcol[i], vrow[i])
+    big += 2
+    found = np.full(nv, -1, np.int64)
+    ends = np.zeros((nv, 2, 2), np.int64)
+    frac = np.zeros(nv)
+    for axis in (1, 0):
+        other = 1 - axis
+        for sd in (-1, 1):
+            sel = np.empty(ne, np.int64)
+            n = 0
+            for i in range(ne):
+                if p[i, axis] == qq[i, axis] and abs(p[i, other] - qq[i, other]) >= 2:
+                    dd = oo[i, axis] - p[i, axis]
+                    side = 1 if dd > 0 else (-1 if dd < 0 else 0)
+                    if side == sd:
+                        sel[n] = i
+                        n += 1
+            line = np.empty(n, np.int64)
+            lo = np.empty(n, np.int64)
+            hi = np.empty(n, np.int64)
+            key = np.empty(n, np.int64)
+            for a in range(n):
+                i = sel[a]
+                line[a] = p[i, axis]
+                lo[a] = min(p[i, other], qq[i, other])
+                hi[a] = max(p[i, other], qq[i, other])
+                key[a] = line[a] * big + lo[a]
+            order = np.argsort(key, kind="mergesort")
+            key, line, lo, hi = key[order], line[order], lo[order], hi[order]
+            if n == 0:
+                continue
+            for v in range(nv):
+                lv = vrow[v] if axis == 1 else vcol[v]
+                pv = vcol[v] if axis == 1 else vrow[v]
+                i = np.searchsorted(key, lv * big + pv) - 1
+                if i < 0 or found[v] >= 0:
+                    continue
+                if line[i] == lv and hi[i] > pv:
+                    found[v] = 1
+                    ends[v, 0, axis], ends[v, 1, axis] = lv, lv
+                    ends[v, 0, other], ends[v, 1, other] = lo[i], hi[i]
+                    frac[v] = (pv - lo[i]) / (hi[i] - lo[i])
+    cnt = 0
+    for v in range(nv):
+        cnt += found[v] >= 0
+    ids = np.empty(cnt, np.int64)
+    c = 0
+    for v in range(nv):
+        if found[v] >= 0:
+            ids[c] = v
+            c += 1
+    return ids, ends[ids], frac[ids]
+
+
+@_jit
+def conform(tri, slot, level, vcol, vrow):
+    """``pure.conform`` (same triangles in the same order); ``ok`` False if it did not
+    converge."""
+    nv = vcol.shape[0]
+    big = 0
+    for i in range(nv):
+        big = max(big, vcol[i], vrow[i])
+    big += 2
+    keys_h = np.sort(vrow * big + vcol)  # axis 1: along rows
+    keys_v = np.sort(vcol * big + vrow)  # axis 0: along columns
+    out_t = np.empty((0, 3, 2), np.int64)
+    out_s = np.empty(0, np.int64)
+    out_l = np.empty(0, np.int64)
+    ok = False
+    for _ in range(64):
+        m = tri.shape[0]
+        if m == 0:
+            ok = True
+            break
+        pick = np.full(m, -1, np.int64)
+        point = np.zeros((m, 2), np.int64)
+        for j in range(3):
+            for axis in (1, 0):
+                other = 1 - axis
+                keys = keys_h if axis == 1 else keys_v
+                for t in range(m):
+                    if pick[t] >= 0:
+                        continue
+                    a0, a1 = tri[t, j, axis], tri[t, j, other]
+                    b0, b1 = tri[t, (j + 1) % 3, axis], tri[t, (j + 1) % 3, other]
+                    if a0 != b0 or abs(a1 - b1) < 2:
+                        continue
+                    lo, hi = min(a1, b1), max(a1, b1)
+                    i0 = np.searchsorted(keys, a0 * big + lo + 1)
+                    i1 = np.searchsorted(keys, a0 * big + hi)
+                    if i1 > i0:
+                        mid = keys[(i0 + i1) // 2]
+                        pick[t] = j
+                        point[t, axis] = mid // big
+                        point[t, other] = mid % big
+        nk = 0
+        for t in range(m):
+            nk += pick[t] < 0
+        base = out_t.shape[0]
+        nt = np.empty((base + nk, 3, 2), np.int64)
+        ns = np.empty(base + nk, np.int64)
+        nl = np.empty(base + nk, np.int64)
+        nt[:base], ns[:base], nl[:base] = out_t, out_s, out_l
+        c = base
+        for t in range(m):
+            if pick[t] < 0:
+                nt[c], ns[c], nl[c] = tri[t], slot[t], level[t]
+                c += 1
+        out_t, out_s, out_l = nt, ns, nl
+        ns_ = m - nk
+        if ns_ == 0:
+            ok = True
+            tri = tri[:0]
+            break
+        t2 = np.empty((2 * ns_, 3, 2), np.int64)
+        s2 = np.empty(2 * ns_, np.int64)
+        l2 = np.empty(2 * ns_, np.int64)
+        c = 0
+        for t in range(m):
+            if pick[t] < 0:
+                continue
+            j = pick[t]
+            for ax in range(2):
+                v0, v1, v2 = tri[t, j, ax], tri[t, (j + 1) % 3, ax], tri[t, (j + 2) % 3, ax]
+                t2[c, 0, ax], t2[c, 1, ax], t2[c, 2, ax] = v0, point[t, ax], v2
+                t2[ns_ + c, 0, ax], t2[ns_ + c, 1, ax], t2[ns_ + c, 2, ax] = point[t, ax], v1, v2
+            s2[c], s2[ns_ + c] = slot[t], slot[t]
+            l2[c], l2[ns_ + c] = level[t], level[t]
+            c += 1
+        tri, slot, level = t2, s2, l2
+    return out_t, out_s, out_l, ok and tri.shape[0] == 0

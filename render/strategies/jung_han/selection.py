@@ -54,6 +54,7 @@ class JungHanSelector:
         self.kernels = kernels
         self._trees: dict[Block, BlockTree] = {}
         self._forest: jh_kernels.Forest | None = None
+        self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
 
@@ -99,7 +100,7 @@ class JungHanSelector:
         box = self._box(r0, c0, 1 << k)
         meets = polygon_meets_rects(poly, *box)
         inside = corners_inside(poly, *box)
-        mod = jh_kernels.resolve(self.kernels)
+        mod = self._mod = jh_kernels.resolve(self.kernels)
         if mod is None:
             parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
         else:
@@ -308,7 +309,11 @@ class JungHanSelector:
         h_corner = gather([t.heights for t in trees], s3, flat)
         hv = h_corner[first]
         vrow, vcol = uk // wg, uk % wg
-        ids, ends, frac = t_junctions(tri, vcol, vrow)
+        mod = self._mod
+        if mod is None:
+            ids, ends, frac = t_junctions(tri, vcol, vrow)
+        else:
+            ids, ends, frac = mod.t_junctions(np.ascontiguousarray(tri), vcol, vrow)
         if not self.stitching:  # the positive control: no height adjustment, no split
             ids = ids[:0]
         if len(ids):
@@ -327,8 +332,12 @@ class JungHanSelector:
                 hv[ids[w]] = np.where(np.isfinite(new) & np.isfinite(old), new, old)
         adjusted = np.stack([vcol[ids], vrow[ids]], -1)
         jh_count = len(tri)
-        if self.stitching:
+        if self.stitching and (mod is None or not len(tri)):
             tri, slot, tl = conform(tri, slot, tl, vcol, vrow)
+        elif self.stitching:
+            tri, slot, tl, ok = mod.conform(np.ascontiguousarray(tri), slot, tl, vcol, vrow)
+            if not ok:
+                raise RuntimeError("conforming split did not converge")
         tkey = tri[..., 1] * wg + tri[..., 0]
         inv = np.searchsorted(uk, tkey.ravel())
         tri_h = hv[inv].reshape(-1, 3)
