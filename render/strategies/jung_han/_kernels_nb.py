@@ -243,11 +243,14 @@ def traverse(
         for j in range(starts[dd_], starts[dd_ + 1]):
             s = nd[j, 0]
             leaf = lev[s] - 1 == dd_
-            present = np.zeros(4, np.bool_)
-            culled = np.zeros(4, np.bool_)
+            present = 0  # bit q: quadrant q present / culled
+            culled = 0
             for qd in range(4):
-                culled[qd] = (not leaf) and cm[j, qd] == 0
-                present[qd] = leaf or cm[j, qd] == 2 or (culled[qd] and culled_collapse)
+                cu = (not leaf) and cm[j, qd] == 0
+                if cu:
+                    culled |= 1 << qd
+                if leaf or cm[j, qd] == 2 or (cu and culled_collapse):
+                    present |= 1 << qd
             if pr[j]:
                 st = 2
             else:
@@ -260,11 +263,13 @@ def traverse(
                     flat = hoff[s] + (lr >> sh) * wl + (lc >> sh)
                     x = x0 + float(c0[s] + lc) * dx
                     y = y0 - float(r0[s] + lr) * dy
-                    ds[v] = _vertex_error(basis, eye, focal, vw, vh, float(dl[flat]), x, y, hh[flat])
+                    dv = float(dl[flat])
+                    ds[v] = _vertex_error(basis, eye, focal, vw, vh, dv, x, y, hh[flat])
                 allrem = True
                 fl = 0
                 for ed in range(4):
-                    rem = present[_EQ[ed, 0]] and present[_EQ[ed, 1]] and ds[1 + ed] < tau
+                    both = (present >> _EQ[ed, 0]) & (present >> _EQ[ed, 1]) & 1
+                    rem = both == 1 and ds[1 + ed] < tau
                     allrem = allrem and rem
                     if rem:
                         fl |= 1 << (8 + ed)
@@ -272,7 +277,8 @@ def traverse(
                 if st == 1:
                     for t in range(8):
                         qd = _FQ[t]
-                        if present[qd] and not (fl >> (8 + _FE[t])) & 1 and not culled[qd]:
+                        pq, cq = (present >> qd) & 1, (culled >> qd) & 1
+                        if pq and not (fl >> (8 + _FE[t])) & 1 and not cq:
                             fl |= 1 << t
                     bits[j] = fl
                     if fl != 0 and leaf and lev[s] < k:
@@ -316,7 +322,6 @@ def traverse(
                     tlev[it] = dd_ + 1
                     it += 1
     return tri, tslot, tlev, nodes, flags, clamped, evaluated
-
 
 
 @_jit

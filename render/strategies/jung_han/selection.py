@@ -104,7 +104,8 @@ class JungHanSelector:
         if mod is None:
             parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
         else:
-            parts = self._traverse_nb(mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside)
+            args = (camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside)
+            parts = self._traverse_nb(mod, *args)
         tris, tslot, tlev, nodes, flags, clamped = parts
         corner = np.flatnonzero(meets & (lev == 0))
         if len(corner):
