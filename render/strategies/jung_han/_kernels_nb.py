@@ -325,6 +325,19 @@ def traverse(
 
 
 @_jit
+def _lower(keys, x):
+    """``np.searchsorted(keys, x, side="left")`` for a scalar ``x``."""
+    lo, hi = 0, keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@_jit
 def t_junctions(tri, vcol, vrow):
     """``pure.t_junctions``: ``(ids, ends (a, 2, 2), frac)`` in the reference's order."""
     m = tri.shape[0]
@@ -375,7 +388,7 @@ def t_junctions(tri, vcol, vrow):
             for v in range(nv):
                 lv = vrow[v] if axis == 1 else vcol[v]
                 pv = vcol[v] if axis == 1 else vrow[v]
-                i = np.searchsorted(key, lv * big + pv) - 1
+                i = _lower(key, lv * big + pv) - 1
                 if i < 0 or found[v] >= 0:
                     continue
                 if line[i] == lv and hi[i] > pv:
@@ -429,8 +442,8 @@ def conform(tri, slot, level, vcol, vrow):
                     if a0 != b0 or abs(a1 - b1) < 2:
                         continue
                     lo, hi = min(a1, b1), max(a1, b1)
-                    i0 = np.searchsorted(keys, a0 * big + lo + 1)
-                    i1 = np.searchsorted(keys, a0 * big + hi)
+                    i0 = _lower(keys, a0 * big + lo + 1)
+                    i1 = _lower(keys, a0 * big + hi)
                     if i1 > i0:
                         mid = keys[(i0 + i1) // 2]
                         pick[t] = j
@@ -447,7 +460,9 @@ def conform(tri, slot, level, vcol, vrow):
         c = base
         for t in range(m):
             if pick[t] < 0:
-                nt[c], ns[c], nl[c] = tri[t], slot[t], level[t]
+                for v in range(3):
+                    nt[c, v, 0], nt[c, v, 1] = tri[t, v, 0], tri[t, v, 1]
+                ns[c], nl[c] = slot[t], level[t]
                 c += 1
         out_t, out_s, out_l = nt, ns, nl
         ns_ = m - nk
