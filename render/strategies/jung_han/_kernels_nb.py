@@ -325,6 +325,35 @@ def traverse(
 
 
 @_jit
+def _argsort_stable(keys):
+    """``np.argsort(keys, kind="stable")`` for non-negative int64 keys (LSD radix sort,
+    11-bit digits: linear time, stable, so the same permutation)."""
+    n = keys.shape[0]
+    order = np.arange(n)
+    if n < 2:
+        return order
+    top = 0
+    for i in range(n):
+        top = max(top, keys[i])
+    tmp = np.empty(n, np.int64)
+    count = np.empty(2049, np.int64)
+    shift = 0
+    while (top >> shift) > 0:
+        count[:] = 0
+        for i in range(n):
+            count[((keys[order[i]] >> shift) & 2047) + 1] += 1
+        for b in range(2048):
+            count[b + 1] += count[b]
+        for i in range(n):
+            dg = (keys[order[i]] >> shift) & 2047
+            tmp[count[dg]] = order[i]
+            count[dg] += 1
+        order, tmp = tmp, order
+        shift += 11
+    return order
+
+
+@_jit
 def _lower(keys, x):
     """``np.searchsorted(keys, x, side="left")`` for a scalar ``x``."""
     lo, hi = 0, keys.shape[0]
@@ -381,7 +410,7 @@ def t_junctions(tri, vcol, vrow):
                 lo[a] = min(p[i, other], qq[i, other])
                 hi[a] = max(p[i, other], qq[i, other])
                 key[a] = line[a] * big + lo[a]
-            order = np.argsort(key, kind="mergesort")
+            order = _argsort_stable(key)
             key, line, lo, hi = key[order], line[order], lo[order], hi[order]
             if n == 0:
                 continue
@@ -417,8 +446,10 @@ def conform(tri, slot, level, vcol, vrow):
     for i in range(nv):
         big = max(big, vcol[i], vrow[i])
     big += 2
-    keys_h = np.sort(vrow * big + vcol)  # axis 1: along rows
-    keys_v = np.sort(vcol * big + vrow)  # axis 0: along columns
+    kh = vrow * big + vcol
+    kv = vcol * big + vrow
+    keys_h = kh[_argsort_stable(kh)]  # axis 1: along rows (np.sort)
+    keys_v = kv[_argsort_stable(kv)]  # axis 0: along columns
     out_t = np.empty((0, 3, 2), np.int64)
     out_s = np.empty(0, np.int64)
     out_l = np.empty(0, np.int64)
@@ -443,8 +474,8 @@ def conform(tri, slot, level, vcol, vrow):
                         continue
                     lo, hi = min(a1, b1), max(a1, b1)
                     i0 = _lower(keys, a0 * big + lo + 1)
-                    i1 = _lower(keys, a0 * big + hi)
-                    if i1 > i0:
+                    if i0 < keys.shape[0] and keys[i0] < a0 * big + hi:  # some vertex inside
+                        i1 = _lower(keys, a0 * big + hi)
                         mid = keys[(i0 + i1) // 2]
                         pick[t] = j
                         point[t, axis] = mid // big
@@ -487,3 +518,26 @@ def conform(tri, slot, level, vcol, vrow):
             c += 1
         tri, slot, level = t2, s2, l2
     return out_t, out_s, out_l, ok and tri.shape[0] == 0
+
+
+@_jit
+def unique_index(keys):
+    """``np.unique(keys, return_index=True, return_inverse=True)`` for non-negative int64."""
+    n = keys.shape[0]
+    order = _argsort_stable(keys)
+    inv = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        if i == 0 or keys[order[i]] != keys[order[i - 1]]:
+            m += 1
+    uk = np.empty(m, np.int64)
+    first = np.empty(m, np.int64)
+    u = -1
+    for i in range(n):
+        o = order[i]
+        if i == 0 or keys[o] != keys[order[i - 1]]:
+            u += 1
+            uk[u] = keys[o]
+            first[u] = o  # stable: the first occurrence
+        inv[o] = u
+    return uk, first, inv

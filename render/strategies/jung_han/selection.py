@@ -288,6 +288,13 @@ class JungHanSelector:
         )  # fmt: skip
         return [tri], [ts], [tl], [nodes], [flags], int(clamped)
 
+    def _unique(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sorted unique keys, first occurrences, inverse (``np.unique``; compiled with numba)."""
+        if self._mod is None or not len(key) or key.min() < 0:
+            uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
+            return uk, first, inv.ravel()
+        return self._mod.unique_index(np.ascontiguousarray(key, dtype=np.int64))
+
     def _assemble(self, blocks, lev, trees, r0, c0, tris, tslot, tlev, nodes, flags):
         """Drawn heights, the crack pass, and the GPU vertex/index arrays."""
         k, g = self.r.k, self.r.grid
@@ -302,8 +309,7 @@ class JungHanSelector:
         wg = g.cols * g.step + 1
         cs, rs = tri[..., 0].ravel(), tri[..., 1].ravel()
         key = rs * wg + cs
-        uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
-        inv = inv.ravel()
+        uk, first, inv = self._unique(key)
         s3 = np.repeat(slot, 3)
         sh = k - lev[s3]
         flat = ((rs - r0[s3]) >> sh) * ((1 << lev[s3]) + 1) + ((cs - c0[s3]) >> sh)
@@ -346,7 +352,7 @@ class JungHanSelector:
         # GPU vertices: one per (slot, drawn level, sample)
         nv = len(uk)
         gk = (s3 * 16 + np.repeat(tl, 3)) * max(nv, 1) + inv
-        guk, gfirst, ginv = np.unique(gk, return_index=True, return_inverse=True)
+        guk, gfirst, ginv = self._unique(gk)
         vid = inv[gfirst]
         return JHSelection(
             blocks=blocks,
