@@ -150,10 +150,10 @@ def test_positive_control_a_perturbed_delta_changes_the_output(stores, numba_ker
     assert differences(a, b) == []
     f = fast._forest
     k = ref.r.k
-    lv = int(f.key[0][1])
+    lv = int(b.levels[0])
     half = 1 << (k - 1)
     flat = half >> (k - lv)  # vertex T of the first root: row 0, col half
-    f.delta[f.hoff[0] + flat] = 1e30  # its δ_s is now huge: the top edge is kept
+    f.delta[f.hoff[f.index[b.blocks[0]]] + flat] = 1e30  # its δ_s is huge: the edge is kept
     c, _ = fast.select(cam, 1e6)
     assert "flags" in differences(a, c) and "tri" in differences(a, c)
 
@@ -175,3 +175,19 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
             got = numba_kernels.unique_index(keys)
             for x, y in zip((uk, first, inv.ravel()), got, strict=True):
                 assert np.array_equal(x, y)
+
+
+def test_forest_is_packed_once_while_the_frames_blocks_move(stores, numba_kernels):
+    ref, fast = _pair(stores["rough"])
+    cam = _cameras(ref.r)["oblique"]
+    k = ref.r.k
+    blocks = sorted(ref.r.store.blocks())
+    fast.select(cam, 1.0)
+    forest = fast._forest
+    for part in (blocks[: len(blocks) // 2], blocks[1::2], blocks):
+        res = {b: k for b in part}
+        a, _ = ref.select(cam, 1.0, resident=res)
+        b, _ = fast.select(cam, 1.0, resident=res)
+        assert differences(a, b) == [] and fast._forest is forest
+    fast.select(cam, 1.0, resident={b: k - 1 for b in blocks})  # trees rebuilt: packed again
+    assert fast._forest is not forest

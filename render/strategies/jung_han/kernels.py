@@ -3,13 +3,13 @@ installed (the ``fast`` extra), the numpy reference otherwise. ``TERRASTREAM_KER
 ``numba``, ``numpy``) or the selector's ``kernels`` argument picks the backend; numba is only
 imported on the first selection that uses it (importing this module costs nothing).
 
-:class:`Forest` packs the resident trees' heights, δ and pyramids into flat arrays once per set
-of ``(block, level)`` (the fly-through reuses it until a block changes level or leaves)."""
+:class:`Forest` packs the cached trees' heights, δ and pyramids into flat arrays, again only
+when a tree is built, rebuilt or dropped (each frame then picks its blocks' offsets)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import cache
+from dataclasses import dataclass, field
+from functools import cache, cached_property
 from types import ModuleType
 
 import numpy as np
@@ -47,8 +47,8 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
 
 @dataclass
 class Forest:
-    """The trees of one frame's drawable blocks, flat: heights/δ at ``hoff[slot]``, the
-    depth-packed pyramids (depth ``d`` at ``poff[slot] + (4**d - 1) // 3``) at ``poff``."""
+    """The selector's cached trees, flat: tree ``i``'s heights/δ at ``hoff[i]``, its
+    depth-packed pyramids (depth ``d`` at ``poff[i] + (4**d - 1) // 3``) at ``poff[i]``."""
 
     key: tuple
     heights: np.ndarray
@@ -58,10 +58,17 @@ class Forest:
     zhi: np.ndarray
     hoff: np.ndarray
     poff: np.ndarray
+    #: the packed trees themselves: while the forest lives their ``id`` (in ``key``) is unique
+    trees: list = field(repr=False, default_factory=list)
+
+    @cached_property
+    def index(self) -> dict:
+        """Block -> position of its tree in the packed arrays (``key`` lists ``(block, ...)``)."""
+        return {k[0]: i for i, k in enumerate(self.key)}
 
     @classmethod
     def pack(cls, key: tuple, trees: list[BlockTree]) -> Forest:
-        """Concatenate the trees' arrays (in slot order)."""
+        """Concatenate the trees' arrays (in ``key``'s order)."""
         hs = [t.heights.ravel() for t in trees]
         hoff = np.cumsum([0] + [len(h) for h in hs])[:-1].astype(np.int64)
         pyr = [(t.dmax, t.zlo, t.zhi) for t in trees]
@@ -80,4 +87,5 @@ class Forest:
             cat([a for p in pyr for a in p[2]], np.float64),
             hoff,
             poff,
+            list(trees),
         )

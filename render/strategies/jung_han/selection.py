@@ -255,10 +255,14 @@ class JungHanSelector:
 
     def _traverse_nb(self, mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside):
         """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``)."""
-        key = tuple(pairs)
+        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
+        # costs more than the copy), not when the frame's set of blocks moves
+        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
         if self._forest is None or self._forest.key != key:
-            self._forest = jh_kernels.Forest.pack(key, trees)
+            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
         f = self._forest
+        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
+        hoff, poff = f.hoff[at], f.poff[at]
         g = self.r.grid
         roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
         p = as_polygon(poly)
@@ -277,7 +281,7 @@ class JungHanSelector:
         q = np.ascontiguousarray(pp)
         e = np.roll(q, -1, axis=0) - q  # as corners_inside
         tri, ts, tl, nodes, flags, clamped, self._evaluated = mod.traverse(
-            f.heights, f.delta, f.dmax, f.zlo, f.zhi, f.hoff, f.poff,
+            f.heights, f.delta, f.dmax, f.zlo, f.zhi, hoff, poff,
             lev, r0.astype(np.int64), c0.astype(np.int64), roots, inside[roots].astype(np.int64),
             np.ascontiguousarray(o, dtype=np.float64), ext, np.ascontiguousarray(normals),
             np.ascontiguousarray(pmin), np.ascontiguousarray(pmax), q, np.ascontiguousarray(e),
