@@ -78,6 +78,22 @@ def _vertex_error(basis, eye, focal, vw, vh, d, x, y, h):
 
 
 @_jit
+def _own_error(
+    nd, j, v, size, half, k, lev, hoff, r0, c0, hh, dl,
+    basis, eye, focal, vw, vh, x0, y0, dx, dy,
+):  # fmt: skip
+    """δ_s of own vertex ``v`` (C, T, B, L, R) of node ``j`` (``JungHanSelector._own``)."""
+    s = nd[j, 0]
+    sh = k - lev[s]
+    lr = nd[j, 2] * size + _OWN[v, 1] * half
+    lc = nd[j, 3] * size + _OWN[v, 0] * half
+    flat = hoff[s] + (lr >> sh) * ((1 << lev[s]) + 1) + (lc >> sh)
+    x = x0 + float(c0[s] + lc) * dx
+    y = y0 - float(r0[s] + lr) * dy
+    return _vertex_error(basis, eye, focal, vw, vh, float(dl[flat]), x, y, hh[flat])
+
+
+@_jit
 def _nanmax(a, b):
     if a != a or b != b:
         return np.nan
@@ -234,7 +250,6 @@ def traverse(
     cm = np.zeros((total, 4), np.int8)
     state = np.zeros(total, np.int8)
     bits = np.zeros(total, np.int64)
-    ds = np.empty(5)
     evaluated = 0
     clamped = 0
     for dd_ in range(len(starts) - 2, -1, -1):
@@ -255,25 +270,27 @@ def traverse(
                 st = 2
             else:
                 evaluated += 1
-                sh = k - lev[s]
-                wl = (1 << lev[s]) + 1
-                for v in range(5):
-                    lr = nd[j, 2] * size + _OWN[v, 1] * half
-                    lc = nd[j, 3] * size + _OWN[v, 0] * half
-                    flat = hoff[s] + (lr >> sh) * wl + (lc >> sh)
-                    x = x0 + float(c0[s] + lc) * dx
-                    y = y0 - float(r0[s] + lr) * dy
-                    dv = float(dl[flat])
-                    ds[v] = _vertex_error(basis, eye, focal, vw, vh, dv, x, y, hh[flat])
+                # a vertex's δ_s is only computed where the decision reads it (the edge
+                # midpoint: both triangles present; the centre: every edge removed, d >= 1)
                 allrem = True
                 fl = 0
                 for ed in range(4):
                     both = (present >> _EQ[ed, 0]) & (present >> _EQ[ed, 1]) & 1
-                    rem = both == 1 and ds[1 + ed] < tau
+                    rem = both == 1 and _own_error(
+                        nd, j, 1 + ed, size, half, k, lev, hoff, r0, c0, hh, dl,
+                        basis, eye, focal, vw, vh, x0, y0, dx, dy,
+                    ) < tau  # fmt: skip
                     allrem = allrem and rem
                     if rem:
                         fl |= 1 << (8 + ed)
-                st = 2 if (dd_ >= 1 and allrem and ds[0] < tau) else 1
+                st = 1
+                if dd_ >= 1 and allrem:
+                    e0 = _own_error(
+                        nd, j, 0, size, half, k, lev, hoff, r0, c0, hh, dl,
+                        basis, eye, focal, vw, vh, x0, y0, dx, dy,
+                    )  # fmt: skip
+                    if e0 < tau:
+                        st = 2
                 if st == 1:
                     for t in range(8):
                         qd = _FQ[t]
