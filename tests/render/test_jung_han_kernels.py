@@ -158,10 +158,17 @@ def test_positive_control_a_perturbed_delta_changes_the_output(stores, numba_ker
     assert "flags" in differences(a, c) and "tri" in differences(a, c)
 
 
-def test_backend_selection():
+def test_backend_selection(monkeypatch):
     assert jh_kernels.resolve("numpy") is None
     with pytest.raises(KernelUnavailableError):
         jh_kernels.resolve("fortran")
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "numpy")
+    assert jh_kernels.resolve() is None  # the environment forces the reference
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "auto")
+    monkeypatch.setattr(jh_kernels, "_load_numba", lambda: None)  # numba not installed
+    assert jh_kernels.resolve() is None
+    with pytest.raises(KernelUnavailableError):
+        jh_kernels.resolve("numba")
 
 
 def test_radix_sort_and_unique_equal_numpy(numba_kernels):
