@@ -60,7 +60,8 @@ def _timed(strategy, cam, tau, res) -> tuple[float, float, int]:
 
 
 def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, reps: int):
-    """Rows ``{store, size, strategy, backend, tau, wall_ms, cpu_ms, triangles}``."""
+    """Rows ``{store, size, strategy, backend, tau, wall_ms, cpu_ms, selected}`` (``selected``:
+    ``len`` of the selection, jung-han's drawn triangles, seamless-patches' leaf patches)."""
     from render.strategies import get_strategy
     from tiler.store import open_store
 
@@ -97,7 +98,7 @@ def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, re
                     "wall_ms": statistics.mean(statistics.median(p[0]) for p in per),
                     "cpu_ms": statistics.mean(statistics.median(p[1]) for p in per),
                     "wall_ms_max": max(statistics.median(p[0]) for p in per),
-                    "triangles": statistics.mean(p[2] for p in per),
+                    "selected": statistics.mean(p[2] for p in per),
                     "loadavg": os.getloadavg()[0],
                 }
             )
@@ -155,7 +156,7 @@ def main() -> None:
     sizes = [tuple(int(v) for v in s.split("x")) for s in a.sizes.split(",")]
     info = machine_info()
     rows, compile_s = [], {}
-    print("store size strategy backend tau wall_ms cpu_ms tris load1")
+    print("store size strategy backend tau wall_ms cpu_ms selected load1")
     for path in a.stores:
         if not Path(path).exists():
             print(f"# skipped {path}: missing (bench/tiling.py / bench/prefetch.py make it)")
@@ -169,7 +170,7 @@ def main() -> None:
                 print(
                     f"{row['store']} {row['size']} {row['strategy']} {row['backend']} "
                     f"{row['tau']:g} {row['wall_ms']:.2f} {row['cpu_ms']:.2f} "
-                    f"{row['triangles']:.0f} {row['loadavg']:.2f}",
+                    f"{row['selected']:.0f} {row['loadavg']:.2f}",
                     flush=True,
                 )
     info["loadavg_at_end"] = os.getloadavg()
