@@ -35,9 +35,13 @@ class JungHan(JungHanSelector, Strategy[JHSelection]):
     what = "drawing jung-han blocks"
 
     def __init__(
-        self, renderer: FrameServices, prune: bool = True, culled_collapse: bool = True
+        self,
+        renderer: FrameServices,
+        prune: bool = True,
+        culled_collapse: bool = True,
+        kernels: str | None = None,
     ) -> None:
-        JungHanSelector.__init__(self, renderer, prune, culled_collapse)
+        JungHanSelector.__init__(self, renderer, prune, culled_collapse, kernels)
         ctx = renderer.ctx
         vs = shaders.source(Path(__file__).with_name("jung_han.vert"))
         self.prog = ctx.program(vertex_shader=vs, fragment_shader=shaders.FRAGMENT)

@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from render.select import check_tau
+from render.strategies.jung_han import kernels as jh_kernels
 from render.strategies.jung_han.pure import (
     BITS,
     EDGE_QUADS,
@@ -28,7 +29,7 @@ from render.strategies.jung_han.pure import (
     vertex_errors,
 )
 from streamer.camera import Camera
-from streamer.frustum import frustum_hull, polygon_meets_rects
+from streamer.frustum import as_polygon, frustum_hull, polygon_meets_rects
 from tiler.layout import trailing_zeros
 
 Block = tuple[int, int]
@@ -39,11 +40,21 @@ class JungHanSelector:
 
     stitching = True  # False: no height adjustment nor split (crack positive control)
 
-    def __init__(self, renderer, prune: bool = True, culled_collapse: bool = True) -> None:
+    def __init__(
+        self,
+        renderer,
+        prune: bool = True,
+        culled_collapse: bool = True,
+        kernels: str | None = None,
+    ) -> None:
         self.r = renderer
         self.prune = prune
         self.culled_collapse = culled_collapse
+        #: backend of the traversal: None = ``TERRASTREAM_KERNELS`` (auto), "numba", "numpy"
+        self.kernels = kernels
         self._trees: dict[Block, BlockTree] = {}
+        self._forest: jh_kernels.Forest | None = None
+        self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
 
@@ -89,7 +100,12 @@ class JungHanSelector:
         box = self._box(r0, c0, 1 << k)
         meets = polygon_meets_rects(poly, *box)
         inside = corners_inside(poly, *box)
-        parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
+        mod = self._mod = jh_kernels.resolve(self.kernels)
+        if mod is None:
+            parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
+        else:
+            args = (camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside)
+            parts = self._traverse_nb(mod, *args)
         tris, tslot, tlev, nodes, flags, clamped = parts
         corner = np.flatnonzero(meets & (lev == 0))
         if len(corner):
@@ -237,6 +253,52 @@ class JungHanSelector:
             tlev.append(np.full(len(j), d + 1, dtype=np.int64))
         return tris, tslot, tlev, nodes, flags, clamped
 
+    def _traverse_nb(self, mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside):
+        """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``)."""
+        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
+        # costs more than the copy), not when the frame's set of blocks moves
+        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
+        if self._forest is None or self._forest.key != key:
+            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
+        f = self._forest
+        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
+        hoff, poff = f.hoff[at], f.poff[at]
+        g = self.r.grid
+        roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
+        p = as_polygon(poly)
+        o = p[0] if len(p) else np.zeros(2)
+        pp = p - o
+        ext = np.zeros(4)
+        normals = np.zeros((0, 2))
+        pmin = pmax = np.zeros(0)
+        if len(pp):
+            ext = np.array([pp[:, 0].min(), pp[:, 0].max(), pp[:, 1].min(), pp[:, 1].max()])
+        if len(pp) >= 2:  # as polygon_meets_rects
+            e = np.roll(pp, -1, axis=0) - pp
+            normals = np.stack([-e[:, 1], e[:, 0]], axis=1)
+            proj = pp @ normals.T
+            pmin, pmax = proj.min(axis=0), proj.max(axis=0)
+        q = np.ascontiguousarray(pp)
+        e = np.roll(q, -1, axis=0) - q  # as corners_inside
+        tri, ts, tl, nodes, flags, clamped, self._evaluated = mod.traverse(
+            f.heights, f.delta, f.dmax, f.zlo, f.zhi, hoff, poff,
+            lev, r0.astype(np.int64), c0.astype(np.int64), roots, inside[roots].astype(np.int64),
+            np.ascontiguousarray(o, dtype=np.float64), ext, np.ascontiguousarray(normals),
+            np.ascontiguousarray(pmin), np.ascontiguousarray(pmax), q, np.ascontiguousarray(e),
+            np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
+            float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
+            float(g.x0), float(g.y0), float(g.dx), float(g.dy), int(self.r.k),
+            bool(self.prune), bool(self.culled_collapse),
+        )  # fmt: skip
+        return [tri], [ts], [tl], [nodes], [flags], int(clamped)
+
+    def _unique(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sorted unique keys, first occurrences, inverse (``np.unique``; compiled with numba)."""
+        if self._mod is None or not len(key) or key.min() < 0:
+            uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
+            return uk, first, inv.ravel()
+        return self._mod.unique_index(np.ascontiguousarray(key, dtype=np.int64))
+
     def _assemble(self, blocks, lev, trees, r0, c0, tris, tslot, tlev, nodes, flags):
         """Drawn heights, the crack pass, and the GPU vertex/index arrays."""
         k, g = self.r.k, self.r.grid
@@ -251,15 +313,18 @@ class JungHanSelector:
         wg = g.cols * g.step + 1
         cs, rs = tri[..., 0].ravel(), tri[..., 1].ravel()
         key = rs * wg + cs
-        uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
-        inv = inv.ravel()
+        uk, first, inv = self._unique(key)
         s3 = np.repeat(slot, 3)
         sh = k - lev[s3]
         flat = ((rs - r0[s3]) >> sh) * ((1 << lev[s3]) + 1) + ((cs - c0[s3]) >> sh)
         h_corner = gather([t.heights for t in trees], s3, flat)
         hv = h_corner[first]
         vrow, vcol = uk // wg, uk % wg
-        ids, ends, frac = t_junctions(tri, vcol, vrow)
+        mod = self._mod
+        if mod is None:
+            ids, ends, frac = t_junctions(tri, vcol, vrow)
+        else:
+            ids, ends, frac = mod.t_junctions(np.ascontiguousarray(tri), vcol, vrow)
         if not self.stitching:  # the positive control: no height adjustment, no split
             ids = ids[:0]
         if len(ids):
@@ -278,8 +343,12 @@ class JungHanSelector:
                 hv[ids[w]] = np.where(np.isfinite(new) & np.isfinite(old), new, old)
         adjusted = np.stack([vcol[ids], vrow[ids]], -1)
         jh_count = len(tri)
-        if self.stitching:
+        if self.stitching and (mod is None or not len(tri)):
             tri, slot, tl = conform(tri, slot, tl, vcol, vrow)
+        elif self.stitching:
+            tri, slot, tl, ok = mod.conform(np.ascontiguousarray(tri), slot, tl, vcol, vrow)
+            if not ok:
+                raise RuntimeError("conforming split did not converge")
         tkey = tri[..., 1] * wg + tri[..., 0]
         inv = np.searchsorted(uk, tkey.ravel())
         tri_h = hv[inv].reshape(-1, 3)
@@ -287,7 +356,7 @@ class JungHanSelector:
         # GPU vertices: one per (slot, drawn level, sample)
         nv = len(uk)
         gk = (s3 * 16 + np.repeat(tl, 3)) * max(nv, 1) + inv
-        guk, gfirst, ginv = np.unique(gk, return_index=True, return_inverse=True)
+        guk, gfirst, ginv = self._unique(gk)
         vid = inv[gfirst]
         return JHSelection(
             blocks=blocks,

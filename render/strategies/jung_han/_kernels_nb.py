@@ -1,0 +1,327 @@
+"""Numba kernels of ``jung-han``'s per-frame selection (imported lazily by
+:mod:`render.strategies.jung_han.kernels`; the numpy code in ``selection.py`` / ``pure.py`` is
+the reference).
+
+:func:`traverse` is ``JungHanSelector._traverse`` in one compiled pass: the same top-down
+breadth-first traversal (hull tests, pruning bound, leaves), the same bottom-up pass (12 flags,
+both-triangles rule, collapse) and the triangles, nodes and flags in the same order. Every
+operation repeats the numpy expression in the same order and precision, except the camera
+transform: numpy's ``rel @ basis.T`` goes through BLAS, whose rounding (FMA, blocking) depends on
+the batch size, so camera coordinates may differ from the reference's in the last bit; a result
+can only change where a ``δ_s`` or a bound lies within a few ulps of τ (the tests compare both
+paths exactly on several scenes). No fastmath (NaN and ∞ are meaningful here). The mesh
+assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb`` and are
+re-exported here.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kernels, re-exported)
+    _argsort_stable,
+    _jit,
+    conform,
+    t_junctions,
+    unique_index,
+)
+from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE
+
+_OWN = OWN.astype(np.int64)
+_EQ = EDGE_QUADS.astype(np.int64)
+_FQ = FAN_QUAD.astype(np.int64)
+_FE = FAN_EDGE.astype(np.int64)
+_TEMPLATE = TEMPLATE.astype(np.int64)
+
+
+@_jit
+def _cam(basis, eye, x, y, z):
+    rx, ry, rz = x - eye[0], y - eye[1], z - eye[2]
+    c0 = rx * basis[0, 0] + ry * basis[0, 1] + rz * basis[0, 2]
+    c1 = rx * basis[1, 0] + ry * basis[1, 1] + rz * basis[1, 2]
+    c2 = rx * basis[2, 0] + ry * basis[2, 1] + rz * basis[2, 2]
+    return c0, c1, c2
+
+
+@_jit
+def _project(basis, eye, focal, vw, vh, x, y, z):
+    c0, c1, c2 = _cam(basis, eye, x, y, z)
+    s = focal / c2 if c2 > 0.0 else np.nan
+    return vw / 2.0 + c0 * s, vh / 2.0 - c1 * s
+
+
+@_jit
+def _vertex_error(basis, eye, focal, vw, vh, d, x, y, h):
+    """``vertex_errors`` of one vertex (``exact_projected``, 0 for δ = 0, ∞ if undefined)."""
+    if d == 0.0:
+        return 0.0
+    x0, y0 = _project(basis, eye, focal, vw, vh, x, y, h)
+    x1, y1 = _project(basis, eye, focal, vw, vh, x, y, h + d)
+    rho = math.hypot(x1 - x0, y1 - y0)
+    return rho if math.isfinite(rho) else np.inf
+
+
+@_jit
+def _own_error(
+    nd, j, v, size, half, k, lev, hoff, r0, c0, hh, dl,
+    basis, eye, focal, vw, vh, x0, y0, dx, dy,
+):  # fmt: skip
+    """δ_s of own vertex ``v`` (C, T, B, L, R) of node ``j`` (``JungHanSelector._own``)."""
+    s = nd[j, 0]
+    sh = k - lev[s]
+    lr = nd[j, 2] * size + _OWN[v, 1] * half
+    lc = nd[j, 3] * size + _OWN[v, 0] * half
+    flat = hoff[s] + (lr >> sh) * ((1 << lev[s]) + 1) + (lc >> sh)
+    x = x0 + float(c0[s] + lc) * dx
+    y = y0 - float(r0[s] + lr) * dy
+    return _vertex_error(basis, eye, focal, vw, vh, float(dl[flat]), x, y, hh[flat])
+
+
+@_jit
+def _nanmax(a, b):
+    if a != a or b != b:
+        return np.nan
+    return a if a >= b else b
+
+
+@_jit
+def _nanmin(a, b):
+    if a != a or b != b:
+        return np.nan
+    return a if a <= b else b
+
+
+@_jit
+def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi):
+    """``projected_bound`` of one box."""
+    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
+    zmin = np.inf
+    gain = -np.inf
+    for i in range(8):
+        x = xmax if (i >> 2) & 1 else xmin
+        y = ymax if (i >> 1) & 1 else ymin
+        z = zhi if i & 1 else zlo
+        c0, c1, c2 = _cam(basis, eye, x, y, z)
+        zmin = _nanmin(zmin, c2) if i else c2
+        qx, qy = c0 / c2, c1 / c2
+        g = math.hypot(u0 - qx * u2, u1 - qy * u2)
+        gain = _nanmax(gain, g) if i else g
+    b = focal * dmax * gain / zmin
+    if not zmin > 0.0:
+        b = np.inf
+    if dmax == 0.0:
+        b = 0.0
+    return b * (1.0 + 1e-9) + 1e-9
+
+
+@_jit
+def _meets(o, pmin_x, pmax_x, pmin_y, pmax_y, normals, pmin, pmax, xmin, ymin, xmax, ymax):
+    """``polygon_meets_rects`` of one rectangle (SAT; per-axis extents precomputed)."""
+    if not (
+        (xmin - o[0] <= pmax_x)
+        and (xmax - o[0] >= pmin_x)
+        and (ymin - o[1] <= pmax_y)
+        and (ymax - o[1] >= pmin_y)
+    ):
+        return False
+    cx = ((xmin - o[0]) + (xmax - o[0])) * 0.5
+    cy = ((ymin - o[1]) + (ymax - o[1])) * 0.5
+    hx = (xmax - xmin) * 0.5
+    hy = (ymax - ymin) * 0.5
+    for i in range(normals.shape[0]):
+        c = cx * normals[i, 0] + cy * normals[i, 1]
+        r = hx * abs(normals[i, 0]) + hy * abs(normals[i, 1])
+        if not ((c - r <= pmax[i]) and (c + r >= pmin[i])):
+            return False
+    return True
+
+
+@_jit
+def _inside(o, q, e, xmin, ymin, xmax, ymax):
+    """``corners_inside`` of one rectangle (``q``/``e``: polygon minus ``o`` and its edges)."""
+    if q.shape[0] < 3:
+        return False
+    for c in range(4):
+        x = xmin if c == 0 or c == 3 else xmax
+        y = ymin if c < 2 else ymax
+        for i in range(q.shape[0]):
+            dx = (x - o[0]) - q[i, 0]
+            dy = (y - o[1]) - q[i, 1]
+            if not (e[i, 0] * dy - e[i, 1] * dx >= 0.0):
+                return False
+    return True
+
+
+@_jit
+def _grow2(a):
+    out = np.empty((2 * a.shape[0], a.shape[1]), a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@_jit
+def _grow1(a):
+    out = np.zeros(2 * a.shape[0], a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@_jit
+def traverse(
+    hh, dl, dmx, zlo, zhi, hoff, poff, lev, r0, c0, roots, root_inside,
+    o, pext, normals, pmin, pmax, q, e,
+    basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse,
+):  # fmt: skip
+    """The pruned top-down + bottom-up pass of one frame: ``(tri, tslot, tlev, nodes, flags,
+    clamped, evaluated)`` in the numpy reference's order (see the module notes)."""
+    cap = max(64, 4 * roots.shape[0])
+    nd = np.empty((cap, 8), np.int64)  # slot, idx, row, col, inside, parent, quad, depth
+    pr = np.zeros(cap, np.bool_)  # pruned
+    nr = roots.shape[0]
+    for i in range(nr):
+        nd[i, 0], nd[i, 1], nd[i, 2], nd[i, 3] = roots[i], 0, 0, 0
+        nd[i, 4], nd[i, 5], nd[i, 6], nd[i, 7] = root_inside[i], -1, -1, 0
+    starts = [0]
+    lo, hi, d = 0, nr, 0
+    while hi > lo:
+        size = 1 << (k - d)
+        half = size >> 1
+        n_new = hi
+        for j in range(lo, hi):
+            s = nd[j, 0]
+            leaf = lev[s] - 1 == d
+            if prune and d >= 1 and (nd[j, 4] or culled_collapse):
+                ii = poff[s] + ((1 << (2 * d)) - 1) // 3 + nd[j, 1]
+                xmin = x0 + float(c0[s] + nd[j, 3] * size) * dx
+                ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
+                b = _bound(
+                    basis, eye, focal, float(dmx[ii]), xmin, xmin + size * dx,
+                    ymax - size * dy, ymax, zlo[ii], zhi[ii],
+                )  # fmt: skip
+                pr[j] = b < tau
+            if pr[j] or leaf:
+                continue
+            for qd in range(4):
+                row = 2 * nd[j, 2] + 1 - (qd >> 1)
+                col = 2 * nd[j, 3] + (qd & 1)
+                ins = nd[j, 4] != 0
+                hit = ins
+                if not ins:
+                    xmin = x0 + float(c0[s] + col * half) * dx
+                    ymax = y0 - float(r0[s] + row * half) * dy
+                    xmax, ymin = xmin + half * dx, ymax - half * dy
+                    hit = _meets(
+                        o, pext[0], pext[1], pext[2], pext[3], normals, pmin, pmax,
+                        xmin, ymin, xmax, ymax,
+                    )  # fmt: skip
+                    ins = hit and _inside(o, q, e, xmin, ymin, xmax, ymax)
+                if not hit:
+                    continue
+                if n_new >= nd.shape[0]:
+                    nd = _grow2(nd)
+                    pr = _grow1(pr)
+                nd[n_new, 0], nd[n_new, 1] = s, 4 * nd[j, 1] + qd
+                nd[n_new, 2], nd[n_new, 3], nd[n_new, 4] = row, col, ins
+                nd[n_new, 5], nd[n_new, 6], nd[n_new, 7] = j, qd, d + 1
+                pr[n_new] = False
+                n_new += 1
+        lo, hi = hi, n_new
+        if hi > lo:
+            starts.append(lo)
+            d += 1
+    total = hi
+    starts.append(total)
+    cm = np.zeros((total, 4), np.int8)
+    state = np.zeros(total, np.int8)
+    bits = np.zeros(total, np.int64)
+    evaluated = 0
+    clamped = 0
+    for dd_ in range(len(starts) - 2, -1, -1):
+        size = 1 << (k - dd_)
+        half = size >> 1
+        for j in range(starts[dd_], starts[dd_ + 1]):
+            s = nd[j, 0]
+            leaf = lev[s] - 1 == dd_
+            present = 0  # bit q: quadrant q present / culled
+            culled = 0
+            for qd in range(4):
+                cu = (not leaf) and cm[j, qd] == 0
+                if cu:
+                    culled |= 1 << qd
+                if leaf or cm[j, qd] == 2 or (cu and culled_collapse):
+                    present |= 1 << qd
+            if pr[j]:
+                st = 2
+            else:
+                evaluated += 1
+                # a vertex's δ_s is only computed where the decision reads it (the edge
+                # midpoint: both triangles present; the centre: every edge removed, d >= 1)
+                allrem = True
+                fl = 0
+                for ed in range(4):
+                    both = (present >> _EQ[ed, 0]) & (present >> _EQ[ed, 1]) & 1
+                    rem = both == 1 and _own_error(
+                        nd, j, 1 + ed, size, half, k, lev, hoff, r0, c0, hh, dl,
+                        basis, eye, focal, vw, vh, x0, y0, dx, dy,
+                    ) < tau  # fmt: skip
+                    allrem = allrem and rem
+                    if rem:
+                        fl |= 1 << (8 + ed)
+                st = 1
+                if dd_ >= 1 and allrem:
+                    e0 = _own_error(
+                        nd, j, 0, size, half, k, lev, hoff, r0, c0, hh, dl,
+                        basis, eye, focal, vw, vh, x0, y0, dx, dy,
+                    )  # fmt: skip
+                    if e0 < tau:
+                        st = 2
+                if st == 1:
+                    for t in range(8):
+                        qd = _FQ[t]
+                        pq, cq = (present >> qd) & 1, (culled >> qd) & 1
+                        if pq and not (fl >> (8 + _FE[t])) & 1 and not cq:
+                            fl |= 1 << t
+                    bits[j] = fl
+                    if fl != 0 and leaf and lev[s] < k:
+                        clamped += 1
+            state[j] = st
+            if nd[j, 5] >= 0:
+                cm[nd[j, 5], nd[j, 6]] = st
+    ntri = 0
+    nnode = 0
+    for j in range(total):
+        if bits[j] != 0:
+            nnode += 1
+            for t in range(12):
+                ntri += (bits[j] >> t) & 1
+    tri = np.empty((ntri, 3, 2), np.int64)
+    tslot = np.empty(ntri, np.int64)
+    tlev = np.empty(ntri, np.int64)
+    nodes = np.empty((nnode, 3), np.int64)
+    flags = np.empty(nnode, np.int64)
+    it = 0
+    ino = 0
+    for dd_ in range(len(starts) - 2, -1, -1):
+        size = 1 << (k - dd_)
+        half = size >> 1
+        for j in range(starts[dd_], starts[dd_ + 1]):
+            fl = bits[j]
+            if fl == 0:
+                continue
+            s = nd[j, 0]
+            nodes[ino, 0], nodes[ino, 1], nodes[ino, 2] = s, dd_, nd[j, 1]
+            flags[ino] = fl
+            ino += 1
+            oc = c0[s] + nd[j, 3] * size
+            orr = r0[s] + nd[j, 2] * size
+            for t in range(12):
+                if (fl >> t) & 1:
+                    for v in range(3):
+                        tri[it, v, 0] = oc + _TEMPLATE[t, v, 0] * half
+                        tri[it, v, 1] = orr + _TEMPLATE[t, v, 1] * half
+                    tslot[it] = s
+                    tlev[it] = dd_ + 1
+                    it += 1
+    return tri, tslot, tlev, nodes, flags, clamped, evaluated

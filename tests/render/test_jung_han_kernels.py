@@ -1,0 +1,200 @@
+"""``jung-han``'s compiled selection against the numpy reference (no GL: the selector runs on
+a stand-in for the frame services, so these run without an EGL context)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gltools import rough, tile_dem
+
+from render.strategies.jung_han import JungHanSelector
+from render.strategies.jung_han import kernels as jh_kernels
+from streamer.camera import Camera
+from tiler.errors import KernelUnavailableError
+from tiler.store import open_store
+
+SIZE = (128, 96)
+FIELDS = ("tri", "tri_h", "tri_slot", "tri_level", "nodes", "flags", "adjusted")
+GPU = ("v_slot", "v_level", "v_cr", "v_h", "index")
+COUNTS = ("clamped", "evaluated", "jh_triangles", "corner_blocks")
+TAUS = (0.0, 0.05, 0.5, 1.0, 4.0, 1e6, np.inf)
+
+
+class Services:
+    """What :class:`JungHanSelector` reads of the frame services, every block resident."""
+
+    def __init__(self, path) -> None:
+        self.store = open_store(path)
+        self.grid = self.store.grid
+        self.k = self.store.k
+        idx = self.store.index
+        self.terrain_zrange = (float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax)))
+        self._masks: dict = {}
+
+    def mask(self, block):
+        """The block's validity mask (None without nodata)."""
+        if block not in self._masks:
+            has = bool(self.store.index.has_nodata[block])
+            self._masks[block] = self.store.read_mask(block) if has else None
+        return self._masks[block]
+
+    def gpu_level(self, block) -> int:
+        """Every block is resident at level k."""
+        return self.k
+
+    def drawable(self, resident=None):
+        """``(block, level)`` sorted, as ``FrameServices.drawable``."""
+        levels = resident if resident is not None else {b: self.k for b in self.store.blocks()}
+        pairs = sorted((tuple(b), min(int(lv), self.k)) for b, lv in levels.items() if lv >= 0)
+        return [(b, lv) for b, lv in pairs if lv >= 0]
+
+
+def differences(a, b) -> list[str]:
+    """Names of the selection arrays and counts that differ between ``a`` and ``b``."""
+    out = []
+    for f in FIELDS + GPU:
+        x, y = getattr(a, f), getattr(b, f)
+        if x.shape != y.shape or x.dtype != y.dtype or not np.array_equal(x, y, equal_nan=True):
+            out.append(f)
+    out += [c for c in COUNTS if getattr(a, c) != getattr(b, c)]
+    if a.blocks != b.blocks or not np.array_equal(a.levels, b.levels):
+        out.append("blocks")
+    return out
+
+
+def _pair(path, **kw):
+    svc = Services(path)
+    return JungHanSelector(svc, kernels="numpy", **kw), JungHanSelector(svc, kernels="numba", **kw)
+
+
+@pytest.fixture(scope="module")
+def numba_kernels():
+    pytest.importorskip("numba")
+    return jh_kernels.resolve("numba")
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    def make(name, dem, block, **kw):
+        return tile_dem(tmp_path_factory.mktemp(name), dem, block, **kw)
+
+    n = 129
+    yy, xx = np.mgrid[0:n, 0:n]
+    hole = rough(n, 5).astype(np.float32)
+    hole[30:70, 10:50] = np.nan  # nodata beside terrain
+    return {
+        "flat": make("flat", np.full((65, 65), 300, np.int16), 33),
+        "plane": make("plane", (100 + 2 * xx + 3 * yy).astype(np.int16), 33),
+        "rough": make("rough", rough(n, 3), 33),
+        "nodata": make("nodata", hole, 33, nodata=np.nan),
+    }
+
+
+def _cameras(svc: Services) -> dict[str, Camera]:
+    g = svc.grid
+    x0, y0 = g.x0, g.y0
+    w, h = g.cols * g.step * g.dx, g.rows * g.step * g.dy
+    zlo, zhi = svc.terrain_zrange
+    cx, cy = x0 + 0.5 * w, y0 - 0.5 * h
+    return {
+        "nadir": Camera((cx, cy, zhi + 2 * w), pitch=-90.0, viewport=SIZE, near=5.0, far=1e5),
+        "oblique": Camera.look_at(
+            (x0 + 0.15 * w, y0 - 1.1 * h, zhi + 0.4 * w), (cx, cy, zlo), viewport=SIZE, near=5.0
+        ),
+        "ground": Camera(
+            (x0 + 0.3 * w, y0 - 0.6 * h, zhi + 2.0), yaw=40.0, pitch=-3.0, viewport=SIZE, near=0.5
+        ),
+        "far": Camera((cx, cy, zhi + 1e6), pitch=-90.0, viewport=SIZE, near=1e3, far=1e7),
+    }
+
+
+@pytest.mark.parametrize("scene", ["flat", "plane", "rough", "nodata"])
+def test_compiled_selection_equals_the_numpy_reference(stores, numba_kernels, scene):
+    ref, fast = _pair(stores[scene])
+    drawn = 0
+    for name, cam in _cameras(ref.r).items():
+        for tau in TAUS:
+            a, _ = ref.select(cam, tau)
+            b, _ = fast.select(cam, tau)
+            assert differences(a, b) == [], (scene, name, tau)
+            drawn += len(a)
+    assert drawn > 0
+
+
+@pytest.mark.parametrize("kw", [{"prune": False}, {"culled_collapse": False}])
+def test_compiled_selection_equals_the_reference_unpruned_and_literal(stores, numba_kernels, kw):
+    ref, fast = _pair(stores["rough"], **kw)
+    for cam in _cameras(ref.r).values():
+        for tau in (0.5, 2.0):
+            assert differences(ref.select(cam, tau)[0], fast.select(cam, tau)[0]) == []
+
+
+def test_compiled_selection_equals_the_reference_with_mixed_levels(stores, numba_kernels):
+    ref, fast = _pair(stores["rough"])
+    k = ref.r.k
+    res = {b: (k - 1 - (b[0] + b[1]) % 3) for b in ref.r.store.blocks()}
+    res[(0, 0)] = 0  # drawn as its 2 corner triangles
+    cam = _cameras(ref.r)["oblique"]
+    for tau in (0.0, 1.0, 3.0):
+        a, _ = ref.select(cam, tau, resident=res)
+        b, _ = fast.select(cam, tau, resident=res)
+        assert len(a.adjusted) or tau == 0.0
+        assert differences(a, b) == []
+
+
+def test_positive_control_a_perturbed_delta_changes_the_output(stores, numba_kernels):
+    ref, fast = _pair(stores["rough"])
+    cam = _cameras(ref.r)["nadir"]
+    a, _ = ref.select(cam, 1e6)  # everything collapses to the roots' 2 triangles
+    b, _ = fast.select(cam, 1e6)
+    assert differences(a, b) == []
+    f = fast._forest
+    k = ref.r.k
+    lv = int(b.levels[0])
+    half = 1 << (k - 1)
+    flat = half >> (k - lv)  # vertex T of the first root: row 0, col half
+    f.delta[f.hoff[f.index[b.blocks[0]]] + flat] = 1e30  # its δ_s is huge: the edge is kept
+    c, _ = fast.select(cam, 1e6)
+    assert "flags" in differences(a, c) and "tri" in differences(a, c)
+
+
+def test_backend_selection(monkeypatch):
+    assert jh_kernels.resolve("numpy") is None
+    with pytest.raises(KernelUnavailableError):
+        jh_kernels.resolve("fortran")
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "numpy")
+    assert jh_kernels.resolve() is None  # the environment forces the reference
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "auto")
+    monkeypatch.setattr(jh_kernels, "_load_numba", lambda: None)  # numba not installed
+    assert jh_kernels.resolve() is None
+    with pytest.raises(KernelUnavailableError):
+        jh_kernels.resolve("numba")
+
+
+def test_radix_sort_and_unique_equal_numpy(numba_kernels):
+    rng = np.random.default_rng(7)
+    for n, top in ((0, 1), (1, 5), (50, 3), (5000, 10**10), (3000, 2**62)):
+        keys = rng.integers(0, top, n, dtype=np.int64)
+        order = numba_kernels._argsort_stable(keys)
+        assert np.array_equal(order, np.argsort(keys, kind="stable"))  # ties in input order
+        if n:
+            uk, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+            got = numba_kernels.unique_index(keys)
+            for x, y in zip((uk, first, inv.ravel()), got, strict=True):
+                assert np.array_equal(x, y)
+
+
+def test_forest_is_packed_once_while_the_frames_blocks_move(stores, numba_kernels):
+    ref, fast = _pair(stores["rough"])
+    cam = _cameras(ref.r)["oblique"]
+    k = ref.r.k
+    blocks = sorted(ref.r.store.blocks())
+    fast.select(cam, 1.0)
+    forest = fast._forest
+    for part in (blocks[: len(blocks) // 2], blocks[1::2], blocks):
+        res = {b: k for b in part}
+        a, _ = ref.select(cam, 1.0, resident=res)
+        b, _ = fast.select(cam, 1.0, resident=res)
+        assert differences(a, b) == [] and fast._forest is forest
+    fast.select(cam, 1.0, resident={b: k - 1 for b in blocks})  # trees rebuilt: packed again
+    assert fast._forest is not forest
