@@ -56,11 +56,13 @@ def flythrough(
 
     Example: terrastream flythrough demo.zarr --frames 120 --tau 1 --out frames/
     """
+    from render.pipeline import ViewOptions
     from render.pipeline import flythrough as run
     from streamer.run import make_path
 
     with fail_on_errors():
         viewport = parse_size(size)
+        opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
         input_file(path, "--path")
         output_dir(out, "--out")
         s = open_store_arg(store, projected=True)
@@ -81,15 +83,12 @@ def flythrough(
             s,
             cams,
             out,
-            tau=tau,
-            metric=metric,
-            patch_log2=patch_log2,
             workers=workers,
             budget_mb=budget_mb,
             fps=fps,
             save_every=every,
             on_frame=on_frame,
-            lod=lod,
+            options=opts,
         )
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
         typer.echo(

@@ -55,13 +55,14 @@ def tradeoff(
 
     Example: terrastream tradeoff demo.zarr --taus 0.5,1,2,4,8 --json t.json --plot t.png
     """
-    from render.pipeline import TABLE_HEADER, plot_tradeoff
+    from render.pipeline import TABLE_HEADER, ViewOptions, plot_tradeoff
     from render.pipeline import tradeoff as run
     from render.views import make_camera
 
     with fail_on_errors():
         viewport = parse_size(size)
         values = parse_taus(taus)
+        opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
         s = open_store_arg(store, projected=True)
@@ -69,16 +70,7 @@ def tradeoff(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
         typer.echo(TABLE_HEADER)
-        rows = run(
-            s,
-            cam,
-            values,
-            metric=metric,
-            patch_log2=patch_log2,
-            repeats=repeats,
-            log=typer.echo,
-            lod=lod,
-        )
+        rows = run(s, cam, values, repeats=repeats, log=typer.echo, options=opts)
         if rows:
             typer.echo(
                 f"reference (full resolution): {rows[0].reference_triangles:,} triangles, "
