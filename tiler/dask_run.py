@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -119,7 +118,7 @@ def run_blocks_dask(
     on_done: Callable[[list[tuple[int, int]]], None] | None = None,
 ) -> str:
     """Compute ``todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
-    from tiler.run import MIRROR_INTERVAL_S, kernels_for, mark_done, open_for_write
+    from tiler.run import BlockProgress, kernels_for
 
     if not loc.can_share_with_processes:
         raise SchedulerError(
@@ -139,12 +138,9 @@ def run_blocks_dask(
         gdal_cache_mb=opts.gdal_cache_mb,
         kernels_backend=kernels_for(grid),
     )
-    done_arr = open_for_write(loc.for_workers(), "index/done")
-    itemsize = np.dtype(params.dtype).itemsize
+    progress = BlockProgress(loc.for_workers(), grid, params, done, report, on_done)
     pending: set[Any] = set()
     block_of: dict[str, tuple[int, int]] = {}
-    unmirrored: list[tuple[int, int]] = []
-    last_mirror = time.monotonic()
     it = iter(todo)
 
     def submit_more() -> None:
@@ -165,18 +161,7 @@ def run_blocks_dask(
             pending.add(fut)
 
     def collect(finished: set[Any], *, final: bool = False) -> None:
-        nonlocal last_mirror
-        blocks = [block_of[f.key] for f in finished if f.status == "finished"]
-        unmirrored.extend(blocks)
-        if time.monotonic() - last_mirror > MIRROR_INTERVAL_S:
-            mark_done(done_arr, done, unmirrored, grid)
-            unmirrored.clear()
-            last_mirror = time.monotonic()
-        for b in blocks:
-            _, _, h, w = grid.block_window(*b)
-            report(1, h * w * itemsize)
-        if on_done is not None and blocks and not final:
-            on_done(blocks)  # e.g. write a shard whose blocks are all done
+        progress.add([block_of[f.key] for f in finished if f.status == "finished"], final=final)
 
     try:
         submit_more()
@@ -206,8 +191,7 @@ def run_blocks_dask(
         collect({f for f in pending if f.status == "finished"}, final=True)  # they stay done
         raise
     finally:
-        mark_done(done_arr, done, unmirrored, grid)
-        unmirrored.clear()
+        progress.flush()
         client.close()
         if cluster is not None:
             cluster.close()

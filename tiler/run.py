@@ -86,6 +86,48 @@ class BlockWorker:
         self.ds.close()
 
 
+class BlockProgress:
+    """The client side of a run (local pools and dask alike): finished blocks are mirrored into
+    ``index/done`` at most every ``MIRROR_INTERVAL_S``, reported to ``report`` (blocks, bytes)
+    and passed to ``on_done``."""
+
+    def __init__(
+        self,
+        target: Any,
+        grid: BlockGrid,
+        params: Any,
+        done: np.ndarray,
+        report: Callable[[int, int], None],
+        on_done: Callable[[list[tuple[int, int]]], None] | None,
+    ) -> None:
+        self.done_arr = open_for_write(target, "index/done")
+        self.grid, self.done, self.report, self.on_done = grid, done, report, on_done
+        self.itemsize = np.dtype(params.dtype).itemsize
+        self.unmirrored: list[tuple[int, int]] = []
+        self.last_mirror = time.monotonic()
+
+    def add(
+        self, blocks: list[tuple[int, int]], *, flush: bool = False, final: bool = False
+    ) -> None:
+        """Record finished ``blocks`` (``final``: the run is ending, ``on_done`` is not called)."""
+        self.unmirrored.extend(blocks)
+        # index/done mirrors the journal (the journal is what resuming trusts): rewrite its
+        # chunks at most every MIRROR_INTERVAL_S
+        if flush or time.monotonic() - self.last_mirror > MIRROR_INTERVAL_S:
+            self.flush()
+        for b in blocks:
+            _, _, h, w = self.grid.block_window(*b)
+            self.report(1, h * w * self.itemsize)
+        if self.on_done is not None and blocks and not final:
+            self.on_done(blocks)  # e.g. write a shard whose blocks are all done (main thread)
+
+    def flush(self) -> None:
+        """Mirror every recorded block into ``index/done`` now."""
+        mark_done(self.done_arr, self.done, self.unmirrored, self.grid)
+        self.unmirrored.clear()
+        self.last_mirror = time.monotonic()
+
+
 _PROCESS_WORKER: BlockWorker | None = None
 
 
@@ -230,8 +272,7 @@ def _run_local(
     executor = choose_executor(opts, loc, len(todo))
     local = threading.local()
     thread_workers: list[BlockWorker] = []
-    done_arr = open_for_write(target, "index/done")
-    itemsize = np.dtype(params.dtype).itemsize
+    progress = BlockProgress(target, grid, params, done, report, on_done)
 
     def thread_run(br: int, bc: int) -> tuple[int, int]:
         w = getattr(local, "worker", None)
@@ -256,27 +297,9 @@ def _run_local(
     pending: set[Future] = set()
     it = iter(todo)
 
-    unmirrored: list[tuple[int, int]] = []
-    last_mirror = [time.monotonic()]
-
     def collect(finished: set[Future], *, flush: bool = False, final: bool = False) -> None:
-        blocks = []
-        for fut in finished:
-            if fut.cancelled() or fut.exception() is not None:
-                continue
-            blocks.append(fut.result())
-        unmirrored.extend(blocks)
-        # index/done mirrors the journal (the journal is what resuming trusts): rewrite its
-        # chunks at most every MIRROR_INTERVAL_S
-        if flush or time.monotonic() - last_mirror[0] > MIRROR_INTERVAL_S:
-            mark_done(done_arr, done, unmirrored, grid)
-            unmirrored.clear()
-            last_mirror[0] = time.monotonic()
-        for b in blocks:
-            _, _, h, w = grid.block_window(*b)
-            report(1, h * w * itemsize)
-        if on_done is not None and blocks and not final:
-            on_done(blocks)  # e.g. write a shard whose blocks are all done (main thread)
+        ok = [f.result() for f in finished if not f.cancelled() and f.exception() is None]
+        progress.add(ok, flush=flush, final=final)
 
     try:
         while True:

@@ -18,6 +18,8 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StoreArg,
+    TausOpt,
     integer,
     parse_size,
     parse_taus,
@@ -25,13 +27,11 @@ from cli.options import (
 
 
 def compare(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
     frames: Annotated[int, integer("--frames", "Fly-through frames.", min=1)] = 8,
-    taus: Annotated[
-        str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
-    ] = "0.5,1,2,4",
+    taus: TausOpt = "0.5,1,2,4",
     lods: Annotated[
         str | None,
         typer.Option(

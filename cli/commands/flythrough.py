@@ -20,6 +20,7 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StoreArg,
     TauOpt,
     integer,
     number,
@@ -28,7 +29,7 @@ from cli.options import (
 
 
 def flythrough(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     out: Annotated[
         Path, typer.Option("--out", metavar="DIR", help="Output directory (created).")
     ] = Path("frames"),

@@ -23,6 +23,7 @@ from cli.options import (
     PitchOpt,
     SizeOpt,
     StorageOptionsOpt,
+    StoreArg,
     TauOpt,
     YawOpt,
     parse_size,
@@ -31,7 +32,7 @@ from cli.options import (
 
 
 def render(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     storage_options: StorageOptionsOpt = None,
     out: Annotated[
         Path,

@@ -21,7 +21,10 @@ from cli.options import (
     MetricOpt,
     PatchOpt,
     PitchOpt,
+    PlotOpt,
     SizeOpt,
+    StoreArg,
+    TausOpt,
     YawOpt,
     integer,
     parse_size,
@@ -30,25 +33,21 @@ from cli.options import (
 
 
 def tradeoff(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     camera: CameraOpt = None,
     look_at: LookAtOpt = None,
     yaw: YawOpt = None,
     pitch: PitchOpt = None,
     fov: FovOpt = 45.0,
     size: SizeOpt = "1024x768",
-    taus: Annotated[
-        str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
-    ] = "0.5,1,2,4,8",
+    taus: TausOpt = "0.5,1,2,4,8",
     metric: MetricOpt = METRIC_DEFAULT,
     patch_log2: PatchOpt = 4,
     repeats: Annotated[int, integer("--repeats", "Timed draws per tau.", min=1)] = 3,
     json_out: Annotated[
         Path | None, typer.Option("--json", metavar="FILE", help="Write one row per tau.")
     ] = None,
-    plot: Annotated[
-        Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
-    ] = None,
+    plot: PlotOpt = None,
     lod: LodOpt = LOD_DEFAULT,
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.

@@ -21,6 +21,7 @@ from cli.options import (
     PatchOpt,
     PitchOpt,
     SizeOpt,
+    StoreArg,
     TauOpt,
     YawOpt,
     integer,
@@ -29,7 +30,7 @@ from cli.options import (
 
 
 def view(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     tau: TauOpt = 1.0,
     metric: MetricOpt = METRIC_DEFAULT,
     size: SizeOpt = "1280x800",
