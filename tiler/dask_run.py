@@ -18,15 +18,15 @@ from __future__ import annotations
 import logging
 import threading
 import uuid
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from tiler.errors import BlockFailedError, SchedulerError, StoreError
 from tiler.grid import BlockGrid
 from tiler.location import Location
+
+if TYPE_CHECKING:
+    from tiler.run import BlockRun
 
 log = logging.getLogger("tiler.tile")
 WAIT_TIMEOUT_S = 600.0
@@ -105,21 +105,11 @@ def _connect(spec: str, n_workers: int) -> tuple[Any, Any]:
         ) from exc
 
 
-def run_blocks_dask(
-    src: Any,
-    loc: Location,
-    opts: Any,
-    grid: BlockGrid,
-    params: Any,
-    todo: list[tuple[int, int]],
-    done: np.ndarray,
-    report: Callable[[int, int], None],
-    lease: Any,
-    on_done: Callable[[list[tuple[int, int]]], None] | None = None,
-) -> str:
-    """Compute ``todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
+def run_blocks_dask(run: BlockRun) -> str:
+    """Compute ``run.todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
     from tiler.run import BlockProgress, kernels_for
 
+    loc, opts, grid, params = run.loc, run.opts, run.grid, run.params
     if not loc.can_share_with_processes:
         raise SchedulerError(
             f"dask workers cannot write into {loc.url!r} (process memory or a Store object); "
@@ -130,7 +120,7 @@ def run_blocks_dask(
     client, cluster = _connect(opts.scheduler, opts.n_workers)
     job = DaskJob(
         token=uuid.uuid4().hex,
-        src=src,
+        src=run.src,
         band=opts.band,
         target=loc.for_workers(),
         grid=grid,
@@ -138,10 +128,10 @@ def run_blocks_dask(
         gdal_cache_mb=opts.gdal_cache_mb,
         kernels_backend=kernels_for(grid),
     )
-    progress = BlockProgress(loc.for_workers(), grid, params, done, report, on_done)
+    progress = BlockProgress(loc.for_workers(), run)
     pending: set[Any] = set()
     block_of: dict[str, tuple[int, int]] = {}
-    it = iter(todo)
+    it = iter(run.todo)
 
     def submit_more() -> None:
         threads = max(1, sum(client.nthreads().values()))
@@ -184,7 +174,7 @@ def run_blocks_dask(
                         (br, bc),
                     ) from exc
             submit_more()
-            lease.check()
+            run.lease.check()
     except BaseException:
         if pending:
             client.cancel(list(pending))
