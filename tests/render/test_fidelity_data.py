@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import fractal
+from demtools import fractal
 from gltools import make_context, tile_dem
 
 from render import measure

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from rangeserver import LoopbackServer
 
 from streamer.camera import Camera

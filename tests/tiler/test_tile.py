@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rasterio
 import zarr
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rangeserver import LoopbackServer
