@@ -13,7 +13,9 @@ class NamedParams(Exception):
     :meth:`message` with ``names`` (the CLI's flags) words the parameters that way (a wording
     may itself hold ``{value}`` fields). Without ``params`` the error is a plain exception."""
 
-    def __init__(self, *args: object, params: Mapping[str, str] | None = None, **values: object):
+    def __init__(
+        self, *args: object, params: Mapping[str, str] | None = None, **values: object
+    ) -> None:
         self.template = str(args[0]) if params is not None and args else None
         self.params, self.values = dict(params or {}), values
         super().__init__(*((self.message(),) if self.template is not None else args))
@@ -25,7 +27,7 @@ class NamedParams(Exception):
         words = {n: (names or {}).get(n, w).format(**self.values) for n, w in self.params.items()}
         return self.template.format(**words, **self.values)
 
-    def __reduce__(self):  # through a worker process: rebuilt from the template
+    def __reduce__(self) -> tuple:  # through a worker process: rebuilt from the template
         if self.template is None:
             return super().__reduce__()
         return (_rebuild, (type(self), self.template, self.params, self.values))
