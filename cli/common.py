@@ -53,8 +53,20 @@ class _State:
 
 
 state = _State()
-#: the CLI's names for library parameters an error message may name (render.errors.CAMERA_PARAMS)
-FLAG_NAMES = {"position": "--camera", "look_at": "--look-at", "yaw": "--yaw", "pitch": "--pitch"}
+#: the CLI's names for library parameters an error message may name (render.errors.CAMERA_PARAMS,
+#: the ``params`` of tiler.errors.NamedParams)
+FLAG_NAMES = {
+    "position": "--camera",
+    "look_at": "--look-at",
+    "yaw": "--yaw",
+    "pitch": "--pitch",
+    "level_param": "--level",
+    "overwrite": "--overwrite",
+    "precision": "--precision",
+    "budget_mb": "--budget-mb",
+    "tau": "--tau",
+    "retile": "`terrastream tile {src} DST --dst-crs auto`",
+}
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:

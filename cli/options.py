@@ -127,6 +127,13 @@ DTYPES = Registry("tiler.synth", "DTYPES", "sample type")
 #: the defaults (render.strategies.DEFAULT, the first of streamer.lod.METRICS, tiler.synth.DTYPES)
 LOD_DEFAULT, METRIC_DEFAULT, DTYPE_DEFAULT = "qiu", "qiu", "int16"
 
+StoreArg = Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")]
+TausOpt = Annotated[
+    str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
+]
+PlotOpt = Annotated[
+    Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
+]
 CameraOpt = Annotated[
     str | None,
     typer.Option("--camera", metavar="X,Y,Z", help="Eye position x,y,z (world units)."),

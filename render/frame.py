@@ -215,6 +215,8 @@ class FrameServices:
 
     def block_zranges(self, blocks: np.ndarray) -> np.ndarray:
         """``(n, 2)`` stored ``(zmin, zmax)`` of the ``(n, 2)`` blocks, 0 where not finite."""
+        # not tiler.quadtree.block_zranges: its store-range rule for blocks without terrain
+        # would change those blocks' spheres and so the figures (the figures are the contract)
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
         zr = self._zr[(blk[:, 0], blk[:, 1])]
         return np.where(np.isfinite(zr), zr, 0.0)

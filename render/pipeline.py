@@ -195,11 +195,10 @@ def tradeoff(
     :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
     ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept);
     ``lod_options`` are the strategy's constructor options (e.g. ``{"rho": "paper"}``)."""
-    if options is not None:
-        lod, metric, patch_log2 = options.lod, options.metric, options.patch_log2
-    check_name(lod)
+    o = options or ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
+    lod, metric = o.lod, o.metric
     r = renderer or TerrainRenderer(
-        store, RenderConfig(size=camera.viewport, patch_log2=patch_log2)
+        store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2)
     )
     with open_render_session(store, 0.0, metric, r.p) as ref_session:
         ref_res = stream_step(ref_session, r, camera)[1]
@@ -385,18 +384,18 @@ def flythrough(
 ) -> tuple[list[FlyRow], dict[str, Any]]:
     """Stream and render each camera with strategy ``lod``; write PNG frames and
     ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
-    ``metric`` and ``patch_log2``)."""
-    if options is not None:
-        lod, tau, metric, patch_log2 = options.lod, options.tau, options.metric, options.patch_log2
-    check_name(lod)
+    ``metric`` and ``patch_log2``, and how frames are drawn)."""
+    o = options or ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
+    lod, tau, metric = o.lod, o.tau, o.metric
     from PIL import Image
 
     if not cameras:
         raise RenderError("the camera path has no frames")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=patch_log2))
+    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
     strat = get_strategy(lod, r)
+    draw = o.draw_options()
     rows: list[FlyRow] = []
     with open_session(
         store,
@@ -409,7 +408,9 @@ def flythrough(
         fps=fps,
     ) as session:
         for i, cam in enumerate(cameras):
-            step = frame_step(session, strat, cam, tau, metric, dt=1.0 / fps, wait=i == 0)
+            step = frame_step(
+                session, strat, cam, tau, metric, dt=1.0 / fps, wait=i == 0, options=draw
+            )
             frame, st, ms = step.frame, step.stats, step.selection_ms
             if save_every and i % save_every == 0:
                 Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")

@@ -24,7 +24,6 @@ neighbour (repeatedly); see docs/RENDER.md. All edges' probes at all depths are 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -36,6 +35,13 @@ from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
+from tiler.quadtree import (
+    block_origins,
+    half_diagonal,
+    node_centres_at,
+    node_span,
+    sphere_radius,
+)
 
 Block = tuple[int, int]
 _CHILD_R = np.array([0, 0, 1, 1])
@@ -171,8 +177,7 @@ def select_patches(
         grid.check_block(*(int(v) for v in blk[int(np.argmax(outside))]))
     slots = table.slots(blk)
     zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
-    bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 4
-    diag = math.hypot(grid.dx, grid.dy)
+    bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 2
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
@@ -184,10 +189,9 @@ def select_patches(
     inside = np.zeros(len(idx), dtype=bool)  # disc wholly inside the polygon: no test
     depth = 0
     while idx.size:
-        size = 1 << (k - depth)
-        half = 0.5 * size * diag
-        cx = bx0[idx] + (cols + 0.5) * (size * grid.dx)
-        cy = by1[idx] - (rows + 0.5) * (size * grid.dy)
+        size = node_span(k, depth)
+        half = half_diagonal(grid, depth)
+        cx, cy = node_centres_at(grid, bx0[idx], by1[idx], depth, rows, cols)
         keep = None
         if win is not None:
             keep = (rows * size < win[idx, 2] - 1) & (cols * size < win[idx, 3] - 1)
@@ -206,7 +210,7 @@ def select_patches(
                 break
         delta = table.delta(slots[idx], depth, rows, cols)
         centres = np.stack([cx, cy, zmid[idx]], axis=1)
-        rho = np.asarray(fn(delta, centres, np.hypot(half, zhalf[idx]), camera), np.float64)
+        rho = np.asarray(fn(delta, centres, sphere_radius(half, zhalf[idx]), camera), np.float64)
         r_idx = res[idx]
         level = np.minimum(min(k, depth + p), r_idx)
         if depth + p >= k:
@@ -369,18 +373,17 @@ def _split(
     r = (2 * cur.row[victims][:, None] + _CHILD_R).ravel()
     c = (2 * cur.col[victims][:, None] + _CHILD_C).ravel()
     level = np.minimum(np.minimum(k, d + p), res[b])
-    delta = np.zeros(len(b))
+    blk = cur.blocks[b]
+    bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
+    zr = np.asarray(zranges, dtype=np.float64)[b]
+    zhalf = 0.5 * (zr[:, 1] - zr[:, 0])
+    delta, cx, cy, rad = (np.zeros(len(b)) for _ in range(4))
     for depth in np.unique(d).tolist():
         m = d == depth
         delta[m] = table.delta(slots[b[m]], depth, r[m], c[m])
-    blk = cur.blocks[b]
-    bx0, _, _, by1 = grid.block_bounds(blk[:, 0], blk[:, 1])
-    size = np.left_shift(1, k - d).astype(np.float64)
-    zr = np.asarray(zranges, dtype=np.float64)[b]
-    cen = np.stack(
-        [bx0 + (c + 0.5) * size * grid.dx, by1 - (r + 0.5) * size * grid.dy, zr.mean(1)], 1
-    )
-    rad = np.hypot(0.5 * size * math.hypot(grid.dx, grid.dy), 0.5 * (zr[:, 1] - zr[:, 0]))
+        cx[m], cy[m] = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
+        rad[m] = sphere_radius(half_diagonal(grid, depth), zhalf[m])
+    cen = np.stack([cx, cy, zr.mean(1)], 1)
     rho = np.asarray(get_metric(metric)(delta, cen, rad, camera), np.float64)
     return Patches(
         blocks=cur.blocks,

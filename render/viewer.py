@@ -23,6 +23,7 @@ import moderngl
 import numpy as np
 
 from render.errors import RenderError
+from render.pipeline import ViewOptions
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step
 from render.strategies.base import DrawOptions
@@ -255,34 +256,34 @@ def run_viewer(
     frames: int | None = None,
     screenshot: str | Path | None = None,
     lod: str = "qiu",
+    options: ViewOptions | None = None,
 ) -> ViewResult:
     """Open the window and fly until it closes (or for ``frames`` frames, without input);
-    ``lod`` names the LOD strategy (:mod:`render.strategies`)."""
-    from render.strategies import check_name
-
-    check_name(lod)
+    ``lod`` names the LOD strategy (:mod:`render.strategies`); ``options``, when given,
+    replaces ``lod``, ``tau``, ``metric``, ``patch_log2`` and ``wireframe`` (the start)."""
+    o = options or ViewOptions(lod, tau, metric, patch_log2, wireframe)
     size = tuple(start.viewport)
     glfw, win, ctx = open_window(size, f"terrastream view {store.url}", visible=True)
     try:
-        return _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget_mb,
-                     wireframe, frames, screenshot, lod)  # fmt: skip
+        return _loop(glfw, win, ctx, store, start, o, workers, budget_mb, frames, screenshot)
     finally:
         glfw.terminate()
 
 
-def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget_mb, wireframe,
-          frames, screenshot, lod="qiu") -> ViewResult:  # fmt: skip
+def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, frames,
+          screenshot) -> ViewResult:  # fmt: skip
     from render.strategies import get_strategy, stream_metric
 
+    lod, metric = o.lod, o.metric
     size, scripted = tuple(start.viewport), frames is not None
     fb = glfw.get_framebuffer_size(win)
     size = (int(fb[0]), int(fb[1])) if fb[0] > 0 else size
-    r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=patch_log2), ctx=ctx)
+    r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=o.patch_log2), ctx=ctx)
     strat = get_strategy(lod, r)
     overlay = _Overlay(ctx, size)
     zlo = float(np.nanmin(store.index.zmin))
     pose, fov = Pose.of(start), start.fov_y
-    state = {"tau": float(tau), "wire": wireframe, "quit": False, "captured": False}
+    state = {"tau": float(o.tau), "wire": o.wireframe, "quit": False, "captured": False}
 
     def capture(on: bool) -> None:  # mouse look with a hidden, captured cursor
         state["captured"], state["fresh"] = on, True  # fresh: skip the jump on (un)capture
@@ -357,7 +358,8 @@ def _loop(glfw, win, ctx, store, start, tau, metric, patch_log2, workers, budget
             try:
                 step = frame_step(
                     session, strat, cam, state["tau"], metric, dt=dt if n else None,
-                    wait=n == 0 or last_frame, options=DrawOptions(wireframe=state["wire"]),
+                    wait=n == 0 or last_frame,
+                    options=DrawOptions(wireframe=state["wire"], lod_colour=o.lod_colour),
                 )  # fmt: skip
             except LoadError as exc:  # reported once; the session keeps going without it
                 log.warning("%s", exc)

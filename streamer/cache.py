@@ -91,8 +91,11 @@ class LevelCache:
         need = sum(cum[pin] for pin in pins.values() if pin >= 0)
         if need > self.budget:
             raise BudgetError(
-                f"the visible blocks need {_mib(need)} at their levels but the budget is "
-                f"{_mib(self.budget)}; raise --budget-mb or the error threshold"
+                "the visible blocks need {need} at their levels but the budget is {budget}; "
+                "raise {budget_mb} or the error threshold {tau}",
+                params={"budget_mb": "budget_mb", "tau": "tau"},
+                need=_mib(need),
+                budget=_mib(self.budget),
             )
         self.frame += 1
         entries = self._entries

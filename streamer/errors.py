@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from tiler.errors import NamedParams
 
-class StreamerError(Exception):
+
+class StreamerError(NamedParams):
     """Root of every error the streamer raises on purpose."""
 
 

@@ -147,8 +147,11 @@ def require_projected(meta_or_store: Any) -> None:
     where = f"store {url!r}" if url else "this store"
     src = (getattr(meta, "source", None) or {}).get("path") or "SRC"
     raise GeographicStoreError(
-        f"{where} is in a geographic CRS ({crs_name(wkt)}): its x/y are degrees while heights "
-        "are metres, so it cannot be streamed or rendered. Tile the source again with a "
-        f"projected target CRS: `terrastream tile {src} DST --dst-crs auto` (Python: "
-        "tile(src, dst, TileOptions(dst_crs='auto')))."
+        "{where} is in a geographic CRS ({crs}): its x/y are degrees while heights are metres, "
+        "so it cannot be streamed or rendered. Tile the source again with a projected target "
+        "CRS: {retile}.",
+        params={"retile": "tile({src!r}, dst, TileOptions(dst_crs='auto'))"},
+        where=where,
+        crs=crs_name(wkt),
+        src=str(src),
     )

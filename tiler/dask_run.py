@@ -17,17 +17,16 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 import uuid
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from tiler.errors import BlockFailedError, SchedulerError, StoreError
 from tiler.grid import BlockGrid
 from tiler.location import Location
+
+if TYPE_CHECKING:
+    from tiler.run import BlockRun
 
 log = logging.getLogger("tiler.tile")
 WAIT_TIMEOUT_S = 600.0
@@ -106,21 +105,11 @@ def _connect(spec: str, n_workers: int) -> tuple[Any, Any]:
         ) from exc
 
 
-def run_blocks_dask(
-    src: Any,
-    loc: Location,
-    opts: Any,
-    grid: BlockGrid,
-    params: Any,
-    todo: list[tuple[int, int]],
-    done: np.ndarray,
-    report: Callable[[int, int], None],
-    lease: Any,
-    on_done: Callable[[list[tuple[int, int]]], None] | None = None,
-) -> str:
-    """Compute ``todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
-    from tiler.run import MIRROR_INTERVAL_S, kernels_for, mark_done, open_for_write
+def run_blocks_dask(run: BlockRun) -> str:
+    """Compute ``run.todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
+    from tiler.run import BlockProgress, kernels_for
 
+    loc, opts, grid, params = run.loc, run.opts, run.grid, run.params
     if not loc.can_share_with_processes:
         raise SchedulerError(
             f"dask workers cannot write into {loc.url!r} (process memory or a Store object); "
@@ -131,7 +120,7 @@ def run_blocks_dask(
     client, cluster = _connect(opts.scheduler, opts.n_workers)
     job = DaskJob(
         token=uuid.uuid4().hex,
-        src=src,
+        src=run.src,
         band=opts.band,
         target=loc.for_workers(),
         grid=grid,
@@ -139,13 +128,10 @@ def run_blocks_dask(
         gdal_cache_mb=opts.gdal_cache_mb,
         kernels_backend=kernels_for(grid),
     )
-    done_arr = open_for_write(loc.for_workers(), "index/done")
-    itemsize = np.dtype(params.dtype).itemsize
+    progress = BlockProgress(loc.for_workers(), run)
     pending: set[Any] = set()
     block_of: dict[str, tuple[int, int]] = {}
-    unmirrored: list[tuple[int, int]] = []
-    last_mirror = time.monotonic()
-    it = iter(todo)
+    it = iter(run.todo)
 
     def submit_more() -> None:
         threads = max(1, sum(client.nthreads().values()))
@@ -165,18 +151,7 @@ def run_blocks_dask(
             pending.add(fut)
 
     def collect(finished: set[Any], *, final: bool = False) -> None:
-        nonlocal last_mirror
-        blocks = [block_of[f.key] for f in finished if f.status == "finished"]
-        unmirrored.extend(blocks)
-        if time.monotonic() - last_mirror > MIRROR_INTERVAL_S:
-            mark_done(done_arr, done, unmirrored, grid)
-            unmirrored.clear()
-            last_mirror = time.monotonic()
-        for b in blocks:
-            _, _, h, w = grid.block_window(*b)
-            report(1, h * w * itemsize)
-        if on_done is not None and blocks and not final:
-            on_done(blocks)  # e.g. write a shard whose blocks are all done
+        progress.add([block_of[f.key] for f in finished if f.status == "finished"], final=final)
 
     try:
         submit_more()
@@ -199,15 +174,14 @@ def run_blocks_dask(
                         (br, bc),
                     ) from exc
             submit_more()
-            lease.check()
+            run.lease.check()
     except BaseException:
         if pending:
             client.cancel(list(pending))
         collect({f for f in pending if f.status == "finished"}, final=True)  # they stay done
         raise
     finally:
-        mark_done(done_arr, done, unmirrored, grid)
-        unmirrored.clear()
+        progress.flush()
         client.close()
         if cluster is not None:
             cluster.close()

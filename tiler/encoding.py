@@ -342,8 +342,11 @@ def quantise(values: np.ndarray, step: float) -> np.ndarray:
     q = np.rint(values.astype(np.float64) / step)
     if q.size and (np.nanmax(np.abs(q)) > 2**31 - 2):
         raise SourceError(
-            f"precision {step} is too fine for values up to {np.nanmax(np.abs(values)):g}: "
-            "the quantised values do not fit in int32; choose a coarser --precision."
+            "precision {step} is too fine for values up to {top:g}: the quantised values do "
+            "not fit in int32; choose a coarser {precision}.",
+            params={"precision": "precision"},
+            step=step,
+            top=float(np.nanmax(np.abs(values))),
         )
     return q.astype(np.int32)
 

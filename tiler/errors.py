@@ -2,8 +2,42 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 
-class TilerError(Exception):
+
+class NamedParams(Exception):
+    """An error whose message may name API parameters, which a front end words its own way.
+
+    ``Error(template, params={"overwrite": "overwrite=True"}, **values)``: ``template`` has a
+    ``{name}`` field per parameter (worded ``params[name]`` in the Python API) and per value;
+    :meth:`message` with ``names`` (the CLI's flags) words the parameters that way (a wording
+    may itself hold ``{value}`` fields). Without ``params`` the error is a plain exception."""
+
+    def __init__(
+        self, *args: object, params: Mapping[str, str] | None = None, **values: object
+    ) -> None:
+        self.template = str(args[0]) if params is not None and args else None
+        self.params, self.values = dict(params or {}), values
+        super().__init__(*((self.message(),) if self.template is not None else args))
+
+    def message(self, names: Mapping[str, str] | None = None) -> str:
+        """The message with each parameter worded ``names[name]`` (default: the API's)."""
+        if self.template is None:
+            return str(self)
+        words = {n: (names or {}).get(n, w).format(**self.values) for n, w in self.params.items()}
+        return self.template.format(**words, **self.values)
+
+    def __reduce__(self) -> tuple:  # through a worker process: rebuilt from the template
+        if self.template is None:
+            return super().__reduce__()
+        return (_rebuild, (type(self), self.template, self.params, self.values))
+
+
+def _rebuild(cls: type, template: str, params: dict, values: dict) -> NamedParams:
+    return cls(template, params=params, **values)
+
+
+class TilerError(NamedParams):
     """Root of every error the tiler raises on purpose."""
 
 

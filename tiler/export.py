@@ -53,7 +53,12 @@ def export_geotiff(
     k = store.k
     level = k if level is None else int(level)
     if not 0 <= level <= k:
-        raise StoreError(f"--level must be in 0..{k} for this store, got {level}")
+        raise StoreError(
+            "{level_param} must be in 0..{k} for this store, got {level}",
+            params={"level_param": "level"},
+            k=k,
+            level=level,
+        )
     m = store.meta
     height, width, step = export_shape(store, level)
     a, b, c, d, e, f = m.geotransform
@@ -184,7 +189,12 @@ def export_cog(
     k = store.k
     level = k if level is None else int(level)
     if not 0 <= level <= k:
-        raise StoreError(f"--level must be in 0..{k} for this store, got {level}")
+        raise StoreError(
+            "{level_param} must be in 0..{k} for this store, got {level}",
+            params={"level_param": "level"},
+            k=k,
+            level=level,
+        )
     levels = cog_levels(store, level)
     total = sum(store.grid.rows for _ in levels)
     done = 0

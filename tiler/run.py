@@ -19,6 +19,7 @@ from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -84,6 +85,57 @@ class BlockWorker:
     def close(self) -> None:
         """Close the source dataset."""
         self.ds.close()
+
+
+@dataclass(frozen=True)
+class BlockRun:
+    """What a block run is given (:func:`run_blocks`), passed to the local and dask runners."""
+
+    src: Any
+    loc: Location
+    opts: Any
+    grid: BlockGrid
+    params: Any
+    todo: list[tuple[int, int]]
+    done: np.ndarray
+    report: Callable[[int, int], None]
+    lease: Any
+    on_done: Callable[[list[tuple[int, int]]], None] | None = None
+
+
+class BlockProgress:
+    """The client side of a run (local pools and dask alike): finished blocks are mirrored into
+    ``index/done`` at most every ``MIRROR_INTERVAL_S``, reported to ``run.report`` (blocks,
+    bytes) and passed to ``run.on_done``."""
+
+    def __init__(self, target: Any, run: BlockRun) -> None:
+        self.done_arr = open_for_write(target, "index/done")
+        self.grid, self.done = run.grid, run.done
+        self.report, self.on_done = run.report, run.on_done
+        self.itemsize = np.dtype(run.params.dtype).itemsize
+        self.unmirrored: list[tuple[int, int]] = []
+        self.last_mirror = time.monotonic()
+
+    def add(
+        self, blocks: list[tuple[int, int]], *, flush: bool = False, final: bool = False
+    ) -> None:
+        """Record finished ``blocks`` (``final``: the run is ending, ``on_done`` is not called)."""
+        self.unmirrored.extend(blocks)
+        # index/done mirrors the journal (the journal is what resuming trusts): rewrite its
+        # chunks at most every MIRROR_INTERVAL_S
+        if flush or time.monotonic() - self.last_mirror > MIRROR_INTERVAL_S:
+            self.flush()
+        for b in blocks:
+            _, _, h, w = self.grid.block_window(*b)
+            self.report(1, h * w * self.itemsize)
+        if self.on_done is not None and blocks and not final:
+            self.on_done(blocks)  # e.g. write a shard whose blocks are all done (main thread)
+
+    def flush(self) -> None:
+        """Mirror every recorded block into ``index/done`` now."""
+        mark_done(self.done_arr, self.done, self.unmirrored, self.grid)
+        self.unmirrored.clear()
+        self.last_mirror = time.monotonic()
 
 
 _PROCESS_WORKER: BlockWorker | None = None
@@ -202,13 +254,14 @@ def run_blocks(
 
     Returns the executor used: ``threads``, ``processes`` or ``dask`` (``opts.scheduler``).
     """
+    run = BlockRun(src, loc, opts, grid, params, todo, done, report, lease, on_done)
     if is_dask_scheduler(getattr(opts, "scheduler", None)):
         from tiler.dask_run import run_blocks_dask  # distributed is imported only when asked
 
-        return run_blocks_dask(src, loc, opts, grid, params, todo, done, report, lease, on_done)
+        return run_blocks_dask(run)
     saved = os.environ.get(kernels.ENV)
     try:
-        return _run_local(src, loc, opts, grid, params, todo, done, report, lease, on_done)
+        return _run_local(run)
     finally:
         if saved is None:
             os.environ.pop(kernels.ENV, None)
@@ -216,26 +269,15 @@ def run_blocks(
             os.environ[kernels.ENV] = saved
 
 
-def _run_local(
-    src: str,
-    loc: Location,
-    opts: Any,
-    grid: BlockGrid,
-    params: Any,
-    todo: list[tuple[int, int]],
-    done: np.ndarray,
-    report: Callable[[int, int], None],
-    lease: Any,
-    on_done: Callable[[list[tuple[int, int]]], None] | None,
-) -> str:
+def _run_local(run: BlockRun) -> str:
+    src, loc, opts, grid, params, todo = run.src, run.loc, run.opts, run.grid, run.params, run.todo
     target = loc.for_workers() if loc.can_share_with_processes else loc.target
     workers = opts.n_workers
     args = (src, opts.band, target, grid, params)
     executor = choose_executor(opts, loc, len(todo))
     local = threading.local()
     thread_workers: list[BlockWorker] = []
-    done_arr = open_for_write(target, "index/done")
-    itemsize = np.dtype(params.dtype).itemsize
+    progress = BlockProgress(target, run)
 
     def thread_run(br: int, bc: int) -> tuple[int, int]:
         w = getattr(local, "worker", None)
@@ -253,34 +295,16 @@ def _run_local(
             initializer=_process_init,
             initargs=(opts.gdal_cache_mb, backend, *args),
         )
-        run: Any = _process_run
+        task: Any = _process_run
     else:
         pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="terrastream-tile")
-        run = thread_run
+        task = thread_run
     pending: set[Future] = set()
     it = iter(todo)
 
-    unmirrored: list[tuple[int, int]] = []
-    last_mirror = [time.monotonic()]
-
     def collect(finished: set[Future], *, flush: bool = False, final: bool = False) -> None:
-        blocks = []
-        for fut in finished:
-            if fut.cancelled() or fut.exception() is not None:
-                continue
-            blocks.append(fut.result())
-        unmirrored.extend(blocks)
-        # index/done mirrors the journal (the journal is what resuming trusts): rewrite its
-        # chunks at most every MIRROR_INTERVAL_S
-        if flush or time.monotonic() - last_mirror[0] > MIRROR_INTERVAL_S:
-            mark_done(done_arr, done, unmirrored, grid)
-            unmirrored.clear()
-            last_mirror[0] = time.monotonic()
-        for b in blocks:
-            _, _, h, w = grid.block_window(*b)
-            report(1, h * w * itemsize)
-        if on_done is not None and blocks and not final:
-            on_done(blocks)  # e.g. write a shard whose blocks are all done (main thread)
+        ok = [f.result() for f in finished if not f.cancelled() and f.exception() is None]
+        progress.add(ok, flush=flush, final=final)
 
     try:
         while True:
@@ -289,9 +313,9 @@ def _run_local(
                 if b is None:
                     break
                 if executor == "processes":
-                    pending.add(_submit_blocking_sigint(pool, run, *b))
+                    pending.add(_submit_blocking_sigint(pool, task, *b))
                 else:
-                    pending.add(pool.submit(run, *b))
+                    pending.add(pool.submit(task, *b))
             if not pending:
                 break
             finished, pending = wait_futures(
@@ -308,7 +332,7 @@ def _run_local(
                         "a tiling worker process died (out of memory or killed); rerun the "
                         "same call to resume (finished blocks are kept)"
                     ) from exc
-            lease.check()
+            run.lease.check()
     except BaseException:
         pool.shutdown(wait=True, cancel_futures=True)
         collect({f for f in pending if f.done()}, flush=True, final=True)  # they stay done

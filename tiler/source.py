@@ -99,8 +99,11 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
     dtype = np.dtype(spec.dtype)
     if opts.precision and dtype.kind != "f":
         raise SourceError(
-            f"--precision applies to float DEMs; {label!r} is {dtype.name}, which is stored "
-            "losslessly already. Drop --precision."
+            "{precision} applies to float DEMs; {label!r} is {dtype}, which is stored "
+            "losslessly already. Drop {precision}.",
+            params={"precision": "precision"},
+            label=label,
+            dtype=dtype.name,
         )
     value = np.dtype(np.int32) if opts.precision else dtype
     storage = storage_dtype_for(value)
@@ -129,9 +132,12 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
     if vertical:
         if opts.precision:
             raise SourceError(
-                f"--precision with a band scale/offset or vertical units other than metres "
-                f"({vertical}) is not supported for {label!r}; drop --precision (the heights "
-                "are then stored losslessly)"
+                "{precision} with a band scale/offset or vertical units other than metres "
+                "({vertical}) is not supported for {label!r}; drop {precision} (the heights "
+                "are then stored losslessly)",
+                params={"precision": "precision"},
+                vertical=vertical,
+                label=label,
             )
         extra["vertical"] = vertical
     if len(spec.sources) > 1:

@@ -350,8 +350,9 @@ def _tile(
         )
     if kind == "store" and old.complete and not opts.overwrite:
         raise StoreExistsError(
-            f"{loc.url!r} already holds a finished store; tile with overwrite (--overwrite) to "
-            "replace it."
+            "{url!r} already holds a finished store; tile with {overwrite} to replace it.",
+            params={"overwrite": "overwrite=True"},
+            url=loc.url,
         )
     from tiler.assemble import build
 

@@ -18,6 +18,8 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StoreArg,
+    TausOpt,
     integer,
     parse_size,
     parse_taus,
@@ -25,13 +27,11 @@ from cli.options import (
 
 
 def compare(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
     frames: Annotated[int, integer("--frames", "Fly-through frames.", min=1)] = 8,
-    taus: Annotated[
-        str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
-    ] = "0.5,1,2,4",
+    taus: TausOpt = "0.5,1,2,4",
     lods: Annotated[
         str | None,
         typer.Option(
@@ -59,6 +59,7 @@ def compare(
 
     Example: terrastream compare demo.zarr --taus 0.5,1,2,4 --json c.json --plot c.png
     """
+    from render.pipeline import ViewOptions
     from render.strategies.compare import HEADER, plot_pareto
     from render.strategies.compare import compare as run
     from streamer.run import make_path
@@ -69,21 +70,14 @@ def compare(
         viewport = parse_size(size)
         values = parse_taus(taus)
         names = parse_lods(lods)
+        opts = ViewOptions(metric=metric, patch_log2=patch_log2)
         input_file(path, "--path")
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
         s = open_store_arg(store, projected=True)
         cams = make_path(s, path_kind, frames=frames, path_file=path, viewport=viewport)
         typer.echo(HEADER)
-        rows = run(
-            s,
-            cams,
-            values,
-            strategies=names,
-            metric=metric,
-            patch_log2=patch_log2,
-            log=typer.echo,
-        )
+        rows = run(s, cams, values, strategies=names, log=typer.echo, options=opts)
         if json_out:
             json_out.write_text(json.dumps(rows, indent=1))
             typer.echo(f"wrote {json_out}")

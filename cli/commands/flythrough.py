@@ -20,6 +20,7 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StoreArg,
     TauOpt,
     integer,
     number,
@@ -28,7 +29,7 @@ from cli.options import (
 
 
 def flythrough(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     out: Annotated[
         Path, typer.Option("--out", metavar="DIR", help="Output directory (created).")
     ] = Path("frames"),
@@ -56,11 +57,13 @@ def flythrough(
 
     Example: terrastream flythrough demo.zarr --frames 120 --tau 1 --out frames/
     """
+    from render.pipeline import ViewOptions
     from render.pipeline import flythrough as run
     from streamer.run import make_path
 
     with fail_on_errors():
         viewport = parse_size(size)
+        opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
         input_file(path, "--path")
         output_dir(out, "--out")
         s = open_store_arg(store, projected=True)
@@ -81,15 +84,12 @@ def flythrough(
             s,
             cams,
             out,
-            tau=tau,
-            metric=metric,
-            patch_log2=patch_log2,
             workers=workers,
             budget_mb=budget_mb,
             fps=fps,
             save_every=every,
             on_frame=on_frame,
-            lod=lod,
+            options=opts,
         )
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
         typer.echo(

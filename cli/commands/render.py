@@ -23,6 +23,7 @@ from cli.options import (
     PitchOpt,
     SizeOpt,
     StorageOptionsOpt,
+    StoreArg,
     TauOpt,
     YawOpt,
     parse_size,
@@ -31,7 +32,7 @@ from cli.options import (
 
 
 def render(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     storage_options: StorageOptionsOpt = None,
     out: Annotated[
         Path,
@@ -60,26 +61,18 @@ def render(
     """
     from PIL import Image
 
-    from render.pipeline import render_view
+    from render.pipeline import ViewOptions, render_view
     from render.views import make_camera
 
     with fail_on_errors():
         viewport = parse_size(size)
+        opts = ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour)
         output_file(out, "--out", suffixes=image_suffixes())
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
-        img, st = render_view(
-            s,
-            cam,
-            tau=tau,
-            metric=metric,
-            patch_log2=patch_log2,
-            wireframe=wireframe,
-            lod_colour=lod_colour,
-            lod=lod,
-        )
+        img, st = render_view(s, cam, options=opts)
         if st.triangles == 0:  # nothing drawn: never a picture of sky with exit 0
             raise UsageError(
                 f"the view of {store!r} drew no terrain (0 triangles): the camera sees none of "

@@ -16,6 +16,7 @@ from cli.options import (
     MetricOpt,
     PathKindOpt,
     PathOpt,
+    PlotOpt,
     SizeOpt,
     StorageOptionsOpt,
     TauOpt,
@@ -50,9 +51,7 @@ def stream(
     metric: MetricOpt = METRIC_DEFAULT,
     size: SizeOpt = "1024x768",
     every: Annotated[int, integer("--every", "Print every N-th frame (0: auto).", min=0)] = 0,
-    plot: Annotated[
-        Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
-    ] = None,
+    plot: PlotOpt = None,
     json_out: Annotated[
         Path | None, typer.Option("--json", metavar="FILE", help="Write rows + summary.")
     ] = None,

@@ -21,7 +21,10 @@ from cli.options import (
     MetricOpt,
     PatchOpt,
     PitchOpt,
+    PlotOpt,
     SizeOpt,
+    StoreArg,
+    TausOpt,
     YawOpt,
     integer,
     parse_size,
@@ -30,38 +33,35 @@ from cli.options import (
 
 
 def tradeoff(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     camera: CameraOpt = None,
     look_at: LookAtOpt = None,
     yaw: YawOpt = None,
     pitch: PitchOpt = None,
     fov: FovOpt = 45.0,
     size: SizeOpt = "1024x768",
-    taus: Annotated[
-        str, typer.Option("--taus", metavar="T,T,...", help="Comma-separated taus, px.")
-    ] = "0.5,1,2,4,8",
+    taus: TausOpt = "0.5,1,2,4,8",
     metric: MetricOpt = METRIC_DEFAULT,
     patch_log2: PatchOpt = 4,
     repeats: Annotated[int, integer("--repeats", "Timed draws per tau.", min=1)] = 3,
     json_out: Annotated[
         Path | None, typer.Option("--json", metavar="FILE", help="Write one row per tau.")
     ] = None,
-    plot: Annotated[
-        Path | None, typer.Option("--plot", metavar="FILE", help="Write a plot (PNG, SVG, PDF).")
-    ] = None,
+    plot: PlotOpt = None,
     lod: LodOpt = LOD_DEFAULT,
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 
     Example: terrastream tradeoff demo.zarr --taus 0.5,1,2,4,8 --json t.json --plot t.png
     """
-    from render.pipeline import TABLE_HEADER, plot_tradeoff
+    from render.pipeline import TABLE_HEADER, ViewOptions, plot_tradeoff
     from render.pipeline import tradeoff as run
     from render.views import make_camera
 
     with fail_on_errors():
         viewport = parse_size(size)
         values = parse_taus(taus)
+        opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
         s = open_store_arg(store, projected=True)
@@ -69,16 +69,7 @@ def tradeoff(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
         typer.echo(TABLE_HEADER)
-        rows = run(
-            s,
-            cam,
-            values,
-            metric=metric,
-            patch_log2=patch_log2,
-            repeats=repeats,
-            log=typer.echo,
-            lod=lod,
-        )
+        rows = run(s, cam, values, repeats=repeats, log=typer.echo, options=opts)
         if rows:
             typer.echo(
                 f"reference (full resolution): {rows[0].reference_triangles:,} triangles, "

@@ -21,6 +21,7 @@ from cli.options import (
     PatchOpt,
     PitchOpt,
     SizeOpt,
+    StoreArg,
     TauOpt,
     YawOpt,
     integer,
@@ -29,7 +30,7 @@ from cli.options import (
 
 
 def view(
-    store: Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")],
+    store: StoreArg,
     tau: TauOpt = 1.0,
     metric: MetricOpt = METRIC_DEFAULT,
     size: SizeOpt = "1280x800",
@@ -61,11 +62,15 @@ def view(
     Needs a display (X11; on a headless machine: xvfb-run terrastream view ...).
     Example: terrastream view demo.zarr --tau 1 --size 1280x800
     """
+    from render.pipeline import ViewOptions
     from render.viewer import run_viewer
     from render.views import make_camera
 
     with fail_on_errors():
         viewport = parse_size(size)
+        opts = ViewOptions(
+            lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, wireframe=wireframe
+        )
         if screenshot is not None and frames is None:
             raise UsageError("--screenshot needs --frames N")
         output_file(screenshot, "--screenshot", suffixes=image_suffixes() if screenshot else None)
@@ -76,15 +81,11 @@ def view(
         res = run_viewer(
             s,
             cam,
-            tau=tau,
-            metric=metric,
-            patch_log2=patch_log2,
             workers=workers,
             budget_mb=budget_mb,
-            wireframe=wireframe,
             frames=frames,
             screenshot=screenshot,
-            lod=lod,
+            options=opts,
         )
         st = res.last
         typer.echo(

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from render import measure
-from render.pipeline import open_render_session, tradeoff
+from render.pipeline import ViewOptions, open_render_session, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step, stream_step
 from render.strategies import get_strategy, strategy_names
@@ -149,10 +149,15 @@ def compare(
     repeats: int = 1,
     pop_steps: int = 8,
     log: Callable[[str], None] | None = None,
+    options: ViewOptions | None = None,
 ) -> list[dict[str, Any]]:
-    """One row per strategy and τ (the tradeoff keys plus fly-through means and popping)."""
+    """One row per strategy and τ (the tradeoff keys plus fly-through means and popping);
+    ``options``, when given, supplies ``metric`` and ``patch_log2`` (its ``lod`` and ``tau``
+    are not used: ``strategies`` and ``taus`` are swept)."""
+    o = options or ViewOptions(metric=metric, patch_log2=patch_log2)
+    metric = o.metric
     names = list(strategies or strategy_names())
-    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=patch_log2))
+    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
     i_mid = len(cameras) // 2
     mid = cameras[i_mid]
     zlo, zhi = r.terrain_zrange
@@ -169,8 +174,8 @@ def compare(
         strat = get_strategy(name, r)
         for tau in taus:
             tr = tradeoff(
-                store, mid, [tau], metric=metric, renderer=r, repeats=repeats, lod=name,
-                stream_tau=0.0,
+                store, mid, [tau], renderer=r, repeats=repeats, stream_tau=0.0,
+                options=replace(o, lod=name),
             )  # fmt: skip
             row = asdict(tr[0])
             tri, cpu, gpu = [], [], []

@@ -7,7 +7,7 @@ import re
 import time
 
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from typer.testing import CliRunner
 
 from cli.main import app

@@ -9,7 +9,7 @@ import logging
 import re
 
 import pytest
-from conftest import fractal
+from demtools import fractal
 from typer.testing import CliRunner
 
 from cli import progress as progress_mod
@@ -32,7 +32,7 @@ def flat(text: str) -> str:
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     """A 70 x 90 (width x height) store of 3 x 3 blocks."""
-    from conftest import write_dem
+    from demtools import write_dem
 
     d = tmp_path_factory.mktemp("fh")
     src = write_dem(d / "dem.tif", fractal((90, 70), 11))

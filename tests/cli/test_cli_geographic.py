@@ -4,7 +4,7 @@ refuses it with the command to run; ``-q`` does not hide the message (issue 13 i
 from __future__ import annotations
 
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from typer.testing import CliRunner
 
 from cli.main import app

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from typer.testing import CliRunner
 
 from cli.commands.tile import Resampling

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import rasterio
-from conftest import fractal
+from demtools import fractal
 from typer.testing import CliRunner
 
 from cli.main import app

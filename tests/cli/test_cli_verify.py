@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fractal
+from demtools import fractal
 from typer.testing import CliRunner
 
 from cli.main import app

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from faults import LONG, SEED, record
 from storetools import chunk_files, diff_stores, flip_bit  # after faults (sys.path)
 

@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 import zarr
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from faults import LONG, SEED, record
 from storetools import diff_stores  # after faults (sys.path)
 

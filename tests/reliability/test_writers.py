@@ -11,7 +11,7 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from faults import LONG, record
 
 from tiler.errors import StoreError

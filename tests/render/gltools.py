@@ -8,16 +8,16 @@ import numpy as np
 
 
 def make_context():
-    """The shared headless EGL context (``conftest.gl_context``): without one the module is
+    """The shared headless EGL context (``shared_gl.gl_context``): without one the module is
     skipped with the reason, or fails with ``CI=true``."""
-    from conftest import gl_context
+    from shared_gl import gl_context
 
     return gl_context()
 
 
 def rough(n: int, seed: int, amp: float = 8.0) -> np.ndarray:
     """A rough int16 DEM of ``n x n`` samples around 800 m."""
-    from conftest import fractal
+    from demtools import fractal
 
     d = fractal((n, n), seed=seed).astype(np.float64)
     return np.rint((d - d.mean()) * amp + 800).astype(np.int16)
@@ -25,7 +25,7 @@ def rough(n: int, seed: int, amp: float = 8.0) -> np.ndarray:
 
 def tile_dem(tmp: Path, data: np.ndarray, block: int, **kw) -> Path:
     """Write ``data`` as a GeoTIFF and tile it; return the store path."""
-    from conftest import write_dem
+    from demtools import write_dem
 
     from tiler.tile import TileOptions, tile
 

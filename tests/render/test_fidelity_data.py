@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import fractal
+from demtools import fractal
 from gltools import make_context, tile_dem
 
 from render import measure

@@ -166,7 +166,7 @@ def test_conservative_error_is_within_tau_synthetic(rough_store, tau):
 @pytest.mark.shared_data
 def test_conservative_error_is_within_tau_real_dem(tmp_path):
     import rasterio
-    from conftest import shared_file
+    from demtools import shared_file
     from rasterio.windows import Window
 
     with rasterio.open(shared_file("N44W072.hgt")) as src:

@@ -3,8 +3,8 @@ with the reason when ``CI=true``; and the GL-error check fires on a pending erro
 
 from __future__ import annotations
 
-import conftest
 import pytest
+import shared_gl
 
 from render import gpu
 from render.errors import GLUnavailableError
@@ -15,7 +15,7 @@ def no_gl(monkeypatch):
     def broken():
         raise GLUnavailableError("cannot create a headless OpenGL 4.5 context through EGL: test")
 
-    monkeypatch.setattr(conftest, "_CONTEXT", [])
+    monkeypatch.setattr(shared_gl, "_CONTEXT", [])
     monkeypatch.setattr(gpu, "create_context", broken)
 
 
@@ -23,7 +23,7 @@ def no_gl(monkeypatch):
 def test_missing_gl_fails_on_ci(no_gl, monkeypatch, value):
     monkeypatch.setenv("CI", value)
     with pytest.raises(pytest.fail.Exception, match="no headless OpenGL 4.5 context.*CI=true"):
-        conftest.gl_context()
+        shared_gl.gl_context()
 
 
 @pytest.mark.parametrize("value", [None, "", "false", "0"])
@@ -33,14 +33,14 @@ def test_missing_gl_skips_with_the_reason_elsewhere(no_gl, monkeypatch, value):
     else:
         monkeypatch.setenv("CI", value)
     with pytest.raises(pytest.skip.Exception, match="no headless OpenGL 4.5 context: cannot"):
-        conftest.gl_context()
+        shared_gl.gl_context()
 
 
 def test_the_context_is_made_once(monkeypatch):
     made = []
-    monkeypatch.setattr(conftest, "_CONTEXT", [])
+    monkeypatch.setattr(shared_gl, "_CONTEXT", [])
     monkeypatch.setattr(gpu, "create_context", lambda: made.append(object()) or made[-1])
-    assert conftest.gl_context() is conftest.gl_context()
+    assert shared_gl.gl_context() is shared_gl.gl_context()
     assert len(made) == 1
 
 
@@ -50,6 +50,6 @@ class _FakeContext:
 
 
 def test_gl_error_check_fires_on_a_pending_error():
-    conftest.check_no_gl_error(_FakeContext("GL_NO_ERROR"), "quiet")
+    shared_gl.check_no_gl_error(_FakeContext("GL_NO_ERROR"), "quiet")
     with pytest.raises(pytest.fail.Exception, match="OpenGL error GL_INVALID_ENUM left by"):
-        conftest.check_no_gl_error(_FakeContext("GL_INVALID_ENUM"), "left by the test")
+        shared_gl.check_no_gl_error(_FakeContext("GL_INVALID_ENUM"), "left by the test")

@@ -6,7 +6,7 @@ import re
 
 import numpy as np
 import pytest
-from conftest import shared_file
+from demtools import shared_file
 from gltools import make_context
 from PIL import Image
 from typer.testing import CliRunner

@@ -35,7 +35,7 @@ class CacheMachine(RuleBasedStateMachine):
         wants = {b: (lv, lv if vis else -1, prio) for b, (lv, vis, prio) in wants.items()}
         visible_need = sum(sum(LEVEL_BYTES[: pin + 1]) for _, pin, _ in wants.values())
         if visible_need > self.cache.budget:
-            with pytest.raises(BudgetError, match="raise --budget-mb"):
+            with pytest.raises(BudgetError, match="raise budget_mb or the error threshold tau"):
                 self.cache.set_wants(wants, LEVEL_BYTES)
         else:
             self.cache.set_wants(wants, LEVEL_BYTES)

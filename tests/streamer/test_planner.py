@@ -138,7 +138,7 @@ def test_quadtree_geometry_known_answers():
 
 
 def test_set_tau_changes_what_is_streamed(tmp_path):
-    from conftest import fractal, write_dem
+    from demtools import fractal, write_dem
 
     from streamer.paths import default_flythrough
     from streamer.session import open_session

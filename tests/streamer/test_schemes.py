@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from test_planner import GRID, P, planner
 
 from streamer.cache import LevelCache

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from rangeserver import LoopbackServer
 
 from streamer.camera import Camera
@@ -56,7 +56,7 @@ def test_budget_never_exceeded_and_visible_set_too_big(store):
         assert s.summary()["peak_resident_bytes"] <= budget_mb * 2**20
     cam = flight(store, 1)[0]
     with open_session(store, budget_mb=0.05, workers=1, tau=0.01) as s:
-        msg = r"need .* MiB \(.* bytes\) .* raise --budget-mb"
+        msg = r"need .* MiB \(.* bytes\) .* raise budget_mb or the error threshold tau"
         with pytest.raises(BudgetError, match=msg):  # noqa: PT012 - fails on some frame
             for _ in range(5):  # the first frame needs patch levels; then errors ask for more
                 s.update(cam, wait=True)

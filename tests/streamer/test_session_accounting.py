@@ -4,7 +4,7 @@ than needed (issue 10 item 5)."""
 from __future__ import annotations
 
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 
 from streamer.paths import default_flythrough
 from streamer.session import open_session

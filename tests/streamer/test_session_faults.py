@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass, field
 
 import pytest
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 
 from streamer.paths import default_flythrough
 from streamer.session import LoadError, open_session

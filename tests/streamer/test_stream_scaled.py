@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import rasterio
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 
 from streamer.paths import default_flythrough
 from streamer.session import open_session

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rasterio
-from conftest import shared_file, write_dem
+from demtools import shared_file, write_dem
 from rasterio.crs import CRS
 
 from tiler.accuracy import resampling_error
@@ -104,7 +104,7 @@ def test_geographic_store_tiles_losslessly_but_is_refused(tmp_path):
     msg = str(e.value)
     assert isinstance(e.value, StoreError) and isinstance(e.value, ValueError)
     assert "EPSG:4326" in msg and "deg.zarr" in msg
-    assert f"terrastream tile {src} DST --dst-crs auto" in msg
+    assert f"tile({str(src)!r}, dst, TileOptions(dst_crs='auto'))" in msg
     with pytest.raises(GeographicStoreError):
         require_projected(store.meta)  # the metadata alone is enough
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import fractal, write_dem
+from tests.demtools import fractal, write_dem
 from tests.tiler.storetools import diff_stores
 from tiler import tile as tile_mod
 from tiler.errors import BlockFailedError, SchedulerError

@@ -90,5 +90,5 @@ def test_quantise_error_at_most_half_step(step):
 def test_quantise_refuses_overflow():
     from tiler.errors import SourceError
 
-    with pytest.raises(SourceError, match="coarser --precision"):
+    with pytest.raises(SourceError, match="coarser precision"):
         quantise(np.array([1e9]), 0.001)

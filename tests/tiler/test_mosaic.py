@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rasterio
-from conftest import fractal, shared_file, write_dem
+from demtools import fractal, shared_file, write_dem
 from rasterio.windows import Window
 
 from tiler.errors import SourceError

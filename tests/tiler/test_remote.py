@@ -14,7 +14,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 import numpy as np
 import pytest
 import requests
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from rangeserver import LoopbackServer, RangeHandler
 from typer.testing import CliRunner
 

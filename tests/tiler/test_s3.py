@@ -18,7 +18,7 @@ import pytest
 import rasterio
 from typer.testing import CliRunner
 
-from tests.conftest import fractal, write_dem
+from tests.demtools import fractal, write_dem
 from tiler import tile as tile_mod
 from tiler.errors import StorageOptionsError, StoreLockedError
 from tiler.location import Location, parse_storage_options

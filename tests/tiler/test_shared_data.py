@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rasterio
-from conftest import shared_file, write_dem
+from demtools import shared_file, write_dem
 from test_tile import assert_store_matches
 
 from tiler.export import export_geotiff

@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 import zarr
-from conftest import fractal
+from demtools import fractal
 from storetools import diff_stores, flip_bit
 
 from tiler import codecs

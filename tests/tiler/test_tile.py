@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rasterio
 import zarr
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rangeserver import LoopbackServer
@@ -256,7 +256,7 @@ def test_bad_block_size():
 def test_existing_output_needs_overwrite(dem_factory, tmp_path):
     src = dem_factory(fractal((20, 20)))
     tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
-    with pytest.raises(StoreExistsError, match="--overwrite"):
+    with pytest.raises(StoreExistsError, match="overwrite=True to replace it"):
         tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
     tile(src, tmp_path / "s.zarr", TileOptions(block_size=17, overwrite=True))
 
@@ -305,5 +305,5 @@ def test_band_out_of_range(dem_factory, tmp_path):
 
 def test_precision_on_integer_dem_refused(dem_factory, tmp_path):
     src = dem_factory(fractal((20, 20)))
-    with pytest.raises(SourceError, match="Drop --precision"):
+    with pytest.raises(SourceError, match="Drop precision"):
         tile(src, tmp_path / "s.zarr", TileOptions(precision=0.1))

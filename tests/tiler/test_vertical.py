@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rasterio
-from conftest import fractal, write_dem
+from demtools import fractal, write_dem
 
 from tiler.errors import SourceError
 from tiler.export import export_geotiff

@@ -11,7 +11,7 @@ import pytest
 import rasterio
 import rioxarray  # noqa: F401  (registers .rio)
 import xarray as xr
-from conftest import fractal, shared_file, write_dem
+from demtools import fractal, shared_file, write_dem
 from rasterio.crs import CRS
 
 import tiler.xarray_backend as xb

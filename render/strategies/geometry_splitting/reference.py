@@ -34,6 +34,8 @@ def expand_reference(
     planes = np.array(planes)
 
     zlo_t, zhi_t = st.r.terrain_zrange
+    # spheres by hand, not tiler.quadtree: the GPU's rule (radius = half diagonal + half height
+    # range, centres from sample_xy), which this twin must match operation for operation
 
     def cull(b, d, row, col):
         s = np.left_shift(1, k - d).astype(np.float64)

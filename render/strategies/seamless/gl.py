@@ -92,6 +92,7 @@ class SeamlessPatches(Strategy[PatchLayout]):
         }
         self.heights = GlobalHeights(renderer.store)
         idx = renderer.store.index
+        # the renderer's rule (0 where not finite), not tiler.quadtree's (figures are the contract)
         zr = np.stack([idx.zmin, idx.zmax], -1).astype(np.float64)
         self.zr = np.where(np.isfinite(zr), zr, 0.0)  # per block, for the edge distances
         check_gl(ctx, "creating the seamless-patches programs")

@@ -4,7 +4,6 @@ frame services' store, drawable blocks and terrain z range (``st.r``) and nothin
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +14,7 @@ from render.select import DiscCull
 from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
+from tiler.quadtree import block_origins, half_diagonal, node_centres_at, node_span
 
 Block = tuple[int, int]
 
@@ -125,7 +125,6 @@ class _Frame:
         self.eye = camera.eye
         poly = frustum_hull(camera, r.terrain_zrange)
         self.cull = DiscCull(poly) if poly is not None and len(poly) else None
-        self.diag = math.hypot(g.dx, g.dy)
 
     def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray, table=None) -> np.ndarray:
         """Stored error (``bound``, level ``d + 1``; level ``d + r`` from ``table`` =
@@ -218,16 +217,15 @@ class _Frame:
     def visible(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Nodes whose bounding circle meets the ground frustum and that are not all padding."""
         g = self.grid
-        size = 1 << (self.k - d)
+        size = node_span(self.k, d)
         keep = np.ones(len(idx), dtype=bool)
         if self.win is not None and len(idx):
             w = self.win[self.blk[idx, 0], self.blk[idx, 1]]
             keep &= (rows * size < w[:, 2] - 1) & (cols * size < w[:, 3] - 1)
         if self.cull is not None and len(idx):
-            bx0, _, _, by1 = g.block_bounds(self.blk[idx, 0], self.blk[idx, 1])
-            cx = bx0 + (cols + 0.5) * (size * g.dx)
-            cy = by1 - (rows + 0.5) * (size * g.dy)
-            meets, _ = self.cull(cx, cy, 0.5 * size * self.diag)
+            bx0, by1 = block_origins(g, self.blk[idx, 0], self.blk[idx, 1])
+            cx, cy = node_centres_at(g, bx0, by1, d, rows, cols)
+            meets, _ = self.cull(cx, cy, half_diagonal(g, d))
             keep &= meets
         return keep
 
