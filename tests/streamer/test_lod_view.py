@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from streamer.camera import Camera
 from streamer.lod import (
@@ -168,3 +170,38 @@ def test_registry_has_conservative_view():
     assert get_metric("conservative-view") is conservative_view
     assert FIELD_FOR_METRIC["conservative-view"] == "bound"
     assert next(iter(METRICS)) == "qiu"  # the default metric is unchanged
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    pos=st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(-50, 2e3)),
+    yaw=st.floats(0, 360),
+    pitch=st.floats(-90, 90),
+    roll=st.floats(-180, 180),
+    fov=st.floats(1, 170),
+    viewport=st.tuples(st.integers(1, 2000), st.integers(1, 2000)),
+    uvw=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0, 1)),
+    frac=st.floats(0, 1),
+    slack=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1), st.floats(0, 200)),
+)
+def test_conservative_view_bounds_exact_hypothesis(
+    pos, yaw, pitch, roll, fov, viewport, uvw, frac, slack
+):
+    """As test_lod's check of ``conservative``: a sphere holding B and B + delta*up (in view)."""
+    cam = Camera(pos, yaw=yaw, pitch=pitch, roll=roll, fov_y=fov, viewport=viewport, near=0.5,
+                 far=5000.0)  # fmt: skip
+    u, v, w = uvw
+    depth = cam.near + w * (cam.far - cam.near)
+    b = cam.eye + depth * (
+        cam.forward + u * cam.tan_half_x * cam.right + v * cam.tan_half_y * cam.up
+    )
+    assume(cam.in_view(b)[()])
+    top = b + frac * 500.0 * UP
+    assume(cam.in_view(top)[()])
+    delta = float(top[2] - b[2])
+    sx, sy, sz, extra = slack
+    centre = 0.5 * (b + top) + np.array([sx, sy, sz]) * 20.0
+    radius = max(np.linalg.norm(centre - b), np.linalg.norm(centre - top)) + extra
+    exact = exact_projected(np.array([delta]), b[None], cam)[0]
+    bound = conservative_view(np.array([delta]), centre[None], np.array([radius]), cam)[0]
+    assert bound >= exact * (1 - 1e-9) - 1e-9
