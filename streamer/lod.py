@@ -104,6 +104,50 @@ def conservative(
     return np.where(unseen, 0.0, rho)
 
 
+def conservative_view(
+    delta: np.ndarray, centre_xyz: np.ndarray, radius: np.ndarray, camera: Camera
+) -> np.ndarray:
+    """:func:`conservative` with the slope bounded per node and per camera, not per view.
+
+    Same claim (an upper bound on the pixel shift of any in-view point of the sphere moved
+    vertically by delta, the moved point in the sphere and in view) and the same rate
+    ``(f/z) (u_xy - q u_z)``, ``u`` = world up in camera coordinates. Let ``c`` be the centre in
+    camera coordinates (``c_z`` depth, ``c_lat = (c_x, c_y)``), ``r`` the radius and
+    ``z_min = c_z - r > near``. The segment from the point to the moved point lies in the sphere
+    (convex) and in view (convex), so every point ``p = c + e`` of it has ``|e| <= r``,
+    ``p_z >= z_min`` and, besides the view's own limit ``|q| <= T = tan(half diagonal FOV)``:
+
+    * ``|q| = |c_lat + e_lat| / p_z <= Q = (|c_lat| + r) / z_min``, hence
+      ``|u_xy - q u_z| <= g1 = |u_xy| + |u_z| min(Q, T)``;
+    * ``q - c_lat/c_z = (c_z e_lat - c_lat e_z) / (c_z p_z)`` whose numerator is two components
+      of ``c x e``, so ``|q - c_lat/c_z| <= |c| r / (c_z z_min)`` and
+      ``|u_xy - q u_z| <= g2 = |u_xy - (c_lat/c_z) u_z| + |u_z| |c| r / (c_z z_min)``.
+
+    Both bounds hold at every point of the segment and ``1/p_z <= 1/z_min``; integrating over
+    the ``delta`` metres gives ``rho = f delta min(g1, g2) / z_min``. By Cauchy-Schwarz
+    ``g1 <= sqrt(|u_xy|^2 + u_z^2) sqrt(1 + T^2) = sqrt(1 + T^2)``: never above
+    :func:`conservative` (a camera looking level has ``u_z = 0`` and gain ``f``, the FOV drops
+    out). Same ``inf`` and 0 cases as :func:`conservative`.
+    """
+    d, rel = _inputs(delta, centre_xyz, camera)
+    r = np.broadcast_to(np.asarray(radius, dtype=np.float64), d.shape)
+    basis = np.stack([camera.right, camera.up, camera.forward])
+    c = rel @ basis.T
+    cz, c_lat = c[..., 2], np.hypot(c[..., 0], c[..., 1])
+    z_min, z_max = cz - r, cz + r
+    ux, uy, uz = basis[:, 2]  # world up (0, 0, 1) in camera coordinates
+    u_lat = math.hypot(ux, uy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q_node = np.minimum((c_lat + r) / z_min, camera.tan_half_diagonal)
+        g1 = u_lat + abs(uz) * q_node
+        centre_rate = np.hypot(ux - c[..., 0] / cz * uz, uy - c[..., 1] / cz * uz)
+        g2 = centre_rate + abs(uz) * np.linalg.norm(c, axis=-1) * r / (cz * z_min)
+        gain = camera.focal_px * np.minimum(g1, g2)
+        rho = np.where(z_min > camera.near, gain * d / z_min, np.inf)
+    unseen = (z_max < camera.near) | (z_min > camera.far) | (d == 0.0)
+    return np.where(unseen, 0.0, rho)
+
+
 def exact_projected(delta: np.ndarray, points: np.ndarray, camera: Camera) -> np.ndarray:
     """Jung & Han's exact screen error: pixel distance between B and B + delta*up (NaN behind)."""
     p = np.asarray(points, dtype=np.float64)
@@ -115,8 +159,16 @@ def exact_projected(delta: np.ndarray, points: np.ndarray, camera: Camera) -> np
     return np.hypot(x1 - x0, y1 - y0)
 
 
-METRICS: dict[str, Metric] = {"qiu": qiu_eq7, "conservative": conservative}
-FIELD_FOR_METRIC: dict[str, str] = {"qiu": "qiu", "conservative": "bound"}
+METRICS: dict[str, Metric] = {
+    "qiu": qiu_eq7,
+    "conservative": conservative,
+    "conservative-view": conservative_view,
+}
+FIELD_FOR_METRIC: dict[str, str] = {
+    "qiu": "qiu",
+    "conservative": "bound",
+    "conservative-view": "bound",
+}
 
 
 def get_metric(metric: str | Metric) -> Metric:

@@ -118,7 +118,7 @@ def test_exact_projected_known():
 
 
 def test_metric_registry():
-    assert set(METRICS) == {"qiu", "conservative"} == set(FIELD_FOR_METRIC)
+    assert set(METRICS) == {"qiu", "conservative", "conservative-view"} == set(FIELD_FOR_METRIC)
     assert get_metric("qiu") is qiu_eq7
     assert get_metric(conservative) is conservative
     with pytest.raises(LodError, match="nope"):
