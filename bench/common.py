@@ -39,6 +39,20 @@ N44W072_EQC = WORK / "prefetch" / "n44w072_eqc_b257.zarr"
 _VERSIONS = ("numpy", "zarr", "rasterio", "rio_cogeo", "moderngl", "numba")
 
 
+def portable(obj: Any) -> Any:
+    """``obj`` (JSON-like) with this machine's paths replaced: the repository by ``.`` and the
+    real-data folder by ``$TERRASTREAM_SHARED_DATA`` (result files name no machine's paths)."""
+    if isinstance(obj, dict):
+        return {k: portable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [portable(v) for v in obj]
+    if isinstance(obj, str):
+        for prefix, name in ((str(SHARED_DATA), f"${DATA_ENV}"), (str(REPO), ".")):
+            if obj == prefix or obj.startswith(prefix + os.sep):
+                return name + obj[len(prefix) :]
+    return obj
+
+
 def machine_info() -> dict[str, Any]:
     """Date, CPUs, memory, platform, Python and the versions of the libraries that matter
     (a library that is not installed is left out)."""

@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info, portable  # noqa: E402
 
 DEFAULT_OUT = RESULTS / "tiling.json"
 DEFAULT_REAL = REAL_HGT
@@ -769,7 +769,7 @@ def main(argv: list[str] | None = None) -> int:
         "all_targets_pass": all(t["pass"] for r in results for t in r["targets"]),
         "run_seconds": time.perf_counter() - t_start,
     }
-    out.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
+    out.write_text(json.dumps(portable(doc), indent=2, allow_nan=False) + "\n")
     print(f"\nwrote {out} (run took {doc['run_seconds']:.0f} s)")
     return 0
 
