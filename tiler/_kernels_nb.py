@@ -8,34 +8,16 @@ lets LLVM vectorise the max reductions without reassociating sums.
 
 from __future__ import annotations
 
-import logging
-import os
-import tempfile
-
-import numba
 import numpy as np
 
-log = logging.getLogger(__name__)
+from tiler.jit import cached_njit
 
 _FM = {"nnan", "ninf", "nsz"}
 # nogil: a decode on a streamer's loader thread must not stall the caller's (planning) thread
 _OPTS = {"fastmath": _FM, "nogil": True}
 
 
-def _jit(fn):
-    """``njit(cache=True, nogil=True)``; if no cache directory is writable, a per-user temp one,
-    else none."""
-    try:
-        return numba.njit(cache=True, **_OPTS)(fn)
-    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
-        fallback = os.path.join(tempfile.gettempdir(), f"terrastream-numba-{os.getuid()}")
-        try:
-            os.makedirs(fallback, exist_ok=True)
-            numba.config.CACHE_DIR = fallback
-            return numba.njit(cache=True, **_OPTS)(fn)
-        except (OSError, RuntimeError):
-            log.warning("numba cannot cache compiled kernels (%s); compiling in memory", exc)
-            return numba.njit(cache=False, **_OPTS)(fn)
+_jit = cached_njit(**_OPTS)
 
 
 @_jit

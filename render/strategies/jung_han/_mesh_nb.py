@@ -5,32 +5,15 @@ reference's output (integer work only, plus ``pure.t_junctions``' one division).
 
 from __future__ import annotations
 
-import logging
-import os
-import tempfile
-
-import numba
 import numpy as np
 
-log = logging.getLogger(__name__)
+from tiler.jit import cached_njit
+
 # error_model="numpy": float division by 0 gives ±∞/NaN as in numpy (no ZeroDivisionError)
 _OPTS = {"nogil": True, "error_model": "numpy"}
 
 
-def _jit(fn):
-    """``njit(cache=True)``; if no cache directory is writable, a per-user temp one, else none
-    (as :func:`tiler._kernels_nb._jit`, without its fastmath flags)."""
-    try:
-        return numba.njit(cache=True, **_OPTS)(fn)
-    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
-        fallback = os.path.join(tempfile.gettempdir(), f"terrastream-numba-{os.getuid()}")
-        try:
-            os.makedirs(fallback, exist_ok=True)
-            numba.config.CACHE_DIR = fallback
-            return numba.njit(cache=True, **_OPTS)(fn)
-        except (OSError, RuntimeError):
-            log.warning("numba cannot cache compiled kernels (%s); compiling in memory", exc)
-            return numba.njit(cache=False, **_OPTS)(fn)
+_jit = cached_njit(**_OPTS)  # as tiler._kernels_nb, without its fastmath flags
 
 
 @_jit
