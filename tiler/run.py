@@ -37,6 +37,9 @@ from tiler.source import _open_source, read_window
 log = logging.getLogger("tiler.tile")
 WAIT_TIMEOUT_S = 600.0
 MIRROR_INTERVAL_S = 0.5
+#: ``auto`` uses threads with the compiled kernels up to this many workers (measured: 2 threads
+#: = 2 processes on 2 cores; more threads than that were not measured against processes)
+THREADS_SCALE_TO = 2
 
 
 def open_for_write(target: Any, name: str) -> zarr.Array:
@@ -218,14 +221,22 @@ def is_dask_scheduler(spec: str | None) -> bool:
     return bool(spec) and (spec == "dask" or "://" in str(spec))
 
 
-def choose_executor(opts: Any, loc: Location, todo: int) -> str:
-    """``"processes"`` or ``"threads"`` for this run (logs why processes are not used)."""
+def choose_executor(opts: Any, loc: Location, todo: int, backend: str = "numpy") -> str:
+    """``"processes"`` or ``"threads"`` for this run (logs why processes are not used).
+
+    ``auto``: threads for small jobs; for larger ones threads too when the kernels are compiled
+    (``backend == "numba"``: they release the GIL) and at most :data:`THREADS_SCALE_TO` workers
+    run, else processes. Measured on 2 cores (BENCHMARKS.md "Tiling"): 2 threads tile 16385² in
+    the time of 2 processes with a third of the memory, and 4097² 1.4 s sooner (no spawning).
+    """
     want = opts.executor
     if getattr(opts, "scheduler", None) in ("threads", "processes"):
         want = opts.scheduler
     if want == "auto":
         big = opts.n_workers > 1 and todo >= 4 * opts.n_workers
-        want = "processes" if big and loc.can_share_with_processes else "threads"
+        threads_scale = backend == "numba" and opts.n_workers <= THREADS_SCALE_TO
+        procs = big and not threads_scale and loc.can_share_with_processes
+        want = "processes" if procs else "threads"
     if want == "processes":
         if not loc.can_share_with_processes:
             log.warning("%s cannot be shared with worker processes: using threads", loc.url)
@@ -274,7 +285,11 @@ def _run_local(run: BlockRun) -> str:
     target = loc.for_workers() if loc.can_share_with_processes else loc.target
     workers = opts.n_workers
     args = (src, opts.band, target, grid, params)
-    executor = choose_executor(opts, loc, len(todo))
+    backend = kernels_for(grid)
+    executor = choose_executor(opts, loc, len(todo), backend)
+    # the job's kernels, for the worker threads and what spawned workers inherit (and warm up);
+    # run_blocks restores the caller's setting afterwards
+    os.environ[kernels.ENV] = backend
     local = threading.local()
     thread_workers: list[BlockWorker] = []
     progress = BlockProgress(target, run)
@@ -287,8 +302,6 @@ def _run_local(run: BlockRun) -> str:
         return w.run(br, bc)
 
     if executor == "processes":
-        backend = kernels_for(grid)
-        os.environ[kernels.ENV] = backend  # what the spawned workers inherit (and warm up)
         pool: Any = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),

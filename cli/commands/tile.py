@@ -91,8 +91,8 @@ def tile(
         int,
         typer.Option(
             "--workers",
-            help="Parallel workers (0 = one per CPU core): processes for large jobs, threads "
-            "for small ones and memory:// stores.",
+            help="Parallel workers (0 = one per CPU core): processes for large jobs (threads "
+            "for up to 2 with the compiled kernels), threads for small ones and memory:// stores.",
         ),
     ] = 0,
     overwrite: Annotated[
