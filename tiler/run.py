@@ -37,8 +37,8 @@ from tiler.source import _open_source, read_window
 log = logging.getLogger("tiler.tile")
 WAIT_TIMEOUT_S = 600.0
 MIRROR_INTERVAL_S = 0.5
-#: ``auto`` uses threads with the compiled kernels up to this many workers (measured: 2 threads
-#: = 2 processes on 2 cores; more threads than that were not measured against processes)
+#: ``auto`` uses threads with the compiled kernels up to this many workers (measured on 2 cores:
+#: 2 threads within ~5 % of 2 processes; more threads were not measured against processes)
 THREADS_SCALE_TO = 2
 
 
@@ -226,8 +226,8 @@ def choose_executor(opts: Any, loc: Location, todo: int, backend: str = "numpy")
 
     ``auto``: threads for small jobs; for larger ones threads too when the kernels are compiled
     (``backend == "numba"``: they release the GIL) and at most :data:`THREADS_SCALE_TO` workers
-    run, else processes. Measured on 2 cores (BENCHMARKS.md "Tiling"): 2 threads tile 16385² in
-    the time of 2 processes with a third of the memory, and 4097² 1.4 s sooner (no spawning).
+    run, else processes. Measured on 2 cores (BENCHMARKS.md "Tiling"): 2 threads tile 16385²
+    within ~5 % of 2 processes' time with under half the memory, and 4097² 1.4 s sooner.
     """
     want = opts.executor
     if getattr(opts, "scheduler", None) in ("threads", "processes"):
