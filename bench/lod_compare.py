@@ -7,12 +7,15 @@ store given, prints the table and writes ``bench/results/lod_compare.json`` and
 
 Usage: python bench/lod_compare.py [STORE ...] [--quick] [--taus 0.5,1,2,4]
        [--frames 8] [--size 1024x768] [--lods a,b] [--view default|low] [--pop-steps 8]
+       [--metric qiu|conservative|conservative-view]
 ``--view low``: the default path's cameras lowered to ``--clearance`` (default 150) metres
 above the highest terrain within 2 block edges and pitched ``--pitch`` (default -8) degrees: a
 low oblique view over rough terrain, where τ changes the selection at every τ listed (the
 script prints a ``# unchanged`` line for every strategy and pair of τ where it does not).
 Default stores: the synthetic 4097^2 store and the real N44W072 store of BENCHMARKS.md (a
 missing one is skipped with a message).
+After each store a ``# tau T:`` line per τ sets qiu (the default path, with ``--metric``)
+beside the cheapest strategy whose measured max error stays ≤ τ (issue 12).
 ``--quick``: 256x192, 4 frames, taus 1 and 4 (a smoke run; under 2 minutes on a small store).
 Same as ``terrastream compare STORE --json ... --plot ...`` per store.
 """
@@ -68,6 +71,39 @@ def unchanged_taus(rows: list[dict], taus: list[float]) -> list[str]:
     return lines
 
 
+def cheapest_within(rows: list[dict], default: str = "qiu") -> list[dict]:
+    """Per τ: the ``default`` strategy's row beside the cheapest row (fewest middle-view
+    triangles) whose measured max error is ≤ τ; ``None`` when no row stays ≤ τ."""
+    out = []
+    for tau in sorted({r["tau"] for r in rows}):
+        at = [r for r in rows if r["tau"] == tau]
+        d = next((r for r in at if r["strategy"] == default), None)
+        ok = [r for r in at if r["max_screen_error_px"] <= tau]
+        best = min(ok, key=lambda r: r["triangles"]) if ok else None
+        out.append({"tau": tau, "default": d, "cheapest_within_tau": best})
+    return out
+
+
+def cheapest_lines(summary: list[dict], label: str) -> list[str]:
+    """``# default vs cheapest <= tau`` lines for :func:`cheapest_within`'s result."""
+    lines = []
+    for s in summary:
+        d, b = s["default"], s["cheapest_within_tau"]
+        left = (
+            f"{label} {d['triangles']:,} tris at {d['max_screen_error_px']:.2f} px"
+            if d
+            else f"{label} not run"
+        )
+        right = (
+            f"cheapest <= tau: {b['strategy']} {b['triangles']:,} tris at "
+            f"{b['max_screen_error_px']:.2f} px"
+            if b
+            else "no strategy stays <= tau"
+        )
+        lines.append(f"# tau {s['tau']:g}: {left}; {right}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("stores", nargs="*", default=DEFAULT_STORES)
@@ -81,6 +117,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clearance", type=float, default=150.0)
     ap.add_argument("--pitch", type=float, default=-8.0)
     ap.add_argument("--pop-steps", type=int, default=8)
+    ap.add_argument(
+        "--metric",
+        default="qiu",
+        help="qiu's screen-error metric for every strategy that uses one (qiu, conservative, "
+        "conservative-view); the output files get a _<metric> tag unless it is qiu",
+    )
     a = ap.parse_args(argv)
     taus = [1.0, 4.0] if a.quick else [float(t) for t in a.taus.split(",")]
     frames = 4 if a.quick else a.frames
@@ -90,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     lods = a.lods.split(",") if a.lods else None
     tag = ("_quick" if a.quick else "") + ("_low" if a.view == "low" else "")
+    tag += "" if a.metric == "qiu" else f"_{a.metric.replace('-', '_')}"
     for path in a.stores:
         if not Path(path).exists():
             print(f"# skipping {path}: not found (see BENCHMARKS.md for how to make it)")
@@ -102,8 +145,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# middle camera {cams[len(cams) // 2]}")
         print(HEADER)
         t0 = time.perf_counter()
-        rows = compare(s, cams, taus, strategies=lods, pop_steps=a.pop_steps, log=print)
+        rows = compare(
+            s, cams, taus, strategies=lods, metric=a.metric, pop_steps=a.pop_steps, log=print
+        )
         for line in unchanged_taus(rows, taus):
+            print(line)
+        for line in cheapest_lines(cheapest_within(rows), f"qiu ({a.metric}):"):
             print(line)
         print(f"# {time.perf_counter() - t0:.0f} s")
         name = Path(path).name.split(".")[0]

@@ -43,6 +43,13 @@ loads drawn before their eviction`` as well (both are checked). Stalled blocks a
 (new in view or refining; within one block edge of the eye or not), and Python garbage
 collections during ``update`` are counted against frames whose update CPU exceeds 2 ms.
 
+Stalls are counted over Qiu's triangle (the session's ``culling="qiu"``) and, with
+``account_hull=True``, over the frustum hull the renderer draws (a second plan per frame, which
+the update CPU figures include; ``bench/session_update.py`` measures the caller without it).
+Two figures independent of stalls: ``late_bytes`` (bytes that arrived after the frame that first
+needed them was due) and ``coarse_frames`` (frames drawn coarser than needed, by levels in the
+JSON).
+
 Timings on a shared 2-core machine are noisy: compare ratios within one run of this script.
 MB = MiB.
 """
@@ -446,6 +453,13 @@ def derive(rows: list[dict], summary: dict, cameras: list, out: dict) -> dict[st
     return {
         "frames": n,
         "stall_frames": summary["stall_frames"],
+        # over the frustum hull the renderer draws (account_hull), beside Qiu's triangle
+        "stall_frames_hull": summary["stall_frames_hull"],
+        # independent of stalls: bytes that arrived after the frame that first needed them was
+        # due, and frames drawn coarser than needed (by how many levels)
+        "late_bytes": summary["late_bytes"],
+        "coarse_frames_by_levels": summary["coarse_frames_by_levels"],
+        "coarse_frames": int(sum(summary["coarse_frames_by_levels"].values())),
         "stalls_per_10k": 1e4 * summary["stall_frames"] / n,
         "stall_frame_list": stalls[:200],
         "stalls_in_first_second": len(startup),
@@ -523,6 +537,7 @@ def run_one(spec: dict[str, Any], args: argparse.Namespace, stores: dict) -> dic
         tau=args.tau,
         prefetch=spec["prefetch"],
         latency_ms=0.0 if spec["transport"] == "http" else spec["latency_ms"],
+        account_hull=True,
     )
     ctx = (
         http_server(path.parent, spec["latency_ms"] / 1000.0)
@@ -623,7 +638,8 @@ def _pf(ok: bool) -> str:
 
 def table(records: list[dict[str, Any]]) -> str:
     head = (
-        f"{'configuration':<30} {'frames':>6} {'stall':>5} {'/10k':>7} {'rt%need':>8} "
+        f"{'configuration':<30} {'frames':>6} {'stall':>5} {'hull':>5} {'/10k':>7} {'lateMB':>7} "
+        f"{'coarse':>6} {'rt%need':>8} "
         f"{'rt%used':>8} {'ld/used':>7} {'ld/load':>7} {'peakMB':>7} {'updCPU':>7} {'p99CPU':>7} "
         f"{'updWall':>7} {'io ms/f':>7} {'f1 MB':>6} {'f1 ms':>6} {'late':>5}  "
         "stall rt   ld   ld2  budg upd"
@@ -634,7 +650,9 @@ def table(records: list[dict[str, Any]]) -> str:
         scope = "*" if r["in_target_scope"] else " "
         lines.append(
             f"{scope}{r['name']:<29} {m['frames']:>6} {m['stall_frames']:>5} "
-            f"{m['stalls_per_10k']:>7.1f} {m['realtime_pct_of_needed']:>8.4f} "
+            f"{m['stall_frames_hull']:>5} {m['stalls_per_10k']:>7.1f} "
+            f"{m['late_bytes'] / MB:>7.3f} {m['coarse_frames']:>6} "
+            f"{m['realtime_pct_of_needed']:>8.4f} "
             f"{m['realtime_pct_of_used']:>8.2f} {m['loaded_per_used']:>7.2f} "
             f"{m['loaded_per_used_load']:>7.2f} "
             f"{m['peak_resident_bytes'] / MB:>7.1f} {m['max_update_cpu_ms']:>7.2f} "
@@ -646,7 +664,10 @@ def table(records: list[dict[str, Any]]) -> str:
             f"{_pf(c['budget'])} {_pf(c['update_cpu'])}"
         )
     lines.append(
-        "* = in the targets' scope (prefetch on, 20 ms latency, <= 1 block edge/s). rt%need = "
+        "* = in the targets' scope (prefetch on, 20 ms latency, <= 1 block edge/s). stall = "
+        "frames that lacked a needed level over Qiu's triangle, hull = over the frustum hull the "
+        "renderer draws; lateMB = bytes that arrived after the frame that first needed them was "
+        "due (independent of stalls); coarse = frames drawn coarser than needed. rt%need = "
         "real-time bytes after frame 1 / sum of per-frame needed bytes (target <= 1 %); rt%used ="
         " the same / distinct bytes drawn (stricter, not a target); ld/used = loaded / distinct "
         "(block, level) bytes drawn (the session's used_bytes; re-loads on a second pass count as"
