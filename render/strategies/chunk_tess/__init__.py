@@ -43,20 +43,25 @@ chunks that the hardware tessellator draws.
   (60 at ``c = 5``); the test reads back 198 chunks and checks their area.
 """
 
-from render.strategies.chunk_tess.gl import ChunkTessellation
+from render.strategies.chunk_tess.gl import ChunkTessellation, ChunkTessellationGpu
+from render.strategies.chunk_tess.gpu import GpuChunks
 from render.strategies.chunk_tess.pure import (
     MAX_TESS_VERTICES,
     batch_chunks,
     kim_metric,
     outer_factors,
+    start_depth,
     tess_triangles,
 )
 
 __all__ = [
     "MAX_TESS_VERTICES",
     "ChunkTessellation",
+    "ChunkTessellationGpu",
+    "GpuChunks",
     "batch_chunks",
     "kim_metric",
     "outer_factors",
+    "start_depth",
     "tess_triangles",
 ]
