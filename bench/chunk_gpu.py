@@ -6,8 +6,10 @@ Per strategy and τ the fly-through is drawn once to stream and warm up, then ``
 times measured; per frame: CPU ms (the strategy's ``select``: for the GPU variants the block
 table and uniforms only), GPU ms of the selection passes (traversal + emit, or expansion +
 splitting; wall time, synchronised by the pass-count queries), draw ms (``RenderStats``), and
-the frame = CPU + selection passes + draw. On llvmpipe the "GPU" runs on the same CPU cores,
-so a frame's parts add up rather than overlap.
+the frame = CPU + selection passes + draw; and for the GPU selections the traversal passes and
+the node records they wrote (the paper's argument: a shallower tree, fewer traversal vertices;
+``split_records``: geometry-splitting's crack-removal passes). On llvmpipe the "GPU" runs on
+the same CPU cores, so a frame's parts add up rather than overlap.
 
 Usage: python bench/chunk_gpu.py [STORE] [--size 640x480] [--taus 0.5,1,2,4] [--frames 8]
        [--repeats 3]
@@ -40,7 +42,8 @@ LODS = ("chunk-tessellation", "chunk-tessellation-gpu", "geometry-splitting")
 def run(store, cams, name: str, tau: float, repeats: int, r: TerrainRenderer) -> dict:
     """One strategy at one τ: per-frame means over the measured repeats."""
     st = get_strategy(name, r)
-    rec: dict[str, list[float]] = {k: [] for k in ("cpu", "sel_gpu", "draw", "tris", "nodes")}
+    keys = ("cpu", "sel_gpu", "draw", "tris", "nodes", "passes", "trav_records", "split_records")
+    rec: dict[str, list[float]] = {k: [] for k in keys}
     with open_render_session(store, 0.0, "qiu", r.p) as s:
         for cam in cams:  # stream and warm up
             frame_step(s, st, cam, tau)
@@ -53,6 +56,10 @@ def run(store, cams, name: str, tau: float, repeats: int, r: TerrainRenderer) ->
                 rec["draw"].append(step.stats.frame_ms - extra)
                 rec["tris"].append(step.stats.triangles)
                 rec["nodes"].append(step.stats.patches)
+                sel = step.selection  # traversal passes and the records they wrote (GPU ones)
+                rec["passes"].append(len(getattr(sel, "pass_counts", [])))
+                rec["trav_records"].append(sum(getattr(sel, "pass_counts", [])))
+                rec["split_records"].append(sum(getattr(sel, "split_counts", [])))
     m = {k: float(np.mean(v)) for k, v in rec.items()}
     m["frame"] = m["cpu"] + m["sel_gpu"] + m["draw"]
     m["frame_p90"] = float(
@@ -83,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# {a.store} {w}x{h}, {a.frames} frames x {a.repeats}, load {load[0]:.2f}")
     head = (
         f"{'strategy':>24} {'tau':>4} {'tris':>9} {'nodes':>7} {'CPU ms':>7} "
-        f"{'sel GPU':>8} {'draw ms':>8} {'frame ms':>9} {'p90':>7}"
+        f"{'sel GPU':>8} {'draw ms':>8} {'frame ms':>9} {'p90':>7} {'passes':>6} {'trav rec':>9} "
+        f"{'split rec':>9}"
     )
     print(head)
     rows = []
@@ -94,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"{name:>24} {tau:>4g} {row['tris']:>9,.0f} {row['nodes']:>7,.0f} "
                 f"{row['cpu']:>7.2f} {row['sel_gpu']:>8.2f} {row['draw']:>8.2f} "
-                f"{row['frame']:>9.2f} {row['frame_p90']:>7.2f}"
+                f"{row['frame']:>9.2f} {row['frame_p90']:>7.2f} {row['passes']:>6.1f} "
+                f"{row['trav_records']:>9,.0f} {row['split_records']:>9,.0f}"
             )
     r.close()
     info = machine_info() | {"load_before": load[0], "load_after": os.getloadavg()[0]}

@@ -85,7 +85,9 @@ class ChunkTessellation(Strategy[Patches | GpuChunks]):
         self.heights = GlobalHeights(renderer.store)
         check_gl(ctx, "creating the chunk-tessellation programs")
 
-    def select(self, camera, tau, metric="qiu", *, resident=None):
+    def select(
+        self, camera, tau, metric="qiu", *, resident=None
+    ) -> tuple[Patches | GpuChunks, float]:
         if self.gpu is not None:
             return self.gpu.select(camera, tau, resident=resident, stitching=self.stitching)
         sel, ms = select_clod(
