@@ -12,7 +12,7 @@ the node records they wrote (the paper's argument: a shallower tree, fewer trave
 the same CPU cores, so a frame's parts add up rather than overlap.
 
 Usage: python bench/chunk_gpu.py [STORE] [--size 640x480] [--taus 0.5,1,2,4] [--frames 8]
-       [--repeats 3]
+       [--repeats 3] [--lods a,b] [--out bench/results/chunk_gpu.json]
 Default store: the real N44W072 store of BENCHMARKS.md (bench/prefetch.py's
 ``prepare_real(metric=True)``). Writes ``bench/results/chunk_gpu.json``.
 """

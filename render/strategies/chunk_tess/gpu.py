@@ -102,9 +102,8 @@ class GpuSelector:
         """Every drawn block's pooled chunk errors ``ε`` (the CPU variant's ``PatchTable``,
         depths ``0..k-c-1`` in depth order) in one float32 buffer; rebuilt when a block is new
         (load-time work, like geometry-splitting's quadtree texture)."""
-        if all(b in self._offset for b in blocks):
+        if all(b in self._offset and b in self.table for b in blocks):
             return
-        self.r.fill_table(self.table, blocks, "bound")
         keep = sorted(set(blocks) | {b for b in self._offset if b in self.table})
         self.r.fill_table(self.table, keep, "bound")
         depths = self.table.depths
