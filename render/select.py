@@ -154,12 +154,15 @@ def select_patches(
     resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
     windows: np.ndarray | None = None,
+    min_depth: int = 0,
 ) -> Patches:
     """Leaves of all blocks' quadtrees at ``tau`` (not yet stitched: ``snap`` is zero).
 
     ``resident[i]`` is the finest resident level of ``blocks[i]`` (-1: none, not drawn);
     ``zranges[i]`` its (zmin, zmax); ``windows[i]`` its ``(row0, col0, nrows, ncols)`` inside the
-    DEM (nodes wholly in padding are dropped).
+    DEM (nodes wholly in padding are dropped). Nodes shallower than ``min_depth`` split
+    whatever their error (where the resident level allows; ``chunk-tessellation``'s start
+    depth, which bounds the depth difference of adjacent leaves).
     """
     check_tau(tau)
     fn = get_metric(metric)
@@ -216,7 +219,7 @@ def select_patches(
         if depth + p >= k:
             parts.append((idx, depth, rows, cols, level, delta, rho))
             break
-        want = ~(rho <= tau)
+        want = ~(rho <= tau) | (depth < min_depth)
         split = want & (depth + p < r_idx)
         n_split = int(np.count_nonzero(split))
         clamped += int(np.count_nonzero(want)) - n_split

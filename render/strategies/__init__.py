@@ -8,7 +8,9 @@ streaming session, ``HeightPool`` and level/order-index fetch, returns the rende
 * ``jung-han`` — :mod:`render.strategies.jung_han`, 3×3-vertex blocks, CPU simplification;
 * ``geometry-splitting`` — :mod:`render.strategies.geometry_splitting`, Lee & Shin, quadtree
   expanded on the GPU with transform feedback;
-* ``chunk-tessellation`` — :mod:`render.strategies.chunk_tess`, Kim, Lee & Shin;
+* ``chunk-tessellation`` — :mod:`render.strategies.chunk_tess`, Kim, Lee & Shin (chunks
+  selected on the CPU); ``chunk-tessellation-gpu`` the same chunks selected on the GPU as the
+  paper does;
 * ``seamless-patches`` — :mod:`render.strategies.seamless`, Livny, Kogan & El-Sana.
 
 Strategy packages are imported on first use (each compiles its own shaders).
@@ -28,6 +30,7 @@ STRATEGIES: dict[str, str] = {
     "jung-han": "render.strategies.jung_han:JungHan",
     "geometry-splitting": "render.strategies.geometry_splitting:GeometrySplitting",
     "chunk-tessellation": "render.strategies.chunk_tess:ChunkTessellation",
+    "chunk-tessellation-gpu": "render.strategies.chunk_tess:ChunkTessellationGpu",
     "seamless-patches": "render.strategies.seamless:SeamlessPatches",
 }
 

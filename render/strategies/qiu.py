@@ -53,13 +53,15 @@ def select_clod(
     full: bool = False,
     table: PatchTable | None = None,
     field: str | None = None,
+    min_depth: int = 0,
 ) -> tuple[Patches, float]:
     """Stitched patches of the drawable blocks at ``tau`` and the CPU time in ms.
 
     ``resident`` caps each block's level (default: what is on the GPU); ``full`` draws every
     visible node at full resolution (the reference mesh). ``metric`` may be a callable
     (:data:`streamer.lod.Metric`); ``table`` (another node size) and ``field`` (the stored error
-    field it is filled from) let a strategy select its own node sizes.
+    field it is filled from) let a strategy select its own node sizes; nodes shallower than
+    ``min_depth`` always split (where resident).
     """
     t0 = time.perf_counter()
     get_metric(metric)
@@ -75,7 +77,17 @@ def select_clod(
     tau_used = 0.0 if full else tau
     fn = always_split if full else metric
     patches = select_patches(
-        r.grid, blk, table, camera, tau_used, fn, poly, resident=res, zranges=zr, windows=win
+        r.grid,
+        blk,
+        table,
+        camera,
+        tau_used,
+        fn,
+        poly,
+        resident=res,
+        zranges=zr,
+        windows=win,
+        min_depth=min_depth,
     )
     patches = stitch(patches, r.grid, table, camera, fn, resident=res, zranges=zr)
     return patches, (time.perf_counter() - t0) * 1000.0

@@ -19,7 +19,11 @@ pytestmark = pytest.mark.gl
 CTX = make_context()
 SIZE = (128, 96)
 NAMES = strategy_names()
-OPTIONS = {"chunk-tessellation": {"chunk_log2": 3}, "seamless-patches": {"res_log2": 3}}
+OPTIONS = {
+    "chunk-tessellation": {"chunk_log2": 3},
+    "chunk-tessellation-gpu": {"chunk_log2": 3},
+    "seamless-patches": {"res_log2": 3},
+}
 
 
 def strategy(path, name, size=SIZE, patch_log2=2):

@@ -21,7 +21,11 @@ pytestmark = pytest.mark.gl
 CTX = make_context()
 SIZE = (128, 96)
 NAMES = strategy_names()
-OPTIONS = {"chunk-tessellation": {"chunk_log2": 3}, "seamless-patches": {"res_log2": 3}}
+OPTIONS = {
+    "chunk-tessellation": {"chunk_log2": 3},
+    "chunk-tessellation-gpu": {"chunk_log2": 3},
+    "seamless-patches": {"res_log2": 3},
+}
 EVEREST = 8848.0
 #: pixel budgets: share of pixels whose largest channel differs by more than 2 levels
 PLATEAU_BUDGET, MOVE_BUDGET = 0.01, 0.01

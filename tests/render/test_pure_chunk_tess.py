@@ -34,3 +34,14 @@ def test_kim_metric_projects_the_nearest_sphere_point():
     assert got == pytest.approx(float(np.hypot(x1 - x0, y1 - y0)[0])) and got > 0
     inside = kim_metric(np.array([1.0]), np.array([[0.0, 0.0, 950.0]]), np.array([100.0]), cam)
     assert np.isinf(inside[0])
+
+
+def test_start_depth_bounds_the_level_difference_of_chunks():
+    from render.strategies.chunk_tess import start_depth
+
+    for k in range(0, 15):
+        for c in range(0, 7):
+            s = start_depth(k, c)
+            # chunks lie at depths s..max(s, k - c); adjacent ones differ by at most c levels
+            assert s >= 0 and max(0, k - c) - s <= c and (s == 0 or k - c - s == c)
+    assert start_depth(12, 5) == 2 and start_depth(10, 5) == 0  # the paper's 2 at k = 12

@@ -187,3 +187,19 @@ def test_crack_pixels_ignore_outline_but_count_holes():
     img[10, 4:12] = (255, 0, 255)  # a hole
     assert measure.crack_pixels(img, fp, (255, 0, 255)) == 8
     assert measure.psnr(img, img) == 100.0
+
+
+def test_min_depth_splits_flat_nodes_down_to_it_where_resident():
+    # flat blocks (zero error) stop at the root unless min_depth forces them deeper; a block
+    # resident at a level too coarse for the forced depth stops there, counted as clamped
+    g = _grid()
+    blocks = g.blocks()
+    cam = Camera((1920.0, 1920.0, 5000.0), pitch=-90.0, viewport=(64, 48))
+    res = [5] * 15 + [3]
+    kw = dict(resident=res, zranges=np.zeros((16, 2)))
+    t = _table(5, 2, blocks)
+    p = select_patches(g, blocks, t, cam, 1.0, "qiu", None, min_depth=2, **kw)
+    deep = p.block != 15
+    assert (p.depth[deep] == 2).all() and (p.level[deep] == 4).all() and deep.sum() == 15 * 16
+    assert (p.depth[~deep] == 1).all() and (p.level[~deep] == 3).all() and p.clamped == 4
+    assert len(select_patches(g, blocks, t, cam, 1.0, "qiu", None, **kw)) == 16

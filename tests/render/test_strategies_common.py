@@ -23,7 +23,11 @@ SIZE = (128, 96)
 X0, Y0 = 500015.0, 5000000.0 - 15
 NAMES = strategy_names()
 #: options that make a 32-cell block interesting for a strategy
-OPTIONS = {"chunk-tessellation": {"chunk_log2": 3}, "seamless-patches": {"res_log2": 3}}
+OPTIONS = {
+    "chunk-tessellation": {"chunk_log2": 3},
+    "chunk-tessellation-gpu": {"chunk_log2": 3},
+    "seamless-patches": {"res_log2": 3},
+}
 
 
 def _strategy(path, name, size=SIZE):

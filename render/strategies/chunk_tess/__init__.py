@@ -1,5 +1,6 @@
 """``chunk-tessellation`` — Kim, Lee & Shin's GPU chunk LOD: the quadtree traversal stops at
-chunks that the hardware tessellator draws.
+chunks that the hardware tessellator draws; the traversal runs on the CPU or, as in the paper,
+on the GPU (``chunk-tessellation-gpu``).
 
 * **Chunks** are quadtree nodes of a block drawn from one level as ``2**c`` cells per side
   (``c = chunk_log2``, default 5: Kim's 32×32 cells; GL's ``GL_MAX_TESS_GEN_LEVEL`` is 64, so
@@ -25,6 +26,39 @@ chunks that the hardware tessellator draws.
   shared vertices are bit-identical (same integer-sample position path as the renderer). No
   skirts, no extra geometry. GL quad outer levels: ``[0]`` u=0 (west), ``[1]`` v=0 (north),
   ``[2]`` u=1 (east), ``[3]`` v=1 (south).
+* **Selection on the CPU or the GPU** (``ChunkTessellation(r, selection="cpu" | "gpu")``;
+  ``chunk-tessellation-gpu`` is the GPU one by name). ``"cpu"`` (the default) is the shared
+  breadth-first :func:`render.select.select_patches` plus :func:`render.select.stitch`.
+  ``"gpu"`` is the paper's 3.1–3.2 (:mod:`.gpu`, ``traverse.glsl``/``traverse.geom``/
+  ``emit.geom``): a node is a point ``(block, depth | done << 8, row, col)`` plus 4 channels
+  (the paper's RGBA) holding the levels of the neighbours N, E, S, W; each pass (a geometry
+  shader with transform feedback, :func:`render.strategies.feedback.feedback_pass`, the
+  machinery of ``geometry-splitting``) makes, for every still unset channel, the virtual
+  same-depth neighbour and runs the node's own split test on it — a neighbour that does not
+  split is a leaf, its level goes in the channel; a missing one (terrain edge, block not drawn,
+  culled, all padding) stores "none". A node that splits emits its visible children, each
+  inheriting the channels of the parent's outer edges it lies on; a node that stops fills its
+  unset channels with its own level (the neighbour is finer: no snap). One emit pass per height
+  page turns the leaves into the tessellation draw's vertices (the CPU layout,
+  ``snap_e = clamp(level - channel_e, 0, cells)``, zero with ``stitching`` off) and counts
+  triangles, clamped nodes, violations and the level range with atomics (32 bytes back, plus
+  4 bytes per pass for the pass counts). The split test is the CPU one on the same inputs:
+  ``ε`` from the same ``PatchTable`` (uploaded once per block as float32), the block's height
+  range, ``kim_metric`` in camera-relative float32, the same frustum-hull disc cull
+  (:class:`render.select.DiscCull`: the hull is a uniform), the same padding rule and resident
+  caps (``select(resident=...)``); pages only choose which buffer a chunk fetches from. The
+  traversal starts splitting unconditionally down to ``start_depth = max(0, k - 2c)`` (the
+  paper starts at depth 2 for 32-cell chunks on its terrains): chunks then lie at depths
+  ``start..k-c``, so adjacent chunks differ by at most ``c`` levels, every outer factor is
+  ``>= 1`` and the CPU's restriction splits (which the channels cannot express) never occur.
+  The GPU result equals :meth:`ChunkTessellation.select_twin` (``select_clod`` with
+  ``min_depth = start_depth``; the CPU variant itself when ``k <= 2c``, e.g. 257² blocks at
+  ``c = 5``) chunk for chunk and snap for snap (tests; float32 against float64 could differ at
+  a τ within rounding of a node's error, not seen in the tests). Per frame the CPU makes the
+  block table (64 bytes per drawn block: origin, pool base, cap, ε offset, page, DEM window,
+  neighbours, height range), the hull and the uniforms (``select``'s ms); the passes are GPU
+  work, timed in ``select`` and added to the frame's GPU ms. The chunks stay on the GPU (read
+  back only for the measurements: :meth:`ChunkTessellation.patches`).
 * **Heights** are fetched in the tessellation evaluation shader with the renderer's
   level/order-index path (``render/glsl/fetch.glsl``: ``vertex_at``), from the same
   ``HeightPool``. Per frame one vertex (32 bytes, the renderer's instance layout) per chunk is
@@ -43,20 +77,25 @@ chunks that the hardware tessellator draws.
   (60 at ``c = 5``); the test reads back 198 chunks and checks their area.
 """
 
-from render.strategies.chunk_tess.gl import ChunkTessellation
+from render.strategies.chunk_tess.gl import ChunkTessellation, ChunkTessellationGpu
+from render.strategies.chunk_tess.gpu import GpuChunks
 from render.strategies.chunk_tess.pure import (
     MAX_TESS_VERTICES,
     batch_chunks,
     kim_metric,
     outer_factors,
+    start_depth,
     tess_triangles,
 )
 
 __all__ = [
     "MAX_TESS_VERTICES",
     "ChunkTessellation",
+    "ChunkTessellationGpu",
+    "GpuChunks",
     "batch_chunks",
     "kim_metric",
     "outer_factors",
+    "start_depth",
     "tess_triangles",
 ]

@@ -47,3 +47,11 @@ def outer_factors(cells_log2: int, snap: tuple[int, int, int, int]) -> tuple[int
     """GL outer levels ``[u=0 (W), v=0 (N), u=1 (E), v=1 (S)]`` of a chunk (CPU twin of the TCS)."""
     tn, te, ts, tw = snap
     return tuple(1 << (cells_log2 - t) for t in (tw, tn, te, ts))
+
+
+def start_depth(k: int, chunk_log2: int) -> int:
+    """The GPU traversal's first depth where a node may stop: ``max(0, k - 2c)``. Chunks then
+    lie at depths ``start..k-c`` (a depth-``d`` chunk has level ``d + c``), so adjacent chunks
+    differ by at most ``c`` levels and every outer factor ``2**(c - snap)`` is >= 1 without the
+    CPU's restriction splits (:func:`render.select.stitch`)."""
+    return max(0, k - 2 * chunk_log2)

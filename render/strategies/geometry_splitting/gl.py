@@ -14,7 +14,6 @@ import moderngl
 import numpy as np
 
 from render import measure, shaders
-from render.errors import RenderError
 from render.frame import FrameServices, mixed_nodes
 from render.gpu import MASKED_BELOW, check_gl
 from render.select import check_tau
@@ -25,6 +24,7 @@ from render.strategies.base import (
     Strategy,
     triangle_screen_errors,
 )
+from render.strategies.feedback import block_neighbours, feedback_pass
 from render.strategies.geometry_splitting.pure import BlockTree, quad_errors, stored_tree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 from streamer.camera import Camera
@@ -184,16 +184,15 @@ class GeometrySplitting(Strategy[Selection]):
         """The drawn blocks (sorted) and their ``(m, 16)`` int32 table (see ``QT_LIB``)."""
         pairs = self.r.drawable(resident)
         blocks = [b for b, _ in pairs]
-        index = {b: i for i, b in enumerate(blocks)}
+        nb = block_neighbours(blocks)
         k = self.k
         t = np.zeros((len(blocks), 16), dtype=np.int64)
         for i, (b, lv) in enumerate(pairs):
             s = self.r.slot(b)
             t[i, 0:4] = (b[1] << k, b[0] << k, s.offset, lv)
             t[i, 4:6] = (self._qt_offset.get(b, 0), s.page)
-            for dr, (rr, cc) in enumerate(((-1, 0), (0, 1), (1, 0), (0, -1))):
-                j = index.get((b[0] + rr, b[1] + cc), -1)
-                t[i, 8 + dr] = j
+            t[i, 8:12] = nb[i]
+            for dr, j in enumerate(nb[i].tolist()):
                 cross = j >= 0 and self.r.slot(blocks[j]).page != s.page
                 t[i, 12 + dr] = pairs[j][1] if cross else NO_CAP
         return blocks, t.astype(np.int32)
@@ -212,17 +211,7 @@ class GeometrySplitting(Strategy[Selection]):
             self._qt_buf.bind_to_storage_buffer(5)
 
     def _pass(self, prog, src, fmt, names, n, out_per, rec_bytes) -> tuple[moderngl.Buffer, int]:
-        ctx = self.r.ctx
-        out = ctx.buffer(reserve=max(1, n * out_per) * rec_bytes)
-        vao = ctx.vertex_array(prog, [(src, fmt, *names)])
-        q = ctx.query(primitives=True)
-        with q:
-            vao.transform(out, moderngl.POINTS, vertices=n)
-        m = int(q.primitives)
-        vao.release()
-        if m > n * out_per:
-            raise RenderError(f"a splitting pass emitted {m} records for {n} inputs")
-        return out, m
+        return feedback_pass(self.r.ctx, prog, src, fmt, names, n, out_per, rec_bytes)
 
     def select(
         self,
