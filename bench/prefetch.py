@@ -73,7 +73,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, REPO, RESULTS, WORK, git_head, machine_info  # noqa: E402
+from bench.common import REAL_HGT, REPO, RESULTS, WORK, git_head, machine_info, portable  # noqa: E402
 from streamer.run import RunResult, make_path, plot_run  # noqa: E402
 from streamer.session import Session, SessionConfig  # noqa: E402
 from tiler.store import open_store  # noqa: E402
@@ -900,7 +900,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames_files": frames_files,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1, default=str))
+    args.out.write_text(json.dumps(portable(doc), indent=1, default=str))
     log(f"wrote {args.out}")
     if doc["code_changed_during_run"]:
         log(f"NOTE: edited while this ran: {', '.join(doc['code_changed_during_run'])}")
