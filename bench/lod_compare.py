@@ -15,7 +15,9 @@ script prints a ``# unchanged`` line for every strategy and pair of τ where it 
 Default stores: the synthetic 4097^2 store and the real N44W072 store of BENCHMARKS.md (a
 missing one is skipped with a message).
 After each store a ``# tau T:`` line per τ sets qiu (the default path, with ``--metric``)
-beside the cheapest strategy whose measured max error stays ≤ τ (issue 12).
+beside the cheapest strategy whose measured max error stays ≤ τ (issue 12). The Markdown tables
+of BENCHMARKS.md go to ``lod_compare<tag>.md`` beside the JSON (``--markdown-from JSON`` prints
+them again from a run's JSON).
 ``--quick``: 256x192, 4 frames, taus 1 and 4 (a smoke run; under 2 minutes on a small store).
 Same as ``terrastream compare STORE --json ... --plot ...`` per store.
 """
@@ -104,6 +106,46 @@ def cheapest_lines(summary: list[dict], label: str) -> list[str]:
     return lines
 
 
+MD_HEAD = (
+    "| strategy | τ | tris/frame (mid view) | CPU ms | GPU ms | max / p99 / mean px | cracks "
+    "| above | open | gaps | gap m | terrain | nodata | clipped | pop path px (LOD frames) "
+    "| pop dolly px (LOD frames) | data MiB | own MiB |"
+)
+
+
+def _pop_md(r: dict, motion: str) -> str:
+    return (
+        f"{r[f'popping_{motion}_px']:.2f} "
+        f"({r[f'popping_{motion}_lod_frames']}/{r[f'popping_{motion}_frames']})"
+    )
+
+
+def markdown(results: dict[str, list[dict]], metric: str = "qiu") -> str:
+    """The BENCHMARKS.md tables of a run: one per store, then the default path (qiu with
+    ``metric``) beside the cheapest strategy ≤ τ."""
+    out = []
+    for path, rows in results.items():
+        out += [f"`{Path(path).name}`:", "", MD_HEAD, "|" + "---|" * 18]
+        for r in rows:
+            out.append(
+                f"| {r['strategy']} | {r['tau']:g} | {r['fly_triangles']:,.0f} "
+                f"({r['triangles']:,}) | {r['fly_cpu_ms']:.2f} | {r['fly_gpu_ms']:.1f} | "
+                f"{r['max_screen_error_px']:.2f} / {r['p99_screen_error_px']:.2f} / "
+                f"{r['mean_screen_error_px']:.3f} | {r['crack_pixels']} | "
+                f"{r['crack_pixels_above']} | {r['open_edges']} | {r['gap_edges']} | "
+                f"{r['max_gap_m']:.2f} | {100 * r['terrain_covered']:.1f} % | "
+                f"{100 * r['nodata_covered']:.1f} % | {r['near_clipped_samples']} | "
+                f"{_pop_md(r, 'path')} | {_pop_md(r, 'dolly')} | "
+                f"{r['used_bytes'] / 2**20:.2f} | {r['own_gpu_bytes'] / 2**20:.2f} |"
+            )
+        out.append("")
+        out += [
+            line.lstrip("# ") for line in cheapest_lines(cheapest_within(rows), f"qiu ({metric}):")
+        ]
+        out.append("")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("stores", nargs="*", default=DEFAULT_STORES)
@@ -118,12 +160,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pitch", type=float, default=-8.0)
     ap.add_argument("--pop-steps", type=int, default=8)
     ap.add_argument(
+        "--markdown-from",
+        default=None,
+        metavar="JSON",
+        help="only print the Markdown tables of an earlier run's JSON",
+    )
+    ap.add_argument(
         "--metric",
         default="qiu",
         help="qiu's screen-error metric for every strategy that uses one (qiu, conservative, "
         "conservative-view); the output files get a _<metric> tag unless it is qiu",
     )
     a = ap.parse_args(argv)
+    if a.markdown_from:
+        print(markdown(json.loads(Path(a.markdown_from).read_text()), a.metric))
+        return 0
     taus = [1.0, 4.0] if a.quick else [float(t) for t in a.taus.split(",")]
     frames = 4 if a.quick else a.frames
     w, h = (256, 192) if a.quick else tuple(int(v) for v in a.size.split("x"))
@@ -158,6 +209,7 @@ def main(argv: list[str] | None = None) -> int:
         results[path] = rows
     js = out / f"lod_compare{tag}.json"
     js.write_text(json.dumps(results, indent=1))
+    (out / f"lod_compare{tag}.md").write_text(markdown(results, a.metric))
     (out / f"lod_compare{tag}_machine.json").write_text(json.dumps(machine_info(), indent=1))
     print(f"wrote {js}")
     return 0
