@@ -112,6 +112,11 @@ class PatchErrorTable:
         0 at full resolution (``depth + patch_log2 >= k``)."""
         return _delta(self._arrays, self.depths, slots, depth, rows, cols)
 
+    def depth_array(self, depth: int) -> np.ndarray | None:
+        """The ``(slots, 2**depth, 2**depth)`` float32 errors of depth ``depth`` (what
+        :meth:`delta` indexes), ``None`` at full resolution (``depth >= depths``: 0 there)."""
+        return self._arrays[depth] if depth < self.depths else None
+
     def _grow(self) -> None:
         old = self._cap
         self._cap *= 2

@@ -62,3 +62,18 @@ def test_remove_reuses_slots():
     t.remove((0, 0))
     t.add((5, 5), f)
     assert len(t) == 2 and (5, 5) in t and (0, 0) not in t
+
+
+def test_depth_array_is_what_delta_indexes():
+    rng = np.random.default_rng(3)
+    t = PatchErrorTable(5, 2, capacity=1)  # grows: the arrays are replaced
+    for b in ((0, 0), (0, 1), (2, 3)):
+        t.add(b, _field(rng, 5, 4))
+    slots = t.slots([(2, 3), (0, 0)])
+    for d in range(t.depths):
+        rows = rng.integers(0, 1 << d, 2)
+        cols = rng.integers(0, 1 << d, 2)
+        got = t.depth_array(d)[slots, rows, cols].astype(np.float64)
+        np.testing.assert_array_equal(got, t.delta(slots, d, rows, cols))
+    assert t.depth_array(t.depths) is None  # full resolution: delta is 0 there
+    assert not t.delta(slots, t.depths, np.zeros(2, int), np.zeros(2, int)).any()
