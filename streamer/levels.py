@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Sequence
+from functools import cache
+from types import ModuleType
 
 import numpy as np
 
 from streamer.camera import Camera
 from streamer.errors import LodError
-from streamer.lod import Metric, get_metric
+from streamer.lod import Metric, get_metric, qiu_eq7
+from tiler.errors import KernelUnavailableError
 from tiler.grid import BlockGrid
+from tiler.kernels import ENV, requested
 from tiler.quadtree import (
     block_origins,
     half_diagonal,
@@ -30,6 +34,52 @@ from tiler.quadtree import (
 )
 
 Block = tuple[int, int]
+_NB_MODULE = "streamer._levels_nb"
+_READY: list[bool] = []  # set once the compiled kernel has run in this process
+
+
+@cache
+def _load_numba() -> ModuleType | None:
+    try:
+        from streamer import _levels_nb
+    except ImportError:
+        return None
+    return _levels_nb
+
+
+def kernels(load: bool = False) -> ModuleType | None:
+    """The compiled needed-level kernel (``qiu`` metric) or ``None`` for the numpy reference,
+    by ``TERRASTREAM_KERNELS``: ``numpy`` never, ``numba`` always (an error without numba),
+    ``auto`` only once :func:`warm_up` has loaded it (or with ``load``), so a session's caller
+    never waits for numba's import or a compilation."""
+    name = requested()
+    if name == "numpy":
+        return None
+    if name == "auto" and not load and not _READY:
+        return None
+    mod = _load_numba()
+    if mod is None and name == "numba":
+        raise KernelUnavailableError(
+            f"{ENV}=numba but numba cannot be imported; install the 'fast' extra or unset it."
+        )
+    return mod
+
+
+def warm_up(table: PatchErrorTable) -> bool:
+    """Import numba and load (or compile) the needed-level kernel for ``table``'s depth count
+    (e.g. on a session's planning thread); returns whether it is available."""
+    mod = kernels(load=True)
+    if mod is None or table.depths == 0:
+        return False
+    e = np.zeros(0)
+    i = np.zeros(0, np.int64)
+    arrays = tuple(table._arrays)
+    sp = np.ones(table.depths)
+    z3 = np.zeros(3)
+    mod.qiu_levels(arrays, i, e, e, np.zeros((0, 2)), sp, 1, 1, 1.0, sp, sp, z3, z3, 1.0, 1.0,
+                   i, e)  # fmt: skip
+    _READY.append(True)
+    return True
 
 
 class PatchErrorTable:
@@ -149,6 +199,18 @@ class PatchErrorTable:
         slots = self.slots(blocks)
         arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
+        nb = kernels() if fn is qiu_eq7 else None
+        if nb is not None:  # the compiled walk: the same levels and errors (tested)
+            bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
+            spans = [float(1 << (k - d)) for d in range(self.depths)]
+            nb.qiu_levels(
+                tuple(arrays), slots, bx0, by1, np.ascontiguousarray(zr),
+                np.array([half_diagonal(grid, d) for d in range(self.depths)]), k, p,
+                float(tau), np.array([s * grid.dx for s in spans]),
+                np.array([s * grid.dy for s in spans]), camera.eye, camera.forward,
+                float(camera.focal_px), float(camera.near), levels, rho_max,
+            )  # fmt: skip
+            return levels, (rho_max if with_rho else np.zeros(m))
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
         bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
         idx = np.arange(m)

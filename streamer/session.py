@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from streamer import levels as levels_kernels
 from streamer.cache import Block
 from streamer.camera import Camera
 from streamer.errors import BudgetError, LoadError, SessionClosedError, StreamerError
@@ -231,10 +232,13 @@ class Session:
         and the prefetch around them — and return ``{"ms", "bytes"}`` spent.
 
         Without it the first second of a flight stalls while the prefetch ring fills; Qiu et
-        al. likewise count the first frame's load apart (Table 3).
+        al. likewise count the first frame's load apart (Table 3). It also loads the compiled
+        needed-level kernel (``TERRASTREAM_KERNELS=auto``: numba's import, a compilation the
+        first time ever), which ``update`` uses only once loaded.
         """
         self._check_open()
         t0 = time.perf_counter()
+        levels_kernels.warm_up(self.loader.errors)
         before = self.totals.loaded_bytes
         limit = timeout_s or self.config.wait_timeout_s
         deadline = time.monotonic() + limit
