@@ -13,8 +13,8 @@ The result equals ``select_many(..., polygon=None)``'s ``needed_level`` (tested)
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
-from functools import cache
+from collections.abc import KeysView, Sequence
+from functools import cache, lru_cache
 from types import ModuleType
 
 import numpy as np
@@ -34,17 +34,16 @@ from tiler.quadtree import (
 )
 
 Block = tuple[int, int]
-_NB_MODULE = "streamer._levels_nb"
 _READY: list[bool] = []  # set once the compiled kernel has run in this process
 
 
 @cache
 def _load_numba() -> ModuleType | None:
     try:
-        from streamer import _levels_nb
+        from streamer import _plan_nb
     except ImportError:
         return None
-    return _levels_nb
+    return _plan_nb
 
 
 def kernels(load: bool = False) -> ModuleType | None:
@@ -147,6 +146,8 @@ class PatchErrorTable:
         get = self._slot.get
         if isinstance(blocks, np.ndarray):
             keys = [tuple(b) for b in blocks.reshape(-1, 2).tolist()]
+        elif all(type(b) is tuple for b in blocks):  # the planner's: no conversion needed
+            keys = blocks  # (a tuple of numpy ints hashes and compares as the ints do)
         else:
             keys = [(int(b[0]), int(b[1])) for b in blocks]
         arr = np.array([get(b, -1) for b in keys], dtype=np.int64)
@@ -161,6 +162,16 @@ class PatchErrorTable:
         """Patch errors (float64) of nodes ``(depth, rows, cols)`` of the blocks in ``slots``;
         0 at full resolution (``depth + patch_log2 >= k``)."""
         return _delta(self._arrays, self.depths, slots, depth, rows, cols)
+
+    def known(self, blocks: Sequence[Block]) -> list[Block]:
+        """The ``blocks`` (tuples) whose errors are in the table, in their order."""
+        slot = self._slot
+        return [b for b in blocks if b in slot]
+
+    def keys(self) -> KeysView[Block]:
+        """A live view of the blocks in the table (``b in table.keys()`` is ``b in table``
+        without a Python call per test: for per-block loops)."""
+        return self._slot.keys()
 
     def depth_array(self, depth: int) -> np.ndarray | None:
         """The ``(slots, 2**depth, 2**depth)`` float32 errors of depth ``depth`` (what
@@ -202,13 +213,11 @@ class PatchErrorTable:
         nb = kernels() if fn is qiu_eq7 else None
         if nb is not None:  # the compiled walk: the same levels and errors (tested)
             bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
-            spans = [float(1 << (k - d)) for d in range(self.depths)]
+            hd, sdx, sdy = _depth_geometry(grid, self.depths)
             nb.qiu_levels(
-                tuple(arrays), slots, bx0, by1, np.ascontiguousarray(zr),
-                np.array([half_diagonal(grid, d) for d in range(self.depths)]), k, p,
-                float(tau), np.array([s * grid.dx for s in spans]),
-                np.array([s * grid.dy for s in spans]), camera.eye, camera.forward,
-                float(camera.focal_px), float(camera.near), levels, rho_max,
+                tuple(arrays), slots, bx0, by1, np.ascontiguousarray(zr), hd, k, p, float(tau),
+                sdx, sdy, camera.eye, camera.forward, float(camera.focal_px),
+                float(camera.near), levels, rho_max,
             )  # fmt: skip
             return levels, (rho_max if with_rho else np.zeros(m))
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
@@ -232,6 +241,19 @@ class PatchErrorTable:
         else:
             levels[idx] = k  # nodes split down to full resolution
         return levels, rho_max
+
+
+@lru_cache(maxsize=16)
+def _depth_geometry(grid: BlockGrid, depths: int) -> tuple[np.ndarray, ...]:
+    """Per depth: the node half diagonal and the node span times ``dx`` and ``dy`` (the
+    reference's ``half_diagonal`` and ``node_centres_at`` factors, computed once per grid;
+    shared between calls, never written)."""
+    spans = [float(1 << (grid.k - d)) for d in range(depths)]
+    return (
+        np.array([half_diagonal(grid, d) for d in range(depths)]),
+        np.array([s * grid.dx for s in spans]),
+        np.array([s * grid.dy for s in spans]),
+    )
 
 
 def _delta(

@@ -160,8 +160,9 @@ class Session:
         """Pin this frame's levels and queue the missing ones (caller holds the lock)."""
         self.cache.set_pins(needed, self.level_bytes)
         pushed = 0
+        known, level = self.loader.errors.keys(), self.cache.level
         for b, lv in needed.items():
-            if b not in self.loader.errors or self.cache.level(b) < lv:
+            if b not in known or level(b) < lv:
                 self.loader.push(b)
                 pushed += 1
         return pushed
@@ -394,7 +395,7 @@ class Session:
     ) -> Frame:
         """What this frame may draw, its I/O figures and the caller's timings."""
         ld = self.loader
-        level, errors_table, due = self.cache.level, ld.errors, self._due
+        level, errors_table, due = self.cache.level, ld.errors.keys(), self._due
         hull = None
         if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")

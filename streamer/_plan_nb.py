@@ -1,8 +1,10 @@
-"""Numba kernel of :meth:`streamer.levels.PatchErrorTable.needed_levels` for Qiu's metric
-(imported by :mod:`streamer.levels` only when the compiled kernels are used): each block's
-quadtree walked depth first instead of one numpy pass per depth, with :func:`streamer.lod.qiu_eq7`'s
-operations in the reference's order on float64 (no fastmath), so the levels and screen errors
-are the reference's, bit for bit (tested)."""
+"""Numba kernels of a session's planning (imported by :mod:`streamer.levels` only when the
+compiled kernels are used): :meth:`streamer.levels.PatchErrorTable.needed_levels` for Qiu's
+metric (each block's quadtree walked depth first instead of one numpy pass per depth, with
+:func:`streamer.lod.qiu_eq7`'s operations in the reference's order on float64, no fastmath) and
+the rectangle half of :func:`streamer.frustum.blocks_meeting` (its separating-axis test per
+block, the polygon's part computed by numpy as in the reference). Both give the reference's
+results bit for bit (tested)."""
 
 from __future__ import annotations
 
@@ -100,3 +102,49 @@ def qiu_levels(
                         top += 1
         rho_max[b] = best
         levels[b] = k if bottom_split else deepest + p
+
+
+@_jit
+def blocks_meeting(
+    r0, r1, c0, c1, x0, y0, step, dx, dy, o, pbox, normals, pmin, pmax, exists,
+):  # fmt: skip
+    """``(n, 2)`` blocks ``(br, bc)`` of rows ``r0..r1`` and columns ``c0..c1`` (row-major)
+    whose bounds meet the polygon and that exist: ``frustum.blocks_meeting``'s test (``o`` the
+    polygon's first vertex, ``pbox`` its x/y min/max relative to ``o``, ``normals`` its edge
+    normals with the vertices' projections ``pmin``/``pmax`` on them; no normals: fewer than
+    2 vertices)."""
+    n = (r1 - r0 + 1) * (c1 - c0 + 1)
+    out = np.empty((max(n, 0), 2), np.int64)
+    m = 0
+    wx = step * dx
+    wy = step * dy
+    for br in range(r0, r1 + 1):
+        ymax = y0 - np.float64(br) * step * dy
+        ymin = ymax - wy
+        for bc in range(c0, c1 + 1):
+            if not exists[br, bc]:
+                continue
+            xmin = x0 + np.float64(bc) * step * dx
+            xmax = xmin + wx
+            hit = (
+                xmin - o[0] <= pbox[1]
+                and xmax - o[0] >= pbox[0]
+                and ymin - o[1] <= pbox[3]
+                and ymax - o[1] >= pbox[2]
+            )
+            if hit:
+                cx = ((xmin - o[0]) + (xmax - o[0])) * 0.5
+                cy = ((ymin - o[1]) + (ymax - o[1])) * 0.5
+                hx = (xmax - xmin) * 0.5
+                hy = (ymax - ymin) * 0.5
+                for j in range(normals.shape[0]):
+                    c = cx * normals[j, 0] + cy * normals[j, 1]
+                    r = hx * abs(normals[j, 0]) + hy * abs(normals[j, 1])
+                    if not (c - r <= pmax[j] and c + r >= pmin[j]):
+                        hit = False
+                        break
+            if hit:
+                out[m, 0] = br
+                out[m, 1] = bc
+                m += 1
+    return out[:m]
