@@ -74,8 +74,9 @@ def warm_up(table: PatchErrorTable) -> bool:
     i = np.zeros(0, np.int64)
     arrays = tuple(table._arrays)
     sp = np.ones(table.depths)
-    z3 = np.zeros(3)
-    mod.qiu_levels(arrays, i, e, e, np.zeros((0, 2)), sp, 1, 1, 1.0, sp, sp, z3, z3, 1.0, 1.0,
+    eye, fwd = np.zeros(3), np.zeros(3)
+    fwd.flags.writeable = False  # as Camera.forward: the same compiled specialisation
+    mod.qiu_levels(arrays, i, e, e, np.zeros((0, 2)), sp, 1, 1, 1.0, sp, sp, eye, fwd, 1.0, 1.0,
                    i, e)  # fmt: skip
     _READY.append(True)
     return True
