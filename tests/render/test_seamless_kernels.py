@@ -1,7 +1,7 @@
 """``seamless-patches``' compiled selection (numba) against the numpy reference: every output
 array of the layout equal, bit for bit, on rough, nodata and mixed-residency scenes, both forms
 of ρ, with and without the spike guard; positive controls show the comparison catches a kernel
-that is off by one ulp or that loses the shared edges."""
+that is off by one ulp, that loses the shared edges or that culls one node."""
 
 from __future__ import annotations
 
@@ -110,7 +110,7 @@ def _select_with(monkeypatch, r, kernel_module):
     return st.select(_cameras(r)[1], 1.0)[0]
 
 
-def test_positive_control_a_kernel_one_ulp_off_is_caught(renderers, numba_kernels, monkeypatch):
+def test_positive_controls_perturbed_kernels_are_caught(renderers, numba_kernels, monkeypatch):
     r = renderers["rough"]
     ref, _ = get_strategy("seamless-patches", r, kernels="numpy", res_log2=3).select(
         _cameras(r)[1], 1.0
@@ -121,13 +121,23 @@ def test_positive_control_a_kernel_one_ulp_off_is_caught(renderers, numba_kernel
         out[len(out) // 2, 1] = np.nextafter(out[len(out) // 2, 1], np.inf)
         return out
 
-    off = SimpleNamespace(epsilon=epsilon, edge_groups=numba_kernels.edge_groups)
+    nb = numba_kernels
+    off = SimpleNamespace(epsilon=epsilon, edge_groups=nb.edge_groups, disc_meets=nb.disc_meets)
     assert differences(ref, _select_with(monkeypatch, r, off)) == ["eps"]
     unshared = SimpleNamespace(  # every edge its own group: the neighbours no longer agree
-        epsilon=numba_kernels.epsilon,
+        epsilon=nb.epsilon,
         edge_groups=lambda d, *a: np.arange(4 * len(d)).reshape(-1, 4),
+        disc_meets=nb.disc_meets,
     )
     assert "edge_level" in differences(ref, _select_with(monkeypatch, r, unshared))
+
+    def one_culled(*args):  # the first node tested at each depth is culled
+        out = nb.disc_meets(*args)
+        out[:1] = False
+        return out
+
+    culled = SimpleNamespace(epsilon=nb.epsilon, edge_groups=nb.edge_groups, disc_meets=one_culled)
+    assert "depth" in differences(ref, _select_with(monkeypatch, r, culled))
     monkeypatch.undo()
     assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
 

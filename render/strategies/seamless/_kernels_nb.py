@@ -1,6 +1,7 @@
 """Numba kernels of ``seamless-patches``' selection (imported by
 :mod:`render.strategies.seamless.kernels`): the per-depth edge ε of ``_Frame.epsilon`` (with its
-``node_delta`` look-ups) and the shared-edge grouping of ``_edge_groups``, each giving exactly the
+``node_delta`` look-ups), the frustum disc test of ``_Frame.visible`` and the shared-edge
+grouping of ``_edge_groups``, each giving exactly the
 numpy reference's output. The float work is the reference's operations in the reference's order
 on float64 (no fastmath), so the results are the same bits."""
 
@@ -173,4 +174,41 @@ def edge_groups(d, gr, gc, depths, order, sk, nr, nc):
                 out[i, e] = j
             else:
                 out[i, e] = own
+    return out
+
+
+@_jit
+def disc_meets(idx, rows, cols, blk, x0, y0, step, dx, dy, s_dx, s_dy, radius, cull):
+    """``DiscCull(poly)(cx, cy, radius)[0]`` of the nodes' centres (``_Frame.visible``'s
+    ``node_centres_at`` arithmetic): ``cull`` = ``(o, px, py, ex, ey, ee_safe, ok, all_ok, ccw)``
+    of the :class:`render.select.DiscCull`."""
+    o, px, py, ex, ey, ee_safe, ok, all_ok, ccw = cull
+    n = idx.shape[0]
+    out = np.zeros(n, np.bool_)
+    r2 = radius * radius
+    for i in range(n):
+        xmin = x0 + np.float64(blk[idx[i], 1]) * step * dx
+        ymax = y0 - np.float64(blk[idx[i], 0]) * step * dy
+        cx = xmin + (np.float64(cols[i]) + 0.5) * s_dx
+        cy = ymax - (np.float64(rows[i]) + 0.5) * s_dy
+        dist2 = math.inf
+        inside = True
+        for j in range(px.shape[0]):
+            ax = (cx - o[0]) - px[j]
+            ay = (cy - o[1]) - py[j]
+            t = (ax * ex[j] + ay * ey[j]) / ee_safe[j]
+            if not all_ok and not ok[j]:
+                t = 0.0
+            if t < 0.0:
+                t = 0.0
+            elif t > 1.0:
+                t = 1.0
+            ddx = ax - t * ex[j]
+            ddy = ay - t * ey[j]
+            d2 = ddx * ddx + ddy * ddy
+            if d2 < dist2:
+                dist2 = d2
+            if not ex[j] * ay - ey[j] * ax >= 0.0:
+                inside = False
+        out[i] = dist2 <= r2 or (ccw and inside)
     return out

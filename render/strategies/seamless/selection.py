@@ -249,7 +249,15 @@ class _Frame:
         if self.win is not None and len(idx):
             w = self.win[self.blk[idx, 0], self.blk[idx, 1]]
             keep &= (rows * size < w[:, 2] - 1) & (cols * size < w[:, 3] - 1)
-        if self.cull is not None and len(idx):
+        if self.cull is not None and len(idx) and self.nb is not None and not self.cull.empty:
+            c = self.cull
+            s = float(node_span(g.k, d))  # node_centres_at's span
+            args = (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+            keep &= self.nb.disc_meets(
+                idx, rows, cols, self.blk, float(g.x0), float(g.y0), int(g.step), float(g.dx),
+                float(g.dy), s * g.dx, s * g.dy, half_diagonal(g, d), args,
+            )  # fmt: skip
+        elif self.cull is not None and len(idx):
             bx0, by1 = block_origins(g, self.blk[idx, 0], self.blk[idx, 1])
             cx, cy = node_centres_at(g, bx0, by1, d, rows, cols)
             meets, _ = self.cull(cx, cy, half_diagonal(g, d))
