@@ -1,5 +1,5 @@
-"""CPU selection per frame (issue 14): ``jung-han`` with the numpy reference against the numba
-kernels, interleaved in one run, and ``seamless-patches``'s selection, on the benchmark views.
+"""CPU selection per frame (issue 14): ``jung-han`` and ``seamless-patches``, each with the numpy
+reference against the numba kernels, interleaved in one run, on the benchmark views.
 
 Usage::
 
@@ -12,7 +12,8 @@ session, as ``terrastream compare``). Per store, size, τ and strategy: the mean
 of the median (over ``--reps`` interleaved repetitions) of the selection's wall ms (what
 ``select`` reports, ``perf_counter``) and of its thread CPU ms (``time.thread_time``). Timings are
 warm: the per-block trees are built and the kernels compiled before anything is timed (both
-backends share the trees). The compile time (``--no-compile`` skips it) is measured in fresh
+backends share the trees; ``seamless-patches``' two backends share the renderer's error tables).
+The compile time (``--no-compile`` skips it) is measured in fresh
 processes: the first numba selection minus a warm one, with an empty numba cache (cold: compiles)
 and again with that cache filled (warm: loads). Default stores: ``bench/work/s4097.zarr`` and the
 N44W072 metre store of ``bench/prefetch.py`` (missing ones are skipped with a message).
@@ -69,9 +70,9 @@ def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, re
     r, views = _frames(store, size, frames)
     jh = {b: get_strategy("jung-han", r, kernels=b) for b in ("numpy", "numba")}
     jh["numba"]._trees = jh["numpy"]._trees  # shared per-block trees (built once, untimed)
-    sp = get_strategy("seamless-patches", r)
     runs = [("jung-han", "numpy", jh["numpy"]), ("jung-han", "numba", jh["numba"])]
-    runs.append(("seamless-patches", "numpy", sp))
+    for b in ("numpy", "numba"):
+        runs.append(("seamless-patches", b, get_strategy("seamless-patches", r, kernels=b)))
     for _, _, st in runs:  # warm: trees, packed forest, compiled kernels, tables
         for cam, res in views:
             st.select(cam, 1.0, resident=res)
@@ -116,19 +117,26 @@ r, views = _frames(open_store({path!r}), (320, 240), 1)
 cam, res = views[0]
 ref = get_strategy("jung-han", r, kernels="numpy")
 ref.select(cam, 1.0, resident=res)  # builds the trees
-st = get_strategy("jung-han", r, kernels="numba")
-st._trees = ref._trees
-t0 = time.perf_counter()
-st.select(cam, 1.0, resident=res)
-first = time.perf_counter() - t0
-t0 = time.perf_counter()
-st.select(cam, 1.0, resident=res)
-print(first - (time.perf_counter() - t0))
+get_strategy("seamless-patches", r, kernels="numpy").select(cam, 1.0, resident=res)  # tables
+out = []
+for st in (get_strategy("jung-han", r, kernels="numba"),
+           get_strategy("seamless-patches", r, kernels="numba")):
+    if st.name == "jung-han":
+        st._trees = ref._trees
+    t0 = time.perf_counter()
+    st.select(cam, 1.0, resident=res)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    st.select(cam, 1.0, resident=res)
+    out.append(first - (time.perf_counter() - t0))
+print(*out)
 """
 
 
 def compile_times(path: str) -> dict[str, float]:
-    """Seconds the first numba selection costs beyond a warm one: empty cache, filled cache."""
+    """Seconds the first numba selection costs beyond a warm one, empty cache (``cold_s``) and
+    filled cache (``warm_s``): ``jung-han`` (keys without prefix) then ``seamless-patches``
+    (``seamless_``), in that order in one process (numba's import is charged to jung-han)."""
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
@@ -137,7 +145,8 @@ def compile_times(path: str) -> dict[str, float]:
             res = subprocess.run(
                 [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
             )
-            out[name] = float(res.stdout.strip().splitlines()[-1])
+            jh, sp = (float(v) for v in res.stdout.strip().splitlines()[-1].split())
+            out[name], out[f"seamless_{name}"] = jh, sp
     return out
 
 

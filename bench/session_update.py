@@ -3,16 +3,21 @@
 Builds a 2049² synthetic store (blocks of 129²) in ``bench/work`` once, flies the default path
 unpaced (``update()`` back to back while 4 loader threads fill behind it) and reports p50/p99/max
 of the wall time around each call and of the caller's CPU time (``time.thread_time``), which is
-the figure that does not depend on what else the machine runs. Prints a table and writes
+the figure that does not depend on what else the machine runs. ``--locks`` flies the path
+once more with the session's lock probed (:mod:`streamer.lockprobe`, which slows every hold a
+little) and reports each thread role's lock holds (µs, wall and thread CPU) and the reads,
+decodes or planning found under the lock (0 expected). ``TERRASTREAM_KERNELS=numpy`` runs the
+planning's numpy reference instead of its compiled kernels. Prints a table and writes
 ``bench/results/session_update.json``.
 
-Usage: python bench/session_update.py [--frames 10000] [--workers 4]
+Usage: python bench/session_update.py [--frames 10000] [--workers 4] [--locks]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -32,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=10_000)
     ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--locks", action="store_true", help="also fly with the lock probed")
     a = ap.parse_args(argv)
     root = WORK / "session_update"
     root.mkdir(parents=True, exist_ok=True)
@@ -43,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     store = open_store(dst)
     cams = make_path(store, "default", frames=a.frames, fps=60)
     wall, cpu = np.zeros(a.frames), np.zeros(a.frames)
+    load0 = os.getloadavg()[0]
     with open_session(store, budget_mb=128, workers=a.workers) as s:
         s.warm_up(cams[0])
         for i, cam in enumerate(cams):
@@ -62,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         r = rows[name]
         print(f"{name:6} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['max_ms']:8.3f}")
+    locks = _lock_holds(store, cams, a.workers) if a.locks else None
     out = RESULTS / "session_update.json"
     RESULTS.mkdir(parents=True, exist_ok=True)
     out.write_text(
@@ -72,6 +80,9 @@ def main(argv: list[str] | None = None) -> int:
                 "update": rows,
                 "stall_frames": summary["stall_frames"],
                 "loaded_bytes": summary["loaded_bytes"],
+                "kernels": os.environ.get("TERRASTREAM_KERNELS", "auto"),
+                "loadavg_start_end": [load0, os.getloadavg()[0]],
+                "lock_holds_us": locks,
                 "machine": machine_info(),
             },
             indent=1,
@@ -79,6 +90,41 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(f"wrote {out}")
     return 0
+
+
+def _lock_holds(store, cams, workers: int) -> dict:
+    """The flight again with the lock probed: per role p50/p99/max hold µs (wall, CPU)."""
+    from streamer.lockprobe import install
+
+    with open_session(store, budget_mb=128, workers=workers) as s:
+        probe = install(s)
+        s.warm_up(cams[0])
+        probe.holds.clear()
+        for cam in cams:
+            s.update(cam, 1 / 60)
+    out: dict = {"violations": len(probe.violations)}
+    print(
+        f"# lock holds (µs), probed flight; violations (read/decode/plan under it): "
+        f"{len(probe.violations)}"
+    )
+    print(
+        f"{'role':8} {'holds':>8} {'wall p50':>9} {'p99':>8} {'max':>9} {'cpu p50':>8} "
+        f"{'p99':>8} {'max':>8}"
+    )
+    for role, holds in sorted(probe.by_role().items()):
+        us = np.array(holds) * 1e6
+        row = {"holds": len(us)}
+        for j, kind in enumerate(("wall", "cpu")):
+            for q in (50, 99):
+                row[f"{kind}_p{q}"] = float(np.percentile(us[:, j], q))
+            row[f"{kind}_max"] = float(us[:, j].max())
+        out[role] = row
+        print(
+            f"{role:8} {row['holds']:8d} {row['wall_p50']:9.1f} {row['wall_p99']:8.1f} "
+            f"{row['wall_max']:9.1f} {row['cpu_p50']:8.1f} {row['cpu_p99']:8.1f} "
+            f"{row['cpu_max']:8.1f}"
+        )
+    return out
 
 
 if __name__ == "__main__":

@@ -13,14 +13,18 @@ The result equals ``select_many(..., polygon=None)``'s ``needed_level`` (tested)
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import KeysView, Sequence
+from functools import cache, lru_cache
+from types import ModuleType
 
 import numpy as np
 
 from streamer.camera import Camera
 from streamer.errors import LodError
-from streamer.lod import Metric, get_metric
+from streamer.lod import Metric, get_metric, qiu_eq7
+from tiler.errors import KernelUnavailableError
 from tiler.grid import BlockGrid
+from tiler.kernels import ENV, requested
 from tiler.quadtree import (
     block_origins,
     half_diagonal,
@@ -30,6 +34,52 @@ from tiler.quadtree import (
 )
 
 Block = tuple[int, int]
+_READY: list[bool] = []  # set once the compiled kernel has run in this process
+
+
+@cache
+def _load_numba() -> ModuleType | None:
+    try:
+        from streamer import _plan_nb
+    except ImportError:
+        return None
+    return _plan_nb
+
+
+def kernels(load: bool = False) -> ModuleType | None:
+    """The compiled needed-level kernel (``qiu`` metric) or ``None`` for the numpy reference,
+    by ``TERRASTREAM_KERNELS``: ``numpy`` never, ``numba`` always (an error without numba),
+    ``auto`` only once :func:`warm_up` has loaded it (or with ``load``), so a session's caller
+    never waits for numba's import or a compilation."""
+    name = requested()
+    if name == "numpy":
+        return None
+    if name == "auto" and not load and not _READY:
+        return None
+    mod = _load_numba()
+    if mod is None and name == "numba":
+        raise KernelUnavailableError(
+            f"{ENV}=numba but numba cannot be imported; install the 'fast' extra or unset it."
+        )
+    return mod
+
+
+def warm_up(table: PatchErrorTable) -> bool:
+    """Import numba and load (or compile) the needed-level kernel for ``table``'s depth count
+    (e.g. on a session's planning thread); returns whether it is available."""
+    mod = kernels(load=True)
+    if mod is None or table.depths == 0:
+        return False
+    e = np.zeros(0)
+    i = np.zeros(0, np.int64)
+    arrays = tuple(table._arrays)
+    sp = np.ones(table.depths)
+    eye, fwd = np.zeros(3), np.zeros(3)
+    fwd.flags.writeable = False  # as Camera.forward: the same compiled specialisation
+    mod.qiu_levels(arrays, i, e, e, np.zeros((0, 2)), sp, 1, 1, 1.0, sp, sp, eye, fwd, 1.0, 1.0,
+                   i, e)  # fmt: skip
+    _READY.append(True)
+    return True
 
 
 class PatchErrorTable:
@@ -97,6 +147,8 @@ class PatchErrorTable:
         get = self._slot.get
         if isinstance(blocks, np.ndarray):
             keys = [tuple(b) for b in blocks.reshape(-1, 2).tolist()]
+        elif all(type(b) is tuple for b in blocks):  # the planner's: no conversion needed
+            keys = blocks  # (a tuple of numpy ints hashes and compares as the ints do)
         else:
             keys = [(int(b[0]), int(b[1])) for b in blocks]
         arr = np.array([get(b, -1) for b in keys], dtype=np.int64)
@@ -111,6 +163,21 @@ class PatchErrorTable:
         """Patch errors (float64) of nodes ``(depth, rows, cols)`` of the blocks in ``slots``;
         0 at full resolution (``depth + patch_log2 >= k``)."""
         return _delta(self._arrays, self.depths, slots, depth, rows, cols)
+
+    def known(self, blocks: Sequence[Block]) -> list[Block]:
+        """The ``blocks`` (tuples) whose errors are in the table, in their order."""
+        slot = self._slot
+        return [b for b in blocks if b in slot]
+
+    def keys(self) -> KeysView[Block]:
+        """A live view of the blocks in the table (``b in table.keys()`` is ``b in table``
+        without a Python call per test: for per-block loops)."""
+        return self._slot.keys()
+
+    def depth_array(self, depth: int) -> np.ndarray | None:
+        """The ``(slots, 2**depth, 2**depth)`` float32 errors of depth ``depth`` (what
+        :meth:`delta` indexes), ``None`` at full resolution (``depth >= depths``: 0 there)."""
+        return self._arrays[depth] if depth < self.depths else None
 
     def _grow(self) -> None:
         old = self._cap
@@ -144,6 +211,16 @@ class PatchErrorTable:
         slots = self.slots(blocks)
         arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
+        nb = kernels() if fn is qiu_eq7 else None
+        if nb is not None:  # the compiled walk: the same levels and errors (tested)
+            bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
+            hd, sdx, sdy = _depth_geometry(grid, self.depths)
+            nb.qiu_levels(
+                tuple(arrays), slots, bx0, by1, np.ascontiguousarray(zr), hd, k, p, float(tau),
+                sdx, sdy, camera.eye, camera.forward, float(camera.focal_px),
+                float(camera.near), levels, rho_max,
+            )  # fmt: skip
+            return levels, (rho_max if with_rho else np.zeros(m))
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
         bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
         idx = np.arange(m)
@@ -165,6 +242,19 @@ class PatchErrorTable:
         else:
             levels[idx] = k  # nodes split down to full resolution
         return levels, rho_max
+
+
+@lru_cache(maxsize=16)
+def _depth_geometry(grid: BlockGrid, depths: int) -> tuple[np.ndarray, ...]:
+    """Per depth: the node half diagonal and the node span times ``dx`` and ``dy`` (the
+    reference's ``half_diagonal`` and ``node_centres_at`` factors, computed once per grid;
+    shared between calls, never written)."""
+    spans = [float(1 << (grid.k - d)) for d in range(depths)]
+    return (
+        np.array([half_diagonal(grid, d) for d in range(depths)]),
+        np.array([s * grid.dx for s in spans]),
+        np.array([s * grid.dy for s in spans]),
+    )
 
 
 def _delta(

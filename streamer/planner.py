@@ -20,6 +20,7 @@ lock the loaders take.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -28,6 +29,7 @@ from streamer.cache import Block
 from streamer.camera import Camera
 from streamer.frames import SessionConfig
 from streamer.frustum import (
+    as_polygon,
     block_edge,
     blocks_meeting,
     extension_triangle,
@@ -35,8 +37,40 @@ from streamer.frustum import (
     view_triangle,
 )
 from streamer.levels import PatchErrorTable
+from streamer.levels import kernels as plan_kernels
 from tiler.grid import BlockGrid
 from tiler.quadtree import block_zranges
+
+
+def _blocks_meeting_nb(nb, polygon: np.ndarray, grid: BlockGrid, exists: np.ndarray) -> np.ndarray:
+    """``blocks_meeting(polygon, grid)`` restricted to ``exists``, the per-block test compiled
+    (``nb``: :mod:`streamer._plan_nb`); the polygon's part is the reference's numpy code."""
+    poly = as_polygon(polygon)
+    if len(poly) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    ex, ey = grid.step * grid.dx, grid.step * grid.dy
+    c0 = math.floor((poly[:, 0].min() - grid.x0) / ex) - 1
+    c1 = math.floor((poly[:, 0].max() - grid.x0) / ex) + 1
+    r0 = math.floor((grid.y0 - poly[:, 1].max()) / ey) - 1
+    r1 = math.floor((grid.y0 - poly[:, 1].min()) / ey) + 1
+    c0, c1 = max(c0, 0), min(c1, grid.cols - 1)
+    r0, r1 = max(r0, 0), min(r1, grid.rows - 1)
+    if c0 > c1 or r0 > r1:
+        return np.zeros((0, 2), dtype=np.int64)
+    o = poly[0]
+    p = poly - o
+    pbox = np.array([p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()])
+    if len(p) >= 2:
+        e = np.roll(p, -1, axis=0) - p
+        normals = np.stack([-e[:, 1], e[:, 0]], axis=1)
+        proj = p @ normals.T
+        pmin, pmax = proj.min(axis=0), proj.max(axis=0)
+    else:
+        normals, pmin, pmax = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+    return nb.blocks_meeting(
+        r0, r1, c0, c1, float(grid.x0), float(grid.y0), int(grid.step), float(grid.dx),
+        float(grid.dy), o, pbox, np.ascontiguousarray(normals), pmin, pmax, exists,
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -76,8 +110,12 @@ class Planner:
         return self.zr[b[:, 0], b[:, 1]]
 
     def _existing(self, polygon: np.ndarray) -> list[Block]:
-        ids = blocks_meeting(polygon, self.grid)
-        ids = ids[self.exists[ids[:, 0], ids[:, 1]]]
+        nb = plan_kernels()
+        if nb is not None:  # the compiled test: the same blocks (tested)
+            ids = _blocks_meeting_nb(nb, polygon, self.grid, self.exists)
+        else:
+            ids = blocks_meeting(polygon, self.grid)
+            ids = ids[self.exists[ids[:, 0], ids[:, 1]]]
         return list(map(tuple, ids.tolist()))
 
     def visible(self, camera: Camera, culling: str | None = None) -> list[Block]:
@@ -95,7 +133,7 @@ class Planner:
         floor = min(self.config.patch_log2, self.k)
         needed = dict.fromkeys(blocks, floor)
         rho = dict.fromkeys(blocks, 0.0)
-        have = [b for b in blocks if b in self.errors]
+        have = self.errors.known(blocks)
         if have:
             zr = self._zr_of(have)
             lv, r = self.errors.needed_levels(
@@ -143,7 +181,7 @@ class Planner:
                 n.update(self._existing(extension_triangle(cam, edge, velocity=v, fps=cfg.fps)))
         blocks = sorted(n)
         wants: dict[Block, tuple[int, float]] = dict.fromkeys(blocks, (0, 0.0))
-        have = [b for b in blocks if b in self.errors]
+        have = self.errors.known(blocks)
         if have:
             t_ahead = t * (cfg.plan_lookahead if cfg.prefetch else 1.0)
             levels = np.zeros(len(have), dtype=np.int64)

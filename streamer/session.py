@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from streamer import levels as levels_kernels
 from streamer.cache import Block
 from streamer.camera import Camera
 from streamer.errors import BudgetError, LoadError, SessionClosedError, StreamerError
@@ -52,6 +53,10 @@ from tiler.vertical import height_dtype
 
 log = logging.getLogger(__name__)
 _DONE = object()
+#: blocks per locked step of the planning thread (prefetch wants, queue rebuild): a step of 64
+#: held the lock 27 / 158 µs CPU (p50 / p99, bench/session_update.py --locks); 16 keeps the
+#: loaders' and the caller's waits for it to a few tens of µs
+PLAN_STEP_BLOCKS = 16
 
 
 class Session:
@@ -159,8 +164,9 @@ class Session:
         """Pin this frame's levels and queue the missing ones (caller holds the lock)."""
         self.cache.set_pins(needed, self.level_bytes)
         pushed = 0
+        known, level = self.loader.errors.keys(), self.cache.level
         for b, lv in needed.items():
-            if b not in self.loader.errors or self.cache.level(b) < lv:
+            if b not in known or level(b) < lv:
                 self.loader.push(b)
                 pushed += 1
         return pushed
@@ -176,12 +182,12 @@ class Session:
         cfg = self.config
         # applied in short steps: the lock is released between them so that update() and
         # the loaders never wait long for it
-        self._stepwise(self.cache.prefetch_steps(plan.wants))
+        self._stepwise(self.cache.prefetch_steps(plan.wants, PLAN_STEP_BLOCKS))
         with self._cv:
             if cfg.linger_s is not None:
                 self.cache.trim(int(cfg.linger_s * cfg.fps))
             self._prefetch_blocks = plan.ring
-        self._stepwise(self.loader.reschedule_steps())
+        self._stepwise(self.loader.reschedule_steps(PLAN_STEP_BLOCKS))
         self.loader.pump()
 
     def _stepwise(self, steps: Iterator[None]) -> None:
@@ -231,10 +237,13 @@ class Session:
         and the prefetch around them — and return ``{"ms", "bytes"}`` spent.
 
         Without it the first second of a flight stalls while the prefetch ring fills; Qiu et
-        al. likewise count the first frame's load apart (Table 3).
+        al. likewise count the first frame's load apart (Table 3). It also loads the compiled
+        needed-level kernel (``TERRASTREAM_KERNELS=auto``: numba's import, a compilation the
+        first time ever), which ``update`` uses only once loaded.
         """
         self._check_open()
         t0 = time.perf_counter()
+        levels_kernels.warm_up(self.loader.errors)
         before = self.totals.loaded_bytes
         limit = timeout_s or self.config.wait_timeout_s
         deadline = time.monotonic() + limit
@@ -390,7 +399,7 @@ class Session:
     ) -> Frame:
         """What this frame may draw, its I/O figures and the caller's timings."""
         ld = self.loader
-        level, errors_table, due = self.cache.level, ld.errors, self._due
+        level, errors_table, due = self.cache.level, ld.errors.keys(), self._due
         hull = None
         if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")

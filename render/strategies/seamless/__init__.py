@@ -82,6 +82,10 @@ four triangular tiles (cut by the diagonals) at power-of-two resolutions, stitch
   finer counts as ``clamped``; a block with only level 0 is not drawn (no centre sample) and also
   counts as clamped. An edge whose sides cannot agree (not seen with whole-level residency)
   counts as a ``violation``.
+* **Compiled kernels** (:mod:`render.strategies.seamless.kernels`): with numba, the per-depth
+  edge ε, the nodes' frustum test and the shared-edge grouping run compiled (the spike
+  guard's term stays numpy); ``kernels="numpy"`` (or ``TERRASTREAM_KERNELS=numpy``) runs
+  the numpy reference, which the tests compare exactly.
 * **Triangles** = Σ mesh triangles × instances (``RenderStats.triangles``), checked against a
   read-back: the probe program's geometry shader appends every drawn triangle (global integer
   samples and fetched heights) to a storage buffer under ``RASTERIZER_DISCARD``; the measured

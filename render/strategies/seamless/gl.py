@@ -44,6 +44,7 @@ class SeamlessPatches(Strategy[PatchLayout]):
         *,
         spike_guard: bool = False,
         rho: str = "bound",
+        kernels: str | None = None,
     ) -> None:
         super().__init__(renderer)
         if not 1 <= res_log2 <= 7:
@@ -53,6 +54,9 @@ class SeamlessPatches(Strategy[PatchLayout]):
         #: the form of ρ in ε = ρ l / d: "bound" (ours, the default) or "paper" (Livny et al.'s
         #: global precision factor ρ = f / (τ 2**c); the package docstring)
         self.rho = rho
+        #: the selection's kernels: "numba", "numpy" (the reference) or None/"auto"
+        #: (``TERRASTREAM_KERNELS``; render/strategies/seamless/kernels.py)
+        self.kernels = kernels
         self.c = min(res_log2, renderer.k)
         ctx = renderer.ctx
         self.table = renderer.patch_table("bound@1", 1)

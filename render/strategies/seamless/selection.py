@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike
 
 from render.errors import SelectionError
 from render.select import DiscCull
+from render.strategies.seamless import kernels as sp_kernels
 from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
@@ -123,6 +124,8 @@ class _Frame:
         self.bkeys = keys[self.border]
         self.focal = camera.focal_px
         self.eye = camera.eye
+        #: the numba kernel module, or None for the numpy reference (``st.kernels``)
+        self.nb = sp_kernels.resolve(getattr(st, "kernels", None))
         poly = frustum_hull(camera, r.terrain_zrange)
         self.cull = DiscCull(poly) if poly is not None and len(poly) else None
 
@@ -147,6 +150,8 @@ class _Frame:
 
     def epsilon(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """``(n, 4)`` ε of the nodes' edges N, E, S, W."""
+        if self.nb is not None:
+            return self._epsilon_nb(idx, d, rows, cols)
         g, k = self.grid, self.k
         size = 1 << (k - d)
         br, bc = self.blk[idx, 0], self.blk[idx, 1]
@@ -189,6 +194,28 @@ class _Frame:
                 out[:, e] = np.maximum(out[:, e], self._guard(d, gr, gc, nr, nc, node_dist))
         return out
 
+    def _epsilon_nb(self, idx, d: int, rows, cols) -> np.ndarray:
+        """:meth:`epsilon` by the compiled kernel (the same values; the guard stays numpy)."""
+        g = self.grid
+        arr = self.table.depth_array(d)
+        paper = self.rho_form == "paper"
+        prho = paper_precision(self.tau, self.focal, self.c) if paper else 0.0
+        ex, ey, ez = (float(v) for v in self.eye)
+        out = self.nb.epsilon(
+            idx, rows, cols, d, self.k, self.blk, self.bkeys, self.border, self.slots,
+            _NO_ARRAY if arr is None else arr, arr is not None, g.rows, g.cols, self.zr,
+            float(g.x0), float(g.y0), float(g.dx), float(g.dy), ex, ey, ez,
+            float(self.focal), self.tau, self.c, paper, prho,
+        )  # fmt: skip
+        if self.guard:
+            br, bc = self.blk[idx, 0], self.blk[idx, 1]
+            gr, gc = (br << d) + rows, (bc << d) + cols
+            node_dist = self.node_distance(d, gr, gc, self.zr[br, bc])
+            for e, (dr, dc) in enumerate(DIRS):
+                guard = self._guard(d, gr, gc, gr + dr, gc + dc, node_dist)
+                out[:, e] = np.maximum(out[:, e], guard)
+        return out
+
     def node_distance(self, d: int, gr: np.ndarray, gc: np.ndarray, zo: np.ndarray):
         """Distance from the eye to the nearest point of the depth-``d`` nodes' boxes."""
         g, size = self.grid, 1 << (self.k - d)
@@ -222,7 +249,15 @@ class _Frame:
         if self.win is not None and len(idx):
             w = self.win[self.blk[idx, 0], self.blk[idx, 1]]
             keep &= (rows * size < w[:, 2] - 1) & (cols * size < w[:, 3] - 1)
-        if self.cull is not None and len(idx):
+        if self.cull is not None and len(idx) and self.nb is not None and not self.cull.empty:
+            c = self.cull
+            s = float(node_span(g.k, d))  # node_centres_at's span
+            args = (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+            keep &= self.nb.disc_meets(
+                idx, rows, cols, self.blk, float(g.x0), float(g.y0), int(g.step), float(g.dx),
+                float(g.dy), s * g.dx, s * g.dy, half_diagonal(g, d), args,
+            )  # fmt: skip
+        elif self.cull is not None and len(idx):
             bx0, by1 = block_origins(g, self.blk[idx, 0], self.blk[idx, 1])
             cx, cy = node_centres_at(g, bx0, by1, d, rows, cols)
             meets, _ = self.cull(cx, cy, half_diagonal(g, d))
@@ -232,6 +267,9 @@ class _Frame:
     def splittable(self, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Nodes whose children can be drawn and be finer (resident levels, bottom depth)."""
         return (d + 1 <= self.dmax[idx]) & (d + self.c < self.cap[idx])
+
+
+_NO_ARRAY = np.zeros((1, 1, 1), np.float32)  # the kernel's stand-in where a table has no depth
 
 
 def _block_nbrs(b: Block) -> list[Block]:
@@ -282,7 +320,7 @@ def _children(idx, rows, cols):
     )
 
 
-def _edge_groups(d: np.ndarray, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
+def _edge_groups(d: np.ndarray, gr: np.ndarray, gc: np.ndarray, nb=None) -> np.ndarray:
     """``(n, 4)`` group id (``leaf * 4 + edge`` of the group's coarsest member) of every leaf
     edge: a maximal shared edge is one leaf's edge and the same-size or smaller leaves' edges
     across it. The leaf across each edge is found at every depth with one ``searchsorted``."""
@@ -295,6 +333,8 @@ def _edge_groups(d: np.ndarray, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
     keys = (d * nr + gr) * nc + gc
     order = np.argsort(keys)
     sk = keys[order]
+    if nb is not None:  # the compiled loops (``nb``: the kernel module), the same groups
+        return nb.edge_groups(d, gr, gc, np.unique(d), order, sk, nr, nc)
     own = np.arange(4 * n).reshape(n, 4)
     out = own.copy()
     for e, (dr, dc) in enumerate(DIRS):
@@ -337,7 +377,7 @@ def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
         lo = d + 1
         want = np.minimum(d[:, None] + edge_resolution(eps, c), hi[:, None])
         can = fr.splittable(idx, d)
-        gid = _edge_groups(d, gr, gc)
+        gid = _edge_groups(d, gr, gc, fr.nb)
         g = gid.ravel()
         lo_e, hi_e = np.repeat(lo, 4), np.repeat(hi, 4)
         lo_g = np.full(4 * n, -(1 << 30))

@@ -1,0 +1,38 @@
+"""``seamless-patches``' compiled selection kernels, chosen like :mod:`tiler.kernels`: numba
+when it is installed (the ``fast`` extra), the numpy reference otherwise. ``TERRASTREAM_KERNELS``
+(``auto``, ``numba``, ``numpy``) or the strategy's ``kernels`` argument picks the backend; numba
+is only imported on the first selection that uses it (importing this module costs nothing)."""
+
+from __future__ import annotations
+
+from functools import cache
+from types import ModuleType
+
+from tiler.errors import KernelUnavailableError
+from tiler.kernels import BACKENDS, ENV, requested
+
+
+@cache
+def _load_numba() -> ModuleType | None:
+    try:
+        from render.strategies.seamless import _kernels_nb
+    except ImportError:
+        return None
+    return _kernels_nb
+
+
+def resolve(kernels: str | None = None) -> ModuleType | None:
+    """The numba kernel module for backend ``kernels`` (default: ``TERRASTREAM_KERNELS``), or
+    ``None`` for the numpy reference."""
+    name = requested() if kernels is None else kernels.strip().lower()
+    if name not in BACKENDS:
+        raise KernelUnavailableError(f"kernels={name!r}: use one of {', '.join(BACKENDS)}")
+    if name == "numpy":
+        return None
+    mod = _load_numba()
+    if mod is None and name == "numba":
+        raise KernelUnavailableError(
+            f"numba kernels requested ({ENV} or kernels='numba') but numba cannot be imported; "
+            "install the 'fast' extra or use 'numpy'."
+        )
+    return mod

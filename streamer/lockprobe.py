@@ -1,0 +1,106 @@
+"""An instrumented lock for checking a session's lock discipline (tests and benchmarks).
+
+:func:`install` swaps a fresh :class:`Session`'s lock (the loader's condition, which
+``update()`` waits on) for a :class:`ProbeLock` that records every hold: the holder thread's
+name, its wall and thread-CPU duration. :meth:`ProbeLock.held_here` tells a wrapped function
+whether its own thread holds the lock, so reads and decodes done under it can be counted
+(:meth:`ProbeLock.forbid`). Install before the first ``update``/``warm_up``.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+class ProbeLock:
+    """A non-reentrant lock (``threading.Lock``'s interface) that records its holds."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._owner: int | None = None
+        self._t0 = self._c0 = 0.0
+        #: ``(thread name, wall s, thread-CPU s)`` per hold, in release order
+        self.holds: list[tuple[str, float, float]] = []
+        #: ``(thread name, what)`` of forbidden calls made while holding the lock
+        self.violations: list[tuple[str, str]] = []
+        #: ``(thread name, what)`` of every call of a :meth:`forbid`-wrapped function
+        self.calls: list[tuple[str, str]] = []
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        """``threading.Lock.acquire``; starts the hold's clocks."""
+        ok = self._lock.acquire(blocking, timeout)
+        if ok:
+            self._owner = threading.get_ident()
+            self._t0, self._c0 = time.perf_counter(), time.thread_time()
+        return ok
+
+    def release(self) -> None:
+        """``threading.Lock.release``; records the hold."""
+        wall, cpu = time.perf_counter() - self._t0, time.thread_time() - self._c0
+        self.holds.append((threading.current_thread().name, wall, cpu))
+        self._owner = None
+        self._lock.release()
+
+    __enter__ = acquire
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def locked(self) -> bool:
+        """Whether some thread holds the lock."""
+        return self._lock.locked()
+
+    def _is_owned(self) -> bool:  # what threading.Condition asks
+        return self._owner == threading.get_ident()
+
+    def held_here(self) -> bool:
+        """Whether the calling thread holds the lock."""
+        return self._is_owned()
+
+    def forbid(self, fn: Callable[..., Any], what: str) -> Callable[..., Any]:
+        """``fn`` recording a violation each time it is called under the lock."""
+
+        @functools.wraps(fn)
+        def wrapped(*args: Any, **kwargs: Any) -> Any:
+            name = threading.current_thread().name
+            self.calls.append((name, what))
+            if self.held_here():
+                self.violations.append((name, what))
+            return fn(*args, **kwargs)
+
+        return wrapped
+
+    def by_role(self) -> dict[str, list[tuple[float, float]]]:
+        """Holds grouped by thread role: ``caller``, ``loader``, ``planner``, ``other``."""
+        out: dict[str, list[tuple[float, float]]] = {}
+        for name, wall, cpu in self.holds:
+            if name.startswith("terrastream-load"):
+                role = "loader"
+            elif name.startswith("terrastream-plan"):
+                role = "planner"
+            elif name == "MainThread":
+                role = "caller"
+            else:
+                role = "other"
+            out.setdefault(role, []).append((wall, cpu))
+        return out
+
+
+def install(session: Any) -> ProbeLock:
+    """Give ``session`` (not yet updated) a probed lock; reads and decodes of its store and
+    its planner's work made under the lock become :attr:`ProbeLock.violations`. Returns the
+    probe."""
+    probe = ProbeLock()
+    cv = threading.Condition(probe)  # type: ignore[arg-type]
+    session.loader.cv = session._cv = cv
+    store = session.store
+    for name in ("read_level_raw", "read_errors", "read_mask", "decode_next", "to_heights"):
+        setattr(store, name, probe.forbid(getattr(store, name), name))
+    planner = session.planner
+    for name in ("needed", "prefetch"):
+        setattr(planner, name, probe.forbid(getattr(planner, name), f"planner.{name}"))
+    return probe

@@ -1,0 +1,155 @@
+"""``seamless-patches``' compiled selection (numba) against the numpy reference: every output
+array of the layout equal, bit for bit, on rough, nodata and mixed-residency scenes, both forms
+of ρ, with and without the spike guard; positive controls show the comparison catches a kernel
+that is off by one ulp, that loses the shared edges or that culls one node."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from gltools import make_context, rough, tile_dem
+
+from render.renderer import RenderConfig, TerrainRenderer
+from render.strategies import get_strategy
+from render.strategies.seamless import kernels as sp_kernels
+from streamer.camera import Camera
+from tiler.errors import KernelUnavailableError
+from tiler.store import open_store
+
+pytestmark = pytest.mark.gl
+CTX = make_context()
+SIZE = (128, 96)
+FIELDS = ("blocks", "block", "depth", "row", "col", "edge_level", "eps")
+TAUS = (0.0, 0.05, 0.5, 1.0, 4.0, 1e6)
+
+
+@pytest.fixture(scope="module")
+def numba_kernels():
+    pytest.importorskip("numba")
+    return sp_kernels.resolve("numba")
+
+
+@pytest.fixture(scope="module")
+def renderers(tmp_path_factory):
+    n = 129
+    hole = rough(n, 5).astype(np.float32)
+    hole[30:70, 10:50] = np.nan  # nodata beside terrain
+    out = {}
+    for name, dem, kw in (("rough", rough(n, 3), {}), ("nodata", hole, {"nodata": np.nan})):
+        s = open_store(tile_dem(tmp_path_factory.mktemp(name), dem, 33, **kw))
+        r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+        for b in s.blocks():
+            r.upload(b, s.read_levels(b, s.k))
+        out[name] = r
+    yield out
+    for r in out.values():
+        r.close()
+
+
+def _cameras(r) -> list[Camera]:
+    g = r.grid
+    x0, y0, x1, y1 = g.extent
+    w = x1 - x0
+    zlo, zhi = r.terrain_zrange
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    return [
+        Camera((cx, cy, zhi + 2 * w), pitch=-90.0, viewport=SIZE, near=5.0, far=1e5),
+        Camera.look_at(
+            (x0 + 0.15 * w, y1 - 0.1 * w, zhi + 0.4 * w), (cx, cy, zlo), viewport=SIZE, near=5.0
+        ),
+        Camera((x0 + 0.3 * w, cy, zhi + 2.0), yaw=40.0, pitch=-3.0, viewport=SIZE, near=0.5),
+    ]
+
+
+def differences(a, b) -> list[str]:
+    """Names of the layout arrays and counts that differ between ``a`` and ``b``."""
+    out = []
+    for f in FIELDS:
+        x, y = getattr(a, f), getattr(b, f)
+        if x.shape != y.shape or x.dtype != y.dtype or not np.array_equal(x, y, equal_nan=True):
+            out.append(f)
+    return out + [
+        c for c in ("clamped", "violations", "res_log2") if getattr(a, c) != getattr(b, c)
+    ]
+
+
+def _compare(r, resident=None, **opts) -> int:
+    ref = get_strategy("seamless-patches", r, kernels="numpy", res_log2=3, **opts)
+    fast = get_strategy("seamless-patches", r, kernels="numba", res_log2=3, **opts)
+    leaves = 0
+    for cam in _cameras(r):
+        for tau in TAUS:
+            a, _ = ref.select(cam, tau, resident=resident)
+            b, _ = fast.select(cam, tau, resident=resident)
+            assert differences(a, b) == [], (cam, tau, opts)
+            leaves += len(a)
+    return leaves
+
+
+@pytest.mark.parametrize("scene", ["rough", "nodata"])
+@pytest.mark.parametrize(
+    "opts", [{}, {"rho": "paper"}, {"spike_guard": True}, {"rho": "paper", "spike_guard": True}]
+)
+def test_compiled_selection_equals_the_numpy_reference(renderers, numba_kernels, scene, opts):
+    assert _compare(renderers[scene], **opts) > 0
+
+
+def test_compiled_selection_equals_the_reference_with_mixed_levels(renderers, numba_kernels):
+    r = renderers["rough"]
+    k = r.k
+    res = {b: k - 1 - (b[0] + b[1]) % 3 for b in r.store.blocks()}
+    res[(0, 0)] = 0  # not drawn (no centre sample): clamped
+    assert _compare(r, resident=res) > 0
+
+
+def _select_with(monkeypatch, r, kernel_module):
+    monkeypatch.setattr(sp_kernels, "_load_numba", lambda: kernel_module)
+    st = get_strategy("seamless-patches", r, kernels="numba", res_log2=3)
+    return st.select(_cameras(r)[1], 1.0)[0]
+
+
+def test_positive_controls_perturbed_kernels_are_caught(renderers, numba_kernels, monkeypatch):
+    r = renderers["rough"]
+    ref, _ = get_strategy("seamless-patches", r, kernels="numpy", res_log2=3).select(
+        _cameras(r)[1], 1.0
+    )
+
+    def epsilon(*args):
+        out = numba_kernels.epsilon(*args)
+        out[len(out) // 2, 1] = np.nextafter(out[len(out) // 2, 1], np.inf)
+        return out
+
+    nb = numba_kernels
+    off = SimpleNamespace(epsilon=epsilon, edge_groups=nb.edge_groups, disc_meets=nb.disc_meets)
+    assert differences(ref, _select_with(monkeypatch, r, off)) == ["eps"]
+    unshared = SimpleNamespace(  # every edge its own group: the neighbours no longer agree
+        epsilon=nb.epsilon,
+        edge_groups=lambda d, *a: np.arange(4 * len(d)).reshape(-1, 4),
+        disc_meets=nb.disc_meets,
+    )
+    assert "edge_level" in differences(ref, _select_with(monkeypatch, r, unshared))
+
+    def one_culled(*args):  # the first node tested at each depth is culled
+        out = nb.disc_meets(*args)
+        out[:1] = False
+        return out
+
+    culled = SimpleNamespace(epsilon=nb.epsilon, edge_groups=nb.edge_groups, disc_meets=one_culled)
+    assert "depth" in differences(ref, _select_with(monkeypatch, r, culled))
+    monkeypatch.undo()
+    assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
+
+
+def test_backend_selection(monkeypatch):
+    assert sp_kernels.resolve("numpy") is None
+    with pytest.raises(KernelUnavailableError):
+        sp_kernels.resolve("fortran")
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "numpy")
+    assert sp_kernels.resolve() is None  # the environment forces the reference
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "auto")
+    monkeypatch.setattr(sp_kernels, "_load_numba", lambda: None)  # numba not installed
+    assert sp_kernels.resolve() is None
+    with pytest.raises(KernelUnavailableError):
+        sp_kernels.resolve("numba")
