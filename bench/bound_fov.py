@@ -78,7 +78,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
         here = {r["config"]: r for r in rows if r["fov"] == fov and r["tau"] == tau}
         ok = [r for r in here.values() if r["max_screen_error_px"] <= tau]
         cheapest = min(ok, key=lambda r: r["triangles"]) if ok else None
-        for name in NEW:
+        for name in (n for n in NEW if n in here and "eq7" in here):
             new = here[name]
             within = new["max_screen_error_px"] <= tau
             ratio = new["triangles"] / cheapest["triangles"] if cheapest else float("nan")
@@ -98,18 +98,27 @@ def verdicts(rows: list[dict]) -> list[dict]:
     return out
 
 
-def run(path: Path, taus: list[float], fovs: list[float], size: tuple[int, int], frames: int):
-    """Rows for every FOV, configuration and τ on the store at ``path`` (one renderer)."""
+def run(
+    path: Path,
+    taus: list[float],
+    fovs: list[float],
+    size: tuple[int, int],
+    frames: int,
+    labels: list[str] | None = None,
+):
+    """Rows for every FOV, configuration (or those in ``labels``) and τ on the store at
+    ``path`` (one renderer per patch size)."""
+    configs = [c for c in CONFIGS if labels is None or c[0] in labels]
     store = open_store(path)
     cams = make_path(store, "default", frames=frames, viewport=size)
     base = cams[len(cams) // 2]
     rows = []
-    for p in sorted({c[3] for c in CONFIGS}):
+    for p in sorted({c[3] for c in configs}):
         r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=p))
         try:
             for fov in fovs:
                 cam = replace(base, fov_y=fov)
-                for label, lod, metric, _ in (c for c in CONFIGS if c[3] == p):
+                for label, lod, metric, _ in (c for c in configs if c[3] == p):
                     t0 = time.perf_counter()
                     for tr in tradeoff(
                         store, cam, taus, renderer=r, repeats=1, lod=lod, metric=metric,
@@ -156,7 +165,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--stores", default="synth,real")
     ap.add_argument("--out", default=str(DEFAULT_OUT))
+    ap.add_argument(
+        "--configs", default=",".join(c[0] for c in CONFIGS), help="labels to run (default all)"
+    )
     a = ap.parse_args(argv)
+    labels = a.configs.split(",")
+    unknown = sorted(set(labels) - {c[0] for c in CONFIGS})
+    if unknown:
+        ap.error(f"unknown --configs {unknown}; choose from {[c[0] for c in CONFIGS]}")
     taus = [float(t) for t in a.taus.split(",")]
     fovs = [float(f) for f in a.fovs.split(",")]
     w, h = (int(v) for v in a.size.split("x"))
@@ -165,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER)
     for name, path in stores.items():
         t0 = time.perf_counter()
-        rows = run(path, taus, fovs, (w, h), a.frames)
+        rows = run(path, taus, fovs, (w, h), a.frames, labels)
         for row in rows:
             print(fmt(name, row))
         vs = verdicts(rows)

@@ -30,10 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from render.errors import SelectionError
+from render.node_boxes import NodeBoxes
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
-from streamer.lod import Metric, get_metric
+from streamer.lod import Metric, get_metric, takes_box
 from tiler.grid import BlockGrid
 from tiler.quadtree import (
     block_origins,
@@ -131,6 +132,38 @@ class Patches:
         )
 
 
+def node_rho(
+    fn: Metric,
+    grid: BlockGrid,
+    delta: np.ndarray,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    depth: int,
+    zr: np.ndarray,
+    camera: Camera,
+    boxes: tuple[NodeBoxes, tuple[np.ndarray, np.ndarray]] | None,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> np.ndarray:
+    """The metric's pixel errors of depth-``depth`` nodes centred at ``(cx, cy)`` whose blocks'
+    ranges are ``zr`` ``(n, 2)``: each node's sphere (half diagonal, the block's height range),
+    or with ``boxes`` (the table and the nodes' slots in it) each node's box (footprint times
+    its own height range, :mod:`render.node_boxes`)."""
+    half = half_diagonal(grid, depth)
+    if boxes is None:
+        zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
+        centres = np.stack([cx, cy, zmid], axis=1)
+        return np.asarray(fn(delta, centres, sphere_radius(half, zhalf), camera), np.float64)
+    table, slots = boxes
+    lo, hi = table.zrange(slots, zr, depth, rows, cols)
+    s = 0.5 * float(node_span(grid.k, depth))
+    n = len(cx)
+    ext = np.stack([np.full(n, s * grid.dx), np.full(n, s * grid.dy), 0.5 * (hi - lo)], 1)
+    centres = np.stack([cx, cy, 0.5 * (lo + hi)], axis=1)
+    radius = np.linalg.norm(ext, axis=1)
+    return np.asarray(fn(delta, centres, radius, camera, half_extent=ext), np.float64)
+
+
 def check_tau(tau: float) -> float:
     """``tau`` as a float, or :class:`SelectionError` unless it is a number >= 0 (inf allowed)."""
     try:
@@ -154,12 +187,14 @@ def select_patches(
     resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
     windows: np.ndarray | None = None,
+    boxes: NodeBoxes | None = None,
 ) -> Patches:
     """Leaves of all blocks' quadtrees at ``tau`` (not yet stitched: ``snap`` is zero).
 
     ``resident[i]`` is the finest resident level of ``blocks[i]`` (-1: none, not drawn);
     ``zranges[i]`` its (zmin, zmax); ``windows[i]`` its ``(row0, col0, nrows, ncols)`` inside the
-    DEM (nodes wholly in padding are dropped).
+    DEM (nodes wholly in padding are dropped). ``boxes`` (required for a metric that
+    :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its own box.
     """
     check_tau(tau)
     fn = get_metric(metric)
@@ -176,7 +211,7 @@ def select_patches(
     if outside.any():
         grid.check_block(*(int(v) for v in blk[int(np.argmax(outside))]))
     slots = table.slots(blk)
-    zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
+    box_slots = _box_slots(fn, boxes, blk, res)
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 2
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
@@ -209,8 +244,8 @@ def select_patches(
             if not idx.size:
                 break
         delta = table.delta(slots[idx], depth, rows, cols)
-        centres = np.stack([cx, cy, zmid[idx]], axis=1)
-        rho = np.asarray(fn(delta, centres, sphere_radius(half, zhalf[idx]), camera), np.float64)
+        bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
+        rho = node_rho(fn, grid, delta, cx, cy, depth, zr[idx], camera, bx, rows, cols)
         r_idx = res[idx]
         level = np.minimum(min(k, depth + p), r_idx)
         if depth + p >= k:
@@ -234,6 +269,22 @@ def select_patches(
         cols = (2 * cols[split][:, None] + _CHILD_C).ravel()
         depth += 1
     return _assemble(blk, parts, clamped)
+
+
+def _box_slots(
+    fn: Metric, boxes: NodeBoxes | None, blk: np.ndarray, res: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The blocks' slots in ``boxes`` when the metric takes boxes (-1 for undrawn blocks)."""
+    if not takes_box(fn):
+        return None
+    if boxes is None:
+        raise SelectionError("this metric selects with node boxes: pass boxes= (NodeBoxes)")
+    out = (np.full(len(blk), -1, np.int64), np.full(len(blk), -1, np.int64))
+    drawn = np.flatnonzero(res >= 0)
+    if drawn.size:
+        a, b = boxes.slots(blk[drawn])
+        out[0][drawn], out[1][drawn] = a, b
+    return out
 
 
 def _assemble(blk: np.ndarray, parts: list[tuple], clamped: int) -> Patches:
@@ -312,8 +363,10 @@ def stitch(
     resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
     max_rounds: int = 16,
+    boxes: NodeBoxes | None = None,
 ) -> Patches:
-    """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere."""
+    """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere
+    (new nodes' errors with the same node geometry as :func:`select_patches`: ``boxes``)."""
     k = grid.k
     res = np.asarray(resident, dtype=np.int64)
     cur = patches
@@ -349,7 +402,10 @@ def stitch(
             )
         if slots is None:
             slots = table.slots(cur.blocks)
-        cur = _split(cur, victims, grid, table, slots, camera, metric, res, zranges)
+            box_slots = _box_slots(get_metric(metric), boxes, cur.blocks, res)
+        cur = _split(
+            cur, victims, grid, table, slots, camera, metric, res, zranges, boxes, box_slots
+        )
     raise SelectionError(f"stitching did not settle in {max_rounds} rounds")
 
 
@@ -363,6 +419,8 @@ def _split(
     metric: str | Metric,
     res: np.ndarray,
     zranges: np.ndarray,
+    boxes: NodeBoxes | None = None,
+    box_slots: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Patches:
     """Replace the leaves ``victims`` by their four children."""
     k, p = grid.k, table.patch_log2
@@ -376,15 +434,14 @@ def _split(
     blk = cur.blocks[b]
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
     zr = np.asarray(zranges, dtype=np.float64)[b]
-    zhalf = 0.5 * (zr[:, 1] - zr[:, 0])
-    delta, cx, cy, rad = (np.zeros(len(b)) for _ in range(4))
+    fn = get_metric(metric)
+    delta, rho = np.zeros(len(b)), np.zeros(len(b))
     for depth in np.unique(d).tolist():
         m = d == depth
         delta[m] = table.delta(slots[b[m]], depth, r[m], c[m])
-        cx[m], cy[m] = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
-        rad[m] = sphere_radius(half_diagonal(grid, depth), zhalf[m])
-    cen = np.stack([cx, cy, zr.mean(1)], 1)
-    rho = np.asarray(get_metric(metric)(delta, cen, rad, camera), np.float64)
+        cx, cy = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
+        bx = None if box_slots is None else (boxes, (box_slots[0][b[m]], box_slots[1][b[m]]))
+        rho[m] = node_rho(fn, grid, delta[m], cx, cy, depth, zr[m], camera, bx, r[m], c[m])
     return Patches(
         blocks=cur.blocks,
         block=np.concatenate([cur.block[keep], b]),
