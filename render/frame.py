@@ -251,7 +251,11 @@ class FrameServices:
             if boxes.level(b) != lv:
                 grid = self.store.read_block(b, max_level=lv)
                 zr = self.block_zranges(np.array([b]))[0]
-                boxes.update(b, lv, grid, self.read_errors(b)["bound"], (zr[0], zr[1]))
+                mask = self.mask(b)
+                step = 1 << (self.k - lv)
+                valid = None if mask is None else mask[::step, ::step]
+                bound = self.read_errors(b)["bound"]
+                boxes.update(b, lv, grid, bound, (zr[0], zr[1]), valid)
         return boxes
 
     def fill_table(self, table: PatchTable, blocks: list[Block], field: str) -> None:

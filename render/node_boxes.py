@@ -12,16 +12,36 @@ neighbour's vertices are level-``L`` positions too), intersected with the block'
 (which holds both as well). Non-finite ranges (a mask boundary's ``inf`` bound, nodata) fall
 back to the block's range. Pooled in two :class:`streamer.levels.PatchErrorTable` (``hi`` and
 ``-lo``, rounded outwards to float32), so one fancy index per pass looks many blocks up.
+
+Also the selection's node geometry (:func:`node_rho`: sphere or box per node) and the snapped
+edge check of :func:`render.select.stitch` (:func:`snap_over`, with
+:func:`render.snap_error.snap_excess` on the level grids kept here).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from render.errors import SelectionError
+from render.snap_error import snap_excess
+from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
-from tiler.quadtree import node_height_bounds
+from streamer.lod import Metric, takes_box
+from tiler.grid import BlockGrid
+from tiler.quadtree import (
+    block_origins,
+    half_diagonal,
+    node_centres_at,
+    node_height_bounds,
+    node_span,
+    sphere_radius,
+)
+
+if TYPE_CHECKING:
+    from render.select import Patches
 
 Block = tuple[int, int]
 
@@ -42,6 +62,7 @@ class NodeBoxes:
         self._neg_lo = PatchErrorTable(k, patch_log2)
         self._level: dict[Block, int] = {}
         self._zr: dict[Block, tuple[float, float]] = {}
+        self._grid: dict[Block, np.ndarray] = {}
 
     def __contains__(self, block: Block) -> bool:
         return block in self._level
@@ -57,9 +78,12 @@ class NodeBoxes:
         grid: np.ndarray,
         bound: Sequence[np.ndarray],
         zrange: tuple[float, float],
+        valid: np.ndarray | None = None,
     ) -> None:
         """(Re)build ``block``'s ranges from its level-``level`` ``grid``, its ``bound`` field
-        (depths ``0..k-1``; mask boundaries ``inf``) and its stored ``(zmin, zmax)``."""
+        (depths ``0..k-1``; mask boundaries ``inf``) and its stored ``(zmin, zmax)``; the grid
+        is kept (NaN where ``valid``, the level's validity, is False) for
+        :meth:`vertex_heights`."""
         block = (int(block[0]), int(block[1]))
         self.remove(block)
         z0, z1 = (float(v) for v in zrange)
@@ -72,6 +96,8 @@ class NodeBoxes:
         self._hi.add(block, hi_f)
         self._neg_lo.add(block, lo_f)
         self._level[block], self._zr[block] = int(level), (z0, z1)
+        g = np.asarray(grid, dtype=np.float64)
+        self._grid[block] = g if valid is None else np.where(valid, g, np.nan)
 
     def remove(self, block: Block) -> None:
         """Forget a block."""
@@ -80,6 +106,29 @@ class NodeBoxes:
         self._neg_lo.remove(block)
         self._level.pop(block, None)
         self._zr.pop(block, None)
+        self._grid.pop(block, None)
+
+    def vertex_heights(
+        self,
+        blocks: np.ndarray,
+        depth: np.ndarray,
+        row: np.ndarray,
+        col: np.ndarray,
+        level: np.ndarray,
+    ) -> np.ndarray:
+        """``(m, n+1, n+1)`` level-``level`` vertex heights ``[row, column]`` of patches (one
+        cell count ``n = 2**(level - depth)``) of the ``(m, 2)`` ``blocks`` (NaN: masked)."""
+        m = len(depth)
+        n = (1 << int(level[0] - depth[0])) if m else 0
+        out = np.empty((m, n + 1, n + 1))
+        for i, (b, d, r, c, lv) in enumerate(
+            zip(map(tuple, blocks.tolist()), depth.tolist(), row.tolist(), col.tolist(),
+                level.tolist(), strict=True)
+        ):  # fmt: skip
+            g, rr = self._grid[b], self._level[b]
+            span, step = 1 << (rr - d), 1 << (rr - lv)
+            out[i] = g[r * span : (r + 1) * span + 1 : step, c * span : (c + 1) * span + 1 : step]
+        return out
 
     def slots(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The blocks' slots in the two tables (every block must have been updated)."""
@@ -101,3 +150,93 @@ class NodeBoxes:
         hi = self._hi.delta(slots[0], depth, rows, cols)
         lo = -self._neg_lo.delta(slots[1], depth, rows, cols)
         return lo, hi
+
+
+# -- the selection's node geometry (render.select) ------------------------------------------
+
+
+def node_rho(
+    fn: Metric,
+    grid: BlockGrid,
+    delta: np.ndarray,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    depth: int,
+    zr: np.ndarray,
+    camera: Camera,
+    boxes: tuple[NodeBoxes, tuple[np.ndarray, np.ndarray]] | None,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> np.ndarray:
+    """The metric's pixel errors of depth-``depth`` nodes centred at ``(cx, cy)`` whose blocks'
+    ranges are ``zr`` ``(n, 2)``: each node's sphere (half diagonal, the block's height range),
+    or with ``boxes`` (the table and the nodes' slots in it) each node's box (footprint times
+    its own height range, :mod:`render.node_boxes`)."""
+    half = half_diagonal(grid, depth)
+    if boxes is None:
+        zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
+        centres = np.stack([cx, cy, zmid], axis=1)
+        return np.asarray(fn(delta, centres, sphere_radius(half, zhalf), camera), np.float64)
+    table, slots = boxes
+    lo, hi = table.zrange(slots, zr, depth, rows, cols)
+    s = 0.5 * float(node_span(grid.k, depth))
+    n = len(cx)
+    ext = np.stack([np.full(n, s * grid.dx), np.full(n, s * grid.dy), 0.5 * (hi - lo)], 1)
+    centres = np.stack([cx, cy, 0.5 * (lo + hi)], axis=1)
+    radius = np.linalg.norm(ext, axis=1)
+    return np.asarray(fn(delta, centres, radius, camera, half_extent=ext), np.float64)
+
+
+def node_box_slots(
+    fn: Metric, boxes: NodeBoxes | None, blk: np.ndarray, res: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The blocks' slots in ``boxes`` when the metric takes boxes (-1 for undrawn blocks)."""
+    if not takes_box(fn):
+        return None
+    if boxes is None:
+        raise SelectionError("this metric selects with node boxes: pass boxes= (NodeBoxes)")
+    out = (np.full(len(blk), -1, np.int64), np.full(len(blk), -1, np.int64))
+    drawn = np.flatnonzero(res >= 0)
+    if drawn.size:
+        a, b = boxes.slots(blk[drawn])
+        out[0][drawn], out[1][drawn] = a, b
+    return out
+
+
+def snap_over(
+    cur: Patches,
+    snap: np.ndarray,
+    grid: BlockGrid,
+    camera: Camera,
+    fn: Metric,
+    tau: float,
+    zranges: np.ndarray,
+    boxes: NodeBoxes,
+    box_slots: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """``(n, 4)`` snapped edges whose patch's error plus snapping excess exceeds ``tau``."""
+    over = np.zeros(snap.shape, dtype=bool)
+    idx = np.flatnonzero((snap.max(axis=1) > 0) & np.isfinite(cur.delta))
+    if not idx.size:
+        return over
+    b, d, r, c = cur.block[idx], cur.depth[idx], cur.row[idx], cur.col[idx]
+
+    def heights(sub: np.ndarray) -> np.ndarray:
+        return boxes.vertex_heights(cur.blocks[b[sub]], d[sub], r[sub], c[sub], cur.level[idx[sub]])
+
+    ex = snap_excess(cur.cells_log2[idx], snap[idx], heights)
+    blk = cur.blocks[b]
+    bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
+    zr = np.asarray(zranges, dtype=np.float64)[b]
+    for depth in np.unique(d).tolist():
+        m = np.flatnonzero(d == depth)
+        cx, cy = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
+        bx = (boxes, (box_slots[0][b[m]], box_slots[1][b[m]]))
+        for e in range(4):
+            pos = ex[m, e] > 0
+            if not pos.any():
+                continue
+            err = cur.delta[idx[m]] + ex[m, e]
+            rho = node_rho(fn, grid, err, cx, cy, depth, zr[m], camera, bx, r[m], c[m])
+            over[idx[m], e] = pos & ~(rho <= tau)
+    return over

@@ -30,18 +30,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from render.errors import SelectionError
-from render.node_boxes import NodeBoxes
+from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
-from streamer.lod import Metric, get_metric, takes_box
+from streamer.lod import Metric, get_metric
 from tiler.grid import BlockGrid
 from tiler.quadtree import (
     block_origins,
     half_diagonal,
     node_centres_at,
     node_span,
-    sphere_radius,
 )
 
 Block = tuple[int, int]
@@ -132,38 +131,6 @@ class Patches:
         )
 
 
-def node_rho(
-    fn: Metric,
-    grid: BlockGrid,
-    delta: np.ndarray,
-    cx: np.ndarray,
-    cy: np.ndarray,
-    depth: int,
-    zr: np.ndarray,
-    camera: Camera,
-    boxes: tuple[NodeBoxes, tuple[np.ndarray, np.ndarray]] | None,
-    rows: np.ndarray,
-    cols: np.ndarray,
-) -> np.ndarray:
-    """The metric's pixel errors of depth-``depth`` nodes centred at ``(cx, cy)`` whose blocks'
-    ranges are ``zr`` ``(n, 2)``: each node's sphere (half diagonal, the block's height range),
-    or with ``boxes`` (the table and the nodes' slots in it) each node's box (footprint times
-    its own height range, :mod:`render.node_boxes`)."""
-    half = half_diagonal(grid, depth)
-    if boxes is None:
-        zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
-        centres = np.stack([cx, cy, zmid], axis=1)
-        return np.asarray(fn(delta, centres, sphere_radius(half, zhalf), camera), np.float64)
-    table, slots = boxes
-    lo, hi = table.zrange(slots, zr, depth, rows, cols)
-    s = 0.5 * float(node_span(grid.k, depth))
-    n = len(cx)
-    ext = np.stack([np.full(n, s * grid.dx), np.full(n, s * grid.dy), 0.5 * (hi - lo)], 1)
-    centres = np.stack([cx, cy, 0.5 * (lo + hi)], axis=1)
-    radius = np.linalg.norm(ext, axis=1)
-    return np.asarray(fn(delta, centres, radius, camera, half_extent=ext), np.float64)
-
-
 def check_tau(tau: float) -> float:
     """``tau`` as a float, or :class:`SelectionError` unless it is a number >= 0 (inf allowed)."""
     try:
@@ -211,7 +178,7 @@ def select_patches(
     if outside.any():
         grid.check_block(*(int(v) for v in blk[int(np.argmax(outside))]))
     slots = table.slots(blk)
-    box_slots = _box_slots(fn, boxes, blk, res)
+    box_slots = node_box_slots(fn, boxes, blk, res)
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 2
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
@@ -269,22 +236,6 @@ def select_patches(
         cols = (2 * cols[split][:, None] + _CHILD_C).ravel()
         depth += 1
     return _assemble(blk, parts, clamped)
-
-
-def _box_slots(
-    fn: Metric, boxes: NodeBoxes | None, blk: np.ndarray, res: np.ndarray
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The blocks' slots in ``boxes`` when the metric takes boxes (-1 for undrawn blocks)."""
-    if not takes_box(fn):
-        return None
-    if boxes is None:
-        raise SelectionError("this metric selects with node boxes: pass boxes= (NodeBoxes)")
-    out = (np.full(len(blk), -1, np.int64), np.full(len(blk), -1, np.int64))
-    drawn = np.flatnonzero(res >= 0)
-    if drawn.size:
-        a, b = boxes.slots(blk[drawn])
-        out[0][drawn], out[1][drawn] = a, b
-    return out
 
 
 def _assemble(blk: np.ndarray, parts: list[tuple], clamped: int) -> Patches:
@@ -362,12 +313,20 @@ def stitch(
     *,
     resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
-    max_rounds: int = 16,
+    max_rounds: int = 64,
     boxes: NodeBoxes | None = None,
+    tau: float | None = None,
 ) -> Patches:
     """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere
-    (new nodes' errors with the same node geometry as :func:`select_patches`: ``boxes``)."""
+    (new nodes' errors with the same node geometry as :func:`select_patches`: ``boxes``).
+
+    With ``tau`` and a metric that takes boxes, a snapped edge also splits its coarser
+    neighbour while the metric of the patch's error plus the edge's snapping excess
+    (:func:`render.snap_error.snap_excess`) exceeds ``tau``; such an edge whose neighbour may
+    not split (its resident level) counts as clamped."""
     k = grid.k
+    fn = get_metric(metric)
+    box_slots = None
     res = np.asarray(resident, dtype=np.int64)
     cur = patches
     slots = None
@@ -385,8 +344,22 @@ def stitch(
                 k, res[cur.block[victims]]
             )
             victims = victims[splittable]
+        if slots is None:
+            slots = table.slots(cur.blocks)
+            box_slots = node_box_slots(fn, boxes, cur.blocks, res)
+        extra = 0
         if not victims.size:
             snap = np.minimum(snap, cur.cells_log2[:, None])
+            if tau is not None and box_slots is not None:
+                over = snap_over(cur, snap, grid, camera, fn, tau, zranges, boxes, box_slots)
+                victims = np.unique(nb[over])
+                if victims.size:
+                    keep = cur.depth[victims] + table.patch_log2 < np.minimum(
+                        k, res[cur.block[victims]]
+                    )
+                    extra = int(np.count_nonzero(~keep))
+                    victims = victims[keep]
+        if not victims.size:
             return Patches(
                 blocks=cur.blocks,
                 block=cur.block,
@@ -397,12 +370,9 @@ def stitch(
                 delta=cur.delta,
                 rho=cur.rho,
                 snap=snap.astype(np.int64),
-                clamped=cur.clamped,
+                clamped=cur.clamped + extra,
                 violations=int(np.count_nonzero(bad)),
             )
-        if slots is None:
-            slots = table.slots(cur.blocks)
-            box_slots = _box_slots(get_metric(metric), boxes, cur.blocks, res)
         cur = _split(
             cur, victims, grid, table, slots, camera, metric, res, zranges, boxes, box_slots
         )

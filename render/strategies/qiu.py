@@ -80,7 +80,9 @@ def select_clod(
         r.grid, blk, table, camera, tau_used, fn, poly, resident=res, zranges=zr, windows=win,
         boxes=boxes,
     )  # fmt: skip
-    patches = stitch(patches, r.grid, table, camera, fn, resident=res, zranges=zr, boxes=boxes)
+    patches = stitch(
+        patches, r.grid, table, camera, fn, resident=res, zranges=zr, boxes=boxes, tau=tau_used
+    )
     return patches, (time.perf_counter() - t0) * 1000.0
 
 
