@@ -63,6 +63,7 @@ class NodeBoxes:
         self._level: dict[Block, int] = {}
         self._zr: dict[Block, tuple[float, float]] = {}
         self._grid: dict[Block, np.ndarray] = {}
+        self._bound: dict[Block, list[np.ndarray]] = {}
 
     def __contains__(self, block: Block) -> bool:
         return block in self._level
@@ -98,6 +99,7 @@ class NodeBoxes:
         self._level[block], self._zr[block] = int(level), (z0, z1)
         g = np.asarray(grid, dtype=np.float64)
         self._grid[block] = g if valid is None else np.where(valid, g, np.nan)
+        self._bound[block] = [np.asarray(b, dtype=np.float64) for b in bound]
 
     def remove(self, block: Block) -> None:
         """Forget a block."""
@@ -107,6 +109,7 @@ class NodeBoxes:
         self._level.pop(block, None)
         self._zr.pop(block, None)
         self._grid.pop(block, None)
+        self._bound.pop(block, None)
 
     def vertex_heights(
         self,
@@ -128,6 +131,32 @@ class NodeBoxes:
             g, rr = self._grid[b], self._level[b]
             span, step = 1 << (rr - d), 1 << (rr - lv)
             out[i] = g[r * span : (r + 1) * span + 1 : step, c * span : (c + 1) * span + 1 : step]
+        return out
+
+    def cell_bounds(
+        self,
+        blocks: np.ndarray,
+        depth: np.ndarray,
+        row: np.ndarray,
+        col: np.ndarray,
+        level: np.ndarray,
+    ) -> np.ndarray:
+        """``(m, n, n)`` stored ``bound`` of each level-``level`` cell (a depth-``level`` node;
+        0 at full resolution) of patches as :meth:`vertex_heights`."""
+        m = len(depth)
+        n = (1 << int(level[0] - depth[0])) if m else 0
+        out = np.zeros((m, n, n))
+        for i, (b, _d, r, c, lv) in enumerate(
+            zip(map(tuple, blocks.tolist()), depth.tolist(), row.tolist(), col.tolist(),
+                level.tolist(), strict=True)
+        ):  # fmt: skip
+            if lv >= self.k:
+                continue
+            f = self._bound[b][lv]
+            rep = (1 << lv) // f.shape[0]  # stored coarser than the depth: one value a tile
+            rows = (r * n + np.arange(n)) // rep
+            cols = (c * n + np.arange(n)) // rep
+            out[i] = f[np.ix_(rows, cols)]
         return out
 
     def slots(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -214,7 +243,8 @@ def snap_over(
     boxes: NodeBoxes,
     box_slots: tuple[np.ndarray, np.ndarray],
 ) -> np.ndarray:
-    """``(n, 4)`` snapped edges whose patch's error plus snapping excess exceeds ``tau``."""
+    """``(n, 4)`` snapped edges whose strip's error bound (per fan triangle: the largest stored
+    error of the cells of its bounding box plus its snapping excess) exceeds ``tau``."""
     over = np.zeros(snap.shape, dtype=bool)
     idx = np.flatnonzero((snap.max(axis=1) > 0) & np.isfinite(cur.delta))
     if not idx.size:
@@ -224,7 +254,10 @@ def snap_over(
     def heights(sub: np.ndarray) -> np.ndarray:
         return boxes.vertex_heights(cur.blocks[b[sub]], d[sub], r[sub], c[sub], cur.level[idx[sub]])
 
-    ex = snap_excess(cur.cells_log2[idx], snap[idx], heights)
+    def cells(sub: np.ndarray) -> np.ndarray:
+        return boxes.cell_bounds(cur.blocks[b[sub]], d[sub], r[sub], c[sub], cur.level[idx[sub]])
+
+    total = snap_excess(cur.cells_log2[idx], snap[idx], heights, cells)
     blk = cur.blocks[b]
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
     zr = np.asarray(zranges, dtype=np.float64)[b]
@@ -233,10 +266,10 @@ def snap_over(
         cx, cy = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
         bx = (boxes, (box_slots[0][b[m]], box_slots[1][b[m]]))
         for e in range(4):
-            pos = ex[m, e] > 0
+            pos = snap[idx[m], e] > 0
             if not pos.any():
                 continue
-            err = cur.delta[idx[m]] + ex[m, e]
+            err = total[m, e]  # the strip's own error bound (cells' bound + excess)
             rho = node_rho(fn, grid, err, cx, cy, depth, zr[m], camera, bx, r[m], c[m])
             over[idx[m], e] = pos & ~(rho <= tau)
     return over

@@ -78,7 +78,8 @@ def _surface_weights(n: int, i: float, j: float) -> dict[int, float]:
 
 @cache
 def _difference_rows(cells_log2: int, snaps: tuple[int, int, int, int]):
-    """Per edge: a matrix ``W`` ``(points, (n+1)**2)`` with ``W @ h`` = ``I - S`` at every
+    """Per edge: a matrix ``W`` ``(points, (n+1)**2)`` (and the first row of each triangle)
+    with ``W @ h`` = ``I - S`` at every
     vertex of the overlay of each moved triangle ``T`` of the strip with the cell
     triangulation (``T``'s edges cut by the lines ``i = m``, ``j = m`` and ``i - j = m``, and
     the grid vertices in ``T``): ``I - S`` is linear on each overlay piece, so its largest
@@ -91,7 +92,9 @@ def _difference_rows(cells_log2: int, snaps: tuple[int, int, int, int]):
             continue
         tj, ti, box = part
         rows: list[np.ndarray] = []
+        starts = []
         for t in range(len(tj)):
+            starts.append(len(rows))
             corners = np.stack([ti[t], tj[t]], 1).astype(np.float64)  # (3, 2) (i, j)
             pts = []
             for e in range(3):
@@ -118,7 +121,7 @@ def _difference_rows(cells_log2: int, snaps: tuple[int, int, int, int]):
                 for vid, w in _surface_weights(n, float(q[0]), float(q[1])).items():
                     row[vid] -= w
                 rows.append(row)
-        out.append(np.array(rows))
+        out.append((np.array(rows), np.array(starts, dtype=np.int64)))
     return out
 
 
@@ -126,11 +129,15 @@ def snap_excess(
     cells_log2: np.ndarray,
     snap: np.ndarray,
     heights: Callable[[np.ndarray], np.ndarray],
+    cell_bounds: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """``(m, 4)`` the largest ``e_T`` (module doc) of each patch's snapped strip per edge
     (0 where the edge is not snapped). ``heights(idx)`` returns the ``(len(idx), n+1, n+1)``
     level-``L`` vertex heights ``[row j, column i]`` of patches ``idx`` (all of one cell
-    count); NaN heights (masked vertices) are ignored."""
+    count); NaN heights (masked vertices) are ignored. With ``cell_bounds(idx)`` (``(len(idx),
+    n, n)``: each level-``L`` cell's stored error, a bound on ``|h - S|`` in it) each triangle
+    adds the largest of the cells of its bounding box: the result is then a bound on the whole
+    error ``|h - I|`` of the strip's samples, not the excess over the patch's error."""
     cells = np.asarray(cells_log2, dtype=np.int64)
     sn = np.asarray(snap, dtype=np.int64).reshape(-1, 4)
     out = np.zeros((len(cells), 4))
@@ -144,23 +151,27 @@ def snap_excess(
         tmpl = _strip_template(*key_t)
         weights = _difference_rows(*key_t)
         h = np.asarray(heights(idx), dtype=np.float64)
+        cb = None if cell_bounds is None else np.asarray(cell_bounds(idx), dtype=np.float64)
         flat = h.reshape(len(idx), -1)
         masked = np.isnan(flat).any(axis=1)
         for e, part in enumerate(tmpl):
             if part is None:
                 continue
-            exact = np.abs(np.where(masked[:, None], 0.0, flat) @ weights[e].T).max(axis=1)
-            if not masked.any():
-                out[idx, e] = exact
-                continue
             tj, ti, box = part
-            corners = h[:, tj, ti]  # (P, m, 3)
-            lo_t, hi_t = np.fmin.reduce(corners, axis=2), np.fmax.reduce(corners, axis=2)
-            worst = np.zeros(len(idx))
+            w, starts = weights[e]
+            d = np.abs(np.where(masked[:, None], 0.0, flat) @ w.T)  # (P, points)
+            per_tri = np.maximum.reduceat(d, starts, axis=1)  # (P, triangles)
+            if masked.any():
+                corners = h[:, tj, ti]  # (P, m, 3)
+                lo_t, hi_t = np.fmin.reduce(corners, axis=2), np.fmax.reduce(corners, axis=2)
             for u, (j0, j1, i0, i1) in enumerate(box.tolist()):
-                win = h[:, j0 : j1 + 1, i0 : i1 + 1].reshape(len(idx), -1)
-                lo_b, hi_b = np.fmin.reduce(win, axis=1), np.fmax.reduce(win, axis=1)
-                e_t = np.fmax(hi_b - lo_t[:, u], hi_t[:, u] - lo_b)
-                worst = np.fmax(worst, np.where(np.isfinite(e_t), e_t, 0.0))
-            out[idx, e] = np.where(masked, worst, exact)
+                if masked.any():
+                    win = h[:, j0 : j1 + 1, i0 : i1 + 1].reshape(len(idx), -1)
+                    lo_b, hi_b = np.fmin.reduce(win, axis=1), np.fmax.reduce(win, axis=1)
+                    e_t = np.fmax(hi_b - lo_t[:, u], hi_t[:, u] - lo_b)
+                    e_t = np.where(np.isfinite(e_t), e_t, 0.0)
+                    per_tri[:, u] = np.where(masked, e_t, per_tri[:, u])
+                if cb is not None:
+                    per_tri[:, u] += cb[:, j0:j1, i0:i1].reshape(len(idx), -1).max(axis=1)
+            out[idx, e] = per_tri.max(axis=1)
     return out

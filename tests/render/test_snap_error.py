@@ -12,6 +12,7 @@ from demtools import fractal
 from render import measure
 from render.select import Patches
 from render.snap_error import snap_excess
+from tiler.static_error import bound_errors
 
 K = 5  # one block of 33² samples
 
@@ -50,6 +51,14 @@ def test_snapped_error_within_delta_plus_excess(level, snaps, seed):
     err = np.abs(h - snapped)
     assert np.nanmax(err) <= delta + ex.max() + 1e-9
     assert np.nanmax(np.abs(snapped - flat)) <= ex.max() + 1e-9
+    # with the cells' own stored errors: a bound on the strips' whole error
+    cells = bound_errors(h, np.ones(h.shape, bool), K)[level] if level < K else None
+    n = 1 << level
+    cb = np.zeros((1, n, n)) if cells is None else cells[None]
+    total = snap_excess(np.array([level]), np.array([snaps]), lambda idx: verts[None],
+                        lambda idx: cb)[0]  # fmt: skip
+    assert np.nanmax(err) <= max(delta, total.max()) + 1e-9
+    assert total.max() <= delta + ex.max() + 1e-2  # the stored bounds are rounded up
 
 
 def test_positive_control_snapping_exceeds_the_unsnapped_error():
