@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from render.errors import SelectionError
-from render.snap_error import snap_excess
+from render.snap_error import snap_exact, snap_excess
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, takes_box
@@ -131,6 +131,18 @@ class NodeBoxes:
             g, rr = self._grid[b], self._level[b]
             span, step = 1 << (rr - d), 1 << (rr - lv)
             out[i] = g[r * span : (r + 1) * span + 1 : step, c * span : (c + 1) * span + 1 : step]
+        return out
+
+    def full_windows(self, blocks: np.ndarray, depth: np.ndarray, row: np.ndarray, col: np.ndarray
+                     ) -> np.ndarray:  # fmt: skip
+        """``(m, side, side)`` full-resolution heights (NaN: masked) of nodes of one depth of
+        blocks held at level ``k`` (``side = 2**(k - depth) + 1``)."""
+        m = len(depth)
+        span = (1 << (self.k - int(depth[0]))) if m else 0
+        out = np.empty((m, span + 1, span + 1))
+        for i, (b, r, c) in enumerate(zip(map(tuple, blocks.tolist()), row.tolist(), col.tolist(),
+                                          strict=True)):  # fmt: skip
+            out[i] = self._grid[b][r * span : (r + 1) * span + 1, c * span : (c + 1) * span + 1]
         return out
 
     def cell_bounds(
@@ -243,8 +255,10 @@ def snap_over(
     boxes: NodeBoxes,
     box_slots: tuple[np.ndarray, np.ndarray],
 ) -> np.ndarray:
-    """``(n, 4)`` snapped edges whose strip's error bound (per fan triangle: the largest stored
-    error of the cells of its bounding box plus its snapping excess) exceeds ``tau``."""
+    """``(n, 4)`` snapped edges whose strip's error exceeds ``tau``: in a block held at full
+    resolution its exact error at the strip's samples (:func:`~render.snap_error.snap_exact`),
+    else a bound (per fan triangle: the largest stored error of the cells of its bounding box
+    plus its snapping excess)."""
     over = np.zeros(snap.shape, dtype=bool)
     idx = np.flatnonzero((snap.max(axis=1) > 0) & np.isfinite(cur.delta))
     if not idx.size:
@@ -258,6 +272,17 @@ def snap_over(
         return boxes.cell_bounds(cur.blocks[b[sub]], d[sub], r[sub], c[sub], cur.level[idx[sub]])
 
     total = snap_excess(cur.cells_log2[idx], snap[idx], heights, cells)
+    full = np.array([boxes.level(tuple(int(v) for v in x)) >= boxes.k for x in cur.blocks])[b]
+    if full.any():  # full resolution at hand: the strips' exact error at their samples
+
+        def windows(sub: np.ndarray) -> np.ndarray:
+            f = np.flatnonzero(full)[sub]
+            return boxes.full_windows(cur.blocks[b[f]], d[f], r[f], c[f])
+
+        f = np.flatnonzero(full)
+        total[f] = snap_exact(
+            cur.cells_log2[idx[f]], boxes.k - cur.level[idx[f]], snap[idx[f]], windows
+        )
     blk = cur.blocks[b]
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
     zr = np.asarray(zranges, dtype=np.float64)[b]

@@ -175,3 +175,67 @@ def snap_excess(
                     per_tri[:, u] += cb[:, j0:j1, i0:i1].reshape(len(idx), -1).max(axis=1)
             out[idx, e] = per_tri.max(axis=1)
     return out
+
+
+@cache
+def _sample_rows(cells_log2: int, snaps: tuple[int, int, int, int], spacing_log2: int):
+    """Per edge: the full-resolution samples of the moved triangles of its strip, as flat
+    indices into the patch's ``(n*2**s+1)**2`` sample window and, per sample, its triangle's 3
+    corner indices and barycentric weights (``(q,)``, ``(q, 3)``, ``(q, 3)``)."""
+    s = 1 << spacing_log2
+    side = (1 << cells_log2) * s + 1
+    out = []
+    for part in _strip_template(cells_log2, snaps):
+        if part is None:
+            out.append(None)
+            continue
+        tj, ti, box = part
+        idx, cor, wts = [], [], []
+        for t in range(len(tj)):
+            cj, ci = tj[t] * s, ti[t] * s  # corners in sample coordinates
+            a = np.array([ci[0], cj[0]], np.float64)
+            inv = np.linalg.inv(np.array([[ci[1] - ci[0], ci[2] - ci[0]],
+                                          [cj[1] - cj[0], cj[2] - cj[0]]], np.float64))  # fmt: skip
+            j0, j1, i0, i1 = (int(v) * s for v in box[t])
+            jj, ii = np.mgrid[j0 : j1 + 1, i0 : i1 + 1]
+            lam = inv @ (np.stack([ii.ravel(), jj.ravel()]) - a[:, None])
+            bary = np.stack([1.0 - lam.sum(0), lam[0], lam[1]], 1)
+            inside = (bary >= -1e-12).all(axis=1)
+            idx.append(jj.ravel()[inside] * side + ii.ravel()[inside])
+            cor.append(np.broadcast_to(cj * side + ci, (int(inside.sum()), 3)))
+            wts.append(bary[inside])
+        out.append((np.concatenate(idx), np.concatenate(cor), np.concatenate(wts)))
+    return out
+
+
+def snap_exact(
+    cells_log2: np.ndarray,
+    spacing_log2: np.ndarray,
+    snap: np.ndarray,
+    windows: Callable[[np.ndarray], np.ndarray],
+) -> np.ndarray:
+    """``(m, 4)`` the exact largest ``|h - I|`` over the full-resolution samples of each
+    patch's moved strip triangles per snapped edge (what the measurement sees there), from
+    ``windows(idx)``: the ``(len(idx), side, side)`` full-resolution heights of patches ``idx``
+    (one cell count and spacing; NaN = masked, ignored: such triangles are not drawn)."""
+    cells = np.asarray(cells_log2, dtype=np.int64)
+    sp = np.asarray(spacing_log2, dtype=np.int64)
+    sn = np.asarray(snap, dtype=np.int64).reshape(-1, 4)
+    out = np.zeros((len(cells), 4))
+    todo = np.flatnonzero(sn.max(axis=1) > 0)
+    if not todo.size:
+        return out
+    key = np.concatenate([cells[todo, None], sp[todo, None], sn[todo]], 1)
+    for grp in np.unique(key, axis=0):
+        idx = todo[(key == grp).all(axis=1)]
+        rows = _sample_rows(int(grp[0]), tuple(int(t) for t in grp[2:]), int(grp[1]))
+        flat = np.asarray(windows(idx), dtype=np.float64).reshape(len(idx), -1)
+        for e, part in enumerate(rows):
+            if part is None:
+                continue
+            at, cor, w = part
+            interp = (flat[:, cor] * w).sum(axis=2)
+            d = np.abs(flat[:, at] - interp)
+            worst = np.fmax.reduce(d, axis=1)
+            out[idx, e] = np.where(np.isfinite(worst), worst, 0.0)
+    return out

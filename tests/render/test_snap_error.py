@@ -11,7 +11,7 @@ from demtools import fractal
 
 from render import measure
 from render.select import Patches
-from render.snap_error import snap_excess
+from render.snap_error import snap_exact, snap_excess
 from tiler.static_error import bound_errors
 
 K = 5  # one block of 33² samples
@@ -59,11 +59,18 @@ def test_snapped_error_within_delta_plus_excess(level, snaps, seed):
                         lambda idx: cb)[0]  # fmt: skip
     assert np.nanmax(err) <= max(delta, total.max()) + 1e-9
     assert total.max() <= cb.max() + ex.max() + 1e-9  # never above the patch-wide sum
+    # at full resolution: the exact strip error, attained by samples and covering them
+    exact = snap_exact(np.array([level]), np.array([K - level]), np.array([snaps]),
+                       lambda idx: h[None])[0]  # fmt: skip
+    assert np.nanmax(err) <= max(delta, exact.max()) + 1e-9
+    assert exact.max() <= np.nanmax(err) + 1e-9
+    assert exact.max() <= total.max() + 1e-9
 
 
 def test_positive_control_snapping_exceeds_the_unsnapped_error():
-    """Snapping alone breaks the unsnapped error, and 0.6 of the excess misses ``|I - S|``."""
-    over = short = 0
+    """Snapping alone breaks the unsnapped error, 0.6 of the excess misses ``|I - S|`` and
+    0.9 of the exact strip error misses the snapped surface's error."""
+    over = short = low = 0
     for seed in range(1, 6):
         h = fractal((33, 33), seed=seed).astype(np.float64) * 30.0
         for level, snaps in CASES:
@@ -72,7 +79,11 @@ def test_positive_control_snapping_exceeds_the_unsnapped_error():
             verts = h[:: 1 << (K - level), :: 1 << (K - level)]
             ex = snap_excess(np.array([level]), np.array([snaps]), lambda idx, v=verts: v[None])
             short += int(np.nanmax(np.abs(snapped - flat)) > 0.6 * ex.max())
-    assert over > 0 and short > 0, (over, short)
+            exact = snap_exact(np.array([level]), np.array([K - level]), np.array([snaps]),
+                               lambda idx, g=h: g[None])  # fmt: skip
+            low += int(np.nanmax(np.abs(h - snapped)) > max(np.nanmax(np.abs(h - flat)),
+                                                            0.9 * exact.max()))  # fmt: skip
+    assert over > 0 and short > 0 and low > 0, (over, short, low)
 
 
 def test_excess_is_zero_without_snaps_and_for_a_plane():
