@@ -3,18 +3,21 @@
 Usage::
 
     python bench/bound_fov.py [--taus 0.5,1,2] [--fovs 5,45,120,170] [--size 320x240]
-                              [--frames 8] [--out bench/results/bound_fov.json]
+                              [--frames 8] [--stores synth,real] [--configs LABELS]
+                              [--out bench/results/bound_fov.json]
 
 Per store and vertical FOV: the middle camera of ``make_path(store, "default")`` (the camera
 ``terrastream compare`` measures) with its ``fov_y`` replaced, and per τ
 :func:`render.pipeline.tradeoff` (data streamed by each configuration's own session at that τ):
 triangles, measured max/p99 screen error against the full-resolution render, coverage. The
 configurations: ``qiu`` with the metrics ``qiu`` (Eq. 7), ``conservative`` and
-``conservative-view`` (:mod:`streamer.lod`), and ``geometry-splitting`` (the issue's reference for
-"few triangles"), all with the default patches of ``2**4`` cells; and ``conservative-view``
-with patches of ``2**2`` cells (``cons-view-p2``). For each view the script checks issue 12
-item 5's conditions on both ``conservative-view`` rows: max error ≤ τ; triangles ≤ 1.25 × the
-cheapest configuration that also stays ≤ τ; triangles ≤ Eq. 7's (at the default patches).
+``conservative-view`` (:mod:`streamer.lod`; it selects with node boxes and the snapped-edge
+check, :mod:`render.node_boxes`), and ``geometry-splitting`` (the issue's reference for "few
+triangles"), all with the default patches of ``2**4`` cells; and ``conservative-view`` with
+patches of ``2**3`` and ``2**2`` cells (``cons-view-p3``, ``cons-view-p2``). For each view the
+script checks issue 12 item 5's conditions on the ``conservative-view`` rows: max error ≤ τ;
+triangles ≤ 1.25 × the cheapest configuration that also stays ≤ τ; triangles ≤ Eq. 7's (at the
+default patches). ``--configs`` runs a subset (the verdicts need ``eq7`` among them).
 
 Stores (made under ``bench/work/bound`` when missing, with the CLI): ``synth`` is
 ``terrastream synth --size 1025 --seed 1`` tiled with ``--block-size 257``; ``real`` is
@@ -47,10 +50,11 @@ CONFIGS = (
     ("conservative", "qiu", "conservative", 4),
     ("cons-view", "qiu", "conservative-view", 4),
     ("geom-split", "geometry-splitting", "qiu", 4),
+    ("cons-view-p3", "qiu", "conservative-view", 3),
     ("cons-view-p2", "qiu", "conservative-view", 2),
 )
 #: the configurations item 5's conditions are checked on
-NEW = ("cons-view", "cons-view-p2")
+NEW = ("cons-view", "cons-view-p3", "cons-view-p2")
 
 
 def _cli(*args: str) -> None:
@@ -78,7 +82,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
         here = {r["config"]: r for r in rows if r["fov"] == fov and r["tau"] == tau}
         ok = [r for r in here.values() if r["max_screen_error_px"] <= tau]
         cheapest = min(ok, key=lambda r: r["triangles"]) if ok else None
-        for name in NEW:
+        for name in (n for n in NEW if n in here and "eq7" in here):
             new = here[name]
             within = new["max_screen_error_px"] <= tau
             ratio = new["triangles"] / cheapest["triangles"] if cheapest else float("nan")
@@ -98,18 +102,27 @@ def verdicts(rows: list[dict]) -> list[dict]:
     return out
 
 
-def run(path: Path, taus: list[float], fovs: list[float], size: tuple[int, int], frames: int):
-    """Rows for every FOV, configuration and τ on the store at ``path`` (one renderer)."""
+def run(
+    path: Path,
+    taus: list[float],
+    fovs: list[float],
+    size: tuple[int, int],
+    frames: int,
+    labels: list[str] | None = None,
+):
+    """Rows for every FOV, configuration (or those in ``labels``) and τ on the store at
+    ``path`` (one renderer per patch size)."""
+    configs = [c for c in CONFIGS if labels is None or c[0] in labels]
     store = open_store(path)
     cams = make_path(store, "default", frames=frames, viewport=size)
     base = cams[len(cams) // 2]
     rows = []
-    for p in sorted({c[3] for c in CONFIGS}):
+    for p in sorted({c[3] for c in configs}):
         r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=p))
         try:
             for fov in fovs:
                 cam = replace(base, fov_y=fov)
-                for label, lod, metric, _ in (c for c in CONFIGS if c[3] == p):
+                for label, lod, metric, _ in (c for c in configs if c[3] == p):
                     t0 = time.perf_counter()
                     for tr in tradeoff(
                         store, cam, taus, renderer=r, repeats=1, lod=lod, metric=metric,
@@ -156,7 +169,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--stores", default="synth,real")
     ap.add_argument("--out", default=str(DEFAULT_OUT))
+    ap.add_argument(
+        "--configs", default=",".join(c[0] for c in CONFIGS), help="labels to run (default all)"
+    )
     a = ap.parse_args(argv)
+    labels = a.configs.split(",")
+    unknown = sorted(set(labels) - {c[0] for c in CONFIGS})
+    if unknown:
+        ap.error(f"unknown --configs {unknown}; choose from {[c[0] for c in CONFIGS]}")
     taus = [float(t) for t in a.taus.split(",")]
     fovs = [float(f) for f in a.fovs.split(",")]
     w, h = (int(v) for v in a.size.split("x"))
@@ -165,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER)
     for name, path in stores.items():
         t0 = time.perf_counter()
-        rows = run(path, taus, fovs, (w, h), a.frames)
+        rows = run(path, taus, fovs, (w, h), a.frames, labels)
         for row in rows:
             print(fmt(name, row))
         vs = verdicts(rows)

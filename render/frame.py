@@ -35,6 +35,7 @@ import numpy as np
 
 from render.errors import RenderError
 from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
+from render.node_boxes import NodeBoxes
 from render.select import Patches, PatchTable
 from streamer.camera import Camera
 from streamer.nodata import mixed_nodes, raise_mixed
@@ -137,7 +138,7 @@ class FrameServices:
         self.order_tex = ctx.texture((side, side), 1, oi.tobytes(), dtype="i4")
         for t in (self.level_tex, self.order_tex):
             t.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self._tables: dict[str, PatchTable] = {}
+        self._tables: dict[str, PatchTable | NodeBoxes] = {}
         self._shared: dict[str, Any] = {}
         self._masks: dict[Block, np.ndarray | None] = {}
         self._seen: dict[Block, int] = {}
@@ -232,6 +233,30 @@ class FrameServices:
             size = self.p if patch_log2 is None else patch_log2
             t = self._tables[name] = PatchTable(self.k, size)
         return t
+
+    def node_boxes(
+        self, pairs: list[tuple[Block, int]], patch_log2: int | None = None
+    ) -> NodeBoxes:
+        """The renderer's per-node boxes (:mod:`render.node_boxes`) for nodes of
+        ``2**patch_log2`` cells (default: the renderer's patch size), holding every
+        ``(block, level)`` of ``pairs``: a block is (re)built from its level-``level`` grid read
+        from the store when that level changed (nothing finer than the level is read); blocks
+        leaving the GPU leave it."""
+        size = self.p if patch_log2 is None else patch_log2
+        key = f"node-boxes/{size}"
+        boxes = self._tables.get(key)
+        if boxes is None:
+            boxes = self._tables[key] = NodeBoxes(self.k, size)
+        for b, lv in pairs:
+            if boxes.level(b) != lv:
+                grid = self.store.read_block(b, max_level=lv)
+                zr = self.block_zranges(np.array([b]))[0]
+                mask = self.mask(b)
+                step = 1 << (self.k - lv)
+                valid = None if mask is None else mask[::step, ::step]
+                bound = self.read_errors(b)["bound"]
+                boxes.update(b, lv, grid, bound, (zr[0], zr[1]), valid)
+        return boxes
 
     def fill_table(self, table: PatchTable, blocks: list[Block], field: str) -> None:
         """Add the error ``field`` (:meth:`read_errors`) of the ``blocks`` not yet in ``table``."""

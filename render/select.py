@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from render.errors import SelectionError
+from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
@@ -40,7 +41,6 @@ from tiler.quadtree import (
     half_diagonal,
     node_centres_at,
     node_span,
-    sphere_radius,
 )
 
 Block = tuple[int, int]
@@ -155,6 +155,7 @@ def select_patches(
     zranges: np.ndarray,
     windows: np.ndarray | None = None,
     min_depth: int = 0,
+    boxes: NodeBoxes | None = None,
 ) -> Patches:
     """Leaves of all blocks' quadtrees at ``tau`` (not yet stitched: ``snap`` is zero).
 
@@ -162,7 +163,9 @@ def select_patches(
     ``zranges[i]`` its (zmin, zmax); ``windows[i]`` its ``(row0, col0, nrows, ncols)`` inside the
     DEM (nodes wholly in padding are dropped). Nodes shallower than ``min_depth`` split
     whatever their error (where the resident level allows; ``chunk-tessellation``'s start
-    depth, which bounds the depth difference of adjacent leaves).
+    depth, which bounds the depth difference of adjacent leaves). ``boxes`` (required for a
+    metric that :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its
+    own box.
     """
     check_tau(tau)
     fn = get_metric(metric)
@@ -179,7 +182,7 @@ def select_patches(
     if outside.any():
         grid.check_block(*(int(v) for v in blk[int(np.argmax(outside))]))
     slots = table.slots(blk)
-    zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
+    box_slots = node_box_slots(fn, boxes, blk, res)
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 2
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
@@ -212,8 +215,8 @@ def select_patches(
             if not idx.size:
                 break
         delta = table.delta(slots[idx], depth, rows, cols)
-        centres = np.stack([cx, cy, zmid[idx]], axis=1)
-        rho = np.asarray(fn(delta, centres, sphere_radius(half, zhalf[idx]), camera), np.float64)
+        bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
+        rho = node_rho(fn, grid, delta, cx, cy, depth, zr[idx], camera, bx, rows, cols)
         r_idx = res[idx]
         level = np.minimum(min(k, depth + p), r_idx)
         if depth + p >= k:
@@ -314,10 +317,20 @@ def stitch(
     *,
     resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
-    max_rounds: int = 16,
+    max_rounds: int = 64,
+    boxes: NodeBoxes | None = None,
+    tau: float | None = None,
 ) -> Patches:
-    """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere."""
+    """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere
+    (new nodes' errors with the same node geometry as :func:`select_patches`: ``boxes``).
+
+    With ``tau`` and a metric that takes boxes, a snapped edge also splits its coarser
+    neighbour while the metric of the patch's error plus the edge's snapping excess
+    (:func:`render.snap_error.snap_excess`) exceeds ``tau``; such an edge whose neighbour may
+    not split (its resident level) counts as clamped."""
     k = grid.k
+    fn = get_metric(metric)
+    box_slots = None
     res = np.asarray(resident, dtype=np.int64)
     cur = patches
     slots = None
@@ -335,8 +348,22 @@ def stitch(
                 k, res[cur.block[victims]]
             )
             victims = victims[splittable]
+        if slots is None:
+            slots = table.slots(cur.blocks)
+            box_slots = node_box_slots(fn, boxes, cur.blocks, res)
+        extra = 0
         if not victims.size:
             snap = np.minimum(snap, cur.cells_log2[:, None])
+            if tau is not None and box_slots is not None:
+                over = snap_over(cur, snap, grid, camera, fn, tau, zranges, boxes, box_slots)
+                victims = np.unique(nb[over])
+                if victims.size:
+                    keep = cur.depth[victims] + table.patch_log2 < np.minimum(
+                        k, res[cur.block[victims]]
+                    )
+                    extra = int(np.count_nonzero(~keep))
+                    victims = victims[keep]
+        if not victims.size:
             return Patches(
                 blocks=cur.blocks,
                 block=cur.block,
@@ -347,12 +374,12 @@ def stitch(
                 delta=cur.delta,
                 rho=cur.rho,
                 snap=snap.astype(np.int64),
-                clamped=cur.clamped,
+                clamped=cur.clamped + extra,
                 violations=int(np.count_nonzero(bad)),
             )
-        if slots is None:
-            slots = table.slots(cur.blocks)
-        cur = _split(cur, victims, grid, table, slots, camera, metric, res, zranges)
+        cur = _split(
+            cur, victims, grid, table, slots, camera, metric, res, zranges, boxes, box_slots
+        )
     raise SelectionError(f"stitching did not settle in {max_rounds} rounds")
 
 
@@ -366,6 +393,8 @@ def _split(
     metric: str | Metric,
     res: np.ndarray,
     zranges: np.ndarray,
+    boxes: NodeBoxes | None = None,
+    box_slots: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Patches:
     """Replace the leaves ``victims`` by their four children."""
     k, p = grid.k, table.patch_log2
@@ -379,15 +408,14 @@ def _split(
     blk = cur.blocks[b]
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
     zr = np.asarray(zranges, dtype=np.float64)[b]
-    zhalf = 0.5 * (zr[:, 1] - zr[:, 0])
-    delta, cx, cy, rad = (np.zeros(len(b)) for _ in range(4))
+    fn = get_metric(metric)
+    delta, rho = np.zeros(len(b)), np.zeros(len(b))
     for depth in np.unique(d).tolist():
         m = d == depth
         delta[m] = table.delta(slots[b[m]], depth, r[m], c[m])
-        cx[m], cy[m] = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
-        rad[m] = sphere_radius(half_diagonal(grid, depth), zhalf[m])
-    cen = np.stack([cx, cy, zr.mean(1)], 1)
-    rho = np.asarray(get_metric(metric)(delta, cen, rad, camera), np.float64)
+        cx, cy = node_centres_at(grid, bx0[m], by1[m], depth, r[m], c[m])
+        bx = None if box_slots is None else (boxes, (box_slots[0][b[m]], box_slots[1][b[m]]))
+        rho[m] = node_rho(fn, grid, delta[m], cx, cy, depth, zr[m], camera, bx, r[m], c[m])
     return Patches(
         blocks=cur.blocks,
         block=np.concatenate([cur.block[keep], b]),

@@ -105,43 +105,70 @@ def conservative(
 
 
 def conservative_view(
-    delta: np.ndarray, centre_xyz: np.ndarray, radius: np.ndarray, camera: Camera
+    delta: np.ndarray,
+    centre_xyz: np.ndarray,
+    radius: np.ndarray,
+    camera: Camera,
+    half_extent: np.ndarray | None = None,
 ) -> np.ndarray:
     """:func:`conservative` with the slope bounded per node and per camera, not per view.
 
-    Same claim (an upper bound on the pixel shift of any in-view point of the sphere moved
-    vertically by delta, the moved point in the sphere and in view) and the same rate
-    ``(f/z) (u_xy - q u_z)``, ``u`` = world up in camera coordinates. Let ``c`` be the centre in
-    camera coordinates (``c_z`` depth, ``c_lat = (c_x, c_y)``), ``r`` the radius and
-    ``z_min = c_z - r > near``. The segment from the point to the moved point lies in the sphere
-    (convex) and in view (convex), so every point ``p = c + e`` of it has ``|e| <= r``,
-    ``p_z >= z_min`` and, besides the view's own limit ``|q| <= T = tan(half diagonal FOV)``:
+    Same claim (an upper bound on the pixel shift of any in-view point of the node's region
+    moved vertically by delta, the moved point in the region and in view) and the same rate
+    ``(f/z) (u_xy - q u_z)``, ``u`` = world up in camera coordinates. The region is the sphere
+    ``(centre, radius)``, or with ``half_extent`` ``(m, 3)`` the axis-aligned world box
+    ``centre ± half_extent`` (``radius`` is then not used: the box's half diagonal stands in for
+    it). Let ``c`` be the centre in camera coordinates (``c_z`` depth, ``c_lat = (c_x, c_y)``),
+    ``r`` the radius (box: half diagonal), ``w`` the region's half extent along each camera axis
+    (sphere: ``r``; box: ``w_i = sum_j |R_ij| h_j``, ``R`` the world-to-camera rotation) and
+    ``z_min = c_z - w_z > near`` (the depth of the region's nearest point). The segment from
+    the point to the moved point lies in the region (convex) and in view (convex), so every
+    point ``p = c + e`` of it has ``|e| <= r``, ``|e_i| <= w_i``, ``p_z >= z_min`` and, besides
+    the view's own limit ``|q| <= T = tan(half diagonal FOV)``:
 
-    * ``|q| = |c_lat + e_lat| / p_z <= Q = (|c_lat| + r) / z_min``, hence
+    * ``|q| = |c_lat + e_lat| / p_z <= Q = L / z_min``, ``L = |c_lat| + r`` (sphere) or
+      ``min(|c_lat| + r, hypot(|c_x| + w_x, |c_y| + w_y))`` (box); hence
       ``|u_xy - q u_z| <= g1 = |u_xy| + |u_z| min(Q, T)``;
     * ``q - c_lat/c_z = (c_z e_lat - c_lat e_z) / (c_z p_z)`` whose numerator is two components
-      of ``c x e``, so ``|q - c_lat/c_z| <= |c| r / (c_z z_min)`` and
-      ``|u_xy - q u_z| <= g2 = |u_xy - (c_lat/c_z) u_z| + |u_z| |c| r / (c_z z_min)``.
+      of ``c x e``, so it is at most ``N = |c| r`` (box: also at most
+      ``hypot(c_z w_x + |c_x| w_z, c_z w_y + |c_y| w_z)``, the smaller is used) and
+      ``|u_xy - q u_z| <= g2 = |u_xy - (c_lat/c_z) u_z| + |u_z| N / (c_z z_min)``.
 
     Both bounds hold at every point of the segment and ``1/p_z <= 1/z_min``; integrating over
     the ``delta`` metres gives ``rho = f delta min(g1, g2) / z_min``. By Cauchy-Schwarz
     ``g1 <= sqrt(|u_xy|^2 + u_z^2) sqrt(1 + T^2) = sqrt(1 + T^2)``: never above
-    :func:`conservative` (a camera looking level has ``u_z = 0`` and gain ``f``, the FOV drops
-    out). Same ``inf`` and 0 cases as :func:`conservative`.
+    :func:`conservative` for the same sphere (a camera looking level has ``u_z = 0`` and gain
+    ``f``, the FOV drops out). Same ``inf`` and 0 cases as :func:`conservative` (for the box:
+    its depth range ``c_z ± w_z``). The selection feeds boxes to the metrics in
+    :data:`BOX_METRICS` (:func:`takes_box`).
     """
     d, rel = _inputs(delta, centre_xyz, camera)
-    r = np.broadcast_to(np.asarray(radius, dtype=np.float64), d.shape)
     basis = np.stack([camera.right, camera.up, camera.forward])
     c = rel @ basis.T
     cz, c_lat = c[..., 2], np.hypot(c[..., 0], c[..., 1])
-    z_min, z_max = cz - r, cz + r
     ux, uy, uz = basis[:, 2]  # world up (0, 0, 1) in camera coordinates
     u_lat = math.hypot(ux, uy)
+    if half_extent is None:
+        r = np.broadcast_to(np.asarray(radius, dtype=np.float64), d.shape)
+        wz = r
+    else:
+        h = np.abs(np.broadcast_to(np.asarray(half_extent, dtype=np.float64), c.shape))
+        w = h @ np.abs(basis).T
+        wz = w[..., 2]
+        r = np.linalg.norm(h, axis=-1)
+    z_min, z_max = cz - wz, cz + wz
+    c_norm = np.linalg.norm(c, axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        q_node = np.minimum((c_lat + r) / z_min, camera.tan_half_diagonal)
+        lat = c_lat + r
+        num = c_norm * r
+        if half_extent is not None:
+            ax, ay = np.abs(c[..., 0]), np.abs(c[..., 1])
+            lat = np.minimum(lat, np.hypot(ax + w[..., 0], ay + w[..., 1]))
+            num = np.minimum(num, np.hypot(cz * w[..., 0] + ax * wz, cz * w[..., 1] + ay * wz))
+        q_node = np.minimum(lat / z_min, camera.tan_half_diagonal)
         g1 = u_lat + abs(uz) * q_node
         centre_rate = np.hypot(ux - c[..., 0] / cz * uz, uy - c[..., 1] / cz * uz)
-        g2 = centre_rate + abs(uz) * np.linalg.norm(c, axis=-1) * r / (cz * z_min)
+        g2 = centre_rate + abs(uz) * num / (cz * z_min)
         gain = camera.focal_px * np.minimum(g1, g2)
         rho = np.where(z_min > camera.near, gain * d / z_min, np.inf)
     unseen = (z_max < camera.near) | (z_min > camera.far) | (d == 0.0)
@@ -169,6 +196,18 @@ FIELD_FOR_METRIC: dict[str, str] = {
     "conservative": "bound",
     "conservative-view": "bound",
 }
+
+
+#: metrics that take a node's box (``half_extent=`` keyword) instead of its sphere: the
+#: selection then gives each node its own height range (:mod:`render.node_boxes`)
+BOX_METRICS: frozenset[Metric] = frozenset({conservative_view})
+
+
+def takes_box(metric: str | Metric) -> bool:
+    """Whether the selection should give ``metric`` node boxes: one of :data:`BOX_METRICS`,
+    or a callable with a true ``takes_box`` attribute."""
+    fn = get_metric(metric)
+    return fn in BOX_METRICS or bool(getattr(fn, "takes_box", False))
 
 
 def get_metric(metric: str | Metric) -> Metric:

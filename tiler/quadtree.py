@@ -3,7 +3,9 @@
 A block of ``(2**k + 1)**2`` samples is the root of a quadtree; a node at depth ``d`` spans
 ``2**(k - d)`` sample steps. These helpers give node centres in world coordinates, node half
 diagonals, bounding-sphere radii and the per-block height ranges those spheres are built from,
-so every caller (streamer planning, renderer selection) uses one rule.
+so every caller (streamer planning, renderer selection) uses one rule; and per-node height
+ranges from a block's stored grid and error field (:func:`node_height_bounds`, the boxes of
+:mod:`render.node_boxes`).
 
 The height-range rule (:func:`block_zranges`): a block's ``(zmin, zmax)`` from the grid index;
 a block without terrain (NaN in the index) gets the range of the whole store, so a sphere
@@ -16,6 +18,7 @@ import math
 
 import numpy as np
 
+from tiler.errors import LayoutError
 from tiler.grid import BlockGrid
 
 
@@ -97,3 +100,38 @@ def split_children(
     r = (2 * rows[split][:, None] + np.array([0, 0, 1, 1])).ravel()
     c = (2 * cols[split][:, None] + np.array([0, 1, 0, 1])).ravel()
     return owner, r, c
+
+
+def _per_node(arr: np.ndarray, depth: int) -> np.ndarray:
+    """A stored per-depth field ``(2**min(depth, cap))²`` at every depth-``depth`` node."""
+    a = np.asarray(arr, dtype=np.float64)
+    rep = (1 << depth) // a.shape[0]
+    return np.repeat(np.repeat(a, rep, 0), rep, 1) if rep > 1 else a
+
+
+def node_height_bounds(
+    grid: np.ndarray, bound: list[np.ndarray]
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per depth ``0..k-1``, ``(lo, hi)`` ``(2**d, 2**d)`` of each node of one block: the range
+    of its 4 corners at level ``d`` ``∓`` its ``bound`` (the tiler's per-node error field: the
+    largest vertical distance of a valid full-resolution sample from the node's quad, which
+    lies between its corners), so every valid sample of the node's closed footprint lies in
+    it, and so does any surface drawn from samples there. ``grid`` is the block's ``(2**R+1)²``
+    level-``R`` grid; a node deeper than ``R`` takes its depth-``R`` ancestor's range (nothing
+    finer is read). Non-finite corners or bounds give non-finite ranges (callers fall back)."""
+    k = len(bound)
+    g = np.asarray(grid, dtype=np.float64)
+    rr = (g.shape[0] - 1).bit_length() - 1
+    if g.shape != ((1 << rr) + 1,) * 2 or not 0 <= rr <= k:
+        raise LayoutError(f"expected a (2**R+1)² grid with R <= {k}, got shape {g.shape}")
+    los, his = [], []
+    for d in range(k):
+        a = min(d, rr)
+        c = g[:: 1 << (rr - a), :: 1 << (rr - a)]
+        quad = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+        b = _per_node(bound[a], a)
+        lo, hi = quad.min(axis=0) - b, quad.max(axis=0) + b
+        rep = 1 << (d - a)
+        los.append(np.repeat(np.repeat(lo, rep, 0), rep, 1) if rep > 1 else lo)
+        his.append(np.repeat(np.repeat(hi, rep, 0), rep, 1) if rep > 1 else hi)
+    return los, his

@@ -25,7 +25,7 @@ from render.select import Patches, PatchTable, select_patches, stitch
 from render.strategies.base import Block, SelectionCounts, Strategy
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
-from streamer.lod import FIELD_FOR_METRIC, get_metric
+from streamer.lod import FIELD_FOR_METRIC, get_metric, takes_box
 
 
 def field_for(metric) -> str:
@@ -61,7 +61,8 @@ def select_clod(
     visible node at full resolution (the reference mesh). ``metric`` may be a callable
     (:data:`streamer.lod.Metric`); ``table`` (another node size) and ``field`` (the stored error
     field it is filled from) let a strategy select its own node sizes; nodes shallower than
-    ``min_depth`` always split (where resident).
+    ``min_depth`` always split (where resident). A metric that
+    :func:`~streamer.lod.takes_box` gets each node's box (:meth:`FrameServices.node_boxes`).
     """
     t0 = time.perf_counter()
     get_metric(metric)
@@ -76,20 +77,14 @@ def select_clod(
     win = r.store.index.window[(blk[:, 0], blk[:, 1])] if blocks else None
     tau_used = 0.0 if full else tau
     fn = always_split if full else metric
+    boxes = r.node_boxes(pairs, table.patch_log2) if takes_box(fn) else None
     patches = select_patches(
-        r.grid,
-        blk,
-        table,
-        camera,
-        tau_used,
-        fn,
-        poly,
-        resident=res,
-        zranges=zr,
-        windows=win,
-        min_depth=min_depth,
+        r.grid, blk, table, camera, tau_used, fn, poly, resident=res, zranges=zr, windows=win,
+        min_depth=min_depth, boxes=boxes,
+    )  # fmt: skip
+    patches = stitch(
+        patches, r.grid, table, camera, fn, resident=res, zranges=zr, boxes=boxes, tau=tau_used
     )
-    patches = stitch(patches, r.grid, table, camera, fn, resident=res, zranges=zr)
     return patches, (time.perf_counter() - t0) * 1000.0
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from render import measure
+from render.errors import SelectionError
 from render.mesh import (
     edge_strip_triangles,
     grid_indices,
@@ -14,8 +15,10 @@ from render.mesh import (
     triangle_count,
     triangle_counts,
 )
+from render.node_boxes import NodeBoxes
 from render.select import Patches, PatchTable, select_patches, stitch
 from streamer.camera import Camera
+from streamer.lod import conservative_view
 from tiler.grid import BlockGrid
 
 
@@ -94,6 +97,36 @@ def test_resident_level_clamps_and_is_counted():
         zranges=np.zeros((16, 2)),
     )
     assert p.level.max() == 3 and p.clamped > 0
+
+
+def test_box_metric_needs_boxes_and_uses_them():
+    """``conservative-view`` selects with node boxes: without them a clear error; with flat
+    boxes (each node's range a metre) fewer patches than its spheres around 400 m of relief."""
+    g = _grid()
+    blocks = g.blocks()
+    cam = Camera((-500.0, 1920.0, 300.0), pitch=-20.0, viewport=(64, 48))
+    kw = {"resident": [5] * 16, "zranges": np.tile([0.0, 400.0], (16, 1))}
+    table = _table(5, 2, blocks, 2.0)
+    with pytest.raises(SelectionError, match="boxes="):
+        select_patches(g, blocks, table, cam, 1.0, "conservative-view", None, **kw)
+    boxes = NodeBoxes(5, 2)
+    flat = [np.full((1 << d,) * 2, 0.5) for d in range(5)]
+    for b in blocks:
+        boxes.update(b, 5, np.full((33, 33), 200.0), flat, (0.0, 400.0))
+    n_box, n_sphere = [], []
+    for tau in (0.25, 0.5, 1.0, 2.0, 4.0):
+        fine = select_patches(
+            g, blocks, table, cam, tau, "conservative-view", None, boxes=boxes, **kw
+        )
+        n_box.append(len(fine))
+        n_sphere.append(len(select_patches(g, blocks, table, cam, tau, sphere_view, None, **kw)))
+    assert all(a <= b for a, b in zip(n_box, n_sphere, strict=True)), (n_box, n_sphere)
+    assert sum(n_box) < sum(n_sphere), (n_box, n_sphere)
+
+
+def sphere_view(delta, centre_xyz, radius, camera):
+    """``conservative-view`` on spheres (a callable metric without ``takes_box``)."""
+    return conservative_view(delta, centre_xyz, radius, camera)
 
 
 def _patches(depth, row, col, level, k=5) -> Patches:

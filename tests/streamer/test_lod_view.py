@@ -23,6 +23,7 @@ from streamer.lod import (
     conservative_view,
     exact_projected,
     get_metric,
+    takes_box,
 )
 
 FOVS = (1.0, 45.0, 120.0, 170.0)
@@ -168,6 +169,7 @@ def test_conservative_view_known():
 
 def test_registry_has_conservative_view():
     assert get_metric("conservative-view") is conservative_view
+    assert takes_box("conservative-view") and not takes_box("qiu") and not takes_box(conservative)
     assert FIELD_FOR_METRIC["conservative-view"] == "bound"
     assert next(iter(METRICS)) == "qiu"  # the default metric is unchanged
 
@@ -204,4 +206,133 @@ def test_conservative_view_bounds_exact_hypothesis(
     radius = max(np.linalg.norm(centre - b), np.linalg.norm(centre - top)) + extra
     exact = exact_projected(np.array([delta]), b[None], cam)[0]
     bound = conservative_view(np.array([delta]), centre[None], np.array([radius]), cam)[0]
+    assert bound >= exact * (1 - 1e-9) - 1e-9
+
+
+# --- node boxes (half_extent=): the selection's per-node height ranges ------------------------
+
+
+def sample_boxes(
+    seed: int, fov: float, scene: str, cameras: int = 40, boxes: int = 30, points: int = 40
+) -> list[tuple[Camera, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """As :func:`sample` for world-axis boxes: ``(camera, delta, B, centre, half_extent)``,
+    ``B`` uniform in the box and ``B + delta*up`` below its top, both in view."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(cameras):
+        cam = _camera(rng, fov, scene)
+        depth = np.exp(rng.uniform(math.log(cam.near), math.log(cam.far), boxes))
+        a = rng.uniform(-1.3, 1.3, (boxes, 1)) * cam.tan_half_x
+        b = rng.uniform(-1.3, 1.3, (boxes, 1)) * cam.tan_half_y
+        centre = cam.eye + depth[:, None] * (cam.forward + a * cam.right + b * cam.up)
+        half = depth[:, None] * np.exp(rng.uniform(math.log(1e-3), math.log(2.0), (boxes, 3)))
+        if scene == "ground":  # flat boxes around the eye's height
+            half[:, 2] *= 0.1
+            centre[:, 2] = cam.eye[2] + rng.uniform(-1.0, 0.5, boxes) * half[:, 2]
+        e = rng.uniform(-1.0, 1.0, (boxes, points, 3)) * half[:, None, :]
+        delta = rng.random((boxes, points)) * (half[:, None, 2] - e[..., 2])
+        pts = centre[:, None, :] + e
+        ok = cam.in_view(pts) & cam.in_view(pts + delta[..., None] * UP) & (delta > 0)
+        s, _ = np.nonzero(ok)
+        out.append((cam, delta[ok], pts[ok], centre[s], half[s]))
+    return out
+
+
+def box_violations(metric, seed: int, fov: float, scene: str) -> tuple[int, int]:
+    """(points where ``metric(..., half_extent=)`` < the exact shift, points checked)."""
+    bad = n = 0
+    for cam, delta, pts, centre, half in sample_boxes(seed, fov, scene):
+        if len(delta) == 0:
+            continue
+        exact = exact_projected(delta, pts, cam)
+        bound = metric(delta, centre, np.linalg.norm(half, axis=1), cam, half_extent=half)
+        bad += int((bound < exact * (1 - 1e-9) - 1e-9).sum())
+        n += len(delta)
+    return bad, n
+
+
+def too_small_box(delta, centre_xyz, radius, camera, half_extent):
+    """The positive control for boxes: the box's nearest depth with a gain of ``f``."""
+    basis = np.stack([camera.right, camera.up, camera.forward])
+    c = (np.asarray(centre_xyz, float) - camera.eye) @ basis.T
+    z_min = c[:, 2] - np.abs(half_extent) @ np.abs(basis[2])
+    return np.where(z_min > camera.near, camera.focal_px * delta / z_min, np.inf)
+
+
+@pytest.mark.parametrize("scene", SCENES)
+@pytest.mark.parametrize("fov", FOVS)
+def test_conservative_view_box_bounds_exact(fov, scene):
+    bad, n = box_violations(conservative_view, 13, fov, scene)
+    assert n > 1000, n  # enough in-view segments were drawn
+    assert bad == 0, (bad, n)
+
+
+@pytest.mark.parametrize("fov", [45.0, 120.0, 170.0])
+def test_positive_control_too_small_box_bound_is_violated(fov):
+    bad, n = box_violations(too_small_box, 13, fov, "mid")
+    assert bad > 0, n
+
+
+@pytest.mark.parametrize("fov", FOVS)
+def test_box_never_above_the_sphere_around_it(fov):
+    """``w_i <= |h|`` (rows of a rotation are unit): the box's bound is at most its sphere's."""
+    for cam, _, _, centre, half in sample_boxes(7, fov, "mid", cameras=20):
+        if len(centre) == 0:
+            continue
+        d, r = np.ones(len(centre)), np.linalg.norm(half, axis=1)
+        box = conservative_view(d, centre, r, cam, half_extent=half)
+        sphere = conservative_view(d, centre, r, cam)
+        finite = np.isfinite(sphere)
+        assert (box[finite] <= sphere[finite] * (1 + 1e-12)).all()
+        assert (box[~finite] >= 0).all()
+
+
+def test_flat_box_much_tighter_than_its_sphere():
+    """A wide, flat node seen obliquely: the box's nearest point is far deeper than the
+    sphere's, which reaches half a diagonal towards the eye."""
+    cam = Camera((0, 0, 300), pitch=-20, fov_y=60, viewport=(600, 400), near=1, far=1e5)
+    centre = np.array([[0.0, 1000.0, 0.0]])
+    half = np.array([[400.0, 400.0, 5.0]])
+    r = np.linalg.norm(half, axis=1)
+    box = conservative_view(np.ones(1), centre, r, cam, half_extent=half)[0]
+    sphere = conservative_view(np.ones(1), centre, r, cam)[0]
+    assert box < 0.7 * sphere
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    pos=st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(-50, 2e3)),
+    yaw=st.floats(0, 360),
+    pitch=st.floats(-90, 90),
+    roll=st.floats(-180, 180),
+    fov=st.floats(1, 170),
+    uvw=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0, 1)),
+    frac=st.floats(0, 1),
+    slack=st.tuples(st.floats(0, 1), st.floats(0, 1), st.floats(0, 1), st.floats(0, 1)),
+    half_xy=st.tuples(st.floats(0, 300), st.floats(0, 300)),
+)
+def test_conservative_view_box_bounds_exact_hypothesis(
+    pos, yaw, pitch, roll, fov, uvw, frac, slack, half_xy
+):
+    """A box holding B and B + delta*up (in view), B anywhere inside its footprint."""
+    cam = Camera(pos, yaw=yaw, pitch=pitch, roll=roll, fov_y=fov, viewport=(640, 480),
+                 near=0.5, far=5000.0)  # fmt: skip
+    u, v, w = uvw
+    depth = cam.near + w * (cam.far - cam.near)
+    b = cam.eye + depth * (
+        cam.forward + u * cam.tan_half_x * cam.right + v * cam.tan_half_y * cam.up
+    )
+    assume(cam.in_view(b)[()])
+    top = b + frac * 500.0 * UP
+    assume(cam.in_view(top)[()])
+    delta = float(top[2] - b[2])
+    sx, sy, below, above = slack
+    hx, hy = half_xy
+    centre_xy = b[:2] + (2 * np.array([sx, sy]) - 1) * np.array([hx, hy])
+    lo, hi = b[2] - below * 100.0, top[2] + above * 100.0
+    centre = np.array([*centre_xy, 0.5 * (lo + hi)])
+    half = np.array([hx, hy, 0.5 * (hi - lo)])
+    exact = exact_projected(np.array([delta]), b[None], cam)[0]
+    r = np.array([np.linalg.norm(half)])
+    bound = conservative_view(np.array([delta]), centre[None], r, cam, half_extent=half[None])[0]
     assert bound >= exact * (1 - 1e-9) - 1e-9
