@@ -21,13 +21,14 @@ degrees. Every block the frustum hull sees is streamed at full resolution (a τ 
 strategy and τ, over the frames: triangles drawn (mean, min, max), the thread CPU ms of
 ``select()`` on the caller's thread (median of ``--reps`` repetitions per frame, then mean and
 max over frames), the ms ``select()`` reports (``select ms``: for ``geometry-splitting`` and
-``chunk-tessellation-gpu`` the CPU share plus the GPU passes' wall time) and the draw's GPU ms
-(llvmpipe wall to ``finish()``). On llvmpipe the vertex and geometry stages of the GPU passes run
-on the calling thread, so the thread CPU of the two GPU-selecting strategies includes their
-"GPU" traversal; on a real GPU it would not. Measured screen error is not computed here: the
-full-resolution reference of a low view over 268 M samples does not fit this benchmark's time
-(``bench/lod_compare.py`` measures errors on the 4097² and real stores). A ``# unchanged`` line
-is printed for every strategy and pair of consecutive τ whose mean triangle count is equal.
+``chunk-tessellation-gpu`` only the CPU share — block table, uniforms — since their passes are
+GPU work) and the draw's GPU ms (llvmpipe wall to ``finish()``). On llvmpipe the vertex and
+geometry stages of the GPU passes run on the calling thread, so the thread CPU of the two GPU-
+selecting strategies includes their "GPU" traversal; on a real GPU it would not. Measured screen
+error is not computed here: the full-resolution reference of a low view over 268 M samples does
+not fit this benchmark's time (``bench/lod_compare.py`` measures errors on the 4097² and real
+stores). A ``# unchanged`` line is printed for every strategy and pair of consecutive τ whose
+mean triangle count is equal.
 """
 
 from __future__ import annotations
