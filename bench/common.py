@@ -48,8 +48,9 @@ def portable(obj: Any) -> Any:
         return [portable(v) for v in obj]
     if isinstance(obj, str):
         for prefix, name in ((str(SHARED_DATA), f"${DATA_ENV}"), (str(REPO), ".")):
-            if obj == prefix or obj.startswith(prefix + os.sep):
-                return name + obj[len(prefix) :]
+            if obj == prefix:
+                return name
+            obj = obj.replace(prefix + os.sep, name + os.sep)  # also inside text (profiles)
     return obj
 
 

@@ -230,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         rows = measure(path, size, taus, a.frames, a.reps, a.clearance, a.pitch, lods)
         print(table(rows))
-        rec["stores"][path] = {
+        rec["stores"][portable(path)] = {
             "wall_s": time.perf_counter() - t0,
             "loadavg_before": load0,
             "loadavg_after": os.getloadavg(),
