@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Callable
 from functools import cache
 from types import ModuleType
 
@@ -49,6 +50,24 @@ def requested() -> str:
             f"{ENV}={name!r} is not a kernel backend; use one of {', '.join(BACKENDS)}."
         )
     return name
+
+
+def pick(kernels: str | None, load: Callable[[], ModuleType | None]) -> ModuleType | None:
+    """The kernel module ``load()`` gives for backend ``kernels`` (default:
+    ``TERRASTREAM_KERNELS``), or ``None`` for the numpy reference; numba asked for but not
+    importable is an error (the render strategies' ``kernels=`` argument)."""
+    name = requested() if kernels is None else kernels.strip().lower()
+    if name not in BACKENDS:
+        raise KernelUnavailableError(f"kernels={name!r}: use one of {', '.join(BACKENDS)}")
+    if name == "numpy":
+        return None
+    mod = load()
+    if mod is None and name == "numba":
+        raise KernelUnavailableError(
+            f"numba kernels requested ({ENV} or kernels='numba') but numba cannot be imported; "
+            "install the 'fast' extra or use 'numpy'."
+        )
+    return mod
 
 
 def active(load: bool = True) -> ModuleType | None:

@@ -8,8 +8,7 @@ from __future__ import annotations
 from functools import cache
 from types import ModuleType
 
-from tiler.errors import KernelUnavailableError
-from tiler.kernels import BACKENDS, ENV, requested
+from tiler.kernels import pick
 
 
 @cache
@@ -24,15 +23,4 @@ def _load_numba() -> ModuleType | None:
 def resolve(kernels: str | None = None) -> ModuleType | None:
     """The numba kernel module for backend ``kernels`` (default: ``TERRASTREAM_KERNELS``), or
     ``None`` for the numpy reference."""
-    name = requested() if kernels is None else kernels.strip().lower()
-    if name not in BACKENDS:
-        raise KernelUnavailableError(f"kernels={name!r}: use one of {', '.join(BACKENDS)}")
-    if name == "numpy":
-        return None
-    mod = _load_numba()
-    if mod is None and name == "numba":
-        raise KernelUnavailableError(
-            f"numba kernels requested ({ENV} or kernels='numba') but numba cannot be imported; "
-            "install the 'fast' extra or use 'numpy'."
-        )
-    return mod
+    return pick(kernels, _load_numba)
