@@ -12,8 +12,9 @@ Usage: python bench/lod_compare.py [STORE ...] [--quick] [--taus 0.5,1,2,4]
 above the highest terrain within 2 block edges and pitched ``--pitch`` (default -8) degrees: a
 low oblique view over rough terrain, where τ changes the selection at every τ listed (the
 script prints a ``# unchanged`` line for every strategy and pair of τ where it does not).
-Default stores: the synthetic 4097^2 store and the real N44W072 store of BENCHMARKS.md (a
-missing one is skipped with a message).
+Default stores: the synthetic 4097^2 store, the real N44W072 store and Longyearbyen (with
+nodata) of BENCHMARKS.md, made on first use (``bench.common.ensure_store``; a store that cannot
+be made, e.g. without the shared data, is skipped with a message).
 After each store a ``# tau T:`` line per τ sets qiu (the default path, with ``--metric``)
 beside the cheapest strategy whose measured max error stays ≤ τ (issue 12). The Markdown tables
 of BENCHMARKS.md go to ``lod_compare<tag>.md`` beside the JSON (``--markdown-from JSON`` prints
@@ -34,13 +35,20 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import N44W072_EQC, RESULTS, S4097, machine_info  # noqa: E402
+from bench.common import (  # noqa: E402
+    LONGYEARBYEN,
+    N44W072_EQC,
+    RESULTS,
+    S4097,
+    ensure_store,
+    machine_info,
+)
 from render.strategies.compare import HEADER, compare, plot_pareto  # noqa: E402
 from streamer.camera import Camera  # noqa: E402
 from streamer.run import make_path, store_height_fn  # noqa: E402
 from tiler.store import open_store  # noqa: E402
 
-DEFAULT_STORES = [str(S4097), str(N44W072_EQC)]
+DEFAULT_STORES = [str(S4097), str(N44W072_EQC), str(LONGYEARBYEN)]
 
 
 def low_oblique(store, cams: list[Camera], clearance: float, pitch: float) -> list[Camera]:
@@ -185,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     tag = ("_quick" if a.quick else "") + ("_low" if a.view == "low" else "")
     tag += "" if a.metric == "qiu" else f"_{a.metric.replace('-', '_')}"
     for path in a.stores:
+        ensure_store(path)  # the default stores are made on first use
         if not Path(path).exists():
             print(f"# skipping {path}: not found (see BENCHMARKS.md for how to make it)")
             continue
