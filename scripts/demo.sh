@@ -36,6 +36,6 @@ $TS tradeoff "$OUT/demo.zarr" --size 640x480 --taus 0.5,1,2,4,8 \
     --json "$OUT/tradeoff.json" --plot "$OUT/tradeoff.png"
 $TS tradeoff "$OUT/demo.zarr" --size 640x480 --taus 0.5,1,2,4,8 --metric conservative \
     --json "$OUT/tradeoff-conservative.json"
-echo "== 9. compare the five LOD strategies on the same fly-through (a quick run)"
+echo "== 9. compare the five papers' LOD strategies (and chunk-tessellation-gpu) on the same fly-through (a quick run)"
 $TS compare "$OUT/demo.zarr" --quick --json "$OUT/compare.json" --plot "$OUT/compare.png"
 echo "== done: see $OUT/ (view.png, frames/, stream.png, tradeoff.png, compare.png, *.json)"
