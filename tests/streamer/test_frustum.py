@@ -353,7 +353,8 @@ def test_circle_matches_dense_reference(pts, c):
     # exact distance from the centre to the polygon (0 inside), via edge projections
     e = np.roll(poly, -1, axis=0) - poly
     q = np.array([cx, cy]) - poly
-    t = np.clip(np.sum(q * e, axis=1) / np.sum(e * e, axis=1), 0, 1)
+    ee = np.sum(e * e, axis=1)  # a zero-length edge (hull points 1e-227 apart): its start
+    t = np.clip(np.divide(np.sum(q * e, axis=1), ee, out=np.zeros_like(ee), where=ee > 0), 0, 1)
     dist = np.min(np.hypot(*(q - t[:, None] * e).T))
     inside = (e[:, 0] * q[:, 1] - e[:, 1] * q[:, 0] >= 0).all()
     if abs(dist - r) < 1e-9 and not inside:
