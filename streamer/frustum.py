@@ -279,11 +279,11 @@ def block_edge(grid: BlockGrid) -> float:
     return grid.step * grid.dx
 
 
-def blocks_meeting(polygon: np.ndarray, grid: BlockGrid) -> np.ndarray:
-    """``(m, 2)`` int64 ``(br, bc)`` of the blocks whose bounds meet the polygon, row-major."""
-    poly = as_polygon(polygon)
+def candidate_window(poly: np.ndarray, grid: BlockGrid) -> tuple[int, int, int, int] | None:
+    """``(r0, r1, c0, c1)``: the inclusive block rows/columns around a polygon's bounding box
+    (one block of margin, clipped to the grid), or ``None`` when none is left."""
     if len(poly) == 0:
-        return np.zeros((0, 2), dtype=np.int64)
+        return None
     ex, ey = grid.step * grid.dx, grid.step * grid.dy
     c0 = math.floor((poly[:, 0].min() - grid.x0) / ex) - 1
     c1 = math.floor((poly[:, 0].max() - grid.x0) / ex) + 1
@@ -291,8 +291,16 @@ def blocks_meeting(polygon: np.ndarray, grid: BlockGrid) -> np.ndarray:
     r1 = math.floor((grid.y0 - poly[:, 1].min()) / ey) + 1
     c0, c1 = max(c0, 0), min(c1, grid.cols - 1)
     r0, r1 = max(r0, 0), min(r1, grid.rows - 1)
-    if c0 > c1 or r0 > r1:
+    return None if c0 > c1 or r0 > r1 else (r0, r1, c0, c1)
+
+
+def blocks_meeting(polygon: np.ndarray, grid: BlockGrid) -> np.ndarray:
+    """``(m, 2)`` int64 ``(br, bc)`` of the blocks whose bounds meet the polygon, row-major."""
+    poly = as_polygon(polygon)
+    win = candidate_window(poly, grid)
+    if win is None:
         return np.zeros((0, 2), dtype=np.int64)
+    r0, r1, c0, c1 = win
     br, bc = np.meshgrid(np.arange(r0, r1 + 1), np.arange(c0, c1 + 1), indexing="ij")
     br, bc = br.ravel(), bc.ravel()
     hit = polygon_meets_rects(poly, *grid.block_bounds(br, bc))

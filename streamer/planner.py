@@ -20,7 +20,6 @@ lock the loaders take.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -32,6 +31,7 @@ from streamer.frustum import (
     as_polygon,
     block_edge,
     blocks_meeting,
+    candidate_window,
     extension_triangle,
     frustum_hull,
     view_triangle,
@@ -46,17 +46,10 @@ def _blocks_meeting_nb(nb, polygon: np.ndarray, grid: BlockGrid, exists: np.ndar
     """``blocks_meeting(polygon, grid)`` restricted to ``exists``, the per-block test compiled
     (``nb``: :mod:`streamer._plan_nb`); the polygon's part is the reference's numpy code."""
     poly = as_polygon(polygon)
-    if len(poly) == 0:
+    win = candidate_window(poly, grid)
+    if win is None:
         return np.zeros((0, 2), dtype=np.int64)
-    ex, ey = grid.step * grid.dx, grid.step * grid.dy
-    c0 = math.floor((poly[:, 0].min() - grid.x0) / ex) - 1
-    c1 = math.floor((poly[:, 0].max() - grid.x0) / ex) + 1
-    r0 = math.floor((grid.y0 - poly[:, 1].max()) / ey) - 1
-    r1 = math.floor((grid.y0 - poly[:, 1].min()) / ey) + 1
-    c0, c1 = max(c0, 0), min(c1, grid.cols - 1)
-    r0, r1 = max(r0, 0), min(r1, grid.rows - 1)
-    if c0 > c1 or r0 > r1:
-        return np.zeros((0, 2), dtype=np.int64)
+    r0, r1, c0, c1 = win
     o = poly[0]
     p = poly - o
     pbox = np.array([p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()])
