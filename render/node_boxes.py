@@ -136,14 +136,9 @@ class NodeBoxes:
     def full_windows(self, blocks: np.ndarray, depth: np.ndarray, row: np.ndarray, col: np.ndarray
                      ) -> np.ndarray:  # fmt: skip
         """``(m, side, side)`` full-resolution heights (NaN: masked) of nodes of one depth of
-        blocks held at level ``k`` (``side = 2**(k - depth) + 1``)."""
-        m = len(depth)
-        span = (1 << (self.k - int(depth[0]))) if m else 0
-        out = np.empty((m, span + 1, span + 1))
-        for i, (b, r, c) in enumerate(zip(map(tuple, blocks.tolist()), row.tolist(), col.tolist(),
-                                          strict=True)):  # fmt: skip
-            out[i] = self._grid[b][r * span : (r + 1) * span + 1, c * span : (c + 1) * span + 1]
-        return out
+        blocks held at level ``k`` (``side = 2**(k - depth) + 1``): :meth:`vertex_heights` at
+        level ``k``."""
+        return self.vertex_heights(blocks, depth, row, col, np.full(len(depth), self.k))
 
     def cell_bounds(
         self,
