@@ -216,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
         name = Path(path).name.split(".")[0]
         plot_pareto(rows, out / f"lod_compare{tag}_{name}.png", title=f"{name} {w}x{h}")
         results[path] = rows
+    if not results:
+        print("error: no store was measured (see the # skipping lines)", file=sys.stderr)
+        return 1
     js = out / f"lod_compare{tag}.json"
     js.write_text(json.dumps(results, indent=1))
     (out / f"lod_compare{tag}.md").write_text(markdown(results, a.metric))

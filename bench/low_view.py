@@ -236,6 +236,9 @@ def main(argv: list[str] | None = None) -> int:
             "loadavg_after": os.getloadavg(),
             "rows": rows,
         }
+    if not rec["stores"]:
+        print("error: no store was measured (see the # skipping lines)", file=sys.stderr)
+        return 1
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(portable(rec), indent=1))
     print(f"wrote {a.out}")
