@@ -221,12 +221,9 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     dtype = np.dtype(params.dtype)
     data = np.asarray(window, dtype=dtype)
     h, w = data.shape
-    digest = int.from_bytes(
-        hashlib.blake2b(
-            data.tobytes() + np.array([h, w], np.int64).tobytes(), digest_size=8
-        ).digest(),
-        "little",
-    )
+    hasher = hashlib.blake2b(np.ascontiguousarray(data), digest_size=8)  # no copy of the window
+    hasher.update(np.array([h, w], np.int64).tobytes())
+    digest = int.from_bytes(hasher.digest(), "little")
     valid = np.zeros((side, side), dtype=bool)
     valid[:h, :w] = valid_mask(data, params.nodata)
     exists = bool(valid.any())
@@ -236,7 +233,7 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     if dtype.kind == "f":
         grid[~valid] = 0  # NaN/inf never enter the arithmetic
     if exists:
-        vals = grid[valid]
+        vals = grid if not has_nodata else grid[valid]
         zmin, zmax = float(vals.min()), float(vals.max())
         if (params.z_scale, params.z_offset) != (1.0, 0.0):  # heights in metres (tiler.vertical)
             a, b = params.z_scale, params.z_offset
