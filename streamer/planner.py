@@ -20,6 +20,7 @@ lock the loaders take.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -122,10 +123,11 @@ class Planner:
         self, camera: Camera, blocks: list[Block], tau: float, *, with_rho: bool = True
     ) -> tuple[dict[Block, int], dict[Block, float]]:
         """Needed level and largest screen error of each block at ``tau`` (patch level and 0
-        for blocks whose errors are not known yet; errors all 0 without ``with_rho``)."""
+        for blocks whose errors are not known yet; without ``with_rho`` the errors are not
+        computed and the second mapping is empty)."""
         floor = min(self.config.patch_log2, self.k)
         needed = dict.fromkeys(blocks, floor)
-        rho = dict.fromkeys(blocks, 0.0)
+        rho = dict.fromkeys(blocks, 0.0) if with_rho else {}
         have = self.errors.known(blocks)
         if have:
             zr = self._zr_of(have)
@@ -133,7 +135,8 @@ class Planner:
                 self.grid, have, camera, tau, self.config.metric, zr, with_rho=with_rho
             )
             needed.update(zip(have, lv.tolist(), strict=True))
-            rho.update(zip(have, r.tolist(), strict=True))
+            if with_rho:
+                rho.update(zip(have, r.tolist(), strict=True))
         return needed, rho
 
     def needed(
@@ -158,7 +161,7 @@ class Planner:
         self,
         camera: Camera,
         velocity: np.ndarray | None,
-        visible: set[Block],
+        visible: Collection[Block],
         tau: float | None = None,
     ) -> PrefetchPlan:
         """The blocks ``N`` (``visible`` plus the extension) and the level each would need at
