@@ -161,12 +161,12 @@ class Session:
         if self._closed:
             raise SessionClosedError("this session is closed")
 
-    def _pin_and_queue(self, needed: dict[Block, int]) -> int:
-        """Pin this frame's levels and queue the missing ones (caller holds the lock)."""
-        self.cache.set_pins(needed, self.level_bytes)
-        pushed = 0
+    def _to_queue(self, needed: dict[Block, int]) -> list[Block]:
+        """The visible blocks that lack a level and are not queued as visible yet (no lock
+        needed: single dict reads; a block loaded meanwhile is re-checked when taken)."""
         known, level = self.loader.errors.keys(), self.cache.level
         queued = self.loader.queue.queued_key
+        out = []
         for b, lv in needed.items():
             unknown = b not in known
             if unknown or level(b) < lv:
@@ -175,9 +175,19 @@ class Session:
                 best = queued(b)
                 if best is not None and best[1] == 0 and best[0] <= (0 if unknown else 1):
                     continue
-                self.loader.push(b)
-                pushed += 1
-        return pushed
+                out.append(b)
+        return out
+
+    def _pin_and_queue(self, needed: dict[Block, int], todo: list[Block] | None = None) -> int:
+        """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
+        answer, found before taking the lock; caller holds the lock)."""
+        self.cache.set_pins(needed, self.level_bytes)
+        if todo is None:
+            todo = self._to_queue(needed)
+        push = self.loader.push
+        for b in todo:
+            push(b)
+        return len(todo)
 
     def _plan_prefetch(self) -> None:
         """Prefetch planning for the latest request, then the work queue is rebuilt."""
@@ -329,8 +339,9 @@ class Session:
         )
         self._prev = camera
         needed = self.planner.needed(camera)  # no lock: the error table is read lock-free
+        todo = self._to_queue(needed)
         with self._cv:
-            self._pin_and_queue(needed)
+            self._pin_and_queue(needed, todo)
         self._request_plan(camera, velocity, needed.keys())
         self.loader.pump()
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0

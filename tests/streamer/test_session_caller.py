@@ -93,13 +93,18 @@ def _marks(frames):
 
 
 def _threaded_flight(store, liar=False):
-    with open_session(store, budget_mb=16, workers=1, latency_ms=5) as s:
+    """Frame 0 waits (its levels are resident: something is drawn), the rest outrun one
+    loader. Returns the frames, the demanded levels marked by frame 0's wait, and the
+    session's demanded levels and drawn levels at the end."""
+    with open_session(store, budget_mb=16, workers=1, latency_ms=1) as s:
         frames = []
-        for cam in cams(store, 90):
+        for i, cam in enumerate(cams(store, 150)):
             if liar:  # every block claims the previous frame's state: nothing is marked
                 s._shown = _SameAsAnything()
-            frames.append(s.update(cam, 1 / 60))
-        return frames, set(s.loader.demanded), dict(s.totals.used), s.summary()
+            frames.append(s.update(cam, 1 / 60, wait=i == 0))
+            if i == 0:
+                waited = set(s.loader.demanded)
+        return frames, waited, set(s.loader.demanded), dict(s.totals.used), s.summary()
 
 
 class _SameAsAnything(dict):
@@ -115,14 +120,16 @@ class _Equal:
 
 
 def test_skipping_unchanged_blocks_records_what_marking_all_of_them_does(store):
-    frames, demanded, used, summary = _threaded_flight(store)
+    frames, waited, demanded, used, summary = _threaded_flight(store)
     assert summary["stall_frames"] > 10  # blocks lack levels over several frames in a row
     ref_demanded, ref_used = _marks(frames)
-    assert demanded == ref_demanded
+    assert ref_used and ref_demanded - waited
+    assert demanded == waited | ref_demanded
     assert used == ref_used
 
 
 def test_positive_control_skipping_every_block_loses_the_marks(store):
-    frames, demanded, used, _ = _threaded_flight(store, liar=True)
+    frames, waited, demanded, used, _ = _threaded_flight(store, liar=True)
     ref_demanded, ref_used = _marks(frames)
-    assert demanded != ref_demanded and used != ref_used
+    assert demanded == waited and ref_demanded - waited  # the later frames' marks are lost
+    assert ref_used and not used
