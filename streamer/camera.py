@@ -133,13 +133,22 @@ class Camera:
     @cached_property
     def _basis(self) -> np.ndarray:
         """Rows: right, up, forward (world unit vectors)."""
+        # float arithmetic, the same operations as numpy's (cross product, scaled sums) and so
+        # the same bits, without a dozen small-array calls per pose (it runs once per frame on
+        # the caller's thread; tests/streamer/test_camera.py compares it with the numpy form)
         y, p, r = (math.radians(a) for a in (self.yaw, self.pitch, self.roll))
-        f = np.array([math.sin(y) * math.cos(p), math.cos(y) * math.cos(p), math.sin(p)])
-        r0 = np.array([math.cos(y), -math.sin(y), 0.0])
-        u0 = np.cross(r0, f)
-        right = math.cos(r) * r0 - math.sin(r) * u0
-        up = math.cos(r) * u0 + math.sin(r) * r0
-        return _readonly(np.stack([right, up, f]))
+        sy, cy, sp, cp = math.sin(y), math.cos(y), math.sin(p), math.cos(p)
+        f = (sy * cp, cy * cp, sp)
+        r0 = (cy, -sy, 0.0)
+        u0 = (  # np.cross(r0, f)
+            r0[1] * f[2] - r0[2] * f[1],
+            r0[2] * f[0] - r0[0] * f[2],
+            r0[0] * f[1] - r0[1] * f[0],
+        )
+        cr, sr = math.cos(r), math.sin(r)
+        right = [cr * a - sr * b for a, b in zip(r0, u0, strict=True)]
+        up = [cr * b + sr * a for a, b in zip(r0, u0, strict=True)]
+        return _readonly(np.array([right, up, list(f)], dtype=np.float64))
 
     @property
     def forward(self) -> np.ndarray:

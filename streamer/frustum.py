@@ -285,10 +285,11 @@ def candidate_window(poly: np.ndarray, grid: BlockGrid) -> tuple[int, int, int, 
     if len(poly) == 0:
         return None
     ex, ey = grid.step * grid.dx, grid.step * grid.dy
-    c0 = math.floor((poly[:, 0].min() - grid.x0) / ex) - 1
-    c1 = math.floor((poly[:, 0].max() - grid.x0) / ex) + 1
-    r0 = math.floor((grid.y0 - poly[:, 1].max()) / ey) - 1
-    r1 = math.floor((grid.y0 - poly[:, 1].min()) / ey) + 1
+    xs, ys = poly[:, 0].tolist(), poly[:, 1].tolist()  # a few vertices: floats beat numpy here
+    c0 = math.floor((min(xs) - grid.x0) / ex) - 1
+    c1 = math.floor((max(xs) - grid.x0) / ex) + 1
+    r0 = math.floor((grid.y0 - max(ys)) / ey) - 1
+    r1 = math.floor((grid.y0 - min(ys)) / ey) + 1
     c0, c1 = max(c0, 0), min(c1, grid.cols - 1)
     r0, r1 = max(r0, 0), min(r1, grid.rows - 1)
     return None if c0 > c1 or r0 > r1 else (r0, r1, c0, c1)

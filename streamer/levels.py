@@ -197,9 +197,11 @@ class PatchErrorTable:
         zranges: np.ndarray,
         *,
         with_rho: bool = True,
+        ids: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Needed level of each block (all must be in the table) and its largest screen error
-        (zeros when ``with_rho`` is False: a caller that only needs levels skips that work)."""
+        (zeros when ``with_rho`` is False: a caller that only needs levels skips that work);
+        ``ids``, if given, is ``blocks`` as an ``(m, 2)`` int64 array."""
         fn = get_metric(metric)
         k, p = self.k, self.patch_log2
         m = len(blocks)
@@ -207,7 +209,7 @@ class PatchErrorTable:
         rho_max = np.zeros(m)
         if m == 0 or self.depths == 0:
             return levels, rho_max
-        blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+        blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2) if ids is None else ids
         slots = self.slots(blocks)
         arrays = self._arrays  # after the slots: it holds every slot published before them
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)

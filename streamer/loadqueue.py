@@ -8,6 +8,11 @@ in backoff: ``backoff_s * 2**(n-1)`` after the ``n``-th failure in a row, capped
 frame and the summary); when ``heal`` is on it is still retried, at the capped backoff, for as
 long as it is wanted, and a success clears it. With ``heal`` off a failed block is never
 retried (the behaviour before healing; kept as the positive control of the fault tests).
+
+A block is queued at most once per key: :meth:`LoadQueue.push` skips a block already queued
+with a key at least as urgent (the caller re-queues every visible block that lacks a level on
+every frame; without this the heap grew by those duplicates between rebuilds, thousands of
+tuples that the caller's garbage collections had to walk).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ class LoadQueue:
         self.max_backoff_s = max(backoff_s, max_backoff_s)
         self.heal = heal
         self._heap: list[tuple[tuple, Block]] = []
+        self._best: dict[Block, tuple] = {}  # most urgent key each queued block has
         self.failures: dict[Block, int] = {}  # failures in a row
         self.retry_at: dict[Block, float] = {}
         self.failed_at: dict[Block, list[float]] = {}  # times of the latest failures
@@ -43,21 +49,34 @@ class LoadQueue:
     def clear(self) -> None:
         """Drop every queued block."""
         self._heap.clear()
+        self._best.clear()
 
     def retryable(self, b: Block) -> bool:
         """False for a failed block when healing is off."""
         return self.heal or self.failures.get(b, 0) < self.retries
 
+    def queued_key(self, b: Block) -> tuple | None:
+        """The most urgent key ``b`` is queued with (None: not queued)."""
+        return self._best.get(b)
+
     def push(self, b: Block, key: tuple) -> None:
-        """Queue ``b`` with ``key`` (ignored for a block that may not be retried)."""
-        if self.retryable(b):
+        """Queue ``b`` with ``key`` (ignored for a block that may not be retried, and for one
+        already queued with a key at least as urgent)."""
+        best = self._best.get(b)
+        if (best is None or key < best) and self.retryable(b):
             heapq.heappush(self._heap, (key, b))
+            self._best[b] = key
 
     def rebuild(self, items: Iterable[tuple[tuple, Block]]) -> None:
         """Replace the queue; blocks no longer in it count as cancelled."""
         before = {b for _, b in self._heap}
         self._heap = [(k, b) for k, b in items if self.retryable(b)]
         heapq.heapify(self._heap)
+        best: dict[Block, tuple] = {}
+        for k, b in self._heap:
+            if b not in best or k < best[b]:
+                best[b] = k
+        self._best = best
         self.cancelled += len(before - {b for _, b in self._heap})
 
     def backing_off(self, b: Block, now: float) -> bool:
@@ -69,8 +88,11 @@ class LoadQueue:
         blocks in backoff (they stay queued) and dropping those ``take`` refuses."""
         waiting = []
         found = None
+        best = self._best
         while self._heap:
             key, b = heapq.heappop(self._heap)
+            if best.get(b) == key:
+                del best[b]
             if not self.retryable(b):
                 continue
             if self.backing_off(b, now):
@@ -80,8 +102,10 @@ class LoadQueue:
             if job is not None:
                 found = (b, job)
                 break
-        for item in waiting:
-            heapq.heappush(self._heap, item)
+        for key, b in waiting:
+            heapq.heappush(self._heap, (key, b))
+            if b not in best or key < best[b]:
+                best[b] = key
         return found
 
     def failed_read(self, b: Block, now: float) -> int:

@@ -20,6 +20,7 @@ lock the loaders take.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -52,10 +53,15 @@ def _blocks_meeting_nb(nb, polygon: np.ndarray, grid: BlockGrid, exists: np.ndar
     r0, r1, c0, c1 = win
     o = poly[0]
     p = poly - o
-    pbox = np.array([p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()])
-    if len(p) >= 2:
-        e = np.roll(p, -1, axis=0) - p
-        normals = np.stack([-e[:, 1], e[:, 0]], axis=1)
+    # the reference's numpy steps on a handful of vertices, as float operations (the same
+    # bits: differences, negations, min and max are exact); the projections stay numpy's
+    pts = p.tolist()
+    xs, ys = [q[0] for q in pts], [q[1] for q in pts]
+    pbox = np.array([min(xs), max(xs), min(ys), max(ys)])
+    n = len(pts)
+    if n >= 2:
+        nxt = pts[1:] + pts[:1]  # np.roll(p, -1, axis=0)
+        normals = np.array([[-(b[1] - a[1]), b[0] - a[0]] for a, b in zip(pts, nxt, strict=True)])
         proj = p @ normals.T
         pmin, pmax = proj.min(axis=0), proj.max(axis=0)
     else:
@@ -102,38 +108,53 @@ class Planner:
         b = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
         return self.zr[b[:, 0], b[:, 1]]
 
-    def _existing(self, polygon: np.ndarray) -> list[Block]:
+    def _existing_ids(self, polygon: np.ndarray) -> np.ndarray:
         nb = plan_kernels()
         if nb is not None:  # the compiled test: the same blocks (tested)
-            ids = _blocks_meeting_nb(nb, polygon, self.grid, self.exists)
-        else:
-            ids = blocks_meeting(polygon, self.grid)
-            ids = ids[self.exists[ids[:, 0], ids[:, 1]]]
-        return list(map(tuple, ids.tolist()))
+            return _blocks_meeting_nb(nb, polygon, self.grid, self.exists)
+        ids = blocks_meeting(polygon, self.grid)
+        return ids[self.exists[ids[:, 0], ids[:, 1]]]
+
+    def _existing(self, polygon: np.ndarray) -> list[Block]:
+        return list(map(tuple, self._existing_ids(polygon).tolist()))
+
+    def _visible_ids(self, camera: Camera, culling: str | None) -> np.ndarray:
+        if (culling or self.config.culling) == "qiu":
+            return self._existing_ids(view_triangle(camera))
+        return self._existing_ids(frustum_hull(camera, self.zrange))
 
     def visible(self, camera: Camera, culling: str | None = None) -> list[Block]:
         """Blocks meeting the projected frustum: Qiu's triangle (``culling="qiu"``) or Jung &
         Han's hull (``"hull"``); default the session's culling."""
-        if (culling or self.config.culling) == "qiu":
-            return self._existing(view_triangle(camera))
-        return self._existing(frustum_hull(camera, self.zrange))
+        return list(map(tuple, self._visible_ids(camera, culling).tolist()))
 
     def levels(
-        self, camera: Camera, blocks: list[Block], tau: float, *, with_rho: bool = True
+        self,
+        camera: Camera,
+        blocks: list[Block],
+        tau: float,
+        *,
+        with_rho: bool = True,
+        ids: np.ndarray | None = None,
     ) -> tuple[dict[Block, int], dict[Block, float]]:
         """Needed level and largest screen error of each block at ``tau`` (patch level and 0
-        for blocks whose errors are not known yet; errors all 0 without ``with_rho``)."""
+        for blocks whose errors are not known yet; without ``with_rho`` the errors are not
+        computed and the second mapping is empty). ``ids``: ``blocks`` as an ``(m, 2)`` array,
+        if the caller has it (saves converting them back)."""
         floor = min(self.config.patch_log2, self.k)
         needed = dict.fromkeys(blocks, floor)
-        rho = dict.fromkeys(blocks, 0.0)
+        rho = dict.fromkeys(blocks, 0.0) if with_rho else {}
         have = self.errors.known(blocks)
         if have:
-            zr = self._zr_of(have)
+            if ids is None or len(have) != len(blocks):
+                ids = np.asarray(have, dtype=np.int64).reshape(-1, 2)
+            zr = self.zr[ids[:, 0], ids[:, 1]]
             lv, r = self.errors.needed_levels(
-                self.grid, have, camera, tau, self.config.metric, zr, with_rho=with_rho
+                self.grid, have, camera, tau, self.config.metric, zr, with_rho=with_rho, ids=ids
             )
             needed.update(zip(have, lv.tolist(), strict=True))
-            rho.update(zip(have, r.tolist(), strict=True))
+            if with_rho:
+                rho.update(zip(have, r.tolist(), strict=True))
         return needed, rho
 
     def needed(
@@ -141,7 +162,9 @@ class Planner:
     ) -> dict[Block, int]:
         """The visible blocks and the level each needs to be drawn at ``tau``."""
         t = self.config.tau if tau is None else tau
-        return self.levels(camera, self.visible(camera, culling), t, with_rho=False)[0]
+        ids = self._visible_ids(camera, culling)
+        blocks = list(map(tuple, ids.tolist()))
+        return self.levels(camera, blocks, t, with_rho=False, ids=ids)[0]
 
     def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
         """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity`` (only
@@ -158,7 +181,7 @@ class Planner:
         self,
         camera: Camera,
         velocity: np.ndarray | None,
-        visible: set[Block],
+        visible: Collection[Block],
         tau: float | None = None,
     ) -> PrefetchPlan:
         """The blocks ``N`` (``visible`` plus the extension) and the level each would need at

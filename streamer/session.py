@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
@@ -94,6 +94,7 @@ class Session:
         self._planning = False
         self._plan_error: BaseException | None = None
         self._prefetch_blocks = 0
+        self._shown: dict[Block, tuple[int, int]] = {}  # the last frame's blocks
         self._closed = False
         self._plan_pool = (
             ThreadPoolExecutor(1, thread_name_prefix="terrastream-plan")
@@ -160,16 +161,33 @@ class Session:
         if self._closed:
             raise SessionClosedError("this session is closed")
 
-    def _pin_and_queue(self, needed: dict[Block, int]) -> int:
-        """Pin this frame's levels and queue the missing ones (caller holds the lock)."""
-        self.cache.set_pins(needed, self.level_bytes)
-        pushed = 0
+    def _to_queue(self, needed: dict[Block, int]) -> list[Block]:
+        """The visible blocks that lack a level and are not queued as visible yet (no lock
+        needed: single dict reads; a block loaded meanwhile is re-checked when taken)."""
         known, level = self.loader.errors.keys(), self.cache.level
+        queued = self.loader.queue.queued_key
+        out = []
         for b, lv in needed.items():
-            if b not in known or level(b) < lv:
-                self.loader.push(b)
-                pushed += 1
-        return pushed
+            unknown = b not in known
+            if unknown or level(b) < lv:
+                # a visible block's key starts (0 if its errors are unknown else 1, 0): one
+                # already queued at least that urgently is not pushed again (no key computed)
+                best = queued(b)
+                if best is not None and best[1] == 0 and best[0] <= (0 if unknown else 1):
+                    continue
+                out.append(b)
+        return out
+
+    def _pin_and_queue(self, needed: dict[Block, int], todo: list[Block] | None = None) -> int:
+        """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
+        answer, found before taking the lock; caller holds the lock)."""
+        self.cache.set_pins(needed, self.level_bytes)
+        if todo is None:
+            todo = self._to_queue(needed)
+        push = self.loader.push
+        for b in todo:
+            push(b)
+        return len(todo)
 
     def _plan_prefetch(self) -> None:
         """Prefetch planning for the latest request, then the work queue is rebuilt."""
@@ -197,7 +215,7 @@ class Session:
                 if next(steps, _DONE) is _DONE:
                     return
 
-    def _request_plan(self, camera: Camera, velocity: Any, visible: set[Block]) -> None:
+    def _request_plan(self, camera: Camera, velocity: Any, visible: Collection[Block]) -> None:
         with self._cv:
             self._request = (camera, velocity, visible)
             if self._plan_pool is None or self._planning:
@@ -321,9 +339,10 @@ class Session:
         )
         self._prev = camera
         needed = self.planner.needed(camera)  # no lock: the error table is read lock-free
+        todo = self._to_queue(needed)
         with self._cv:
-            self._pin_and_queue(needed)
-        self._request_plan(camera, velocity, set(needed))
+            self._pin_and_queue(needed, todo)
+        self._request_plan(camera, velocity, needed.keys())
         self.loader.pump()
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0
         if cfg.workers == 0:
@@ -407,15 +426,21 @@ class Session:
             if hull is not None:
                 hull = any(level(b) < lv or b not in errors_table for b, lv in hull.items())
             blocks = {b: (level(b), lv) for b, lv in needed.items()}
-            missing = [
-                (b, lv) for b, (have, lv) in blocks.items() if have < lv or b not in errors_table
-            ]
-            for b, lv in missing:
-                for lvl in range(blocks[b][0] + 1, lv + 1):
+            shown, self._shown = self._shown, blocks
+            missing = []
+            used = self.totals.used
+            for b, st in blocks.items():
+                have, lv = st
+                if have < lv or b not in errors_table:
+                    missing.append((b, lv))
+                if shown.get(b) == st:
+                    # as on the previous frame: its missing levels are marked demanded (with
+                    # that frame's due time, the first) and its use counted; a level it lacks
+                    # cannot have come and gone since (pinned levels are never evicted)
+                    continue
+                for lvl in range(have + 1, lv + 1):
                     ld.demanded.add((b, lvl))
                     ld.due.setdefault((b, lvl), due)
-            used = self.totals.used
-            for b, (have, lv) in blocks.items():
                 top = lv if lv < have else have
                 if top > used.get(b, -1):
                     used[b] = top

@@ -63,6 +63,27 @@ def test_basis_orthonormal_right_handed(yaw, pitch, roll):
     np.testing.assert_allclose(np.cross(cam.right, cam.up), -cam.forward, atol=1e-12)
 
 
+def _numpy_basis(cam: Camera) -> np.ndarray:
+    """The basis as numpy computed it before it became float arithmetic (the reference)."""
+    y, p, r = (math.radians(a) for a in (cam.yaw, cam.pitch, cam.roll))
+    f = np.array([math.sin(y) * math.cos(p), math.cos(y) * math.cos(p), math.sin(p)])
+    r0 = np.array([math.cos(y), -math.sin(y), 0.0])
+    u0 = np.cross(r0, f)
+    right = math.cos(r) * r0 - math.sin(r) * u0
+    up = math.cos(r) * u0 + math.sin(r) * r0
+    return np.stack([right, up, f])
+
+
+@settings(max_examples=200, deadline=None)
+@given(yaw=st.floats(-720, 720), pitch=st.floats(-90, 90), roll=st.floats(-180, 180))
+def test_basis_is_the_numpy_reference_bit_for_bit(yaw, pitch, roll):
+    cam = Camera((1, 2, 3), yaw=yaw, pitch=pitch, roll=roll)
+    ref = _numpy_basis(cam)
+    got = np.stack([cam.right, cam.up, cam.forward])
+    assert got.tobytes() == ref.tobytes()
+    assert not cam.forward.flags.writeable
+
+
 @pytest.mark.parametrize(
     ("points", "expected"),
     [

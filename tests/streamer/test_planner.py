@@ -209,3 +209,13 @@ def test_compiled_planning_positive_control(monkeypatch):
     )
     got = pl._existing(tri)
     assert levels.kernels() is not None and set(ref) - set(got) == {(0, 1)}
+
+
+def test_planning_kernels_keep_the_gil():
+    """The caller's short planning kernels do not release the GIL (a release hands it to a
+    loader, which the caller then waits behind: see streamer/_plan_nb.py)."""
+    pytest.importorskip("numba")
+    from streamer import _plan_nb
+
+    for disp in (_plan_nb.qiu_levels, _plan_nb.blocks_meeting):
+        assert disp.targetoptions.get("nogil") is False, disp.__name__

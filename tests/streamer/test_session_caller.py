@@ -1,0 +1,135 @@
+"""The caller's per-frame bookkeeping stays small (issue 14): a visible block that lacks a level
+is queued once, not once per frame, and a block shown as on the previous frame is not marked
+again, with the same demanded/due/used records as marking every block every frame."""
+
+from __future__ import annotations
+
+import pytest
+from demtools import fractal, write_dem
+
+from streamer.loadqueue import LoadQueue
+from streamer.paths import default_flythrough
+from streamer.session import open_session
+from tiler.tile import TileOptions, tile
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("caller")
+    src = write_dem(tmp / "d.tif", fractal((257, 321), 4), cell=10.0)
+    return tile(src, tmp / "s.zarr", TileOptions(block_size=33, workers=1, executor="threads"))
+
+
+def cams(store, n):
+    z0, z1 = store.meta.extra["value_range"]
+    return default_flythrough(store.grid, z0, z1, n, 60.0, speed=600.0, viewport=(320, 240))
+
+
+def test_queue_keeps_one_entry_per_block_and_key():
+    q = LoadQueue(retries=3, backoff_s=0.1, max_backoff_s=1.0)
+    b = (2, 3)
+    q.push(b, (1, 0, 2))
+    q.push(b, (1, 0, 2))  # the same key again: not queued twice
+    q.push(b, (1, 1, 5))  # less urgent: not queued
+    assert len(q) == 1 and q.queued_key(b) == (1, 0, 2)
+    q.push(b, (0, 0, 0))  # more urgent: queued, and it is what pops first
+    assert len(q) == 2 and q.queued_key(b) == (0, 0, 0)
+    assert q.pop(0.0, lambda blk: "job") == (b, "job")
+    assert q.queued_key(b) is None  # popped: pushing it again queues it
+    q.push(b, (1, 1, 5))
+    assert q.queued_key(b) == (1, 1, 5)
+    q.rebuild([((3,), b), ((2,), (0, 0))])
+    assert q.queued_key(b) == (3,) and q.queued_key((0, 0)) == (2,)
+    q.clear()
+    assert q.queued_key(b) is None and len(q) == 0
+
+
+def _fly_stalling(store, s, n=120):
+    """An unpaced flight that outruns one slow loader: visible blocks lack levels for many
+    frames in a row. Returns the largest queue length seen after an update."""
+    longest = 0
+    for cam in cams(store, n):
+        s.update(cam, 1 / 60)
+        longest = max(longest, len(s.loader.queue))
+    return longest
+
+
+def test_a_stalled_visible_block_is_queued_once(store):
+    blocks = store.grid.rows * store.grid.cols
+    with open_session(store, budget_mb=16, workers=1, latency_ms=5) as s:
+        longest = _fly_stalling(store, s)
+        stalls = s.summary()["stall_frames"]
+    assert stalls > 20, "the flight must stall for the test to mean anything"
+    assert longest <= 2 * blocks  # a key per block (a pinned and a prefetch one at most)
+
+
+def test_positive_control_a_queue_without_the_check_grows_every_frame(store, monkeypatch):
+    """The same flight with the old push (every call queued): the heap outgrows the bound."""
+    import heapq
+
+    def push_always(self, b, key):
+        if self.retryable(b):
+            heapq.heappush(self._heap, (key, b))
+            self._best[b] = key if b not in self._best else min(key, self._best[b])
+
+    monkeypatch.setattr(LoadQueue, "push", push_always)
+    monkeypatch.setattr(LoadQueue, "queued_key", lambda self, b: None)
+    blocks = store.grid.rows * store.grid.cols
+    with open_session(store, budget_mb=16, workers=1, latency_ms=5) as s:
+        longest = _fly_stalling(store, s)
+    assert longest > 2 * blocks
+
+
+def _marks(frames):
+    """What marking every block of every frame records: demanded ``(block, level)``s and each
+    block's finest level drawn."""
+    demanded, used = set(), {}
+    for f in frames:
+        for b, (have, lv) in f.blocks.items():
+            demanded.update((b, lvl) for lvl in range(have + 1, lv + 1))
+            if min(have, lv) > used.get(b, -1):
+                used[b] = min(have, lv)
+    return demanded, used
+
+
+def _threaded_flight(store, liar=False):
+    """Frame 0 waits (its levels are resident: something is drawn), the rest outrun one
+    loader. Returns the frames, the demanded levels marked by frame 0's wait, and the
+    session's demanded levels and drawn levels at the end."""
+    with open_session(store, budget_mb=16, workers=1, latency_ms=1) as s:
+        frames = []
+        for i, cam in enumerate(cams(store, 150)):
+            if liar:  # every block claims the previous frame's state: nothing is marked
+                s._shown = _SameAsAnything()
+            frames.append(s.update(cam, 1 / 60, wait=i == 0))
+            if i == 0:
+                waited = set(s.loader.demanded)
+        return frames, waited, set(s.loader.demanded), dict(s.totals.used), s.summary()
+
+
+class _SameAsAnything(dict):
+    def get(self, key, default=None):
+        return _Equal()
+
+
+class _Equal:
+    def __eq__(self, other: object) -> bool:
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def test_skipping_unchanged_blocks_records_what_marking_all_of_them_does(store):
+    frames, waited, demanded, used, summary = _threaded_flight(store)
+    assert summary["stall_frames"] > 10  # blocks lack levels over several frames in a row
+    ref_demanded, ref_used = _marks(frames)
+    assert ref_used and ref_demanded - waited
+    assert demanded == waited | ref_demanded
+    assert used == ref_used
+
+
+def test_positive_control_skipping_every_block_loses_the_marks(store):
+    frames, waited, demanded, used, _ = _threaded_flight(store, liar=True)
+    ref_demanded, ref_used = _marks(frames)
+    assert demanded == waited and ref_demanded - waited  # the later frames' marks are lost
+    assert ref_used and not used
