@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from render import select_kernels
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
@@ -156,6 +157,7 @@ def select_patches(
     windows: np.ndarray | None = None,
     min_depth: int = 0,
     boxes: NodeBoxes | None = None,
+    kernels: str | None = None,
 ) -> Patches:
     """Leaves of all blocks' quadtrees at ``tau`` (not yet stitched: ``snap`` is zero).
 
@@ -165,7 +167,8 @@ def select_patches(
     whatever their error (where the resident level allows; ``chunk-tessellation``'s start
     depth, which bounds the depth difference of adjacent leaves). ``boxes`` (required for a
     metric that :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its
-    own box.
+    own box. ``kernels`` (``auto``, ``numba``, ``numpy``; default ``TERRASTREAM_KERNELS``)
+    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one.
     """
     check_tau(tau)
     fn = get_metric(metric)
@@ -187,9 +190,16 @@ def select_patches(
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
+    idx = np.flatnonzero(res >= 0)
+    nb = select_kernels.resolve(kernels)
+    if nb is not None:
+        parts, clamped = select_kernels.walk(
+            nb, grid, table, slots, fn, camera, float(tau), idx=idx, res=res, zr=zr, win=win,
+            bx0=bx0, by1=by1, cull=cull, min_depth=min_depth, boxes=boxes, box_slots=box_slots,
+        )  # fmt: skip
+        return _assemble(blk, parts, clamped)
     parts: list[tuple] = []
     clamped = 0
-    idx = np.flatnonzero(res >= 0)
     rows = np.zeros(len(idx), dtype=np.int64)
     cols = np.zeros(len(idx), dtype=np.int64)
     inside = np.zeros(len(idx), dtype=bool)  # disc wholly inside the polygon: no test

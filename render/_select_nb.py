@@ -1,0 +1,167 @@
+"""Numba kernels of :func:`render.select.select_patches` (imported by :mod:`render.select_kernels`):
+one depth of the breadth-first walk in two calls — :func:`visit` (window rule, the
+:class:`render.select.DiscCull` test, the surviving nodes' centres and patch errors) and
+:func:`split` (the leaves and the children) — and :func:`qiu_rho`, Qiu's metric of the
+surviving nodes' spheres. The float work is the reference's operations in the reference's
+order on float64 (no fastmath), so the results are the same bits (tested)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from streamer._plan_nb import _qiu
+from tiler.jit import cached_njit
+
+# error_model="numpy": float division by 0 gives ±∞/NaN as in numpy (no ZeroDivisionError)
+_jit = cached_njit(nogil=True, error_model="numpy")
+
+
+@_jit
+def _fmin(a, b):
+    """``np.minimum`` of two floats (NaN if either is NaN)."""
+    if a <= b:
+        return a
+    if b < a:
+        return b
+    return a + b
+
+
+@_jit
+def visit(
+    idx, rows, cols, inside, bx0, by1, sdx, sdy, size, use_win, win,
+    cull, empty, o, px, py, ex, ey, ee_safe, ok, all_ok, ccw, half,
+    arr, has_arr, slots,
+):  # fmt: skip
+    """The nodes of one depth that survive the window and disc tests, in order:
+    ``(idx, rows, cols, inside, cx, cy, delta)``. ``sdx``/``sdy`` the node span times dx/dy,
+    ``cull`` whether there is a polygon (``empty``: a degenerate one, which meets nothing; the
+    rest :class:`DiscCull`'s fields), ``arr`` the patch table's depth array (``has_arr``
+    False at full resolution: delta 0)."""
+    n = idx.shape[0]
+    o_idx = np.empty(n, np.int64)
+    o_rows = np.empty(n, np.int64)
+    o_cols = np.empty(n, np.int64)
+    o_in = np.empty(n, np.bool_)
+    o_cx = np.empty(n, np.float64)
+    o_cy = np.empty(n, np.float64)
+    o_d = np.empty(n, np.float64)
+    ne = px.shape[0]
+    r2 = half * half
+    m = 0
+    for i in range(n):
+        b = idx[i]
+        r, c = rows[i], cols[i]
+        cx = bx0[b] + (np.float64(c) + 0.5) * sdx
+        cy = by1[b] - (np.float64(r) + 0.5) * sdy
+        if use_win and not (r * size < win[b, 2] - 1 and c * size < win[b, 3] - 1):
+            continue
+        ins = inside[i]
+        if cull and not ins:
+            if empty:
+                continue
+            axo = cx - o[0]
+            ayo = cy - o[1]
+            dist2 = math.inf
+            first = True
+            centre_in = True
+            for j in range(ne):
+                ax = axo - px[j]
+                ay = ayo - py[j]
+                t = (ax * ex[j] + ay * ey[j]) / ee_safe[j]
+                if not all_ok and not ok[j]:
+                    t = 0.0
+                if t < 0.0:
+                    t = 0.0
+                elif t > 1.0:
+                    t = 1.0
+                dx = ax - t * ex[j]
+                dy = ay - t * ey[j]
+                d2 = dx * dx + dy * dy
+                dist2 = d2 if first else _fmin(dist2, d2)
+                first = False
+                if not (ex[j] * ay - ey[j] * ax >= 0.0):
+                    centre_in = False
+            near = dist2 <= r2
+            if ccw:
+                if not (near or centre_in):
+                    continue
+                ins = centre_in and not near
+            elif not near:
+                continue
+        o_idx[m] = b
+        o_rows[m] = r
+        o_cols[m] = c
+        o_in[m] = ins
+        o_cx[m] = cx
+        o_cy[m] = cy
+        o_d[m] = np.float64(arr[slots[b], r, c]) if has_arr else 0.0
+        m += 1
+    return o_idx[:m], o_rows[:m], o_cols[:m], o_in[:m], o_cx[:m], o_cy[:m], o_d[:m]
+
+
+@_jit
+def qiu_rho(delta, cx, cy, bz, zr, half, eye, fwd, focal, near):
+    """:func:`streamer.lod.qiu_eq7` of the nodes' spheres (``render.node_boxes.node_rho``
+    without boxes): centre ``(cx, cy, zmid)`` and radius ``hypot(half, zhalf)`` of the block
+    ``bz`` ranges ``zr``."""
+    n = delta.shape[0]
+    out = np.empty(n, np.float64)
+    ex, ey, ez = eye[0], eye[1], eye[2]
+    f0, f1, f2 = fwd[0], fwd[1], fwd[2]
+    for i in range(n):
+        b = bz[i]
+        zmid = 0.5 * (zr[b, 0] + zr[b, 1])
+        zhalf = 0.5 * (zr[b, 1] - zr[b, 0])
+        radius = math.hypot(half, zhalf)
+        out[i] = _qiu(delta[i], cx[i] - ex, cy[i] - ey, zmid - ez, radius, f0, f1, f2, focal, near)
+    return out
+
+
+@_jit
+def split(idx, rows, cols, inside, delta, rho, res, depth, top, tau, min_depth):
+    """The leaves ``(idx, rows, cols, level, delta, rho)`` and children ``(idx, rows, cols,
+    inside)`` of one depth's nodes, and the count of nodes that wanted to split (``top`` is
+    ``depth + patch_log2``, below ``k``; a node splits where ``top < res`` of its block)."""
+    n = idx.shape[0]
+    n_split = 0
+    n_want = 0
+    for i in range(n):
+        want = (not rho[i] <= tau) or depth < min_depth
+        if want:
+            n_want += 1
+            if top < res[idx[i]]:
+                n_split += 1
+    nl = n - n_split
+    l_idx = np.empty(nl, np.int64)
+    l_rows = np.empty(nl, np.int64)
+    l_cols = np.empty(nl, np.int64)
+    l_lev = np.empty(nl, np.int64)
+    l_d = np.empty(nl, np.float64)
+    l_rho = np.empty(nl, np.float64)
+    c_idx = np.empty(4 * n_split, np.int64)
+    c_rows = np.empty(4 * n_split, np.int64)
+    c_cols = np.empty(4 * n_split, np.int64)
+    c_in = np.empty(4 * n_split, np.bool_)
+    a = 0
+    s = 0
+    for i in range(n):
+        b = idx[i]
+        want = (not rho[i] <= tau) or depth < min_depth
+        if want and top < res[b]:
+            for q in range(4):
+                c_idx[s] = b
+                c_rows[s] = 2 * rows[i] + (q >> 1)
+                c_cols[s] = 2 * cols[i] + (q & 1)
+                c_in[s] = inside[i]
+                s += 1
+        else:
+            l_idx[a] = b
+            l_rows[a] = rows[i]
+            l_cols[a] = cols[i]
+            l_lev[a] = min(top, res[b])
+            l_d[a] = delta[i]
+            l_rho[a] = rho[i]
+            a += 1
+    return (l_idx, l_rows, l_cols, l_lev, l_d, l_rho), (c_idx, c_rows, c_cols, c_in), n_want
