@@ -165,3 +165,53 @@ def split(idx, rows, cols, inside, delta, rho, res, depth, top, tau, min_depth):
             l_rho[a] = rho[i]
             a += 1
     return (l_idx, l_rows, l_cols, l_lev, l_d, l_rho), (c_idx, c_rows, c_cols, c_in), n_want
+
+
+@_jit
+def _lower(keys, x):
+    """``np.searchsorted(keys, x)`` (side left) for a scalar ``x``."""
+    lo, hi = 0, keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@_jit
+def neighbours(sk, order, d, gr, gc, big, nr, nc, dd):
+    """``render.select._neighbours``' ``(n, 4)`` leaf across each edge (N, E, S, W), -1 for
+    none: ``sk`` the sorted leaf keys, ``order`` their leaves, ``gr``/``gc`` the leaves' global
+    node row/column at their depth ``d``, ``dd`` the depths holding leaves (ascending); the
+    deepest leaf holding the probe beyond the edge midpoint wins."""
+    n = d.shape[0]
+    out = np.full((n, 4), -1, np.int64)
+    for i in range(n):
+        sh = big - d[i]
+        span = np.int64(1) << sh
+        mid = span >> 1
+        fr0 = gr[i] << sh
+        fc0 = gc[i] << sh
+        for e in range(4):
+            if e == 0:
+                fr, fc = fr0 - 1, fc0 + mid
+            elif e == 1:
+                fr, fc = fr0 + mid, fc0 + span
+            elif e == 2:
+                fr, fc = fr0 + span, fc0 + mid
+            else:
+                fr, fc = fr0 + mid, fc0 - 1
+            if fr < 0 or fc < 0 or fr >= nr or fc >= nc:
+                continue
+            for j in range(dd.shape[0] - 1, -1, -1):
+                s = big - dd[j]
+                q = (dd[j] * nr + (fr >> s)) * nc + (fc >> s)
+                pos = _lower(sk, q)
+                if pos > n - 1:
+                    pos = n - 1
+                if sk[pos] == q:
+                    out[i, e] = order[pos]
+                    break
+    return out

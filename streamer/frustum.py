@@ -54,22 +54,23 @@ def convex_hull(points: np.ndarray) -> np.ndarray:
     if len(rel) <= 2:
         return rel + origin
 
-    def turns_left(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    def turns_left(o: list[float], a: list[float], b: list[float]) -> bool:
         """Strict left turn o -> a -> b; near-collinear (relative 1e-12) counts as not."""
         ax, ay, bx, by = a[0] - o[0], a[1] - o[1], b[0] - o[0], b[1] - o[1]
         return ax * by - ay * bx > 1e-12 * math.hypot(ax, ay) * math.hypot(bx, by)
 
-    lower: list[np.ndarray] = []
-    for p in rel:
+    pl = rel.tolist()  # Python floats: the same arithmetic as numpy scalars, without their cost
+    lower: list[list[float]] = []
+    for p in pl:
         while len(lower) >= 2 and not turns_left(lower[-2], lower[-1], p):
             lower.pop()
         lower.append(p)
-    upper: list[np.ndarray] = []
-    for p in rel[::-1]:
+    upper: list[list[float]] = []
+    for p in reversed(pl):
         while len(upper) >= 2 and not turns_left(upper[-2], upper[-1], p):
             upper.pop()
         upper.append(p)
-    hull = np.array(lower[:-1] + upper[:-1])
+    hull = np.array(lower[:-1] + upper[:-1], dtype=np.float64)
     return hull + origin
 
 

@@ -68,7 +68,8 @@ def _diff_count(g, t, kernels_b, metric_names=("qiu",), stitched=False) -> tuple
         b = select_patches(g, blocks, t, cam, tau, fn, poly, kernels=kernels_b, **kw)
         if stitched:
             skw = dict(resident=kw["resident"], zranges=kw["zranges"])
-            a, b = stitch(a, g, t, cam, fn, **skw), stitch(b, g, t, cam, fn, **skw)
+            a = stitch(a, g, t, cam, fn, kernels="numpy", **skw)
+            b = stitch(b, g, t, cam, fn, kernels=kernels_b, **skw)
         bad += bool(differences(a, b))
         n += len(a)
     return bad, n
@@ -91,13 +92,15 @@ def test_compiled_walk_equals_numpy_stitched(nb):
 
 
 def _perturbed(nb, **fns):
-    mod = SimpleNamespace(visit=nb.visit, split=nb.split, qiu_rho=nb.qiu_rho)
+    mod = SimpleNamespace(
+        visit=nb.visit, split=nb.split, qiu_rho=nb.qiu_rho, neighbours=nb.neighbours
+    )
     for name, f in fns.items():
         setattr(mod, name, f)
     return mod
 
 
-@pytest.mark.parametrize("fault", ["ulp", "drop", "nosplit"])
+@pytest.mark.parametrize("fault", ["ulp", "drop", "nosplit", "lonely"])
 def test_the_comparison_catches_a_wrong_kernel(nb, monkeypatch, fault):
     def ulp(*a):
         rho = nb.qiu_rho(*a)
@@ -122,13 +125,18 @@ def test_the_comparison_catches_a_wrong_kernel(nb, monkeypatch, fault):
         a[5][over[-1]] = a[9]  # the last node over tau stays a leaf
         return nb.split(*a)
 
-    bad_mod = _perturbed(nb, **{"ulp": {"qiu_rho": ulp}, "drop": {"visit": drop}}.get(fault, {}))
-    if fault == "nosplit":
-        bad_mod = _perturbed(nb, split=nosplit)
+    def lonely(*a):
+        out = nb.neighbours(*a)
+        out[np.argmax((out >= 0).all(axis=1))] = -1  # one leaf loses its neighbours
+        return out
+
+    faults = {"ulp": ulp, "drop": drop, "nosplit": nosplit, "lonely": lonely}
+    name = {"ulp": "qiu_rho", "drop": "visit", "nosplit": "split", "lonely": "neighbours"}[fault]
+    bad_mod = _perturbed(nb, **{name: faults[fault]})
     monkeypatch.setattr(select_kernels, "resolve", lambda k=None: None if k == "numpy" else bad_mod)
     g = _grid()
     t = _table(g, 2, seed=2)
-    bad, _ = _diff_count(g, t, "numba")
+    bad, _ = _diff_count(g, t, "numba", stitched=fault == "lonely")
     assert bad > 0
     if fault == "ulp":  # one ulp of rho shows in rho itself, whatever the selection does
         assert bad > 10
