@@ -176,8 +176,9 @@ def test_convex_hull_degenerate():
 
 
 def _numpy_scalar_hull(points, tol: float = 1e-12) -> np.ndarray:
-    """The monotone chain on numpy scalars (``convex_hull`` before it moved to Python floats;
-    ``tol`` the collinearity tolerance, changed only by the positive control)."""
+    """The monotone chain on numpy scalars after ``np.unique(axis=0)`` (``convex_hull`` before
+    it moved to Python floats; ``tol`` the collinearity tolerance, changed only by the positive
+    control)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     origin = pts.min(axis=0)
     rel = np.unique(pts - origin, axis=0)
@@ -203,6 +204,8 @@ def test_convex_hull_is_the_numpy_scalar_chain_bit_for_bit():
     t = rng.uniform(0, 1, 30)  # near-collinear: a segment with sub-tolerance wiggles
     sets.append(np.stack([t, 2 * t + rng.normal(0, 1e-14, 30)], 1) * 1e3 + 4e6)
     sets.append(np.repeat(rng.normal(0, 10, (6, 2)), 3, axis=0))  # duplicates
+    sets += [np.repeat([[3.0, -2.0]], 3, axis=0), [[1.0, 5.0], [1.0, 5.0], [-4.0, 5.0]]]
+    sets.append([[0.0, 1.0], [0.0, -1.0], [-0.0, 0.5], [2.0, 0.0]])  # equal x, signed zero
     for yaw in (0.0, 33.0, 200.0):
         cam = Camera((5e5, 5e6, 900.0), yaw=yaw, pitch=-12.0, far=3e4)
         sets.append(cam.frustum_corners()[:, :2])
@@ -211,6 +214,7 @@ def test_convex_hull_is_the_numpy_scalar_chain_bit_for_bit():
         assert got.dtype == want.dtype and np.array_equal(got, want)
     # positive control: the comparison sees a changed collinearity rule on the near-collinear set
     assert not np.array_equal(convex_hull(sets[4]), _numpy_scalar_hull(sets[4], tol=-1.0))
+    assert convex_hull([[0.0, 0.0]] * 3).shape == (1, 2)
 
 
 # --- Qiu's extension --------------------------------------------------------------------------
