@@ -108,7 +108,11 @@ class _Frame:
         self.dmax = np.minimum(self.k - self.c, np.array(capn, dtype=np.int64) - 1)
         g = self.grid
         self.zr = st.zr
-        self.win = r.store.index.window
+        win = r.store.index.window
+        self.win = win
+        if win is not None:  # per drawn block: the last node row/column start inside the DEM
+            self.win_r = win[self.blk[:, 0], self.blk[:, 1], 2] - 1
+            self.win_c = win[self.blk[:, 0], self.blk[:, 1], 3] - 1
         self.table = st.table
         r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
         self.guard = bool(getattr(st, "spike_guard", False))
@@ -247,8 +251,7 @@ class _Frame:
         size = node_span(self.k, d)
         keep = np.ones(len(idx), dtype=bool)
         if self.win is not None and len(idx):
-            w = self.win[self.blk[idx, 0], self.blk[idx, 1]]
-            keep &= (rows * size < w[:, 2] - 1) & (cols * size < w[:, 3] - 1)
+            keep &= (rows * size < self.win_r[idx]) & (cols * size < self.win_c[idx])
         if self.cull is not None and len(idx) and self.nb is not None and not self.cull.empty:
             c = self.cull
             s = float(node_span(g.k, d))  # node_centres_at's span
