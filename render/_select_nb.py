@@ -215,3 +215,44 @@ def neighbours(sk, order, d, gr, gc, big, nr, nc, dd):
                     out[i, e] = order[pos]
                     break
     return out
+
+
+@_jit
+def kim_rho(delta, cx, cy, bz, zr, half, eye, right, up, fwd, focal, w2, h2):
+    """``render.strategies.chunk_tess.pure.kim_metric`` of the nodes' spheres (as
+    :func:`qiu_rho`); ``w2``/``h2`` half the viewport."""
+    n = delta.shape[0]
+    out = np.empty(n, np.float64)
+    e0, e1, e2 = eye[0], eye[1], eye[2]
+    for i in range(n):
+        b = bz[i]
+        zmid = 0.5 * (zr[b, 0] + zr[b, 1])
+        zhalf = 0.5 * (zr[b, 1] - zr[b, 0])
+        rad = math.hypot(half, zhalf)
+        d = delta[i]
+        tx, ty, tz = e0 - cx[i], e1 - cy[i], e2 - zmid
+        dist = math.sqrt(tx * tx + ty * ty + tz * tz)
+        inside = dist <= rad
+        s = rad / (1.0 if inside else dist)
+        px, py, pz = cx[i] + tx * s, cy[i] + ty * s, zmid + tz * s
+        rx, ry = px - e0, py - e1
+        xs = np.empty(2)
+        ys = np.empty(2)
+        for j in range(2):
+            z = pz if j == 0 else pz + d
+            rz = z - e2
+            depth = rx * fwd[0] + ry * fwd[1] + rz * fwd[2]
+            f = focal / depth if depth > 0.0 else math.nan
+            xr = rx * right[0] + ry * right[1] + rz * right[2]
+            yu = rx * up[0] + ry * up[1] + rz * up[2]
+            xs[j] = w2 + xr * f
+            ys[j] = h2 - yu * f
+        rho = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
+        if not math.isfinite(rho):
+            rho = math.inf
+        if d == 0.0:
+            rho = 0.0
+        elif inside:
+            rho = math.inf
+        out[i] = rho
+    return out

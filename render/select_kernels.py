@@ -3,8 +3,9 @@ numba when it is installed (the ``fast`` extra), the numpy reference otherwise;
 ``TERRASTREAM_KERNELS`` (``auto``, ``numba``, ``numpy``) or ``select_patches(kernels=...)``
 picks it. numba is imported on the first selection that uses it (importing this module costs
 nothing). The walk is the reference's, one depth per step, with the per-node work of a depth in
-two kernel calls (:mod:`render._select_nb`); Qiu's metric is compiled too, any other metric
-(callables, node boxes) is the reference's :func:`render.node_boxes.node_rho`. Same patches,
+two kernel calls (:mod:`render._select_nb`); Qiu's metric and Kim's (``chunk-tessellation``,
+named by its ``select_kernel`` attribute) are compiled too, any other metric (the conservative
+ones, callables, node boxes) is the reference's :func:`render.node_boxes.node_rho`. Same patches,
 bit for bit (tests/render/test_select_kernels.py)."""
 
 from __future__ import annotations
@@ -81,10 +82,14 @@ def walk(
         pf = (np.zeros(2), z, z, z, z, z, _NONE_B, True, False)
     empty = bool(use_cull and cull.empty)
     o, px, py, ex, ey, ee_safe, ok, all_ok, ccw = pf
-    compiled_rho = fn is qiu_eq7 and box_slots is None
+    # Qiu's Eq. 7 and the metrics naming a compiled twin (``fn.select_kernel``, e.g. Kim's)
+    kernel = "qiu_rho" if fn is qiu_eq7 else getattr(fn, "select_kernel", None)
+    rho_nb = getattr(nb, kernel) if kernel is not None and box_slots is None else None
     eye = np.array(camera.eye, dtype=np.float64)  # writable copies: one compiled signature
     fwd = np.array(camera.forward, dtype=np.float64)
     focal, near = float(camera.focal_px), float(camera.near)
+    right, up = np.array(camera.right, dtype=np.float64), np.array(camera.up, dtype=np.float64)
+    w2, h2 = camera.viewport[0] / 2.0, camera.viewport[1] / 2.0
     zr_c = np.ascontiguousarray(zr, dtype=np.float64)
     parts: list[tuple] = []
     clamped = 0
@@ -102,8 +107,10 @@ def walk(
         )  # fmt: skip
         if not idx.size:
             break
-        if compiled_rho:
-            rho = nb.qiu_rho(delta, cx, cy, idx, zr_c, half, eye, fwd, focal, near)
+        if rho_nb is not None and kernel == "qiu_rho":
+            rho = rho_nb(delta, cx, cy, idx, zr_c, half, eye, fwd, focal, near)
+        elif rho_nb is not None:
+            rho = rho_nb(delta, cx, cy, idx, zr_c, half, eye, right, up, fwd, focal, w2, h2)
         else:
             bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
             rho = node_rho(fn, grid, delta, cx, cy, depth, zr[idx], camera, bx, rows, cols)

@@ -1,8 +1,9 @@
 """The compiled walk of ``select_patches`` (numba, :mod:`render.select_kernels`) against the
 numpy one: every array of the patches equal, bit for bit, over cameras, polygons (none, hull,
-triangle, degenerate), windows, partial residency, ``min_depth`` and metrics (Qiu's compiled,
-the others through ``node_rho``), stitched too; positive controls show the comparison catches a
-kernel one ulp off, one that drops a node and one that splits one node too few."""
+triangle, degenerate), windows, partial residency, ``min_depth`` and metrics (Qiu's and Kim's
+compiled, the others through ``node_rho``), stitched too; positive controls show the comparison
+catches a kernel one ulp off (Qiu's or Kim's metric), one that drops a node, one that splits one
+node too few and one that loses a neighbour."""
 
 from __future__ import annotations
 
@@ -92,21 +93,27 @@ def test_compiled_walk_equals_numpy_stitched(nb):
 
 
 def _perturbed(nb, **fns):
-    mod = SimpleNamespace(
-        visit=nb.visit, split=nb.split, qiu_rho=nb.qiu_rho, neighbours=nb.neighbours
-    )
+    names = ("visit", "split", "qiu_rho", "kim_rho", "neighbours")
+    mod = SimpleNamespace(**{n: getattr(nb, n) for n in names})
     for name, f in fns.items():
         setattr(mod, name, f)
     return mod
 
 
-@pytest.mark.parametrize("fault", ["ulp", "drop", "nosplit", "lonely"])
+@pytest.mark.parametrize("fault", ["ulp", "kim_ulp", "drop", "nosplit", "lonely"])
 def test_the_comparison_catches_a_wrong_kernel(nb, monkeypatch, fault):
     def ulp(*a):
         rho = nb.qiu_rho(*a)
         fin = np.flatnonzero(np.isfinite(rho) & (rho > 0))
         if fin.size:
             rho[fin[0]] = np.nextafter(rho[fin[0]], np.inf)
+        return rho
+
+    def kim_ulp(*a):
+        rho = nb.kim_rho(*a)
+        fin = np.flatnonzero(np.isfinite(rho) & (rho > 0))
+        if fin.size:
+            rho[fin[-1]] = np.nextafter(rho[fin[-1]], 0.0)
         return rho
 
     def drop(*a):
@@ -130,15 +137,17 @@ def test_the_comparison_catches_a_wrong_kernel(nb, monkeypatch, fault):
         out[np.argmax((out >= 0).all(axis=1))] = -1  # one leaf loses its neighbours
         return out
 
-    faults = {"ulp": ulp, "drop": drop, "nosplit": nosplit, "lonely": lonely}
-    name = {"ulp": "qiu_rho", "drop": "visit", "nosplit": "split", "lonely": "neighbours"}[fault]
+    faults = {"ulp": ulp, "kim_ulp": kim_ulp, "drop": drop, "nosplit": nosplit, "lonely": lonely}
+    name = {"ulp": "qiu_rho", "kim_ulp": "kim_rho", "drop": "visit", "nosplit": "split"}
+    name = name.get(fault, "neighbours")
     bad_mod = _perturbed(nb, **{name: faults[fault]})
     monkeypatch.setattr(select_kernels, "resolve", lambda k=None: None if k == "numpy" else bad_mod)
     g = _grid()
     t = _table(g, 2, seed=2)
-    bad, _ = _diff_count(g, t, "numba", stitched=fault == "lonely")
+    metrics = ("kim",) if fault == "kim_ulp" else ("qiu",)
+    bad, _ = _diff_count(g, t, "numba", metrics, stitched=fault == "lonely")
     assert bad > 0
-    if fault == "ulp":  # one ulp of rho shows in rho itself, whatever the selection does
+    if fault.endswith("ulp"):  # one ulp of rho shows in rho itself, whatever the selection does
         assert bad > 10
 
 
