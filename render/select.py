@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from render import select_kernels
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
@@ -156,6 +157,7 @@ def select_patches(
     windows: np.ndarray | None = None,
     min_depth: int = 0,
     boxes: NodeBoxes | None = None,
+    kernels: str | None = None,
 ) -> Patches:
     """Leaves of all blocks' quadtrees at ``tau`` (not yet stitched: ``snap`` is zero).
 
@@ -165,7 +167,8 @@ def select_patches(
     whatever their error (where the resident level allows; ``chunk-tessellation``'s start
     depth, which bounds the depth difference of adjacent leaves). ``boxes`` (required for a
     metric that :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its
-    own box.
+    own box. ``kernels`` (``auto``, ``numba``, ``numpy``; default ``TERRASTREAM_KERNELS``)
+    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one.
     """
     check_tau(tau)
     fn = get_metric(metric)
@@ -187,9 +190,16 @@ def select_patches(
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
+    idx = np.flatnonzero(res >= 0)
+    nb = select_kernels.resolve(kernels)
+    if nb is not None:
+        parts, clamped = select_kernels.walk(
+            nb, grid, table, slots, fn, camera, float(tau), idx=idx, res=res, zr=zr, win=win,
+            bx0=bx0, by1=by1, cull=cull, min_depth=min_depth, boxes=boxes, box_slots=box_slots,
+        )  # fmt: skip
+        return _assemble(blk, parts, clamped)
     parts: list[tuple] = []
     clamped = 0
-    idx = np.flatnonzero(res >= 0)
     rows = np.zeros(len(idx), dtype=np.int64)
     cols = np.zeros(len(idx), dtype=np.int64)
     inside = np.zeros(len(idx), dtype=bool)  # disc wholly inside the polygon: no test
@@ -271,11 +281,13 @@ def _assemble(blk: np.ndarray, parts: list[tuple], clamped: int) -> Patches:
     )
 
 
-def _neighbours(patches: Patches, k: int) -> np.ndarray:
+def _neighbours(patches: Patches, k: int, nb=None) -> np.ndarray:
     """``(n, 4)`` index of the leaf across each edge (N, E, S, W) at the edge midpoint, or -1.
 
     Every edge's probe (one finest node beyond the edge midpoint) is looked up at every depth
-    in one ``searchsorted`` over the sorted leaf keys; the deepest hit wins.
+    in one ``searchsorted`` over the sorted leaf keys; the deepest hit wins. ``nb``: the
+    compiled kernels (:mod:`render.select_kernels`; the same answer, one binary search per
+    probe).
     """
     n = len(patches)
     if n == 0:
@@ -290,6 +302,8 @@ def _neighbours(patches: Patches, k: int) -> np.ndarray:
     keys = (d * nr + gr) * nc + gc
     order = np.argsort(keys)
     sk = keys[order]
+    if nb is not None:
+        return nb.neighbours(sk, order, d, gr, gc, big, nr, nc, np.unique(d))
     span = np.left_shift(1, big - d)
     fr0, fc0 = gr << (big - d), gc << (big - d)
     mid = span >> 1
@@ -320,6 +334,7 @@ def stitch(
     max_rounds: int = 64,
     boxes: NodeBoxes | None = None,
     tau: float | None = None,
+    kernels: str | None = None,
 ) -> Patches:
     """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere
     (new nodes' errors with the same node geometry as :func:`select_patches`: ``boxes``).
@@ -327,22 +342,24 @@ def stitch(
     With ``tau`` and a metric that takes boxes, a snapped edge also splits its coarser
     neighbour while the metric of the patch's error plus the edge's snapping excess
     (:func:`render.snap_error.snap_excess`) exceeds ``tau``; such an edge whose neighbour may
-    not split (its resident level) counts as clamped."""
+    not split (its resident level) counts as clamped. ``kernels``: as :func:`select_patches`'
+    (the neighbour search)."""
     k = grid.k
+    nb = select_kernels.resolve(kernels)
     fn = get_metric(metric)
     box_slots = None
     res = np.asarray(resident, dtype=np.int64)
     cur = patches
     slots = None
     for _ in range(max_rounds):
-        nb = _neighbours(cur, k)
+        nbr = _neighbours(cur, k, nb)
         spacing = k - cur.level
-        has = nb >= 0
-        s_n = np.where(has, spacing[np.maximum(nb, 0)], 0)
+        has = nbr >= 0
+        s_n = np.where(has, spacing[np.maximum(nbr, 0)], 0)
         snap = np.where(has, np.maximum(s_n - spacing[:, None], 0), 0)
         edge = k - cur.depth  # log2 node edge in samples
         bad = has & (s_n > edge[:, None])
-        victims = np.unique(nb[bad]) if bad.any() else nb[bad]
+        victims = np.unique(nbr[bad]) if bad.any() else nbr[bad]
         if victims.size:
             splittable = cur.depth[victims] + table.patch_log2 < np.minimum(
                 k, res[cur.block[victims]]
@@ -356,7 +373,7 @@ def stitch(
             snap = np.minimum(snap, cur.cells_log2[:, None])
             if tau is not None and box_slots is not None:
                 over = snap_over(cur, snap, grid, camera, fn, tau, zranges, boxes, box_slots)
-                victims = np.unique(nb[over])
+                victims = np.unique(nbr[over])
                 if victims.size:
                     keep = cur.depth[victims] + table.patch_log2 < np.minimum(
                         k, res[cur.block[victims]]

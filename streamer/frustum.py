@@ -50,26 +50,28 @@ def convex_hull(points: np.ndarray) -> np.ndarray:
     if len(pts) == 0:
         return np.zeros((0, 2))
     origin = pts.min(axis=0)
-    rel = np.unique(pts - origin, axis=0)  # sorted by x then y
-    if len(rel) <= 2:
-        return rel + origin
+    # the distinct points sorted by x then y (np.unique(axis=0)'s order, on Python floats:
+    # the same arithmetic as numpy scalars, without their cost)
+    pl = sorted(set(map(tuple, (pts - origin).tolist())))
+    if len(pl) <= 2:
+        return np.array(pl, dtype=np.float64).reshape(-1, 2) + origin
 
-    def turns_left(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    def turns_left(o: tuple, a: tuple, b: tuple) -> bool:
         """Strict left turn o -> a -> b; near-collinear (relative 1e-12) counts as not."""
         ax, ay, bx, by = a[0] - o[0], a[1] - o[1], b[0] - o[0], b[1] - o[1]
         return ax * by - ay * bx > 1e-12 * math.hypot(ax, ay) * math.hypot(bx, by)
 
-    lower: list[np.ndarray] = []
-    for p in rel:
+    lower: list[tuple] = []
+    for p in pl:
         while len(lower) >= 2 and not turns_left(lower[-2], lower[-1], p):
             lower.pop()
         lower.append(p)
-    upper: list[np.ndarray] = []
-    for p in rel[::-1]:
+    upper: list[tuple] = []
+    for p in reversed(pl):
         while len(upper) >= 2 and not turns_left(upper[-2], upper[-1], p):
             upper.pop()
         upper.append(p)
-    hull = np.array(lower[:-1] + upper[:-1])
+    hull = np.array(lower[:-1] + upper[:-1], dtype=np.float64)
     return hull + origin
 
 

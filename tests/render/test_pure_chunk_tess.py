@@ -36,6 +36,35 @@ def test_kim_metric_projects_the_nearest_sphere_point():
     assert np.isinf(inside[0])
 
 
+def test_kim_metric_is_exact_projected_of_the_nearest_point():
+    # the component-wise camera coordinates against Camera.project's matrix product
+    from streamer.lod import exact_projected
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    for yaw in (0.0, 75.0, 190.0, 300.0):
+        cam = Camera((5e5, 5e6, 900.0), yaw=yaw, pitch=-10.0, viewport=(1024, 768), far=5e4)
+        c = np.stack(
+            [rng.uniform(4.9e5, 5.1e5, n), rng.uniform(4.99e6, 5.01e6, n), rng.uniform(0, 1500, n)],
+            1,
+        )
+        r, d = rng.uniform(10, 3000, n), rng.gamma(1.0, 5.0, n)
+        d[::50] = 0.0
+        to_eye = cam.eye - c
+        dist = np.linalg.norm(to_eye, axis=1)
+        inside = dist <= r
+        p = c + to_eye * (r / np.where(inside, 1.0, dist))[:, None]
+        with np.errstate(invalid="ignore"):
+            want = exact_projected(d, p, cam)
+        want = np.where(d == 0, 0.0, np.where(inside | ~np.isfinite(want), np.inf, want))
+        got = kim_metric(d, c, r, cam)
+        fin = np.isfinite(want)
+        assert np.array_equal(fin, np.isfinite(got)) and np.array_equal(got[~fin], want[~fin])
+        # the pixel difference cancels: rounding shows at ~1e-13 px (relative up to ~1e-8)
+        np.testing.assert_allclose(got[fin], want[fin], rtol=1e-7, atol=1e-9)
+        assert fin.sum() > n // 4 and (~fin).sum() > 0  # both kinds occur
+
+
 def test_start_depth_bounds_the_level_difference_of_chunks():
     from render.strategies.chunk_tess import start_depth
 

@@ -142,6 +142,36 @@ def test_positive_controls_perturbed_kernels_are_caught(renderers, numba_kernels
     assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
 
 
+def test_positive_controls_the_fused_depth_kernel_is_checked(renderers, numba_kernels, monkeypatch):
+    # the production path runs each depth as one call (traverse_depth); break it on purpose
+    r = renderers["rough"]
+    ref, _ = get_strategy("seamless-patches", r, kernels="numpy", res_log2=3).select(
+        _cameras(r)[1], 1.0
+    )
+    nb = numba_kernels
+
+    def one_ulp(*args):
+        leaf, child, clamped, seen = nb.traverse_depth(*args)
+        if len(leaf[3]):
+            leaf[3][0, 2] = np.nextafter(leaf[3][0, 2], np.inf)
+        return leaf, child, clamped, seen
+
+    def lost_child(*args):  # the last child of each depth is not visited
+        leaf, child, clamped, seen = nb.traverse_depth(*args)
+        return leaf, tuple(c[:-1] for c in child), clamped, seen
+
+    for fault, field in ((one_ulp, "eps"), (lost_child, "depth")):
+        mod = SimpleNamespace(
+            epsilon=nb.epsilon,
+            edge_groups=nb.edge_groups,
+            disc_meets=nb.disc_meets,
+            traverse_depth=fault,
+        )
+        assert field in differences(ref, _select_with(monkeypatch, r, mod))
+    monkeypatch.undo()
+    assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
+
+
 def test_backend_selection(monkeypatch):
     assert sp_kernels.resolve("numpy") is None
     with pytest.raises(KernelUnavailableError):

@@ -175,6 +175,48 @@ def test_convex_hull_degenerate():
     assert same_polygon(sq, [(0, 0), (1, 0), (1, 1), (0, 1)])
 
 
+def _numpy_scalar_hull(points, tol: float = 1e-12) -> np.ndarray:
+    """The monotone chain on numpy scalars after ``np.unique(axis=0)`` (``convex_hull`` before
+    it moved to Python floats; ``tol`` the collinearity tolerance, changed only by the positive
+    control)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    origin = pts.min(axis=0)
+    rel = np.unique(pts - origin, axis=0)
+    if len(rel) <= 2:
+        return rel + origin
+
+    def left(o, a, b):
+        ax, ay, bx, by = a[0] - o[0], a[1] - o[1], b[0] - o[0], b[1] - o[1]
+        return ax * by - ay * bx > tol * math.hypot(ax, ay) * math.hypot(bx, by)
+
+    lower, upper = [], []
+    for chain, seq in ((lower, rel), (upper, rel[::-1])):
+        for p in seq:
+            while len(chain) >= 2 and not left(chain[-2], chain[-1], p):
+                chain.pop()
+            chain.append(p)
+    return np.array(lower[:-1] + upper[:-1]) + origin
+
+
+def test_convex_hull_is_the_numpy_scalar_chain_bit_for_bit():
+    rng = np.random.default_rng(3)
+    sets = [rng.normal(0, 1e4, (n, 2)) + 5e5 for n in (3, 5, 12, 40)]
+    t = rng.uniform(0, 1, 30)  # near-collinear: a segment with sub-tolerance wiggles
+    sets.append(np.stack([t, 2 * t + rng.normal(0, 1e-14, 30)], 1) * 1e3 + 4e6)
+    sets.append(np.repeat(rng.normal(0, 10, (6, 2)), 3, axis=0))  # duplicates
+    sets += [np.repeat([[3.0, -2.0]], 3, axis=0), [[1.0, 5.0], [1.0, 5.0], [-4.0, 5.0]]]
+    sets.append([[0.0, 1.0], [0.0, -1.0], [-0.0, 0.5], [2.0, 0.0]])  # equal x, signed zero
+    for yaw in (0.0, 33.0, 200.0):
+        cam = Camera((5e5, 5e6, 900.0), yaw=yaw, pitch=-12.0, far=3e4)
+        sets.append(cam.frustum_corners()[:, :2])
+    for pts in sets:
+        got, want = convex_hull(pts), _numpy_scalar_hull(pts)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    # positive control: the comparison sees a changed collinearity rule on the near-collinear set
+    assert not np.array_equal(convex_hull(sets[4]), _numpy_scalar_hull(sets[4], tol=-1.0))
+    assert convex_hull([[0.0, 0.0]] * 3).shape == (1, 2)
+
+
 # --- Qiu's extension --------------------------------------------------------------------------
 
 

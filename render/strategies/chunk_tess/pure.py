@@ -6,23 +6,42 @@ from __future__ import annotations
 import numpy as np
 
 from streamer.camera import Camera
-from streamer.lod import exact_projected
 
 
 def kim_metric(delta, centre_xyz, radius, camera: Camera) -> np.ndarray:
     """Pixel distance between the bounding sphere's point nearest the eye and that point raised
-    by ``delta`` (inf when the eye is inside the sphere or the point is not in front)."""
+    by ``delta`` (inf when the eye is inside the sphere or the point is not in front).
+
+    :func:`streamer.lod.exact_projected` with the camera coordinates written out component by
+    component (no matrix product, whose rounding is the BLAS library's), so the compiled twin
+    (``render._select_nb.kim_rho``) gives the same bits."""
     c = np.asarray(centre_xyz, dtype=np.float64)
     rad = np.broadcast_to(np.asarray(radius, dtype=np.float64), c.shape[:-1])
     d = np.broadcast_to(np.asarray(delta, dtype=np.float64), c.shape[:-1])
-    to_eye = camera.eye - c
-    dist = np.sqrt(np.einsum("...i,...i->...", to_eye, to_eye))
+    e = camera.eye
+    tx, ty, tz = e[0] - c[..., 0], e[1] - c[..., 1], e[2] - c[..., 2]
+    dist = np.sqrt(tx * tx + ty * ty + tz * tz)
     inside = dist <= rad
+    w, h = camera.viewport
+    cr, cu, cf = camera.right, camera.up, camera.forward
     with np.errstate(invalid="ignore", divide="ignore"):
-        p = c + to_eye * (rad / np.where(inside, 1.0, dist))[..., None]
-        rho = exact_projected(d, p, camera)
+        s = rad / np.where(inside, 1.0, dist)
+        px, py, pz = c[..., 0] + tx * s, c[..., 1] + ty * s, c[..., 2] + tz * s
+        rx, ry = px - e[0], py - e[1]
+        xy = []
+        for z in (pz, pz + d):  # the point, then the point raised by delta
+            rz = z - e[2]
+            depth = rx * cf[0] + ry * cf[1] + rz * cf[2]
+            f = np.where(depth > 0.0, camera.focal_px / depth, np.nan)
+            xr = rx * cr[0] + ry * cr[1] + rz * cr[2]
+            yu = rx * cu[0] + ry * cu[1] + rz * cu[2]
+            xy.append((w / 2.0 + xr * f, h / 2.0 - yu * f))
+        rho = np.hypot(xy[1][0] - xy[0][0], xy[1][1] - xy[0][1])
     rho = np.where(np.isfinite(rho), rho, np.inf)
     return np.where(d == 0.0, 0.0, np.where(inside, np.inf, rho))
+
+
+kim_metric.select_kernel = "kim_rho"  # render.select_kernels: compiled as _select_nb.kim_rho
 
 
 def tess_triangles(cells_log2: np.ndarray, snap: np.ndarray) -> np.ndarray:

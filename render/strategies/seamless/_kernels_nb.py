@@ -212,3 +212,67 @@ def disc_meets(idx, rows, cols, blk, x0, y0, step, dx, dy, s_dx, s_dy, radius, c
                 inside = False
         out[i] = dist2 <= r2 or (ccw and inside)
     return out
+
+
+@_jit
+def traverse_depth(
+    idx, rows, cols, d, k, c, use_win, win_r, win_c, cull_mode, cull_geo, cull, eps_args,
+    dmax, cap,
+):  # fmt: skip
+    """One depth of ``_traverse`` without the spike guard: ``_Frame.visible`` (window rule, then
+    :func:`disc_meets` where ``cull_mode`` is 1, nothing meets where it is 2: an empty hull),
+    :func:`epsilon` of the visible nodes, the split rule and the children. Returns the visible
+    nodes' leaves ``(idx, rows, cols, eps)``, the children ``(idx, rows, cols)``, the clamped
+    count and whether any node was visible. ``cull_geo`` = ``disc_meets``' ``(x0, y0, step, dx,
+    dy, s_dx, s_dy, radius)``, ``eps_args`` = :func:`epsilon`'s arguments after ``d``."""
+    n = idx.shape[0]
+    size = 1 << (k - d)
+    keep = np.ones(n, np.bool_)
+    if use_win:
+        for i in range(n):
+            keep[i] = rows[i] * size < win_r[idx[i]] and cols[i] * size < win_c[idx[i]]
+    if cull_mode == 2:
+        keep[:] = False
+    elif cull_mode == 1:
+        blk = eps_args[1]
+        x0, y0, step, dx, dy, s_dx, s_dy, radius = cull_geo
+        keep &= disc_meets(idx, rows, cols, blk, x0, y0, step, dx, dy, s_dx, s_dy, radius, cull)
+    vi = idx[keep]
+    vr = rows[keep]
+    vc = cols[keep]
+    m = vi.shape[0]
+    (
+        kk, blk, bkeys, border, slots, arr, has_arr, grows, gcols, zr,
+        x0, y0, dx, dy, ex, ey, ez, focal, tau, cc, paper, paper_rho,
+    ) = eps_args  # fmt: skip
+    eps = epsilon(
+        vi, vr, vc, d, kk, blk, bkeys, border, slots, arr, has_arr, grows, gcols, zr,
+        x0, y0, dx, dy, ex, ey, ez, focal, tau, cc, paper, paper_rho,
+    )  # fmt: skip
+    split = np.zeros(m, np.bool_)
+    clamped = 0
+    n_split = 0
+    for i in range(m):
+        want = False
+        for e in range(4):
+            if eps[i, e] > 1.0:
+                want = True
+        can = d + 1 <= dmax[vi[i]] and d + c < cap[vi[i]]
+        split[i] = want and can
+        if split[i]:
+            n_split += 1
+        elif want and d < k - c:
+            clamped += 1
+    leaf = ~split
+    ci = np.empty(4 * n_split, np.int64)
+    cr = np.empty(4 * n_split, np.int64)
+    cc2 = np.empty(4 * n_split, np.int64)
+    s = 0
+    for i in range(m):
+        if split[i]:
+            for q in range(4):
+                ci[s] = vi[i]
+                cr[s] = 2 * vr[i] + (q >> 1)
+                cc2[s] = 2 * vc[i] + (q & 1)
+                s += 1
+    return (vi[leaf], vr[leaf], vc[leaf], eps[leaf]), (ci, cr, cc2), clamped, m > 0

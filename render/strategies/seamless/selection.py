@@ -108,7 +108,11 @@ class _Frame:
         self.dmax = np.minimum(self.k - self.c, np.array(capn, dtype=np.int64) - 1)
         g = self.grid
         self.zr = st.zr
-        self.win = r.store.index.window
+        win = r.store.index.window
+        self.win = win
+        if win is not None:  # per drawn block: the last node row/column start inside the DEM
+            self.win_r = win[self.blk[:, 0], self.blk[:, 1], 2] - 1
+            self.win_c = win[self.blk[:, 0], self.blk[:, 1], 3] - 1
         self.table = st.table
         r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
         self.guard = bool(getattr(st, "spike_guard", False))
@@ -128,6 +132,9 @@ class _Frame:
         self.nb = sp_kernels.resolve(getattr(st, "kernels", None))
         poly = frustum_hull(camera, r.terrain_zrange)
         self.cull = DiscCull(poly) if poly is not None and len(poly) else None
+        #: one kernel call per depth (:meth:`fused_depth`; not with the spike guard, nor for a
+        #: kernel module without it: the per-step kernels' positive controls)
+        self.fused = self.nb is not None and not self.guard and hasattr(self.nb, "traverse_depth")
 
     def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray, table=None) -> np.ndarray:
         """Stored error (``bound``, level ``d + 1``; level ``d + r`` from ``table`` =
@@ -247,8 +254,7 @@ class _Frame:
         size = node_span(self.k, d)
         keep = np.ones(len(idx), dtype=bool)
         if self.win is not None and len(idx):
-            w = self.win[self.blk[idx, 0], self.blk[idx, 1]]
-            keep &= (rows * size < w[:, 2] - 1) & (cols * size < w[:, 3] - 1)
+            keep &= (rows * size < self.win_r[idx]) & (cols * size < self.win_c[idx])
         if self.cull is not None and len(idx) and self.nb is not None and not self.cull.empty:
             c = self.cull
             s = float(node_span(g.k, d))  # node_centres_at's span
@@ -264,12 +270,47 @@ class _Frame:
             keep &= meets
         return keep
 
+    def fused_depth(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray):
+        """:meth:`visible`, :meth:`epsilon` and the split rule of one depth in one kernel call
+        (numba, no spike guard): ``(leaves (idx, rows, cols, eps), children, clamped, any
+        visible)``; the same values as the numpy steps of :func:`_traverse`."""
+        g, k = self.grid, self.k
+        if self.cull is None:
+            mode, cull = 0, _NO_CULL
+        elif self.cull.empty:
+            mode, cull = 2, _NO_CULL
+        else:
+            c = self.cull
+            mode, cull = 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+        s = float(node_span(g.k, d))
+        geo = (float(g.x0), float(g.y0), int(g.step), float(g.dx), float(g.dy), s * g.dx,
+               s * g.dy, half_diagonal(g, d))  # fmt: skip
+        arr = self.table.depth_array(d)
+        paper = self.rho_form == "paper"
+        prho = paper_precision(self.tau, self.focal, self.c) if paper else 0.0
+        ex, ey, ez = (float(v) for v in self.eye)
+        eps_args = (
+            k, self.blk, self.bkeys, self.border, self.slots,
+            _NO_ARRAY if arr is None else arr, arr is not None, g.rows, g.cols, self.zr,
+            float(g.x0), float(g.y0), float(g.dx), float(g.dy), ex, ey, ez,
+            float(self.focal), self.tau, self.c, paper, prho,
+        )  # fmt: skip
+        use_win = self.win is not None
+        wr, wc = (self.win_r, self.win_c) if use_win else (_NO_INT, _NO_INT)
+        return self.nb.traverse_depth(
+            idx, rows, cols, d, k, self.c, use_win, wr, wc, mode, geo, cull, eps_args,
+            self.dmax, self.cap,
+        )  # fmt: skip
+
     def splittable(self, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Nodes whose children can be drawn and be finer (resident levels, bottom depth)."""
         return (d + 1 <= self.dmax[idx]) & (d + self.c < self.cap[idx])
 
 
 _NO_ARRAY = np.zeros((1, 1, 1), np.float32)  # the kernel's stand-in where a table has no depth
+_NO_INT = np.zeros(0, np.int64)
+_F0 = np.zeros(0)
+_NO_CULL = (np.zeros(2), _F0, _F0, _F0, _F0, _F0, np.zeros(0, np.bool_), True, False)
 
 
 def _block_nbrs(b: Block) -> list[Block]:
@@ -294,6 +335,16 @@ def _traverse(fr: _Frame, seeds: dict[int, tuple], out: _Leaves) -> None:
         if not parts:
             continue
         idx, rows, cols = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        if fr.fused:  # the compiled depth in one call: the same leaves
+            leaf, carry, clamped, seen = fr.fused_depth(idx, d, rows, cols)
+            if seen:
+                out.clamped += clamped
+                out.parts.append((leaf[0], np.full(len(leaf[0]), d), *leaf[1:]))
+                if not len(carry[0]):
+                    carry = None
+            else:
+                carry = None
+            continue
         keep = fr.visible(idx, d, rows, cols)
         idx, rows, cols = idx[keep], rows[keep], cols[keep]
         if not len(idx):
