@@ -1,8 +1,10 @@
 """The compiled walk of :func:`render.select.select_patches`, chosen like :mod:`tiler.kernels`:
 numba when it is installed (the ``fast`` extra), the numpy reference otherwise;
 ``TERRASTREAM_KERNELS`` (``auto``, ``numba``, ``numpy``) or ``select_patches(kernels=...)``
-picks it. numba is imported on the first selection that uses it (importing this module costs
-nothing). The walk is the reference's, one depth per step, with the per-node work of a depth in
+picks it. ``auto`` uses the compiled walk only once :func:`warm_up` has loaded it (the viewer
+does so on a background thread; the benchmarks before timing), so a one-frame ``render`` never
+waits ~1 s for numba's import and cache (importing this module costs nothing). The walk is
+the reference's, one depth per step, with the per-node work of a depth in
 two kernel calls (:mod:`render._select_nb`); Qiu's metric and Kim's (``chunk-tessellation``,
 named by its ``select_kernel`` attribute) are compiled too, any other metric (the conservative
 ones, callables, node boxes) is the reference's :func:`render.node_boxes.node_rho`. Same patches,
@@ -20,7 +22,7 @@ from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, qiu_eq7
 from tiler.grid import BlockGrid
-from tiler.kernels import pick
+from tiler.kernels import pick, requested
 from tiler.quadtree import half_diagonal, node_span
 
 _NONE = np.zeros(0)
@@ -36,10 +38,27 @@ def _load_numba() -> ModuleType | None:
     return _select_nb
 
 
+_READY: list[bool] = []  # set by warm_up(): ``auto`` may use the compiled walk
+
+
 def resolve(kernels: str | None = None) -> ModuleType | None:
     """The numba kernel module for backend ``kernels`` (default: ``TERRASTREAM_KERNELS``), or
-    ``None`` for the numpy reference."""
+    ``None`` for the numpy reference; ``auto`` only after :func:`warm_up`."""
+    name = requested() if kernels is None else kernels.strip().lower()
+    if name == "auto" and not _READY:
+        return None
     return pick(kernels, _load_numba)
+
+
+def warm_up() -> bool:
+    """Import numba and the compiled walk now (seconds the first time: a compilation; ~1 s
+    after: the import and the cache), after which ``auto`` uses it; whether it is available."""
+    if requested() == "numpy":
+        return False
+    mod = _load_numba()
+    if mod is not None and not _READY:
+        _READY.append(True)
+    return mod is not None
 
 
 def walk(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from render import select_kernels
 from render.errors import RenderError
 from render.pipeline import ViewOptions
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
@@ -327,6 +329,9 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     except BaseException:
         r.close()
         raise
+    # the compiled selection walk, loaded beside the first frames (which use the numpy one)
+    warm = threading.Thread(target=select_kernels.warm_up, name="terrastream-warm-select")
+    warm.start()
     t_prev = time.perf_counter()
     try:
         while not glfw.window_should_close(win) and not state["quit"]:
@@ -383,6 +388,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             n += 1
     finally:
         session.close()
+        warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds
         r.close()
     return ViewResult(n, last, state["tau"], mb, shot)
 

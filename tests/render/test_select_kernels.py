@@ -155,3 +155,19 @@ def test_backend_names():
     assert select_kernels.resolve("numpy") is None
     with pytest.raises(KernelUnavailableError, match="kernels="):
         select_kernels.resolve("fortran")
+
+
+def test_auto_uses_the_compiled_walk_only_after_warm_up(monkeypatch, nb):
+    """A one-frame render never waits for numba: ``auto`` is the numpy walk until
+    ``warm_up``; explicit backends are unaffected (and ``numpy`` never warms)."""
+    monkeypatch.setattr(select_kernels, "_READY", [])
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "auto")
+    assert select_kernels.resolve() is None
+    assert select_kernels.resolve("auto") is None
+    assert select_kernels.resolve("numba") is nb  # explicit: no warm-up needed
+    assert select_kernels.warm_up() is True
+    assert select_kernels.resolve() is nb
+    monkeypatch.setattr(select_kernels, "_READY", [])
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "numpy")
+    assert select_kernels.warm_up() is False
+    assert select_kernels.resolve() is None and select_kernels._READY == []
