@@ -166,6 +166,7 @@ class TradeoffRow:
     longest_gap_m: float = 0.0  # longest gap edge, metres
     terrain_covered: float = 1.0  # share of in-view terrain samples the drawn surface covers
     nodata_covered: float = 0.0  # share of in-view nodata samples it covers
+    uncovered_px: float = 0.0  # screen distance of an uncovered terrain sample to drawn terrain
     terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
     nodata_in_view: int = 0
     near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
@@ -261,6 +262,7 @@ def tradeoff(
             longest_gap_m=wt.longest_gap_m,
             terrain_covered=cov.terrain_covered,
             nodata_covered=cov.nodata_covered,
+            uncovered_px=cov.uncovered_px,
             terrain_in_view=cov.terrain_in_view,
             nodata_in_view=cov.nodata_in_view,
             near_clipped_samples=cov.near_clipped,
