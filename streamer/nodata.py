@@ -5,7 +5,7 @@ samples and no hole is bridged. The renderer raises the stored errors of such no
 the levels the renderer then draws (docs/RENDER.md, "Precision and extremes").
 
 Two rules (:data:`NODATA_RULES`): ``"full"`` is the one above (issue 12 item 2, every
-strategy). ``"gap"`` (``qiu`` and ``chunk-tessellation``) keeps the stored errors and gives each
+strategy). ``"gap"`` (``qiu`` only) keeps the stored errors and gives each
 mixed cell its horizontal extent instead (:func:`gap_widths`): the selection refines it only
 while that extent can project to more than ``min(τ, 1)`` px, so every valid sample the level
 drops, and every hole it bridges, lies in a cell no wider than that on screen
