@@ -4,7 +4,7 @@ Usage::
 
     python bench/bound_fov.py [--taus 0.5,1,2] [--fovs 5,45,120,170] [--size 320x240]
                               [--frames 8] [--stores synth,real] [--configs LABELS]
-                              [--out bench/results/bound_fov.json]
+                              [--out bench/results/bound_fov.json] [--work DIR]
 
 Per store and vertical FOV: the middle camera of ``make_path(store, "default")`` (the camera
 ``terrastream compare`` measures) with its ``fov_y`` replaced, and per τ
@@ -14,8 +14,12 @@ configurations: ``qiu`` with the metrics ``qiu`` (Eq. 7), ``conservative`` and
 ``conservative-view`` (:mod:`streamer.lod`; it selects with node boxes and the snapped-edge
 check, :mod:`render.node_boxes`), and ``geometry-splitting`` (the issue's reference for "few
 triangles"), all with the default patches of ``2**4`` cells; and ``conservative-view`` with
-patches of ``2**3`` and ``2**2`` cells (``cons-view-p3``, ``cons-view-p2``). For each view the
-script checks issue 12 item 5's conditions on the ``conservative-view`` rows: max error ≤ τ;
+patches of ``2**3`` and ``2**2`` cells (``cons-view-p3``, ``cons-view-p2``). The ``-gap``
+configurations are the same with qiu's nodata rule ``"gap"`` (:mod:`streamer.nodata`; the
+others use ``"full"``). Besides the coverage of terrain and nodata each row has ``uncovered_px``
+(how far on screen an undrawn terrain sample lies from the drawn terrain,
+:func:`render.coverage.uncovered_px`). For each view the script checks issue 12 item 5's
+conditions on the ``conservative-view`` rows: max error (or ``uncovered_px`` when larger) ≤ τ;
 triangles ≤ 1.25 × the cheapest configuration that also stays ≤ τ; triangles ≤ Eq. 7's (at the
 default patches). ``--configs`` runs a subset (the verdicts need ``eq7`` among them).
 
@@ -44,17 +48,23 @@ from tiler.store import open_store  # noqa: E402
 
 BWORK = WORK / "bound"
 DEFAULT_OUT = RESULTS / "bound_fov.json"
-#: (label, strategy, metric, patch_log2)
+#: (label, strategy, metric, patch_log2, nodata rule); ``-gap``: qiu's nodata rule ``"gap"``
+#: (:data:`streamer.nodata.NODATA_RULES`), the others the rule ``"full"``
 CONFIGS = (
-    ("eq7", "qiu", "qiu", 4),
-    ("conservative", "qiu", "conservative", 4),
-    ("cons-view", "qiu", "conservative-view", 4),
-    ("geom-split", "geometry-splitting", "qiu", 4),
-    ("cons-view-p3", "qiu", "conservative-view", 3),
-    ("cons-view-p2", "qiu", "conservative-view", 2),
+    ("eq7", "qiu", "qiu", 4, "full"),
+    ("conservative", "qiu", "conservative", 4, "full"),
+    ("cons-view", "qiu", "conservative-view", 4, "full"),
+    ("geom-split", "geometry-splitting", "qiu", 4, "full"),
+    ("cons-view-p3", "qiu", "conservative-view", 3, "full"),
+    ("cons-view-p2", "qiu", "conservative-view", 2, "full"),
+    ("eq7-gap", "qiu", "qiu", 4, "gap"),
+    ("cons-view-gap", "qiu", "conservative-view", 4, "gap"),
+    ("cons-view-p3-gap", "qiu", "conservative-view", 3, "gap"),
+    ("cons-view-p2-gap", "qiu", "conservative-view", 2, "gap"),
 )
 #: the configurations item 5's conditions are checked on
-NEW = ("cons-view", "cons-view-p3", "cons-view-p2")
+NEW = ("cons-view", "cons-view-p3", "cons-view-p2", "cons-view-gap", "cons-view-p3-gap",
+       "cons-view-p2-gap")  # fmt: skip
 
 
 def _cli(*args: str) -> None:
@@ -62,17 +72,24 @@ def _cli(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "cli.main", *args], cwd=REPO, check=True)
 
 
-def prepare() -> dict[str, Path]:
-    """The two stores, made when missing."""
-    BWORK.mkdir(parents=True, exist_ok=True)
-    synth, tif = BWORK / "s1025.zarr", BWORK / "s1025.tif"
+def prepare(work: Path = BWORK) -> dict[str, Path]:
+    """The two stores under ``work``, made when missing."""
+    work.mkdir(parents=True, exist_ok=True)
+    synth, tif = work / "s1025.zarr", work / "s1025.tif"
     if not synth.exists():
         _cli("synth", str(tif), "--size", "1025", "--seed", "1", "--overwrite")
         _cli("tile", str(tif), str(synth), "--block-size", "257", "--workers", "1")
-    real = BWORK / "n44w072_auto.zarr"
+    real = work / "n44w072_auto.zarr"
     if not real.exists():
         _cli("tile", str(REAL_HGT), str(real), "--dst-crs", "auto", "--block-size", "257")
     return {"synth": synth, "real": real}
+
+
+def _error(row: dict) -> float:
+    """A row's error for item 5: the measured max over the drawn samples, or the screen
+    distance of an undrawn terrain sample to the drawn terrain when larger (the measured error
+    does not see samples that are not drawn, :func:`render.coverage.uncovered_px`)."""
+    return max(row["max_screen_error_px"], row.get("uncovered_px", 0.0))
 
 
 def verdicts(rows: list[dict]) -> list[dict]:
@@ -80,11 +97,11 @@ def verdicts(rows: list[dict]) -> list[dict]:
     out = []
     for fov, tau in sorted({(r["fov"], r["tau"]) for r in rows}):
         here = {r["config"]: r for r in rows if r["fov"] == fov and r["tau"] == tau}
-        ok = [r for r in here.values() if r["max_screen_error_px"] <= tau]
+        ok = [r for r in here.values() if _error(r) <= tau]
         cheapest = min(ok, key=lambda r: r["triangles"]) if ok else None
         for name in (n for n in NEW if n in here and "eq7" in here):
             new = here[name]
-            within = new["max_screen_error_px"] <= tau
+            within = _error(new) <= tau
             ratio = new["triangles"] / cheapest["triangles"] if cheapest else float("nan")
             eq7 = new["triangles"] <= here["eq7"]["triangles"]
             out.append(
@@ -122,13 +139,16 @@ def run(
         try:
             for fov in fovs:
                 cam = replace(base, fov_y=fov)
-                for label, lod, metric, _ in (c for c in configs if c[3] == p):
+                for label, lod, metric, _, rule in (c for c in configs if c[3] == p):
                     t0 = time.perf_counter()
+                    opts = {"nodata": rule} if lod == "qiu" else {}
                     for tr in tradeoff(
                         store, cam, taus, renderer=r, repeats=1, lod=lod, metric=metric,
-                        patch_log2=p,
+                        patch_log2=p, lod_options=opts,
                     ):  # fmt: skip
-                        rows.append(dict(asdict(tr), config=label, fov=fov, patch_log2=p))
+                        rows.append(
+                            dict(asdict(tr), config=label, fov=fov, patch_log2=p, nodata=rule)
+                        )
                     rows[-1]["seconds"] = time.perf_counter() - t0
         finally:
             r.close()
@@ -138,7 +158,7 @@ def run(
 
 HEADER = (
     f"{'store':>6} {'fov':>4} {'tau':>4} {'config':>13} {'triangles':>10} {'max px':>8} "
-    f"{'p99 px':>7} {'terrain':>8}"
+    f"{'p99 px':>7} {'terrain':>8} {'nodata':>7} {'undrawn px':>10}"
 )
 
 
@@ -147,7 +167,8 @@ def fmt(store: str, r: dict[str, Any]) -> str:
     return (
         f"{store:>6} {r['fov']:>4g} {r['tau']:>4g} {r['config']:>13} {r['triangles']:>10,} "
         f"{r['max_screen_error_px']:>8.2f} {r['p99_screen_error_px']:>7.2f} "
-        f"{100 * r['terrain_covered']:>7.1f}%"
+        f"{100 * r['terrain_covered']:>7.2f}% {100 * r['nodata_covered']:>6.2f}% "
+        f"{r['uncovered_px']:>10.2f}"
     )
 
 
@@ -170,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stores", default="synth,real")
     ap.add_argument("--out", default=str(DEFAULT_OUT))
     ap.add_argument(
+        "--work", default=str(BWORK), help="folder of the two stores (made when missing)"
+    )
+    ap.add_argument(
         "--configs", default=",".join(c[0] for c in CONFIGS), help="labels to run (default all)"
     )
     a = ap.parse_args(argv)
@@ -180,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     taus = [float(t) for t in a.taus.split(",")]
     fovs = [float(f) for f in a.fovs.split(",")]
     w, h = (int(v) for v in a.size.split("x"))
-    stores = {k: v for k, v in prepare().items() if k in a.stores.split(",")}
+    stores = {k: v for k, v in prepare(Path(a.work)).items() if k in a.stores.split(",")}
     results: dict[str, Any] = {"machine": machine_info(), "size": [w, h], "taus": taus}
     print(HEADER)
     for name, path in stores.items():
@@ -192,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
         for v in vs:
             print(fmt_verdict(name, v))
         print(f"# {name}: {time.perf_counter() - t0:.0f} s")
-        results[name] = {"store": str(path.relative_to(REPO)), "rows": rows, "verdicts": vs}
+        store = path.relative_to(REPO) if path.is_relative_to(REPO) else Path("--work") / path.name
+        results[name] = {"store": str(store), "rows": rows, "verdicts": vs}
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))

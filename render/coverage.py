@@ -8,6 +8,10 @@ drawn triangles cover, the share of in-view nodata samples they cover (a hole dr
 the terrain samples that lie in the lateral view in front of the camera but nearer than its near
 plane (clipped by it, so not measured as error). A view with no terrain sample in it is an error
 (:class:`render.errors.EmptyViewError`), not a perfect row.
+
+The screen error counts drawn samples only, so a rule that drops terrain could look perfect;
+:func:`uncovered_px` measures how far the dropped terrain lies from the drawn terrain on screen
+(the nodata rule ``"gap"`` claims at most ``min(τ, 1)`` px, :mod:`streamer.nodata`).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from render import cracks, measure
 from render.errors import EmptyViewError
 from render.select import Patches
 
-__all__ = ["Coverage", "EmptyViewError", "coverage", "in_view_samples"]
+__all__ = ["Coverage", "EmptyViewError", "coverage", "in_view_samples", "uncovered_px"]
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
 
@@ -35,6 +39,7 @@ class Coverage:
     terrain_covered: float  # share of in-view terrain samples under the drawn surface
     nodata_covered: float  # share of in-view nodata samples under it (0 when none in view)
     near_clipped: int  # terrain samples in the lateral view nearer than the near plane
+    uncovered_px: float = 0.0  # undrawn terrain's screen distance to drawn terrain (px)
 
 
 def in_view_samples(
@@ -42,8 +47,16 @@ def in_view_samples(
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Global keys (``row * (cols * step + 1) + col``) of the in-view terrain samples and
     in-view nodata samples of the reference selection ``ref``, and the near-clipped count."""
+    terrain, _, nodata, clipped = _in_view(ref, grid, camera, heights)
+    return terrain, nodata, clipped
+
+
+def _in_view(
+    ref: Patches, grid: BlockGrid, camera: Camera, heights: Callable[[int], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """:func:`in_view_samples` with the terrain samples' heights (second, same order)."""
     wg = grid.cols * grid.step + 1
-    terrain, nodata, clipped = [], [], []
+    terrain, nodata, clipped, th = [], [], [], []
     zs = []
     for b, rows, cols, _ in measure.lod_surface(ref, grid.k, heights):
         h = heights(b)[rows, cols]
@@ -53,6 +66,7 @@ def in_view_samples(
         x, y = grid.sample_xy(gr, gc)
         _, _, _, keep = measure.project_in_view(camera, x[ok], y[ok], h[ok])
         terrain.append((gr[ok] * wg + gc[ok])[keep])
+        th.append(h[ok][keep])
         if ok.any():
             zs.append((float(h[ok].min()), float(h[ok].max())))
         clipped.append((gr[ok] * wg + gc[ok])[_near_clipped(camera, x[ok], y[ok], h[ok])])
@@ -64,7 +78,84 @@ def in_view_samples(
         _, _, _, keep = measure.project_in_view(camera, x, y, np.full(x.shape, zmid))
         nd.append((gr * wg + gc)[keep])
     cat = lambda parts: np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)  # noqa: E731
-    return cat(terrain), cat(nd), len(cat(clipped))
+    keys, first = (
+        np.unique(np.concatenate(terrain), return_index=True)
+        if terrain
+        else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    )
+    zs_t = np.concatenate(th)[first] if th else np.zeros(0)
+    return keys, zs_t, cat(nd), len(cat(clipped))
+
+
+def _cut(shift: int, n: int) -> slice:
+    """The part of an axis of length ``n`` that a shift by ``shift`` lands on."""
+    return slice(max(0, shift), n - max(0, -shift))
+
+
+def uncovered_px(
+    grid: BlockGrid,
+    camera: Camera,
+    terrain: np.ndarray,
+    heights: np.ndarray,
+    covered: np.ndarray,
+    radius: int = 256,
+) -> float:
+    """Largest screen distance (px) from an uncovered in-view terrain sample to a covered
+    in-view terrain sample near it on the sample lattice (both at their heights; found by
+    Euclidean-min propagation over 8 neighbours, at most ``radius`` rounds); 0 when every one
+    is covered, ``inf`` when one is left without a covered sample. ``terrain``: sorted global
+    keys, ``heights`` theirs, ``covered``: their covered mask. The sample found need not be the
+    nearest on screen, so the figure is at least the distance to the nearest drawn sample."""
+    if covered.all() or not len(terrain):
+        return 0.0
+    if not covered.any():
+        return float("inf")
+    wg = grid.cols * grid.step + 1
+    rows, cols = terrain // wg, terrain % wg
+    r0, c0 = int(rows.min()), int(cols.min())
+    shape = (int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
+    rr, cc = rows - r0, cols - c0
+    # nearest covered sample per lattice point by Euclidean-min propagation over 8 neighbours
+    big = np.iinfo(np.int64).max // 4
+    near_r = np.full(shape, -1, np.int64)
+    near_c = np.full(shape, -1, np.int64)
+    near_r[rr[covered], cc[covered]] = rr[covered]
+    near_c[rr[covered], cc[covered]] = cc[covered]
+    gr, gc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    dist = np.where(near_r >= 0, 0, big)
+    todo_r, todo_c = rr[~covered], cc[~covered]
+    stop = radius  # once all are reached at step i, a Euclidean-nearer one is within 1.5 i
+    for i in range(1, radius + 1):
+        if i > stop:
+            break
+        changed = False
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)):
+            src = (_cut(-dr, shape[0]), _cut(-dc, shape[1]))
+            dst = (_cut(dr, shape[0]), _cut(dc, shape[1]))
+            cr, ccol = near_r[src], near_c[src]
+            d = np.where(cr >= 0, (gr[dst] - cr) ** 2 + (gc[dst] - ccol) ** 2, big)
+            better = d < dist[dst]
+            if better.any():
+                changed = True
+                dist[dst] = np.where(better, d, dist[dst])
+                near_r[dst] = np.where(better, cr, near_r[dst])
+                near_c[dst] = np.where(better, ccol, near_c[dst])
+        if not changed:
+            break
+        if stop == radius and (near_r[todo_r, todo_c] >= 0).all():
+            stop = min(radius, int(np.ceil(1.5 * i)) + 1)
+    nr, nc = near_r[todo_r, todo_c], near_c[todo_r, todo_c]
+    if (nr < 0).any():
+        return float("inf")
+    lookup = np.searchsorted(terrain, (nr + r0) * wg + (nc + c0))
+    pts = []
+    for r_, c_, z_ in (
+        (todo_r + r0, todo_c + c0, heights[~covered]),
+        (nr + r0, nc + c0, heights[lookup]),
+    ):
+        x, y = grid.sample_xy(r_, c_)
+        pts.append(np.stack(camera.project(np.stack([x, y, z_], -1))[:2], -1))
+    return float(np.hypot(*(pts[0] - pts[1]).T).max())
 
 
 def _near_clipped(camera: Camera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -90,7 +181,7 @@ def coverage(
     """Coverage of the drawn triangles (global ``(col, row)`` corners, drawn heights) over
     the in-view samples of the reference selection ``ref``; :class:`EmptyViewError` when the
     view holds no terrain sample."""
-    terrain, nodata, clipped = in_view_samples(ref, grid, camera, heights)
+    terrain, terrain_h, nodata, clipped = _in_view(ref, grid, camera, heights)
     if not len(terrain):
         raise EmptyViewError(
             f"the view from {tuple(round(v, 1) for v in camera.position)} (yaw {camera.yaw:g}, "
@@ -103,6 +194,8 @@ def coverage(
     rows, cols, _ = measure.rasterise(tri, h) if len(tri) else (np.zeros(0, np.int64),) * 3
     wg = grid.cols * grid.step + 1
     covered = np.unique(np.asarray(rows, np.int64) * wg + np.asarray(cols, np.int64))
-    t = float(np.isin(terrain, covered, assume_unique=True).mean())
+    hit = np.isin(terrain, covered, assume_unique=True)
+    t = float(hit.mean())
     n = float(np.isin(nodata, covered, assume_unique=True).mean()) if len(nodata) else 0.0
-    return Coverage(len(terrain), len(nodata), t, n, clipped)
+    gap = uncovered_px(grid, camera, terrain, terrain_h, hit)
+    return Coverage(len(terrain), len(nodata), t, n, clipped, gap)

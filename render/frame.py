@@ -38,7 +38,7 @@ from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
 from render.node_boxes import NodeBoxes
 from render.select import Patches, PatchTable
 from streamer.camera import Camera
-from streamer.nodata import mixed_nodes, raise_mixed
+from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
 from tiler.crs import require_projected
 from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
@@ -258,20 +258,35 @@ class FrameServices:
                 boxes.update(b, lv, grid, bound, (zr[0], zr[1]), valid)
         return boxes
 
-    def fill_table(self, table: PatchTable, blocks: list[Block], field: str) -> None:
-        """Add the error ``field`` (:meth:`read_errors`) of the ``blocks`` not yet in ``table``."""
+    def fill_table(
+        self, table: PatchTable, blocks: list[Block], field: str, nodata: str = "full"
+    ) -> None:
+        """Add the error ``field`` (:meth:`read_errors` with the nodata rule ``nodata``) of the
+        ``blocks`` not yet in ``table``; the field ``"gap"`` is :meth:`gap_field`."""
         for b in blocks:
             if b not in table:
-                table.add(b, self.read_errors(b)[field])
+                gap = field == "gap"
+                table.add(b, self.gap_field(b) if gap else self.read_errors(b, nodata)[field])
 
-    def read_errors(self, block: Block) -> dict[str, list[np.ndarray]]:
-        """The block's stored error fields with every node (depths ``0..k-1``) whose closed
-        footprint holds both valid and masked samples raised to ``inf`` (docs/RENDER.md,
-        "Precision and extremes"): a mask boundary is refined to full resolution at every τ,
-        so terrain beside nodata is drawn from its valid samples and no hole is bridged."""
+    def gap_field(self, block: Block) -> list[np.ndarray]:
+        """Per depth ``0..k-1`` the diagonal in metres of each mixed cell, 0 elsewhere
+        (:func:`streamer.nodata.gap_widths`; all 0 without a mask boundary)."""
+        mask = self.mask(block)
+        k = self.k
+        if mask is None or mask.all() or not mask.any():
+            return [np.zeros((1 << d, 1 << d), np.float32) for d in range(k)]
+        return gap_widths(mask, k, self.grid.dx, self.grid.dy)
+
+    def read_errors(self, block: Block, nodata: str = "full") -> dict[str, list[np.ndarray]]:
+        """The block's stored error fields; with the nodata rule ``"full"`` every node
+        (depths ``0..k-1``) whose closed footprint holds both valid and masked samples is
+        raised to ``inf`` (docs/RENDER.md, "Precision and extremes"): a mask boundary is
+        refined to full resolution at every τ, so terrain beside nodata is drawn from its valid
+        samples and no hole is bridged. With ``"gap"`` the stored fields (the selection then
+        refines mixed cells by :meth:`gap_field`)."""
         errors = self.store.read_errors(block)
         mask = self.mask(block)
-        if mask is None or mask.all() or not mask.any():
+        if check_rule(nodata) == "gap" or mask is None or mask.all() or not mask.any():
             return errors
         mixed = mixed_nodes(mask, self.k)
         return {name: raise_mixed(field, mixed) for name, field in errors.items()}

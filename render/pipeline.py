@@ -166,6 +166,7 @@ class TradeoffRow:
     longest_gap_m: float = 0.0  # longest gap edge, metres
     terrain_covered: float = 1.0  # share of in-view terrain samples the drawn surface covers
     nodata_covered: float = 0.0  # share of in-view nodata samples it covers
+    uncovered_px: float = 0.0  # screen distance of an uncovered terrain sample to drawn terrain
     terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
     nodata_in_view: int = 0
     near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
@@ -261,6 +262,7 @@ def tradeoff(
             longest_gap_m=wt.longest_gap_m,
             terrain_covered=cov.terrain_covered,
             nodata_covered=cov.nodata_covered,
+            uncovered_px=cov.uncovered_px,
             terrain_in_view=cov.terrain_in_view,
             nodata_in_view=cov.nodata_in_view,
             near_clipped_samples=cov.near_clipped,
@@ -297,21 +299,22 @@ def drawn_cracks(
 TABLE_HEADER = (
     f"{'tau':>5} {'metric':>12} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'ref ms':>7} "
     f"{'max px':>7} {'p99 px':>7} {'PSNR':>6} {'changed':>8} {'cracks':>6} {'above':>6} "
-    f"{'open':>5} {'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'clipped':>7} "
-    f"{'resident MiB':>12}"
+    f"{'open':>5} {'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'undrawn px':>10} "
+    f"{'clipped':>7} {'resident MiB':>12}"
 )
 
 
 def format_row(r: TradeoffRow) -> str:
     """One line of the trade-off table (cracks seen from the camera and from above, open and
-    gap edges, largest gap, coverage of terrain and nodata, near-clipped samples)."""
+    gap edges, largest gap, coverage of terrain and nodata, how far undrawn terrain lies from
+    drawn terrain on screen, near-clipped samples)."""
     return (
         f"{r.tau:>5g} {r.metric:>12} {r.triangles:>10,} {r.selection_ms:>7.2f} "
         f"{r.frame_ms:>7.1f} {r.reference_frame_ms:>7.1f} {r.max_screen_error_px:>7.2f} "
         f"{r.p99_screen_error_px:>7.2f} {r.psnr_db:>6.1f} {100 * r.changed_share:>7.2f}% "
         f"{r.crack_pixels:>6} {r.crack_pixels_above:>6} {r.open_edges:>5} {r.gap_edges:>5} "
         f"{r.max_gap_m:>7.2f} {100 * r.terrain_covered:>6.1f}% {100 * r.nodata_covered:>5.1f}% "
-        f"{r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>12.2f}"
+        f"{r.uncovered_px:>10.2f} {r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>12.2f}"
     )
 
 

@@ -35,7 +35,7 @@ from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
-from streamer.lod import Metric, get_metric
+from streamer.lod import Metric, get_metric, horizontal_px
 from tiler.grid import BlockGrid
 from tiler.quadtree import (
     block_origins,
@@ -158,6 +158,7 @@ def select_patches(
     min_depth: int = 0,
     boxes: NodeBoxes | None = None,
     kernels: str | None = None,
+    gaps: PatchTable | None = None,
 ) -> Patches:
     """Leaves of all blocks' quadtrees at ``tau`` (not yet stitched: ``snap`` is zero).
 
@@ -168,7 +169,12 @@ def select_patches(
     depth, which bounds the depth difference of adjacent leaves). ``boxes`` (required for a
     metric that :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its
     own box. ``kernels`` (``auto``, ``numba``, ``numpy``; default ``TERRASTREAM_KERNELS``)
-    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one.
+    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one
+    (always this one with ``gaps``).
+    own box. ``gaps`` (the nodata rule ``"gap"``: per node the widest mixed cell of its level,
+    :meth:`render.frame.FrameServices.gap_field`, holding every drawn block) also splits a
+    node while that cell can project to more than ``min(tau, 1)`` px
+    (:func:`streamer.lod.horizontal_px`).
     """
     check_tau(tau)
     fn = get_metric(metric)
@@ -186,12 +192,17 @@ def select_patches(
         grid.check_block(*(int(v) for v in blk[int(np.argmax(outside))]))
     slots = table.slots(blk)
     box_slots = node_box_slots(fn, boxes, blk, res)
+    gap_slots = None if gaps is None else gaps.slots(blk[res >= 0])
+    gap_of = np.full(m, -1, np.int64)
+    if gap_slots is not None:
+        gap_of[res >= 0] = gap_slots
+    gap_scale = tau / min(tau, 1.0) if tau > 0 else 0.0
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 2
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
     idx = np.flatnonzero(res >= 0)
-    nb = select_kernels.resolve(kernels)
+    nb = select_kernels.resolve(kernels) if gaps is None else None  # gap rule: numpy walk
     if nb is not None:
         parts, clamped = select_kernels.walk(
             nb, grid, table, slots, fn, camera, float(tau), idx=idx, res=res, zr=zr, win=win,
@@ -227,6 +238,11 @@ def select_patches(
         delta = table.delta(slots[idx], depth, rows, cols)
         bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
         rho = node_rho(fn, grid, delta, cx, cy, depth, zr[idx], camera, bx, rows, cols)
+        if gaps is not None and gap_scale > 0:
+            w = gaps.delta(gap_of[idx], depth, rows, cols)
+            if (w > 0).any():  # rho > tau also when the gap projects past min(tau, 1) px
+                g = node_rho(horizontal_px, grid, w, cx, cy, depth, zr[idx], camera, bx, rows, cols)
+                rho = np.maximum(rho, g * gap_scale)
         r_idx = res[idx]
         level = np.minimum(min(k, depth + p), r_idx)
         if depth + p >= k:

@@ -175,6 +175,47 @@ def conservative_view(
     return np.where(unseen, 0.0, rho)
 
 
+def horizontal_px(
+    width: np.ndarray,
+    centre_xyz: np.ndarray,
+    radius: np.ndarray,
+    camera: Camera,
+    half_extent: np.ndarray | None = None,
+) -> np.ndarray:
+    """Upper bound in pixels on the projected length of any in-view segment of length ``width``
+    (metres, any direction) inside the node's sphere ``(centre, radius)`` or, with
+    ``half_extent``, its box (the nodata rule ``"gap"``: the extent of a mixed cell).
+
+    ``rho = f width sqrt(1 + Q^2) / z_min``: the rate of a unit direction ``u`` is
+    ``(f/z)(u_xy - q u_z)``, and ``[I | -q]`` has largest singular value ``sqrt(1 + |q|^2)``
+    (:func:`conservative`), with ``|q| <= Q = min(L / z_min, T)`` along the segment
+    (:func:`conservative_view`'s ``L``, ``T`` = tan of the half diagonal FOV). Unlike the
+    vertical metrics it is not foreshortened looking straight down (a horizontal gap is seen
+    whole from above). Same ``inf`` and 0 cases as :func:`conservative_view`.
+    """
+    d, rel = _inputs(width, centre_xyz, camera)
+    basis = np.stack([camera.right, camera.up, camera.forward])
+    c = rel @ basis.T
+    cz, c_lat = c[..., 2], np.hypot(c[..., 0], c[..., 1])
+    if half_extent is None:
+        r = np.broadcast_to(np.asarray(radius, dtype=np.float64), d.shape)
+        wz, lat = r, c_lat + r
+    else:
+        h = np.abs(np.broadcast_to(np.asarray(half_extent, dtype=np.float64), c.shape))
+        w = h @ np.abs(basis).T
+        wz = w[..., 2]
+        r = np.linalg.norm(h, axis=-1)
+        ax, ay = np.abs(c[..., 0]), np.abs(c[..., 1])
+        lat = np.minimum(c_lat + r, np.hypot(ax + w[..., 0], ay + w[..., 1]))
+    z_min, z_max = cz - wz, cz + wz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.minimum(lat / z_min, camera.tan_half_diagonal)
+        rho = camera.focal_px * d * np.sqrt(1 + q * q) / z_min
+        rho = np.where(z_min > camera.near, rho, np.inf)
+    unseen = (z_max < camera.near) | (z_min > camera.far) | (d == 0.0)
+    return np.where(unseen, 0.0, rho)
+
+
 def exact_projected(delta: np.ndarray, points: np.ndarray, camera: Camera) -> np.ndarray:
     """Jung & Han's exact screen error: pixel distance between B and B + delta*up (NaN behind)."""
     p = np.asarray(points, dtype=np.float64)

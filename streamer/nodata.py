@@ -2,7 +2,14 @@
 masked samples is refined to full resolution, so terrain beside nodata is drawn from its valid
 samples and no hole is bridged. The renderer raises the stored errors of such nodes to ``inf``
 (:func:`raise_mixed`); the loader hands the session the same errors, so the session streams
-the levels the renderer then draws (docs/RENDER.md, "Precision and extremes")."""
+the levels the renderer then draws (docs/RENDER.md, "Precision and extremes").
+
+Two rules (:data:`NODATA_RULES`): ``"full"`` is the one above (issue 12 item 2, every
+strategy). ``"gap"`` (``qiu`` only) keeps the stored errors and gives each
+mixed cell its horizontal extent instead (:func:`gap_widths`): the selection refines it only
+while that extent can project to more than ``min(τ, 1)`` px, so every valid sample the level
+drops, and every hole it bridges, lies in a cell no wider than that on screen
+(:func:`render.select.select_patches`)."""
 
 from __future__ import annotations
 
@@ -23,6 +30,32 @@ def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
         anym = anym.reshape(n, 2, n, 2).any(axis=(1, 3))
         out.append(anyv & anym)
     return out[::-1]
+
+
+#: ``"full"``: a mixed node is refined to full resolution at every τ (the loader always uses it,
+#: so it streams at least what either rule draws); ``"gap"``: only while its cell's horizontal
+#: extent projects to more than ``min(τ, 1)`` px
+NODATA_RULES = ("full", "gap")
+
+
+def check_rule(rule: str) -> str:
+    """``rule`` when it is one of :data:`NODATA_RULES`, else a ``ValueError`` naming them."""
+    if rule not in NODATA_RULES:
+        raise ValueError(f"unknown nodata rule {rule!r}; choose one of {list(NODATA_RULES)}")
+    return rule
+
+
+def gap_widths(valid: np.ndarray, k: int, dx: float, dy: float) -> list[np.ndarray]:
+    """Per depth ``0..k-1``, ``(2**d, 2**d)`` float32: the diagonal in metres of a level-``d``
+    cell (``2**(k-d)`` samples of ``dx`` × ``dy``) where the cell is mixed
+    (:func:`mixed_nodes`), 0 elsewhere. Drawn at level ``d``, a mixed cell can drop valid
+    samples or bridge masked ones only inside itself, so this is the widest horizontal gap it
+    can leave; level ``k`` (full resolution) leaves none."""
+    mixed = mixed_nodes(valid, k)
+    return [
+        np.where(mixed[d], np.float32((1 << (k - d)) * np.hypot(dx, dy)), np.float32(0.0))
+        for d in range(k)
+    ]
 
 
 def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.ndarray]:

@@ -213,7 +213,7 @@ def compare(
 HEADER = (
     f"{'strategy':>20} {'tau':>5} {'tris/frame':>10} {'CPU ms':>7} {'GPU ms':>7} "
     f"{'max px':>7} {'p99 px':>7} {'mean px':>7} {'cracks':>6} {'above':>6} {'open':>5} "
-    f"{'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'clipped':>7} "
+    f"{'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'undrawn px':>10} {'clipped':>7} "
     f"{'pop path':>13} {'pop dolly':>13} {'data MiB':>8} {'own MiB':>7}"
 )
 
@@ -232,7 +232,8 @@ def format_row(row: dict[str, Any]) -> str:
         f"{row['p99_screen_error_px']:>7.2f} {row['mean_screen_error_px']:>7.3f} "
         f"{row['crack_pixels']:>6} {row['crack_pixels_above']:>6} {row['open_edges']:>5} "
         f"{row['gap_edges']:>5} {row['max_gap_m']:>7.2f} {100 * row['terrain_covered']:>6.1f}% "
-        f"{100 * row['nodata_covered']:>5.1f}% {row['near_clipped_samples']:>7} "
+        f"{100 * row['nodata_covered']:>5.1f}% {row.get('uncovered_px', 0.0):>10.2f} "
+        f"{row['near_clipped_samples']:>7} "
         f"{_pop(row, 'path'):>13} {_pop(row, 'dolly'):>13} "
         f"{row['used_bytes'] / 2**20:>8.2f} {row['own_gpu_bytes'] / 2**20:>7.2f}"
     )

@@ -26,6 +26,7 @@ from render.strategies.base import Block, SelectionCounts, Strategy
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
 from streamer.lod import FIELD_FOR_METRIC, get_metric, takes_box
+from streamer.nodata import check_rule
 
 
 def field_for(metric) -> str:
@@ -54,6 +55,7 @@ def select_clod(
     table: PatchTable | None = None,
     field: str | None = None,
     min_depth: int = 0,
+    nodata: str = "full",
 ) -> tuple[Patches, float]:
     """Stitched patches of the drawable blocks at ``tau`` and the CPU time in ms.
 
@@ -63,15 +65,26 @@ def select_clod(
     field it is filled from) let a strategy select its own node sizes; nodes shallower than
     ``min_depth`` always split (where resident). A metric that
     :func:`~streamer.lod.takes_box` gets each node's box (:meth:`FrameServices.node_boxes`).
+    ``nodata`` is the mask-boundary rule (:data:`streamer.nodata.NODATA_RULES`; ``"gap"``
+    only with the metric's own table).
     """
     t0 = time.perf_counter()
     get_metric(metric)
+    gap = check_rule(nodata) == "gap" and not full
+    if gap and table is not None:
+        raise ValueError("nodata='gap' selects with the metric's own table: pass no table=")
     poly = frustum_hull(camera, r.terrain_zrange)
     pairs = r.drawable(resident)
     blocks = [b for b, _ in pairs]
     res = np.array([lv for _, lv in pairs], dtype=np.int64)
-    table = table if table is not None else metric_table(r, metric)
-    r.fill_table(table, blocks, field if field is not None else field_for(metric))
+    name = field if field is not None else field_for(metric)
+    if table is None:
+        table = r.patch_table(f"{name}/gap") if gap else metric_table(r, metric)
+    r.fill_table(table, blocks, name, "gap" if gap else "full")
+    gaps = None
+    if gap:
+        gaps = r.patch_table(f"gap/{table.patch_log2}", table.patch_log2)
+        r.fill_table(gaps, blocks, "gap")
     blk = np.array(blocks, dtype=np.int64).reshape(-1, 2)
     zr = r.block_zranges(blk)
     win = r.store.index.window[(blk[:, 0], blk[:, 1])] if blocks else None
@@ -80,7 +93,7 @@ def select_clod(
     boxes = r.node_boxes(pairs, table.patch_log2) if takes_box(fn) else None
     patches = select_patches(
         r.grid, blk, table, camera, tau_used, fn, poly, resident=res, zranges=zr, windows=win,
-        min_depth=min_depth, boxes=boxes,
+        min_depth=min_depth, boxes=boxes, gaps=gaps,
     )  # fmt: skip
     patches = stitch(
         patches, r.grid, table, camera, fn, resident=res, zranges=zr, boxes=boxes, tau=tau_used
@@ -200,13 +213,15 @@ class QiuStrategy(Strategy[Patches]):
 
     name = "qiu"
 
-    def __init__(self, renderer: FrameServices) -> None:
+    def __init__(self, renderer: FrameServices, nodata: str = "full") -> None:
+        """``nodata``: the mask-boundary rule (:data:`streamer.nodata.NODATA_RULES`)."""
         super().__init__(renderer)
+        self.nodata = check_rule(nodata)
         self.grid = patch_grid(renderer)
         self.prog, self.wire = self.grid.prog, self.grid.wire
 
     def select(self, camera, tau, metric="qiu", *, resident=None) -> tuple[Patches, float]:
-        sel, ms = select_clod(self.r, camera, tau, metric, resident=resident)
+        sel, ms = select_clod(self.r, camera, tau, metric, resident=resident, nodata=self.nodata)
         return (sel if self.stitching else unstitched(sel)), ms
 
     def select_full(self, camera: Camera, resident=None) -> tuple[Patches, float]:

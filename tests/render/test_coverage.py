@@ -89,3 +89,30 @@ def test_samples_nearer_than_the_near_plane_are_counted(renderer):
     b = coverage.coverage(r.grid, near, ref, heights, tri, h)
     assert a.near_clipped == 0 and b.near_clipped > 100
     assert b.terrain_in_view + b.near_clipped == a.terrain_in_view
+
+
+def test_uncovered_px_known_answer_and_control(renderer):
+    """A hole of 3 × 3 samples in the covered set: its centre is 2 samples from the nearest
+    covered one, ``f 2 dx / depth`` px straight down; full cover gives 0 (quiet case)."""
+    r = renderer
+    g = r.grid
+    cam = _nadir(r)
+    wg = g.cols * g.step + 1
+    rows, cols = np.mgrid[40:61, 40:61]
+    keys = (rows * wg + cols).ravel()
+    heights = np.full(keys.shape, 300.0)
+    covered = ~((abs(rows - 50) <= 1) & (abs(cols - 50) <= 1)).ravel()
+    got = coverage.uncovered_px(g, cam, keys, heights, covered)
+    assert got == pytest.approx(cam.focal_px * 2 * g.dx / (2500.0 - 300.0), rel=1e-6)
+    assert coverage.uncovered_px(g, cam, keys, heights, np.ones(keys.shape, bool)) == 0.0
+    assert coverage.uncovered_px(g, cam, keys, heights, covered, radius=0) == float("inf")
+
+
+def test_dropped_triangles_are_far_from_the_drawn_terrain(renderer):
+    """Positive control for the figure a view reports: every other triangle dropped leaves
+    uncovered samples a pixel or more from the drawn terrain; the full mesh leaves none."""
+    r = renderer
+    cam = _nadir(r)
+    tri, h = _drawn(r, cam, 0.0)
+    assert _cov(r, cam, tri, h).uncovered_px == 0.0
+    assert _cov(r, cam, tri[::2], h[::2]).uncovered_px >= 1.0

@@ -127,14 +127,18 @@ def coverage(st, camera: Camera, sel, valid: np.ndarray) -> tuple[float, float]:
     return covered[terrain].mean(), covered[holes].mean()
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_checkerboard_nodata_at_tau_4_draws_the_terrain_and_not_the_holes(checkerboard, name):
+#: (strategy, options): every strategy with its default nodata rule, and qiu's "gap" rule
+NODATA_CASES = [(n, OPTIONS.get(n, {})) for n in NAMES] + [("qiu", {"nodata": "gap"})]
+
+
+@pytest.mark.parametrize(("name", "opts"), NODATA_CASES, ids=[f"{n}-{o}" for n, o in NODATA_CASES])
+def test_checkerboard_nodata_at_tau_4_draws_the_terrain_and_not_the_holes(checkerboard, name, opts):
     path, valid = checkerboard
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=(256, 256), patch_log2=2), ctx=CTX)
     for b in s.blocks():
         r.upload(b, s.read_levels(b, s.k))
-    st = get_strategy(name, r, **OPTIONS.get(name, {}))
+    st = get_strategy(name, r, **opts)
     g = r.grid
     x0, y0, x1, y1 = g.extent
     cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 9500.0), pitch=-90.0, viewport=(256, 256),
@@ -217,3 +221,45 @@ def test_qius_cpu_twin_is_what_the_gpu_drew(checkerboard, tau):
     a, b = drawn(cpu_tri, cpu_h), drawn(gpu_tri, gpu_h)
     assert len(a) > 0 and a.shape == b.shape
     np.testing.assert_array_equal(a, b)
+
+
+def _gap_view(path, rule: str, tau: float):
+    """qiu on the checkerboard from 40 km straight down (about 6 samples a pixel): triangles
+    and the pipeline's coverage figures (:func:`render.coverage.coverage`)."""
+    from render import coverage as cov
+
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=(256, 256), patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    st = get_strategy("qiu", r, nodata=rule)
+    x0, y0, x1, y1 = r.grid.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + 40000.0), pitch=-90.0, viewport=(256, 256),
+                 near=1.0, far=1e6)  # fmt: skip
+    sel, _ = st.select(cam, tau)
+    tri, th = st.triangles(cam, sel)
+    ref, _ = st.select_full(cam)
+    c = cov.coverage(r.grid, cam, ref, measure.heights_fn(s, ref), tri, th)
+    r.close()
+    return len(tri), c
+
+
+@pytest.mark.parametrize("tau", [0.5, 4.0])
+def test_gap_rule_leaves_only_sub_pixel_gaps(checkerboard, tau, monkeypatch):
+    """The nodata rule "gap" draws mixed cells coarser where they are small on screen: fewer
+    triangles than "full", the dropped terrain reported (coverage < 1) and every undrawn
+    terrain sample within min(τ, 1) px of drawn terrain, no hole drawn over. Positive control:
+    cell widths understated 8× leave undrawn samples more than a pixel away."""
+    from render.frame import FrameServices
+
+    path, _ = checkerboard
+    n_full, full = _gap_view(path, "full", tau)
+    n_gap, gap = _gap_view(path, "gap", tau)
+    assert full.terrain_covered == 1.0 and full.uncovered_px == 0.0
+    assert n_gap < n_full / 3 and gap.nodata_covered == 0.0
+    assert 0.85 < gap.terrain_covered < 1.0, gap
+    assert 0.0 < gap.uncovered_px <= min(tau, 1.0), gap
+    true = FrameServices.gap_field
+    monkeypatch.setattr(FrameServices, "gap_field", lambda self, b: [w / 8 for w in true(self, b)])
+    _, broken = _gap_view(path, "gap", tau)
+    assert broken.uncovered_px > 1.0, broken

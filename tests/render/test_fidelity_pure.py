@@ -10,7 +10,7 @@ import pytest
 
 from render.frame import ramp_map
 from render.views import MIN_NEAR, near_plane
-from streamer.nodata import mixed_nodes, raise_mixed
+from streamer.nodata import NODATA_RULES, check_rule, gap_widths, mixed_nodes, raise_mixed
 
 
 def test_mixed_nodes_known_answer():
@@ -24,6 +24,22 @@ def test_mixed_nodes_known_answer():
     assert not any(a.any() for a in mixed_nodes(valid, 2))  # all nodata: nothing to refine
     valid[2, :] = True  # a valid row through the middle: both middle-row nodes at depth 1
     assert mixed_nodes(valid, 2)[1].all()
+
+
+def test_gap_widths_are_the_mixed_cells_diagonals():
+    valid = np.ones((5, 5), bool)
+    valid[0, 0] = False
+    w = gap_widths(valid, 2, 3.0, 4.0)
+    assert [a.shape for a in w] == [(1, 1), (2, 2)]  # depths 0..k-1: level k leaves no gap
+    assert w[0][0, 0] == pytest.approx(4 * 5.0) and w[1][0, 0] == pytest.approx(2 * 5.0)
+    assert (w[1][[0, 1, 1], [1, 0, 1]] == 0).all()  # cells wholly valid
+    assert not any(a.any() for a in gap_widths(np.ones((5, 5), bool), 2, 1.0, 1.0))
+
+
+def test_nodata_rules_are_named_and_checked():
+    assert NODATA_RULES == ("full", "gap") and check_rule("gap") == "gap"
+    with pytest.raises(ValueError, match="unknown nodata rule 'fast'.*full"):
+        check_rule("fast")
 
 
 def test_raise_mixed_raises_tiles_below_the_cap():
