@@ -846,6 +846,7 @@ def main_reads_only(args: argparse.Namespace) -> int:
                 "=".join(_shown(Path(p)) for p in pair.split("=", 1)) for pair in args.reads_only
             ],
             "work_dir": _shown(Path(args.work_dir)),
+            "out": str(out),
         },
         "machine": machine_info(),
         "notes": notes,

@@ -474,10 +474,13 @@ class TerrainStore:
         dtype = np.dtype(self.meta.storage_dtype)
         if n * dtype.itemsize > SCRATCH_MAX_BYTES:
             return None
-        buf = getattr(_SCRATCH, "seq", None)
-        if buf is None or buf.nbytes < n * dtype.itemsize:
-            buf = _SCRATCH.seq = np.empty(SCRATCH_MAX_BYTES // 8, dtype=np.uint64)
-        return buf.view(dtype)[:n]
+        # one owner array per dtype, so the level views share it as their base (a view of a
+        # view of another dtype would not, and encoding.joined would copy the sequence)
+        bufs = _SCRATCH.__dict__.setdefault("seq", {})
+        buf = bufs.get(dtype.str)
+        if buf is None or buf.size < n:
+            buf = bufs[dtype.str] = np.empty(SCRATCH_MAX_BYTES // dtype.itemsize, dtype=dtype)
+        return buf[:n]
 
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
         """Decode the next level from its raw values and the decoded levels ``0..L-1``

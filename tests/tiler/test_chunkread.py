@@ -14,6 +14,7 @@ from storetools import flip_bit
 
 from tiler import chunkread, encoding
 from tiler.errors import ChunkChecksumError, MissingChunkError, StoreChangedError
+from tiler.layout import level_end
 from tiler.store import TerrainStore, open_store
 from tiler.tile import TileOptions, tile
 
@@ -65,6 +66,10 @@ def test_read_block_results_do_not_share_the_scratch_buffer(stores):
     np.testing.assert_array_equal(a, keep)  # ...and the second read left the first alone
     raws = s.read_levels_raw((1, 1), s.k)
     assert encoding.joined(raws, s.k).base is raws[0].base  # one sequence, no copy
+    n = level_end(s.k) + 1  # read_block's per-thread buffer: its views join without a copy too
+    scratch = s._scratch(n)
+    joined = encoding.joined(s._levels_raw((1, 1), s.k, scratch), s.k)
+    assert joined.base is scratch.base and np.array_equal(joined, np.concatenate(raws))
 
 
 def test_joined_is_a_view_only_for_consecutive_views():
