@@ -284,10 +284,11 @@ def joined(stored: list[np.ndarray], level: int) -> np.ndarray:
         and all(p.dtype == base.dtype for p in parts)
     ):
         size = base.dtype.itemsize
-        at = parts[0].ctypes.data
-        start, rem = divmod(at - base.ctypes.data, size)
+        ptr = [p.__array_interface__["data"][0] for p in parts]  # (ctypes.data is ~3x slower)
+        at = ptr[0]
+        start, rem = divmod(at - base.__array_interface__["data"][0], size)
         if rem == 0 and all(
-            p.ctypes.data == at + level_start(i) * size and p.size == level_size(i)
+            ptr[i] == at + level_start(i) * size and p.size == level_size(i)
             for i, p in enumerate(parts)
         ):
             return base[start : start + level_end(level) + 1]

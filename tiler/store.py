@@ -358,7 +358,9 @@ class TerrainStore:
                 level=level,
             ) from exc
         if spec is not None:  # what zarr's reader makes of it: see _looks_missing
-            if out is None or (spec.shard is not None and np.all(out == self._fill)):
+            if out is None or (
+                spec.shard is not None and out[0] == self._fill and np.all(out == self._fill)
+            ):
                 raise self._missing(what, name, block, level)
             return out
         if self.checksummed and self._looks_missing(name, block, out):
