@@ -68,12 +68,13 @@ class LevelSpec:
         return 16 * self.shard[0] * self.shard[1] + 4
 
 
-def _is_chain(codecs: Any) -> bool:
-    """``[bytes little, blosc, crc32c]`` (any blosc settings: its frames describe themselves)."""
+def _is_chain(codecs: Any, itemsize: int) -> bool:
+    """``[bytes little, blosc, crc32c]`` (any blosc settings: its frames describe themselves;
+    one-byte types have no endianness, and zarr then writes ``bytes`` without one)."""
     c = list(codecs)
     return (
         len(c) == 3
-        and dict(c[0]) == _BYTES_LE
+        and (dict(c[0]) == _BYTES_LE or (itemsize == 1 and dict(c[0]) == {"name": "bytes"}))
         and dict(c[1]).get("name") == "blosc"
         and dict(c[2]) == _CRC
     )
@@ -104,14 +105,14 @@ def level_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
     ):
         return None
     n = shape[2]
-    if _is_chain(codecs) and chunks == (1, 1, n):
+    if _is_chain(codecs, dtype.itemsize) and chunks == (1, 1, n):
         return LevelSpec(name, n, dtype, None)
     if len(codecs) != 1 or dict(codecs[0]).get("name") != "sharding_indexed":
         return None
     cfg = dict(codecs[0].get("configuration") or {})
     if (
         tuple(int(x) for x in cfg.get("chunk_shape", ())) != (1, 1, n)
-        or not _is_chain(cfg.get("codecs", ()))
+        or not _is_chain(cfg.get("codecs", ()), dtype.itemsize)
         or [dict(c) for c in cfg.get("index_codecs", ())] != [_BYTES_LE, _CRC]
         or cfg.get("index_location", "end") != "end"
         or chunks[2] != n

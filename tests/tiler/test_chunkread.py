@@ -23,7 +23,7 @@ SHARDED, PLAIN = 3, 6  # with block_size 65 (k = 6): levels 0..5 sharded, level 
 
 @pytest.fixture(scope="module")
 def stores(tmp_path_factory):
-    """A 3x3-block int16 store with nodata and a float32 one (k = 6), tiled once."""
+    """3x3-block stores (k = 6), tiled once: int16 with nodata, float32, uint8."""
     d = tmp_path_factory.mktemp("chunkread")
     from demtools import write_dem
 
@@ -31,7 +31,8 @@ def stores(tmp_path_factory):
     ints[10:20, 100:130] = -9999
     write_dem(d / "i.tif", ints, nodata=-9999)
     write_dem(d / "f.tif", fractal((150, 150), 32, "float32"))
-    for name in ("i", "f"):
+    write_dem(d / "u.tif", fractal((150, 150), 36, "uint8"))
+    for name in ("i", "f", "u"):
         tile(d / f"{name}.tif", d / f"{name}.zarr", TileOptions(block_size=65))
     return d
 
@@ -41,7 +42,7 @@ def _copy(stores, tmp_path, name="i"):
     return tmp_path / "s.zarr"
 
 
-@pytest.mark.parametrize("name", ["i", "f"])
+@pytest.mark.parametrize("name", ["i", "f", "u"])
 def test_direct_reads_equal_zarr_reads(stores, name):
     direct = open_store(stores / f"{name}.zarr")
     via_zarr = TerrainStore(stores / f"{name}.zarr", direct_reads=False)
@@ -175,6 +176,11 @@ def test_other_codec_chains_are_left_to_zarr(stores):
     assert chunkread.level_spec("levels/2", m).shard == (3, 3)
     m["codecs"][0]["configuration"]["index_location"] = "start"
     assert chunkread.level_spec("levels/2", m) is None
+    m = json.loads(json.dumps(meta))  # bytes without an endianness: only for one-byte types
+    m["codecs"][0] = {"name": "bytes"}
+    assert chunkread.level_spec("levels/6", m) is None
+    m["data_type"] = "uint8"
+    assert chunkread.level_spec("levels/6", m) is not None
 
 
 def _entries(data: bytearray, spec: chunkread.LevelSpec) -> np.ndarray:
