@@ -22,7 +22,15 @@ import numpy as np
 
 from tiler import kernels
 from tiler.errors import SourceError
-from tiler.layout import decompose, grid_side, level_end, level_start, reconstruct, subgrid
+from tiler.layout import (
+    decompose,
+    grid_side,
+    level_end,
+    level_size,
+    level_start,
+    reconstruct,
+    subgrid,
+)
 
 INT_RESIDUAL = "int-residual"
 FLOAT_XOR = "float-xor"
@@ -258,11 +266,33 @@ def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = N
     mod = kernels.active(load=False)
     if mod is not None and _sizes_ok(stored, level):
         g = np.empty((grid_side(level),) * 2, dtype=dtype)
-        kernels.decode(
-            mod, np.concatenate([np.asarray(s) for s in stored[: level + 1]]), g, level, 0
-        )
+        kernels.decode(mod, joined(stored, level), g, level, 0)
         return g
     return decode_grid_numpy(stored, dtype, level)
+
+
+def joined(stored: list[np.ndarray], level: int) -> np.ndarray:
+    """Levels ``0..level`` as one sequence: a view when they are consecutive views of one array
+    (what ``TerrainStore`` reads and the compiled encoder returns), else a concatenated copy."""
+    parts = [np.asarray(s) for s in stored[: level + 1]]
+    base = parts[0].base
+    if (
+        isinstance(base, np.ndarray)
+        and base.ndim == 1
+        and base.flags.c_contiguous
+        and all(p.base is base and p.ndim == 1 and p.flags.c_contiguous for p in parts)
+        and all(p.dtype == base.dtype for p in parts)
+    ):
+        size = base.dtype.itemsize
+        ptr = [p.__array_interface__["data"][0] for p in parts]  # (ctypes.data is ~3x slower)
+        at = ptr[0]
+        start, rem = divmod(at - base.__array_interface__["data"][0], size)
+        if rem == 0 and all(
+            ptr[i] == at + level_start(i) * size and p.size == level_size(i)
+            for i, p in enumerate(parts)
+        ):
+            return base[start : start + level_end(level) + 1]
+    return np.concatenate(parts)
 
 
 def _sizes_ok(stored: list[np.ndarray], level: int) -> bool:
