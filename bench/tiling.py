@@ -52,7 +52,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, WORK, machine_info, portable  # noqa: E402
+from bench.common import REAL_HGT, WORK, machine_info  # noqa: E402
 
 # (names marked F401 are not used here: the child processes, read timing and report moved out
 # of this file, and stay importable from it)
@@ -70,12 +70,14 @@ from bench.tiling_reads import (  # noqa: E402
     REFERENCE_VARIANTS,  # noqa: F401
     _remove,
     bench_reads_only,  # noqa: F401
+    busy_notes,
     main_reads_only,
     print_reads_report,  # noqa: F401
     read_targets,  # noqa: F401
     spread_blocks,  # noqa: F401
     tiler_sources_digest,
     time_reads,
+    write_result,
 )
 from bench.tiling_report import (  # noqa: E402
     T_RSS_MB,  # noqa: F401
@@ -438,11 +440,7 @@ def main(argv: list[str] | None = None) -> int:
 
     digest_end = tiler_sources_digest()
     load_end = os.getloadavg()
-    if max(load_start[0], load_end[0]) > 0.5 * (os.cpu_count() or 1) + 0.5:
-        notes.append(
-            f"machine busy: 1-min load average {load_start[0]:.1f} at start, "
-            f"{load_end[0]:.1f} at end ({os.cpu_count()} CPUs); timings may be inflated"
-        )
+    notes.extend(busy_notes(load_start, load_end))
     if digest_end != digest_start:
         notes.append("tiler/*.py changed during the run: inputs may have used different code")
     for note in notes:
@@ -462,8 +460,7 @@ def main(argv: list[str] | None = None) -> int:
         "all_targets_pass": all(t["pass"] for r in results for t in r["targets"]),
         "run_seconds": time.perf_counter() - t_start,
     }
-    out.write_text(json.dumps(portable(doc), indent=2, allow_nan=False) + "\n")
-    print(f"\nwrote {out} (run took {doc['run_seconds']:.0f} s)")
+    write_result(out, doc)
     return 0
 
 

@@ -294,11 +294,16 @@ def print_reads_report(results: list[dict[str, Any]]) -> None:
                 print(f"{'':<14} {'ratio':<7} " + " ".join(f"{m / cog:>12.2f}" for m in ms))
     print("  ms are medians; ratio = store / COG (window read for block, overview for coarse)")
     print()
+    print_targets(results, 14)
+
+
+def print_targets(results: list[dict[str, Any]], width: int) -> None:
+    """The ``targets:`` list: PASS/MISS, input name (``width`` wide), target, value, detail."""
     print("targets:")
     for r in results:
         for t in r["targets"]:
             mark = "PASS" if t["pass"] else "MISS"
-            print(f"  {mark}  {r['name']:<14} {t['target']}: {t['value']:.3f} ({t['detail']})")
+            print(f"  {mark}  {r['name']:<{width}} {t['target']}: {t['value']:.3f} ({t['detail']})")
 
 
 def main_reads_only(args: argparse.Namespace) -> int:
@@ -310,12 +315,7 @@ def main_reads_only(args: argparse.Namespace) -> int:
     results = [bench_reads_only(pair, args) for pair in args.reads_only]
     print_reads_report(results)
     load_end = os.getloadavg()
-    notes = []
-    if max(load_start[0], load_end[0]) > 0.5 * (os.cpu_count() or 1) + 0.5:
-        notes.append(
-            f"machine busy: 1-min load average {load_start[0]:.1f} at start, "
-            f"{load_end[0]:.1f} at end ({os.cpu_count()} CPUs); timings may be inflated"
-        )
+    notes = busy_notes(load_start, load_end)
     for note in notes:
         print(f"NOTE: {note}")
     out = Path(args.out if args.out != str(DEFAULT_OUT) else DEFAULT_READS_OUT)
@@ -340,9 +340,24 @@ def main_reads_only(args: argparse.Namespace) -> int:
         "all_targets_pass": all(t["pass"] for r in results for t in r["targets"]),
         "run_seconds": time.perf_counter() - t_start,
     }
+    write_result(out, doc)
+    return 0
+
+
+def busy_notes(load_start: tuple[float, ...], load_end: tuple[float, ...]) -> list[str]:
+    """A note when the 1-min load average at start or end exceeds half the CPUs (+0.5)."""
+    if max(load_start[0], load_end[0]) > 0.5 * (os.cpu_count() or 1) + 0.5:
+        return [
+            f"machine busy: 1-min load average {load_start[0]:.1f} at start, "
+            f"{load_end[0]:.1f} at end ({os.cpu_count()} CPUs); timings may be inflated"
+        ]
+    return []
+
+
+def write_result(out: Path, doc: dict[str, Any]) -> None:
+    """Write ``doc`` (paths made portable) as the benchmark's JSON and say so."""
     out.write_text(json.dumps(portable(doc), indent=2, allow_nan=False) + "\n")
     print(f"\nwrote {out} (run took {doc['run_seconds']:.0f} s)")
-    return 0
 
 
 def _shown(path: Path) -> str:

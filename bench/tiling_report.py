@@ -10,7 +10,7 @@ import json
 from typing import Any
 
 from bench.tiling_child import MB
-from bench.tiling_reads import read_targets
+from bench.tiling_reads import print_targets, read_targets
 
 # Targets (from the benchmark spec).
 T_SIZE_VS_COG_OVR = 0.7
@@ -141,8 +141,4 @@ def print_report(results: list[dict[str, Any]]) -> None:
             f"{r['store_layout_table_bytes'] / MB:.3f}), metadata {b['metadata'] / 1024:.1f} KiB"
         )
     print()
-    print("targets:")
-    for r in results:
-        for t in r["targets"]:
-            mark = "PASS" if t["pass"] else "MISS"
-            print(f"  {mark}  {r['name']:<18} {t['target']}: {t['value']:.3f} ({t['detail']})")
+    print_targets(results, 18)
