@@ -135,6 +135,11 @@ class _Frame:
         #: one kernel call per depth (:meth:`fused_depth`; not with the spike guard, nor for a
         #: kernel module without it: the per-step kernels' positive controls)
         self.fused = self.nb is not None and not self.guard and hasattr(self.nb, "traverse_depth")
+        #: the whole selection in one kernel call (:meth:`whole_args`), and each round of
+        #: :func:`_resolve` in one (the guard's path); not for a kernel module without them
+        self.whole = self.fused and hasattr(self.nb, "select_all")
+        self.rounds = self.nb is not None and hasattr(self.nb, "resolve_round")
+        self._whole_args: tuple | None = None
 
     def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray, table=None) -> np.ndarray:
         """Stored error (``bound``, level ``d + 1``; level ``d + r`` from ``table`` =
@@ -302,6 +307,46 @@ class _Frame:
             self.dmax, self.cap,
         )  # fmt: skip
 
+    def whole_args(self) -> tuple:
+        """The arguments of the kernels' ``traverse_all`` after the seeds: :meth:`fused_depth`'s
+        for every depth at once (made once per frame)."""
+        if self._whole_args is None:
+            self._whole_args = self._make_whole_args()
+        return self._whole_args
+
+    def _make_whole_args(self) -> tuple:
+        g, k = self.grid, self.k
+        if self.cull is None:
+            mode, cull = 0, _NO_CULL
+        elif self.cull.empty:
+            mode, cull = 2, _NO_CULL
+        else:
+            c = self.cull
+            mode, cull = 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+        depths = range(0, k - self.c + 1)
+        span = [float(node_span(g.k, d)) for d in depths]
+        s_dx = np.array([s * g.dx for s in span])
+        s_dy = np.array([s * g.dy for s in span])
+        radius = np.array([half_diagonal(g, d) for d in depths], dtype=np.float64)
+        arrs = [self.table.depth_array(d) for d in depths]
+        has_arr = np.array([a is not None for a in arrs])
+        arrs = tuple(_NO_ARRAY if a is None else a for a in arrs)
+        paper = self.rho_form == "paper"
+        prho = paper_precision(self.tau, self.focal, self.c) if paper else 0.0
+        ex, ey, ez = (float(v) for v in self.eye)
+        eps_args = (
+            self.blk, self.bkeys, self.border, self.slots, g.rows, g.cols, self.zr,
+            float(g.x0), float(g.y0), float(g.dx), float(g.dy), ex, ey, ez,
+            float(self.focal), self.tau, self.c, paper, prho,
+        )  # fmt: skip
+        geo = (float(g.x0), float(g.y0), int(g.step), float(g.dx), float(g.dy))
+        use_win = self.win is not None
+        wr, wc = (self.win_r, self.win_c) if use_win else (_NO_INT, _NO_INT)
+        return (
+            k, self.c, use_win, wr, wc, mode, geo, s_dx, s_dy, radius, cull, arrs, has_arr,
+            eps_args, self.dmax, self.cap,
+        )  # fmt: skip
+
     def splittable(self, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Nodes whose children can be drawn and be finer (resident levels, bottom depth)."""
         return (d + 1 <= self.dmax[idx]) & (d + self.c < self.cap[idx])
@@ -328,6 +373,16 @@ class _Leaves:
 def _traverse(fr: _Frame, seeds: dict[int, tuple], out: _Leaves) -> None:
     """Top-down from ``seeds`` (depth -> (idx, rows, cols)): split while some edge has ε > 1."""
     k, c = fr.k, fr.c
+    if fr.fused and hasattr(fr.nb, "traverse_all"):  # every depth in one call: the same leaves
+        if not seeds:
+            return
+        ds = sorted(seeds)
+        sd = np.concatenate([np.full(len(seeds[d][0]), d, np.int64) for d in ds])
+        si, sr, sc = (np.concatenate([seeds[d][i] for d in ds]).astype(np.int64) for i in range(3))
+        *leaf, clamped = fr.nb.traverse_all(sd, si, sr, sc, *fr.whole_args())
+        out.clamped += int(clamped)
+        out.parts.append(tuple(leaf))
+        return
     carry = None
     for d in range(0, k - c + 1):
         parts = [p for p in (carry, seeds.get(d)) if p is not None and len(p[0])]
@@ -409,7 +464,10 @@ def _edge_groups(d: np.ndarray, gr: np.ndarray, gc: np.ndarray, nb=None) -> np.n
     return out
 
 
-def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
+_ROUNDS = 64  # resolution rounds before a selection is declared unsettled
+
+
+def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = _ROUNDS) -> PatchLayout:
     """Group every shared edge, split coarse patches that cannot match, assign edge levels."""
     c = fr.c
     for _ in range(max_rounds):
@@ -422,6 +480,14 @@ def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
             eps = np.zeros((0, 4))
         idx, d, rows, cols = (a.astype(np.int64) for a in (idx, d, rows, cols))
         n = len(idx)
+        if fr.rounds:  # the compiled round: the same split leaves, levels and violations
+            split_any, v, level, violations = fr.nb.resolve_round(
+                idx, d, rows, cols, eps, fr.blk, fr.cap, fr.dmax, c
+            )
+            if not split_any:
+                return _layout(fr, idx, d, rows, cols, eps, level, leaves.clamped, violations)
+            _resplit(fr, leaves, v, idx, d, rows, cols, eps)
+            continue
         gr = (fr.blk[idx, 0] << d) + rows
         gc = (fr.blk[idx, 1] << d) + cols
         hi = np.minimum(d + c, fr.cap[idx])
@@ -452,28 +518,37 @@ def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
                 np.clip(want_g[g], lo_e, hi_e),
                 np.clip(want_g[g], lo_g[g], hi_g[g]),
             ).reshape(n, 4)
-            return PatchLayout(
-                blocks=fr.blk,
-                block=idx,
-                depth=d,
-                row=rows,
-                col=cols,
-                edge_level=level.astype(np.int64),
-                eps=eps,
-                res_log2=c,
-                clamped=leaves.clamped + fr.skipped,
-                violations=int(np.count_nonzero(shared & (lo_g > hi_g))),
-            )
-        v = np.unique(j[split])
-        keep = np.ones(n, dtype=bool)
-        keep[v] = False
-        leaves.parts = [(idx[keep], d[keep], rows[keep], cols[keep], eps[keep])]
-        seeds: dict[int, tuple] = {}
-        for dv in np.unique(d[v]).tolist():
-            m = v[d[v] == dv]
-            seeds[dv + 1] = _children(idx[m], rows[m], cols[m])
-        _traverse(fr, seeds, leaves)
+            violations = int(np.count_nonzero(shared & (lo_g > hi_g)))
+            return _layout(fr, idx, d, rows, cols, eps, level, leaves.clamped, violations)
+        _resplit(fr, leaves, np.unique(j[split]), idx, d, rows, cols, eps)
     raise SelectionError(f"seamless patches did not settle in {max_rounds} rounds")
+
+
+def _resplit(fr: _Frame, leaves: _Leaves, v, idx, d, rows, cols, eps) -> None:
+    """Replace the leaves ``v`` (ascending) by their children, traversed down."""
+    keep = np.ones(len(idx), dtype=bool)
+    keep[v] = False
+    leaves.parts = [(idx[keep], d[keep], rows[keep], cols[keep], eps[keep])]
+    seeds: dict[int, tuple] = {}
+    for dv in np.unique(d[v]).tolist():
+        m = v[d[v] == dv]
+        seeds[dv + 1] = _children(idx[m], rows[m], cols[m])
+    _traverse(fr, seeds, leaves)
+
+
+def _layout(fr: _Frame, idx, d, rows, cols, eps, level, clamped: int, violations: int):
+    return PatchLayout(
+        blocks=fr.blk,
+        block=idx,
+        depth=d,
+        row=rows,
+        col=cols,
+        edge_level=level.reshape(len(idx), 4).astype(np.int64),
+        eps=eps,
+        res_log2=fr.c,
+        clamped=int(clamped) + fr.skipped,
+        violations=int(violations),
+    )
 
 
 def select_layout(st, camera: Camera, tau: float, resident: dict | None) -> PatchLayout:
@@ -482,5 +557,13 @@ def select_layout(st, camera: Camera, tau: float, resident: dict | None) -> Patc
     fr = _Frame(st, camera, tau, resident)
     leaves = _Leaves()
     m = len(fr.blk)
+    if fr.whole:  # one kernel call: the same layout
+        zero = np.zeros(m, np.int64)
+        out = fr.nb.select_all(
+            zero, np.arange(m, dtype=np.int64), zero, zero, *fr.whole_args(), fr.blk, _ROUNDS
+        )
+        if not out[0]:
+            raise SelectionError(f"seamless patches did not settle in {_ROUNDS} rounds")
+        return _layout(fr, *out[1:])
     _traverse(fr, {0: (np.arange(m), np.zeros(m, np.int64), np.zeros(m, np.int64))}, leaves)
     return _resolve(fr, leaves)
