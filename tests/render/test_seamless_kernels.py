@@ -172,6 +172,92 @@ def test_positive_controls_the_fused_depth_kernel_is_checked(renderers, numba_ke
     assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
 
 
+def _without(nb, *names) -> SimpleNamespace:
+    """The kernel module ``nb`` without the kernels ``names`` (the selection then takes the
+    paths that call the others from Python)."""
+    keep = ("epsilon", "edge_groups", "disc_meets", "traverse_depth", "traverse_all")
+    return SimpleNamespace(
+        **{n: getattr(nb, n) for n in keep + ("resolve_round",) if n not in names}
+    )
+
+
+@pytest.mark.parametrize(
+    "missing", [("select_all",), ("select_all", "traverse_all"), ("select_all", "resolve_round")]
+)
+def test_each_compiled_path_equals_the_numpy_reference(
+    renderers, numba_kernels, monkeypatch, missing
+):
+    # production takes select_all; the paths below it (one traversal call, one call per
+    # depth, the compiled or numpy resolution rounds) give the same layout
+    monkeypatch.setattr(sp_kernels, "_load_numba", lambda: _without(numba_kernels, *missing))
+    for scene in ("rough", "nodata"):
+        assert _compare(renderers[scene]) > 0
+
+
+def test_positive_controls_the_resolution_kernels_are_checked(
+    renderers, numba_kernels, monkeypatch
+):
+    # select_all (the whole selection), resolve_round (one resolution round) and traverse_all
+    # (one traversal) each broken on purpose: the comparison with the reference catches it
+    r = renderers["rough"]
+    cam = _cameras(r)[1]
+    ref, _ = get_strategy("seamless-patches", r, kernels="numpy", res_log2=3).select(cam, 1.0)
+    nb = numba_kernels
+
+    def whole_ulp(*args):
+        out = nb.select_all(*args)
+        out[5][len(out[5]) // 2, 3] = np.nextafter(out[5][len(out[5]) // 2, 3], np.inf)
+        return out
+
+    def whole_level(*args):
+        out = nb.select_all(*args)
+        out[6][0, 0] += 1
+        return out
+
+    def whole_violation(*args):
+        return (*nb.select_all(*args)[:8], 1)
+
+    for fault, field in (
+        (whole_ulp, "eps"),
+        (whole_level, "edge_level"),
+        (whole_violation, "violations"),
+    ):
+        mod = SimpleNamespace(**vars(_without(nb)), select_all=fault)
+        assert differences(ref, _select_with(monkeypatch, r, mod)) == [field]
+
+    def round_level(*args):
+        split, v, level, violations = nb.resolve_round(*args)
+        if not split:
+            level[-1, 2] -= 1
+        return split, v, level, violations
+
+    def round_split_late(*args):  # the first split leaf is left to the next round
+        split, v, level, violations = nb.resolve_round(*args)
+        return split, (v[1:] if len(v) > 1 else v), level, violations
+
+    def all_lost_leaf(*args):  # the traversal loses its last leaf
+        *leaf, clamped = nb.traverse_all(*args)
+        return (*(a[:-1] for a in leaf), clamped)
+
+    def all_ulp(*args):
+        out = nb.traverse_all(*args)
+        if len(out[4]):
+            out[4][0, 1] = np.nextafter(out[4][0, 1], -np.inf)
+        return out
+
+    base = _without(nb, "select_all")
+    for name, fault, field in (
+        ("resolve_round", round_level, "edge_level"),
+        ("resolve_round", round_split_late, "block"),
+        ("traverse_all", all_lost_leaf, "depth"),
+        ("traverse_all", all_ulp, "eps"),
+    ):
+        mod = SimpleNamespace(**{**vars(base), name: fault})
+        assert field in differences(ref, _select_with(monkeypatch, r, mod)), name
+    monkeypatch.undo()
+    assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
+
+
 def test_backend_selection(monkeypatch):
     assert sp_kernels.resolve("numpy") is None
     with pytest.raises(KernelUnavailableError):

@@ -98,10 +98,10 @@ def resolve_round(idx, d, rows, cols, eps, blk, cap, dmax, c):
         j = s // 4
         shared = size_g[s] > 1
         stuck = shared and (lo_g[s] > hi_g[s] or want_g[s] > hi_g[s])
-        if stuck and hi[j] == hi_g[s] and can[j] and deep_g[s] > d[j]:
-            if nv == 0 or v[nv - 1] != j:
-                v[nv] = j
-                nv += 1
+        split = stuck and hi[j] == hi_g[s] and can[j] and deep_g[s] > d[j]
+        if split and (nv == 0 or v[nv - 1] != j):
+            v[nv] = j
+            nv += 1
     if nv:
         return True, v[:nv].copy(), level, 0
     violations = 0

@@ -103,10 +103,8 @@ class _Frame:
         pairs = [(b, lv) for b, lv in pairs if lv >= 1]
         self.blk = np.array([b for b, _ in pairs], dtype=np.int64).reshape(-1, 2)
         self.cap = np.array([lv for _, lv in pairs], dtype=np.int64)
-        capd = dict(pairs)
-        capn = [min([lv] + [capd[n] for n in _block_nbrs(b) if n in capd]) for b, lv in pairs]
-        self.dmax = np.minimum(self.k - self.c, np.array(capn, dtype=np.int64) - 1)
         g = self.grid
+        self.dmax = np.minimum(self.k - self.c, _neighbour_caps(self.blk, self.cap, g) - 1)
         self.zr = st.zr
         win = r.store.index.window
         self.win = win
@@ -358,8 +356,21 @@ _F0 = np.zeros(0)
 _NO_CULL = (np.zeros(2), _F0, _F0, _F0, _F0, _F0, np.zeros(0, np.bool_), True, False)
 
 
-def _block_nbrs(b: Block) -> list[Block]:
-    return [(b[0] + dr, b[1] + dc) for dr, dc in DIRS]
+def _neighbour_caps(blk: np.ndarray, cap: np.ndarray, grid) -> np.ndarray:
+    """Per drawn block the lowest cap of it and its drawn N, E, S, W neighbours (``blk``
+    sorted by row, then column, as :meth:`drawable` gives them)."""
+    out = cap.copy()
+    if not len(blk):
+        return out
+    keys = blk[:, 0] * grid.cols + blk[:, 1]
+    for dr, dc in DIRS:
+        r, c = blk[:, 0] + dr, blk[:, 1] + dc
+        on = (r >= 0) & (r < grid.rows) & (c >= 0) & (c < grid.cols)
+        q = r * grid.cols + c
+        pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+        hit = on & (keys[pos] == q)
+        out = np.where(hit, np.minimum(out, cap[pos]), out)
+    return out
 
 
 class _Leaves:
