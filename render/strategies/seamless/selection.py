@@ -104,7 +104,7 @@ class _Frame:
         self.blk = np.array([b for b, _ in pairs], dtype=np.int64).reshape(-1, 2)
         self.cap = np.array([lv for _, lv in pairs], dtype=np.int64)
         g = self.grid
-        self.dmax = np.minimum(self.k - self.c, _neighbour_caps(self.blk, self.cap, g) - 1)
+        self.dmax = np.minimum(self.k - self.c, _neighbour_caps(self.blk, self.cap) - 1)
         self.zr = st.zr
         win = r.store.index.window
         self.win = win
@@ -112,14 +112,15 @@ class _Frame:
             self.win_r = win[self.blk[:, 0], self.blk[:, 1], 2] - 1
             self.win_c = win[self.blk[:, 0], self.blk[:, 1], 3] - 1
         self.table = st.table
-        r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
+        drawn = [tuple(b) for b in self.blk.tolist()]
+        r.fill_table(self.table, drawn, "bound")
         self.guard = bool(getattr(st, "spike_guard", False))
         self.rho_form = getattr(st, "rho", "bound")
         if self.rho_form not in RHO_FORMS:
             raise SelectionError(f"rho must be one of {RHO_FORMS}, got {self.rho_form!r}")
         self.tables = st.tables if self.guard else []
         for t in self.tables:
-            r.fill_table(t, [tuple(b) for b in self.blk.tolist()], "bound")
+            r.fill_table(t, drawn, "bound")
         self.slots = self.table.slots(self.blk) if len(self.blk) else np.zeros(0, np.int64)
         keys = self.blk[:, 0] * g.cols + self.blk[:, 1]
         self.border = np.argsort(keys)
@@ -356,21 +357,16 @@ _F0 = np.zeros(0)
 _NO_CULL = (np.zeros(2), _F0, _F0, _F0, _F0, _F0, np.zeros(0, np.bool_), True, False)
 
 
-def _neighbour_caps(blk: np.ndarray, cap: np.ndarray, grid) -> np.ndarray:
-    """Per drawn block the lowest cap of it and its drawn N, E, S, W neighbours (``blk``
-    sorted by row, then column, as :meth:`drawable` gives them)."""
-    out = cap.copy()
+def _neighbour_caps(blk: np.ndarray, cap: np.ndarray) -> np.ndarray:
+    """Per drawn block (``(m, 2)`` distinct ids) the lowest cap of it and its drawn N, E, S, W
+    neighbours, by a dense window over the blocks' bounding box with a margin of one."""
     if not len(blk):
-        return out
-    keys = blk[:, 0] * grid.cols + blk[:, 1]
-    for dr, dc in DIRS:
-        r, c = blk[:, 0] + dr, blk[:, 1] + dc
-        on = (r >= 0) & (r < grid.rows) & (c >= 0) & (c < grid.cols)
-        q = r * grid.cols + c
-        pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-        hit = on & (keys[pos] == q)
-        out = np.where(hit, np.minimum(out, cap[pos]), out)
-    return out
+        return cap.copy()
+    r = blk[:, 0] - blk[:, 0].min() + 1
+    c = blk[:, 1] - blk[:, 1].min() + 1
+    win = np.full((int(r.max()) + 2, int(c.max()) + 2), np.iinfo(np.int64).max)
+    win[r, c] = cap
+    return np.minimum.reduce([cap, win[r - 1, c], win[r, c + 1], win[r + 1, c], win[r, c - 1]])
 
 
 class _Leaves:
