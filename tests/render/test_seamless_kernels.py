@@ -1,7 +1,9 @@
 """``seamless-patches``' compiled selection (numba) against the numpy reference: every output
 array of the layout equal, bit for bit, on rough, nodata and mixed-residency scenes, both forms
-of ρ, with and without the spike guard; positive controls show the comparison catches a kernel
-that is off by one ulp, that loses the shared edges or that culls one node."""
+of ρ, with and without the spike guard, on every compiled path (the whole selection in one call,
+one traversal call, one call per depth, compiled or numpy resolution rounds); positive controls
+show the comparison catches a kernel that is off by one ulp, that loses the shared edges, a
+leaf or a child, that culls one node, or that is off by one edge level, violation or round."""
 
 from __future__ import annotations
 
