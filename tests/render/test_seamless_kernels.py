@@ -260,6 +260,24 @@ def test_positive_controls_the_resolution_kernels_are_checked(
     assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
 
 
+def test_resolution_helpers_equal_numpy(numba_kernels):
+    # the compiled resolution's own sort, depth list and edge resolution against numpy's
+    from render.strategies.seamless._resolve_nb import _argsort, _depths, _edge_resolution
+    from render.strategies.seamless.selection import edge_resolution
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 7, 64, 1000):
+        keys = rng.choice(10 * n + 1, n, replace=False).astype(np.int64)
+        assert _argsort(keys).tolist() == np.argsort(keys).tolist()
+        d = rng.integers(0, 9, n).astype(np.int64)
+        assert _depths(d, 8).tolist() == np.unique(d).tolist()
+    eps = np.array([0.0, 1e-9, 0.1, 0.125, 0.13, 0.5, 1.0, 3.0, 1e9, np.inf, np.nan])
+    for c in (1, 3, 4):
+        want = edge_resolution(eps, c).tolist()
+        assert [_edge_resolution(float(e), c) for e in eps] == want
+    assert len(set(edge_resolution(eps, 4).tolist())) > 2  # the cases span several levels
+
+
 def test_backend_selection(monkeypatch):
     assert sp_kernels.resolve("numpy") is None
     with pytest.raises(KernelUnavailableError):

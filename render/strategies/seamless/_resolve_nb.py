@@ -46,6 +46,49 @@ def _edge_resolution(eps, c):
 
 
 @_jit
+def _depths(d, big):
+    """``np.unique(d)`` of depths in ``0..big`` (a presence table: no sort to compile)."""
+    seen = np.zeros(big + 1, np.bool_)
+    m = 0
+    for x in d:
+        if not seen[x]:
+            seen[x] = True
+            m += 1
+    out = np.empty(m, np.int64)
+    j = 0
+    for x in range(big + 1):
+        if seen[x]:
+            out[j] = x
+            j += 1
+    return out
+
+
+@_jit
+def _argsort(keys):
+    """``np.argsort`` of distinct keys (bottom-up merge sort: with distinct keys every sort
+    gives this order; numba's own sort costs seconds to compile)."""
+    n = keys.shape[0]
+    a = np.arange(n)
+    b = np.empty(n, np.int64)
+    w = 1
+    while w < n:
+        for lo in range(0, n, 2 * w):
+            mid = min(lo + w, n)
+            hi = min(lo + 2 * w, n)
+            i, j = lo, mid
+            for t in range(lo, hi):
+                if i < mid and (j >= hi or keys[a[i]] <= keys[a[j]]):
+                    b[t] = a[i]
+                    i += 1
+                else:
+                    b[t] = a[j]
+                    j += 1
+        a, b = b, a
+        w *= 2
+    return a
+
+
+@_jit
 def resolve_round(idx, d, rows, cols, eps, blk, cap, dmax, c):
     """One round of ``_resolve`` over the leaves: ``(split, v, level, violations)`` where
     ``split`` says some coarse leaves must split, ``v`` are those leaves (ascending, as
@@ -74,9 +117,9 @@ def resolve_round(idx, d, rows, cols, eps, blk, cap, dmax, c):
     nr = (mr + 2) << big
     nc = (mc + 2) << big
     keys = (d * nr + gr) * nc + gc
-    order = np.argsort(keys)  # the keys are distinct: the same order as numpy's sort
+    order = _argsort(keys)  # the keys are distinct: the same order as numpy's sort
     sk = keys[order]
-    gid = edge_groups(d, gr, gc, np.unique(d), order, sk, nr, nc)
+    gid = edge_groups(d, gr, gc, _depths(d, big), order, sk, nr, nc)
     s4 = 4 * n
     lo_g = np.full(s4, _LOW, np.int64)
     hi_g = np.full(s4, _HIGH, np.int64)
@@ -120,30 +163,29 @@ def resolve_round(idx, d, rows, cols, eps, blk, cap, dmax, c):
 
 
 @_jit
-def _concat(parts):
-    """``np.concatenate`` of a list of 1-d int64 arrays."""
-    total = 0
-    for p in parts:
-        total += p.shape[0]
-    out = np.empty(total, np.int64)
-    s = 0
-    for p in parts:
-        out[s : s + p.shape[0]] = p
-        s += p.shape[0]
+def _room(a, n, need):
+    """``a`` (rows ``0..n`` kept) with room for ``need`` rows (doubling)."""
+    if need <= a.shape[0]:
+        return a
+    out = np.empty((max(need, 2 * a.shape[0]),) + a.shape[1:], a.dtype)
+    out[:n] = a[:n]
     return out
 
 
 @_jit
-def _concat2(parts):
-    """``np.concatenate`` of a list of ``(m, 4)`` float64 arrays."""
-    total = 0
-    for p in parts:
-        total += p.shape[0]
-    out = np.empty((total, 4))
-    s = 0
-    for p in parts:
-        out[s : s + p.shape[0]] = p
-        s += p.shape[0]
+def _with_seeds(carry, seeds, seed_d, d):
+    """``carry`` then the seeds of depth ``d`` (``np.concatenate`` of the two)."""
+    m = 0
+    for x in seed_d:
+        if x == d:
+            m += 1
+    out = np.empty(carry.shape[0] + m, np.int64)
+    out[: carry.shape[0]] = carry
+    j = carry.shape[0]
+    for i in range(seed_d.shape[0]):
+        if seed_d[i] == d:
+            out[j] = seeds[i]
+            j += 1
     return out
 
 
@@ -163,20 +205,21 @@ def traverse_all(
         blk, bkeys, border, slots, grows, gcols, zr, ex0, ey0, ddx, ddy, ex, ey, ez, focal,
         tau, cc, paper, paper_rho,
     ) = eps_args  # fmt: skip
-    li = [seed_i[:0]]
-    ld = [seed_i[:0]]
-    lr = [seed_i[:0]]
-    lc = [seed_i[:0]]
-    le = [np.zeros((0, 4))]
+    size = max(16, 4 * seed_i.shape[0])
+    li = np.empty(size, np.int64)
+    ld = np.empty(size, np.int64)
+    lr = np.empty(size, np.int64)
+    lc = np.empty(size, np.int64)
+    le = np.empty((size, 4))
+    n = 0
     clamped = 0
     ci = seed_i[:0]
     cr = seed_i[:0]
     cl = seed_i[:0]
     for d in range(0, k - c + 1):
-        sel = seed_d == d
-        idx = np.concatenate((ci, seed_i[sel]))
-        rows = np.concatenate((cr, seed_r[sel]))
-        cols = np.concatenate((cl, seed_c[sel]))
+        idx = _with_seeds(ci, seed_i, seed_d, d)
+        rows = _with_seeds(cr, seed_r, seed_d, d)
+        cols = _with_seeds(cl, seed_c, seed_d, d)
         if idx.shape[0] == 0:
             ci, cr, cl = idx, rows, cols
             continue
@@ -189,13 +232,20 @@ def traverse_all(
         )  # fmt: skip
         if seen:
             clamped += cl_d
-            li.append(leaf[0])
-            ld.append(np.full(leaf[0].shape[0], d, np.int64))
-            lr.append(leaf[1])
-            lc.append(leaf[2])
-            le.append(leaf[3])
+            m = leaf[0].shape[0]
+            li = _room(li, n, n + m)
+            ld = _room(ld, n, n + m)
+            lr = _room(lr, n, n + m)
+            lc = _room(lc, n, n + m)
+            le = _room(le, n, n + m)
+            li[n : n + m] = leaf[0]
+            ld[n : n + m] = d
+            lr[n : n + m] = leaf[1]
+            lc[n : n + m] = leaf[2]
+            le[n : n + m] = leaf[3]
+            n += m
         ci, cr, cl = child
-    return _concat(li), _concat(ld), _concat(lr), _concat(lc), _concat2(le), clamped
+    return li[:n].copy(), ld[:n].copy(), lr[:n].copy(), lc[:n].copy(), le[:n].copy(), clamped
 
 
 @_jit
@@ -222,7 +272,7 @@ def select_all(
         sr = np.empty(4 * m, np.int64)
         sc = np.empty(4 * m, np.int64)
         s = 0
-        for dv in np.unique(d[v]):  # per depth, in v's order: the reference's seeds
+        for dv in _depths(d[v], k):  # per depth, in v's order: the reference's seeds
             for j in v:
                 if d[j] == dv:
                     for q in range(4):
