@@ -1,94 +1,29 @@
-"""``seamless-patches``, the selection (pure numpy, no GL): the paper's ε = ρ·l/d per edge, the
-top-down traversal and the resolution of shared edges into :class:`PatchLayout`. It reads the
-frame services' store, drawable blocks and terrain z range (``st.r``) and nothing on the GPU."""
+"""``seamless-patches``, the selection (pure numpy, no GL): the paper's ε = ρ·l/d per edge
+(:mod:`.layout`) of every node, the top-down traversal and the resolution of shared edges into
+:class:`PatchLayout`. It reads the frame services' store, drawable blocks and terrain z range
+(``st.r``) and nothing on the GPU."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-from numpy.typing import ArrayLike
 
 from render.errors import SelectionError
 from render.select import DiscCull
 from render.strategies.seamless import kernels as sp_kernels
+from render.strategies.seamless.layout import (
+    RHO_FORMS,
+    PatchLayout,
+    edge_epsilon,
+    edge_resolution,
+    paper_precision,
+    precision,
+)
 from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
 from tiler.quadtree import block_origins, half_diagonal, node_centres_at, node_span
 
 Block = tuple[int, int]
-
-# -- ε = ρ l / d ----------------------------------------------------------------------------
-
-#: the forms of ρ: ``"bound"`` (ours, the stored error over τ) and ``"paper"`` (Livny et al.'s
-#: global precision factor, Section 3 "Level of Detail"); see the package docstring
-RHO_FORMS = ("bound", "paper")
-
-
-def paper_precision(tau: float, focal_px: float, res_log2: int) -> float:
-    """Livny et al.'s ρ as published, one global factor: ``ρ = f / (τ 2**c)`` (∞ at τ = 0)."""
-    if tau < 0:
-        raise ValueError(f"tau must be >= 0, got {tau}")
-    if tau == 0:
-        return float("inf")
-    return float(focal_px) / (float(tau) * float(1 << res_log2))
-
-
-def precision(
-    delta: ArrayLike, length: ArrayLike, tau: float, focal_px: float, res_log2: int
-) -> np.ndarray:
-    """The edge's precision factor ``ρ = 2 f δ / (τ 2**c l)`` (∞ at τ = 0 unless δ = 0)."""
-    delta = np.asarray(delta, dtype=np.float64)
-    num = 2.0 * focal_px * delta
-    den = float(tau) * float(1 << res_log2) * np.asarray(length, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(num == 0.0, 0.0, num / den)
-    return np.where(np.isnan(rho), np.inf, rho)
-
-
-def edge_epsilon(rho: ArrayLike, length: ArrayLike, dist: ArrayLike) -> np.ndarray:
-    """The paper's ``ε = ρ l / d`` (0 when ρ = 0, ∞ when d = 0 < ρ)."""
-    rho = np.asarray(rho, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        eps = rho * np.asarray(length, dtype=np.float64) / np.asarray(dist, dtype=np.float64)
-    return np.where(rho == 0.0, 0.0, np.where(np.isnan(eps), np.inf, eps))
-
-
-def edge_resolution(eps: ArrayLike, res_log2: int) -> np.ndarray:
-    """log2 of the edge's cells: ``ε 2**c`` rounded up to a power of two, clipped to 1..c."""
-    x = np.asarray(eps, dtype=np.float64) * float(1 << res_log2)
-    x = np.where(np.isfinite(x), x, float(1 << res_log2))
-    m, e = np.frexp(np.maximum(x, 1.0))
-    up = np.where(m == 0.5, e - 1, e)
-    return np.clip(up, 1, res_log2).astype(np.int64)
-
-
-# -- selection ------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class PatchLayout:
-    """Leaf patches of one frame and their edge levels (N, E, S, W)."""
-
-    blocks: np.ndarray  # (m, 2) block ids
-    block: np.ndarray  # (n,) index into blocks
-    depth: np.ndarray
-    row: np.ndarray  # node row/col inside the block at its depth
-    col: np.ndarray
-    edge_level: np.ndarray  # (n, 4) store level of each edge's tile
-    eps: np.ndarray  # (n, 4) ε of each edge
-    res_log2: int
-    clamped: int
-    violations: int
-
-    def __len__(self) -> int:
-        return len(self.depth)
-
-    @property
-    def edge_res(self) -> np.ndarray:
-        """``(n, 4)`` log2 cells of each tile."""
-        return self.edge_level - self.depth[:, None]
 
 
 class _Frame:
