@@ -214,13 +214,7 @@ class _Frame:
         (numba, no spike guard): ``(leaves (idx, rows, cols, eps), children, clamped, any
         visible)``; the same values as the numpy steps of :func:`_traverse`."""
         g, k = self.grid, self.k
-        if self.cull is None:
-            mode, cull = 0, _NO_CULL
-        elif self.cull.empty:
-            mode, cull = 2, _NO_CULL
-        else:
-            c = self.cull
-            mode, cull = 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+        mode, cull = self._cull_args()
         s = float(node_span(g.k, d))
         geo = (float(g.x0), float(g.y0), int(g.step), float(g.dx), float(g.dy), s * g.dx,
                s * g.dy, half_diagonal(g, d))  # fmt: skip
@@ -241,6 +235,16 @@ class _Frame:
             self.dmax, self.cap,
         )  # fmt: skip
 
+    def _cull_args(self) -> tuple:
+        """The kernels' cull mode (0 none, 1 disc test, 2 nothing meets: an empty hull) and
+        :class:`DiscCull` arrays."""
+        if self.cull is None:
+            return 0, _NO_CULL
+        if self.cull.empty:
+            return 2, _NO_CULL
+        c = self.cull
+        return 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+
     def whole_args(self) -> tuple:
         """The arguments of the kernels' ``traverse_all`` after the seeds: :meth:`fused_depth`'s
         for every depth at once (made once per frame)."""
@@ -250,13 +254,7 @@ class _Frame:
 
     def _make_whole_args(self) -> tuple:
         g, k = self.grid, self.k
-        if self.cull is None:
-            mode, cull = 0, _NO_CULL
-        elif self.cull.empty:
-            mode, cull = 2, _NO_CULL
-        else:
-            c = self.cull
-            mode, cull = 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+        mode, cull = self._cull_args()
         depths = range(0, k - self.c + 1)
         span = [float(node_span(g.k, d)) for d in depths]
         s_dx = np.array([s * g.dx for s in span])
