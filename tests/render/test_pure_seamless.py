@@ -179,3 +179,24 @@ def test_paper_rho_tau_is_the_projected_cell_in_pixels():
         assert ok.any() and (~ok).any()
         assert (cell_px[ok] <= tau * (1 + 1e-9)).all()
         assert (f * length[~ok] / (dist[~ok] * 2**c) > tau).all()
+
+
+def test_neighbour_caps_are_the_lowest_drawn_cap_around_each_block():
+    from render.strategies.seamless.selection import _neighbour_caps
+
+    rng = np.random.default_rng(3)
+    drawn = sorted(rng.choice(20, 13, replace=False).tolist())
+    blk = np.array([(b // 5, b % 5) for b in drawn], np.int64)
+    cap = rng.integers(1, 9, len(blk)).astype(np.int64)
+    caps = {tuple(b): int(v) for b, v in zip(blk.tolist(), cap, strict=True)}
+    want = [
+        min([caps[b]] + [caps[n] for n in ((b[0] + dr, b[1] + dc) for dr, dc in
+             ((-1, 0), (0, 1), (1, 0), (0, -1))) if n in caps])
+        for b in map(tuple, blk.tolist())
+    ]  # fmt: skip
+    got = _neighbour_caps(blk, cap)
+    assert got.tolist() == want
+    assert got.tolist() != cap.tolist()  # some neighbour is lower: the rule does something
+    # positive control: a block at the row's end is not the next row's first block's neighbour
+    edge = np.array([(0, 4), (1, 0)], np.int64)
+    assert _neighbour_caps(edge, np.array([1, 7])).tolist() == [1, 7]

@@ -1,7 +1,9 @@
 """``seamless-patches``' compiled selection (numba) against the numpy reference: every output
 array of the layout equal, bit for bit, on rough, nodata and mixed-residency scenes, both forms
-of ρ, with and without the spike guard; positive controls show the comparison catches a kernel
-that is off by one ulp, that loses the shared edges or that culls one node."""
+of ρ, with and without the spike guard, on every compiled path (the whole selection in one call,
+one traversal call, one call per depth, compiled or numpy resolution rounds); positive controls
+show the comparison catches a kernel that is off by one ulp, that loses the shared edges, a
+leaf or a child, that culls one node, or that is off by one edge level, violation or round."""
 
 from __future__ import annotations
 
@@ -170,6 +172,110 @@ def test_positive_controls_the_fused_depth_kernel_is_checked(renderers, numba_ke
         assert field in differences(ref, _select_with(monkeypatch, r, mod))
     monkeypatch.undo()
     assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
+
+
+def _without(nb, *names) -> SimpleNamespace:
+    """The kernel module ``nb`` without the kernels ``names`` (the selection then takes the
+    paths that call the others from Python)."""
+    keep = ("epsilon", "edge_groups", "disc_meets", "traverse_depth", "traverse_all")
+    return SimpleNamespace(
+        **{n: getattr(nb, n) for n in keep + ("resolve_round",) if n not in names}
+    )
+
+
+@pytest.mark.parametrize(
+    "missing", [("select_all",), ("select_all", "traverse_all"), ("select_all", "resolve_round")]
+)
+def test_each_compiled_path_equals_the_numpy_reference(
+    renderers, numba_kernels, monkeypatch, missing
+):
+    # production takes select_all; the paths below it (one traversal call, one call per
+    # depth, the compiled or numpy resolution rounds) give the same layout
+    monkeypatch.setattr(sp_kernels, "_load_numba", lambda: _without(numba_kernels, *missing))
+    for scene in ("rough", "nodata"):
+        assert _compare(renderers[scene]) > 0
+
+
+def test_positive_controls_the_resolution_kernels_are_checked(
+    renderers, numba_kernels, monkeypatch
+):
+    # select_all (the whole selection), resolve_round (one resolution round) and traverse_all
+    # (one traversal) each broken on purpose: the comparison with the reference catches it
+    r = renderers["rough"]
+    cam = _cameras(r)[1]
+    ref, _ = get_strategy("seamless-patches", r, kernels="numpy", res_log2=3).select(cam, 1.0)
+    nb = numba_kernels
+
+    def whole_ulp(*args):
+        out = nb.select_all(*args)
+        out[5][len(out[5]) // 2, 3] = np.nextafter(out[5][len(out[5]) // 2, 3], np.inf)
+        return out
+
+    def whole_level(*args):
+        out = nb.select_all(*args)
+        out[6][0, 0] += 1
+        return out
+
+    def whole_violation(*args):
+        return (*nb.select_all(*args)[:8], 1)
+
+    for fault, field in (
+        (whole_ulp, "eps"),
+        (whole_level, "edge_level"),
+        (whole_violation, "violations"),
+    ):
+        mod = SimpleNamespace(**vars(_without(nb)), select_all=fault)
+        assert differences(ref, _select_with(monkeypatch, r, mod)) == [field]
+
+    def round_level(*args):
+        split, v, level, violations = nb.resolve_round(*args)
+        if not split:
+            level[-1, 2] -= 1
+        return split, v, level, violations
+
+    def round_split_late(*args):  # the first split leaf is left to the next round
+        split, v, level, violations = nb.resolve_round(*args)
+        return split, (v[1:] if len(v) > 1 else v), level, violations
+
+    def all_lost_leaf(*args):  # the traversal loses its last leaf
+        *leaf, clamped = nb.traverse_all(*args)
+        return (*(a[:-1] for a in leaf), clamped)
+
+    def all_ulp(*args):
+        out = nb.traverse_all(*args)
+        if len(out[4]):
+            out[4][0, 1] = np.nextafter(out[4][0, 1], -np.inf)
+        return out
+
+    base = _without(nb, "select_all")
+    for name, fault, field in (
+        ("resolve_round", round_level, "edge_level"),
+        ("resolve_round", round_split_late, "block"),
+        ("traverse_all", all_lost_leaf, "depth"),
+        ("traverse_all", all_ulp, "eps"),
+    ):
+        mod = SimpleNamespace(**{**vars(base), name: fault})
+        assert field in differences(ref, _select_with(monkeypatch, r, mod)), name
+    monkeypatch.undo()
+    assert differences(ref, _select_with(monkeypatch, r, numba_kernels)) == []
+
+
+def test_resolution_helpers_equal_numpy(numba_kernels):
+    # the compiled resolution's own sort, depth list and edge resolution against numpy's
+    from render.strategies.seamless._resolve_nb import _argsort, _depths, _edge_resolution
+    from render.strategies.seamless.selection import edge_resolution
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 7, 64, 1000):
+        keys = rng.choice(10 * n + 1, n, replace=False).astype(np.int64)
+        assert _argsort(keys).tolist() == np.argsort(keys).tolist()
+        d = rng.integers(0, 9, n).astype(np.int64)
+        assert _depths(d, 8).tolist() == np.unique(d).tolist()
+    eps = np.array([0.0, 1e-9, 0.1, 0.125, 0.13, 0.5, 1.0, 3.0, 1e9, np.inf, np.nan])
+    for c in (1, 3, 4):
+        want = edge_resolution(eps, c).tolist()
+        assert [_edge_resolution(float(e), c) for e in eps] == want
+    assert len(set(edge_resolution(eps, 4).tolist())) > 2  # the cases span several levels
 
 
 def test_backend_selection(monkeypatch):

@@ -83,9 +83,10 @@ four triangular tiles (cut by the diagonals) at power-of-two resolutions, stitch
   counts as clamped. An edge whose sides cannot agree (not seen with whole-level residency)
   counts as a ``violation``.
 * **Compiled kernels** (:mod:`render.strategies.seamless.kernels`): with numba, the per-depth
-  edge ε, the nodes' frustum test and the shared-edge grouping run compiled (the spike
-  guard's term stays numpy); ``kernels="numpy"`` (or ``TERRASTREAM_KERNELS=numpy``) runs
-  the numpy reference, which the tests compare exactly.
+  edge ε, the nodes' frustum test, the shared-edge grouping and resolution run compiled — the
+  whole selection in one call without the spike guard (the guard's term stays numpy);
+  ``kernels="numpy"`` (or ``TERRASTREAM_KERNELS=numpy``) runs the numpy reference, which the
+  tests compare exactly.
 * **Triangles** = Σ mesh triangles × instances (``RenderStats.triangles``), checked against a
   read-back: the probe program's geometry shader appends every drawn triangle (global integer
   samples and fetched heights) to a storage buffer under ``RASTERIZER_DISCARD``; the measured
@@ -93,6 +94,14 @@ four triangular tiles (cut by the diagonals) at power-of-two resolutions, stitch
 """
 
 from render.strategies.seamless.gl import SeamlessPatches
+from render.strategies.seamless.layout import (
+    RHO_FORMS,
+    PatchLayout,
+    edge_epsilon,
+    edge_resolution,
+    paper_precision,
+    precision,
+)
 from render.strategies.seamless.meshes import (
     DIRS,
     mesh_kinds,
@@ -103,15 +112,7 @@ from render.strategies.seamless.meshes import (
     tile_mesh,
     tile_triangles,
 )
-from render.strategies.seamless.selection import (
-    RHO_FORMS,
-    PatchLayout,
-    edge_epsilon,
-    edge_resolution,
-    paper_precision,
-    precision,
-    select_layout,
-)
+from render.strategies.seamless.selection import select_layout
 
 __all__ = [
     "DIRS",

@@ -1,9 +1,9 @@
-"""Numba kernels of ``seamless-patches``' selection (imported by
-:mod:`render.strategies.seamless.kernels`): the per-depth edge ε of ``_Frame.epsilon`` (with its
-``node_delta`` look-ups), the frustum disc test of ``_Frame.visible`` and the shared-edge
-grouping of ``_edge_groups``, each giving exactly the numpy reference's output. The float work
-is the reference's operations in the reference's order on float64 (no fastmath), so the
-results are the same bits."""
+"""Numba kernels of ``seamless-patches``' selection (re-exported by :mod:`._resolve_nb`, the
+module :mod:`.kernels` loads): the per-depth edge ε of ``_Frame.epsilon`` (with its
+``node_delta`` look-ups), the frustum disc test of ``_Frame.visible``, one depth of the
+traversal and the shared-edge grouping of ``_edge_groups``, each giving exactly the numpy
+reference's output. The float work is the reference's operations in the reference's order on
+float64 (no fastmath), so the results are the same bits."""
 
 from __future__ import annotations
 

@@ -14,10 +14,10 @@ from tiler.kernels import pick
 @cache
 def _load_numba() -> ModuleType | None:
     try:
-        from render.strategies.seamless import _kernels_nb
+        from render.strategies.seamless import _resolve_nb
     except ImportError:
         return None
-    return _kernels_nb
+    return _resolve_nb  # it re-exports _kernels_nb's kernels
 
 
 def resolve(kernels: str | None = None) -> ModuleType | None:

@@ -1,94 +1,29 @@
-"""``seamless-patches``, the selection (pure numpy, no GL): the paper's ε = ρ·l/d per edge, the
-top-down traversal and the resolution of shared edges into :class:`PatchLayout`. It reads the
-frame services' store, drawable blocks and terrain z range (``st.r``) and nothing on the GPU."""
+"""``seamless-patches``, the selection (pure numpy, no GL): the paper's ε = ρ·l/d per edge
+(:mod:`.layout`) of every node, the top-down traversal and the resolution of shared edges into
+:class:`PatchLayout`. It reads the frame services' store, drawable blocks and terrain z range
+(``st.r``) and nothing on the GPU."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-from numpy.typing import ArrayLike
 
 from render.errors import SelectionError
 from render.select import DiscCull
 from render.strategies.seamless import kernels as sp_kernels
+from render.strategies.seamless.layout import (
+    RHO_FORMS,
+    PatchLayout,
+    edge_epsilon,
+    edge_resolution,
+    paper_precision,
+    precision,
+)
 from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
 from tiler.quadtree import block_origins, half_diagonal, node_centres_at, node_span
 
 Block = tuple[int, int]
-
-# -- ε = ρ l / d ----------------------------------------------------------------------------
-
-#: the forms of ρ: ``"bound"`` (ours, the stored error over τ) and ``"paper"`` (Livny et al.'s
-#: global precision factor, Section 3 "Level of Detail"); see the package docstring
-RHO_FORMS = ("bound", "paper")
-
-
-def paper_precision(tau: float, focal_px: float, res_log2: int) -> float:
-    """Livny et al.'s ρ as published, one global factor: ``ρ = f / (τ 2**c)`` (∞ at τ = 0)."""
-    if tau < 0:
-        raise ValueError(f"tau must be >= 0, got {tau}")
-    if tau == 0:
-        return float("inf")
-    return float(focal_px) / (float(tau) * float(1 << res_log2))
-
-
-def precision(
-    delta: ArrayLike, length: ArrayLike, tau: float, focal_px: float, res_log2: int
-) -> np.ndarray:
-    """The edge's precision factor ``ρ = 2 f δ / (τ 2**c l)`` (∞ at τ = 0 unless δ = 0)."""
-    delta = np.asarray(delta, dtype=np.float64)
-    num = 2.0 * focal_px * delta
-    den = float(tau) * float(1 << res_log2) * np.asarray(length, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(num == 0.0, 0.0, num / den)
-    return np.where(np.isnan(rho), np.inf, rho)
-
-
-def edge_epsilon(rho: ArrayLike, length: ArrayLike, dist: ArrayLike) -> np.ndarray:
-    """The paper's ``ε = ρ l / d`` (0 when ρ = 0, ∞ when d = 0 < ρ)."""
-    rho = np.asarray(rho, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        eps = rho * np.asarray(length, dtype=np.float64) / np.asarray(dist, dtype=np.float64)
-    return np.where(rho == 0.0, 0.0, np.where(np.isnan(eps), np.inf, eps))
-
-
-def edge_resolution(eps: ArrayLike, res_log2: int) -> np.ndarray:
-    """log2 of the edge's cells: ``ε 2**c`` rounded up to a power of two, clipped to 1..c."""
-    x = np.asarray(eps, dtype=np.float64) * float(1 << res_log2)
-    x = np.where(np.isfinite(x), x, float(1 << res_log2))
-    m, e = np.frexp(np.maximum(x, 1.0))
-    up = np.where(m == 0.5, e - 1, e)
-    return np.clip(up, 1, res_log2).astype(np.int64)
-
-
-# -- selection ------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class PatchLayout:
-    """Leaf patches of one frame and their edge levels (N, E, S, W)."""
-
-    blocks: np.ndarray  # (m, 2) block ids
-    block: np.ndarray  # (n,) index into blocks
-    depth: np.ndarray
-    row: np.ndarray  # node row/col inside the block at its depth
-    col: np.ndarray
-    edge_level: np.ndarray  # (n, 4) store level of each edge's tile
-    eps: np.ndarray  # (n, 4) ε of each edge
-    res_log2: int
-    clamped: int
-    violations: int
-
-    def __len__(self) -> int:
-        return len(self.depth)
-
-    @property
-    def edge_res(self) -> np.ndarray:
-        """``(n, 4)`` log2 cells of each tile."""
-        return self.edge_level - self.depth[:, None]
 
 
 class _Frame:
@@ -103,10 +38,8 @@ class _Frame:
         pairs = [(b, lv) for b, lv in pairs if lv >= 1]
         self.blk = np.array([b for b, _ in pairs], dtype=np.int64).reshape(-1, 2)
         self.cap = np.array([lv for _, lv in pairs], dtype=np.int64)
-        capd = dict(pairs)
-        capn = [min([lv] + [capd[n] for n in _block_nbrs(b) if n in capd]) for b, lv in pairs]
-        self.dmax = np.minimum(self.k - self.c, np.array(capn, dtype=np.int64) - 1)
         g = self.grid
+        self.dmax = np.minimum(self.k - self.c, _neighbour_caps(self.blk, self.cap) - 1)
         self.zr = st.zr
         win = r.store.index.window
         self.win = win
@@ -114,14 +47,15 @@ class _Frame:
             self.win_r = win[self.blk[:, 0], self.blk[:, 1], 2] - 1
             self.win_c = win[self.blk[:, 0], self.blk[:, 1], 3] - 1
         self.table = st.table
-        r.fill_table(self.table, [tuple(b) for b in self.blk.tolist()], "bound")
+        drawn = [tuple(b) for b in self.blk.tolist()]
+        r.fill_table(self.table, drawn, "bound")
         self.guard = bool(getattr(st, "spike_guard", False))
         self.rho_form = getattr(st, "rho", "bound")
         if self.rho_form not in RHO_FORMS:
             raise SelectionError(f"rho must be one of {RHO_FORMS}, got {self.rho_form!r}")
         self.tables = st.tables if self.guard else []
         for t in self.tables:
-            r.fill_table(t, [tuple(b) for b in self.blk.tolist()], "bound")
+            r.fill_table(t, drawn, "bound")
         self.slots = self.table.slots(self.blk) if len(self.blk) else np.zeros(0, np.int64)
         keys = self.blk[:, 0] * g.cols + self.blk[:, 1]
         self.border = np.argsort(keys)
@@ -135,6 +69,11 @@ class _Frame:
         #: one kernel call per depth (:meth:`fused_depth`; not with the spike guard, nor for a
         #: kernel module without it: the per-step kernels' positive controls)
         self.fused = self.nb is not None and not self.guard and hasattr(self.nb, "traverse_depth")
+        #: the whole selection in one kernel call (:meth:`whole_args`), and each round of
+        #: :func:`_resolve` in one (the guard's path); not for a kernel module without them
+        self.whole = self.fused and hasattr(self.nb, "select_all")
+        self.rounds = self.nb is not None and hasattr(self.nb, "resolve_round")
+        self._whole_args: tuple | None = None
 
     def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray, table=None) -> np.ndarray:
         """Stored error (``bound``, level ``d + 1``; level ``d + r`` from ``table`` =
@@ -275,13 +214,7 @@ class _Frame:
         (numba, no spike guard): ``(leaves (idx, rows, cols, eps), children, clamped, any
         visible)``; the same values as the numpy steps of :func:`_traverse`."""
         g, k = self.grid, self.k
-        if self.cull is None:
-            mode, cull = 0, _NO_CULL
-        elif self.cull.empty:
-            mode, cull = 2, _NO_CULL
-        else:
-            c = self.cull
-            mode, cull = 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+        mode, cull = self._cull_args()
         s = float(node_span(g.k, d))
         geo = (float(g.x0), float(g.y0), int(g.step), float(g.dx), float(g.dy), s * g.dx,
                s * g.dy, half_diagonal(g, d))  # fmt: skip
@@ -302,6 +235,50 @@ class _Frame:
             self.dmax, self.cap,
         )  # fmt: skip
 
+    def _cull_args(self) -> tuple:
+        """The kernels' cull mode (0 none, 1 disc test, 2 nothing meets: an empty hull) and
+        :class:`DiscCull` arrays."""
+        if self.cull is None:
+            return 0, _NO_CULL
+        if self.cull.empty:
+            return 2, _NO_CULL
+        c = self.cull
+        return 1, (c.o, c.px, c.py, c.ex, c.ey, c.ee_safe, c.ok, c.all_ok, c.ccw)
+
+    def whole_args(self) -> tuple:
+        """The arguments of the kernels' ``traverse_all`` after the seeds: :meth:`fused_depth`'s
+        for every depth at once (made once per frame)."""
+        if self._whole_args is None:
+            self._whole_args = self._make_whole_args()
+        return self._whole_args
+
+    def _make_whole_args(self) -> tuple:
+        g, k = self.grid, self.k
+        mode, cull = self._cull_args()
+        depths = range(0, k - self.c + 1)
+        span = [float(node_span(g.k, d)) for d in depths]
+        s_dx = np.array([s * g.dx for s in span])
+        s_dy = np.array([s * g.dy for s in span])
+        radius = np.array([half_diagonal(g, d) for d in depths], dtype=np.float64)
+        arrs = [self.table.depth_array(d) for d in depths]
+        has_arr = np.array([a is not None for a in arrs])
+        arrs = tuple(_NO_ARRAY if a is None else a for a in arrs)
+        paper = self.rho_form == "paper"
+        prho = paper_precision(self.tau, self.focal, self.c) if paper else 0.0
+        ex, ey, ez = (float(v) for v in self.eye)
+        eps_args = (
+            self.blk, self.bkeys, self.border, self.slots, g.rows, g.cols, self.zr,
+            float(g.x0), float(g.y0), float(g.dx), float(g.dy), ex, ey, ez,
+            float(self.focal), self.tau, self.c, paper, prho,
+        )  # fmt: skip
+        geo = (float(g.x0), float(g.y0), int(g.step), float(g.dx), float(g.dy))
+        use_win = self.win is not None
+        wr, wc = (self.win_r, self.win_c) if use_win else (_NO_INT, _NO_INT)
+        return (
+            k, self.c, use_win, wr, wc, mode, geo, s_dx, s_dy, radius, cull, arrs, has_arr,
+            eps_args, self.dmax, self.cap,
+        )  # fmt: skip
+
     def splittable(self, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Nodes whose children can be drawn and be finer (resident levels, bottom depth)."""
         return (d + 1 <= self.dmax[idx]) & (d + self.c < self.cap[idx])
@@ -313,8 +290,16 @@ _F0 = np.zeros(0)
 _NO_CULL = (np.zeros(2), _F0, _F0, _F0, _F0, _F0, np.zeros(0, np.bool_), True, False)
 
 
-def _block_nbrs(b: Block) -> list[Block]:
-    return [(b[0] + dr, b[1] + dc) for dr, dc in DIRS]
+def _neighbour_caps(blk: np.ndarray, cap: np.ndarray) -> np.ndarray:
+    """Per drawn block (``(m, 2)`` distinct ids) the lowest cap of it and its drawn N, E, S, W
+    neighbours, by a dense window over the blocks' bounding box with a margin of one."""
+    if not len(blk):
+        return cap.copy()
+    r = blk[:, 0] - blk[:, 0].min() + 1
+    c = blk[:, 1] - blk[:, 1].min() + 1
+    win = np.full((int(r.max()) + 2, int(c.max()) + 2), np.iinfo(np.int64).max)
+    win[r, c] = cap
+    return np.minimum.reduce([cap, win[r - 1, c], win[r, c + 1], win[r + 1, c], win[r, c - 1]])
 
 
 class _Leaves:
@@ -328,6 +313,16 @@ class _Leaves:
 def _traverse(fr: _Frame, seeds: dict[int, tuple], out: _Leaves) -> None:
     """Top-down from ``seeds`` (depth -> (idx, rows, cols)): split while some edge has ε > 1."""
     k, c = fr.k, fr.c
+    if fr.fused and hasattr(fr.nb, "traverse_all"):  # every depth in one call: the same leaves
+        if not seeds:
+            return
+        ds = sorted(seeds)
+        sd = np.concatenate([np.full(len(seeds[d][0]), d, np.int64) for d in ds])
+        si, sr, sc = (np.concatenate([seeds[d][i] for d in ds]).astype(np.int64) for i in range(3))
+        *leaf, clamped = fr.nb.traverse_all(sd, si, sr, sc, *fr.whole_args())
+        out.clamped += int(clamped)
+        out.parts.append(tuple(leaf))
+        return
     carry = None
     for d in range(0, k - c + 1):
         parts = [p for p in (carry, seeds.get(d)) if p is not None and len(p[0])]
@@ -409,7 +404,10 @@ def _edge_groups(d: np.ndarray, gr: np.ndarray, gc: np.ndarray, nb=None) -> np.n
     return out
 
 
-def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
+_ROUNDS = 64  # resolution rounds before a selection is declared unsettled
+
+
+def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = _ROUNDS) -> PatchLayout:
     """Group every shared edge, split coarse patches that cannot match, assign edge levels."""
     c = fr.c
     for _ in range(max_rounds):
@@ -422,6 +420,14 @@ def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
             eps = np.zeros((0, 4))
         idx, d, rows, cols = (a.astype(np.int64) for a in (idx, d, rows, cols))
         n = len(idx)
+        if fr.rounds:  # the compiled round: the same split leaves, levels and violations
+            split_any, v, level, violations = fr.nb.resolve_round(
+                idx, d, rows, cols, eps, fr.blk, fr.cap, fr.dmax, c
+            )
+            if not split_any:
+                return _layout(fr, idx, d, rows, cols, eps, level, leaves.clamped, violations)
+            _resplit(fr, leaves, v, idx, d, rows, cols, eps)
+            continue
         gr = (fr.blk[idx, 0] << d) + rows
         gc = (fr.blk[idx, 1] << d) + cols
         hi = np.minimum(d + c, fr.cap[idx])
@@ -452,28 +458,37 @@ def _resolve(fr: _Frame, leaves: _Leaves, max_rounds: int = 64) -> PatchLayout:
                 np.clip(want_g[g], lo_e, hi_e),
                 np.clip(want_g[g], lo_g[g], hi_g[g]),
             ).reshape(n, 4)
-            return PatchLayout(
-                blocks=fr.blk,
-                block=idx,
-                depth=d,
-                row=rows,
-                col=cols,
-                edge_level=level.astype(np.int64),
-                eps=eps,
-                res_log2=c,
-                clamped=leaves.clamped + fr.skipped,
-                violations=int(np.count_nonzero(shared & (lo_g > hi_g))),
-            )
-        v = np.unique(j[split])
-        keep = np.ones(n, dtype=bool)
-        keep[v] = False
-        leaves.parts = [(idx[keep], d[keep], rows[keep], cols[keep], eps[keep])]
-        seeds: dict[int, tuple] = {}
-        for dv in np.unique(d[v]).tolist():
-            m = v[d[v] == dv]
-            seeds[dv + 1] = _children(idx[m], rows[m], cols[m])
-        _traverse(fr, seeds, leaves)
+            violations = int(np.count_nonzero(shared & (lo_g > hi_g)))
+            return _layout(fr, idx, d, rows, cols, eps, level, leaves.clamped, violations)
+        _resplit(fr, leaves, np.unique(j[split]), idx, d, rows, cols, eps)
     raise SelectionError(f"seamless patches did not settle in {max_rounds} rounds")
+
+
+def _resplit(fr: _Frame, leaves: _Leaves, v, idx, d, rows, cols, eps) -> None:
+    """Replace the leaves ``v`` (ascending) by their children, traversed down."""
+    keep = np.ones(len(idx), dtype=bool)
+    keep[v] = False
+    leaves.parts = [(idx[keep], d[keep], rows[keep], cols[keep], eps[keep])]
+    seeds: dict[int, tuple] = {}
+    for dv in np.unique(d[v]).tolist():
+        m = v[d[v] == dv]
+        seeds[dv + 1] = _children(idx[m], rows[m], cols[m])
+    _traverse(fr, seeds, leaves)
+
+
+def _layout(fr: _Frame, idx, d, rows, cols, eps, level, clamped: int, violations: int):
+    return PatchLayout(
+        blocks=fr.blk,
+        block=idx,
+        depth=d,
+        row=rows,
+        col=cols,
+        edge_level=level.reshape(len(idx), 4).astype(np.int64),
+        eps=eps,
+        res_log2=fr.c,
+        clamped=int(clamped) + fr.skipped,
+        violations=int(violations),
+    )
 
 
 def select_layout(st, camera: Camera, tau: float, resident: dict | None) -> PatchLayout:
@@ -482,5 +497,13 @@ def select_layout(st, camera: Camera, tau: float, resident: dict | None) -> Patc
     fr = _Frame(st, camera, tau, resident)
     leaves = _Leaves()
     m = len(fr.blk)
+    if fr.whole:  # one kernel call: the same layout
+        zero = np.zeros(m, np.int64)
+        out = fr.nb.select_all(
+            zero, np.arange(m, dtype=np.int64), zero, zero, *fr.whole_args(), fr.blk, _ROUNDS
+        )
+        if not out[0]:
+            raise SelectionError(f"seamless patches did not settle in {_ROUNDS} rounds")
+        return _layout(fr, *out[1:])
     _traverse(fr, {0: (np.arange(m), np.zeros(m, np.int64), np.zeros(m, np.int64))}, leaves)
     return _resolve(fr, leaves)
