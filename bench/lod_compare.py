@@ -183,6 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.markdown_from:
         print(markdown(json.loads(Path(a.markdown_from).read_text()), a.metric))
         return 0
+    from render.strategies import warm_up_kernels
+
+    warm_up_kernels()  # the compiled CPU kernels, as the viewer uses them after warming up
     taus = [1.0, 4.0] if a.quick else [float(t) for t in a.taus.split(",")]
     frames = 4 if a.quick else a.frames
     w, h = (256, 192) if a.quick else tuple(int(v) for v in a.size.split("x"))

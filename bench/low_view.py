@@ -209,9 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lods", default=None, help="comma-separated strategies (default: all)")
     ap.add_argument("--out", default=str(RESULTS / "low_view.json"))
     a = ap.parse_args(argv)
-    from render import select_kernels
+    from render.strategies import warm_up_kernels
 
-    select_kernels.warm_up()  # the compiled CLOD walk, as the viewer uses it after warming up
+    warm_up_kernels()  # the compiled CPU kernels, as the viewer uses them after warming up
     stores = a.stores or [str(p) for p in (prepare_rough(), S16385) if p is not None]
     size = tuple(int(v) for v in a.size.split("x"))
     taus = [float(t) for t in a.taus.split(",")]

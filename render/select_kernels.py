@@ -22,7 +22,7 @@ from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, qiu_eq7
 from tiler.grid import BlockGrid
-from tiler.kernels import pick, requested
+from tiler.kernels import pick_warm, warm
 from tiler.quadtree import half_diagonal, node_span
 
 _NONE = np.zeros(0)
@@ -38,27 +38,19 @@ def _load_numba() -> ModuleType | None:
     return _select_nb
 
 
-_READY: list[bool] = []  # set by warm_up(): ``auto`` may use the compiled walk
+_READY: list[bool] = []  # filled by warm_up(): ``auto`` may use the compiled walk
 
 
 def resolve(kernels: str | None = None) -> ModuleType | None:
     """The numba kernel module for backend ``kernels`` (default: ``TERRASTREAM_KERNELS``), or
     ``None`` for the numpy reference; ``auto`` only after :func:`warm_up`."""
-    name = requested() if kernels is None else kernels.strip().lower()
-    if name == "auto" and not _READY:
-        return None
-    return pick(kernels, _load_numba)
+    return pick_warm(kernels, _load_numba, _READY)
 
 
 def warm_up() -> bool:
-    """Import numba and the compiled walk now (seconds the first time: a compilation; ~1 s
-    after: the import and the cache), after which ``auto`` uses it; whether it is available."""
-    if requested() == "numpy":
-        return False
-    mod = _load_numba()
-    if mod is not None and not _READY:
-        _READY.append(True)
-    return mod is not None
+    """Import numba and the compiled walk now, after which ``auto`` uses it (its kernels load
+    from numba's cache, or compile, on their first call); whether it is available."""
+    return warm(_load_numba, _READY)
 
 
 def walk(

@@ -23,11 +23,11 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from render import select_kernels
 from render.errors import RenderError
 from render.pipeline import ViewOptions
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step
+from render.strategies import warm_up_kernels
 from render.strategies.base import DrawOptions
 from render.views import near_plane
 from streamer.camera import Camera
@@ -329,8 +329,8 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     except BaseException:
         r.close()
         raise
-    # the compiled selection walk, loaded beside the first frames (which use the numpy one)
-    warm = threading.Thread(target=select_kernels.warm_up, name="terrastream-warm-select")
+    # the strategies' compiled kernels, loaded beside the first frames (which use numpy's)
+    warm = threading.Thread(target=warm_up_kernels, name="terrastream-warm-kernels")
     warm.start()
     t_prev = time.perf_counter()
     try:

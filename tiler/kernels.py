@@ -70,6 +70,29 @@ def pick(kernels: str | None, load: Callable[[], ModuleType | None]) -> ModuleTy
     return mod
 
 
+def pick_warm(
+    kernels: str | None, load: Callable[[], ModuleType | None], ready: list[bool]
+) -> ModuleType | None:
+    """As :func:`pick`, but ``auto`` gives the numpy reference until :func:`warm` has filled
+    ``ready``, so a one-shot command never waits for numba's import, cache or a compilation
+    (the render strategies' kernels: a viewer warms them on a background thread)."""
+    name = requested() if kernels is None else kernels.strip().lower()
+    if name == "auto" and not ready:
+        return None
+    return pick(kernels, load)
+
+
+def warm(load: Callable[[], ModuleType | None], ready: list[bool]) -> bool:
+    """Load the kernel module ``load`` gives now and mark ``ready`` (``auto`` then uses it);
+    whether it is available (never under ``TERRASTREAM_KERNELS=numpy``)."""
+    if requested() == "numpy":
+        return False
+    mod = load()
+    if mod is not None and not ready:
+        ready.append(True)
+    return mod is not None
+
+
 def active(load: bool = True) -> ModuleType | None:
     """The numba kernel module if it is to be used, else ``None`` (use numpy).
 

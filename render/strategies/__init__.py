@@ -35,6 +35,23 @@ STRATEGIES: dict[str, str] = {
 }
 
 
+def warm_up_kernels() -> dict[str, bool]:
+    """Import numba and every strategy's compiled CPU kernels now, after which
+    ``TERRASTREAM_KERNELS=auto`` uses them (until then ``auto`` is the numpy reference, so a
+    one-shot command never waits ~1 s for numba); the viewer runs it on a background thread.
+    Each kernel loads from numba's cache on its first call (or compiles, the first time ever on
+    a machine). Returns which are available, by name."""
+    from render import select_kernels
+    from render.strategies.jung_han import kernels as jh_kernels
+    from render.strategies.seamless import kernels as sp_kernels
+
+    return {
+        "qiu/chunk-tessellation walk": select_kernels.warm_up(),
+        "jung-han": jh_kernels.warm_up(),
+        "seamless-patches": sp_kernels.warm_up(),
+    }
+
+
 class UnknownStrategyError(RenderError):
     """A strategy name that is not registered."""
 

@@ -157,17 +157,38 @@ def test_backend_names():
         select_kernels.resolve("fortran")
 
 
-def test_auto_uses_the_compiled_walk_only_after_warm_up(monkeypatch, nb):
-    """A one-frame render never waits for numba: ``auto`` is the numpy walk until
+@pytest.mark.parametrize("which", ["select", "jung-han", "seamless-patches"])
+def test_auto_uses_compiled_kernels_only_after_warm_up(monkeypatch, which):
+    """A one-shot command never waits for numba: ``auto`` is the numpy reference until
     ``warm_up``; explicit backends are unaffected (and ``numpy`` never warms)."""
-    monkeypatch.setattr(select_kernels, "_READY", [])
+    pytest.importorskip("numba")
+    from render.strategies.jung_han import kernels as jh_kernels
+    from render.strategies.seamless import kernels as sp_kernels
+
+    mod = {"select": select_kernels, "jung-han": jh_kernels, "seamless-patches": sp_kernels}[which]
+    nb = mod.resolve("numba")
+    assert nb is not None
+    monkeypatch.setattr(mod, "_READY", [])
     monkeypatch.setenv("TERRASTREAM_KERNELS", "auto")
-    assert select_kernels.resolve() is None
-    assert select_kernels.resolve("auto") is None
-    assert select_kernels.resolve("numba") is nb  # explicit: no warm-up needed
-    assert select_kernels.warm_up() is True
-    assert select_kernels.resolve() is nb
-    monkeypatch.setattr(select_kernels, "_READY", [])
+    assert mod.resolve() is None
+    assert mod.resolve("auto") is None
+    assert mod.resolve("numba") is nb  # explicit: no warm-up needed
+    assert mod.warm_up() is True
+    assert mod.resolve() is nb and mod.resolve("auto") is nb
+    monkeypatch.setattr(mod, "_READY", [])
     monkeypatch.setenv("TERRASTREAM_KERNELS", "numpy")
-    assert select_kernels.warm_up() is False
-    assert select_kernels.resolve() is None and select_kernels._READY == []
+    assert mod.warm_up() is False
+    assert mod.resolve() is None and mod._READY == []
+
+
+def test_warm_up_kernels_warms_every_strategy(monkeypatch):
+    pytest.importorskip("numba")
+    from render.strategies import jung_han, seamless, warm_up_kernels  # noqa: F401
+    from render.strategies.jung_han import kernels as jh_kernels
+    from render.strategies.seamless import kernels as sp_kernels
+
+    for mod in (select_kernels, jh_kernels, sp_kernels):
+        monkeypatch.setattr(mod, "_READY", [])
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "auto")
+    assert all(warm_up_kernels().values())
+    assert all(m.resolve() is not None for m in (select_kernels, jh_kernels, sp_kernels))

@@ -1,7 +1,8 @@
 """``jung-han``'s compiled selection kernels, chosen like :mod:`tiler.kernels`: numba when it is
 installed (the ``fast`` extra), the numpy reference otherwise. ``TERRASTREAM_KERNELS`` (``auto``,
-``numba``, ``numpy``) or the selector's ``kernels`` argument picks the backend; numba is only
-imported on the first selection that uses it (importing this module costs nothing).
+``numba``, ``numpy``) or the selector's ``kernels`` argument picks the backend; ``auto`` uses
+numba only after :func:`warm_up` (a one-shot command never waits for it; importing this module
+costs nothing).
 
 :class:`Forest` packs the cached trees' heights, δ and pyramids into flat arrays, again only
 when a tree is built, rebuilt or dropped (each frame then picks its blocks' offsets)."""
@@ -15,7 +16,7 @@ from types import ModuleType
 import numpy as np
 
 from render.strategies.jung_han.pure import BlockTree
-from tiler.kernels import pick
+from tiler.kernels import pick_warm, warm
 
 
 @cache
@@ -27,10 +28,20 @@ def _load_numba() -> ModuleType | None:
     return _kernels_nb
 
 
+_READY: list[bool] = []  # filled by warm_up(): ``auto`` may use the compiled kernels
+
+
 def resolve(kernels: str | None = None) -> ModuleType | None:
     """The numba kernel module for backend ``kernels`` (default: ``TERRASTREAM_KERNELS``), or
-    ``None`` for the numpy reference."""
-    return pick(kernels, _load_numba)
+    ``None`` for the numpy reference; ``auto`` only after :func:`warm_up`."""
+    return pick_warm(kernels, _load_numba, _READY)
+
+
+def warm_up() -> bool:
+    """Import numba and jung-han's kernels now, after which ``auto`` uses
+    them (they load from numba's cache, or compile, on their first call); whether they are
+    available."""
+    return warm(_load_numba, _READY)
 
 
 @dataclass

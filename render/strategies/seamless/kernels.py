@@ -1,14 +1,15 @@
 """``seamless-patches``' compiled selection kernels, chosen like :mod:`tiler.kernels`: numba
 when it is installed (the ``fast`` extra), the numpy reference otherwise. ``TERRASTREAM_KERNELS``
-(``auto``, ``numba``, ``numpy``) or the strategy's ``kernels`` argument picks the backend; numba
-is only imported on the first selection that uses it (importing this module costs nothing)."""
+(``auto``, ``numba``, ``numpy``) or the strategy's ``kernels`` argument picks the backend; ``auto``
+uses numba only after :func:`warm_up` (a one-shot command never waits for it; importing this
+module costs nothing)."""
 
 from __future__ import annotations
 
 from functools import cache
 from types import ModuleType
 
-from tiler.kernels import pick
+from tiler.kernels import pick_warm, warm
 
 
 @cache
@@ -20,7 +21,17 @@ def _load_numba() -> ModuleType | None:
     return _resolve_nb  # it re-exports _kernels_nb's kernels
 
 
+_READY: list[bool] = []  # filled by warm_up(): ``auto`` may use the compiled kernels
+
+
 def resolve(kernels: str | None = None) -> ModuleType | None:
     """The numba kernel module for backend ``kernels`` (default: ``TERRASTREAM_KERNELS``), or
-    ``None`` for the numpy reference."""
-    return pick(kernels, _load_numba)
+    ``None`` for the numpy reference; ``auto`` only after :func:`warm_up`."""
+    return pick_warm(kernels, _load_numba, _READY)
+
+
+def warm_up() -> bool:
+    """Import numba and seamless-patches' kernels now, after which ``auto`` uses
+    them (they load from numba's cache, or compile, on their first call); whether they are
+    available."""
+    return warm(_load_numba, _READY)
