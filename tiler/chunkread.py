@@ -83,7 +83,7 @@ def _is_chain(codecs: Any, itemsize: int) -> bool:
 def level_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
     """The :class:`LevelSpec` of a level array from its zarr metadata (``to_dict()``), or None
     if the array is not stored the way this module decodes (zarr then reads it)."""
-    if google_crc32c is None or blosc is None:
+    if google_crc32c is None or blosc is None or not hasattr(os, "pread"):  # else zarr reads
         return None
     try:
         dtype = np.dtype(str(metadata["data_type"])).newbyteorder("<")
