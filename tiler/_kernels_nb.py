@@ -324,6 +324,38 @@ def _unzz(z):
 
 
 @_jit
+def _decode_level(seq, p, g, h, m):
+    """One level of :func:`decode_int` (vertices ``h`` apart, ``m`` coarse intervals per
+    side) from ``seq[p:]``; returns the position after it. Per coarse row, its edge midpoints,
+    then the row below it: vertical midpoints and centres, which share the column sums
+    ``g[y - h, x] + g[y + h, x]``. Integer sums are exact (or wrap alike), so the results
+    equal :func:`_predict_int`'s, and the numpy reference's, bit for bit."""
+    last = 2 * m * h
+    for i in range(m + 1):
+        row = g[i * 2 * h]
+        for j in range(m):  # horizontal edge midpoints of coarse row i
+            x = (2 * j + 1) * h
+            pred = (np.int64(row[x - h]) + np.int64(row[x + h])) >> 1
+            row[x] = _unzz(np.int64(seq[p + j])) + pred
+        p += m
+        if i == m:
+            break
+        a = row
+        b = g[(i + 1) * 2 * h]
+        c = g[(2 * i + 1) * h]
+        s0 = np.int64(a[0]) + np.int64(b[0])
+        for j in range(m):  # vertical midpoint at 2jh, centre at (2j+1)h
+            x = 2 * j * h
+            s1 = np.int64(a[x + 2 * h]) + np.int64(b[x + 2 * h])
+            c[x] = _unzz(np.int64(seq[p + 2 * j])) + (s0 >> 1)
+            c[x + h] = _unzz(np.int64(seq[p + 2 * j + 1])) + ((s0 + s1) >> 2)
+            s0 = s1
+        c[last] = _unzz(np.int64(seq[p + 2 * m])) + (s0 >> 1)
+        p += 2 * m + 1
+    return p
+
+
+@_jit
 def decode_int(seq, g, k, first):
     """Decode levels ``first..k`` of an integer grid ``g`` (side ``2**k+1``) in place.
 
@@ -338,16 +370,13 @@ def decode_int(seq, g, k, first):
         g[last, last] = _unzz(np.int64(seq[3]))
         p = 4
     for lev in range(max(first, 1), k + 1):
-        h = 1 << (k - lev)
-        for r in range(0, (last >> (k - lev)) + 1):
-            y = r * h
-            odd = r & 1
-            x = 0 if odd else h
-            while x <= last:
-                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
-                g[y, x] = _unzz(np.int64(seq[p])) + _predict_int(g, y, x, h, kind)
-                p += 1
-                x += h if odd else 2 * h
+        m = 1 << (lev - 1)
+        if lev == k:  # constant strides for the two finest levels (15/16 of the values)
+            p = _decode_level(seq, p, g, 1, m)
+        elif lev == k - 1:
+            p = _decode_level(seq, p, g, 2, m)
+        else:
+            p = _decode_level(seq, p, g, 1 << (k - lev), m)
 
 
 @_jit

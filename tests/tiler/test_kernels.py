@@ -132,6 +132,32 @@ def test_kernels_equal_numpy_1025(numba_backend, dtype):
     assert _same_bits(got, _with_numpy(static_error.block_errors, filled, valid, k, 6))
 
 
+@pytest.mark.parametrize("dtype", ["int8", "uint8", "uint16", "int16", "uint32", "int32"])
+@pytest.mark.parametrize("k", [0, 1, 2, 3, 6])
+def test_int_decode_of_arbitrary_residuals_equals_numpy(numba_backend, k, dtype):
+    """Any stored bits (not only an encoder's): sums that wrap the dtype, every partial start
+    level; the per-level decode loops agree with the numpy reference bit for bit."""
+    rng = np.random.default_rng(k * 31 + DTYPES.index(dtype))
+    u = np.dtype(dtype.replace("u", "")).str.replace("i", "u")  # the unsigned twin
+    bits = np.iinfo(np.dtype(u)).max
+    stored = [
+        rng.integers(0, bits, size=encoding.level_size(i), endpoint=True, dtype=u)
+        for i in range(k + 1)
+    ]
+    stored[-1][-1] = bits  # an extreme residual in the last slot (the last column's centre)
+    for level in range(k + 1):
+        want = encoding.decode_grid_numpy(stored, dtype, level)
+        assert _same_bits(encoding.decode_grid(stored, dtype, level), want)
+    levels = encoding.decode_levels_numpy(stored, dtype)
+    for n in range(k + 1):
+        got = encoding.decode_next_level(levels[:n], stored[n], dtype)
+        assert _same_bits(got, levels[n])
+    if k:  # positive control: one stored bit changed is seen
+        flipped = [s.copy() for s in stored]
+        flipped[k][-1] ^= 1
+        assert not _same_bits(encoding.decode_grid(flipped, dtype), want)
+
+
 def test_exactness_checks_see_one_ulp_and_one_bit(numba_backend):
     """Positive control: the comparisons above fail for a one-ulp or one-bit difference."""
     k = 5
