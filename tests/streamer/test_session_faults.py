@@ -87,6 +87,7 @@ def fly(store, faults: Faults, frames: int = FRAMES, **options) -> dict:
     cams = default_flythrough(store.grid, z0, z1, frames, 60.0, viewport=(160, 120))
     budget = BUDGET_MB * 2**20
     out = {"waited": [], "over_budget": 0, "outage_frame": frames // 3}
+    assert frames - AFTER_FRAMES > out["outage_frame"], "the flight is too short to end after"
     with open_session(
         store, budget_mb=BUDGET_MB, workers=3, tau=2.0, raise_on_failure=False, **options
     ) as s:
