@@ -58,22 +58,51 @@ def _finite(grid: np.ndarray) -> bool:
     return grid.dtype.kind != "f" or bool(np.isfinite(grid).all())
 
 
-def qiu_errors_numpy(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
-    """Reference (numpy) form of :func:`qiu_errors`."""
+def valid_extent(valid: np.ndarray) -> tuple[int, int] | None:
+    """The last row and column holding a valid sample, or ``None`` when none is valid: a node
+    that starts below or right of them holds no valid sample, so its errors are 0."""
+    rows = np.flatnonzero(valid.any(axis=1))
+    if not len(rows):
+        return None
+    cols = np.flatnonzero(valid.any(axis=0))
+    return int(rows[-1]), int(cols[-1])
+
+
+def _node_span(extent: tuple[int, int] | None, n: int, s: int) -> tuple[int, int]:
+    """How many node rows and columns (of ``n``, ``s`` samples each) hold a valid sample."""
+    if extent is None:
+        return 0, 0
+    return min(n, extent[0] // s + 1), min(n, extent[1] // s + 1)
+
+
+def qiu_errors_numpy(
+    grid: np.ndarray, valid: np.ndarray, k: int, crop: bool = True
+) -> list[np.ndarray]:
+    """Reference (numpy) form of :func:`qiu_errors`. ``crop`` computes only the nodes up to
+    the last valid row and column (:func:`valid_extent`; padding costs nothing), with the
+    same values as ``crop=False`` for finite grids."""
+    crop = crop and _finite(grid)
+    extent = valid_extent(valid) if crop else (grid.shape[0] - 1, grid.shape[1] - 1)
+    side = grid.shape[0]
     out = []
     for depth in range(k):
-        c = subgrid(grid, k, depth).astype(np.float64)
-        f = subgrid(grid, k, depth + 1).astype(np.float64)
-        ok = subgrid(valid, k, depth + 1)
-        top = np.abs(f[:-1:2, 1::2] - (c[:-1, :-1] + c[:-1, 1:]) * 0.5) * ok[:-1:2, 1::2]
-        bot = np.abs(f[2::2, 1::2] - (c[1:, :-1] + c[1:, 1:]) * 0.5) * ok[2::2, 1::2]
-        left = np.abs(f[1::2, :-1:2] - (c[:-1, :-1] + c[1:, :-1]) * 0.5) * ok[1::2, :-1:2]
-        right = np.abs(f[1::2, 2::2] - (c[:-1, 1:] + c[1:, 1:]) * 0.5) * ok[1::2, 2::2]
-        centre = f[1::2, 1::2]
-        d1 = np.abs(centre - (c[:-1, :-1] + c[1:, 1:]) * 0.5)
-        d2 = np.abs(centre - (c[:-1, 1:] + c[1:, :-1]) * 0.5)
-        mid = np.maximum(d1, d2) * ok[1::2, 1::2]
-        out.append(np.maximum.reduce([top, bot, left, right, mid]))
+        n = 1 << depth
+        nr, nc = _node_span(extent, n, (side - 1) // n)
+        node = np.zeros((n, n), dtype=np.float64)
+        if nr and nc:
+            c = subgrid(grid, k, depth)[: nr + 1, : nc + 1].astype(np.float64)
+            f = subgrid(grid, k, depth + 1)[: 2 * nr + 1, : 2 * nc + 1].astype(np.float64)
+            ok = subgrid(valid, k, depth + 1)[: 2 * nr + 1, : 2 * nc + 1]
+            top = np.abs(f[:-1:2, 1::2] - (c[:-1, :-1] + c[:-1, 1:]) * 0.5) * ok[:-1:2, 1::2]
+            bot = np.abs(f[2::2, 1::2] - (c[1:, :-1] + c[1:, 1:]) * 0.5) * ok[2::2, 1::2]
+            left = np.abs(f[1::2, :-1:2] - (c[:-1, :-1] + c[1:, :-1]) * 0.5) * ok[1::2, :-1:2]
+            right = np.abs(f[1::2, 2::2] - (c[:-1, 1:] + c[1:, 1:]) * 0.5) * ok[1::2, 2::2]
+            centre = f[1::2, 1::2]
+            d1 = np.abs(centre - (c[:-1, :-1] + c[1:, 1:]) * 0.5)
+            d2 = np.abs(centre - (c[:-1, 1:] + c[1:, :-1]) * 0.5)
+            mid = np.maximum(d1, d2) * ok[1::2, 1::2]
+            node[:nr, :nc] = np.maximum.reduce([top, bot, left, right, mid])
+        out.append(node)
     return out
 
 
@@ -128,23 +157,23 @@ _BROADCAST_MIN = 16  # node size (samples) above which 4-D broadcasting beats of
 
 
 def _offset_dev(
-    f: np.ndarray, c: np.ndarray, inval: np.ndarray, n: int, s: int, t: np.ndarray
+    f: np.ndarray, c: np.ndarray, inval: np.ndarray, nr: int, nc: int, s: int, t: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Node maxima for small nodes: one ``(n, n)`` pass per in-node offset ``(iv, iu)``, so
-    numpy's inner loops run over ``n`` nodes, not ``s`` samples. Returns the max over the
+    """Node maxima for small nodes: one ``(nr, nc)`` pass per in-node offset ``(iv, iu)``, so
+    numpy's inner loops run over nodes, not ``s`` samples. Returns the max over the
     node's interior+top+left samples, over its top row, over its left column, and its corner."""
     a, b, cc, d = c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]
     ba, ca = b - a, cc - a
     q = b + cc - a - d
-    inner = np.zeros((n, n), dtype=f.dtype)
-    top = np.zeros((n, n), dtype=f.dtype)
-    left = np.zeros((n, n), dtype=f.dtype)
+    inner = np.zeros((nr, nc), dtype=f.dtype)
+    top = np.zeros((nr, nc), dtype=f.dtype)
+    left = np.zeros((nr, nc), dtype=f.dtype)
     corner = None
     for iv in range(s):
         v = t[iv]
         for iu in range(s):
             u = t[iu]
-            g = f[iv : iv + n * s : s, iu : iu + n * s : s] - a
+            g = f[iv : iv + nr * s : s, iu : iu + nc * s : s] - a
             g -= u * ba
             g -= v * ca
             m1, m2 = min(u, v), min(1.0 - u - v, 0.0)
@@ -152,7 +181,7 @@ def _offset_dev(
             g -= m2 * q
             np.abs(g, out=g)
             np.maximum(out, g, out=out)
-            out[inval[iv : iv + n * s : s, iu : iu + n * s : s]] = 0.0
+            out[inval[iv : iv + nr * s : s, iu : iu + nc * s : s]] = 0.0
             np.maximum(inner, out, out=inner)
             if iv == 0:
                 np.maximum(top, out, out=top)
@@ -207,55 +236,80 @@ def bound_errors(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray
     return kernels.split_depths(_bound_flat(mod, grid, valid, k), k)
 
 
-def bound_errors_numpy(grid: np.ndarray, valid: np.ndarray, k: int) -> list[np.ndarray]:
+def bound_errors_numpy(
+    grid: np.ndarray, valid: np.ndarray, k: int, crop: bool = True
+) -> list[np.ndarray]:
     """Reference (numpy) form of :func:`bound_errors`.
 
     Nodes are viewed as ``(n, s, n, s)`` blocks of the grid (no gathers); the block's last row
-    and column, and the edges nodes share, are added afterwards.
+    and column, and the edges nodes share, are added afterwards. ``crop`` computes only the
+    nodes up to the last valid row and column (:func:`valid_extent`), with the same values as
+    ``crop=False`` for finite grids: a node beyond them, and its edges, hold no valid sample.
     """
     side = grid.shape[0]
     f, margin = _recentre(grid, valid)
     inval = ~valid
+    crop = crop and _finite(grid)
+    extent = valid_extent(valid) if crop else (side - 1, side - 1)
     out = []
     for depth in range(k):
         n = 1 << depth
         s = (side - 1) // n
-        c = subgrid(f, k, depth)
-        t = (np.arange(s) / s).astype(np.float32)
-        if s > _BROADCAST_MIN:
-            f4 = f[:-1, :-1].reshape(n, s, n, s)
-            quad = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
-            corners = [q[:, None, :, None] for q in quad]
-            dev = _surface_dev(f4, *corners, t[None, None, None, :], t[None, :, None, None])
-            dev[inval[:-1, :-1].reshape(n, s, n, s)] = 0.0
-            inner = dev.max(axis=(1, 3))
-            top = dev[:, 0, :, :].max(axis=2)
-            left = dev[:, :, :, 0].max(axis=1)
-            tl = dev[:, 0, :, 0]
-        else:
-            inner, top, left, tl = _offset_dev(f, c, inval, n, s, t)
-        lastrow = _edge_dev(f[-1, :], c[-1, :], t)
-        lastcol = _edge_dev(f[:, -1], c[:, -1], t)
-        lastrow[inval[-1, :]] = 0.0
-        lastcol[inval[:, -1]] = 0.0
-        bottom = np.vstack([top[1:], lastrow[:-1].reshape(n, s).max(axis=1)[None]])
-        right = np.hstack([left[:, 1:], lastcol[:-1].reshape(n, s).max(axis=1)[:, None]])
-        corner = np.empty((n, n), dtype=np.float32)
-        corner[:-1, :-1] = tl[1:, 1:]
-        corner[-1, :] = lastrow[s::s]
-        corner[:, -1] = lastcol[s::s]
-        node = np.maximum.reduce([inner, bottom, right, corner])
+        nr, nc = _node_span(extent, n, s)
+        node = np.zeros((n, n), dtype=np.float32)
+        if nr and nc:
+            c = subgrid(f, k, depth)[: nr + 1, : nc + 1]
+            box = np.s_[: nr * s + 1, : nc * s + 1]
+            # one node row (column): only its offsets up to the last valid row (column) count
+            rs = s if nr > 1 else min(s, extent[0] + 1)
+            cs = s if nc > 1 else min(s, extent[1] + 1)
+            node[:nr, :nc] = _depth_nodes(f[box], c, inval[box], s, rs, cs)
         out.append(np.where(node > 0, node.astype(np.float64) + margin, 0.0))
     return out
+
+
+def _depth_nodes(
+    f: np.ndarray, c: np.ndarray, inval: np.ndarray, s: int, rs: int, cs: int
+) -> np.ndarray:
+    """float32 max |f - surface| of each node of ``s`` samples over the ``(nr*s+1, nc*s+1)``
+    heights ``f`` (``c``: the node corners; ``inval`` samples count 0). Only the first ``rs``
+    rows and ``cs`` columns of each node are visited, besides its borders: the rest must be
+    invalid (large nodes; the small ones visit all)."""
+    nr, nc = c.shape[0] - 1, c.shape[1] - 1
+    t = (np.arange(s) / s).astype(np.float32)
+    if s > _BROADCAST_MIN:
+        f4 = f[:-1, :-1].reshape(nr, s, nc, s)[:, :rs, :, :cs]
+        quad = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
+        corners = [q[:, None, :, None] for q in quad]
+        dev = _surface_dev(f4, *corners, t[None, None, None, :cs], t[None, :rs, None, None])
+        dev[inval[:-1, :-1].reshape(nr, s, nc, s)[:, :rs, :, :cs]] = 0.0
+        inner = dev.max(axis=1).max(axis=2)  # axis by axis: ~5x faster, same maxima
+        top = dev[:, 0, :, :].max(axis=2)
+        left = dev[:, :, :, 0].max(axis=1)
+        tl = dev[:, 0, :, 0]
+    else:
+        inner, top, left, tl = _offset_dev(f, c, inval, nr, nc, s, t)
+    lastrow = _edge_dev(f[-1, :], c[-1, :], t)
+    lastcol = _edge_dev(f[:, -1], c[:, -1], t)
+    lastrow[inval[-1, :]] = 0.0
+    lastcol[inval[:, -1]] = 0.0
+    bottom = np.vstack([top[1:], lastrow[:-1].reshape(nc, s).max(axis=1)[None]])
+    right = np.hstack([left[:, 1:], lastcol[:-1].reshape(nr, s).max(axis=1)[:, None]])
+    corner = np.empty((nr, nc), dtype=np.float32)
+    corner[:-1, :-1] = tl[1:, 1:]
+    corner[-1, :] = lastrow[s::s]
+    corner[:, -1] = lastcol[s::s]
+    return np.maximum.reduce([inner, bottom, right, corner])
 
 
 def make_monotone(per_depth: list[np.ndarray]) -> list[np.ndarray]:
     """Qiu's Eq. 3: each node's value becomes the max of itself and all its descendants."""
     out = [a.copy() for a in per_depth]
     for depth in range(len(out) - 1, 0, -1):
-        child = out[depth]
-        n = child.shape[0] // 2
-        parent_of_children = child.reshape(n, 2, n, 2).max(axis=(1, 3))
+        c = out[depth]  # the max of each 2x2 children, as four strided maxima (exact)
+        parent_of_children = np.maximum(
+            np.maximum(c[0::2, 0::2], c[1::2, 0::2]), np.maximum(c[0::2, 1::2], c[1::2, 1::2])
+        )
         np.maximum(out[depth - 1], parent_of_children, out=out[depth - 1])
     return out
 
@@ -283,7 +337,7 @@ def pack_field(per_depth: list[np.ndarray], cap: int) -> np.ndarray:
         if depth > cap:
             n = 1 << cap
             r = arr.shape[0] // n
-            arr = arr.reshape(n, r, n, r).max(axis=(1, 3))
+            arr = arr.reshape(n, r, n, r).max(axis=1).max(axis=2)
         parts.append(arr.ravel())
     return round_up_f16(np.concatenate(parts)) if parts else np.zeros(0, np.float16)
 

@@ -11,12 +11,14 @@ from tiler.layout import grid_side
 from tiler.static_error import (
     block_errors,
     bound_errors,
+    bound_errors_numpy,
     bound_errors_reference,
     default_cap,
     make_monotone,
     node_error,
     pack_field,
     qiu_errors,
+    qiu_errors_numpy,
     round_up_f16,
     subtree_error,
     unpack_field,
@@ -175,3 +177,47 @@ def test_pack_unpack_and_lookup_with_cap():
                     exact = per[d + below][i * r : (i + 1) * r, j * r : (j + 1) * r].max()
                     got = subtree_error(field, d, i, j, below)
                     assert exact <= got <= exact * 1.001 + 1e-6
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
+@pytest.mark.parametrize("extent", [(0, 0), (1, 3), (2, 2), (4, 8), (9, 17), (16, 33), (33, 33)])
+def test_padded_block_errors_match_brute_force(k, extent, monkeypatch):
+    """Valid samples only in the top-left ``rows x cols`` (an edge block's padding), ends on
+    and beside node borders: the cropped numpy path counts every node that holds one."""
+    side = grid_side(k)
+    rows, cols = min(extent[0], side), min(extent[1], side)
+    rng = np.random.default_rng(rows * 100 + cols)
+    grid = rng.integers(-11000, 9000, (side, side)).astype(np.int32)
+    valid = np.zeros((side, side), bool)
+    valid[:rows, :cols] = True
+    monkeypatch.setenv("TERRASTREAM_KERNELS", "numpy")
+    qiu, bound = qiu_errors(grid, valid, k), bound_errors(grid, valid, k)
+    for got, ref in zip(qiu, brute_qiu(grid, valid, k), strict=True):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    for got, ref in zip(bound, brute_bound(grid, valid, k), strict=True):
+        assert np.all(got >= ref)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * 20000)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    k=st.integers(1, 7),
+    seed=st.integers(0, 2**32 - 1),
+    rows=st.integers(0, 129),
+    cols=st.integers(0, 129),
+    holes=st.booleans(),
+    dtype=st.sampled_from(["int16", "float32", "float64"]),
+)
+def test_cropped_numpy_errors_equal_uncropped(k, seed, rows, cols, holes, dtype):
+    """Skipping the nodes past the last valid row and column changes no value, bit for bit."""
+    rng = np.random.default_rng(seed)
+    side = grid_side(k)
+    grid = (rng.standard_normal((side, side)) * 3000).astype(dtype)
+    valid = np.zeros((side, side), bool)
+    valid[:rows, :cols] = True
+    if holes:
+        valid &= rng.random((side, side)) > 0.3
+    for fn in (qiu_errors_numpy, bound_errors_numpy):
+        for a, b in zip(fn(grid, valid, k), fn(grid, valid, k, crop=False), strict=True):
+            assert a.dtype == b.dtype and a.shape == b.shape
+            np.testing.assert_array_equal(a, b, err_msg=fn.__name__)
