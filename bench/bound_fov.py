@@ -41,7 +41,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info  # noqa: E402
-from render.pipeline import tradeoff  # noqa: E402
+from render.pipeline import ViewOptions, tradeoff  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from tiler.store import open_store  # noqa: E402
@@ -141,11 +141,8 @@ def run(
                 cam = replace(base, fov_y=fov)
                 for label, lod, metric, _, rule in (c for c in configs if c[3] == p):
                     t0 = time.perf_counter()
-                    opts = {"nodata": rule} if lod == "qiu" else {}
-                    for tr in tradeoff(
-                        store, cam, taus, renderer=r, repeats=1, lod=lod, metric=metric,
-                        patch_log2=p, lod_options=opts,
-                    ):  # fmt: skip
+                    opts = ViewOptions(lod, metric=metric, patch_log2=p, nodata=rule)
+                    for tr in tradeoff(store, cam, taus, renderer=r, repeats=1, options=opts):
                         rows.append(
                             dict(asdict(tr), config=label, fov=fov, patch_log2=p, nodata=rule)
                         )

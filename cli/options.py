@@ -123,9 +123,11 @@ def number(flag: str, help: str, *decls: str, **bounds: Any) -> Any:
 LODS = Registry("render.strategies", "strategy_names", "LOD strategy")
 METRICS = Registry("streamer.lod", "METRICS", "screen-error metric")
 PATH_KINDS = Registry("streamer.run", "PATH_KINDS", "path kind")
+NODATA_RULES = Registry("streamer.nodata", "NODATA_RULES", "nodata rule")
 DTYPES = Registry("tiler.synth", "DTYPES", "sample type")
-#: the defaults (render.strategies.DEFAULT, the first of streamer.lod.METRICS, tiler.synth.DTYPES)
-LOD_DEFAULT, METRIC_DEFAULT, DTYPE_DEFAULT = "qiu", "qiu", "int16"
+#: the defaults (render.strategies.DEFAULT, the first of streamer.lod.METRICS, tiler.synth.DTYPES,
+#: the first of streamer.nodata.NODATA_RULES)
+LOD_DEFAULT, METRIC_DEFAULT, DTYPE_DEFAULT, NODATA_DEFAULT = "qiu", "qiu", "int16", "full"
 
 StoreArg = Annotated[str, typer.Argument(help="Store (directory or fsspec URL).")]
 TausOpt = Annotated[
@@ -153,6 +155,16 @@ LodOpt = Annotated[
     str,
     choice_option("--lod", LODS, "LOD strategy (render.strategies)."),
 ]
+NodataRuleOpt = Annotated[
+    str,
+    choice_option(
+        "--nodata-rule",
+        NODATA_RULES,
+        "Terrain beside nodata: full (full resolution at every tau, every strategy) or gap "
+        "(qiu only: refined while a mixed cell can project past min(tau, 1) px); the "
+        "streaming session loads the levels the rule draws (streamer.nodata).",
+    ),
+]
 PathKindOpt = Annotated[str, choice_option("--path-kind", PATH_KINDS, "Built-in camera path.")]
 PathOpt = Annotated[
     Path | None,
@@ -163,6 +175,19 @@ TauOpt = Annotated[float, number("--tau", "Screen-space error threshold, pixels.
 BudgetOpt = Annotated[
     float, number("--budget-mb", "Resident byte budget, MiB.", min=0.0, min_open=True)
 ]
+
+
+def check_nodata_rule(lods: list[str] | None, rule: str) -> str:
+    """``rule`` when every strategy of ``lods`` (None: all) takes it, else a usage error naming
+    ``--nodata-rule``, the rule and the strategies that take it."""
+    from render.strategies import NodataRuleError, check_nodata, strategy_names
+
+    try:
+        for name in lods or strategy_names():
+            check_nodata(name, rule)
+    except NodataRuleError as exc:
+        raise UsageError(str(exc), "--nodata-rule") from exc
+    return rule
 
 
 def parse_size(text: str) -> tuple[int, int]:

@@ -17,7 +17,14 @@ from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step, stream_step
 from render.step import resident_levels as resident_levels  # re-exported
-from render.strategies import DEFAULT, check_name, get_strategy, stream_metric
+from render.strategies import (
+    DEFAULT,
+    check_name,
+    check_nodata,
+    get_strategy,
+    nodata_options,
+    stream_metric,
+)
 from render.strategies.base import DrawOptions
 from streamer.camera import Camera
 from streamer.session import Session, open_session
@@ -42,8 +49,10 @@ def open_render_session(
     workers: int = 0,
     budget_mb: float | None = None,
     prefetch: bool = False,
+    nodata: str = "full",
 ) -> Session:
-    """A session that loads what the renderer's frustum-hull culling sees."""
+    """A session that loads what the renderer's frustum-hull culling sees, planned with the
+    renderer's nodata rule (:data:`streamer.nodata.NODATA_RULES`)."""
     return open_session(
         store,
         budget_mb=budget_mb or _budget_mb(store),
@@ -53,13 +62,16 @@ def open_render_session(
         patch_log2=patch_log2,
         culling="hull",
         prefetch=prefetch,
+        nodata=nodata,
     )
 
 
 @dataclass(frozen=True)
 class ViewOptions:
     """What the rendering commands pass down as one value (instead of keyword relays): the
-    strategy, τ and metric it selects with, the patch size, and how frames are drawn."""
+    strategy, τ and metric it selects with, the patch size, how frames are drawn, and the
+    nodata rule (:data:`streamer.nodata.NODATA_RULES`: the strategy's and its session's; a
+    strategy that does not take it is a :class:`render.strategies.NodataRuleError`)."""
 
     lod: str = DEFAULT
     tau: float = 1.0
@@ -67,9 +79,15 @@ class ViewOptions:
     patch_log2: int = 4
     wireframe: bool = False
     lod_colour: bool = False
+    nodata: str = "full"
 
     def __post_init__(self) -> None:
         check_name(self.lod)
+        check_nodata(self.lod, self.nodata)
+
+    def strategy_options(self) -> dict[str, str]:
+        """The strategy's constructor options these imply (the nodata rule)."""
+        return nodata_options(self.lod, self.nodata)
 
     def draw_options(self) -> DrawOptions:
         """The :class:`DrawOptions` of these options."""
@@ -110,8 +128,9 @@ def render_view(
     r = renderer or TerrainRenderer(
         store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2)
     )
-    strat = get_strategy(o.lod, r)
-    with open_render_session(store, o.tau, stream_metric(o.lod, o.metric), r.p) as session:
+    strat = get_strategy(o.lod, r, **o.strategy_options())
+    metric = stream_metric(o.lod, o.metric)
+    with open_render_session(store, o.tau, metric, r.p, nodata=o.nodata) as session:
         step = frame_step(session, strat, camera, o.tau, o.metric, options=o.draw_options())
     return r.image(), step.stats
 
@@ -157,6 +176,7 @@ class TradeoffRow:
     gpu_bytes: int
     clamped: int
     strategy: str = DEFAULT
+    nodata: str = "full"  # the nodata rule the view was drawn and streamed with
     used_bytes: int = 0  # level data (float32) the drawn surface reads, per block up to its level
     own_gpu_bytes: int = 0  # the strategy's own GPU buffers (meshes, quadtree textures)
     crack_pixels_above: int = 0  # the view's own selection seen from a nadir camera
@@ -194,8 +214,9 @@ def tradeoff(
     terrain). The data is streamed by the renderer's session at
     ``stream_tau`` (default: each tau; 0 loads every block in view at full resolution) with
     :func:`render.strategies.stream_metric`. ``options``, when given, supplies ``lod``,
-    ``metric`` and ``patch_log2`` (its ``tau`` is not used: ``taus`` are swept);
-    ``lod_options`` are the strategy's constructor options (e.g. ``{"rho": "paper"}``)."""
+    ``metric``, ``patch_log2`` and the nodata rule (its ``tau`` is not used: ``taus`` are
+    swept); ``lod_options`` are the strategy's other constructor options (e.g.
+    ``{"rho": "paper"}``)."""
     o = options or ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
     lod, metric = o.lod, o.metric
     r = renderer or TerrainRenderer(
@@ -209,11 +230,15 @@ def tradeoff(
     r.draw(camera, ref_p, clear=CLEAR)
     footprint = ~measure.is_clear(r.image(), CLEAR)
     ref_heights = measure.heights_fn(store, ref_p)
-    strat = get_strategy(lod, r, **(lod_options or {}))
+    if "nodata" in (lod_options or {}):
+        raise ValueError("pass the nodata rule as options=ViewOptions(nodata=...): it also plans "
+                         "the session")  # fmt: skip
+    strat = get_strategy(lod, r, **o.strategy_options(), **(lod_options or {}))
     rows = []
     for tau in taus:
         st_tau = tau if stream_tau is None else stream_tau
-        with open_render_session(store, st_tau, stream_metric(lod, metric), r.p) as s:
+        sm = stream_metric(lod, metric)
+        with open_render_session(store, st_tau, sm, r.p, nodata=o.nodata) as s:
             # the levels each tau's session would hold (the data is on the GPU already)
             frame, res = stream_step(s, None, camera)
             loaded = s.summary()["loaded_bytes"]
@@ -253,6 +278,7 @@ def tradeoff(
             gpu_bytes=gpu,
             clamped=st.clamped,
             strategy=lod,
+            nodata=o.nodata,
             used_bytes=int(used),
             own_gpu_bytes=int(own),
             crack_pixels_above=seen[1],
@@ -397,7 +423,7 @@ def flythrough(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
-    strat = get_strategy(lod, r)
+    strat = get_strategy(lod, r, **o.strategy_options())
     draw = o.draw_options()
     rows: list[FlyRow] = []
     with open_session(
@@ -409,6 +435,7 @@ def flythrough(
         patch_log2=r.p,
         culling="hull",
         fps=fps,
+        nodata=o.nodata,
     ) as session:
         for i, cam in enumerate(cameras):
             step = frame_step(

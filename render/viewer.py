@@ -281,7 +281,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     fb = glfw.get_framebuffer_size(win)
     size = (int(fb[0]), int(fb[1])) if fb[0] > 0 else size
     r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=o.patch_log2), ctx=ctx)
-    strat = get_strategy(lod, r)
+    strat = get_strategy(lod, r, **o.strategy_options())
     overlay = _Overlay(ctx, size)
     zlo = float(np.nanmin(store.index.zmin))
     pose, fov = Pose.of(start), start.fov_y
@@ -325,6 +325,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             metric=stream_metric(lod, metric),
             patch_log2=r.p,
             culling="hull",
+            nodata=o.nodata,
         )
     except BaseException:
         r.close()

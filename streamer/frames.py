@@ -10,6 +10,7 @@ from streamer.cache import Block
 from streamer.camera import Camera
 from streamer.errors import StreamerError
 from streamer.lod import get_metric
+from streamer.nodata import check_rule
 
 #: Loading schemes (``SessionConfig.scheme``): which of this project's additions to Qiu et al.'s
 #: prefetching are on. ``(pose_ahead, lookahead, concurrent_levels)``:
@@ -60,6 +61,8 @@ class SessionConfig:
     account_hull: bool = False  # culling="qiu": also count stalls over the frustum hull (the
     # set the renderer draws) in FrameStats.hull_stalled (costs a second plan per frame)
     scheme: str = "ours"  # loading scheme, see SCHEMES ("qiu": Qiu et al. as published)
+    nodata: str = "full"  # the nodata rule levels are planned with (streamer.nodata.NODATA_RULES:
+    # the renderer's rule, so the session streams what it draws)
 
     def __post_init__(self) -> None:
         checks = [
@@ -83,6 +86,10 @@ class SessionConfig:
         get_metric(self.metric)
         if self.culling not in ("qiu", "hull"):
             raise StreamerError(f"culling must be 'qiu' or 'hull', got {self.culling!r}")
+        try:
+            check_rule(self.nodata)
+        except ValueError as exc:
+            raise StreamerError(f"invalid nodata: {exc}") from None
         if self.scheme not in SCHEMES:
             raise StreamerError(
                 f"unknown loading scheme {self.scheme!r}: use one of {', '.join(SCHEMES)}"

@@ -21,7 +21,7 @@ import numpy as np
 
 from streamer.camera import Camera
 from streamer.errors import LodError
-from streamer.lod import Metric, get_metric, qiu_eq7
+from streamer.lod import Metric, get_metric, horizontal_px, qiu_eq7
 from tiler.errors import KernelUnavailableError
 from tiler.grid import BlockGrid
 from tiler.kernels import ENV, requested
@@ -90,7 +90,9 @@ class PatchErrorTable:
     growing copies the arrays (readers keep the list they started with).
     """
 
-    def __init__(self, k: int, patch_log2: int, capacity: int = 64) -> None:
+    def __init__(self, k: int, patch_log2: int, capacity: int = 64, *, gaps: bool = False) -> None:
+        """``gaps``: also hold each block's gap widths (the nodata rule ``"gap"``, see
+        :meth:`add` and :meth:`needed_levels`)."""
         if patch_log2 < 0:
             raise LodError(f"patch_log2 must be >= 0, got {patch_log2}")
         self.k = k
@@ -100,6 +102,9 @@ class PatchErrorTable:
         self._arrays = [
             np.zeros((self._cap, 1 << d, 1 << d), np.float32) for d in range(self.depths)
         ]
+        self.gaps = gaps
+        self._gap_arrays = [np.zeros_like(a) for a in self._arrays] if gaps else []
+        self._has_gap = np.zeros(self._cap, bool)  # per slot: any gap width > 0
         self._slot: dict[Block, int] = {}
         self._free: list[int] = list(range(self._cap - 1, -1, -1))
         self._write = threading.Lock()
@@ -110,11 +115,41 @@ class PatchErrorTable:
     def __len__(self) -> int:
         return len(self._slot)
 
-    def add(self, block: Block, field: Sequence[np.ndarray]) -> None:
-        """Store a block's unpacked error field (one array per depth ``0..k-1``)."""
+    def add(
+        self,
+        block: Block,
+        field: Sequence[np.ndarray],
+        gaps: Sequence[np.ndarray] | None = None,
+    ) -> None:
+        """Store a block's unpacked error field (one array per depth ``0..k-1``) and, in a
+        table made with ``gaps``, its gap widths (:func:`streamer.nodata.gap_widths`, the same
+        depths; ``None``: no mask boundary), pooled alike."""
         if len(field) != self.k:
             raise LodError(f"field must hold {self.k} depths, got {len(field)}")
+        if gaps is not None and (not self.gaps or len(gaps) != self.k):
+            raise LodError(
+                f"gap widths need a table made with gaps=True and {self.k} depths "
+                f"(this one: gaps={self.gaps}, given {len(gaps)})"
+            )
         block = (int(block[0]), int(block[1]))
+        pooled = self._pooled(field)
+        pooled_gaps = None if gaps is None else self._pooled(gaps)
+        with self._write:
+            if block in self._slot:
+                return
+            if not self._free:
+                self._grow()
+            s = self._free.pop()
+            for d in range(self.depths):
+                self._arrays[d][s] = pooled[d]
+                if self.gaps:
+                    self._gap_arrays[d][s] = 0.0 if pooled_gaps is None else pooled_gaps[d]
+            self._has_gap[s] = pooled_gaps is not None and any(g.any() for g in pooled_gaps)
+            self._slot[block] = s  # published last: readers never see a half-filled slot
+
+    def _pooled(self, field: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Per refinable depth ``d`` the max of ``field`` over each node's depth-``d + p``
+        descendants (``(2**d, 2**d)`` float32)."""
         p = self.patch_log2
         pooled = []
         for d in range(self.depths):
@@ -125,15 +160,7 @@ class PatchErrorTable:
                 pooled.append(src.reshape(nd, r, nd, r).max(axis=(1, 3)))
             else:  # stored at a coarser resolution (beyond the cap): repeat
                 pooled.append(np.repeat(np.repeat(src, nd // n, axis=0), nd // n, axis=1))
-        with self._write:
-            if block in self._slot:
-                return
-            if not self._free:
-                self._grow()
-            s = self._free.pop()
-            for d in range(self.depths):
-                self._arrays[d][s] = pooled[d]
-            self._slot[block] = s  # published last: readers never see a half-filled slot
+        return pooled
 
     def remove(self, block: Block) -> None:
         """Forget a block (its slot is reused)."""
@@ -185,6 +212,10 @@ class PatchErrorTable:
         self._arrays = [  # new arrays: readers holding the old list stay consistent
             np.concatenate([a, np.zeros((old, *a.shape[1:]), np.float32)]) for a in self._arrays
         ]
+        self._gap_arrays = [
+            np.concatenate([a, np.zeros((old, *a.shape[1:]), np.float32)]) for a in self._gap_arrays
+        ]
+        self._has_gap = np.concatenate([self._has_gap, np.zeros(old, bool)])
         self._free.extend(range(self._cap - 1, old - 1, -1))
 
     def needed_levels(
@@ -201,7 +232,10 @@ class PatchErrorTable:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Needed level of each block (all must be in the table) and its largest screen error
         (zeros when ``with_rho`` is False: a caller that only needs levels skips that work);
-        ``ids``, if given, is ``blocks`` as an ``(m, 2)`` int64 array."""
+        ``ids``, if given, is ``blocks`` as an ``(m, 2)`` int64 array. In a table with gap
+        widths a node also splits while its widest mixed cell can project to more than
+        ``min(tau, 1)`` px (:func:`streamer.lod.horizontal_px` of its sphere: the selection's
+        rule, ``render.select.select_patches`` with ``gaps``); those blocks take the numpy walk."""
         fn = get_metric(metric)
         k, p = self.k, self.patch_log2
         m = len(blocks)
@@ -212,22 +246,56 @@ class PatchErrorTable:
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2) if ids is None else ids
         slots = self.slots(blocks)
         arrays = self._arrays  # after the slots: it holds every slot published before them
+        gap_arrays, has_gap = self._gap_arrays, self._has_gap  # (likewise)
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)
+        gapped = has_gap[slots] if self.gaps and tau > 0 else np.zeros(m, bool)
+        plain = np.flatnonzero(~gapped)
         nb = kernels() if fn is qiu_eq7 else None
-        if nb is not None:  # the compiled walk: the same levels and errors (tested)
-            bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
+        if nb is not None and len(plain):  # the compiled walk: the same levels and errors
+            every = len(plain) == m  # (no block with gap widths: no copies)
+            sub, zp, ip = (slots, zr, blk) if every else (slots[plain], zr[plain], blk[plain])
+            lv, rh = (levels, rho_max) if every else (levels[plain], rho_max[plain])
+            bx0, by1 = block_origins(grid, ip[:, 0], ip[:, 1])
             hd, sdx, sdy = _depth_geometry(grid, self.depths)
             nb.qiu_levels(
-                tuple(arrays), slots, bx0, by1, np.ascontiguousarray(zr), hd, k, p, float(tau),
+                tuple(arrays), sub, bx0, by1, np.ascontiguousarray(zp), hd, k, p, float(tau),
                 sdx, sdy, camera.eye, camera.forward, float(camera.focal_px),
-                float(camera.near), levels, rho_max,
+                float(camera.near), lv, rh,
             )  # fmt: skip
-            return levels, (rho_max if with_rho else np.zeros(m))
+            if not every:
+                levels[plain], rho_max[plain] = lv, rh
+        elif len(plain):
+            walk = (grid, blk, slots, arrays, None, zr, camera, tau, fn, with_rho)
+            self._walk(*walk, plain, levels, rho_max)
+        if gapped.any():
+            walk = (grid, blk, slots, arrays, gap_arrays, zr, camera, tau, fn, with_rho)
+            self._walk(*walk, np.flatnonzero(gapped), levels, rho_max)
+        return levels, (rho_max if with_rho else np.zeros(m))
+
+    def _walk(
+        self,
+        grid: BlockGrid,
+        blk: np.ndarray,
+        slots: np.ndarray,
+        arrays: list[np.ndarray],
+        gap_arrays: list[np.ndarray] | None,
+        zr: np.ndarray,
+        camera: Camera,
+        tau: float,
+        fn: Metric,
+        with_rho: bool,
+        idx: np.ndarray,
+        levels: np.ndarray,
+        rho_max: np.ndarray,
+    ) -> None:
+        """The numpy walk of :meth:`needed_levels` over the blocks ``idx``, into ``levels`` and
+        ``rho_max``; with ``gap_arrays`` the gap rule's split too."""
+        k, p = self.k, self.patch_log2
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
         bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
-        idx = np.arange(m)
-        rows = np.zeros(m, dtype=np.int64)
-        cols = np.zeros(m, dtype=np.int64)
+        gap_scale = tau / min(tau, 1.0) if tau > 0 else 0.0
+        rows = np.zeros(len(idx), dtype=np.int64)
+        cols = np.zeros(len(idx), dtype=np.int64)
         for d in range(self.depths):
             levels[idx] = d + p  # every block still holding nodes reaches this depth
             delta = _delta(arrays, self.depths, slots[idx], d, rows, cols)
@@ -235,6 +303,11 @@ class PatchErrorTable:
             centres = np.stack([cx, cy, zmid[idx]], axis=1)
             radius = sphere_radius(half_diagonal(grid, d), zhalf[idx])
             rho = np.asarray(fn(delta, centres, radius, camera))
+            if gap_arrays is not None:
+                w = _delta(gap_arrays, self.depths, slots[idx], d, rows, cols)
+                if (w > 0).any():  # rho > tau also when the gap projects past min(tau, 1) px
+                    g = np.asarray(horizontal_px(w, centres, radius, camera), np.float64)
+                    rho = np.maximum(rho, g * gap_scale)
             if with_rho:
                 np.maximum.at(rho_max, idx, np.where(np.isfinite(rho), rho, 1e30))
             split = ~(rho <= tau)
@@ -243,7 +316,6 @@ class PatchErrorTable:
             idx, rows, cols = split_children(idx, rows, cols, split)
         else:
             levels[idx] = k  # nodes split down to full resolution
-        return levels, rho_max
 
 
 @lru_cache(maxsize=16)

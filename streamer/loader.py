@@ -32,7 +32,7 @@ from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, _Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
-from streamer.nodata import boundary_errors
+from streamer.nodata import rule_errors
 from tiler.errors import StoreCorruptError, StoreError
 from tiler.store import TerrainStore
 
@@ -63,7 +63,7 @@ class Loader:
         self.field_name = field_name
         self.read_hook = read_hook
         self.cache = LevelCache(int(config.budget_mb * 2**20))
-        self.errors = PatchErrorTable(store.k, config.patch_log2)
+        self.errors = PatchErrorTable(store.k, config.patch_log2, gaps=config.nodata == "gap")
         self.queue = LoadQueue(
             retries=config.retries,
             backoff_s=config.backoff_s,
@@ -242,7 +242,7 @@ class Loader:
             log.warning("reading block %s level %d failed (%d): %s", b, level, count, exc)
             return
         if level < 0:
-            self.errors.add(b, data)  # the table has its own writer lock; readers need none
+            self.errors.add(b, *data)  # the table has its own writer lock; readers need none
         with self.cv:
             self.queue.succeeded(b)
             self.last_error.pop(b, None)
@@ -260,14 +260,16 @@ class Loader:
             with self.cv:
                 self.decoding.discard(b)
 
-    def _read_errors(self, b: Block) -> list[np.ndarray]:
-        """The block's error field. A chunk that zarr or its codecs cannot decode raises
+    def _read_errors(self, b: Block) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+        """The block's error field and gap widths under the session's nodata rule
+        (:func:`streamer.nodata.rule_errors`). A chunk that zarr or its codecs cannot decode raises
         ``ValueError``/``RuntimeError`` there; like ``TerrainStore.read_level_raw`` does for
         levels, that becomes a ``StoreCorruptError`` (a read error), here at the store call
         only, so the same types raised anywhere else still surface as bugs."""
         try:
-            # mask boundaries raised so nodata is refined at every tau (streamer.nodata)
-            return boundary_errors(self.store, b, self.field_name)
+            # "full": mask boundaries raised so nodata is refined at every tau; "gap": the
+            # stored errors and the mixed cells' widths (streamer.nodata)
+            return rule_errors(self.store, b, self.field_name, self.config.nodata)
         except (ValueError, RuntimeError) as exc:
             if isinstance(exc, READ_ERRORS):
                 raise

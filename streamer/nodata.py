@@ -9,7 +9,9 @@ strategy). ``"gap"`` (``qiu`` only) keeps the stored errors and gives each
 mixed cell its horizontal extent instead (:func:`gap_widths`): the selection refines it only
 while that extent can project to more than ``min(τ, 1)`` px, so every valid sample the level
 drops, and every hole it bridges, lies in a cell no wider than that on screen
-(:func:`render.select.select_patches`)."""
+(:func:`render.select.select_patches`). A streaming session plans with the rule of its
+``SessionConfig.nodata`` (:func:`rule_errors`, :class:`streamer.levels.PatchErrorTable`), so
+under ``"gap"`` it streams only the levels that rule draws."""
 
 from __future__ import annotations
 
@@ -32,9 +34,9 @@ def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
     return out[::-1]
 
 
-#: ``"full"``: a mixed node is refined to full resolution at every τ (the loader always uses it,
-#: so it streams at least what either rule draws); ``"gap"``: only while its cell's horizontal
-#: extent projects to more than ``min(τ, 1)`` px
+#: ``"full"``: a mixed node is refined to full resolution at every τ; ``"gap"``: only while its
+#: cell's horizontal extent projects to more than ``min(τ, 1)`` px (a session follows the rule of
+#: its ``SessionConfig.nodata``, so it streams the levels the renderer draws with that rule)
 NODATA_RULES = ("full", "gap")
 
 
@@ -80,3 +82,20 @@ def boundary_errors(store, block: tuple[int, int], field: str) -> list[np.ndarra
     if mask.all() or not mask.any():
         return errors
     return raise_mixed(errors, mixed_nodes(mask, store.k))
+
+
+def rule_errors(
+    store, block: tuple[int, int], field: str, rule: str = "full"
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """What a session plans the block with under the nodata ``rule``: ``"full"`` its
+    :func:`boundary_errors` and no gap widths; ``"gap"`` the stored field and its
+    :func:`gap_widths` (``None`` when the block has no mask boundary)."""
+    if check_rule(rule) == "full":
+        return boundary_errors(store, block, field), None
+    errors = store.read_errors(block)[field]
+    if not bool(store.index.has_nodata[block]):
+        return errors, None
+    mask = store.read_mask(block)
+    if mask.all() or not mask.any():
+        return errors, None
+    return errors, gap_widths(mask, store.k, store.grid.dx, store.grid.dy)

@@ -111,6 +111,8 @@ class Session:
     def config(self, cfg: SessionConfig) -> None:
         if cfg.workers != self._config.workers or cfg.budget_mb != self._config.budget_mb:
             raise StreamerError("workers and budget_mb cannot change during a session")
+        if cfg.nodata != self._config.nodata:  # the error table was filled under the old rule
+            raise StreamerError("the nodata rule cannot change during a session")
         self._config = self.planner.config = self.loader.config = cfg
 
     @property

@@ -13,13 +13,16 @@ from cli.common import UsageError, fail_on_errors
 from cli.options import (
     LODS,
     METRIC_DEFAULT,
+    NODATA_DEFAULT,
     MetricOpt,
+    NodataRuleOpt,
     PatchOpt,
     PathKindOpt,
     PathOpt,
     SizeOpt,
     StoreArg,
     TausOpt,
+    check_nodata_rule,
     integer,
     parse_size,
     parse_taus,
@@ -43,6 +46,7 @@ def compare(
     size: SizeOpt = "1024x768",
     metric: MetricOpt = METRIC_DEFAULT,
     patch_log2: PatchOpt = 4,
+    nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     quick: Annotated[
         bool, typer.Option("--quick", help="256x192, 4 frames, taus 1,4 (a smoke run).")
     ] = False,
@@ -70,7 +74,8 @@ def compare(
         viewport = parse_size(size)
         values = parse_taus(taus)
         names = parse_lods(lods)
-        opts = ViewOptions(metric=metric, patch_log2=patch_log2)
+        rule = check_nodata_rule(names, nodata_rule)  # every strategy compared must take it
+        opts = ViewOptions(metric=metric, patch_log2=patch_log2, nodata=rule)
         input_file(path, "--path")
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)

@@ -13,15 +13,18 @@ from cli.common import fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
+    NODATA_DEFAULT,
     BudgetOpt,
     LodOpt,
     MetricOpt,
+    NodataRuleOpt,
     PatchOpt,
     PathKindOpt,
     PathOpt,
     SizeOpt,
     StoreArg,
     TauOpt,
+    check_nodata_rule,
     integer,
     number,
     parse_size,
@@ -52,6 +55,7 @@ def flythrough(
     ] = 2,
     every: Annotated[int, integer("--every", "Save every N-th PNG.", min=0)] = 1,
     lod: LodOpt = LOD_DEFAULT,
+    nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 
@@ -63,7 +67,8 @@ def flythrough(
 
     with fail_on_errors():
         viewport = parse_size(size)
-        opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
+        rule = check_nodata_rule([lod], nodata_rule)
+        opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
         input_file(path, "--path")
         output_dir(out, "--out")
         s = open_store_arg(store, projected=True)

@@ -14,11 +14,13 @@ from cli.common import UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
+    NODATA_DEFAULT,
     CameraOpt,
     FovOpt,
     LodOpt,
     LookAtOpt,
     MetricOpt,
+    NodataRuleOpt,
     PatchOpt,
     PitchOpt,
     SizeOpt,
@@ -26,6 +28,7 @@ from cli.options import (
     StoreArg,
     TauOpt,
     YawOpt,
+    check_nodata_rule,
     parse_size,
     store_location,
 )
@@ -50,6 +53,7 @@ def render(
     wireframe: Annotated[bool, typer.Option("--wireframe", help="Overlay edges.")] = False,
     lod_colour: Annotated[bool, typer.Option("--lod-colour", help="Tint by level.")] = False,
     lod: LodOpt = LOD_DEFAULT,
+    nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print the frame's statistics as JSON.")
     ] = False,
@@ -66,7 +70,8 @@ def render(
 
     with fail_on_errors():
         viewport = parse_size(size)
-        opts = ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour)
+        rule = check_nodata_rule([lod], nodata_rule)
+        opts = ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour, nodata=rule)
         output_file(out, "--out", suffixes=image_suffixes())
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
@@ -82,7 +87,8 @@ def render(
             )
         Image.fromarray(img).save(out)
         if as_json:
-            d = {"out": str(out), "tau": tau, "metric": metric, "lod": lod, **asdict(st)}
+            d = {"out": str(out), "tau": tau, "metric": metric, "lod": lod, "nodata_rule": rule}
+            d.update(asdict(st))
             d["viewport"] = list(viewport)
             typer.echo(json.dumps(d))
             return

@@ -14,11 +14,13 @@ from cli.common import fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
+    NODATA_DEFAULT,
     CameraOpt,
     FovOpt,
     LodOpt,
     LookAtOpt,
     MetricOpt,
+    NodataRuleOpt,
     PatchOpt,
     PitchOpt,
     PlotOpt,
@@ -26,6 +28,7 @@ from cli.options import (
     StoreArg,
     TausOpt,
     YawOpt,
+    check_nodata_rule,
     integer,
     parse_size,
     parse_taus,
@@ -49,6 +52,7 @@ def tradeoff(
     ] = None,
     plot: PlotOpt = None,
     lod: LodOpt = LOD_DEFAULT,
+    nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 
@@ -61,7 +65,8 @@ def tradeoff(
     with fail_on_errors():
         viewport = parse_size(size)
         values = parse_taus(taus)
-        opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
+        rule = check_nodata_rule([lod], nodata_rule)
+        opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2, nodata=rule)
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
         s = open_store_arg(store, projected=True)

@@ -12,18 +12,21 @@ from cli.common import UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
+    NODATA_DEFAULT,
     BudgetOpt,
     CameraOpt,
     FovOpt,
     LodOpt,
     LookAtOpt,
     MetricOpt,
+    NodataRuleOpt,
     PatchOpt,
     PitchOpt,
     SizeOpt,
     StoreArg,
     TauOpt,
     YawOpt,
+    check_nodata_rule,
     integer,
     parse_size,
 )
@@ -55,6 +58,7 @@ def view(
         ),
     ] = None,
     lod: LodOpt = LOD_DEFAULT,
+    nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
 ) -> None:
     """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
     +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).
@@ -69,8 +73,9 @@ def view(
     with fail_on_errors():
         viewport = parse_size(size)
         opts = ViewOptions(
-            lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, wireframe=wireframe
-        )
+            lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, wireframe=wireframe,
+            nodata=check_nodata_rule([lod], nodata_rule),
+        )  # fmt: skip
         if screenshot is not None and frames is None:
             raise UsageError("--screenshot needs --frames N")
         output_file(screenshot, "--screenshot", suffixes=image_suffixes() if screenshot else None)

@@ -22,6 +22,7 @@ from importlib import import_module
 
 from render.errors import RenderError
 from render.strategies.base import Strategy
+from streamer.nodata import check_rule
 
 DEFAULT = "qiu"
 #: name -> "module:Class"
@@ -76,6 +77,33 @@ def strategy_class(name: str) -> type[Strategy]:
     return getattr(import_module(module), cls)
 
 
+class NodataRuleError(RenderError, ValueError):
+    """A nodata rule the chosen LOD strategy does not take."""
+
+
+def nodata_strategies(rule: str) -> list[str]:
+    """The registered strategies that take the nodata ``rule`` (imports every strategy)."""
+    return [n for n in strategy_names() if rule in strategy_class(n).nodata_rules]
+
+
+def check_nodata(name: str, rule: str) -> str:
+    """``rule`` if strategy ``name`` takes it (:attr:`Strategy.nodata_rules`), else
+    :class:`NodataRuleError` naming the rule and the strategies that take it."""
+    check_rule(rule)
+    if rule not in strategy_class(name).nodata_rules:
+        raise NodataRuleError(
+            f"LOD strategy {name!r} does not take the nodata rule {rule!r}; the strategies "
+            f"that do: {', '.join(nodata_strategies(rule))}"
+        )
+    return rule
+
+
+def nodata_options(name: str, rule: str) -> dict[str, str]:
+    """The constructor options of strategy ``name`` for the nodata ``rule`` (none for
+    ``"full"``, every strategy's rule; checked with :func:`check_nodata`)."""
+    return {} if check_nodata(name, rule) == "full" else {"nodata": rule}
+
+
 def stream_metric(name: str, metric: str) -> str:
     """The metric the streaming session should load levels with for strategy ``name``: the
     given one when the strategy selects with it, else ``"conservative"`` (a bound on the
@@ -91,10 +119,14 @@ def get_strategy(name: str, renderer, **options) -> Strategy:
 __all__ = [
     "DEFAULT",
     "STRATEGIES",
+    "NodataRuleError",
     "Strategy",
     "UnknownStrategyError",
     "check_name",
+    "check_nodata",
     "get_strategy",
+    "nodata_options",
+    "nodata_strategies",
     "strategy_class",
     "strategy_names",
     "stream_metric",

@@ -113,6 +113,9 @@ class Strategy(ABC, Generic[S]):
     #: controls: qiu/chunk edge snaps zeroed, jung-han heights unadjusted and unsplit,
     #: geometry-splitting without its splitting passes, seamless tiles without edge strips)
     stitching = True
+    #: the nodata rules (:data:`streamer.nodata.NODATA_RULES`) its ``nodata=`` option takes
+    #: (only ``"full"``: the option is not taken at all)
+    nodata_rules: tuple[str, ...] = ("full",)
     prog: moderngl.Program
     wire: moderngl.Program
 

@@ -36,7 +36,7 @@ from render import measure
 from render.pipeline import ViewOptions, open_render_session, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step, stream_step
-from render.strategies import get_strategy, strategy_names
+from render.strategies import check_nodata, get_strategy, nodata_options, strategy_names
 from render.strategies.base import Strategy
 from streamer.camera import Camera
 from tiler.store import TerrainStore
@@ -152,11 +152,14 @@ def compare(
     options: ViewOptions | None = None,
 ) -> list[dict[str, Any]]:
     """One row per strategy and τ (the tradeoff keys plus fly-through means and popping);
-    ``options``, when given, supplies ``metric`` and ``patch_log2`` (its ``lod`` and ``tau``
-    are not used: ``strategies`` and ``taus`` are swept)."""
+    ``options``, when given, supplies ``metric``, ``patch_log2`` and the nodata rule, which
+    every strategy compared must take (its ``lod`` and ``tau`` are not used: ``strategies``
+    and ``taus`` are swept)."""
     o = options or ViewOptions(metric=metric, patch_log2=patch_log2)
     metric = o.metric
     names = list(strategies or strategy_names())
+    for name in names:
+        check_nodata(name, o.nodata)
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
     i_mid = len(cameras) // 2
     mid = cameras[i_mid]
@@ -171,7 +174,7 @@ def compare(
     }
     rows: list[dict[str, Any]] = []
     for name in names:
-        strat = get_strategy(name, r)
+        strat = get_strategy(name, r, **nodata_options(name, o.nodata))
         for tau in taus:
             tr = tradeoff(
                 store, mid, [tau], renderer=r, repeats=repeats, stream_tau=0.0,
@@ -179,7 +182,7 @@ def compare(
             )  # fmt: skip
             row = asdict(tr[0])
             tri, cpu, gpu = [], [], []
-            with open_render_session(store, 0.0, metric, r.p) as s:
+            with open_render_session(store, 0.0, metric, r.p, nodata=o.nodata) as s:
                 for cam in cameras:
                     step = frame_step(s, strat, cam, tau, metric)
                     tri.append(step.stats.triangles)

@@ -212,6 +212,7 @@ class QiuStrategy(Strategy[Patches]):
     """Qiu's CLOD patches (the default)."""
 
     name = "qiu"
+    nodata_rules = ("full", "gap")
 
     def __init__(self, renderer: FrameServices, nodata: str = "full") -> None:
         """``nodata``: the mask-boundary rule (:data:`streamer.nodata.NODATA_RULES`)."""

@@ -192,6 +192,45 @@ def test_the_session_streams_what_the_nodata_boundaries_need(checkerboard):
     assert stats.clamped == 0 and share >= 0.99, (stats.clamped, share)
 
 
+def _streamed(path, rule: str, tau: float, altitude: float) -> tuple[int, int, int]:
+    """qiu with the nodata ``rule`` through the frame step over the checkerboard, straight
+    down from ``altitude``: the session's loaded bytes, triangles drawn and nodes clamped."""
+    from render.pipeline import open_render_session
+    from render.step import frame_step
+
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=(256, 256), patch_log2=2), ctx=CTX)
+    st = get_strategy("qiu", r, nodata=rule)
+    x0, y0, x1, y1 = s.grid.extent
+    cam = Camera(((x0 + x1) / 2, (y0 + y1) / 2, 800 + altitude), pitch=-90.0,
+                 viewport=(256, 256), near=1.0, far=1e6)  # fmt: skip
+    with open_render_session(s, tau, "qiu", r.p, nodata=rule) as session:
+        step = frame_step(session, st, cam, tau, "qiu")
+        loaded = session.summary()["loaded_bytes"]
+    r.close()
+    return loaded, step.stats.triangles, step.stats.clamped
+
+
+@pytest.mark.parametrize(("tau", "altitude"), [(1.0, 20000.0), (1.0, 40000.0), (4.0, 40000.0)])
+def test_the_session_streams_what_the_gap_rule_draws(checkerboard, tau, altitude, monkeypatch):
+    """With the nodata rule "gap" the session plans with the gap widths too: it loads fewer
+    bytes than under "full" and the renderer, drawing with "gap", is never clamped (every level
+    it draws is resident). Positive control: a session planned with the stored errors alone
+    (the gap widths dropped) leaves nodes clamped."""
+    import streamer.loader
+
+    path, _ = checkerboard
+    full = _streamed(path, "full", tau, altitude)
+    gap = _streamed(path, "gap", tau, altitude)
+    assert full[2] == 0 and gap[2] == 0, (full, gap)
+    assert gap[0] < full[0] and gap[1] < full[1], (full, gap)
+    true = streamer.loader.rule_errors
+    monkeypatch.setattr(
+        streamer.loader, "rule_errors", lambda *a: (true(*a)[0], None)
+    )  # the stored errors alone
+    assert _streamed(path, "gap", tau, altitude)[2] > 0
+
+
 @pytest.mark.parametrize("tau", [0.0, 4.0])
 def test_qius_cpu_twin_is_what_the_gpu_drew(checkerboard, tau):
     """The crack and coverage figures use qiu's CPU twin of its mesh (``triangles``); it must be
