@@ -170,7 +170,7 @@ PathOpt = Annotated[
     Path | None,
     typer.Option("--path", metavar="FILE", help="Keyframes file (.json or .csv)."),
 ]
-PatchOpt = Annotated[int, integer("--patch-log2", "Patch cells per side, log2.", min=0, max=7)]
+PatchOpt = Annotated[int, integer("--patch-log2", "Patch cells per side, log2.", min=1, max=7)]
 TauOpt = Annotated[float, number("--tau", "Screen-space error threshold, pixels.", min=0.0)]
 BudgetOpt = Annotated[
     float, number("--budget-mb", "Resident byte budget, MiB.", min=0.0, min_open=True)

@@ -78,8 +78,13 @@ class RenderConfig:
         w, h = self.size
         if not (1 <= w <= 16384 and 1 <= h <= 16384):
             raise RenderError(f"viewport {w}x{h} is outside 1..16384 pixels per side")
-        if not 0 <= self.patch_log2 <= 7:
-            raise RenderError(f"patch_log2 must be in 0..7, got {self.patch_log2}")
+        if not 1 <= self.patch_log2 <= 7:
+            # a 1-cell patch cannot snap an edge to a coarser neighbour, so stitching would
+            # split every neighbour to one level across the whole view (render.select.stitch)
+            raise RenderError(
+                f"patch_log2 must be in 1..7, got {self.patch_log2}: patches of one cell "
+                "(0) cannot be stitched to coarser neighbours; use 1 for the finest patches"
+            )
 
 
 @dataclass(frozen=True)

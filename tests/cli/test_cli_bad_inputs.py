@@ -90,7 +90,9 @@ CASES = {
     "latency-nan": (["stream", "{store}", "--latency-ms", "nan"], 2, "'nan' is not a finite"),
     "precision-nan": (["tile", "{src}", "{tmp}/p.zarr", "--precision", "nan"], 2,
                       "'nan' is not a finite number"),
-    "patch-log2": (["render", "{store}", "--patch-log2", "9"], 2, "9 is not in the range 0<=x<=7"),
+    "patch-log2": (["render", "{store}", "--patch-log2", "9"], 2, "9 is not in the range 1<=x<=7"),
+    "patch-log2-0": (["tradeoff", "{store}", "--patch-log2", "0"], 2,
+                     "0 is not in the range 1<=x<=7"),
     "taus-nan": (["tradeoff", "{store}", "--taus", "1,nan"], 2,
                  "error: --taus: expected comma-separated finite taus >= 0 such as 0.5,1,2, "
                  "got '1,nan'"),

@@ -79,3 +79,16 @@ def test_near_plane_follows_the_clearance():
     assert near_plane(_Store(), (0, 0, 100.5), t, 5.0) == pytest.approx(0.25 / (1 + t))
     assert near_plane(_Store(), (0, 0, 5000.0), t, 5.0) == 5.0  # capped by the scene rule
     assert near_plane(_Store(), (0, 0, 50.0), t, 5.0) == MIN_NEAR  # inside the terrain
+
+
+@pytest.mark.parametrize("p", [0, 8, -1])
+def test_patch_sizes_that_cannot_be_stitched_are_refused(p):
+    """One-cell patches (``patch_log2 = 0``) cannot snap an edge to a coarser neighbour, so
+    stitching would split the whole view to one level (it did not settle in 64 rounds on
+    N44W072): refused with the value and what to use."""
+    from render.errors import RenderError
+    from render.frame import RenderConfig
+
+    with pytest.raises(RenderError, match=f"patch_log2 must be in 1..7, got {p}"):
+        RenderConfig(patch_log2=p)
+    assert RenderConfig(patch_log2=1).patch_log2 == 1 and RenderConfig(patch_log2=7).patch_log2 == 7
