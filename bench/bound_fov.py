@@ -14,7 +14,8 @@ configurations: ``qiu`` with the metrics ``qiu`` (Eq. 7), ``conservative`` and
 ``conservative-view`` (:mod:`streamer.lod`; it selects with node boxes and the snapped-edge
 check, :mod:`render.node_boxes`), and ``geometry-splitting`` (the issue's reference for "few
 triangles"), all with the default patches of ``2**4`` cells; and ``conservative-view`` with
-patches of ``2**3`` and ``2**2`` cells (``cons-view-p3``, ``cons-view-p2``). The ``-gap``
+patches of ``2**3``, ``2**2`` and ``2**1`` cells (``cons-view-p3``, ``-p2``, ``-p1``; one-cell
+patches cannot be stitched). The ``-gap``
 configurations are the same with qiu's nodata rule ``"gap"`` (:mod:`streamer.nodata`; the
 others use ``"full"``). Besides the coverage of terrain and nodata each row has ``uncovered_px``
 (how far on screen an undrawn terrain sample lies from the drawn terrain,
@@ -61,10 +62,12 @@ CONFIGS = (
     ("cons-view-gap", "qiu", "conservative-view", 4, "gap"),
     ("cons-view-p3-gap", "qiu", "conservative-view", 3, "gap"),
     ("cons-view-p2-gap", "qiu", "conservative-view", 2, "gap"),
+    ("cons-view-p1", "qiu", "conservative-view", 1, "full"),
+    ("cons-view-p1-gap", "qiu", "conservative-view", 1, "gap"),
 )
 #: the configurations item 5's conditions are checked on
 NEW = ("cons-view", "cons-view-p3", "cons-view-p2", "cons-view-gap", "cons-view-p3-gap",
-       "cons-view-p2-gap")  # fmt: skip
+       "cons-view-p2-gap", "cons-view-p1", "cons-view-p1-gap")  # fmt: skip
 
 
 def _cli(*args: str) -> None:
