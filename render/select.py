@@ -347,7 +347,7 @@ def stitch(
     *,
     resident: Sequence[int] | np.ndarray,
     zranges: np.ndarray,
-    max_rounds: int = 64,
+    max_rounds: int = 1024,
     boxes: NodeBoxes | None = None,
     tau: float | None = None,
     kernels: str | None = None,

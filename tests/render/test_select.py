@@ -180,6 +180,37 @@ def test_stitch_splits_neighbours_that_break_the_restriction():
     assert (s.snap <= s.cells_log2[:, None]).all()
 
 
+def _refined_towards(k: int, deep: int, row: int, col: int) -> Patches:
+    """Leaves of one block refined towards the depth-``deep`` node ``(row, col)`` only, every
+    other leaf as coarse as it can be: a ripple for the restriction to propagate."""
+    d, r, c = [], [], []
+    for depth in range(1, deep + 1):
+        pr, pc = row >> (deep - depth), col >> (deep - depth)  # the path's node at this depth
+        for cr in (pr & ~1, pr | 1):
+            for cc in (pc & ~1, pc | 1):
+                if depth == deep or (cr, cc) != (pr, pc):
+                    d.append(depth)
+                    r.append(cr)
+                    c.append(cc)
+    return _patches(d, r, c, [x + 1 for x in d], k=k)
+
+
+def test_stitch_runs_until_the_restriction_holds():
+    """Balancing a deep node beside coarse ones takes a round per depth of the ripple: a cap
+    below that is an error, the default cap settles (the 2^1-cell patches of a synthetic 1025²
+    view at 170° took 84 rounds, over the former cap of 64)."""
+    k, deep = 9, 8
+    g = BlockGrid(height=513, width=513, k=k)
+    p = _refined_towards(k, deep, (1 << deep) // 2, (1 << deep) // 2 - 1)  # west of the centre
+    cam = Camera((0.0, 0.0, 1e4), pitch=-90.0, viewport=(64, 48))
+    kw = dict(resident=[k], zranges=np.zeros((1, 2)))
+    with pytest.raises(SelectionError, match="did not settle in 2 rounds"):
+        stitch(p, g, _table(k, 1, [(0, 0)]), cam, "qiu", max_rounds=2, **kw)
+    s = stitch(p, g, _table(k, 1, [(0, 0)]), cam, "qiu", **kw)
+    assert s.violations == 0 and len(s) > len(p)
+    assert (s.snap <= s.cells_log2[:, None]).all()
+
+
 def test_rasterise_includes_edges():
     tri = np.array([[[0, 0], [2, 0], [0, 2]]])
     r, c, h = measure.rasterise(tri, np.array([[0.0, 2.0, 4.0]]))
