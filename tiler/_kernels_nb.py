@@ -296,26 +296,66 @@ def encode_int(g, k, bits, out):
 
 
 @_jit
+def _encode_level_float(g, gbits, h, m, pred, pbits, rows, out, p):
+    """One level of :func:`encode_float` into ``out[p:]``, with :func:`_decode_level_float`'s
+    loops; returns the position after it."""
+    a = rows[0]
+    b = rows[1]
+    pv = pred[0]
+    pc = pred[1]
+    bv = pbits[0]
+    bc = pbits[1]
+    row = g[0]
+    for j in range(m + 1):
+        a[j] = np.float64(row[2 * j * h])
+    for i in range(m + 1):
+        y = 2 * i * h
+        for j in range(m):
+            pv[j] = (a[j] + a[j + 1]) * 0.5
+        rb = gbits[y]
+        for j in range(m):
+            out[p + j] = rb[(2 * j + 1) * h] ^ bv[j]
+        p += m
+        if i == m:
+            break
+        row = g[y + 2 * h]
+        for j in range(m + 1):
+            b[j] = np.float64(row[2 * j * h])
+        for j in range(m + 1):
+            pv[j] = (a[j] + b[j]) * 0.5
+        for j in range(m):
+            pc[j] = (((a[j] + a[j + 1]) + b[j]) + b[j + 1]) * 0.25
+        cb = gbits[y + h]
+        for j in range(m):
+            out[p + 2 * j] = cb[2 * j * h] ^ bv[j]
+            out[p + 2 * j + 1] = cb[(2 * j + 1) * h] ^ bc[j]
+        out[p + 2 * m] = cb[2 * m * h] ^ bv[m]
+        p += 2 * m + 1
+        a, b = b, a
+    return p
+
+
+@_jit
 def encode_float(g, gbits, k, scratch, sbits, out):
-    """float-xor encoding: value bits XOR the bits of the prediction rounded to the dtype."""
+    """float-xor encoding: value bits XOR the bits of the prediction rounded to the dtype.
+
+    ``scratch`` (the grid's dtype, at least ``2**k+1`` long) and ``sbits`` (its unsigned
+    view) hold one row's predictions."""
     last = g.shape[0] - 1
     out[0] = gbits[0, 0]
     out[1] = gbits[0, last]
     out[2] = gbits[last, 0]
     out[3] = gbits[last, last]
     p = 4
+    rows = np.empty((2, (last >> 1) + 1), np.float64)
     for lev in range(1, k + 1):
-        h = 1 << (k - lev)
-        for r in range(0, (last >> (k - lev)) + 1):
-            y = r * h
-            odd = r & 1
-            x = 0 if odd else h
-            while x <= last:
-                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
-                scratch[0] = _predict_float(g, y, x, h, kind)
-                out[p] = gbits[y, x] ^ sbits[0]
-                p += 1
-                x += h if odd else 2 * h
+        m = 1 << (lev - 1)
+        if lev == k:  # constant strides for the two finest levels, as in decode_int
+            p = _encode_level_float(g, gbits, 1, m, scratch, sbits, rows, out, p)
+        elif lev == k - 1:
+            p = _encode_level_float(g, gbits, 2, m, scratch, sbits, rows, out, p)
+        else:
+            p = _encode_level_float(g, gbits, 1 << (k - lev), m, scratch, sbits, rows, out, p)
 
 
 @_jit
@@ -380,8 +420,56 @@ def decode_int(seq, g, k, first):
 
 
 @_jit
+def _decode_level_float(seq, p, g, gbits, h, m, pred, pbits, rows):
+    """One level of :func:`decode_float` from ``seq[p:]``; returns the position after it.
+
+    Per coarse row (``2h`` apart): its edge midpoints, then the row below it. A coarse row's
+    vertices are copied once to a contiguous float64 row (``rows``: two, swapped), a row's
+    predictions computed from those into ``pred`` (vertical/horizontal midpoints in row 0,
+    centres in row 1; rounded to the dtype by the store), then XORed with the stored bits
+    through ``pbits``, ``pred``'s unsigned view: branch-free contiguous loops instead of a
+    per-sample :func:`_predict_float`, with its float operations in its order (the centre's
+    ``((tl + tr) + bl) + br``: float sums are not associative), so bit-identical values."""
+    a = rows[0]
+    b = rows[1]
+    pv = pred[0]
+    pc = pred[1]
+    bv = pbits[0]
+    bc = pbits[1]
+    row = g[0]
+    for j in range(m + 1):
+        a[j] = np.float64(row[2 * j * h])
+    for i in range(m + 1):
+        y = 2 * i * h
+        for j in range(m):
+            pv[j] = (a[j] + a[j + 1]) * 0.5
+        rb = gbits[y]
+        for j in range(m):
+            rb[(2 * j + 1) * h] = seq[p + j] ^ bv[j]
+        p += m
+        if i == m:
+            break
+        row = g[y + 2 * h]
+        for j in range(m + 1):
+            b[j] = np.float64(row[2 * j * h])
+        for j in range(m + 1):
+            pv[j] = (a[j] + b[j]) * 0.5
+        for j in range(m):
+            pc[j] = (((a[j] + a[j + 1]) + b[j]) + b[j + 1]) * 0.25
+        cb = gbits[y + h]
+        for j in range(m):
+            cb[2 * j * h] = seq[p + 2 * j] ^ bv[j]
+            cb[(2 * j + 1) * h] = seq[p + 2 * j + 1] ^ bc[j]
+        cb[2 * m * h] = seq[p + 2 * m] ^ bv[m]
+        p += 2 * m + 1
+        a, b = b, a
+    return p
+
+
+@_jit
 def decode_float(seq, g, gbits, k, first, scratch, sbits):
-    """:func:`decode_int` for the float-xor encoding."""
+    """:func:`decode_int` for the float-xor encoding (``scratch``/``sbits``: as in
+    :func:`encode_float`, one row's predictions)."""
     last = g.shape[0] - 1
     p = 0
     if first == 0:
@@ -390,18 +478,15 @@ def decode_float(seq, g, gbits, k, first, scratch, sbits):
         gbits[last, 0] = seq[2]
         gbits[last, last] = seq[3]
         p = 4
+    rows = np.empty((2, (last >> 1) + 1), np.float64)
     for lev in range(max(first, 1), k + 1):
-        h = 1 << (k - lev)
-        for r in range(0, (last >> (k - lev)) + 1):
-            y = r * h
-            odd = r & 1
-            x = 0 if odd else h
-            while x <= last:
-                kind = 0 if not odd else (1 + ((x >> (k - lev)) & 1))
-                scratch[0] = _predict_float(g, y, x, h, kind)
-                gbits[y, x] = seq[p] ^ sbits[0]
-                p += 1
-                x += h if odd else 2 * h
+        m = 1 << (lev - 1)
+        if lev == k:  # constant strides for the two finest levels (15/16 of the values)
+            p = _decode_level_float(seq, p, g, gbits, 1, m, scratch, sbits, rows)
+        elif lev == k - 1:
+            p = _decode_level_float(seq, p, g, gbits, 2, m, scratch, sbits, rows)
+        else:
+            p = _decode_level_float(seq, p, g, gbits, 1 << (k - lev), m, scratch, sbits, rows)
 
 
 @_jit
