@@ -224,7 +224,7 @@ def encode(mod: ModuleType, grid: np.ndarray, k: int) -> np.ndarray:
     u = _UINT[g.dtype.itemsize]
     out = np.empty(g.size, dtype=u)
     if g.dtype.kind == "f":
-        scratch = np.empty((2, g.shape[0]), dtype=g.dtype)  # one row's predictions
+        scratch = np.zeros(1, dtype=g.dtype)
         mod.encode_float(g, g.view(u), k, scratch, scratch.view(u), out)
     else:
         mod.encode_int(g, k, g.dtype.itemsize * 8, out)
