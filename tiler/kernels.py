@@ -236,7 +236,7 @@ def decode(mod: ModuleType, seq: np.ndarray, g: np.ndarray, k: int, first: int) 
     u = _UINT[g.dtype.itemsize]
     s = np.ascontiguousarray(seq).view(u)
     if g.dtype.kind == "f":
-        scratch = np.zeros(1, dtype=g.dtype)
+        scratch = np.empty((2, g.shape[0]), dtype=g.dtype)  # one row's predictions
         mod.decode_float(s, g, g.view(u), k, first, scratch, scratch.view(u))
     else:
         mod.decode_int(s, g, k, first)

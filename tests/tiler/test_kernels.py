@@ -176,10 +176,12 @@ def test_kernels_release_the_gil_and_cache():
     """Every kernel is nogil (a loader thread's decode never stalls the caller's thread)."""
     from numba.core.registry import CPUDispatcher
 
-    from tiler import _kernels_nb
+    from tiler import _codec_nb, _kernels_nb
 
-    found = [v for v in vars(_kernels_nb).values() if isinstance(v, CPUDispatcher)]
-    assert len(found) >= 12
+    mods = (_kernels_nb, _codec_nb)
+    found = {id(v): v for m in mods for v in vars(m).values() if isinstance(v, CPUDispatcher)}
+    found = list(found.values())
+    assert len(found) >= 16
     for disp in found:
         assert disp.targetoptions.get("nogil") is True, disp.__name__
         assert type(disp._cache).__name__ == "FunctionCache", disp.__name__  # on disk
