@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from render import select_kernels
+from render import stitch_rounds as rounds
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
@@ -351,6 +352,7 @@ def stitch(
     boxes: NodeBoxes | None = None,
     tau: float | None = None,
     kernels: str | None = None,
+    incremental: bool = True,
 ) -> Patches:
     """Snap levels per edge; split coarse neighbours until ``2**s_n <= node edge`` everywhere
     (new nodes' errors with the same node geometry as :func:`select_patches`: ``boxes``).
@@ -359,7 +361,9 @@ def stitch(
     neighbour while the metric of the patch's error plus the edge's snapping excess
     (:func:`render.snap_error.snap_excess`) exceeds ``tau``; such an edge whose neighbour may
     not split (its resident level) counts as clamped. ``kernels``: as :func:`select_patches`'
-    (the neighbour search)."""
+    (the neighbour search). ``incremental`` (default) carries the edges' neighbours and
+    snapped-edge checks from round to round, redoing them only where a round changed leaves
+    (:mod:`render.stitch_rounds`; the same patches as ``False``, which redoes all every round)."""
     k = grid.k
     nb = select_kernels.resolve(kernels)
     fn = get_metric(metric)
@@ -367,8 +371,11 @@ def stitch(
     res = np.asarray(resident, dtype=np.int64)
     cur = patches
     slots = None
+    nbr = None
+    cache = rounds.OverCache(len(cur)) if incremental else None
     for _ in range(max_rounds):
-        nbr = _neighbours(cur, k, nb)
+        if nbr is None or not incremental:
+            nbr = _neighbours(cur, k, nb)
         spacing = k - cur.level
         has = nbr >= 0
         s_n = np.where(has, spacing[np.maximum(nbr, 0)], 0)
@@ -388,7 +395,11 @@ def stitch(
         if not victims.size:
             snap = np.minimum(snap, cur.cells_log2[:, None])
             if tau is not None and box_slots is not None:
-                over = snap_over(cur, snap, grid, camera, fn, tau, zranges, boxes, box_slots)
+
+                def check(sub: Patches, sn: np.ndarray, bs=box_slots) -> np.ndarray:
+                    return snap_over(sub, sn, grid, camera, fn, tau, zranges, boxes, bs)
+
+                over = check(cur, snap) if cache is None else cache.over_edges(cur, snap, check)
                 victims = np.unique(nbr[over])
                 if victims.size:
                     keep = cur.depth[victims] + table.patch_log2 < np.minimum(
@@ -410,9 +421,14 @@ def stitch(
                 clamped=cur.clamped + extra,
                 violations=int(np.count_nonzero(bad)),
             )
+        keep = np.ones(len(cur), dtype=bool)
+        keep[victims] = False
         cur = _split(
             cur, victims, grid, table, slots, camera, metric, res, zranges, boxes, box_slots
         )
+        if cache is not None:
+            cache.split(keep, 4 * len(victims))
+            nbr = rounds.neighbours_after_split(cur, nbr, keep)
     raise SelectionError(f"stitching did not settle in {max_rounds} rounds")
 
 

@@ -1,0 +1,117 @@
+"""The incremental stitching rounds (:mod:`render.stitch_rounds`) give exactly the patches of
+the reference that redoes every edge's neighbour and snapped-edge check each round
+(``stitch(incremental=False)``), on multi-block synthetic terrain with node boxes and the
+snapped-edge check (``conservative-view``, some blocks held coarser) and without (``qiu``);
+positive controls: a cache that never redoes a check, and a neighbour update that forgets the
+edges of split leaves, both differ."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from render import stitch_rounds
+from render.node_boxes import NodeBoxes
+from render.select import PatchTable, _neighbours, _split, select_patches, stitch
+from streamer.camera import Camera
+from tiler.grid import BlockGrid
+from tiler.static_error import bound_errors
+
+K, P = 5, 1
+FIELDS = ("block", "depth", "row", "col", "level", "delta", "rho", "snap")
+GRID = BlockGrid(height=3 * 32 + 1, width=3 * 32 + 1, k=K, x0=0.0, y0=97 * 30.0, dx=30.0, dy=30.0)
+BLOCKS = [(r, c) for r in range(3) for c in range(3)]
+RES = [K, K, K - 1, K, K - 2, K, K, K - 1, K]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:97, 0:97] / 96.0
+    h = 400 * np.sin(5 * x) * np.cos(4 * y) + 150 * rng.standard_normal((97, 97)).cumsum(0) / 9
+    table, boxes, zr = PatchTable(K, P), NodeBoxes(K, P), []
+    for (r, c), lv in zip(BLOCKS, RES, strict=True):
+        g = h[r * 32 : r * 32 + 33, c * 32 : c * 32 + 33]
+        bound = bound_errors(g, np.ones(g.shape, bool), K)
+        table.add((r, c), bound)
+        step = 1 << (K - lv)
+        boxes.update((r, c), lv, g[::step, ::step], bound, (g.min(), g.max()))
+        zr.append((g.min(), g.max()))
+    return table, boxes, np.array(zr)
+
+
+def cameras() -> list[Camera]:
+    rng = np.random.default_rng(5)
+    out = []
+    for _ in range(8):
+        eye = (rng.uniform(-500, 3400), rng.uniform(-500, 3400), rng.uniform(300, 2500))
+        target = (rng.uniform(600, 2300), rng.uniform(600, 2300), 0.0)
+        fov = float(rng.choice([45.0, 90.0, 150.0]))
+        out.append(Camera.look_at(eye, target, fov_y=fov, viewport=(160, 120), near=2.0, far=2e4))
+    return out
+
+
+def _pairs(scene, metric: str, taus=(0.5, 1.0, 2.0)):
+    table, boxes, zr = scene
+    kw = {"resident": RES, "zranges": zr, "boxes": boxes}
+    for cam in cameras():
+        for tau in taus:
+            p = select_patches(GRID, BLOCKS, table, cam, tau, metric, None, **kw)
+            skw = dict(kw, tau=tau if metric == "conservative-view" else None)
+            a = stitch(p, GRID, table, cam, metric, incremental=False, **skw)
+            b = stitch(p, GRID, table, cam, metric, incremental=True, **skw)
+            yield a, b
+
+
+def _differ(a, b) -> bool:
+    same = all(np.array_equal(getattr(a, f), getattr(b, f)) for f in FIELDS)
+    return not (same and (a.clamped, a.violations) == (b.clamped, b.violations))
+
+
+@pytest.mark.parametrize("metric", ["conservative-view", "qiu"])
+def test_incremental_rounds_equal_the_reference(scene, metric):
+    pairs = list(_pairs(scene, metric))
+    assert sum(_differ(a, b) for a, b in pairs) == 0
+    assert sum(len(a) for a, _ in pairs) > 2000  # the views select something
+    assert sum(int((a.snap > 0).sum()) for a, _ in pairs) > 500  # and snap many edges
+
+
+def test_positive_control_a_stale_check_differs(scene, monkeypatch):
+    real = stitch_rounds.OverCache.over_edges
+
+    def stale(self, cur, snap, check):  # checks new leaves only, not changed snaps
+        self.snap = np.where(self.known[:, None], snap, self.snap)
+        return real(self, cur, snap, check)
+
+    monkeypatch.setattr(stitch_rounds.OverCache, "over_edges", stale)
+    assert sum(_differ(a, b) for a, b in _pairs(scene, "conservative-view")) > 0
+
+
+def test_positive_control_forgotten_neighbours_differ(scene, monkeypatch):
+    real = stitch_rounds.renumber
+
+    def forget(nbr, keep):  # never probe the edges of split neighbours again (they keep -1)
+        kept, stale = real(nbr, keep)
+        return kept, np.zeros_like(stale)
+
+    monkeypatch.setattr(stitch_rounds, "renumber", forget)
+    assert sum(_differ(a, b) for a, b in _pairs(scene, "qiu", taus=(0.5,))) > 0
+
+
+def test_neighbours_after_split_equal_a_fresh_search(scene):
+    table, boxes, zr = scene
+    cam = cameras()[0]
+    cur = select_patches(GRID, BLOCKS, table, cam, 4.0, "qiu", None, resident=RES, zranges=zr)
+    slots = table.slots(cur.blocks)
+    rng = np.random.default_rng(2)
+    nbr = _neighbours(cur, K)
+    res = np.array(RES)
+    for _ in range(6):
+        ok = np.flatnonzero(cur.depth + P < np.minimum(K, res[cur.block]))
+        victims = np.unique(rng.choice(ok, size=min(len(ok), 7), replace=False))
+        keep = np.ones(len(cur), bool)
+        keep[victims] = False
+        cur = _split(cur, victims, GRID, table, slots, cam, "qiu", res, zr)
+        nbr = stitch_rounds.neighbours_after_split(cur, nbr, keep)
+        assert np.array_equal(nbr, _neighbours(cur, K))
+    assert (nbr >= 0).sum() > 100
