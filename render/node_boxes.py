@@ -52,6 +52,16 @@ def _up32(x: np.ndarray) -> np.ndarray:
     return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
 
 
+def _by_block(blocks: np.ndarray) -> list[tuple[Block, np.ndarray]]:
+    """The distinct rows of ``(m, 2)`` ``blocks`` and where each occurs."""
+    blocks = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+    if not len(blocks):
+        return []
+    uniq, inv = np.unique(blocks, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    return [(tuple(b), np.flatnonzero(inv == u)) for u, b in enumerate(uniq.tolist())]
+
+
 class NodeBoxes:
     """Per-node height ranges of blocks for one patch size, rebuilt when a block's resident
     level changes (:meth:`update`); blocks leave with :meth:`remove`."""
@@ -124,13 +134,13 @@ class NodeBoxes:
         m = len(depth)
         n = (1 << int(level[0] - depth[0])) if m else 0
         out = np.empty((m, n + 1, n + 1))
-        for i, (b, d, r, c, lv) in enumerate(
-            zip(map(tuple, blocks.tolist()), depth.tolist(), row.tolist(), col.tolist(),
-                level.tolist(), strict=True)
-        ):  # fmt: skip
+        ramp = np.arange(n + 1)
+        for b, sel in _by_block(blocks):  # one gather per block (the slices' samples)
             g, rr = self._grid[b], self._level[b]
-            span, step = 1 << (rr - d), 1 << (rr - lv)
-            out[i] = g[r * span : (r + 1) * span + 1 : step, c * span : (c + 1) * span + 1 : step]
+            span, step = 1 << (rr - depth[sel]), 1 << (rr - level[sel])
+            ri = (row[sel] * span)[:, None] + ramp * step[:, None]
+            ci = (col[sel] * span)[:, None] + ramp * step[:, None]
+            out[sel] = g[ri[:, :, None], ci[:, None, :]]
         return out
 
     def full_windows(self, blocks: np.ndarray, depth: np.ndarray, row: np.ndarray, col: np.ndarray
@@ -153,17 +163,18 @@ class NodeBoxes:
         m = len(depth)
         n = (1 << int(level[0] - depth[0])) if m else 0
         out = np.zeros((m, n, n))
-        for i, (b, _d, r, c, lv) in enumerate(
-            zip(map(tuple, blocks.tolist()), depth.tolist(), row.tolist(), col.tolist(),
-                level.tolist(), strict=True)
-        ):  # fmt: skip
-            if lv >= self.k:
-                continue
-            f = self._bound[b][lv]
-            rep = (1 << lv) // f.shape[0]  # stored coarser than the depth: one value a tile
-            rows = (r * n + np.arange(n)) // rep
-            cols = (c * n + np.arange(n)) // rep
-            out[i] = f[np.ix_(rows, cols)]
+        ramp = np.arange(n)
+        lv = np.asarray(level, dtype=np.int64)
+        for b, sel in _by_block(blocks):
+            for v in np.unique(lv[sel]).tolist():
+                if v >= self.k:
+                    continue
+                f = self._bound[b][v]
+                at = sel[lv[sel] == v]
+                rep = (1 << v) // f.shape[0]  # stored coarser than the depth: one value a tile
+                rows = ((row[at] * n)[:, None] + ramp) // rep
+                cols = ((col[at] * n)[:, None] + ramp) // rep
+                out[at] = f[rows[:, :, None], cols[:, None, :]]
         return out
 
     def slots(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -115,3 +115,37 @@ def test_neighbours_after_split_equal_a_fresh_search(scene):
         nbr = stitch_rounds.neighbours_after_split(cur, nbr, keep)
         assert np.array_equal(nbr, _neighbours(cur, K))
     assert (nbr >= 0).sum() > 100
+
+
+def _slices(boxes: NodeBoxes, blocks, depth, row, col, level):
+    """The per-patch slices :meth:`NodeBoxes.vertex_heights` and ``cell_bounds`` gather."""
+    vh, cb = [], []
+    for b, d, r, c, lv in zip(map(tuple, blocks.tolist()), depth, row, col, level, strict=True):
+        g, rr = boxes._grid[b], boxes._level[b]
+        span, step = 1 << (rr - d), 1 << (rr - lv)
+        vh.append(g[r * span : (r + 1) * span + 1 : step, c * span : (c + 1) * span + 1 : step])
+        n = 1 << (lv - d)
+        if lv >= K:
+            cb.append(np.zeros((n, n)))
+            continue
+        f = boxes._bound[b][lv]
+        rep = (1 << lv) // f.shape[0]
+        cb.append(f[np.ix_((r * n + np.arange(n)) // rep, (c * n + np.arange(n)) // rep)])
+    return np.array(vh), np.array(cb, dtype=np.float64)
+
+
+@pytest.mark.parametrize("cells", [0, 1, 2])
+def test_batched_gathers_equal_per_patch_slices(scene, cells):
+    _, boxes, _ = scene
+    rng = np.random.default_rng(cells)
+    res = np.array(RES)
+    pick = rng.integers(0, len(BLOCKS), 200)
+    level = rng.integers(cells, res[pick] + 1)
+    depth = level - cells
+    row, col = rng.integers(0, 1 << depth), rng.integers(0, 1 << depth)
+    blocks = np.array(BLOCKS)[pick]
+    want_h, want_b = _slices(boxes, blocks, depth, row, col, level)
+    assert np.array_equal(boxes.vertex_heights(blocks, depth, row, col, level), want_h)
+    assert np.array_equal(boxes.cell_bounds(blocks, depth, row, col, level), want_b)
+    assert (want_b > 0).any() or cells == 0  # bounds gathered, not only zeros
+    assert len(np.unique(level)) > 1  # several levels per call
