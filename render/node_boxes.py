@@ -57,9 +57,12 @@ def _by_block(blocks: np.ndarray) -> list[tuple[Block, np.ndarray]]:
     blocks = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
     if not len(blocks):
         return []
-    uniq, inv = np.unique(blocks, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    return [(tuple(b), np.flatnonzero(inv == u)) for u, b in enumerate(uniq.tolist())]
+    key = (blocks[:, 0] - blocks[:, 0].min()) * (int(np.ptp(blocks[:, 1])) + 1) + blocks[:, 1]
+    order = np.argsort(key, kind="stable")
+    cut = np.flatnonzero(np.diff(key[order])) + 1
+    return [
+        ((int(blocks[g[0], 0]), int(blocks[g[0], 1])), np.sort(g)) for g in np.split(order, cut)
+    ]
 
 
 class NodeBoxes:
@@ -134,13 +137,13 @@ class NodeBoxes:
         m = len(depth)
         n = (1 << int(level[0] - depth[0])) if m else 0
         out = np.empty((m, n + 1, n + 1))
-        ramp = np.arange(n + 1)
-        for b, sel in _by_block(blocks):  # one gather per block (the slices' samples)
+        for i, (b, d, r, c, lv) in enumerate(
+            zip(map(tuple, blocks.tolist()), depth.tolist(), row.tolist(), col.tolist(),
+                level.tolist(), strict=True)
+        ):  # fmt: skip
             g, rr = self._grid[b], self._level[b]
-            span, step = 1 << (rr - depth[sel]), 1 << (rr - level[sel])
-            ri = (row[sel] * span)[:, None] + ramp * step[:, None]
-            ci = (col[sel] * span)[:, None] + ramp * step[:, None]
-            out[sel] = g[ri[:, :, None], ci[:, None, :]]
+            span, step = 1 << (rr - d), 1 << (rr - lv)
+            out[i] = g[r * span : (r + 1) * span + 1 : step, c * span : (c + 1) * span + 1 : step]
         return out
 
     def full_windows(self, blocks: np.ndarray, depth: np.ndarray, row: np.ndarray, col: np.ndarray
