@@ -152,3 +152,44 @@ def blocks_meeting(
                 out[m, 1] = bc
                 m += 1
     return out[:m]
+
+
+@_jit
+def restrict_levels(rows, cols, lv, p, out):
+    """:func:`streamer.restriction.restrict_levels` into ``out`` (the same least fixpoint,
+    reached in place, row by row, instead of one whole-grid pass at a time)."""
+    m = lv.shape[0]
+    r0, r1, c0, c1 = rows[0], rows[0], cols[0], cols[0]
+    lo = lv[0]
+    for i in range(m):
+        r0, r1 = min(r0, rows[i]), max(r1, rows[i])
+        c0, c1 = min(c0, cols[i]), max(c1, cols[i])
+        lo = min(lo, lv[i])
+    absent = lo - p - 1
+    g = np.full((r1 - r0 + 1, c1 - c0 + 1), absent, np.int64)
+    for i in range(m):
+        g[rows[i] - r0, cols[i] - c0] = lv[i]
+    nr, nc = g.shape
+    for _ in range(m):
+        changed = False
+        for r in range(nr):
+            for c in range(nc):
+                v = g[r, c]
+                if v == absent:
+                    continue
+                best = v
+                if r > 0 and g[r - 1, c] - p > best:
+                    best = g[r - 1, c] - p
+                if r + 1 < nr and g[r + 1, c] - p > best:
+                    best = g[r + 1, c] - p
+                if c > 0 and g[r, c - 1] - p > best:
+                    best = g[r, c - 1] - p
+                if c + 1 < nc and g[r, c + 1] - p > best:
+                    best = g[r, c + 1] - p
+                if best > v:
+                    g[r, c] = best
+                    changed = True
+        if not changed:
+            break
+    for i in range(m):
+        out[i] = g[rows[i] - r0, cols[i] - c0]

@@ -39,6 +39,7 @@ from streamer.frustum import (
 )
 from streamer.levels import PatchErrorTable
 from streamer.levels import kernels as plan_kernels
+from streamer.restriction import restrict_levels
 from tiler.grid import BlockGrid
 from tiler.quadtree import block_zranges
 
@@ -152,10 +153,29 @@ class Planner:
             lv, r = self.errors.needed_levels(
                 self.grid, have, camera, tau, self.config.metric, zr, with_rho=with_rho, ids=ids
             )
-            needed.update(zip(have, lv.tolist(), strict=True))
+            if len(have) == len(blocks):  # the common case: no dict round trip
+                needed = dict(zip(have, self._restrict(ids, lv).tolist(), strict=True))
+            else:
+                needed.update(zip(have, lv.tolist(), strict=True))
+                needed = self._joinable(needed)
             if with_rho:
                 rho.update(zip(have, r.tolist(), strict=True))
         return needed, rho
+
+    def _restrict(self, ids: np.ndarray, levels: np.ndarray) -> np.ndarray:
+        """:func:`streamer.restriction.restrict_levels` at the session's patch size (compiled
+        when the planning kernels are)."""
+        return restrict_levels(ids, levels, self.config.patch_log2, plan_kernels())
+
+    def _joinable(self, levels: dict[Block, int]) -> dict[Block, int]:
+        """``levels`` raised where a neighbour is too fine for stitching to join
+        (:mod:`streamer.restriction`)."""
+        if len(levels) < 2:
+            return levels
+        blocks = list(levels)
+        lv = np.fromiter(levels.values(), dtype=np.int64, count=len(blocks))
+        out = self._restrict(np.asarray(blocks, dtype=np.int64), lv)
+        return dict(zip(blocks, out.tolist(), strict=True))
 
     def needed(
         self, camera: Camera, tau: float | None = None, culling: str | None = None
@@ -209,4 +229,6 @@ class Planner:
                 np.maximum(rho, r, out=rho)
             for b, lv, r in zip(have, levels.tolist(), rho.tolist(), strict=True):
                 wants[b] = (lv, r)
+            joined = self._joinable({b: w[0] for b, w in wants.items()})
+            wants = {b: (joined[b], w[1]) for b, w in wants.items()}
         return PrefetchPlan(wants=wants, ring=len(n) - len(visible))
