@@ -10,8 +10,8 @@ transform: numpy's ``rel @ basis.T`` goes through BLAS, whose rounding (FMA, blo
 the batch size, so camera coordinates may differ from the reference's in the last bit; a result
 can only change where a ``δ_s`` or a bound lies within a few ulps of τ (the tests compare both
 paths exactly on several scenes). No fastmath (NaN and ∞ are meaningful here). The mesh
-assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb`` and are
-re-exported here.
+assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb``, the whole
+assembly in one call in ``_assemble_nb``; they are re-exported here.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from render.strategies.jung_han._assemble_nb import assemble  # noqa: F401  (re-exported)
 from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kernels, re-exported)
     _argsort_stable,
     _jit,

@@ -54,6 +54,7 @@ class JungHanSelector:
         self.kernels = kernels
         self._trees: dict[Block, BlockTree] = {}
         self._forest: jh_kernels.Forest | None = None
+        self._hoff = np.zeros(0, np.int64)  # the frame's trees' height offsets in the forest
         self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
@@ -263,6 +264,7 @@ class JungHanSelector:
         f = self._forest
         at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
         hoff, poff = f.hoff[at], f.poff[at]
+        self._hoff = hoff  # for the compiled assembly
         g = self.r.grid
         roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
         p = as_polygon(poly)
@@ -293,11 +295,41 @@ class JungHanSelector:
         return [tri], [ts], [tl], [nodes], [flags], int(clamped)
 
     def _unique(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Sorted unique keys, first occurrences, inverse (``np.unique``; compiled with numba)."""
-        if self._mod is None or not len(key) or key.min() < 0:
-            uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
-            return uk, first, inv.ravel()
-        return self._mod.unique_index(np.ascontiguousarray(key, dtype=np.int64))
+        """Sorted unique keys, first occurrences, inverse (``np.unique``)."""
+        uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        return uk, first, inv.ravel()
+
+    def _assemble_nb(self, blocks, lev, r0, c0, tri, slot, tl, node_arr, flag_arr, wg):
+        """``_assemble`` by the compiled kernel (same outputs, see ``_assemble_nb``)."""
+        g = self.r.grid
+        jh_count = len(tri)
+        out = self._mod.assemble(  # the traversal packed the forest and set _hoff this frame
+            np.ascontiguousarray(tri, dtype=np.int64), slot, tl, self._forest.heights,
+            np.ascontiguousarray(self._hoff, dtype=np.int64), lev, r0.astype(np.int64),
+            c0.astype(np.int64), int(wg), int(self.r.k), int(g.step), bool(self.stitching),
+        )  # fmt: skip
+        tri, tri_h, slot, tl, adjusted, v_slot, v_level, v_cr, v_h, index, ok = out
+        if not ok:
+            raise RuntimeError("conforming split did not converge")
+        return JHSelection(
+            blocks=blocks,
+            levels=lev,
+            tri=tri,
+            tri_h=tri_h,
+            jh_triangles=jh_count,
+            tri_slot=slot,
+            tri_level=tl,
+            nodes=node_arr,
+            flags=flag_arr,
+            adjusted=adjusted,
+            corner_blocks=0,
+            clamped=0,
+            v_slot=v_slot,
+            v_level=v_level,
+            v_cr=v_cr,
+            v_h=v_h,
+            index=index,
+        )
 
     def _assemble(self, blocks, lev, trees, r0, c0, tris, tslot, tlev, nodes, flags):
         """Drawn heights, the crack pass, and the GPU vertex/index arrays."""
@@ -306,11 +338,13 @@ class JungHanSelector:
         tri = np.concatenate(tris) if tris else e2
         slot = np.concatenate(tslot).astype(np.int64) if tslot else np.zeros(0, np.int64)
         tl = np.concatenate(tlev).astype(np.int64) if tlev else np.zeros(0, np.int64)
-        order = np.argsort(slot, kind="stable")
-        tri, slot, tl = tri[order], slot[order], tl[order]
         node_arr = np.concatenate(nodes) if nodes else np.zeros((0, 3), np.int64)
         flag_arr = np.concatenate(flags) if flags else np.zeros(0, np.int64)
         wg = g.cols * g.step + 1
+        if self._mod is not None:
+            return self._assemble_nb(blocks, lev, r0, c0, tri, slot, tl, node_arr, flag_arr, wg)
+        order = np.argsort(slot, kind="stable")
+        tri, slot, tl = tri[order], slot[order], tl[order]
         cs, rs = tri[..., 0].ravel(), tri[..., 1].ravel()
         key = rs * wg + cs
         uk, first, inv = self._unique(key)
@@ -320,11 +354,7 @@ class JungHanSelector:
         h_corner = gather([t.heights for t in trees], s3, flat)
         hv = h_corner[first]
         vrow, vcol = uk // wg, uk % wg
-        mod = self._mod
-        if mod is None:
-            ids, ends, frac = t_junctions(tri, vcol, vrow)
-        else:
-            ids, ends, frac = mod.t_junctions(np.ascontiguousarray(tri), vcol, vrow)
+        ids, ends, frac = t_junctions(tri, vcol, vrow)
         if not self.stitching:  # the positive control: no height adjustment, no split
             ids = ids[:0]
         if len(ids):
@@ -343,12 +373,8 @@ class JungHanSelector:
                 hv[ids[w]] = np.where(np.isfinite(new) & np.isfinite(old), new, old)
         adjusted = np.stack([vcol[ids], vrow[ids]], -1)
         jh_count = len(tri)
-        if self.stitching and (mod is None or not len(tri)):
+        if self.stitching:
             tri, slot, tl = conform(tri, slot, tl, vcol, vrow)
-        elif self.stitching:
-            tri, slot, tl, ok = mod.conform(np.ascontiguousarray(tri), slot, tl, vcol, vrow)
-            if not ok:
-                raise RuntimeError("conforming split did not converge")
         tkey = tri[..., 1] * wg + tri[..., 0]
         inv = np.searchsorted(uk, tkey.ravel())
         tri_h = hv[inv].reshape(-1, 3)
