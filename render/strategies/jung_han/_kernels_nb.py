@@ -95,25 +95,56 @@ def _nanmin(a, b):
 
 
 @_jit
-def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi):
-    """``projected_bound`` of one box."""
-    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
-    zmin = np.inf
-    gain = -np.inf
-    for i in range(8):
-        x = xmax if (i >> 2) & 1 else xmin
-        y = ymax if (i >> 1) & 1 else ymin
-        z = zhi if i & 1 else zlo
-        c0, c1, c2 = _cam(basis, eye, x, y, z)
-        zmin = _nanmin(zmin, c2) if i else c2
-        qx, qy = c0 / c2, c1 / c2
-        g = math.hypot(u0 - qx * u2, u1 - qy * u2)
-        gain = _nanmax(gain, g) if i else g
-    b = focal * dmax * gain / zmin
-    if not zmin > 0.0:
-        b = np.inf
+def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi, wk):
+    """``projected_bound`` of one box (``wk``: (8, 5) scratch). The corners' camera coordinates
+    are ``_cam``'s products and sums in the same order (each product computed once). The gain's
+    ``hypot`` is only evaluated at corners whose squared gain is within a relative ``1e-9`` of
+    the largest: ``hypot`` is within an ulp of the exact norm, so any other corner's is smaller
+    and the maximum is the same number (all corners when a square is not finite)."""
     if dmax == 0.0:
-        b = 0.0
+        return 0.0 * (1.0 + 1e-9) + 1e-9
+    rx0, rx1 = xmin - eye[0], xmax - eye[0]
+    ry0, ry1 = ymin - eye[1], ymax - eye[1]
+    rz0, rz1 = zlo - eye[2], zhi - eye[2]
+    for a in range(3):
+        px0, px1 = rx0 * basis[a, 0], rx1 * basis[a, 0]
+        py0, py1 = ry0 * basis[a, 1], ry1 * basis[a, 1]
+        pz0, pz1 = rz0 * basis[a, 2], rz1 * basis[a, 2]
+        for i in range(8):
+            px = px1 if (i >> 2) & 1 else px0
+            py = py1 if (i >> 1) & 1 else py0
+            pz = pz1 if i & 1 else pz0
+            wk[i, a] = px + py + pz
+    zmin = wk[0, 2]
+    for i in range(1, 8):
+        zmin = _nanmin(zmin, wk[i, 2])
+    if not zmin > 0.0:
+        return np.inf * (1.0 + 1e-9) + 1e-9
+    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
+    smax = -1.0
+    finite = True
+    for i in range(8):
+        c2 = wk[i, 2]
+        qx, qy = wk[i, 0] / c2, wk[i, 1] / c2
+        gx, gy = u0 - qx * u2, u1 - qy * u2
+        sq = gx * gx + gy * gy
+        wk[i, 3], wk[i, 4] = gx, gy
+        if not math.isfinite(sq):
+            finite = False
+        elif sq > smax:
+            smax = sq
+        wk[i, 2] = sq
+    if finite:
+        thr = smax * (1.0 - 1e-9)
+        gain = -np.inf
+        for i in range(8):
+            if wk[i, 2] >= thr:
+                gain = max(gain, math.hypot(wk[i, 3], wk[i, 4]))
+    else:
+        gain = math.hypot(wk[0, 3], wk[0, 4])
+        for i in range(1, 8):
+            gain = _nanmax(gain, math.hypot(wk[i, 3], wk[i, 4]))
+    b = focal * dmax * gain / zmin
     return b * (1.0 + 1e-9) + 1e-9
 
 
@@ -178,6 +209,7 @@ def traverse(
     """The pruned top-down + bottom-up pass of one frame: ``(tri, tslot, tlev, nodes, flags,
     clamped, evaluated)`` in the numpy reference's order (see the module notes)."""
     cap = max(64, 4 * roots.shape[0])
+    wk = np.empty((8, 5))  # _bound's scratch
     nd = np.empty((cap, 8), np.int64)  # slot, idx, row, col, inside, parent, quad, depth
     pr = np.zeros(cap, np.bool_)  # pruned
     nr = roots.shape[0]
@@ -199,7 +231,7 @@ def traverse(
                 ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
                 b = _bound(
                     basis, eye, focal, float(dmx[ii]), xmin, xmin + size * dx,
-                    ymax - size * dy, ymax, zlo[ii], zhi[ii],
+                    ymax - size * dy, ymax, zlo[ii], zhi[ii], wk,
                 )  # fmt: skip
                 pr[j] = b < tau
             if pr[j] or leaf:

@@ -21,7 +21,8 @@ _jit = cached_njit(**_OPTS)  # as tiler._kernels_nb, without its fastmath flags
 @_jit
 def _argsort_stable(keys):
     """``np.argsort(keys, kind="stable")`` for non-negative int64 keys (LSD radix sort,
-    11-bit digits: linear time, stable, so the same permutation)."""
+    11-bit digits: linear time, stable, so the same permutation). The keys move with their
+    indices, so every pass reads its input in order."""
     n = keys.shape[0]
     order = np.arange(n)
     if n < 2:
@@ -29,21 +30,29 @@ def _argsort_stable(keys):
     top = 0
     for i in range(n):
         top = max(top, keys[i])
+    passes = 0
+    while (top >> (11 * passes)) > 0:
+        passes += 1
+    count = np.zeros((passes, 2049), np.int64)
+    for i in range(n):  # every pass's histogram in one read
+        for p in range(passes):
+            count[p, ((keys[i] >> (11 * p)) & 2047) + 1] += 1
+    kin = keys.copy()
+    kout = np.empty(n, np.int64)
     tmp = np.empty(n, np.int64)
-    count = np.empty(2049, np.int64)
-    shift = 0
-    while (top >> shift) > 0:
-        count[:] = 0
-        for i in range(n):
-            count[((keys[order[i]] >> shift) & 2047) + 1] += 1
+    for p in range(passes):
+        c = count[p]
         for b in range(2048):
-            count[b + 1] += count[b]
+            c[b + 1] += c[b]
+        shift = 11 * p
         for i in range(n):
-            dg = (keys[order[i]] >> shift) & 2047
-            tmp[count[dg]] = order[i]
-            count[dg] += 1
+            dg = (kin[i] >> shift) & 2047
+            w = c[dg]
+            tmp[w] = order[i]
+            kout[w] = kin[i]
+            c[dg] = w + 1
         order, tmp = tmp, order
-        shift += 11
+        kin, kout = kout, kin
     return order
 
 
@@ -83,29 +92,32 @@ def t_junctions(tri, tid, vcol, vrow):
     frac = np.zeros(nv)
     e_lo = np.zeros(nv, np.int64)  # id of the lo / hi end of the vertex's edge
     e_hi = np.zeros(nv, np.int64)
-    best = np.empty(nv, np.int64)
-    for g in range(4):  # 0/1 horizontal edges, opposite vertex above/below; 2/3 vertical
+    # best[g, r]: the last edge of group g (0/1 horizontal, opposite vertex above/below; 2/3
+    # vertical) starting at the vertex of rank r along the group's axis; one pass, edge order
+    best = np.full((4, nv), -1, np.int64)
+    has = np.zeros(4, np.bool_)
+    for j in range(3):  # edges in the reference's order (j major, then t)
+        j1 = j + 1 if j < 2 else 0
+        j2 = j1 + 1 if j1 < 2 else 0
+        for t in range(m):
+            pc, pr_ = tri[t, j, 0], tri[t, j, 1]
+            qc, qr = tri[t, j1, 0], tri[t, j1, 1]
+            oc, orr = tri[t, j2, 0], tri[t, j2, 1]
+            if pr_ == qr and abs(pc - qc) >= 2 and orr != pr_:
+                g = 0 if orr < pr_ else 1
+                best[g, rank_h[tid[t, j] if pc < qc else tid[t, j1]]] = j * m + t
+            elif pc == qc and abs(pr_ - qr) >= 2 and oc != pc:
+                g = 2 if oc < pc else 3
+                best[g, rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]] = j * m + t
+            else:
+                continue
+            has[g] = True
+    for g in range(4):
+        if not has[g]:
+            continue
         axis = 1 if g < 2 else 0
         other = 1 - axis
-        rank = rank_h if axis == 1 else rank_v
         perm = perm_h if axis == 1 else perm_v
-        best[:] = -1
-        any_edge = False
-        for j in range(3):  # edges in the reference's order (j major, then t)
-            j1 = j + 1 if j < 2 else 0
-            j2 = j1 + 1 if j1 < 2 else 0
-            for t in range(m):
-                p0, p1 = tri[t, j, axis], tri[t, j, other]
-                q0, q1 = tri[t, j1, axis], tri[t, j1, other]
-                o0 = tri[t, j2, axis]
-                if p0 != q0 or abs(p1 - q1) < 2 or o0 == p0:
-                    continue
-                if (o0 < p0) != (g % 2 == 0):
-                    continue
-                best[rank[tid[t, j] if p1 < q1 else tid[t, j1]]] = j * m + t
-                any_edge = True
-        if not any_edge:
-            continue
         cur = -1
         for r in range(nv):
             v = perm[r]
@@ -122,8 +134,8 @@ def t_junctions(tri, tid, vcol, vrow):
                     ends[v, 0, other], ends[v, 1, other] = lo, hi
                     frac[v] = (pv - lo) / (hi - lo)
                     e_lo[v], e_hi[v] = (tid[t, j], tid[t, j1]) if a < b else (tid[t, j1], tid[t, j])
-            if best[r] >= 0:
-                cur = best[r]
+            if best[g, r] >= 0:
+                cur = best[g, r]
     c = 0
     for v in range(nv):
         c += found[v] >= 0
