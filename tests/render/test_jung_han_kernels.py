@@ -175,7 +175,7 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
     rng = np.random.default_rng(7)
     for n, top in ((0, 1), (1, 5), (50, 3), (5000, 10**10), (3000, 2**62)):
         keys = rng.integers(0, top, n, dtype=np.int64)
-        order = numba_kernels._argsort_stable(keys)
+        order = numba_kernels.argsort_stable(keys)
         assert np.array_equal(order, np.argsort(keys, kind="stable"))  # ties in input order
         if n:
             uk, first, inv = np.unique(keys, return_index=True, return_inverse=True)

@@ -5,7 +5,7 @@ vertex/index arrays, with the same outputs as the numpy reference.
 
 What it does not repeat: the reference's ``searchsorted`` look-ups of vertex keys. Every corner
 carries its vertex id (its place in the sorted unique keys ``uk``): the T-junction search
-returns the ids of the edge ends, and :func:`~._mesh_nb.conform` carries the ids through the
+returns the ids of the edge ends, and :func:`~._mesh_nb._conform` carries the ids through the
 split (a split point is a drawn vertex), which is what ``searchsorted(uk, key)`` gives for a
 key in ``uk``. Heights are read once per vertex (at its first corner, as the reference's
 ``h_corner[first]``)."""
@@ -16,10 +16,10 @@ import numpy as np
 
 from render.strategies.jung_han._mesh_nb import (
     _argsort_stable,
+    _conform,
     _jit,
-    conform,
-    t_junctions,
-    unique_index,
+    _t_junctions,
+    _unique_index,
 )
 
 _BIG = np.finfo(np.float64).max
@@ -53,7 +53,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         for v in range(3):
             t1[i, v, 0], t1[i, v, 1] = tri[o, v, 0], tri[o, v, 1]
             key[3 * i + v] = tri[o, v, 1] * wg + tri[o, v, 0]
-    uk, first, inv = unique_index(key)
+    uk, first, inv = _unique_index(key)
     nv = uk.shape[0]
     hv = np.empty(nv)
     vrow = np.empty(nv, np.int64)
@@ -65,7 +65,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         flat = ((vrow[u] - r0[s]) >> sh) * ((1 << lev[s]) + 1) + ((vcol[u] - c0[s]) >> sh)
         hv[u] = hh[hoff[s] + flat]
     tid = inv.reshape(m, 3)
-    ids, ends, frac, ia, ib = t_junctions(t1, tid, vcol, vrow)
+    ids, ends, frac, ia, ib = _t_junctions(t1, tid, vcol, vrow)
     na = ids.shape[0] if stitching else 0  # the positive control: no adjustment, no split
     if na:
         vlev = np.empty(na, np.int64)
@@ -89,7 +89,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         adjusted[a, 0], adjusted[a, 1] = vcol[ids[a]], vrow[ids[a]]
     ok = True
     if stitching and m:
-        t1, tid, s1, l1, ok = conform(t1, tid, s1, l1, vcol, vrow)
+        t1, tid, s1, l1, ok = _conform(t1, tid, s1, l1, vcol, vrow)
     m2 = t1.shape[0]
     tri_h = np.empty((m2, 3))
     gk = np.empty(3 * m2, np.int64)
@@ -97,7 +97,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         for v in range(3):
             tri_h[t, v] = hv[tid[t, v]]
             gk[3 * t + v] = (s1[t] * 16 + l1[t]) * max(nv, 1) + tid[t, v]
-    guk, gfirst, ginv = unique_index(gk)
+    guk, gfirst, ginv = _unique_index(gk)
     ng = guk.shape[0]
     v_slot = np.empty(ng, np.int64)
     v_level = np.empty(ng, np.int64)

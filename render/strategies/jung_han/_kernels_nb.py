@@ -22,8 +22,8 @@ import numpy as np
 
 from render.strategies.jung_han._assemble_nb import assemble  # noqa: F401  (re-exported)
 from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kernels, re-exported)
-    _argsort_stable,
     _jit,
+    argsort_stable,
     conform,
     t_junctions,
     unique_index,

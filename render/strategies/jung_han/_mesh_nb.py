@@ -76,7 +76,7 @@ def _ranks(vcol, vrow):
 
 
 @_jit
-def t_junctions(tri, tid, vcol, vrow):
+def _t_junctions(tri, tid, vcol, vrow):
     """``pure.t_junctions`` with the corners' vertex ids ``tid`` (m, 3) (indices into
     ``vcol``/``vrow``, the drawn vertices, all distinct): ``(ids, ends (a, 2, 2), frac, ia,
     ib)`` in the reference's order, ``ia``/``ib`` the ids of the ends. Per group (axis, side)
@@ -149,7 +149,7 @@ def t_junctions(tri, tid, vcol, vrow):
 
 
 @_jit
-def conform(tri, tid, slot, level, vcol, vrow):
+def _conform(tri, tid, slot, level, vcol, vrow):
     """``pure.conform`` (same triangles in the same order), carrying each corner's vertex id
     (``tid`` (m, 3): index into ``vcol``/``vrow``, the drawn vertices, all distinct; a split
     point gets the id of the vertex it is); ``(tri, tid, slot, level, ok)``, ``ok`` False if it
@@ -240,7 +240,7 @@ def conform(tri, tid, slot, level, vcol, vrow):
 
 
 @_jit
-def unique_index(keys):
+def _unique_index(keys):
     """``np.unique(keys, return_index=True, return_inverse=True)`` for non-negative int64."""
     n = keys.shape[0]
     order = _argsort_stable(keys)
@@ -260,3 +260,32 @@ def unique_index(keys):
             first[u] = o  # stable: the first occurrence
         inv[o] = u
     return uk, first, inv
+
+
+# The entry points called from Python: thin wrappers, so that a kernel compiled (and cached) as
+# another kernel's callee is never also called from Python (numba's cache can then load it
+# without what boxing its result arrays needs: "'descr' is NULL").
+
+
+@_jit
+def argsort_stable(keys):
+    """:func:`_argsort_stable`."""
+    return _argsort_stable(keys)
+
+
+@_jit
+def t_junctions(tri, tid, vcol, vrow):
+    """:func:`_t_junctions`."""
+    return _t_junctions(tri, tid, vcol, vrow)
+
+
+@_jit
+def conform(tri, tid, slot, level, vcol, vrow):
+    """:func:`_conform`."""
+    return _conform(tri, tid, slot, level, vcol, vrow)
+
+
+@_jit
+def unique_index(keys):
+    """:func:`_unique_index`."""
+    return _unique_index(keys)
