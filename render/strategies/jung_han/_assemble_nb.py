@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from render.strategies.jung_han._mesh_nb import (
-    _argsort_stable,
+    _argsort_ws,
     _conform,
     _jit,
     _t_junctions,
@@ -37,12 +37,14 @@ def _trailing_zeros(v, cap):
 
 
 @_jit
-def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
+def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
     """``JungHanSelector._assemble`` on the frame's triangles ``tri`` (m, 3, 2) with their slots
     and levels: ``(tri, tri_h, slot, level, adjusted, v_slot, v_level, v_cr, v_h, index,
-    ok)`` (``ok`` False if the conforming split did not converge)."""
+    ok)`` (``ok`` False if the conforming split did not converge). ``ws``: the int64 workspace
+    of the sorts, kept by the caller between frames (:func:`~._mesh_nb.ws_size` of ``3 m`` or
+    more, else they allocate)."""
     m = tri.shape[0]
-    order = _argsort_stable(slot)
+    order = _argsort_ws(slot, ws)  # a view of the workspace: used up before its next use
     t1 = np.empty((m, 3, 2), np.int64)
     s1 = np.empty(m, np.int64)
     l1 = np.empty(m, np.int64)
@@ -53,19 +55,20 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         for v in range(3):
             t1[i, v, 0], t1[i, v, 1] = tri[o, v, 0], tri[o, v, 1]
             key[3 * i + v] = tri[o, v, 1] * wg + tri[o, v, 0]
-    uk, first, inv = _unique_index(key)
+    uk, first, inv = _unique_index(key, ws)
     nv = uk.shape[0]
     hv = np.empty(nv)
     vrow = np.empty(nv, np.int64)
     vcol = np.empty(nv, np.int64)
-    for u in range(nv):
-        vrow[u], vcol[u] = uk[u] // wg, uk[u] % wg
-        s = s1[first[u] // 3]
+    for u in range(nv):  # (uk // wg, uk % wg) read from the vertex's first corner
+        t, v = first[u] // 3, first[u] % 3
+        vcol[u], vrow[u] = t1[t, v, 0], t1[t, v, 1]
+        s = s1[t]
         sh = k - lev[s]
         flat = ((vrow[u] - r0[s]) >> sh) * ((1 << lev[s]) + 1) + ((vcol[u] - c0[s]) >> sh)
         hv[u] = hh[hoff[s] + flat]
     tid = inv.reshape(m, 3)
-    ids, ends, frac, ia, ib = _t_junctions(t1, tid, vcol, vrow)
+    ids, ends, frac, ia, ib = _t_junctions(t1, tid, vcol, vrow, ws)
     na = ids.shape[0] if stitching else 0  # the positive control: no adjustment, no split
     if na:
         vlev = np.empty(na, np.int64)
@@ -89,7 +92,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         adjusted[a, 0], adjusted[a, 1] = vcol[ids[a]], vrow[ids[a]]
     ok = True
     if stitching and m:
-        t1, tid, s1, l1, ok = _conform(t1, tid, s1, l1, vcol, vrow)
+        t1, tid, s1, l1, ok = _conform(t1, tid, s1, l1, vcol, vrow, ws)
     m2 = t1.shape[0]
     tri_h = np.empty((m2, 3))
     gk = np.empty(3 * m2, np.int64)
@@ -97,7 +100,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching):
         for v in range(3):
             tri_h[t, v] = hv[tid[t, v]]
             gk[3 * t + v] = (s1[t] * 16 + l1[t]) * max(nv, 1) + tid[t, v]
-    guk, gfirst, ginv = _unique_index(gk)
+    guk, gfirst, ginv = _unique_index(gk, ws)
     ng = guk.shape[0]
     v_slot = np.empty(ng, np.int64)
     v_level = np.empty(ng, np.int64)

@@ -27,6 +27,7 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     conform,
     t_junctions,
     unique_index,
+    ws_size,
 )
 from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE
 

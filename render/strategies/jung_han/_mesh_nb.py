@@ -18,30 +18,48 @@ _OPTS = {"nogil": True, "error_model": "numpy"}
 _jit = cached_njit(**_OPTS)  # as tiler._kernels_nb, without its fastmath flags
 
 
+#: radix digits: 11 bits, so at most 6 passes for int64 keys; counts per pass
+_COUNTS = 6 * 2049
+
+
+def ws_size(n: int) -> int:
+    """Length of the int64 workspace :func:`_argsort_ws` needs for ``n`` keys."""
+    return 4 * n + _COUNTS
+
+
 @_jit
-def _argsort_stable(keys):
+def _argsort_ws(keys, ws):
     """``np.argsort(keys, kind="stable")`` for non-negative int64 keys (LSD radix sort,
     11-bit digits: linear time, stable, so the same permutation). The keys move with their
-    indices, so every pass reads its input in order."""
+    indices, so every pass reads its input in order. Its buffers are carved from the int64
+    workspace ``ws`` (a fresh one if shorter than :func:`ws_size`): the order returned is a view
+    of ``ws``, valid until ``ws`` is used again. (A persistent workspace: fresh memory is
+    faulted in and zeroed by the OS on every frame, which cost more than the sorts.)"""
     n = keys.shape[0]
-    order = np.arange(n)
+    if ws.shape[0] < 4 * n + _COUNTS:
+        ws = np.empty(4 * n + _COUNTS, np.int64)
+    order = ws[0:n]
+    tmp = ws[n : 2 * n]
+    for i in range(n):
+        order[i] = i
     if n < 2:
         return order
     top = 0
     for i in range(n):
         top = max(top, keys[i])
     passes = 0
-    while (top >> (11 * passes)) > 0:
+    while passes < 6 and (top >> (11 * passes)) > 0:  # (a shift by >= 64 is undefined)
         passes += 1
-    count = np.zeros((passes, 2049), np.int64)
+    kin = ws[2 * n : 3 * n]
+    kout = ws[3 * n : 4 * n]
+    count = ws[4 * n : 4 * n + passes * 2049]
+    count[:] = 0
     for i in range(n):  # every pass's histogram in one read
+        kin[i] = keys[i]
         for p in range(passes):
-            count[p, ((keys[i] >> (11 * p)) & 2047) + 1] += 1
-    kin = keys.copy()
-    kout = np.empty(n, np.int64)
-    tmp = np.empty(n, np.int64)
+            count[p * 2049 + ((keys[i] >> (11 * p)) & 2047) + 1] += 1
     for p in range(passes):
-        c = count[p]
+        c = count[p * 2049 : (p + 1) * 2049]
         for b in range(2048):
             c[b + 1] += c[b]
         shift = 11 * p
@@ -57,7 +75,7 @@ def _argsort_stable(keys):
 
 
 @_jit
-def _ranks(vcol, vrow):
+def _ranks(vcol, vrow, ws):
     """Each vertex's position along rows (row-major: ``vrow * big + vcol`` sorted) and along
     columns (column-major), with the two orders: ``(rank_h, perm_h, rank_v, perm_v)``."""
     nv = vcol.shape[0]
@@ -65,8 +83,8 @@ def _ranks(vcol, vrow):
     for i in range(nv):
         big = max(big, vcol[i], vrow[i])
     big += 2
-    perm_h = _argsort_stable(vrow * big + vcol)
-    perm_v = _argsort_stable(vcol * big + vrow)
+    perm_h = _argsort_ws(vrow * big + vcol, ws).copy()
+    perm_v = _argsort_ws(vcol * big + vrow, ws).copy()
     rank_h = np.empty(nv, np.int64)
     rank_v = np.empty(nv, np.int64)
     for i in range(nv):
@@ -76,7 +94,7 @@ def _ranks(vcol, vrow):
 
 
 @_jit
-def _t_junctions(tri, tid, vcol, vrow):
+def _t_junctions(tri, tid, vcol, vrow, ws):
     """``pure.t_junctions`` with the corners' vertex ids ``tid`` (m, 3) (indices into
     ``vcol``/``vrow``, the drawn vertices, all distinct): ``(ids, ends (a, 2, 2), frac, ia,
     ib)`` in the reference's order, ``ia``/``ib`` the ids of the ends. Per group (axis, side)
@@ -86,14 +104,15 @@ def _t_junctions(tri, tid, vcol, vrow):
     the nearest vertex before: one sweep over the vertices, no search."""
     m = tri.shape[0]
     nv = vcol.shape[0]
-    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow)
+    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow, ws)
     found = np.full(nv, -1, np.int64)
     ends = np.zeros((nv, 2, 2), np.int64)
     frac = np.zeros(nv)
     e_lo = np.zeros(nv, np.int64)  # id of the lo / hi end of the vertex's edge
     e_hi = np.zeros(nv, np.int64)
-    # best[g, r]: the last edge of group g (0/1 horizontal, opposite vertex above/below; 2/3
-    # vertical) starting at the vertex of rank r along the group's axis; one pass, edge order
+    # best[g, r]: the last edge (3 t + j) of group g (0/1 horizontal, opposite vertex above/
+    # below; 2/3 vertical) starting at the vertex of rank r along the group's axis, in the
+    # reference's edge order (j major, then t): one pass
     best = np.full((4, nv), -1, np.int64)
     has = np.zeros(4, np.bool_)
     for j in range(3):  # edges in the reference's order (j major, then t)
@@ -105,10 +124,10 @@ def _t_junctions(tri, tid, vcol, vrow):
             oc, orr = tri[t, j2, 0], tri[t, j2, 1]
             if pr_ == qr and abs(pc - qc) >= 2 and orr != pr_:
                 g = 0 if orr < pr_ else 1
-                best[g, rank_h[tid[t, j] if pc < qc else tid[t, j1]]] = j * m + t
+                best[g, rank_h[tid[t, j] if pc < qc else tid[t, j1]]] = 3 * t + j
             elif pc == qc and abs(pr_ - qr) >= 2 and oc != pc:
                 g = 2 if oc < pc else 3
-                best[g, rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]] = j * m + t
+                best[g, rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]] = 3 * t + j
             else:
                 continue
             has[g] = True
@@ -122,7 +141,8 @@ def _t_junctions(tri, tid, vcol, vrow):
         for r in range(nv):
             v = perm[r]
             if cur >= 0 and found[v] < 0:
-                j, t = cur // m, cur % m
+                t = cur // 3  # a division by a constant: cheap
+                j = cur - 3 * t
                 j1 = j + 1 if j < 2 else 0
                 a, b = tri[t, j, other], tri[t, j1, other]
                 lo, hi = min(a, b), max(a, b)
@@ -149,7 +169,7 @@ def _t_junctions(tri, tid, vcol, vrow):
 
 
 @_jit
-def _conform(tri, tid, slot, level, vcol, vrow):
+def _conform(tri, tid, slot, level, vcol, vrow, ws):
     """``pure.conform`` (same triangles in the same order), carrying each corner's vertex id
     (``tid`` (m, 3): index into ``vcol``/``vrow``, the drawn vertices, all distinct; a split
     point gets the id of the vertex it is); ``(tri, tid, slot, level, ok)``, ``ok`` False if it
@@ -157,12 +177,13 @@ def _conform(tri, tid, slot, level, vcol, vrow):
     ``searchsorted`` calls over the vertices sorted along the edge's line are the ends' ranks
     in that order: some vertex lies inside iff they are more than 1 apart, and the split point
     is the vertex half-way between."""
-    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow)
+    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow, ws)
     n_out = 0
-    out_t = np.empty((tri.shape[0], 3, 2), np.int64)
-    out_s = np.empty(tri.shape[0], np.int64)
-    out_l = np.empty(tri.shape[0], np.int64)
-    out_i = np.empty((tri.shape[0], 3), np.int64)
+    cap = tri.shape[0] + tri.shape[0] // 4 + 64  # room for the usual splits: rarely grown
+    out_t = np.empty((cap, 3, 2), np.int64)
+    out_s = np.empty(cap, np.int64)
+    out_l = np.empty(cap, np.int64)
+    out_i = np.empty((cap, 3), np.int64)
     ok = False
     for _ in range(64):
         m = tri.shape[0]
@@ -236,14 +257,15 @@ def _conform(tri, tid, slot, level, vcol, vrow):
             c += 1
         tri, tid, slot, level = t2, i2, s2, l2
     n = n_out
-    return out_t[:n].copy(), out_i[:n].copy(), out_s[:n].copy(), out_l[:n].copy(), ok
+    # views, not copies: a copy is fresh memory the OS must fault in and zero on every frame
+    return out_t[:n], out_i[:n], out_s[:n], out_l[:n], ok
 
 
 @_jit
-def _unique_index(keys):
+def _unique_index(keys, ws):
     """``np.unique(keys, return_index=True, return_inverse=True)`` for non-negative int64."""
     n = keys.shape[0]
-    order = _argsort_stable(keys)
+    order = _argsort_ws(keys, ws)  # a view of ws: used up here
     inv = np.empty(n, np.int64)
     m = 0
     for i in range(n):
@@ -269,23 +291,23 @@ def _unique_index(keys):
 
 @_jit
 def argsort_stable(keys):
-    """:func:`_argsort_stable`."""
-    return _argsort_stable(keys)
+    """:func:`_argsort_ws` into a fresh array (``np.argsort(keys, kind="stable")``)."""
+    return _argsort_ws(keys, np.empty(0, np.int64)).copy()
 
 
 @_jit
 def t_junctions(tri, tid, vcol, vrow):
     """:func:`_t_junctions`."""
-    return _t_junctions(tri, tid, vcol, vrow)
+    return _t_junctions(tri, tid, vcol, vrow, np.empty(0, np.int64))
 
 
 @_jit
 def conform(tri, tid, slot, level, vcol, vrow):
     """:func:`_conform`."""
-    return _conform(tri, tid, slot, level, vcol, vrow)
+    return _conform(tri, tid, slot, level, vcol, vrow, np.empty(0, np.int64))
 
 
 @_jit
 def unique_index(keys):
     """:func:`_unique_index`."""
-    return _unique_index(keys)
+    return _unique_index(keys, np.empty(0, np.int64))

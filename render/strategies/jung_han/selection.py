@@ -55,6 +55,7 @@ class JungHanSelector:
         self._trees: dict[Block, BlockTree] = {}
         self._forest: jh_kernels.Forest | None = None
         self._hoff = np.zeros(0, np.int64)  # the frame's trees' height offsets in the forest
+        self._ws = np.zeros(0, np.int64)  # the compiled assembly's sort workspace, kept
         self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
@@ -303,10 +304,14 @@ class JungHanSelector:
         """``_assemble`` by the compiled kernel (same outputs, see ``_assemble_nb``)."""
         g = self.r.grid
         jh_count = len(tri)
+        need = self._mod.ws_size(3 * (len(tri) + len(tri) // 4 + 64))  # with the usual splits
+        if len(self._ws) < need:
+            self._ws = np.empty(need + need // 4, np.int64)
         out = self._mod.assemble(  # the traversal packed the forest and set _hoff this frame
             np.ascontiguousarray(tri, dtype=np.int64), slot, tl, self._forest.heights,
             np.ascontiguousarray(self._hoff, dtype=np.int64), lev, r0.astype(np.int64),
             c0.astype(np.int64), int(wg), int(self.r.k), int(g.step), bool(self.stitching),
+            self._ws,
         )  # fmt: skip
         tri, tri_h, slot, tl, adjusted, v_slot, v_level, v_cr, v_h, index, ok = out
         if not ok:
