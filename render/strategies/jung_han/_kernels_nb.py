@@ -205,18 +205,24 @@ def _grow1(a):
 def traverse(
     hh, dl, dmx, zlo, zhi, hoff, poff, lev, r0, c0, roots, root_inside,
     o, pext, normals, pmin, pmax, q, e,
-    basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse,
+    basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pr,
 ):  # fmt: skip
     """The pruned top-down + bottom-up pass of one frame: ``(tri, tslot, tlev, nodes, flags,
-    clamped, evaluated)`` in the numpy reference's order (see the module notes)."""
+    clamped, evaluated, nd, pr)`` in the numpy reference's order (see the module notes);
+    ``nd``/``pr`` the node buffers (the ones passed in, or larger), for the next frame."""
+    # nd: slot, idx, row, col, inside, parent, quad, depth; pr: pruned. Both are the caller's
+    # buffers from the last frame (grown here when short, returned), so a frame's nodes do not
+    # land in fresh memory
     cap = max(64, 4 * roots.shape[0])
+    if nd.shape[0] < cap or pr.shape[0] != nd.shape[0]:
+        nd = np.empty((cap, 8), np.int64)
+        pr = np.zeros(cap, np.bool_)
     wk = np.empty((8, 5))  # _bound's scratch
-    nd = np.empty((cap, 8), np.int64)  # slot, idx, row, col, inside, parent, quad, depth
-    pr = np.zeros(cap, np.bool_)  # pruned
     nr = roots.shape[0]
     for i in range(nr):
         nd[i, 0], nd[i, 1], nd[i, 2], nd[i, 3] = roots[i], 0, 0, 0
         nd[i, 4], nd[i, 5], nd[i, 6], nd[i, 7] = root_inside[i], -1, -1, 0
+        pr[i] = False
     starts = [0]
     lo, hi, d = 0, nr, 0
     while hi > lo:
@@ -358,4 +364,4 @@ def traverse(
                     tslot[it] = s
                     tlev[it] = dd_ + 1
                     it += 1
-    return tri, tslot, tlev, nodes, flags, clamped, evaluated
+    return tri, tslot, tlev, nodes, flags, clamped, evaluated, nd, pr

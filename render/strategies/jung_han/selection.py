@@ -35,6 +35,13 @@ from tiler.layout import trailing_zeros
 Block = tuple[int, int]
 
 
+def _cat(parts: list[np.ndarray], empty: np.ndarray) -> np.ndarray:
+    """``np.concatenate(parts)`` without copying a single part (``empty`` if none)."""
+    if not parts:
+        return empty
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
 class JungHanSelector:
     """The CPU half of ``jung-han``: ``select`` over the frame services ``r``."""
 
@@ -56,6 +63,7 @@ class JungHanSelector:
         self._forest: jh_kernels.Forest | None = None
         self._hoff = np.zeros(0, np.int64)  # the frame's trees' height offsets in the forest
         self._ws = np.zeros(0, np.int64)  # the compiled assembly's sort workspace, kept
+        self._nd = [np.zeros((0, 8), np.int64), np.zeros(0, bool)]  # the traversal's nodes
         self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
@@ -283,7 +291,7 @@ class JungHanSelector:
             pmin, pmax = proj.min(axis=0), proj.max(axis=0)
         q = np.ascontiguousarray(pp)
         e = np.roll(q, -1, axis=0) - q  # as corners_inside
-        tri, ts, tl, nodes, flags, clamped, self._evaluated = mod.traverse(
+        tri, ts, tl, nodes, flags, clamped, self._evaluated, *self._nd = mod.traverse(
             f.heights, f.delta, f.dmax, f.zlo, f.zhi, hoff, poff,
             lev, r0.astype(np.int64), c0.astype(np.int64), roots, inside[roots].astype(np.int64),
             np.ascontiguousarray(o, dtype=np.float64), ext, np.ascontiguousarray(normals),
@@ -291,7 +299,7 @@ class JungHanSelector:
             np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
             float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
             float(g.x0), float(g.y0), float(g.dx), float(g.dy), int(self.r.k),
-            bool(self.prune), bool(self.culled_collapse),
+            bool(self.prune), bool(self.culled_collapse), *self._nd,
         )  # fmt: skip
         return [tri], [ts], [tl], [nodes], [flags], int(clamped)
 
@@ -340,11 +348,11 @@ class JungHanSelector:
         """Drawn heights, the crack pass, and the GPU vertex/index arrays."""
         k, g = self.r.k, self.r.grid
         e2 = np.zeros((0, 3, 2), dtype=np.int64)
-        tri = np.concatenate(tris) if tris else e2
-        slot = np.concatenate(tslot).astype(np.int64) if tslot else np.zeros(0, np.int64)
-        tl = np.concatenate(tlev).astype(np.int64) if tlev else np.zeros(0, np.int64)
-        node_arr = np.concatenate(nodes) if nodes else np.zeros((0, 3), np.int64)
-        flag_arr = np.concatenate(flags) if flags else np.zeros(0, np.int64)
+        tri = _cat(tris, e2)
+        slot = _cat(tslot, np.zeros(0, np.int64)).astype(np.int64, copy=False)
+        tl = _cat(tlev, np.zeros(0, np.int64)).astype(np.int64, copy=False)
+        node_arr = _cat(nodes, np.zeros((0, 3), np.int64))
+        flag_arr = _cat(flags, np.zeros(0, np.int64))
         wg = g.cols * g.step + 1
         if self._mod is not None:
             return self._assemble_nb(blocks, lev, r0, c0, tri, slot, tl, node_arr, flag_arr, wg)
