@@ -240,3 +240,29 @@ def test_mesh_kernels_with_vertex_ids_equal_the_reference(stores, numba_kernels,
     bad = np.roll(tid, 1, axis=0)
     b2 = numba_kernels.conform(tri, bad, slot, tl, vcol, vrow)
     assert not np.array_equal(np.stack([vcol[b2[1]], vrow[b2[1]]], -1), b2[0])
+
+
+def test_block_hull_tests_equal_the_reference(stores, numba_kernels):
+    from render.strategies.jung_han import corners_inside
+    from streamer.frustum import frustum_hull, polygon_meets_rects
+
+    sel = JungHanSelector(Services(stores["rough"]), kernels="numba")
+    g, size = sel.r.grid, 1 << sel.r.k
+    rng = np.random.default_rng(5)
+    r0 = rng.integers(-8, 12, 400).astype(np.int64) * (size // 4)  # around and over the terrain
+    c0 = rng.integers(-8, 12, 400).astype(np.int64) * (size // 4)
+    gg = (float(g.x0), float(g.y0), float(g.dx), float(g.dy))
+    seen, moved_differs = set(), []
+    for cam in _cameras(sel.r).values():
+        poly = frustum_hull(cam, sel.r.terrain_zrange)
+        box = sel._box(r0, c0, size)
+        want = polygon_meets_rects(poly, *box), corners_inside(poly, *box)
+        got = numba_kernels.block_hits(r0, c0, size, *sel._poly_args(poly), *gg)
+        for x, y in zip(want, got, strict=True):
+            assert np.array_equal(x, y)
+        seen |= {(bool(m), bool(i)) for m, i in zip(*want, strict=True)}
+        # positive control: the same test one block further east disagrees somewhere
+        moved = numba_kernels.block_hits(r0, c0 + size, size, *sel._poly_args(poly), *gg)
+        moved_differs.append(not np.array_equal(moved[0], want[0]))
+    assert any(moved_differs)
+    assert seen >= {(False, False), (True, False), (True, True)}  # every outcome occurs

@@ -188,6 +188,25 @@ def _inside(o, q, e, xmin, ymin, xmax, ymax):
 
 
 @_jit
+def block_hits(r0, c0, size, o, pext, normals, pmin, pmax, q, e, x0, y0, dx, dy):
+    """``polygon_meets_rects`` and ``corners_inside`` of the store blocks' squares of ``size``
+    samples at global origins ``(r0, c0)`` (``JungHanSelector._box``), for a polygon of at
+    least one vertex (``_meets``/``_inside``'s arguments)."""
+    n = r0.shape[0]
+    meets = np.zeros(n, np.bool_)
+    inside = np.zeros(n, np.bool_)
+    for s in range(n):
+        xmin = x0 + float(c0[s]) * dx
+        ymax = y0 - float(r0[s]) * dy
+        xmax, ymin = xmin + size * dx, ymax - size * dy
+        meets[s] = _meets(
+            o, pext[0], pext[1], pext[2], pext[3], normals, pmin, pmax, xmin, ymin, xmax, ymax
+        )
+        inside[s] = _inside(o, q, e, xmin, ymin, xmax, ymax)
+    return meets, inside
+
+
+@_jit
 def _grow2(a):
     out = np.empty((2 * a.shape[0], a.shape[1]), a.dtype)
     out[: a.shape[0]] = a

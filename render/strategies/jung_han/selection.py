@@ -107,14 +107,21 @@ class JungHanSelector:
         trees = [self.tree(b, lv) for b, lv in pairs]
         blk = np.array(blocks, dtype=np.int64).reshape(-1, 2)
         r0, c0 = blk[:, 0] * g.step, blk[:, 1] * g.step
-        box = self._box(r0, c0, 1 << k)
-        meets = polygon_meets_rects(poly, *box)
-        inside = corners_inside(poly, *box)
         mod = self._mod = jh_kernels.resolve(self.kernels)
         if mod is None:
+            box = self._box(r0, c0, 1 << k)
+            meets = polygon_meets_rects(poly, *box)
+            inside = corners_inside(poly, *box)
             parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
         else:
-            args = (camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside)
+            pa = self._poly_args(poly)
+            r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+            if len(pa[-1]):  # the blocks' hull tests compiled (the same as the two above)
+                gg = (float(g.x0), float(g.y0), float(g.dx), float(g.dy))
+                meets, inside = mod.block_hits(r0, c0, 1 << k, *pa, *gg)
+            else:  # an empty hull meets nothing
+                meets = inside = np.zeros(len(r0), dtype=bool)
+            args = (camera, tau, pa, pairs, lev, r0, c0, meets, inside)
             parts = self._traverse_nb(mod, *args)
         tris, tslot, tlev, nodes, flags, clamped = parts
         corner = np.flatnonzero(meets & (lev == 0))
@@ -263,19 +270,11 @@ class JungHanSelector:
             tlev.append(np.full(len(j), d + 1, dtype=np.int64))
         return tris, tslot, tlev, nodes, flags, clamped
 
-    def _traverse_nb(self, mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside):
-        """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``)."""
-        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
-        # costs more than the copy), not when the frame's set of blocks moves
-        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
-        if self._forest is None or self._forest.key != key:
-            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
-        f = self._forest
-        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
-        hoff, poff = f.hoff[at], f.poff[at]
-        self._hoff = hoff  # for the compiled assembly
-        g = self.r.grid
-        roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
+    @staticmethod
+    def _poly_args(poly) -> tuple:
+        """The hull as the compiled tests take it: ``(o, extents, normals, pmin, pmax, q, e)``
+        (``q``: the vertices minus ``o``, none for an empty hull; as ``polygon_meets_rects``
+        and ``corners_inside`` compute them)."""
         p = as_polygon(poly)
         o = p[0] if len(p) else np.zeros(2)
         pp = p - o
@@ -291,11 +290,33 @@ class JungHanSelector:
             pmin, pmax = proj.min(axis=0), proj.max(axis=0)
         q = np.ascontiguousarray(pp)
         e = np.roll(q, -1, axis=0) - q  # as corners_inside
+        return (
+            np.ascontiguousarray(o, dtype=np.float64),
+            ext,
+            np.ascontiguousarray(normals),
+            np.ascontiguousarray(pmin),
+            np.ascontiguousarray(pmax),
+            q,
+            np.ascontiguousarray(e),
+        )
+
+    def _traverse_nb(self, mod, camera, tau, pa, pairs, lev, r0, c0, meets, inside):
+        """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``); ``pa``:
+        :meth:`_poly_args` of the hull."""
+        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
+        # costs more than the copy), not when the frame's set of blocks moves
+        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
+        if self._forest is None or self._forest.key != key:
+            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
+        f = self._forest
+        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
+        hoff, poff = f.hoff[at], f.poff[at]
+        self._hoff = hoff  # for the compiled assembly
+        g = self.r.grid
+        roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
         tri, ts, tl, nodes, flags, clamped, self._evaluated, *self._nd = mod.traverse(
             f.heights, f.delta, f.dmax, f.zlo, f.zhi, hoff, poff,
-            lev, r0.astype(np.int64), c0.astype(np.int64), roots, inside[roots].astype(np.int64),
-            np.ascontiguousarray(o, dtype=np.float64), ext, np.ascontiguousarray(normals),
-            np.ascontiguousarray(pmin), np.ascontiguousarray(pmax), q, np.ascontiguousarray(e),
+            lev, r0, c0, roots, inside[roots].astype(np.int64), *pa,
             np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
             float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
             float(g.x0), float(g.y0), float(g.dx), float(g.dy), int(self.r.k),
