@@ -222,7 +222,7 @@ def _grow1(a):
 
 @_jit
 def traverse(
-    hh, dl, dmx, zlo, zhi, hoff, poff, lev, r0, c0, roots, root_inside,
+    hh, dl, pyr, hoff, poff, lev, r0, c0, roots, root_inside,
     o, pext, normals, pmin, pmax, q, e,
     basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pr,
 ):  # fmt: skip
@@ -256,8 +256,8 @@ def traverse(
                 xmin = x0 + float(c0[s] + nd[j, 3] * size) * dx
                 ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
                 b = _bound(
-                    basis, eye, focal, float(dmx[ii]), xmin, xmin + size * dx,
-                    ymax - size * dy, ymax, zlo[ii], zhi[ii], wk,
+                    basis, eye, focal, pyr[ii, 0], xmin, xmin + size * dx,
+                    ymax - size * dy, ymax, pyr[ii, 1], pyr[ii, 2], wk,
                 )  # fmt: skip
                 pr[j] = b < tau
             if pr[j] or leaf:

@@ -315,7 +315,7 @@ class JungHanSelector:
         g = self.r.grid
         roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
         tri, ts, tl, nodes, flags, clamped, self._evaluated, *self._nd = mod.traverse(
-            f.heights, f.delta, f.dmax, f.zlo, f.zhi, hoff, poff,
+            f.heights, f.delta, f.pyramid, hoff, poff,
             lev, r0, c0, roots, inside[roots].astype(np.int64), *pa,
             np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
             float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
