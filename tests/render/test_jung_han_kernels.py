@@ -175,7 +175,7 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
     rng = np.random.default_rng(7)
     for n, top in ((0, 1), (1, 5), (50, 3), (5000, 10**10), (3000, 2**62)):
         keys = rng.integers(0, top, n, dtype=np.int64)
-        order = numba_kernels._argsort_stable(keys)
+        order = numba_kernels.argsort_stable(keys)
         assert np.array_equal(order, np.argsort(keys, kind="stable"))  # ties in input order
         if n:
             uk, first, inv = np.unique(keys, return_index=True, return_inverse=True)
@@ -198,3 +198,71 @@ def test_forest_is_packed_once_while_the_frames_blocks_move(stores, numba_kernel
         assert differences(a, b) == [] and fast._forest is forest
     fast.select(cam, 1.0, resident={b: k - 1 for b in blocks})  # trees rebuilt: packed again
     assert fast._forest is not forest
+
+
+def _unsplit_mesh(stores):
+    """A mixed-level frame's triangles before the conforming split, with T-junctions."""
+    ref = JungHanSelector(Services(stores["rough"]), kernels="numpy")
+    ref.stitching = False  # no height adjustment, no split: the paper's triangles
+    k = ref.r.k
+    res = {b: (k - 1 - (b[0] + b[1]) % 3) for b in ref.r.store.blocks()}
+    sel, _ = ref.select(_cameras(ref.r)["oblique"], 1.0, resident=res)
+    return sel.tri, sel.tri_slot, sel.tri_level
+
+
+@pytest.mark.parametrize("order", ["sorted", "shuffled"])
+def test_mesh_kernels_with_vertex_ids_equal_the_reference(stores, numba_kernels, order):
+    from render.strategies.jung_han import pure
+
+    tri, slot, tl = _unsplit_mesh(stores)
+    key = tri[..., 1] * 100_000 + tri[..., 0]
+    uk, inv = np.unique(key.ravel(), return_inverse=True)
+    perm = np.arange(len(uk))  # vertex ids in key order, or any order (the kernels rank them)
+    if order == "shuffled":
+        perm = np.random.default_rng(3).permutation(len(uk))
+    vcol, vrow = np.empty_like(uk), np.empty_like(uk)
+    vcol[perm], vrow[perm] = uk % 100_000, uk // 100_000
+    tid = np.ascontiguousarray(perm[inv].reshape(-1, 3))
+    ids, ends, frac = pure.t_junctions(tri, vcol, vrow)
+    got = numba_kernels.t_junctions(tri, tid, vcol, vrow)
+    assert len(ids) > 0  # the frame has T-junctions: the comparison is not vacuous
+    for x, y in zip((ids, ends, frac), got[:3], strict=True):
+        assert np.array_equal(x, y)
+    for end, eid in ((ends[:, 0], got[3]), (ends[:, 1], got[4])):  # the ends' vertex ids
+        assert np.array_equal(np.stack([vcol[eid], vrow[eid]], -1), end)
+    want = pure.conform(tri, slot, tl, vcol, vrow)
+    t2, i2, s2, l2, ok = numba_kernels.conform(tri, tid, slot, tl, vcol, vrow)
+    assert ok and len(t2) > len(tri)  # some triangles were split
+    for x, y in zip(want, (t2, s2, l2), strict=True):
+        assert np.array_equal(x, y)
+    assert np.array_equal(np.stack([vcol[i2], vrow[i2]], -1), t2)  # ids follow the corners
+    # positive control: corners with the ids of other vertices fail the id check
+    bad = np.roll(tid, 1, axis=0)
+    b2 = numba_kernels.conform(tri, bad, slot, tl, vcol, vrow)
+    assert not np.array_equal(np.stack([vcol[b2[1]], vrow[b2[1]]], -1), b2[0])
+
+
+def test_block_hull_tests_equal_the_reference(stores, numba_kernels):
+    from render.strategies.jung_han import corners_inside
+    from streamer.frustum import frustum_hull, polygon_meets_rects
+
+    sel = JungHanSelector(Services(stores["rough"]), kernels="numba")
+    g, size = sel.r.grid, 1 << sel.r.k
+    rng = np.random.default_rng(5)
+    r0 = rng.integers(-8, 12, 400).astype(np.int64) * (size // 4)  # around and over the terrain
+    c0 = rng.integers(-8, 12, 400).astype(np.int64) * (size // 4)
+    gg = (float(g.x0), float(g.y0), float(g.dx), float(g.dy))
+    seen, moved_differs = set(), []
+    for cam in _cameras(sel.r).values():
+        poly = frustum_hull(cam, sel.r.terrain_zrange)
+        box = sel._box(r0, c0, size)
+        want = polygon_meets_rects(poly, *box), corners_inside(poly, *box)
+        got = numba_kernels.block_hits(r0, c0, size, *sel._poly_args(poly), *gg)
+        for x, y in zip(want, got, strict=True):
+            assert np.array_equal(x, y)
+        seen |= {(bool(m), bool(i)) for m, i in zip(*want, strict=True)}
+        # positive control: the same test one block further east disagrees somewhere
+        moved = numba_kernels.block_hits(r0, c0 + size, size, *sel._poly_args(poly), *gg)
+        moved_differs.append(not np.array_equal(moved[0], want[0]))
+    assert any(moved_differs)
+    assert seen >= {(False, False), (True, False), (True, True)}  # every outcome occurs

@@ -84,10 +84,14 @@ bottom-up on the CPU with an exact projected vertex error, cracks removed by hei
   the drawn one; shared vertices are bit-identical. Masked samples keep ``v_masked`` and are
   discarded by the shared fragment shader; the normals ignore height adjustments. The paper
   resets the flags after each frame; here each ``select`` starts from scratch.
-* **Compiled kernels** (:mod:`render.strategies.jung_han.kernels`): with numba, the traversal,
-  the T-junction search and the conforming split run compiled over the trees packed flat
-  (:class:`~render.strategies.jung_han.kernels.Forest`); ``kernels="numpy"`` (or
-  ``TERRASTREAM_KERNELS=numpy``) runs the numpy reference, which the tests compare exactly.
+* **Compiled kernels** (:mod:`render.strategies.jung_han.kernels`): with numba, the traversal
+  runs compiled over the trees packed flat
+  (:class:`~render.strategies.jung_han.kernels.Forest`) and the whole mesh assembly (vertex
+  keys, heights, T-junction search, height adjustment, conforming split, GPU arrays) in one
+  more kernel call, which finds vertices by their rank along a row or column instead of
+  searching sorted keys; their node buffers and sort workspace are kept between frames;
+  ``kernels="numpy"`` (or ``TERRASTREAM_KERNELS=numpy``) runs the numpy reference, which the
+  tests compare exactly.
 * **Stats:** ``patches`` = drawn JH blocks (with at least one triangle), ``max/min_level`` =
   their levels ``depth + 1`` (0 for a block resident at level 0, drawn as its 2 corner
   triangles, NW–SE), ``clamped`` = drawn blocks at the finest depth of a tree whose resident

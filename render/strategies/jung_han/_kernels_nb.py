@@ -10,8 +10,8 @@ transform: numpy's ``rel @ basis.T`` goes through BLAS, whose rounding (FMA, blo
 the batch size, so camera coordinates may differ from the reference's in the last bit; a result
 can only change where a ``δ_s`` or a bound lies within a few ulps of τ (the tests compare both
 paths exactly on several scenes). No fastmath (NaN and ∞ are meaningful here). The mesh
-assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb`` and are
-re-exported here.
+assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb``, the whole
+assembly in one call in ``_assemble_nb``; they are re-exported here.
 """
 
 from __future__ import annotations
@@ -20,12 +20,14 @@ import math
 
 import numpy as np
 
+from render.strategies.jung_han._assemble_nb import assemble  # noqa: F401  (re-exported)
 from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kernels, re-exported)
-    _argsort_stable,
     _jit,
+    argsort_stable,
     conform,
     t_junctions,
     unique_index,
+    ws_size,
 )
 from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE
 
@@ -94,25 +96,56 @@ def _nanmin(a, b):
 
 
 @_jit
-def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi):
-    """``projected_bound`` of one box."""
-    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
-    zmin = np.inf
-    gain = -np.inf
-    for i in range(8):
-        x = xmax if (i >> 2) & 1 else xmin
-        y = ymax if (i >> 1) & 1 else ymin
-        z = zhi if i & 1 else zlo
-        c0, c1, c2 = _cam(basis, eye, x, y, z)
-        zmin = _nanmin(zmin, c2) if i else c2
-        qx, qy = c0 / c2, c1 / c2
-        g = math.hypot(u0 - qx * u2, u1 - qy * u2)
-        gain = _nanmax(gain, g) if i else g
-    b = focal * dmax * gain / zmin
-    if not zmin > 0.0:
-        b = np.inf
+def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi, wk):
+    """``projected_bound`` of one box (``wk``: (8, 5) scratch). The corners' camera coordinates
+    are ``_cam``'s products and sums in the same order (each product computed once). The gain's
+    ``hypot`` is only evaluated at corners whose squared gain is within a relative ``1e-9`` of
+    the largest: ``hypot`` is within an ulp of the exact norm, so any other corner's is smaller
+    and the maximum is the same number (all corners when a square is not finite)."""
     if dmax == 0.0:
-        b = 0.0
+        return 0.0 * (1.0 + 1e-9) + 1e-9
+    rx0, rx1 = xmin - eye[0], xmax - eye[0]
+    ry0, ry1 = ymin - eye[1], ymax - eye[1]
+    rz0, rz1 = zlo - eye[2], zhi - eye[2]
+    for a in range(3):
+        px0, px1 = rx0 * basis[a, 0], rx1 * basis[a, 0]
+        py0, py1 = ry0 * basis[a, 1], ry1 * basis[a, 1]
+        pz0, pz1 = rz0 * basis[a, 2], rz1 * basis[a, 2]
+        for i in range(8):
+            px = px1 if (i >> 2) & 1 else px0
+            py = py1 if (i >> 1) & 1 else py0
+            pz = pz1 if i & 1 else pz0
+            wk[i, a] = px + py + pz
+    zmin = wk[0, 2]
+    for i in range(1, 8):
+        zmin = _nanmin(zmin, wk[i, 2])
+    if not zmin > 0.0:
+        return np.inf * (1.0 + 1e-9) + 1e-9
+    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
+    smax = -1.0
+    finite = True
+    for i in range(8):
+        c2 = wk[i, 2]
+        qx, qy = wk[i, 0] / c2, wk[i, 1] / c2
+        gx, gy = u0 - qx * u2, u1 - qy * u2
+        sq = gx * gx + gy * gy
+        wk[i, 3], wk[i, 4] = gx, gy
+        if not math.isfinite(sq):
+            finite = False
+        elif sq > smax:
+            smax = sq
+        wk[i, 2] = sq
+    if finite:
+        thr = smax * (1.0 - 1e-9)
+        gain = -np.inf
+        for i in range(8):
+            if wk[i, 2] >= thr:
+                gain = max(gain, math.hypot(wk[i, 3], wk[i, 4]))
+    else:
+        gain = math.hypot(wk[0, 3], wk[0, 4])
+        for i in range(1, 8):
+            gain = _nanmax(gain, math.hypot(wk[i, 3], wk[i, 4]))
+    b = focal * dmax * gain / zmin
     return b * (1.0 + 1e-9) + 1e-9
 
 
@@ -155,6 +188,25 @@ def _inside(o, q, e, xmin, ymin, xmax, ymax):
 
 
 @_jit
+def block_hits(r0, c0, size, o, pext, normals, pmin, pmax, q, e, x0, y0, dx, dy):
+    """``polygon_meets_rects`` and ``corners_inside`` of the store blocks' squares of ``size``
+    samples at global origins ``(r0, c0)`` (``JungHanSelector._box``), for a polygon of at
+    least one vertex (``_meets``/``_inside``'s arguments)."""
+    n = r0.shape[0]
+    meets = np.zeros(n, np.bool_)
+    inside = np.zeros(n, np.bool_)
+    for s in range(n):
+        xmin = x0 + float(c0[s]) * dx
+        ymax = y0 - float(r0[s]) * dy
+        xmax, ymin = xmin + size * dx, ymax - size * dy
+        meets[s] = _meets(
+            o, pext[0], pext[1], pext[2], pext[3], normals, pmin, pmax, xmin, ymin, xmax, ymax
+        )
+        inside[s] = _inside(o, q, e, xmin, ymin, xmax, ymax)
+    return meets, inside
+
+
+@_jit
 def _grow2(a):
     out = np.empty((2 * a.shape[0], a.shape[1]), a.dtype)
     out[: a.shape[0]] = a
@@ -170,19 +222,26 @@ def _grow1(a):
 
 @_jit
 def traverse(
-    hh, dl, dmx, zlo, zhi, hoff, poff, lev, r0, c0, roots, root_inside,
+    hh, dl, pyr, hoff, poff, lev, r0, c0, roots, root_inside,
     o, pext, normals, pmin, pmax, q, e,
-    basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse,
+    basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pr,
 ):  # fmt: skip
     """The pruned top-down + bottom-up pass of one frame: ``(tri, tslot, tlev, nodes, flags,
-    clamped, evaluated)`` in the numpy reference's order (see the module notes)."""
+    clamped, evaluated, nd, pr)`` in the numpy reference's order (see the module notes);
+    ``nd``/``pr`` the node buffers (the ones passed in, or larger), for the next frame."""
+    # nd: slot, idx, row, col, inside, parent, quad, depth; pr: pruned. Both are the caller's
+    # buffers from the last frame (grown here when short, returned), so a frame's nodes do not
+    # land in fresh memory
     cap = max(64, 4 * roots.shape[0])
-    nd = np.empty((cap, 8), np.int64)  # slot, idx, row, col, inside, parent, quad, depth
-    pr = np.zeros(cap, np.bool_)  # pruned
+    if nd.shape[0] < cap or pr.shape[0] != nd.shape[0]:
+        nd = np.empty((cap, 8), np.int64)
+        pr = np.zeros(cap, np.bool_)
+    wk = np.empty((8, 5))  # _bound's scratch
     nr = roots.shape[0]
     for i in range(nr):
         nd[i, 0], nd[i, 1], nd[i, 2], nd[i, 3] = roots[i], 0, 0, 0
         nd[i, 4], nd[i, 5], nd[i, 6], nd[i, 7] = root_inside[i], -1, -1, 0
+        pr[i] = False
     starts = [0]
     lo, hi, d = 0, nr, 0
     while hi > lo:
@@ -197,8 +256,8 @@ def traverse(
                 xmin = x0 + float(c0[s] + nd[j, 3] * size) * dx
                 ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
                 b = _bound(
-                    basis, eye, focal, float(dmx[ii]), xmin, xmin + size * dx,
-                    ymax - size * dy, ymax, zlo[ii], zhi[ii],
+                    basis, eye, focal, pyr[ii, 0], xmin, xmin + size * dx,
+                    ymax - size * dy, ymax, pyr[ii, 1], pyr[ii, 2], wk,
                 )  # fmt: skip
                 pr[j] = b < tau
             if pr[j] or leaf:
@@ -324,4 +383,4 @@ def traverse(
                     tslot[it] = s
                     tlev[it] = dd_ + 1
                     it += 1
-    return tri, tslot, tlev, nodes, flags, clamped, evaluated
+    return tri, tslot, tlev, nodes, flags, clamped, evaluated, nd, pr

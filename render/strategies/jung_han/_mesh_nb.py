@@ -1,7 +1,9 @@
 """Numba kernels of ``jung-han``'s mesh assembly (imported by
 :mod:`render.strategies.jung_han._kernels_nb`): a stable radix sort, the T-junction search, the
 conforming split and ``np.unique`` of the vertex keys, each giving exactly the numpy
-reference's output (integer work only, plus ``pure.t_junctions``' one division)."""
+reference's output (integer work only, plus ``pure.t_junctions``' one division). The search and
+the split take each triangle corner's vertex id, so they look vertices up by their rank along a
+row or column instead of searching sorted keys."""
 
 from __future__ import annotations
 
@@ -16,130 +18,144 @@ _OPTS = {"nogil": True, "error_model": "numpy"}
 _jit = cached_njit(**_OPTS)  # as tiler._kernels_nb, without its fastmath flags
 
 
+#: radix digits: 11 bits, so at most 6 passes for int64 keys; counts per pass
+_COUNTS = 6 * 2049
+
+
+def ws_size(n: int) -> int:
+    """Length of the int64 workspace :func:`_argsort_ws` needs for ``n`` keys."""
+    return 4 * n + _COUNTS
+
+
 @_jit
-def _argsort_stable(keys):
+def _argsort_ws(keys, ws):
     """``np.argsort(keys, kind="stable")`` for non-negative int64 keys (LSD radix sort,
-    11-bit digits: linear time, stable, so the same permutation)."""
+    11-bit digits: linear time, stable, so the same permutation). The keys move with their
+    indices, so every pass reads its input in order. Its buffers are carved from the int64
+    workspace ``ws`` (a fresh one if shorter than :func:`ws_size`): the order returned is a view
+    of ``ws``, valid until ``ws`` is used again. (A persistent workspace: fresh memory is
+    faulted in and zeroed by the OS on every frame, which cost more than the sorts.)"""
     n = keys.shape[0]
-    order = np.arange(n)
+    if ws.shape[0] < 4 * n + _COUNTS:
+        ws = np.empty(4 * n + _COUNTS, np.int64)
+    order = ws[0:n]
+    tmp = ws[n : 2 * n]
+    for i in range(n):
+        order[i] = i
     if n < 2:
         return order
     top = 0
     for i in range(n):
         top = max(top, keys[i])
-    tmp = np.empty(n, np.int64)
-    count = np.empty(2049, np.int64)
-    shift = 0
-    while (top >> shift) > 0:
-        count[:] = 0
-        for i in range(n):
-            count[((keys[order[i]] >> shift) & 2047) + 1] += 1
+    passes = 0
+    while passes < 6 and (top >> (11 * passes)) > 0:  # (a shift by >= 64 is undefined)
+        passes += 1
+    kin = ws[2 * n : 3 * n]
+    kout = ws[3 * n : 4 * n]
+    count = ws[4 * n : 4 * n + passes * 2049]
+    count[:] = 0
+    for i in range(n):  # every pass's histogram in one read
+        kin[i] = keys[i]
+        for p in range(passes):
+            count[p * 2049 + ((keys[i] >> (11 * p)) & 2047) + 1] += 1
+    for p in range(passes):
+        c = count[p * 2049 : (p + 1) * 2049]
         for b in range(2048):
-            count[b + 1] += count[b]
+            c[b + 1] += c[b]
+        shift = 11 * p
         for i in range(n):
-            dg = (keys[order[i]] >> shift) & 2047
-            tmp[count[dg]] = order[i]
-            count[dg] += 1
+            dg = (kin[i] >> shift) & 2047
+            w = c[dg]
+            tmp[w] = order[i]
+            kout[w] = kin[i]
+            c[dg] = w + 1
         order, tmp = tmp, order
-        shift += 11
+        kin, kout = kout, kin
     return order
 
 
 @_jit
-def _lower(keys, x, lo=0, hi=-1):
-    """``np.searchsorted(keys, x, side="left")`` for a scalar ``x`` known to land in
-    ``[lo, hi]`` (default: anywhere)."""
-    if hi < 0:
-        hi = keys.shape[0]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if keys[mid] < x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@_jit
-def _sorted_order(keys):
-    """A stable ascending order of ``keys`` (the identity when already sorted)."""
-    for i in range(1, keys.shape[0]):
-        if keys[i] < keys[i - 1]:
-            return _argsort_stable(keys)
-    return np.arange(keys.shape[0])
-
-
-@_jit
-def t_junctions(tri, vcol, vrow):
-    """``pure.t_junctions``: ``(ids, ends (a, 2, 2), frac)`` in the reference's order. Per group
-    (axis, side) the edges are sorted stably by ``line * big + lo`` like the reference's and
-    merged with the vertices in key order: the edge each vertex checks is the reference's
-    ``searchsorted(key, vertex key) - 1``."""
-    m = tri.shape[0]
+def _ranks(vcol, vrow, ws):
+    """Each vertex's position along rows (row-major: ``vrow * big + vcol`` sorted) and along
+    columns (column-major), with the two orders: ``(rank_h, perm_h, rank_v, perm_v)``."""
     nv = vcol.shape[0]
     big = 0
     for i in range(nv):
         big = max(big, vcol[i], vrow[i])
     big += 2
-    # group of each edge (j, t): 0/1 horizontal side -1/+1, 2/3 vertical side -1/+1, -1 none
-    grp = np.full(3 * m, -1, np.int64)
-    cnt = np.zeros(4, np.int64)
-    for j in range(3):
-        for t in range(m):
-            pc, pr_ = tri[t, j, 0], tri[t, j, 1]
-            qc, qr = tri[t, (j + 1) % 3, 0], tri[t, (j + 1) % 3, 1]
-            oc, orr = tri[t, (j + 2) % 3, 0], tri[t, (j + 2) % 3, 1]
-            g = -1
-            if pr_ == qr and abs(pc - qc) >= 2 and orr != pr_:
-                g = 0 if orr < pr_ else 1
-            elif pc == qc and abs(pr_ - qr) >= 2 and oc != pc:
-                g = 2 if oc < pc else 3
-            grp[j * m + t] = g
-            if g >= 0:
-                cnt[g] += 1
+    perm_h = _argsort_ws(vrow * big + vcol, ws).copy()
+    perm_v = _argsort_ws(vcol * big + vrow, ws).copy()
+    rank_h = np.empty(nv, np.int64)
+    rank_v = np.empty(nv, np.int64)
+    for i in range(nv):
+        rank_h[perm_h[i]] = i
+        rank_v[perm_v[i]] = i
+    return rank_h, perm_h, rank_v, perm_v
+
+
+@_jit
+def _t_junctions(tri, tid, vcol, vrow, ws):
+    """``pure.t_junctions`` with the corners' vertex ids ``tid`` (m, 3) (indices into
+    ``vcol``/``vrow``, the drawn vertices, all distinct): ``(ids, ends (a, 2, 2), frac, ia,
+    ib)`` in the reference's order, ``ia``/``ib`` the ids of the ends. Per group (axis, side)
+    an edge's sort key ``line * big + lo`` is the key of its ``lo`` end, a drawn vertex, so the
+    edge the reference's ``searchsorted(key, vertex key) - 1`` picks is, in the vertices' order
+    along that axis, the last edge (in edge order, as the stable sort keeps ties) starting at
+    the nearest vertex before: one sweep over the vertices, no search."""
+    m = tri.shape[0]
+    nv = vcol.shape[0]
+    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow, ws)
     found = np.full(nv, -1, np.int64)
     ends = np.zeros((nv, 2, 2), np.int64)
     frac = np.zeros(nv)
+    e_lo = np.zeros(nv, np.int64)  # id of the lo / hi end of the vertex's edge
+    e_hi = np.zeros(nv, np.int64)
+    # best[g, r]: the last edge (3 t + j) of group g (0/1 horizontal, opposite vertex above/
+    # below; 2/3 vertical) starting at the vertex of rank r along the group's axis, in the
+    # reference's edge order (j major, then t): one pass
+    best = np.full((4, nv), -1, np.int64)
+    has = np.zeros(4, np.bool_)
+    for j in range(3):  # edges in the reference's order (j major, then t)
+        j1 = j + 1 if j < 2 else 0
+        j2 = j1 + 1 if j1 < 2 else 0
+        for t in range(m):
+            pc, pr_ = tri[t, j, 0], tri[t, j, 1]
+            qc, qr = tri[t, j1, 0], tri[t, j1, 1]
+            oc, orr = tri[t, j2, 0], tri[t, j2, 1]
+            if pr_ == qr and abs(pc - qc) >= 2 and orr != pr_:
+                g = 0 if orr < pr_ else 1
+                best[g, rank_h[tid[t, j] if pc < qc else tid[t, j1]]] = 3 * t + j
+            elif pc == qc and abs(pr_ - qr) >= 2 and oc != pc:
+                g = 2 if oc < pc else 3
+                best[g, rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]] = 3 * t + j
+            else:
+                continue
+            has[g] = True
     for g in range(4):
+        if not has[g]:
+            continue
         axis = 1 if g < 2 else 0
         other = 1 - axis
-        n = cnt[g]
-        if n == 0:
-            continue
-        line = np.empty(n, np.int64)
-        lo = np.empty(n, np.int64)
-        hi = np.empty(n, np.int64)
-        key = np.empty(n, np.int64)
-        a = 0
-        for e in range(3 * m):  # edges in the reference's order (j major, then t)
-            if grp[e] != g:
-                continue
-            j, t = e // m, e % m
-            p0, p1 = tri[t, j, axis], tri[t, j, other]
-            q1 = tri[t, (j + 1) % 3, other]
-            line[a], lo[a], hi[a] = p0, min(p1, q1), max(p1, q1)
-            key[a] = p0 * big + lo[a]
-            a += 1
-        order = _argsort_stable(key)
-        key, line, lo, hi = key[order], line[order], lo[order], hi[order]
-        vk = np.empty(nv, np.int64)
-        for v in range(nv):
-            vk[v] = vrow[v] * big + vcol[v] if axis == 1 else vcol[v] * big + vrow[v]
-        vo = _sorted_order(vk)
-        i = -1
+        perm = perm_h if axis == 1 else perm_v
+        cur = -1
         for r in range(nv):
-            v = vo[r]
-            while i + 1 < n and key[i + 1] < vk[v]:
-                i += 1
-            if i < 0 or found[v] >= 0:
-                continue
-            lv = vrow[v] if axis == 1 else vcol[v]
-            pv = vcol[v] if axis == 1 else vrow[v]
-            if line[i] == lv and hi[i] > pv:
-                found[v] = 1
-                ends[v, 0, axis], ends[v, 1, axis] = lv, lv
-                ends[v, 0, other], ends[v, 1, other] = lo[i], hi[i]
-                frac[v] = (pv - lo[i]) / (hi[i] - lo[i])
+            v = perm[r]
+            if cur >= 0 and found[v] < 0:
+                t = cur // 3  # a division by a constant: cheap
+                j = cur - 3 * t
+                j1 = j + 1 if j < 2 else 0
+                a, b = tri[t, j, other], tri[t, j1, other]
+                lo, hi = min(a, b), max(a, b)
+                lv = vrow[v] if axis == 1 else vcol[v]
+                pv = vcol[v] if axis == 1 else vrow[v]
+                if tri[t, j, axis] == lv and hi > pv:
+                    found[v] = 1
+                    ends[v, 0, axis], ends[v, 1, axis] = lv, lv
+                    ends[v, 0, other], ends[v, 1, other] = lo, hi
+                    frac[v] = (pv - lo) / (hi - lo)
+                    e_lo[v], e_hi[v] = (tid[t, j], tid[t, j1]) if a < b else (tid[t, j1], tid[t, j])
+            if best[g, r] >= 0:
+                cur = best[g, r]
     c = 0
     for v in range(nv):
         c += found[v] >= 0
@@ -149,35 +165,25 @@ def t_junctions(tri, vcol, vrow):
         if found[v] >= 0:
             ids[c] = v
             c += 1
-    return ids, ends[ids], frac[ids]
+    return ids, ends[ids], frac[ids], e_lo[ids], e_hi[ids]
 
 
 @_jit
-def conform(tri, slot, level, vcol, vrow):
-    """``pure.conform`` (same triangles in the same order); ``ok`` False if it did not
-    converge."""
-    nv = vcol.shape[0]
-    big = 0
-    for i in range(nv):
-        big = max(big, vcol[i], vrow[i])
-    big += 2
-    kh = vrow * big + vcol
-    kv = vcol * big + vrow
-    keys_h = kh[_argsort_stable(kh)]  # axis 1: along rows (np.sort)
-    keys_v = kv[_argsort_stable(kv)]  # axis 0: along columns
-    # first key of each line: a search on line L lands in [start[L], start[L + 1]]
-    start_h = np.empty(big + 1, np.int64)
-    start_v = np.empty(big + 1, np.int64)
-    for keys, start in ((keys_h, start_h), (keys_v, start_v)):
-        i = 0
-        for line in range(big + 1):
-            while i < keys.shape[0] and keys[i] < line * big:
-                i += 1
-            start[line] = i
+def _conform(tri, tid, slot, level, vcol, vrow, ws):
+    """``pure.conform`` (same triangles in the same order), carrying each corner's vertex id
+    (``tid`` (m, 3): index into ``vcol``/``vrow``, the drawn vertices, all distinct; a split
+    point gets the id of the vertex it is); ``(tri, tid, slot, level, ok)``, ``ok`` False if it
+    did not converge. An edge's ends are drawn vertices, so the reference's two
+    ``searchsorted`` calls over the vertices sorted along the edge's line are the ends' ranks
+    in that order: some vertex lies inside iff they are more than 1 apart, and the split point
+    is the vertex half-way between."""
+    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow, ws)
     n_out = 0
-    out_t = np.empty((tri.shape[0], 3, 2), np.int64)
-    out_s = np.empty(tri.shape[0], np.int64)
-    out_l = np.empty(tri.shape[0], np.int64)
+    cap = tri.shape[0] + tri.shape[0] // 4 + 64  # room for the usual splits: rarely grown
+    out_t = np.empty((cap, 3, 2), np.int64)
+    out_s = np.empty(cap, np.int64)
+    out_l = np.empty(cap, np.int64)
+    out_i = np.empty((cap, 3), np.int64)
     ok = False
     for _ in range(64):
         m = tri.shape[0]
@@ -185,28 +191,26 @@ def conform(tri, slot, level, vcol, vrow):
             ok = True
             break
         pick = np.full(m, -1, np.int64)
-        point = np.zeros((m, 2), np.int64)
-        for j in range(3):
-            for axis in (1, 0):
-                other = 1 - axis
-                keys = keys_h if axis == 1 else keys_v
-                for t in range(m):
-                    if pick[t] >= 0:
+        pid = np.zeros(m, np.int64)
+        for t in range(m):  # the first edge (j, then axis 1 before 0) with a vertex inside
+            for j in range(3):
+                j1 = j + 1 if j < 2 else 0
+                for axis in range(1, -1, -1):
+                    other = 1 - axis
+                    if tri[t, j, axis] != tri[t, j1, axis]:
                         continue
-                    a0, a1 = tri[t, j, axis], tri[t, j, other]
-                    b0, b1 = tri[t, (j + 1) % 3, axis], tri[t, (j + 1) % 3, other]
-                    if a0 != b0 or abs(a1 - b1) < 2:
+                    if abs(tri[t, j, other] - tri[t, j1, other]) < 2:
                         continue
-                    lo, hi = min(a1, b1), max(a1, b1)
-                    start = start_h if axis == 1 else start_v
-                    s0, s1 = start[a0], start[a0 + 1]
-                    i0 = _lower(keys, a0 * big + lo + 1, s0, s1)
-                    if i0 < keys.shape[0] and keys[i0] < a0 * big + hi:  # some vertex inside
-                        i1 = _lower(keys, a0 * big + hi, i0, s1)
-                        mid = keys[(i0 + i1) // 2]
+                    rank = rank_h if axis == 1 else rank_v
+                    ra, rb = rank[tid[t, j]], rank[tid[t, j1]]
+                    lo, hi = min(ra, rb), max(ra, rb)
+                    if hi - lo > 1:
+                        perm = perm_h if axis == 1 else perm_v
+                        pid[t] = perm[(lo + 1 + hi) // 2]
                         pick[t] = j
-                        point[t, axis] = mid // big
-                        point[t, other] = mid % big
+                        break
+                if pick[t] >= 0:
+                    break
         nk = 0
         for t in range(m):
             nk += pick[t] < 0
@@ -215,12 +219,15 @@ def conform(tri, slot, level, vcol, vrow):
             nt = np.empty((cap, 3, 2), np.int64)
             ns = np.empty(cap, np.int64)
             nl = np.empty(cap, np.int64)
+            ni = np.empty((cap, 3), np.int64)
             nt[:n_out], ns[:n_out], nl[:n_out] = out_t[:n_out], out_s[:n_out], out_l[:n_out]
-            out_t, out_s, out_l = nt, ns, nl
+            ni[:n_out] = out_i[:n_out]
+            out_t, out_s, out_l, out_i = nt, ns, nl, ni
         for t in range(m):
             if pick[t] < 0:
                 for v in range(3):
                     out_t[n_out, v, 0], out_t[n_out, v, 1] = tri[t, v, 0], tri[t, v, 1]
+                    out_i[n_out, v] = tid[t, v]
                 out_s[n_out], out_l[n_out] = slot[t], level[t]
                 n_out += 1
         ns_ = m - nk
@@ -231,6 +238,7 @@ def conform(tri, slot, level, vcol, vrow):
         t2 = np.empty((2 * ns_, 3, 2), np.int64)
         s2 = np.empty(2 * ns_, np.int64)
         l2 = np.empty(2 * ns_, np.int64)
+        i2 = np.empty((2 * ns_, 3), np.int64)
         c = 0
         for t in range(m):
             if pick[t] < 0:
@@ -238,20 +246,26 @@ def conform(tri, slot, level, vcol, vrow):
             j = pick[t]
             for ax in range(2):
                 v0, v1, v2 = tri[t, j, ax], tri[t, (j + 1) % 3, ax], tri[t, (j + 2) % 3, ax]
-                t2[c, 0, ax], t2[c, 1, ax], t2[c, 2, ax] = v0, point[t, ax], v2
-                t2[ns_ + c, 0, ax], t2[ns_ + c, 1, ax], t2[ns_ + c, 2, ax] = point[t, ax], v1, v2
+                pt = vcol[pid[t]] if ax == 0 else vrow[pid[t]]
+                t2[c, 0, ax], t2[c, 1, ax], t2[c, 2, ax] = v0, pt, v2
+                t2[ns_ + c, 0, ax], t2[ns_ + c, 1, ax], t2[ns_ + c, 2, ax] = pt, v1, v2
+            i0_, i1_, i2_ = tid[t, j], tid[t, (j + 1) % 3], tid[t, (j + 2) % 3]
+            i2[c, 0], i2[c, 1], i2[c, 2] = i0_, pid[t], i2_
+            i2[ns_ + c, 0], i2[ns_ + c, 1], i2[ns_ + c, 2] = pid[t], i1_, i2_
             s2[c], s2[ns_ + c] = slot[t], slot[t]
             l2[c], l2[ns_ + c] = level[t], level[t]
             c += 1
-        tri, slot, level = t2, s2, l2
-    return out_t[:n_out].copy(), out_s[:n_out].copy(), out_l[:n_out].copy(), ok
+        tri, tid, slot, level = t2, i2, s2, l2
+    n = n_out
+    # views, not copies: a copy is fresh memory the OS must fault in and zero on every frame
+    return out_t[:n], out_i[:n], out_s[:n], out_l[:n], ok
 
 
 @_jit
-def unique_index(keys):
+def _unique_index(keys, ws):
     """``np.unique(keys, return_index=True, return_inverse=True)`` for non-negative int64."""
     n = keys.shape[0]
-    order = _argsort_stable(keys)
+    order = _argsort_ws(keys, ws)  # a view of ws: used up here
     inv = np.empty(n, np.int64)
     m = 0
     for i in range(n):
@@ -268,3 +282,32 @@ def unique_index(keys):
             first[u] = o  # stable: the first occurrence
         inv[o] = u
     return uk, first, inv
+
+
+# The entry points called from Python: thin wrappers, so that a kernel compiled (and cached) as
+# another kernel's callee is never also called from Python (numba's cache can then load it
+# without what boxing its result arrays needs: "'descr' is NULL").
+
+
+@_jit
+def argsort_stable(keys):
+    """:func:`_argsort_ws` into a fresh array (``np.argsort(keys, kind="stable")``)."""
+    return _argsort_ws(keys, np.empty(0, np.int64)).copy()
+
+
+@_jit
+def t_junctions(tri, tid, vcol, vrow):
+    """:func:`_t_junctions`."""
+    return _t_junctions(tri, tid, vcol, vrow, np.empty(0, np.int64))
+
+
+@_jit
+def conform(tri, tid, slot, level, vcol, vrow):
+    """:func:`_conform`."""
+    return _conform(tri, tid, slot, level, vcol, vrow, np.empty(0, np.int64))
+
+
+@_jit
+def unique_index(keys):
+    """:func:`_unique_index`."""
+    return _unique_index(keys, np.empty(0, np.int64))

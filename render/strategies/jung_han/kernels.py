@@ -61,6 +61,12 @@ class Forest:
     trees: list = field(repr=False, default_factory=list)
 
     @cached_property
+    def pyramid(self) -> np.ndarray:
+        """``(dmax, zlo, zhi)`` per packed node as one ``(n, 3)`` float64 array (``dmax``
+        widened exactly): the traversal's bound reads one cache line per node, not three."""
+        return np.ascontiguousarray(np.stack([self.dmax.astype(np.float64), self.zlo, self.zhi], 1))
+
+    @cached_property
     def index(self) -> dict:
         """Block -> position of its tree in the packed arrays (``key`` lists ``(block, ...)``)."""
         return {k[0]: i for i, k in enumerate(self.key)}

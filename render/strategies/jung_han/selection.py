@@ -35,6 +35,13 @@ from tiler.layout import trailing_zeros
 Block = tuple[int, int]
 
 
+def _cat(parts: list[np.ndarray], empty: np.ndarray) -> np.ndarray:
+    """``np.concatenate(parts)`` without copying a single part (``empty`` if none)."""
+    if not parts:
+        return empty
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
 class JungHanSelector:
     """The CPU half of ``jung-han``: ``select`` over the frame services ``r``."""
 
@@ -54,6 +61,9 @@ class JungHanSelector:
         self.kernels = kernels
         self._trees: dict[Block, BlockTree] = {}
         self._forest: jh_kernels.Forest | None = None
+        self._hoff = np.zeros(0, np.int64)  # the frame's trees' height offsets in the forest
+        self._ws = np.zeros(0, np.int64)  # the compiled assembly's sort workspace, kept
+        self._nd = [np.zeros((0, 8), np.int64), np.zeros(0, bool)]  # the traversal's nodes
         self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
@@ -97,14 +107,21 @@ class JungHanSelector:
         trees = [self.tree(b, lv) for b, lv in pairs]
         blk = np.array(blocks, dtype=np.int64).reshape(-1, 2)
         r0, c0 = blk[:, 0] * g.step, blk[:, 1] * g.step
-        box = self._box(r0, c0, 1 << k)
-        meets = polygon_meets_rects(poly, *box)
-        inside = corners_inside(poly, *box)
         mod = self._mod = jh_kernels.resolve(self.kernels)
         if mod is None:
+            box = self._box(r0, c0, 1 << k)
+            meets = polygon_meets_rects(poly, *box)
+            inside = corners_inside(poly, *box)
             parts = self._traverse(camera, tau, poly, trees, lev, r0, c0, meets, inside)
         else:
-            args = (camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside)
+            pa = self._poly_args(poly)
+            r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+            if len(pa[-1]):  # the blocks' hull tests compiled (the same as the two above)
+                gg = (float(g.x0), float(g.y0), float(g.dx), float(g.dy))
+                meets, inside = mod.block_hits(r0, c0, 1 << k, *pa, *gg)
+            else:  # an empty hull meets nothing
+                meets = inside = np.zeros(len(r0), dtype=bool)
+            args = (camera, tau, pa, pairs, lev, r0, c0, meets, inside)
             parts = self._traverse_nb(mod, *args)
         tris, tslot, tlev, nodes, flags, clamped = parts
         corner = np.flatnonzero(meets & (lev == 0))
@@ -253,18 +270,11 @@ class JungHanSelector:
             tlev.append(np.full(len(j), d + 1, dtype=np.int64))
         return tris, tslot, tlev, nodes, flags, clamped
 
-    def _traverse_nb(self, mod, camera, tau, poly, pairs, trees, lev, r0, c0, meets, inside):
-        """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``)."""
-        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
-        # costs more than the copy), not when the frame's set of blocks moves
-        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
-        if self._forest is None or self._forest.key != key:
-            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
-        f = self._forest
-        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
-        hoff, poff = f.hoff[at], f.poff[at]
-        g = self.r.grid
-        roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
+    @staticmethod
+    def _poly_args(poly) -> tuple:
+        """The hull as the compiled tests take it: ``(o, extents, normals, pmin, pmax, q, e)``
+        (``q``: the vertices minus ``o``, none for an empty hull; as ``polygon_meets_rects``
+        and ``corners_inside`` compute them)."""
         p = as_polygon(poly)
         o = p[0] if len(p) else np.zeros(2)
         pp = p - o
@@ -280,37 +290,95 @@ class JungHanSelector:
             pmin, pmax = proj.min(axis=0), proj.max(axis=0)
         q = np.ascontiguousarray(pp)
         e = np.roll(q, -1, axis=0) - q  # as corners_inside
-        tri, ts, tl, nodes, flags, clamped, self._evaluated = mod.traverse(
-            f.heights, f.delta, f.dmax, f.zlo, f.zhi, hoff, poff,
-            lev, r0.astype(np.int64), c0.astype(np.int64), roots, inside[roots].astype(np.int64),
-            np.ascontiguousarray(o, dtype=np.float64), ext, np.ascontiguousarray(normals),
-            np.ascontiguousarray(pmin), np.ascontiguousarray(pmax), q, np.ascontiguousarray(e),
+        return (
+            np.ascontiguousarray(o, dtype=np.float64),
+            ext,
+            np.ascontiguousarray(normals),
+            np.ascontiguousarray(pmin),
+            np.ascontiguousarray(pmax),
+            q,
+            np.ascontiguousarray(e),
+        )
+
+    def _traverse_nb(self, mod, camera, tau, pa, pairs, lev, r0, c0, meets, inside):
+        """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``); ``pa``:
+        :meth:`_poly_args` of the hull."""
+        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
+        # costs more than the copy), not when the frame's set of blocks moves
+        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
+        if self._forest is None or self._forest.key != key:
+            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
+        f = self._forest
+        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
+        hoff, poff = f.hoff[at], f.poff[at]
+        self._hoff = hoff  # for the compiled assembly
+        g = self.r.grid
+        roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
+        tri, ts, tl, nodes, flags, clamped, self._evaluated, *self._nd = mod.traverse(
+            f.heights, f.delta, f.pyramid, hoff, poff,
+            lev, r0, c0, roots, inside[roots].astype(np.int64), *pa,
             np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
             float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
             float(g.x0), float(g.y0), float(g.dx), float(g.dy), int(self.r.k),
-            bool(self.prune), bool(self.culled_collapse),
+            bool(self.prune), bool(self.culled_collapse), *self._nd,
         )  # fmt: skip
         return [tri], [ts], [tl], [nodes], [flags], int(clamped)
 
     def _unique(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Sorted unique keys, first occurrences, inverse (``np.unique``; compiled with numba)."""
-        if self._mod is None or not len(key) or key.min() < 0:
-            uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
-            return uk, first, inv.ravel()
-        return self._mod.unique_index(np.ascontiguousarray(key, dtype=np.int64))
+        """Sorted unique keys, first occurrences, inverse (``np.unique``)."""
+        uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        return uk, first, inv.ravel()
+
+    def _assemble_nb(self, blocks, lev, r0, c0, tri, slot, tl, node_arr, flag_arr, wg):
+        """``_assemble`` by the compiled kernel (same outputs, see ``_assemble_nb``)."""
+        g = self.r.grid
+        jh_count = len(tri)
+        need = self._mod.ws_size(3 * (len(tri) + len(tri) // 4 + 64))  # with the usual splits
+        if len(self._ws) < need:
+            self._ws = np.empty(need + need // 4, np.int64)
+        out = self._mod.assemble(  # the traversal packed the forest and set _hoff this frame
+            np.ascontiguousarray(tri, dtype=np.int64), slot, tl, self._forest.heights,
+            np.ascontiguousarray(self._hoff, dtype=np.int64), lev, r0.astype(np.int64),
+            c0.astype(np.int64), int(wg), int(self.r.k), int(g.step), bool(self.stitching),
+            self._ws,
+        )  # fmt: skip
+        tri, tri_h, slot, tl, adjusted, v_slot, v_level, v_cr, v_h, index, ok = out
+        if not ok:
+            raise RuntimeError("conforming split did not converge")
+        return JHSelection(
+            blocks=blocks,
+            levels=lev,
+            tri=tri,
+            tri_h=tri_h,
+            jh_triangles=jh_count,
+            tri_slot=slot,
+            tri_level=tl,
+            nodes=node_arr,
+            flags=flag_arr,
+            adjusted=adjusted,
+            corner_blocks=0,
+            clamped=0,
+            v_slot=v_slot,
+            v_level=v_level,
+            v_cr=v_cr,
+            v_h=v_h,
+            index=index,
+        )
 
     def _assemble(self, blocks, lev, trees, r0, c0, tris, tslot, tlev, nodes, flags):
         """Drawn heights, the crack pass, and the GPU vertex/index arrays."""
         k, g = self.r.k, self.r.grid
         e2 = np.zeros((0, 3, 2), dtype=np.int64)
-        tri = np.concatenate(tris) if tris else e2
-        slot = np.concatenate(tslot).astype(np.int64) if tslot else np.zeros(0, np.int64)
-        tl = np.concatenate(tlev).astype(np.int64) if tlev else np.zeros(0, np.int64)
+        tri = _cat(tris, e2)
+        slot = _cat(tslot, np.zeros(0, np.int64)).astype(np.int64, copy=False)
+        tl = _cat(tlev, np.zeros(0, np.int64)).astype(np.int64, copy=False)
+        node_arr = _cat(nodes, np.zeros((0, 3), np.int64))
+        flag_arr = _cat(flags, np.zeros(0, np.int64))
+        wg = g.cols * g.step + 1
+        if self._mod is not None:
+            return self._assemble_nb(blocks, lev, r0, c0, tri, slot, tl, node_arr, flag_arr, wg)
         order = np.argsort(slot, kind="stable")
         tri, slot, tl = tri[order], slot[order], tl[order]
-        node_arr = np.concatenate(nodes) if nodes else np.zeros((0, 3), np.int64)
-        flag_arr = np.concatenate(flags) if flags else np.zeros(0, np.int64)
-        wg = g.cols * g.step + 1
         cs, rs = tri[..., 0].ravel(), tri[..., 1].ravel()
         key = rs * wg + cs
         uk, first, inv = self._unique(key)
@@ -320,11 +388,7 @@ class JungHanSelector:
         h_corner = gather([t.heights for t in trees], s3, flat)
         hv = h_corner[first]
         vrow, vcol = uk // wg, uk % wg
-        mod = self._mod
-        if mod is None:
-            ids, ends, frac = t_junctions(tri, vcol, vrow)
-        else:
-            ids, ends, frac = mod.t_junctions(np.ascontiguousarray(tri), vcol, vrow)
+        ids, ends, frac = t_junctions(tri, vcol, vrow)
         if not self.stitching:  # the positive control: no height adjustment, no split
             ids = ids[:0]
         if len(ids):
@@ -343,12 +407,8 @@ class JungHanSelector:
                 hv[ids[w]] = np.where(np.isfinite(new) & np.isfinite(old), new, old)
         adjusted = np.stack([vcol[ids], vrow[ids]], -1)
         jh_count = len(tri)
-        if self.stitching and (mod is None or not len(tri)):
+        if self.stitching:
             tri, slot, tl = conform(tri, slot, tl, vcol, vrow)
-        elif self.stitching:
-            tri, slot, tl, ok = mod.conform(np.ascontiguousarray(tri), slot, tl, vcol, vrow)
-            if not ok:
-                raise RuntimeError("conforming split did not converge")
         tkey = tri[..., 1] * wg + tri[..., 0]
         inv = np.searchsorted(uk, tkey.ravel())
         tri_h = hv[inv].reshape(-1, 3)
