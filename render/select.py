@@ -309,34 +309,12 @@ def _neighbours(patches: Patches, k: int, nb=None) -> np.ndarray:
     n = len(patches)
     if n == 0:
         return np.zeros((0, 4), dtype=np.int64)
-    big = int(patches.depth.max())
-    blk = patches.blocks[patches.block]
-    nr = (int(patches.blocks[:, 0].max()) + 2) << big
-    nc = (int(patches.blocks[:, 1].max()) + 2) << big
-    d = patches.depth
-    gr = (blk[:, 0] << d) + patches.row
-    gc = (blk[:, 1] << d) + patches.col
+    if nb is None:
+        return rounds.neighbours_of(patches, np.arange(n))
+    gr, gc, d, big, nr, nc = rounds.leaf_keys(patches)
     keys = (d * nr + gr) * nc + gc
     order = np.argsort(keys)
-    sk = keys[order]
-    if nb is not None:
-        return nb.neighbours(sk, order, d, gr, gc, big, nr, nc, np.unique(d))
-    span = np.left_shift(1, big - d)
-    fr0, fc0 = gr << (big - d), gc << (big - d)
-    mid = span >> 1
-    fr = np.concatenate([fr0 - 1, fr0 + mid, fr0 + span, fr0 + mid])
-    fc = np.concatenate([fc0 + mid, fc0 + span, fc0 + mid, fc0 - 1])
-    inside = (fr >= 0) & (fc >= 0) & (fr < nr) & (fc < nc)
-    dd = np.unique(d)[:, None]  # the depths that hold leaves (others cannot hit)
-    q = (dd * nr + (fr >> (big - dd))) * nc + (fc >> (big - dd))  # (depths, 4n)
-    pos = np.searchsorted(sk, q)
-    np.clip(pos, 0, n - 1, out=pos)
-    hit = (sk[pos] == q) & inside
-    last = len(dd) - 1 - np.argmax(hit[::-1], axis=0)
-    found = hit.any(axis=0)
-    col = np.arange(4 * n)
-    out = np.where(found, order[pos[last, col]], -1)
-    return out.reshape(4, n).T.copy()
+    return nb.neighbours(keys[order], order, d, gr, gc, big, nr, nc, np.unique(d))
 
 
 def stitch(

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from render.select import Patches
 
 
-def _keys(patches: Patches) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
+def leaf_keys(patches: Patches) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
     """Global node rows and columns at each leaf's depth, the finest depth and the key ranges."""
     big = int(patches.depth.max())
     blk = patches.blocks[patches.block]
@@ -34,13 +34,15 @@ def _keys(patches: Patches) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, in
 
 
 def neighbours_of(patches: Patches, rows: np.ndarray) -> np.ndarray:
-    """``(len(rows), 4)`` :func:`render.select._neighbours` of the leaves ``rows`` only (the
-    probes of those edges against every leaf's key)."""
+    """``(len(rows), 4)`` index of the leaf across each edge (N, E, S, W) of the leaves ``rows``,
+    or -1: each edge's probe (one finest node beyond its midpoint) looked up at every depth
+    holding leaves in one ``searchsorted`` over the sorted leaf keys, the deepest hit winning
+    (:func:`render.select._neighbours` with all rows)."""
     rows = np.asarray(rows, dtype=np.int64)
     n = len(patches)
     if n == 0 or not rows.size:
         return np.full((len(rows), 4), -1, dtype=np.int64)
-    gr, gc, d, big, nr, nc = _keys(patches)
+    gr, gc, d, big, nr, nc = leaf_keys(patches)
     keys = (d * nr + gr) * nc + gc
     order = np.argsort(keys)
     sk = keys[order]

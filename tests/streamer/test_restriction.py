@@ -99,6 +99,14 @@ def test_the_planner_plans_joinable_levels():
     assert raw_violations > 0, "no camera needed the restriction: the test shows nothing"
 
 
+def _compiled():
+    """The compiled planning kernels (skips without numba, as the other kernel tests do)."""
+    pytest.importorskip("numba")
+    from streamer.levels import _load_numba
+
+    return _load_numba()
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     cells=st.lists(st.tuples(st.integers(-3, 9), st.integers(0, 12)), min_size=1, unique=True),
@@ -106,11 +114,7 @@ def test_the_planner_plans_joinable_levels():
     p=st.integers(1, 4),
 )
 def test_compiled_restriction_equals_the_numpy_reference(cells, seed, p):
-    from streamer.levels import _load_numba
-
-    nb = _load_numba()
-    if nb is None:
-        pytest.skip("numba is not installed (the 'fast' extra)")
+    nb = _compiled()
     ids = np.array(cells, dtype=np.int64)
     lv = np.random.default_rng(seed).integers(0, 11, len(ids))
     np.testing.assert_array_equal(restrict_levels(ids, lv, p, nb), restrict_levels(ids, lv, p))
@@ -118,11 +122,7 @@ def test_compiled_restriction_equals_the_numpy_reference(cells, seed, p):
 
 def test_compiled_restriction_positive_control():
     """The comparison above can fail: the kernel run one level looser differs on a chain."""
-    from streamer.levels import _load_numba
-
-    nb = _load_numba()
-    if nb is None:
-        pytest.skip("numba is not installed (the 'fast' extra)")
+    nb = _compiled()
     ids = np.array([[0, 0], [0, 1], [0, 2]])
     assert restrict_levels(ids, [9, 0, 0], 2, nb).tolist() == [9, 7, 5]
     assert (

@@ -74,12 +74,6 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-@pytest.fixture
-def numba_backend(monkeypatch):
-    monkeypatch.setenv(kernels.ENV, "numba")
-    assert kernels.backend() == "numba"
-
-
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("case", CASES)
 @pytest.mark.parametrize("k", [1, 2, 5, 7])

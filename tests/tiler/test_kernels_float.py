@@ -15,17 +15,9 @@ from tiler.layout import grid_side
 
 pytest.importorskip("numba")
 
+from test_kernels import _same_bits  # noqa: E402
+
 FLOATS = ["float32", "float64"]
-
-
-def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
-
-
-@pytest.fixture
-def numba_backend(monkeypatch):
-    monkeypatch.setenv(kernels.ENV, "numba")
-    assert kernels.backend() == "numba"
 
 
 def _extreme_grid(k: int, dtype: str, seed: int) -> np.ndarray:
