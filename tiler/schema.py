@@ -8,6 +8,7 @@ read back as the fill value is a *missing* chunk, never silently zeros.
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 import numpy as np
@@ -103,8 +104,9 @@ def chunk_key(name: str, block: tuple[int, int], rows: int, cols: int) -> str:
     return f"{name}/c/0/0"
 
 
-def create_layout(group: zarr.Group, meta: Any, comp_level: int) -> None:
-    """Create every array of an empty store (no data written)."""
+def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]:
+    """``(path, zarr create_array keywords)`` of every array of an empty store described by
+    ``meta`` (only the level and order index tables carry data)."""
     v = meta.format_version
     grid = meta.grid
     rows, cols = grid.shape
@@ -112,72 +114,123 @@ def create_layout(group: zarr.Group, meta: Any, comp_level: int) -> None:
     itemsize = np.dtype(meta.storage_dtype).itemsize
     fill = level_fill(meta.storage_dtype) if v >= 2 else 0
     cfg = WRITE_CONFIG if v >= 2 else None
+    specs: list[tuple[str, dict[str, Any]]] = []
     for i in range(meta.levels):
         n = level_size(i)
         kw: dict[str, Any] = {}
         if i < SHARDED_LEVELS:
             kw["shards"] = (*shard_shape(rows, cols), n)
-        group.create_array(
-            f"levels/{i}",
-            shape=(rows, cols, n),
-            chunks=(1, 1, n),
-            dtype=meta.storage_dtype,
-            compressors=codecs(v, comp_level, itemsize),
-            fill_value=fill,
-            dimension_names=("block_row", "block_col", f"value_{i}"),  # per-level lengths
-            config=cfg,
-            **kw,
+        specs.append(
+            (
+                f"levels/{i}",
+                dict(
+                    shape=(rows, cols, n),
+                    chunks=(1, 1, n),
+                    dtype=meta.storage_dtype,
+                    compressors=codecs(v, comp_level, itemsize),
+                    fill_value=fill,
+                    dimension_names=("block_row", "block_col", f"value_{i}"),  # per-level lengths
+                    config=cfg,
+                    **kw,
+                ),
+            )
         )
     e = sum(static_error.field_sizes(meta.k, meta.error_cap))
-    group.create_array(
-        "errors",
-        shape=(rows, cols, len(meta.error_fields), e),
-        chunks=(1, 1, len(meta.error_fields), e),
-        dtype="float16",
-        compressors=codecs(v, comp_level, 2),
-        fill_value=np.nan if v >= 2 else 0,
-        dimension_names=("block_row", "block_col", "field", "node"),
-        config=cfg,
+    specs.append(
+        (
+            "errors",
+            dict(
+                shape=(rows, cols, len(meta.error_fields), e),
+                chunks=(1, 1, len(meta.error_fields), e),
+                dtype="float16",
+                compressors=codecs(v, comp_level, 2),
+                fill_value=np.nan if v >= 2 else 0,
+                dimension_names=("block_row", "block_col", "field", "node"),
+                config=cfg,
+            ),
+        )
     )
-    group.create_array(
-        "mask",
-        shape=(rows, cols, side, side),
-        chunks=(1, 1, side, side),
-        dtype="bool",
-        compressors=codecs(v, comp_level, 1, bits=True),
-        fill_value=True,
-        dimension_names=("block_row", "block_col", "row", "col"),
+    specs.append(
+        (
+            "mask",
+            dict(
+                shape=(rows, cols, side, side),
+                chunks=(1, 1, side, side),
+                dtype="bool",
+                compressors=codecs(v, comp_level, 1, bits=True),
+                fill_value=True,
+                dimension_names=("block_row", "block_col", "row", "col"),
+            ),
+        )
     )
     ic = index_chunk(rows, cols)
     for name, (dtype, fv) in INDEX_DTYPES.items():
-        group.create_array(
-            f"index/{name}",
-            shape=(rows, cols),
-            chunks=ic,
-            dtype=dtype,
-            fill_value=fv,
-            compressors=codecs(v, comp_level, np.dtype(dtype).itemsize) if v >= 2 else "auto",
-            dimension_names=("block_row", "block_col"),
-            config=cfg,
+        specs.append(
+            (
+                f"index/{name}",
+                dict(
+                    shape=(rows, cols),
+                    chunks=ic,
+                    dtype=dtype,
+                    fill_value=fv,
+                    compressors=(
+                        codecs(v, comp_level, np.dtype(dtype).itemsize) if v >= 2 else "auto"
+                    ),
+                    dimension_names=("block_row", "block_col"),
+                    config=cfg,
+                ),
+            )
         )
-    group.create_array(
-        "index/window",
-        shape=(rows, cols, 4),
-        chunks=(*ic, 4),
-        dtype="int32",
-        fill_value=0,
-        compressors=codecs(v, comp_level, 4) if v >= 2 else "auto",
-        dimension_names=("block_row", "block_col", "field"),
-        config=cfg,
+    specs.append(
+        (
+            "index/window",
+            dict(
+                shape=(rows, cols, 4),
+                chunks=(*ic, 4),
+                dtype="int32",
+                fill_value=0,
+                compressors=codecs(v, comp_level, 4) if v >= 2 else "auto",
+                dimension_names=("block_row", "block_col", "field"),
+                config=cfg,
+            ),
+        )
     )
     for name, table in (("level_index", level_index(meta.k)), ("order_index", order_index(meta.k))):
-        group.create_array(
-            name,
-            data=np.asarray(table),
-            chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
-            compressors=codecs(v, TABLE_CLEVEL, table.dtype.itemsize, bits=True),
-            dimension_names=("row", "col"),
+        specs.append(
+            (
+                name,
+                dict(
+                    data=np.asarray(table),
+                    chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
+                    compressors=codecs(v, TABLE_CLEVEL, table.dtype.itemsize, bits=True),
+                    dimension_names=("row", "col"),
+                ),
+            )
         )
+    return specs
+
+
+def create_layout(
+    group: zarr.Group, meta: Any, comp_level: int, *, concurrent: bool = True
+) -> None:
+    """Create every array of an empty store (no data written but the two index tables).
+
+    ``concurrent`` (default) issues all the creations at once on zarr's event loop (one round
+    trip's latency instead of one per array: 23 arrays for ``k = 10``); ``False`` creates them
+    one after another, the reference the tests compare the metadata with."""
+    specs = layout_specs(meta, comp_level)
+    if not concurrent:
+        for name, kw in specs:
+            group.create_array(name, **kw)
+        return
+    from zarr.api.asynchronous import open_group
+    from zarr.core.sync import sync  # the loop zarr's synchronous API runs its stores on
+
+    async def create_all() -> None:
+        ag = await open_group(store=group.store, path=group.path, mode="r+")
+        await asyncio.gather(*(ag.create_array(name, **kw) for name, kw in specs))
+
+    sync(create_all())
 
 
 def expected_table(name: str, k: int) -> np.ndarray:
