@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render import select_kernels
+from render import select_kernels, stitch_fast
 from render import stitch_rounds as rounds
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
@@ -339,7 +339,8 @@ def stitch(
     neighbour while the metric of the patch's error plus the edge's snapping excess
     (:func:`render.snap_error.snap_excess`) exceeds ``tau``; such an edge whose neighbour may
     not split (its resident level) counts as clamped. ``kernels``: as :func:`select_patches`'
-    (the neighbour search). ``incremental`` (default) carries the edges' neighbours and
+    (the compiled rounds, :mod:`render.stitch_fast`, when ``incremental``; else the neighbour
+    search). ``incremental`` (default) carries the edges' neighbours and
     snapped-edge checks from round to round, redoing them only where a round changed leaves
     (:mod:`render.stitch_rounds`; the same patches as ``False``, which redoes all every round)."""
     k = grid.k
@@ -347,6 +348,12 @@ def stitch(
     fn = get_metric(metric)
     box_slots = None
     res = np.asarray(resident, dtype=np.int64)
+    kn = select_kernels.stitch_kernels(nb) if incremental else None
+    if kn is not None and len(patches) and table.depths > 0:
+        return stitch_fast.stitch_compiled(
+            kn, patches, grid, table, camera, fn, res=np.ascontiguousarray(res),
+            zranges=zranges, max_rounds=max_rounds, boxes=boxes, tau=tau,
+        )  # fmt: skip
     cur = patches
     slots = None
     nbr = None

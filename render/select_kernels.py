@@ -38,6 +38,22 @@ def _load_numba() -> ModuleType | None:
     return _select_nb
 
 
+@cache
+def _load_stitch() -> ModuleType | None:
+    try:
+        from render import _stitch_nb
+    except ImportError:
+        return None
+    return _stitch_nb
+
+
+def stitch_kernels(nb: ModuleType | None) -> ModuleType | None:
+    """The compiled stitch rounds (:mod:`render._stitch_nb`) that go with the kernel module
+    ``nb`` from :func:`resolve`: only with the real one (a stand-in module, as the tests'
+    faulty kernels, gets the reference rounds over its own neighbour search)."""
+    return _load_stitch() if nb is not None and nb is _load_numba() else None
+
+
 _READY: list[bool] = []  # filled by warm_up(): ``auto`` may use the compiled walk
 
 

@@ -1,0 +1,208 @@
+"""The compiled :func:`render.select.stitch` (incremental rounds; chosen with the kernels of
+:mod:`render.select_kernels`): the same rounds, in the same order, giving the same patches bit
+for bit (tests/render/test_stitch_fast.py).
+
+Per round one kernel call does the snaps and the restriction (:func:`render._stitch_nb.restrict`)
+and one the split (:func:`render._stitch_nb.split`: the leaves, their neighbours, the check
+caches and the sorted leaf keys carried over, so no round sorts or searches all leaves again).
+What stays numpy is every float operation on heights and metrics, called once per round on
+all leaves that need it instead of per depth and edge: the snapped-edge check's strip errors
+(:func:`render.snap_error.snap_excess` / :func:`~render.snap_error.snap_exact`, the
+reference's functions) and its metric (one call, :func:`box_rho`), and the new leaves'
+``rho`` (:func:`render.node_boxes.node_rho` per depth, once after the last round: no round
+reads it). The metrics are elementwise, so batching them gives the reference's values."""
+
+from __future__ import annotations
+
+from types import ModuleType
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from render.errors import SelectionError
+from render.node_boxes import NodeBoxes, node_box_slots, node_rho
+from render.snap_error import snap_exact, snap_excess
+from streamer.camera import Camera
+from streamer.levels import PatchErrorTable
+from streamer.lod import Metric
+from tiler.grid import BlockGrid
+from tiler.quadtree import block_origins, node_centres_at
+
+if TYPE_CHECKING:
+    from render.select import Patches
+
+
+def box_rho(
+    fn: Metric,
+    grid: BlockGrid,
+    delta: np.ndarray,
+    bx0: np.ndarray,
+    by1: np.ndarray,
+    depth: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    camera: Camera,
+) -> np.ndarray:
+    """:func:`render.node_boxes.node_rho` with boxes for nodes of mixed depths in one metric
+    call: node ``(depth, rows, cols)`` of the block at ``(bx0, by1)``, height range
+    ``lo..hi``, error ``delta`` (the same operations per node, so the same values)."""
+    span = np.left_shift(1, grid.k - depth).astype(np.float64)
+    cx = bx0 + (cols.astype(np.float64) + 0.5) * (span * grid.dx)
+    cy = by1 - (rows.astype(np.float64) + 0.5) * (span * grid.dy)
+    s = 0.5 * span
+    ext = np.stack([s * grid.dx, s * grid.dy, 0.5 * (hi - lo)], 1)
+    centres = np.stack([cx, cy, 0.5 * (lo + hi)], axis=1)
+    radius = np.linalg.norm(ext, axis=1)
+    return np.asarray(fn(delta, centres, radius, camera, half_extent=ext), np.float64)
+
+
+class _Check:
+    """The snapped-edge check (:func:`render.node_boxes.snap_over`) of some leaves, with the
+    per-frame parts done once."""
+
+    def __init__(self, blocks, grid, camera, fn, tau, zranges, boxes: NodeBoxes, box_slots):
+        self.blocks, self.grid, self.camera, self.fn, self.tau = blocks, grid, camera, fn, tau
+        self.zr = np.asarray(zranges, dtype=np.float64)
+        self.boxes, self.box_slots = boxes, box_slots
+        self.full = np.array([boxes.level((int(x[0]), int(x[1]))) >= boxes.k for x in blocks],
+                             dtype=bool).reshape(len(blocks))  # fmt: skip
+        self.bx0, self.by1 = block_origins(grid, blocks[:, 0], blocks[:, 1])
+
+    def __call__(self, b, d, r, c, lv, delta, snap) -> np.ndarray:
+        """``(m, 4)`` whether each snapped edge of the leaves ``(b, d, r, c)`` (levels ``lv``,
+        errors ``delta``, snaps ``snap``: every leaf has one, its error finite) fails."""
+        boxes, blocks = self.boxes, self.blocks
+
+        def heights(sub: np.ndarray) -> np.ndarray:
+            return boxes.vertex_heights(blocks[b[sub]], d[sub], r[sub], c[sub], lv[sub])
+
+        def cells(sub: np.ndarray) -> np.ndarray:
+            return boxes.cell_bounds(blocks[b[sub]], d[sub], r[sub], c[sub], lv[sub])
+
+        cl = lv - d
+        total = snap_excess(cl, snap, heights, cells)
+        full = self.full[b]
+        if full.any():
+            f = np.flatnonzero(full)
+
+            def windows(sub: np.ndarray) -> np.ndarray:
+                g = f[sub]
+                return boxes.full_windows(blocks[b[g]], d[g], r[g], c[g])
+
+            total[f] = snap_exact(cl[f], boxes.k - lv[f], snap[f], windows)
+        lo = np.empty(len(b))
+        hi = np.empty(len(b))
+        for depth in np.unique(d).tolist():
+            m = np.flatnonzero(d == depth)
+            bm = b[m]
+            sl = (self.box_slots[0][bm], self.box_slots[1][bm])
+            lo[m], hi[m] = boxes.zrange(sl, self.zr[bm], depth, r[m], c[m])
+        i, e = np.nonzero(snap > 0)
+        bi = b[i]
+        rho = box_rho(self.fn, self.grid, total[i, e], self.bx0[bi], self.by1[bi], d[i], r[i],
+                      c[i], lo[i], hi[i], self.camera)  # fmt: skip
+        over = np.zeros(snap.shape, dtype=bool)
+        over[i, e] = ~(rho <= self.tau)
+        return over
+
+
+def stitch_compiled(
+    kn: ModuleType,
+    patches: Patches,
+    grid: BlockGrid,
+    table: PatchErrorTable,
+    camera: Camera,
+    fn: Metric,
+    *,
+    res: np.ndarray,
+    zranges: np.ndarray,
+    max_rounds: int,
+    boxes: NodeBoxes | None,
+    tau: float | None,
+) -> Patches:
+    """:func:`render.select.stitch` (``incremental``) with the kernels ``kn``
+    (:mod:`render._stitch_nb`; ``patches`` not empty, ``table`` with at least one depth)."""
+    from render.select import Patches
+
+    k, p = grid.k, table.patch_log2
+    blocks = patches.blocks
+    bk_r = np.ascontiguousarray(blocks[:, 0], dtype=np.int64)
+    bk_c = np.ascontiguousarray(blocks[:, 1], dtype=np.int64)
+    big = k + 1  # deeper than any leaf
+    nr = (int(bk_r.max()) + 2) << big
+    nc = (int(bk_c.max()) + 2) << big
+    slots = np.ascontiguousarray(table.slots(blocks), dtype=np.int64)
+    box_slots = node_box_slots(fn, boxes, blocks, res)
+    arrays = tuple(table.depth_array(d) for d in range(table.depths))
+    check = None
+    if tau is not None and box_slots is not None:
+        check = _Check(blocks, grid, camera, fn, tau, zranges, boxes, box_slots)
+    block = patches.block.astype(np.int64)
+    depth = patches.depth.astype(np.int64)
+    row = patches.row.astype(np.int64)
+    col = patches.col.astype(np.int64)
+    level = patches.level.astype(np.int64)
+    delta = patches.delta.astype(np.float64)
+    n = len(depth)
+    src = np.arange(n, dtype=np.int64)
+    keys = kn.leaf_keys(bk_r, bk_c, block, depth, row, col, nr, nc)
+    order = np.argsort(keys)
+    sk = keys[order]
+    dcount = np.bincount(depth, minlength=big + 1).astype(np.int64)
+    nbr = kn.probe(np.arange(n), sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc,
+                   dcount)  # fmt: skip
+    c_snap = np.zeros((n, 4), np.int64)
+    c_over = np.zeros((n, 4), bool)
+    c_known = np.zeros(n, bool)
+    for _ in range(max_rounds):
+        snap, n_bad, victims = kn.restrict(level, depth, block, nbr, res, k, p)
+        extra = 0
+        if not victims.size and check is not None:
+            cand = kn.over_todo(snap, c_snap, c_over, c_known, delta)
+            if cand.size:
+                c_over[cand] = check(block[cand], depth[cand], row[cand], col[cand],
+                                     level[cand], delta[cand], snap[cand])  # fmt: skip
+            victims, extra = kn.over_victims(c_over, nbr, depth, block, res, k, p)
+        if not victims.size:
+            rho = _rho(patches, grid, camera, fn, zranges, boxes, box_slots, src, block,
+                       depth, row, col, delta)  # fmt: skip
+            return Patches(
+                blocks=blocks, block=block, depth=depth, row=row, col=col, level=level,
+                delta=delta, rho=rho, snap=snap, clamped=patches.clamped + extra,
+                violations=int(n_bad),
+            )  # fmt: skip
+        leaves, nbr, redo, caches, sorted_keys = kn.split(
+            victims, block, depth, row, col, level, delta, src, nbr, c_snap, c_over, c_known,
+            sk, order, keys, dcount, res, arrays, slots, bk_r, bk_c, nr, nc, k, p,
+        )  # fmt: skip
+        block, depth, row, col, level, delta, src = leaves
+        c_snap, c_over, c_known = caches
+        sk, order, keys = sorted_keys
+        if redo.size:
+            nbr[redo] = kn.probe(redo, sk, order, bk_r, bk_c, block, depth, row, col, big, nr,
+                                 nc, dcount)  # fmt: skip
+    raise SelectionError(f"stitching did not settle in {max_rounds} rounds")
+
+
+def _rho(patches, grid, camera, fn, zranges, boxes, box_slots, src, block, depth, row, col,
+         delta) -> np.ndarray:  # fmt: skip
+    """The final leaves' ``rho``: the selection's where ``src`` (the row in ``patches``) is
+    set, else :func:`render.select._split`'s per-depth :func:`~render.node_boxes.node_rho`."""
+    rho = np.empty(len(depth))
+    old = src >= 0
+    rho[old] = patches.rho[src[old]]
+    new = np.flatnonzero(~old)
+    if not new.size:
+        return rho
+    b, d, r, c, dl = block[new], depth[new], row[new], col[new], delta[new]
+    blk = patches.blocks[b]
+    bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
+    zr = np.asarray(zranges, dtype=np.float64)[b]
+    for dd in np.unique(d).tolist():
+        m = d == dd
+        cx, cy = node_centres_at(grid, bx0[m], by1[m], dd, r[m], c[m])
+        bx = None if box_slots is None else (boxes, (box_slots[0][b[m]], box_slots[1][b[m]]))
+        rho[new[m]] = node_rho(fn, grid, dl[m], cx, cy, dd, zr[m], camera, bx, r[m], c[m])
+    return rho
