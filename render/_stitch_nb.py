@@ -13,6 +13,12 @@ from __future__ import annotations
 import numpy as np
 
 from render._select_nb import _lower
+from render._snap_nb import (  # noqa: F401 (the check's kernels, used through this module)
+    exact_max,
+    gather_cells,
+    gather_heights,
+    strip_max,
+)
 from tiler.jit import cached_njit
 
 _jit = cached_njit(nogil=True, error_model="numpy")

@@ -21,7 +21,7 @@ import numpy as np
 
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho
-from render.snap_error import snap_exact, snap_excess
+from render.snap_error import _difference_rows, _sample_rows, _strip_template
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric
@@ -60,38 +60,28 @@ def box_rho(
 
 class _Check:
     """The snapped-edge check (:func:`render.node_boxes.snap_over`) of some leaves, with the
-    per-frame parts done once."""
+    per-frame parts done once and the strips' bounds from the kernels ``kn``
+    (:func:`strip_bounds`)."""
 
-    def __init__(self, blocks, grid, camera, fn, tau, zranges, boxes: NodeBoxes, box_slots):
-        self.blocks, self.grid, self.camera, self.fn, self.tau = blocks, grid, camera, fn, tau
+    def __init__(self, kn, blocks, grid, camera, fn, tau, zranges, boxes: NodeBoxes, box_slots):
+        self.kn, self.blocks, self.grid, self.camera = kn, blocks, grid, camera
+        self.fn, self.tau = fn, tau
         self.zr = np.asarray(zranges, dtype=np.float64)
         self.boxes, self.box_slots = boxes, box_slots
-        self.full = np.array([boxes.level((int(x[0]), int(x[1]))) >= boxes.k for x in blocks],
-                             dtype=bool).reshape(len(blocks))  # fmt: skip
+        self.buf, self.off, self.side = boxes.flat(blocks)
+        self.lev = np.array([boxes.level((int(x[0]), int(x[1]))) for x in blocks], np.int64)
+        self.full = self.lev >= boxes.k
         self.bx0, self.by1 = block_origins(grid, blocks[:, 0], blocks[:, 1])
 
     def __call__(self, b, d, r, c, lv, delta, snap) -> np.ndarray:
         """``(m, 4)`` whether each snapped edge of the leaves ``(b, d, r, c)`` (levels ``lv``,
         errors ``delta``, snaps ``snap``: every leaf has one, its error finite) fails."""
-        boxes, blocks = self.boxes, self.blocks
-
-        def heights(sub: np.ndarray) -> np.ndarray:
-            return boxes.vertex_heights(blocks[b[sub]], d[sub], r[sub], c[sub], lv[sub])
-
-        def cells(sub: np.ndarray) -> np.ndarray:
-            return boxes.cell_bounds(blocks[b[sub]], d[sub], r[sub], c[sub], lv[sub])
-
-        cl = lv - d
-        total = snap_excess(cl, snap, heights, cells)
+        kn, boxes = self.kn, self.boxes
+        total = strip_bounds(kn, self, b, d, r, c, lv, snap)
         full = self.full[b]
-        if full.any():
+        if full.any():  # full resolution at hand: the strips' exact error at their samples
             f = np.flatnonzero(full)
-
-            def windows(sub: np.ndarray) -> np.ndarray:
-                g = f[sub]
-                return boxes.full_windows(blocks[b[g]], d[g], r[g], c[g])
-
-            total[f] = snap_exact(cl[f], boxes.k - lv[f], snap[f], windows)
+            total[f] = exact_bounds(kn, self, b[f], d[f], r[f], c[f], lv[f], snap[f])
         lo = np.empty(len(b))
         hi = np.empty(len(b))
         for depth in np.unique(d).tolist():
@@ -106,6 +96,61 @@ class _Check:
         over = np.zeros(snap.shape, dtype=bool)
         over[i, e] = ~(rho <= self.tau)
         return over
+
+
+def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
+    """:func:`render.snap_error.snap_exact` of leaves ``(b, d, r, c)`` of blocks held at full
+    resolution: per group of one cell count, spacing and snaps the kernel ``kn.exact_max``
+    reading the pooled grids."""
+    k = ck.boxes.k
+    cl, sp = lv - d, k - lv
+    out = np.zeros((len(b), 4))
+    code = ((((cl * 64 + sp) * 64 + snap[:, 0]) * 64 + snap[:, 1]) * 64 + snap[:, 2]) * 64
+    code = code + snap[:, 3]
+    order = np.argsort(code, kind="stable")
+    cuts = np.flatnonzero(np.diff(code[order])) + 1
+    for idx in np.split(order, cuts):
+        i0 = idx[0]
+        rows = _sample_rows(int(cl[i0]), tuple(int(t) for t in snap[i0]), int(sp[i0]))
+        wside = (1 << int(cl[i0] + sp[i0])) + 1
+        for e, part in enumerate(rows):
+            if part is None:
+                continue
+            at, cor, w = part
+            out[idx, e] = kn.exact_max(ck.buf, ck.off, ck.side, b[idx], d[idx], r[idx], c[idx],
+                                       at, cor, w, wside, k)  # fmt: skip
+    return out
+
+
+def strip_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
+    """:func:`render.snap_error.snap_excess` with the cells' bounds (as
+    :func:`render.node_boxes.snap_over` calls it) of leaves ``(b, d, r, c)``: per group of one
+    cell count and snaps, the reference's matrix product, the rest in the kernels ``kn``."""
+    cl = lv - d
+    out = np.zeros((len(b), 4))
+    code = (((cl * 64 + snap[:, 0]) * 64 + snap[:, 1]) * 64 + snap[:, 2]) * 64 + snap[:, 3]
+    order = np.argsort(code, kind="stable")
+    cuts = np.flatnonzero(np.diff(code[order])) + 1
+    for idx in np.split(order, cuts):
+        i0 = idx[0]
+        cells = int(cl[i0])
+        key = (cells, tuple(int(t) for t in snap[i0]))
+        tmpl = _strip_template(*key)
+        weights = _difference_rows(*key)
+        n = 1 << cells
+        bb, dd, rr, cc, ll = b[idx], d[idx], r[idx], c[idx], lv[idx]
+        h = kn.gather_heights(ck.buf, ck.off, ck.side, ck.lev, bb, dd, rr, cc, ll, n)
+        cb = kn.gather_cells(ck.buf, ck.off, ck.side, bb, rr, cc, ll, n, ck.boxes.k)
+        masked = np.isnan(h).any(axis=1)
+        h0 = np.where(masked[:, None], 0.0, h)
+        for e, part in enumerate(tmpl):
+            if part is None:
+                continue
+            tj, ti, box = part
+            w, starts = weights[e]
+            dm = np.abs(h0 @ w.T)
+            out[idx, e] = kn.strip_max(dm, starts, box, tj, ti, h, masked, cb, n, True)
+    return out
 
 
 def stitch_compiled(
@@ -138,7 +183,7 @@ def stitch_compiled(
     arrays = tuple(table.depth_array(d) for d in range(table.depths))
     check = None
     if tau is not None and box_slots is not None:
-        check = _Check(blocks, grid, camera, fn, tau, zranges, boxes, box_slots)
+        check = _Check(kn, blocks, grid, camera, fn, tau, zranges, boxes, box_slots)
     block = patches.block.astype(np.int64)
     depth = patches.depth.astype(np.int64)
     row = patches.row.astype(np.int64)
