@@ -2,17 +2,17 @@
 the restriction and snaps of every edge (:func:`restrict`), the snapped-edge check's
 bookkeeping (:func:`over_todo`, :func:`over_victims`, as :class:`render.stitch_rounds.OverCache`),
 and a round's split (:func:`split`: kept leaves first, then each victim's four children, with
-their patch errors, the carried neighbours and checks, and the sorted leaf keys updated in place
-of a new sort). Leaf keys use the fixed finest depth ``K`` (any depth at least every leaf's: a
-probe one finest node beyond an edge midpoint lies in the same leaf whatever the finest depth,
-:mod:`render.stitch_rounds`), so kept leaves keep their keys from round to round. Integer work
-and float32 -> float64 copies only: the same values as the numpy reference."""
+the carried neighbours and checks, and the sorted leaf keys updated in place of a new sort).
+Leaf keys are Z-order codes at a fixed finest depth (any depth at least every leaf's: a probe
+one finest node beyond an edge midpoint lies in the same leaf whatever the finest depth,
+:mod:`render.stitch_rounds`), so kept leaves keep their keys from round to round and one binary
+search finds the leaf holding a probe. Integer work only: the same values as the numpy
+reference."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from render._select_nb import _lower
 from render._snap_nb import (  # noqa: F401 (the check's kernels, used through this module)
     exact_max,
     gather_cells,
@@ -25,26 +25,55 @@ _jit = cached_njit(nogil=True, error_model="numpy")
 
 
 @_jit
-def leaf_keys(bk_r, bk_c, block, depth, row, col, nr, nc):
-    """Each leaf's key ``(d * nr + gr) * nc + gc`` (``gr``/``gc`` its global node row/column
-    at its depth ``d``, ``bk_r``/``bk_c`` the blocks' ids)."""
+def _spread(x):
+    """The bits of ``x`` (< 2**31) at the even positions."""
+    x &= 0x7FFFFFFF
+    x = (x | (x << 16)) & 0x0000FFFF0000FFFF
+    x = (x | (x << 8)) & 0x00FF00FF00FF00FF
+    x = (x | (x << 4)) & 0x0F0F0F0F0F0F0F0F
+    x = (x | (x << 2)) & 0x3333333333333333
+    return (x | (x << 1)) & 0x5555555555555555
+
+
+@_jit
+def _zkey(d, gr, gc, big):
+    """The Z-order code of the depth-``big`` corner of node ``(gr, gc)`` of depth ``d``."""
+    return (_spread(gr << (big - d)) << 1) | _spread(gc << (big - d))
+
+
+@_jit
+def leaf_keys(bk_r, bk_c, block, depth, row, col, big):
+    """Each leaf's key: the Z-order code of its corner at depth ``big`` (global node rows and
+    columns; ``bk_r``/``bk_c`` the blocks' ids). A leaf's depth-``big`` nodes are the codes
+    ``key .. key + 4**(big - d) - 1``, so the leaf holding a point is its code's predecessor."""
     n = depth.shape[0]
     out = np.empty(n, np.int64)
     for i in range(n):
         d = depth[i]
-        gr = (bk_r[block[i]] << d) + row[i]
-        gc = (bk_c[block[i]] << d) + col[i]
-        out[i] = (d * nr + gr) * nc + gc
+        out[i] = _zkey(d, (bk_r[block[i]] << d) + row[i], (bk_c[block[i]] << d) + col[i], big)
     return out
 
 
 @_jit
-def probe(rows, sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc, dcount):
+def _upper(keys, x):
+    """``np.searchsorted(keys, x, side="right")`` for a scalar ``x``."""
+    lo, hi = 0, keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] <= x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@_jit
+def probe(rows, sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc):
     """``(len(rows), 4)`` the leaf across each edge (N, E, S, W) of the leaves ``rows``, -1 for
-    none: the deepest leaf (``dcount[d]`` leaves at depth ``d``) whose key ``sk`` (sorted,
-    ``order`` their leaves) holds the probe one depth-``big`` node beyond the edge midpoint."""
+    none: the leaf (keys ``sk`` sorted, ``order`` their leaves) holding the probe one
+    depth-``big`` node beyond the edge midpoint (``render.stitch_rounds.neighbours_of``'s
+    probe; ``nr``/``nc`` the depth-``big`` node rows and columns the probes may reach)."""
     m = rows.shape[0]
-    n = sk.shape[0]
     out = np.full((m, 4), -1, np.int64)
     for a in range(m):
         i = rows[a]
@@ -65,17 +94,13 @@ def probe(rows, sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc, dcou
                 fr, fc = fr0 + mid, fc0 - 1
             if fr < 0 or fc < 0 or fr >= nr or fc >= nc:
                 continue
-            for dd in range(big, -1, -1):
-                if dcount[dd] == 0:
-                    continue
-                s = big - dd
-                q = (dd * nr + (fr >> s)) * nc + (fc >> s)
-                pos = _lower(sk, q)
-                if pos > n - 1:
-                    pos = n - 1
-                if sk[pos] == q:
-                    out[a, e] = order[pos]
-                    break
+            z = (_spread(fr) << 1) | _spread(fc)
+            pos = _upper(sk, z) - 1
+            if pos < 0:
+                continue
+            j = order[pos]
+            if z - sk[pos] < np.int64(1) << (2 * (big - depth[j])):
+                out[a, e] = j
     return out
 
 
@@ -180,15 +205,14 @@ def over_victims(c_over, nbr, depth, block, res, k, p):
 @_jit
 def split(
     victims, block, depth, row, col, level, delta, src, nbr, c_snap, c_over, c_known,
-    sk, order, keys, dcount, res, arrays, slots, bk_r, bk_c, nr, nc, k, p,
+    sk, order, keys, res, bk_r, bk_c, big, k, p,
 ):  # fmt: skip
     """Replace the leaves ``victims`` (ascending) by their four children (kept leaves first in
     order, then the children, as :func:`render.select._split`): the new leaf arrays, their
     neighbours (``-1`` where to probe again) and the rows to probe again, the check caches,
-    and the sorted keys (``sk``, ``order``, per leaf ``keys``) and per-depth counts. Children's
-    errors come from the patch table's per-depth ``arrays`` (``slots`` per block; 0 at full
-    resolution); ``src`` is each leaf's row in the selection, -1 for a new one (its ``rho`` is
-    still to be computed)."""
+    and the sorted keys (``sk``, ``order``, per leaf ``keys``: :func:`leaf_keys` at ``big``).
+    The children's errors are left NaN (the caller looks them up); ``src`` is each leaf's row
+    in the selection, -1 for a new one (its ``rho`` is still to be computed)."""
     n = depth.shape[0]
     nv = victims.shape[0]
     keep = np.ones(n, np.bool_)
@@ -241,14 +265,11 @@ def split(
         if stale:
             redo[nr_redo] = a
             nr_redo += 1
-    depths = len(arrays)
     ck = np.empty(4 * nv, np.int64)
     for v in range(nv):
         i = victims[v]
         b = block[i]
         d = depth[i] + 1
-        dcount[d - 1] -= 1
-        dcount[d] += 4
         lv = min(min(k, d + p), res[b])
         for q in range(4):
             a = nk + 4 * v + q
@@ -259,9 +280,9 @@ def split(
             o_row[a] = r
             o_col[a] = c
             o_level[a] = lv
-            o_delta[a] = np.float64(arrays[d][slots[b], r, c]) if d < depths else 0.0
+            o_delta[a] = np.nan
             o_src[a] = -1
-            key = (d * nr + (bk_r[b] << d) + r) * nc + (bk_c[b] << d) + c
+            key = _zkey(d, (bk_r[b] << d) + r, (bk_c[b] << d) + c, big)
             o_keys[a] = key
             ck[4 * v + q] = key
             redo[nr_redo] = a

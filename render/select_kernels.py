@@ -65,8 +65,15 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
 
 def warm_up() -> bool:
     """Import numba and the compiled walk now, after which ``auto`` uses it (its kernels load
-    from numba's cache, or compile, on their first call); whether it is available."""
-    return warm(_load_numba, _READY)
+    from numba's cache, or compile, on their first call; the stitch's kernels are loaded here,
+    :func:`render.stitch_fast.warm_up`); whether it is available."""
+    ok = warm(_load_numba, _READY)
+    kn = stitch_kernels(_load_numba()) if ok else None
+    if kn is not None:
+        from render import stitch_fast
+
+        stitch_fast.warm_up(kn)
+    return ok
 
 
 def walk(

@@ -14,6 +14,7 @@ reads it). The metrics are elementwise, so batching them gives the reference's v
 
 from __future__ import annotations
 
+from functools import cache
 from types import ModuleType
 from typing import TYPE_CHECKING
 
@@ -98,6 +99,33 @@ class _Check:
         return over
 
 
+def _c64(a: np.ndarray, dtype=np.int64) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+@cache
+def _strips(cells: int, snaps: tuple[int, int, int, int]) -> list:
+    """Per edge the strip's triangles ``(tj, ti, box)`` and difference rows ``(W, starts)``
+    (:mod:`render.snap_error`'s cached ones, contiguous int64 for the kernels), or None."""
+    out = []
+    for part, wt in zip(_strip_template(cells, snaps), _difference_rows(cells, snaps), strict=True):
+        if part is None:
+            out.append(None)
+            continue
+        tj, ti, box = part
+        out.append((_c64(tj), _c64(ti), _c64(box), wt[0], _c64(wt[1])))
+    return out
+
+
+@cache
+def _samples(cells: int, snaps: tuple[int, int, int, int], spacing: int) -> list:
+    """:func:`render.snap_error._sample_rows`, contiguous (int64 indices) for the kernels."""
+    return [
+        None if part is None else (_c64(part[0]), _c64(part[1]), _c64(part[2], np.float64))
+        for part in _sample_rows(cells, snaps, spacing)
+    ]
+
+
 def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
     """:func:`render.snap_error.snap_exact` of leaves ``(b, d, r, c)`` of blocks held at full
     resolution: per group of one cell count, spacing and snaps the kernel ``kn.exact_max``
@@ -111,7 +139,7 @@ def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
     cuts = np.flatnonzero(np.diff(code[order])) + 1
     for idx in np.split(order, cuts):
         i0 = idx[0]
-        rows = _sample_rows(int(cl[i0]), tuple(int(t) for t in snap[i0]), int(sp[i0]))
+        rows = _samples(int(cl[i0]), tuple(int(t) for t in snap[i0]), int(sp[i0]))
         wside = (1 << int(cl[i0] + sp[i0])) + 1
         for e, part in enumerate(rows):
             if part is None:
@@ -135,19 +163,17 @@ def strip_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
         i0 = idx[0]
         cells = int(cl[i0])
         key = (cells, tuple(int(t) for t in snap[i0]))
-        tmpl = _strip_template(*key)
-        weights = _difference_rows(*key)
+        strips = _strips(*key)
         n = 1 << cells
         bb, dd, rr, cc, ll = b[idx], d[idx], r[idx], c[idx], lv[idx]
         h = kn.gather_heights(ck.buf, ck.off, ck.side, ck.lev, bb, dd, rr, cc, ll, n)
         cb = kn.gather_cells(ck.buf, ck.off, ck.side, bb, rr, cc, ll, n, ck.boxes.k)
         masked = np.isnan(h).any(axis=1)
         h0 = np.where(masked[:, None], 0.0, h)
-        for e, part in enumerate(tmpl):
+        for e, part in enumerate(strips):
             if part is None:
                 continue
-            tj, ti, box = part
-            w, starts = weights[e]
+            tj, ti, box, w, starts = part
             dm = np.abs(h0 @ w.T)
             out[idx, e] = kn.strip_max(dm, starts, box, tj, ti, h, masked, cb, n, True)
     return out
@@ -180,7 +206,6 @@ def stitch_compiled(
     nc = (int(bk_c.max()) + 2) << big
     slots = np.ascontiguousarray(table.slots(blocks), dtype=np.int64)
     box_slots = node_box_slots(fn, boxes, blocks, res)
-    arrays = tuple(table.depth_array(d) for d in range(table.depths))
     check = None
     if tau is not None and box_slots is not None:
         check = _Check(kn, blocks, grid, camera, fn, tau, zranges, boxes, box_slots)
@@ -192,12 +217,10 @@ def stitch_compiled(
     delta = patches.delta.astype(np.float64)
     n = len(depth)
     src = np.arange(n, dtype=np.int64)
-    keys = kn.leaf_keys(bk_r, bk_c, block, depth, row, col, nr, nc)
+    keys = kn.leaf_keys(bk_r, bk_c, block, depth, row, col, big)
     order = np.argsort(keys)
     sk = keys[order]
-    dcount = np.bincount(depth, minlength=big + 1).astype(np.int64)
-    nbr = kn.probe(np.arange(n), sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc,
-                   dcount)  # fmt: skip
+    nbr = kn.probe(np.arange(n), sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc)
     c_snap = np.zeros((n, 4), np.int64)
     c_over = np.zeros((n, 4), bool)
     c_known = np.zeros(n, bool)
@@ -220,14 +243,18 @@ def stitch_compiled(
             )  # fmt: skip
         leaves, nbr, redo, caches, sorted_keys = kn.split(
             victims, block, depth, row, col, level, delta, src, nbr, c_snap, c_over, c_known,
-            sk, order, keys, dcount, res, arrays, slots, bk_r, bk_c, nr, nc, k, p,
+            sk, order, keys, res, bk_r, bk_c, big, k, p,
         )  # fmt: skip
         block, depth, row, col, level, delta, src = leaves
+        nk = len(depth) - 4 * len(victims)  # the children's errors (as select._split)
+        cd = depth[nk:]
+        for dd in np.unique(cd).tolist():
+            m = nk + np.flatnonzero(cd == dd)
+            delta[m] = table.delta(slots[block[m]], dd, row[m], col[m])
         c_snap, c_over, c_known = caches
         sk, order, keys = sorted_keys
         if redo.size:
-            nbr[redo] = kn.probe(redo, sk, order, bk_r, bk_c, block, depth, row, col, big, nr,
-                                 nc, dcount)  # fmt: skip
+            nbr[redo] = kn.probe(redo, sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc)
     raise SelectionError(f"stitching did not settle in {max_rounds} rounds")
 
 
@@ -251,3 +278,25 @@ def _rho(patches, grid, camera, fn, zranges, boxes, box_slots, src, block, depth
         bx = None if box_slots is None else (boxes, (box_slots[0][b[m]], box_slots[1][b[m]]))
         rho[new[m]] = node_rho(fn, grid, dl[m], cx, cy, dd, zr[m], camera, bx, r[m], c[m])
     return rho
+
+
+def warm_up(kn: ModuleType) -> None:
+    """Load (or compile) every kernel of ``kn`` with a real frame's argument types, on a
+    one-leaf stitch (so no frame pays for it)."""
+    i1, z1 = np.zeros(1, np.int64), np.zeros(1)
+    one = np.ones(1, np.int64)
+    keys = kn.leaf_keys(i1, i1, i1, i1, i1, i1, 3)
+    nbr = kn.probe(i1, keys, i1, i1, i1, i1, i1, i1, i1, 3, 8, 8)
+    snap, _, victims = kn.restrict(one, i1, i1, nbr, one, 2, 1)
+    c_snap, c_over, c_known = np.zeros((1, 4), np.int64), np.zeros((1, 4), bool), np.zeros(1, bool)
+    kn.over_todo(snap, c_snap, c_over, c_known, z1)
+    kn.over_victims(c_over, nbr, i1, i1, one, 2, 1)
+    kn.split(i1, i1, i1, i1, i1, one, z1, i1, nbr, c_snap, c_over, c_known, keys, i1, keys, 2 * one,
+             i1, i1, 3, 2, 1)  # fmt: skip
+    off, side = np.zeros((1, 3), np.int64), np.ones((1, 3), np.int64)
+    buf = np.zeros(4)
+    h = kn.gather_heights(buf, off, side, i1, i1, i1, i1, i1, i1, 0)
+    cb = kn.gather_cells(buf, off, side, i1, i1, i1, i1, 1, 2)
+    box = np.zeros((1, 4), np.int64)
+    kn.strip_max(h, i1, box, box[:, :3], box[:, :3], h, np.zeros(1, bool), cb, 0, True)
+    kn.exact_max(buf, off, side, i1, i1, i1, i1, i1, box[:, :3], np.zeros((1, 3)), 1, 0)
