@@ -58,6 +58,24 @@ def gather_cells(buf, off, side, b, r, c, lv, n, k):
 
 
 @_jit
+def gather_patches(buf, off, side, lev, b, d, r, c, lv, n, k):
+    """:func:`gather_heights` (``h``), the same with masked patches' heights zeroed (``h0``),
+    which patches are masked (a NaN height) and :func:`gather_cells` (``cb``)."""
+    h = gather_heights(buf, off, side, lev, b, d, r, c, lv, n)
+    h0 = h.copy()
+    m = h.shape[0]
+    masked = np.zeros(m, np.bool_)
+    for a in range(m):
+        for q in range(h.shape[1]):
+            if math.isnan(h[a, q]):
+                masked[a] = True
+                break
+        if masked[a]:
+            h0[a, :] = 0.0
+    return h, h0, masked, gather_cells(buf, off, side, b, r, c, lv, n, k)
+
+
+@_jit
 def _max(a, b):
     """``np.maximum`` of two floats (NaN if either is NaN)."""
     if math.isnan(a) or a >= b:

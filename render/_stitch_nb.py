@@ -17,6 +17,7 @@ from render._snap_nb import (  # noqa: F401 (the check's kernels, used through t
     exact_max,
     gather_cells,
     gather_heights,
+    gather_patches,
     strip_max,
 )
 from tiler.jit import cached_njit

@@ -166,10 +166,9 @@ def strip_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
         strips = _strips(*key)
         n = 1 << cells
         bb, dd, rr, cc, ll = b[idx], d[idx], r[idx], c[idx], lv[idx]
-        h = kn.gather_heights(ck.buf, ck.off, ck.side, ck.lev, bb, dd, rr, cc, ll, n)
-        cb = kn.gather_cells(ck.buf, ck.off, ck.side, bb, rr, cc, ll, n, ck.boxes.k)
-        masked = np.isnan(h).any(axis=1)
-        h0 = np.where(masked[:, None], 0.0, h)
+        h, h0, masked, cb = kn.gather_patches(
+            ck.buf, ck.off, ck.side, ck.lev, bb, dd, rr, cc, ll, n, ck.boxes.k
+        )
         for e, part in enumerate(strips):
             if part is None:
                 continue
@@ -272,6 +271,14 @@ def _rho(patches, grid, camera, fn, zranges, boxes, box_slots, src, block, depth
     blk = patches.blocks[b]
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
     zr = np.asarray(zranges, dtype=np.float64)[b]
+    if box_slots is not None:  # node boxes: one metric call for every depth
+        lo, hi = np.empty(len(b)), np.empty(len(b))
+        for dd in np.unique(d).tolist():
+            m = np.flatnonzero(d == dd)
+            sl = (box_slots[0][b[m]], box_slots[1][b[m]])
+            lo[m], hi[m] = boxes.zrange(sl, zr[m], dd, r[m], c[m])
+        rho[new] = box_rho(fn, grid, dl, bx0, by1, d, r, c, lo, hi, camera)
+        return rho
     for dd in np.unique(d).tolist():
         m = d == dd
         cx, cy = node_centres_at(grid, bx0[m], by1[m], dd, r[m], c[m])
@@ -296,7 +303,7 @@ def warm_up(kn: ModuleType) -> None:
     off, side = np.zeros((1, 3), np.int64), np.ones((1, 3), np.int64)
     buf = np.zeros(4)
     h = kn.gather_heights(buf, off, side, i1, i1, i1, i1, i1, i1, 0)
-    cb = kn.gather_cells(buf, off, side, i1, i1, i1, i1, 1, 2)
+    h, _, _, cb = kn.gather_patches(buf, off, side, i1, i1, i1, i1, i1, i1, 0, 2)
     box = np.zeros((1, 4), np.int64)
     kn.strip_max(h, i1, box, box[:, :3], box[:, :3], h, np.zeros(1, bool), cb, 0, True)
     kn.exact_max(buf, off, side, i1, i1, i1, i1, i1, box[:, :3], np.zeros((1, 3)), 1, 0)

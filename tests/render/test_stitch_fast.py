@@ -31,7 +31,7 @@ BLOCKS = [(r, c) for r in range(3) for c in range(3)]
 RES = [K, K, K - 1, K, K - 2, K, K, K - 1, K]
 MASKED = ((1, 1), (0, 2), (2, 1))  # blocks held coarser with nodata inside (NaN heights)
 NAMES = ("leaf_keys", "probe", "restrict", "over_todo", "over_victims", "split",
-         "gather_heights", "gather_cells", "strip_max", "exact_max")  # fmt: skip
+         "gather_heights", "gather_cells", "gather_patches", "strip_max", "exact_max")  # fmt: skip
 
 
 @pytest.fixture(scope="module")
