@@ -131,13 +131,13 @@ def strip_max(dm, starts, box, tj, ti, h, masked, cb, n, with_cb):
 
 
 @_jit
-def exact_max(buf, off, side, b, d, r, c, at, cor, wts, wside, k):
+def exact_max(buf, off, side, b, d, r, c, at_j, at_i, cor_j, cor_i, wts, k):
     """Per patch of a block held at full resolution (level ``k``) the largest
-    ``|h - I|`` over one strip's samples (:func:`render.snap_error.snap_exact`: ``at`` the
-    samples' and ``cor`` their triangle corners' flat indices into the patch's ``wside``-wide
-    window, ``wts`` the corners' weights; NaN samples ignored, 0 if none is finite)."""
+    ``|h - I|`` over one strip's samples (:func:`render.snap_error.snap_exact`): sample ``q`` at
+    window row/column ``(at_j, at_i)[q]``, its triangle's corners at ``(cor_j, cor_i)[q]``
+    with weights ``wts[q]``; NaN samples ignored, 0 if none is finite."""
     m = b.shape[0]
-    nq = at.shape[0]
+    nq = at_j.shape[0]
     out = np.empty(m)
     for a in range(m):
         bb = b[a]
@@ -146,12 +146,10 @@ def exact_max(buf, off, side, b, d, r, c, at, cor, wts, wside, k):
         base = o + r[a] * span * s + c[a] * span
         worst = math.nan
         for q in range(nq):
-            x = at[q]
-            hq = buf[base + (x // wside) * s + x % wside]
-            y0, y1, y2 = cor[q, 0], cor[q, 1], cor[q, 2]
-            h0 = buf[base + (y0 // wside) * s + y0 % wside]
-            h1 = buf[base + (y1 // wside) * s + y1 % wside]
-            h2 = buf[base + (y2 // wside) * s + y2 % wside]
+            hq = buf[base + at_j[q] * s + at_i[q]]
+            h0 = buf[base + cor_j[q, 0] * s + cor_i[q, 0]]
+            h1 = buf[base + cor_j[q, 1] * s + cor_i[q, 1]]
+            h2 = buf[base + cor_j[q, 2] * s + cor_i[q, 2]]
             interp = (h0 * wts[q, 0] + h1 * wts[q, 1]) + h2 * wts[q, 2]
             worst = np.fmax(worst, abs(hq - interp))
         out[a] = worst if math.isfinite(worst) else 0.0

@@ -119,11 +119,18 @@ def _strips(cells: int, snaps: tuple[int, int, int, int]) -> list:
 
 @cache
 def _samples(cells: int, snaps: tuple[int, int, int, int], spacing: int) -> list:
-    """:func:`render.snap_error._sample_rows`, contiguous (int64 indices) for the kernels."""
-    return [
-        None if part is None else (_c64(part[0]), _c64(part[1]), _c64(part[2], np.float64))
-        for part in _sample_rows(cells, snaps, spacing)
-    ]
+    """:func:`render.snap_error._sample_rows` with the window indices as rows and columns
+    (``at_j, at_i, cor_j, cor_i, wts``, contiguous) for the kernels."""
+    side = (1 << (cells + spacing)) + 1
+    out = []
+    for part in _sample_rows(cells, snaps, spacing):
+        if part is None:
+            out.append(None)
+            continue
+        at, cor, w = (np.asarray(v) for v in part)
+        out.append((_c64(at // side), _c64(at % side), _c64(cor // side), _c64(cor % side),
+                    _c64(w, np.float64)))  # fmt: skip
+    return out
 
 
 def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
@@ -140,13 +147,11 @@ def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
     for idx in np.split(order, cuts):
         i0 = idx[0]
         rows = _samples(int(cl[i0]), tuple(int(t) for t in snap[i0]), int(sp[i0]))
-        wside = (1 << int(cl[i0] + sp[i0])) + 1
         for e, part in enumerate(rows):
             if part is None:
                 continue
-            at, cor, w = part
             out[idx, e] = kn.exact_max(ck.buf, ck.off, ck.side, b[idx], d[idx], r[idx], c[idx],
-                                       at, cor, w, wside, k)  # fmt: skip
+                                       *part, k)  # fmt: skip
     return out
 
 
@@ -306,4 +311,5 @@ def warm_up(kn: ModuleType) -> None:
     h, _, _, cb = kn.gather_patches(buf, off, side, i1, i1, i1, i1, i1, i1, 0, 2)
     box = np.zeros((1, 4), np.int64)
     kn.strip_max(h, i1, box, box[:, :3], box[:, :3], h, np.zeros(1, bool), cb, 0, True)
-    kn.exact_max(buf, off, side, i1, i1, i1, i1, i1, box[:, :3], np.zeros((1, 3)), 1, 0)
+    c3 = np.zeros((1, 3), np.int64)
+    kn.exact_max(buf, off, side, i1, i1, i1, i1, i1, i1, c3, c3, np.zeros((1, 3)), 0)
