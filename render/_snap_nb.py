@@ -131,26 +131,30 @@ def strip_max(dm, starts, box, tj, ti, h, masked, cb, n, with_cb):
 
 
 @_jit
-def exact_max(buf, off, side, b, d, r, c, at_j, at_i, cor_j, cor_i, wts, k):
-    """Per patch of a block held at full resolution (level ``k``) the largest
-    ``|h - I|`` over one strip's samples (:func:`render.snap_error.snap_exact`): sample ``q`` at
-    window row/column ``(at_j, at_i)[q]``, its triangle's corners at ``(cor_j, cor_i)[q]``
-    with weights ``wts[q]``; NaN samples ignored, 0 if none is finite."""
+def exact_all(buf, off, side, b, d, r, c, lo, hi, at_j, at_i, cor_j, cor_i, wts, k):
+    """Per patch ``(b, d, r, c)`` of a block held at full resolution (level ``k``) and edge
+    the largest ``|h - I|`` over the strip's samples (:func:`render.snap_error.snap_exact`):
+    edge ``e`` of patch ``a`` takes the samples ``lo[a, e]:hi[a, e]`` of the templates (sample
+    ``q`` at window row/column ``(at_j, at_i)[q]``, its triangle's corners at
+    ``(cor_j, cor_i)[q]`` with weights ``wts[q]``); NaN samples ignored, 0 if none is finite
+    or ``lo < 0`` (an edge without moved triangles)."""
     m = b.shape[0]
-    nq = at_j.shape[0]
-    out = np.empty(m)
+    out = np.zeros((m, 4))
     for a in range(m):
         bb = b[a]
         o, s = off[bb, 0], side[bb, 0]
         span = np.int64(1) << (k - d[a])
         base = o + r[a] * span * s + c[a] * span
-        worst = math.nan
-        for q in range(nq):
-            hq = buf[base + at_j[q] * s + at_i[q]]
-            h0 = buf[base + cor_j[q, 0] * s + cor_i[q, 0]]
-            h1 = buf[base + cor_j[q, 1] * s + cor_i[q, 1]]
-            h2 = buf[base + cor_j[q, 2] * s + cor_i[q, 2]]
-            interp = (h0 * wts[q, 0] + h1 * wts[q, 1]) + h2 * wts[q, 2]
-            worst = np.fmax(worst, abs(hq - interp))
-        out[a] = worst if math.isfinite(worst) else 0.0
+        for e in range(4):
+            if lo[a, e] < 0:
+                continue
+            worst = math.nan
+            for q in range(lo[a, e], hi[a, e]):
+                hq = buf[base + at_j[q] * s + at_i[q]]
+                h0 = buf[base + cor_j[q, 0] * s + cor_i[q, 0]]
+                h1 = buf[base + cor_j[q, 1] * s + cor_i[q, 1]]
+                h2 = buf[base + cor_j[q, 2] * s + cor_i[q, 2]]
+                interp = (h0 * wts[q, 0] + h1 * wts[q, 1]) + h2 * wts[q, 2]
+                worst = np.fmax(worst, abs(hq - interp))
+            out[a, e] = worst if math.isfinite(worst) else 0.0
     return out

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from render._snap_nb import (  # noqa: F401 (the check's kernels, used through this module)
-    exact_max,
+    exact_all,
     gather_cells,
     gather_heights,
     gather_patches,

@@ -133,26 +133,51 @@ def _samples(cells: int, snaps: tuple[int, int, int, int], spacing: int) -> list
     return out
 
 
+class _Samples:
+    """Every strip sample template used so far (:func:`_samples`), back to back, so one kernel
+    call takes templates of many groups: per ``(cells, snaps, spacing)`` each edge's
+    ``(lo, hi)`` rows (-1 for none)."""
+
+    def __init__(self) -> None:
+        self.spans: dict[tuple, np.ndarray] = {}
+        self._parts: list[tuple] = []
+        self.arrays: tuple[np.ndarray, ...] = ()
+        self.size = 0
+
+    def span(self, key: tuple) -> np.ndarray:
+        """``(4, 2)`` the rows of ``key``'s edges (``(cells, snaps, spacing)``)."""
+        out = self.spans.get(key)
+        if out is None:
+            out = np.full((4, 2), -1, np.int64)
+            for e, part in enumerate(_samples(*key)):
+                if part is not None:
+                    out[e] = self.size, self.size + len(part[0])
+                    self.size += len(part[0])
+                    self._parts.append(part)
+            cat = [np.concatenate([pt[i] for pt in self._parts]) for i in range(5)]
+            self.arrays = tuple(np.ascontiguousarray(a) for a in cat)
+            self.spans[key] = out
+        return out
+
+
+_SAMPLES = _Samples()
+
+
 def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
     """:func:`render.snap_error.snap_exact` of leaves ``(b, d, r, c)`` of blocks held at full
-    resolution: per group of one cell count, spacing and snaps the kernel ``kn.exact_max``
-    reading the pooled grids."""
+    resolution: one call of the kernel ``kn.exact_all`` reading the pooled grids, each leaf's
+    edges taking their group's templates (one cell count, spacing and snaps)."""
     k = ck.boxes.k
     cl, sp = lv - d, k - lv
-    out = np.zeros((len(b), 4))
     code = ((((cl * 64 + sp) * 64 + snap[:, 0]) * 64 + snap[:, 1]) * 64 + snap[:, 2]) * 64
     code = code + snap[:, 3]
-    order = np.argsort(code, kind="stable")
-    cuts = np.flatnonzero(np.diff(code[order])) + 1
-    for idx in np.split(order, cuts):
-        i0 = idx[0]
-        rows = _samples(int(cl[i0]), tuple(int(t) for t in snap[i0]), int(sp[i0]))
-        for e, part in enumerate(rows):
-            if part is None:
-                continue
-            out[idx, e] = kn.exact_max(ck.buf, ck.off, ck.side, b[idx], d[idx], r[idx], c[idx],
-                                       *part, k)  # fmt: skip
-    return out
+    uniq, first, inv = np.unique(code, return_index=True, return_inverse=True)
+    spans = np.stack([
+        _SAMPLES.span((int(cl[i]), tuple(int(t) for t in snap[i]), int(sp[i]))) for i in first
+    ])  # fmt: skip
+    per = spans[inv.reshape(-1)]  # (m, 4, 2)
+    lo, hi = np.ascontiguousarray(per[:, :, 0]), np.ascontiguousarray(per[:, :, 1])
+    return kn.exact_all(ck.buf, ck.off, ck.side, b, d, r, c, lo, hi, *_SAMPLES.arrays, k)
 
 
 def strip_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
@@ -312,4 +337,5 @@ def warm_up(kn: ModuleType) -> None:
     box = np.zeros((1, 4), np.int64)
     kn.strip_max(h, i1, box, box[:, :3], box[:, :3], h, np.zeros(1, bool), cb, 0, True)
     c3 = np.zeros((1, 3), np.int64)
-    kn.exact_max(buf, off, side, i1, i1, i1, i1, i1, i1, c3, c3, np.zeros((1, 3)), 0)
+    lo4 = np.full((1, 4), -1, np.int64)
+    kn.exact_all(buf, off, side, i1, i1, i1, i1, lo4, lo4, i1, i1, c3, c3, np.zeros((1, 3)), 0)
