@@ -170,9 +170,8 @@ def select_patches(
     depth, which bounds the depth difference of adjacent leaves). ``boxes`` (required for a
     metric that :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its
     own box. ``kernels`` (``auto``, ``numba``, ``numpy``; default ``TERRASTREAM_KERNELS``)
-    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one
-    (always this one with ``gaps``).
-    own box. ``gaps`` (the nodata rule ``"gap"``: per node the widest mixed cell of its level,
+    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one.
+    ``gaps`` (the nodata rule ``"gap"``: per node the widest mixed cell of its level,
     :meth:`render.frame.FrameServices.gap_field`, holding every drawn block) also splits a
     node while that cell can project to more than ``min(tau, 1)`` px
     (:func:`streamer.lod.horizontal_px`).
@@ -203,11 +202,13 @@ def select_patches(
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
     idx = np.flatnonzero(res >= 0)
-    nb = select_kernels.resolve(kernels) if gaps is None else None  # gap rule: numpy walk
+    nb = select_kernels.resolve(kernels)
     if nb is not None:
+        gap = None if gaps is None or gap_scale <= 0 else (gaps, gap_of, gap_scale)
         parts, clamped = select_kernels.walk(
             nb, grid, table, slots, fn, camera, float(tau), idx=idx, res=res, zr=zr, win=win,
             bx0=bx0, by1=by1, cull=cull, min_depth=min_depth, boxes=boxes, box_slots=box_slots,
+            gap=gap,
         )  # fmt: skip
         return _assemble(blk, parts, clamped)
     parts: list[tuple] = []

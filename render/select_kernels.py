@@ -20,7 +20,7 @@ import numpy as np
 from render.node_boxes import NodeBoxes, node_rho
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
-from streamer.lod import Metric, qiu_eq7
+from streamer.lod import Metric, horizontal_px, qiu_eq7
 from tiler.grid import BlockGrid
 from tiler.kernels import pick_warm, warm
 from tiler.quadtree import half_diagonal, node_span
@@ -95,10 +95,13 @@ def walk(
     min_depth: int,
     boxes: NodeBoxes | None,
     box_slots: tuple[np.ndarray, np.ndarray] | None,
+    gap: tuple[PatchErrorTable, np.ndarray, float] | None = None,
 ) -> tuple[list[tuple], int]:
     """``select_patches``' per-depth leaves ``(idx, depth, rows, cols, level, delta, rho)`` and
     its clamped count, from the kernels of ``nb`` (``cull`` a :class:`render.select.DiscCull`
-    or None, ``win`` None when no node can lie in padding)."""
+    or None, ``win`` None when no node can lie in padding; ``gap`` the nodata rule ``"gap"``'s
+    table of mixed-cell widths, each block's slot in it and ``tau / min(tau, 1)``: its rule
+    as the reference applies it, per depth with the numpy metric)."""
     k, p = grid.k, table.patch_log2
     n0 = len(idx)
     rows = np.zeros(n0, dtype=np.int64)
@@ -148,6 +151,13 @@ def walk(
         else:
             bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
             rho = node_rho(fn, grid, delta, cx, cy, depth, zr[idx], camera, bx, rows, cols)
+        if gap is not None:  # rho > tau also when the gap projects past min(tau, 1) px
+            gaps, gap_of, gap_scale = gap
+            w = gaps.delta(gap_of[idx], depth, rows, cols)
+            if (w > 0).any():
+                bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
+                g = node_rho(horizontal_px, grid, w, cx, cy, depth, zr[idx], camera, bx, rows, cols)
+                rho = np.maximum(rho, g * gap_scale)
         if depth + p >= k:
             level = np.minimum(k, res[idx])
             parts.append((idx, depth, rows, cols, level, delta, rho))

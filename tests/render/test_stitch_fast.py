@@ -258,3 +258,39 @@ def test_node_boxes_views_follow_the_pool():
         z = np.zeros(1, np.int64)
         got = boxes.vertex_heights(np.array([b]), z, z, z, np.full(1, K))
         assert np.array_equal(got[0], g)
+
+
+def _gap_table(p: int, seed: int) -> PatchTable:
+    """Mixed-cell widths (metres) in the masked blocks, 0 elsewhere (as ``gap_field``)."""
+    rng = np.random.default_rng(seed)
+    gaps = PatchTable(K, p)
+    for b in BLOCKS:
+        field = [np.zeros((1 << d, 1 << d), np.float32) for d in range(K)]
+        if b in MASKED:
+            for d in range(K):
+                f = field[d]
+                f[rng.random(f.shape) < 0.3] = rng.uniform(20.0, 400.0)
+        gaps.add(b, field)
+    return gaps
+
+
+@pytest.mark.parametrize("metric", ["conservative-view", "qiu"])
+def test_compiled_walk_with_the_gap_rule_equals_numpy(nb, scene, metric):
+    """``select_patches`` with ``gaps`` (the nodata rule ``"gap"``) now takes the compiled walk:
+    the same patches as the numpy walk; control: the gap rule does change the selection."""
+    p, (table, boxes, zr) = scene
+    gaps = _gap_table(p, seed=p)
+    kw = {"resident": RES, "zranges": zr, "boxes": boxes}
+    bad = changed = 0
+    for cam in cameras():
+        for tau in (0.5, 1.0, 2.0):
+            ref = select_patches(GRID, BLOCKS, table, cam, tau, metric, None, gaps=gaps,
+                                 kernels="numpy", **kw)  # fmt: skip
+            got = select_patches(GRID, BLOCKS, table, cam, tau, metric, None, gaps=gaps,
+                                 kernels="numba", **kw)  # fmt: skip
+            bad += bool(_diff(ref, got))
+            plain = select_patches(GRID, BLOCKS, table, cam, tau, metric, None, kernels="numba",
+                                   **kw)  # fmt: skip
+            changed += len(plain) != len(ref) or bool(_diff(plain, ref))
+    assert bad == 0
+    assert changed > 0
