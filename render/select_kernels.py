@@ -8,7 +8,8 @@ the reference's, one depth per step, with the per-node work of a depth in
 two kernel calls (:mod:`render._select_nb`); Qiu's metric and Kim's (``chunk-tessellation``,
 named by its ``select_kernel`` attribute) are compiled too, any other metric (the conservative
 ones, callables, node boxes) is the reference's :func:`render.node_boxes.node_rho`. Same patches,
-bit for bit (tests/render/test_select_kernels.py)."""
+bit for bit (tests/render/test_select_kernels.py). The stitch's rounds go with the same module
+(:func:`stitch_kernels`, :mod:`render.stitch_fast`; tests/render/test_stitch_fast.py)."""
 
 from __future__ import annotations
 
