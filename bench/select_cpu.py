@@ -1,10 +1,23 @@
 """CPU selection per frame (issue 14): ``jung-han`` and ``seamless-patches``, each with the numpy
-reference against the numba kernels, interleaved in one run, on the benchmark views.
+reference against the numba kernels, interleaved in one run, on the benchmark views; or
+(``--metric conservative-view``) ``qiu``'s selection with that metric (node boxes, the stitch's
+snapped-edge check) on the ``bench/bound_fov.py`` views.
 
 Usage::
 
     python bench/select_cpu.py [STORE ...] [--taus 0.5,1,2,4] [--sizes 320x240,1024x768]
                                [--frames 8] [--reps 3] [--no-compile] [--out PATH]
+    python bench/select_cpu.py --metric conservative-view [STORE ...] [--taus 0.5,1,2]
+                               [--fovs 5,45,120,170] [--patch-log2 1,4] [--nodata gap]
+                               [--sizes 320x240] [--reps 5] [--out PATH]
+
+``--metric conservative-view``: per store (default the two ``bench/bound_fov.py`` stores), patch
+size, FOV and τ the middle camera of ``make_path(store, "default")`` with its ``fov_y``
+replaced, the data streamed as ``render.pipeline.tradeoff`` does (every block in view on the
+GPU at full resolution, the levels a session at τ with the nodata rule would hold), and
+``qiu``'s ``select`` (``select_patches`` and ``stitch``) timed with ``TERRASTREAM_KERNELS``
+numpy and numba alternated ``--reps`` times (medians of wall and thread CPU ms), after a
+warm-up; each row says whether both gave the same patches (every array, clamped, violations).
 
 Views: the default fly-through of each store (``make_path(store, "default")``, ``--frames``
 cameras, as ``bench/lod_compare.py``), every block in view streamed at full resolution (a τ = 0
@@ -32,7 +45,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import N44W072_EQC, REPO, RESULTS, S4097, machine_info  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bench.common import N44W072_EQC, REPO, RESULTS, S4097, WORK, machine_info  # noqa: E402
 
 DEFAULT_STORES = [str(S4097), str(N44W072_EQC)]
 
@@ -150,17 +165,132 @@ def compile_times(path: str) -> dict[str, float]:
     return out
 
 
+BOUND_STORES = [str(WORK / "bound" / "s1025.zarr"), str(WORK / "bound" / "n44w072_auto.zarr")]
+_FIELDS = ("block", "depth", "row", "col", "level", "delta", "rho", "snap")
+
+
+def _same(a, b) -> bool:
+    """Every array of two selections bit for bit (and dtype), clamped and violations."""
+    arrays = all(
+        getattr(a, f).dtype == getattr(b, f).dtype and np.array_equal(getattr(a, f), getattr(b, f))
+        for f in _FIELDS
+    )
+    return arrays and (a.clamped, a.violations) == (b.clamped, b.violations)
+
+
+def measure_metric(path: str, metric: str, size, p: int, fovs, taus, reps: int, nodata: str):
+    """Rows ``{store, size, patch_log2, fov, tau, backend, wall_ms, cpu_ms, patches, same}``:
+    ``qiu``'s selection with ``metric``, numpy against numba (module doc)."""
+    from dataclasses import replace
+
+    from render import select_kernels
+    from render.pipeline import open_render_session
+    from render.renderer import RenderConfig, TerrainRenderer
+    from render.step import stream_step
+    from render.strategies import get_strategy
+    from streamer.run import make_path
+    from tiler.store import open_store
+
+    select_kernels.warm_up()
+    store = open_store(path)
+    cams = make_path(store, "default", frames=8, viewport=size)
+    base = cams[len(cams) // 2]
+    r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=p))
+    st = get_strategy("qiu", r, nodata=nodata)
+    env = os.environ.get("TERRASTREAM_KERNELS")
+
+    def select(backend, cam, tau, res):
+        os.environ["TERRASTREAM_KERNELS"] = backend
+        t0 = time.thread_time()
+        sel, ms = st.select(cam, tau, metric, resident=res)
+        return sel, ms, (time.thread_time() - t0) * 1000.0
+
+    rows = []
+    try:
+        for fov in fovs:
+            cam = replace(base, fov_y=fov)
+            with open_render_session(store, 0.0, metric, r.p) as s:
+                stream_step(s, r, cam)  # every block in view on the GPU at full resolution
+            for tau in taus:
+                with open_render_session(store, tau, metric, r.p, nodata=nodata) as s:
+                    res = dict(stream_step(s, None, cam)[1])
+                out = {b: select(b, cam, tau, res)[0] for b in ("numpy", "numba")}  # warm
+                same = _same(out["numpy"], out["numba"])
+                acc = {"numpy": ([], []), "numba": ([], [])}
+                for rep in range(reps):
+                    for b in ("numpy", "numba") if rep % 2 == 0 else ("numba", "numpy"):
+                        _, ms, cpu = select(b, cam, tau, res)
+                        acc[b][0].append(ms)
+                        acc[b][1].append(cpu)
+                for b, (wall, cpu) in acc.items():
+                    rows.append({
+                        "store": Path(path).name, "size": f"{size[0]}x{size[1]}",
+                        "metric": metric, "nodata": nodata, "patch_log2": p, "fov": fov,
+                        "tau": tau, "backend": b, "wall_ms": statistics.median(wall),
+                        "cpu_ms": statistics.median(cpu), "patches": len(out[b]),
+                        "same": same, "loadavg": os.getloadavg()[0],
+                    })  # fmt: skip
+    finally:
+        r.close()
+        if env is None:
+            os.environ.pop("TERRASTREAM_KERNELS", None)
+        else:
+            os.environ["TERRASTREAM_KERNELS"] = env
+    return rows
+
+
+def main_metric(a) -> None:
+    """The ``--metric`` run: table (numpy and numba side by side) and JSON."""
+    taus = [float(t) for t in (a.taus or "0.5,1,2").split(",")]
+    fovs = [float(f) for f in a.fovs.split(",")]
+    sizes = [tuple(int(v) for v in s.split("x")) for s in (a.sizes or "320x240").split(",")]
+    info, rows = machine_info(), []
+    print("store size p fov tau numpy_ms numba_ms ratio numpy_cpu numba_cpu patches same load1")
+    for path in a.stores or BOUND_STORES:
+        if not Path(path).exists():
+            print(f"# skipped {path}: missing (bench/bound_fov.py makes it)")
+            continue
+        for size in sizes:
+            for p in (int(v) for v in a.patch_log2.split(",")):
+                got = measure_metric(path, a.metric, size, p, fovs, taus, a.reps, a.nodata)
+                rows += got
+                for ref, nb in zip(got[::2], got[1::2], strict=True):
+                    print(
+                        f"{ref['store']} {ref['size']} {p} {ref['fov']:g} {ref['tau']:g} "
+                        f"{ref['wall_ms']:.2f} {nb['wall_ms']:.2f} "
+                        f"{ref['wall_ms'] / nb['wall_ms']:.1f} {ref['cpu_ms']:.2f} "
+                        f"{nb['cpu_ms']:.2f} {ref['patches']} {ref['same']} {nb['loadavg']:.2f}",
+                        flush=True,
+                    )
+    info["loadavg_at_end"] = os.getloadavg()
+    out = Path(a.out or RESULTS / f"select_cpu_{a.metric}.json")
+    out.write_text(json.dumps({"machine": info, "rows": rows}, indent=1))
+    print(f"# wrote {out.relative_to(REPO) if out.is_relative_to(REPO) else out}")
+
+
 def main() -> None:
     """Measure, print the table, write the JSON."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("stores", nargs="*", default=DEFAULT_STORES)
-    ap.add_argument("--taus", default="0.5,1,2,4")
-    ap.add_argument("--sizes", default="320x240,1024x768")
+    ap.add_argument("stores", nargs="*")
+    ap.add_argument("--taus", default=None, help="default 0.5,1,2,4 (--metric: 0.5,1,2)")
+    ap.add_argument("--sizes", default=None, help="default 320x240,1024x768 (--metric: 320x240)")
     ap.add_argument("--frames", type=int, default=8)
-    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--reps", type=int, default=None, help="default 3 (--metric: 5)")
     ap.add_argument("--no-compile", action="store_true")
-    ap.add_argument("--out", default=str(RESULTS / "select_cpu.json"))
+    ap.add_argument("--out", default=None, help="default bench/results/select_cpu[_METRIC].json")
+    ap.add_argument("--metric", default=None, help="time qiu's selection with this metric")
+    ap.add_argument("--patch-log2", default="1,4", help="--metric: patch sizes (log2 cells)")
+    ap.add_argument("--fovs", default="5,45,120,170", help="--metric: vertical FOVs")
+    ap.add_argument("--nodata", default="gap", help="--metric: qiu's nodata rule")
     a = ap.parse_args()
+    if a.metric is not None:
+        a.reps = 5 if a.reps is None else a.reps
+        main_metric(a)
+        return
+    a.stores = a.stores or DEFAULT_STORES
+    a.taus, a.sizes = a.taus or "0.5,1,2,4", a.sizes or "320x240,1024x768"
+    a.reps = 3 if a.reps is None else a.reps
+    a.out = a.out or str(RESULTS / "select_cpu.json")
     taus = [float(t) for t in a.taus.split(",")]
     sizes = [tuple(int(v) for v in s.split("x")) for s in a.sizes.split(",")]
     info = machine_info()

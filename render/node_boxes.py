@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from render.errors import SelectionError
+from render.flat_pool import FlatPool
 from render.snap_error import snap_exact, snap_excess
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
@@ -75,8 +76,9 @@ class NodeBoxes:
         self._neg_lo = PatchErrorTable(k, patch_log2)
         self._level: dict[Block, int] = {}
         self._zr: dict[Block, tuple[float, float]] = {}
-        self._grid: dict[Block, np.ndarray] = {}
+        self._grid: dict[Block, np.ndarray] = {}  # views of _pool: grid then bounds
         self._bound: dict[Block, list[np.ndarray]] = {}
+        self._pool = FlatPool()
 
     def __contains__(self, block: Block) -> bool:
         return block in self._level
@@ -111,8 +113,11 @@ class NodeBoxes:
         self._neg_lo.add(block, lo_f)
         self._level[block], self._zr[block] = int(level), (z0, z1)
         g = np.asarray(grid, dtype=np.float64)
-        self._grid[block] = g if valid is None else np.where(valid, g, np.nan)
-        self._bound[block] = [np.asarray(b, dtype=np.float64) for b in bound]
+        g = g if valid is None else np.where(valid, g, np.nan)
+        if self._pool.put(block, [g, *bound]):  # the pool moved: every block's views anew
+            for b in self._grid:
+                self._grid[b], *self._bound[b] = self._pool.views(b)
+        self._grid[block], *self._bound[block] = self._pool.views(block)
 
     def remove(self, block: Block) -> None:
         """Forget a block."""
@@ -123,6 +128,22 @@ class NodeBoxes:
         self._zr.pop(block, None)
         self._grid.pop(block, None)
         self._bound.pop(block, None)
+        self._pool.drop(block)
+
+    def flat(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pool of grids and bounds (one float64 buffer) and per row of ``(m, 2)``
+        ``blocks`` its ``(k + 1)`` arrays' offsets and sides in it: the level grid's first, then
+        the bound's of depths ``0..k-1`` (-1 for a block not held; square arrays)."""
+        m, k = len(blocks), self.k
+        off = np.full((m, k + 1), -1, np.int64)
+        side = np.full((m, k + 1), -1, np.int64)
+        at = self._pool.at
+        for i, (r, c) in enumerate(np.asarray(blocks, dtype=np.int64).reshape(-1, 2).tolist()):
+            parts = at.get((r, c))
+            if parts is not None:
+                off[i] = [o for o, _ in parts]
+                side[i] = [sh[0] for _, sh in parts]
+        return self._pool.buf, off, side
 
     def vertex_heights(
         self,

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render import select_kernels
+from render import select_kernels, stitch_fast
 from render import stitch_rounds as rounds
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
@@ -170,9 +170,8 @@ def select_patches(
     depth, which bounds the depth difference of adjacent leaves). ``boxes`` (required for a
     metric that :func:`~streamer.lod.takes_box`, holding every drawn block) gives each node its
     own box. ``kernels`` (``auto``, ``numba``, ``numpy``; default ``TERRASTREAM_KERNELS``)
-    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one
-    (always this one with ``gaps``).
-    own box. ``gaps`` (the nodata rule ``"gap"``: per node the widest mixed cell of its level,
+    picks the compiled walk (:mod:`render.select_kernels`, the same patches) or this numpy one.
+    ``gaps`` (the nodata rule ``"gap"``: per node the widest mixed cell of its level,
     :meth:`render.frame.FrameServices.gap_field`, holding every drawn block) also splits a
     node while that cell can project to more than ``min(tau, 1)`` px
     (:func:`streamer.lod.horizontal_px`).
@@ -203,11 +202,13 @@ def select_patches(
     if win is not None and m and (win[:, 2:] > 1 << k).all():
         win = None  # whole blocks: no node lies in padding (rows * size < 2**k always)
     idx = np.flatnonzero(res >= 0)
-    nb = select_kernels.resolve(kernels) if gaps is None else None  # gap rule: numpy walk
+    nb = select_kernels.resolve(kernels)
     if nb is not None:
+        gap = None if gaps is None or gap_scale <= 0 else (gaps, gap_of, gap_scale)
         parts, clamped = select_kernels.walk(
             nb, grid, table, slots, fn, camera, float(tau), idx=idx, res=res, zr=zr, win=win,
             bx0=bx0, by1=by1, cull=cull, min_depth=min_depth, boxes=boxes, box_slots=box_slots,
+            gap=gap,
         )  # fmt: skip
         return _assemble(blk, parts, clamped)
     parts: list[tuple] = []
@@ -339,7 +340,8 @@ def stitch(
     neighbour while the metric of the patch's error plus the edge's snapping excess
     (:func:`render.snap_error.snap_excess`) exceeds ``tau``; such an edge whose neighbour may
     not split (its resident level) counts as clamped. ``kernels``: as :func:`select_patches`'
-    (the neighbour search). ``incremental`` (default) carries the edges' neighbours and
+    (the compiled rounds, :mod:`render.stitch_fast`, when ``incremental``; else the neighbour
+    search). ``incremental`` (default) carries the edges' neighbours and
     snapped-edge checks from round to round, redoing them only where a round changed leaves
     (:mod:`render.stitch_rounds`; the same patches as ``False``, which redoes all every round)."""
     k = grid.k
@@ -347,6 +349,12 @@ def stitch(
     fn = get_metric(metric)
     box_slots = None
     res = np.asarray(resident, dtype=np.int64)
+    kn = select_kernels.stitch_kernels(nb) if incremental else None
+    if kn is not None and len(patches) and table.depths > 0:
+        return stitch_fast.stitch_compiled(
+            kn, patches, grid, table, camera, fn, res=np.ascontiguousarray(res),
+            zranges=zranges, max_rounds=max_rounds, boxes=boxes, tau=tau,
+        )  # fmt: skip
     cur = patches
     slots = None
     nbr = None

@@ -8,7 +8,8 @@ the reference's, one depth per step, with the per-node work of a depth in
 two kernel calls (:mod:`render._select_nb`); Qiu's metric and Kim's (``chunk-tessellation``,
 named by its ``select_kernel`` attribute) are compiled too, any other metric (the conservative
 ones, callables, node boxes) is the reference's :func:`render.node_boxes.node_rho`. Same patches,
-bit for bit (tests/render/test_select_kernels.py)."""
+bit for bit (tests/render/test_select_kernels.py). The stitch's rounds go with the same module
+(:func:`stitch_kernels`, :mod:`render.stitch_fast`; tests/render/test_stitch_fast.py)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import numpy as np
 from render.node_boxes import NodeBoxes, node_rho
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
-from streamer.lod import Metric, qiu_eq7
+from streamer.lod import Metric, horizontal_px, qiu_eq7
 from tiler.grid import BlockGrid
 from tiler.kernels import pick_warm, warm
 from tiler.quadtree import half_diagonal, node_span
@@ -38,6 +39,22 @@ def _load_numba() -> ModuleType | None:
     return _select_nb
 
 
+@cache
+def _load_stitch() -> ModuleType | None:
+    try:
+        from render import _stitch_nb
+    except ImportError:
+        return None
+    return _stitch_nb
+
+
+def stitch_kernels(nb: ModuleType | None) -> ModuleType | None:
+    """The compiled stitch rounds (:mod:`render._stitch_nb`) that go with the kernel module
+    ``nb`` from :func:`resolve`: only with the real one (a stand-in module, as the tests'
+    faulty kernels, gets the reference rounds over its own neighbour search)."""
+    return _load_stitch() if nb is not None and nb is _load_numba() else None
+
+
 _READY: list[bool] = []  # filled by warm_up(): ``auto`` may use the compiled walk
 
 
@@ -49,8 +66,15 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
 
 def warm_up() -> bool:
     """Import numba and the compiled walk now, after which ``auto`` uses it (its kernels load
-    from numba's cache, or compile, on their first call); whether it is available."""
-    return warm(_load_numba, _READY)
+    from numba's cache, or compile, on their first call; the stitch's kernels are loaded here,
+    :func:`render.stitch_fast.warm_up`); whether it is available."""
+    ok = warm(_load_numba, _READY)
+    kn = stitch_kernels(_load_numba()) if ok else None
+    if kn is not None:
+        from render import stitch_fast
+
+        stitch_fast.warm_up(kn)
+    return ok
 
 
 def walk(
@@ -72,10 +96,13 @@ def walk(
     min_depth: int,
     boxes: NodeBoxes | None,
     box_slots: tuple[np.ndarray, np.ndarray] | None,
+    gap: tuple[PatchErrorTable, np.ndarray, float] | None = None,
 ) -> tuple[list[tuple], int]:
     """``select_patches``' per-depth leaves ``(idx, depth, rows, cols, level, delta, rho)`` and
     its clamped count, from the kernels of ``nb`` (``cull`` a :class:`render.select.DiscCull`
-    or None, ``win`` None when no node can lie in padding)."""
+    or None, ``win`` None when no node can lie in padding; ``gap`` the nodata rule ``"gap"``'s
+    table of mixed-cell widths, each block's slot in it and ``tau / min(tau, 1)``: its rule
+    as the reference applies it, per depth with the numpy metric)."""
     k, p = grid.k, table.patch_log2
     n0 = len(idx)
     rows = np.zeros(n0, dtype=np.int64)
@@ -125,6 +152,13 @@ def walk(
         else:
             bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
             rho = node_rho(fn, grid, delta, cx, cy, depth, zr[idx], camera, bx, rows, cols)
+        if gap is not None:  # rho > tau also when the gap projects past min(tau, 1) px
+            gaps, gap_of, gap_scale = gap
+            w = gaps.delta(gap_of[idx], depth, rows, cols)
+            if (w > 0).any():
+                bx = None if box_slots is None else (boxes, (box_slots[0][idx], box_slots[1][idx]))
+                g = node_rho(horizontal_px, grid, w, cx, cy, depth, zr[idx], camera, bx, rows, cols)
+                rho = np.maximum(rho, g * gap_scale)
         if depth + p >= k:
             level = np.minimum(k, res[idx])
             parts.append((idx, depth, rows, cols, level, delta, rho))
