@@ -240,15 +240,18 @@ class FrameServices:
         return t
 
     def node_boxes(
-        self, pairs: list[tuple[Block, int]], patch_log2: int | None = None
+        self, pairs: list[tuple[Block, int]], patch_log2: int | None = None, nodata: str = "full"
     ) -> NodeBoxes:
         """The renderer's per-node boxes (:mod:`render.node_boxes`) for nodes of
         ``2**patch_log2`` cells (default: the renderer's patch size), holding every
         ``(block, level)`` of ``pairs``: a block is (re)built from its level-``level`` grid read
         from the store when that level changed (nothing finer than the level is read); blocks
-        leaving the GPU leave it."""
+        leaving the GPU leave it. The boxes' ranges take the rule ``full``'s bound (a mixed
+        node's box is its block's height range); the snapped-edge check's cell bounds take the
+        nodata rule ``nodata``'s, the errors the selection itself uses."""
         size = self.p if patch_log2 is None else patch_log2
-        key = f"node-boxes/{size}"
+        rule = check_rule(nodata)
+        key = f"node-boxes/{size}/{rule}"
         boxes = self._tables.get(key)
         if boxes is None:
             boxes = self._tables[key] = NodeBoxes(self.k, size)
@@ -260,7 +263,8 @@ class FrameServices:
                 step = 1 << (self.k - lv)
                 valid = None if mask is None else mask[::step, ::step]
                 bound = self.read_errors(b)["bound"]
-                boxes.update(b, lv, grid, bound, (zr[0], zr[1]), valid)
+                cells = None if rule == "full" else self.read_errors(b, rule)["bound"]
+                boxes.update(b, lv, grid, bound, (zr[0], zr[1]), valid, cells)
         return boxes
 
     def fill_table(

@@ -95,11 +95,14 @@ class NodeBoxes:
         bound: Sequence[np.ndarray],
         zrange: tuple[float, float],
         valid: np.ndarray | None = None,
+        cell_bound: Sequence[np.ndarray] | None = None,
     ) -> None:
         """(Re)build ``block``'s ranges from its level-``level`` ``grid``, its ``bound`` field
         (depths ``0..k-1``; mask boundaries ``inf``) and its stored ``(zmin, zmax)``; the grid
         is kept (NaN where ``valid``, the level's validity, is False) for
-        :meth:`vertex_heights`."""
+        :meth:`vertex_heights`. ``cell_bound`` (default ``bound``): the field
+        :meth:`cell_bounds` answers from (the snapped-edge check's), e.g. the nodata rule
+        ``gap``'s stored errors where ``bound`` has the rule ``full``'s ``inf``."""
         block = (int(block[0]), int(block[1]))
         self.remove(block)
         z0, z1 = (float(v) for v in zrange)
@@ -114,7 +117,8 @@ class NodeBoxes:
         self._level[block], self._zr[block] = int(level), (z0, z1)
         g = np.asarray(grid, dtype=np.float64)
         g = g if valid is None else np.where(valid, g, np.nan)
-        if self._pool.put(block, [g, *bound]):  # the pool moved: every block's views anew
+        cells = bound if cell_bound is None else cell_bound
+        if self._pool.put(block, [g, *cells]):  # the pool moved: every block's views anew
             for b in self._grid:
                 self._grid[b], *self._bound[b] = self._pool.views(b)
         self._grid[block], *self._bound[block] = self._pool.views(block)

@@ -90,7 +90,8 @@ def select_clod(
     win = r.store.index.window[(blk[:, 0], blk[:, 1])] if blocks else None
     tau_used = 0.0 if full else tau
     fn = always_split if full else metric
-    boxes = r.node_boxes(pairs, table.patch_log2) if takes_box(fn) else None
+    rule = "gap" if gap else "full"
+    boxes = r.node_boxes(pairs, table.patch_log2, rule) if takes_box(fn) else None
     patches = select_patches(
         r.grid, blk, table, camera, tau_used, fn, poly, resident=res, zranges=zr, windows=win,
         min_depth=min_depth, boxes=boxes, gaps=gaps,
