@@ -90,8 +90,9 @@ def test_random_kills_resume_byte_identical(tmp_path):
         dst = tmp_path / f"k{i}.zarr"
         executor = "processes" if LONG and i % 2 else "threads"
         if executor not in window:
-            window[executor] = _run_whole(script, src, tmp_path / f"whole-{executor}.zarr", executor, env)
-            assert diff_stores(tmp_path / f"whole-{executor}.zarr", ref) == []
+            whole = tmp_path / f"whole-{executor}.zarr"
+            window[executor] = _run_whole(script, src, whole, executor, env)
+            assert diff_stores(whole, ref) == []
         delay = float(rng.uniform(0.1, 0.9)) * window[executor]
         proc = subprocess.Popen(
             [sys.executable, str(script), str(src), str(dst), executor],
