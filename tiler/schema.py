@@ -211,7 +211,7 @@ def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]
 
 
 def create_layout(
-    group: zarr.Group, meta: Any, comp_level: int, *, concurrent: bool = True
+    group: zarr.Group, meta: Any, comp_level: int, *, concurrent: bool = False
 ) -> None:
     """Create every array of an empty store (no data written but the two index tables).
 
