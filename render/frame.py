@@ -371,7 +371,7 @@ class FrameServices:
                 raise RenderError(f"patches of block {b}, which is not on the GPU")
             if s is not None:
                 pages[m], base[m], held[m] = s.page, s.offset, s.level
-        check_drawable(patches, held, self.p)
+        check_drawable(patches, held)
         sn = patches.snap
         packed = sn[:, 0] | (sn[:, 1] << 4) | (sn[:, 2] << 8) | (sn[:, 3] << 12)
         inst = np.stack(

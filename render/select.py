@@ -133,14 +133,14 @@ class Patches:
         )
 
 
-def check_drawable(patches: Patches, held: np.ndarray, patch_log2: int) -> None:
+def check_drawable(patches: Patches, held: np.ndarray) -> None:
     """Raise :class:`render.errors.RenderError` naming the first patch the vertex shader would
     fetch outside its block's slot or block (``held``: per patch its block's level on the GPU):
-    a level not held reads the next slot or past the page; a node outside ``2**depth``, more
-    cells than the ``2**patch_log2``-cell mesh or a snap past its 4 bits reads past the block."""
+    a level not held reads the next slot or past the page; a node outside ``2**depth``, a
+    level above its depth missing or a snap past its 4 bits reads past the block."""
     c, lv, d, row, col = patches.cells_log2, patches.level, patches.depth, patches.row, patches.col
     side = np.left_shift(1, np.maximum(d, 0))
-    bad = (lv > held) | (d < 0) | (c < 0) | (c > patch_log2)
+    bad = (lv > held) | (d < 0) | (c < 0)
     bad |= (col < 0) | (col >= side) | (row < 0) | (row >= side)
     bad |= ((patches.snap < 0) | (patches.snap > 15)).any(axis=1)
     if bad.any():
@@ -149,7 +149,7 @@ def check_drawable(patches: Patches, held: np.ndarray, patch_log2: int) -> None:
         raise RenderError(
             f"patch {i} of block {b} (depth {d[i]}, row {row[i]}, col {col[i]}, level {lv[i]}, "
             f"snaps {patches.snap[i].tolist()}) is outside what the GPU holds: level "
-            f"{held[i]} of the block, {2**patch_log2}-cell patches"
+            f"{held[i]} of the block"
         )
 
 
