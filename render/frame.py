@@ -36,7 +36,7 @@ import numpy as np
 from render.errors import RenderError
 from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
 from render.node_boxes import NodeBoxes
-from render.select import Patches, PatchTable
+from render.select import Patches, PatchTable, check_drawable
 from streamer.camera import Camera
 from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
 from tiler.crs import require_projected
@@ -128,7 +128,9 @@ class FrameServices:
         self.grid = store.grid
         self.k = store.k
         self.p = min(self.config.patch_log2, self.k)
+        self._own_ctx = ctx is None  # made here: released by close()
         self.ctx = ctx or create_context()
+        self.make_current()  # every GL object of the renderer is made in its own context
         ctx = self.ctx
         w, h = self.config.size
         self.fbo = ctx.framebuffer(
@@ -162,6 +164,12 @@ class FrameServices:
         self.pool = HeightPool(ctx, self.k, zref=self.zref)
         check_gl(ctx, "creating the renderer")
 
+    def make_current(self) -> None:
+        """Make the renderer's GL context current (about 1 µs): its GL objects live there, and
+        their names mean other objects, or none, in another context that other code (a renderer
+        made without ``ctx``, the CLI) may have made current in between."""
+        self.ctx.__enter__()  # moderngl: eglMakeCurrent; nothing to undo
+
     # -- height pool ---------------------------------------------------------------------------
 
     def mask(self, block: Block) -> np.ndarray | None:
@@ -174,7 +182,9 @@ class FrameServices:
     def upload(self, block: Block, levels: list[np.ndarray]) -> int:
         """Put a block's decoded levels on the GPU (only the new ones); return its GPU level."""
         self._seen[block] = self._frame
-        return self.pool.upload(block, levels, self.mask(block))
+        mask = self.mask(block)
+        self.make_current()
+        return self.pool.upload(block, levels, mask)
 
     def sync(self, frame_blocks: dict[Block, tuple[int, int]], session) -> None:
         """Upload what a streaming frame holds (``Frame.blocks``) and drop long-gone blocks."""
@@ -305,6 +315,7 @@ class FrameServices:
         ``make(self)`` on first use and shared by every strategy instance drawing with it."""
         obj = self._shared.get(key)
         if obj is None:
+            self.make_current()
             obj = self._shared[key] = make(self)
             check_gl(self.ctx, f"building {key!r}")
         return obj
@@ -352,10 +363,15 @@ class FrameServices:
         e = np.left_shift(1, k - patches.depth)
         pages = np.empty(len(patches), dtype=np.int64)
         base = np.empty(len(patches), dtype=np.int64)
+        held = np.empty(len(patches), dtype=np.int64)
         for i, b in enumerate(map(tuple, patches.blocks.tolist())):
             m = patches.block == i
-            s = self.pool.slots[b]
-            pages[m], base[m] = s.page, s.offset
+            s = self.pool.slots.get(b)
+            if s is None and m.any():
+                raise RenderError(f"patches of block {b}, which is not on the GPU")
+            if s is not None:
+                pages[m], base[m], held[m] = s.page, s.offset, s.level
+        check_drawable(patches, held)
         sn = patches.snap
         packed = sn[:, 0] | (sn[:, 1] << 4) | (sn[:, 2] << 8) | (sn[:, 3] << 12)
         inst = np.stack(
@@ -388,6 +404,7 @@ class FrameServices:
                 f"camera viewport {camera.viewport} differs from the renderer's {self.config.size}"
             )
         ctx = self.ctx
+        self.make_current()
         self.fbo.use()
         t0 = time.perf_counter()
         c = clear or self.config.clear
@@ -430,6 +447,7 @@ class FrameServices:
         ``triangle_probe.geom``) with the rasteriser discarded; every triangle's global
         ``(col, row)`` corners ``(m, 3, 2)`` int64 and heights ``(m, 3)``
         (:data:`render.gpu.MASKED` where masked). More than ``cap`` triangles is an error."""
+        self.make_current()
         self.fbo.use()  # an EGL context has no default framebuffer
         self.set_camera(prog, camera)
         out = self.ctx.buffer(reserve=16 + max(cap, 1) * 36)
@@ -459,9 +477,18 @@ class FrameServices:
     def image(self) -> np.ndarray:
         """The framebuffer as an ``(h, w, 3)`` uint8 array, top row first."""
         w, h = self.config.size
+        self.make_current()
         data = self.fbo.read(components=3, alignment=1)
         return np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3)[::-1].copy()
 
     def close(self) -> None:
-        """Release the height pool's GPU buffers."""
+        """Release the height pool's GPU buffers, and the GL context when the renderer made it
+        (unbound first: EGL keeps a released context current until it is unbound)."""
+        if not self.pool.pages and not self._own_ctx:
+            return
+        self.make_current()
         self.pool.close()
+        if self._own_ctx:
+            self._own_ctx = False
+            self.ctx.__exit__(None, None, None)  # eglMakeCurrent(EGL_NO_CONTEXT)
+            self.ctx.release()

@@ -125,9 +125,13 @@ def render_view(
     """Stream what the view needs (waiting for it) and render it once with strategy ``lod``
     (``options``, when given, replaces the keyword settings)."""
     o = options or ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour)
-    r = renderer or TerrainRenderer(
-        store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2)
-    )
+    if renderer is None:  # made here, so closed here (else its context stays current)
+        r = TerrainRenderer(store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2))
+        try:
+            return render_view(store, camera, renderer=r, options=o)
+        finally:
+            r.close()
+    r = renderer
     strat = get_strategy(o.lod, r, **o.strategy_options())
     metric = stream_metric(o.lod, o.metric)
     with open_render_session(store, o.tau, metric, r.p, nodata=o.nodata) as session:
@@ -219,9 +223,14 @@ def tradeoff(
     ``{"rho": "paper"}``)."""
     o = options or ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
     lod, metric = o.lod, o.metric
-    r = renderer or TerrainRenderer(
-        store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2)
-    )
+    if renderer is None:  # made here, so closed here (else its context stays current)
+        r = TerrainRenderer(store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2))
+        try:
+            return tradeoff(store, camera, taus, repeats=repeats, renderer=r, log=log,
+                            stream_tau=stream_tau, options=o, lod_options=lod_options)  # fmt: skip
+        finally:
+            r.close()
+    r = renderer
     with open_render_session(store, 0.0, metric, r.p) as ref_session:
         ref_res = stream_step(ref_session, r, camera)[1]
     ref_p, _ = r.select(camera, 0.0, metric, resident=ref_res, full=True)

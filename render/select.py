@@ -31,7 +31,7 @@ import numpy as np
 
 from render import select_kernels, stitch_fast
 from render import stitch_rounds as rounds
-from render.errors import SelectionError
+from render.errors import RenderError, SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
@@ -130,6 +130,26 @@ class Patches:
             clamped=self.clamped,
             violations=self.violations,
             **f,
+        )
+
+
+def check_drawable(patches: Patches, held: np.ndarray) -> None:
+    """Raise :class:`render.errors.RenderError` naming the first patch the vertex shader would
+    fetch outside its block's slot or block (``held``: per patch its block's level on the GPU):
+    a level not held reads the next slot or past the page; a node outside ``2**depth``, a
+    level above its depth missing or a snap past its 4 bits reads past the block."""
+    c, lv, d, row, col = patches.cells_log2, patches.level, patches.depth, patches.row, patches.col
+    side = np.left_shift(1, np.maximum(d, 0))
+    bad = (lv > held) | (d < 0) | (c < 0)
+    bad |= (col < 0) | (col >= side) | (row < 0) | (row >= side)
+    bad |= ((patches.snap < 0) | (patches.snap > 15)).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        b = tuple(int(v) for v in patches.blocks[patches.block[i]])
+        raise RenderError(
+            f"patch {i} of block {b} (depth {d[i]}, row {row[i]}, col {col[i]}, level {lv[i]}, "
+            f"snaps {patches.snap[i].tolist()}) is outside what the GPU holds: level "
+            f"{held[i]} of the block"
         )
 
 

@@ -159,6 +159,7 @@ class PatchGrid:
         """Transform feedback: the height each patch vertex fetched on the GPU and its global
         ``(col, row)`` sample, ``(n_vertices,)`` and ``(n_vertices, 2)``."""
         r = self.r
+        r.make_current()
         r.fbo.use()
         r.set_camera(self.probe_prog, camera)
         hs, gs = [], []

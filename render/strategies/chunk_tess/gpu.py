@@ -165,6 +165,7 @@ class GpuSelector:
         table and uniforms; the ε upload is load-time work, left out)."""
         check_tau(tau)
         r, ctx = self.r, self.r.ctx
+        r.make_current()  # the passes make and use GL objects of the renderer's context
         t0 = time.perf_counter()
         pairs = r.drawable(resident)
         blocks = [b for b, _ in pairs]

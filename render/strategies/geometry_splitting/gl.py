@@ -224,6 +224,7 @@ class GeometrySplitting(Strategy[Selection]):
         check_tau(tau)
         t0 = time.perf_counter()
         ctx = self.r.ctx
+        self.r.make_current()  # the passes make and use GL objects of the renderer's context
         tb = time.perf_counter()
         self._upload_trees(self.r.drawable(resident))
         build_ms = (time.perf_counter() - tb) * 1000.0
@@ -337,6 +338,7 @@ class GeometrySplitting(Strategy[Selection]):
         r = self.r
         if not sel.triangles:
             return np.zeros((0, 3, 2), np.int64), np.zeros((0, 3))
+        r.make_current()
         r.fbo.use()
         r.set_camera(self.probe_prog, camera)
         sel.block_buf.bind_to_storage_buffer(4)
