@@ -19,6 +19,21 @@ _jit = cached_njit(nogil=True, error_model="numpy")
 
 
 @_jit
+def edge_probe(fr0, fc0, span, e):
+    """The finest-grid sample one step beyond the midpoint of edge ``e`` (0 top, 1 right,
+    2 bottom, 3 left) of the node whose top-left finest sample is ``(fr0, fc0)`` and whose side
+    is ``span`` samples: the probe that finds the neighbour across that edge."""
+    mid = span >> 1
+    if e == 0:
+        return fr0 - 1, fc0 + mid
+    if e == 1:
+        return fr0 + mid, fc0 + span
+    if e == 2:
+        return fr0 + span, fc0 + mid
+    return fr0 + mid, fc0 - 1
+
+
+@_jit
 def _fmin(a, b):
     """``np.minimum`` of two floats (NaN if either is NaN)."""
     if a <= b:
@@ -191,18 +206,10 @@ def neighbours(sk, order, d, gr, gc, big, nr, nc, dd):
     for i in range(n):
         sh = big - d[i]
         span = np.int64(1) << sh
-        mid = span >> 1
         fr0 = gr[i] << sh
         fc0 = gc[i] << sh
         for e in range(4):
-            if e == 0:
-                fr, fc = fr0 - 1, fc0 + mid
-            elif e == 1:
-                fr, fc = fr0 + mid, fc0 + span
-            elif e == 2:
-                fr, fc = fr0 + span, fc0 + mid
-            else:
-                fr, fc = fr0 + mid, fc0 - 1
+            fr, fc = edge_probe(fr0, fc0, span, e)
             if fr < 0 or fc < 0 or fr >= nr or fc >= nc:
                 continue
             for j in range(dd.shape[0] - 1, -1, -1):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from render._select_nb import edge_probe
 from render._snap_nb import (  # noqa: F401 (the check's kernels, used through this module)
     exact_all,
     gather_cells,
@@ -81,18 +82,10 @@ def probe(rows, sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc):
         d = depth[i]
         sh = big - d
         span = np.int64(1) << sh
-        mid = span >> 1
         fr0 = ((bk_r[block[i]] << d) + row[i]) << sh
         fc0 = ((bk_c[block[i]] << d) + col[i]) << sh
         for e in range(4):
-            if e == 0:
-                fr, fc = fr0 - 1, fc0 + mid
-            elif e == 1:
-                fr, fc = fr0 + mid, fc0 + span
-            elif e == 2:
-                fr, fc = fr0 + span, fc0 + mid
-            else:
-                fr, fc = fr0 + mid, fc0 - 1
+            fr, fc = edge_probe(fr0, fc0, span, e)
             if fr < 0 or fc < 0 or fr >= nr or fc >= nc:
                 continue
             z = (_spread(fr) << 1) | _spread(fc)
@@ -103,6 +96,28 @@ def probe(rows, sk, order, bk_r, bk_c, block, depth, row, col, big, nr, nc):
             if z - sk[pos] < np.int64(1) << (2 * (big - depth[j])):
                 out[a, e] = j
     return out
+
+
+@_jit
+def _victims(mark, depth, block, res, k, p):
+    """The marked leaves that may split (ascending: their patch is finer than neither the
+    block nor the resident level allows) and the count of marked ones that may not."""
+    n = depth.shape[0]
+    nv = 0
+    extra = 0
+    for j in range(n):
+        if mark[j]:
+            if depth[j] + p < min(k, res[block[j]]):
+                nv += 1
+            else:
+                extra += 1
+    victims = np.empty(nv, np.int64)
+    a = 0
+    for j in range(n):
+        if mark[j] and depth[j] + p < min(k, res[block[j]]):
+            victims[a] = j
+            a += 1
+    return victims, extra
 
 
 @_jit
@@ -127,17 +142,8 @@ def restrict(level, depth, block, nbr, res, k, p):
             if sn > edge:
                 n_bad += 1
                 mark[j] = True
-    nv = 0
-    for j in range(n):
-        if mark[j] and depth[j] + p < min(k, res[block[j]]):
-            nv += 1
-    victims = np.empty(nv, np.int64)
-    a = 0
-    for j in range(n):
-        if mark[j] and depth[j] + p < min(k, res[block[j]]):
-            victims[a] = j
-            a += 1
-    if nv == 0:
+    victims, _ = _victims(mark, depth, block, res, k, p)
+    if victims.shape[0] == 0:
         for i in range(n):
             cells = level[i] - depth[i]
             for e in range(4):
@@ -186,21 +192,7 @@ def over_victims(c_over, nbr, depth, block, res, k, p):
         for e in range(4):
             if c_over[i, e]:
                 mark[nbr[i, e]] = True
-    nv = 0
-    extra = 0
-    for j in range(n):
-        if mark[j]:
-            if depth[j] + p < min(k, res[block[j]]):
-                nv += 1
-            else:
-                extra += 1
-    victims = np.empty(nv, np.int64)
-    a = 0
-    for j in range(n):
-        if mark[j] and depth[j] + p < min(k, res[block[j]]):
-            victims[a] = j
-            a += 1
-    return victims, extra
+    return _victims(mark, depth, block, res, k, p)
 
 
 @_jit

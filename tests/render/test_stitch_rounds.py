@@ -9,46 +9,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from stitch_scene import BLOCKS, FIELDS, GRID, RES, K, build, cameras
 
 from render import stitch_rounds
 from render.node_boxes import NodeBoxes
-from render.select import PatchTable, _neighbours, _split, select_patches, stitch
-from streamer.camera import Camera
-from tiler.grid import BlockGrid
-from tiler.static_error import bound_errors
+from render.select import _neighbours, _split, select_patches, stitch
 
-K, P = 5, 1
-FIELDS = ("block", "depth", "row", "col", "level", "delta", "rho", "snap")
-GRID = BlockGrid(height=3 * 32 + 1, width=3 * 32 + 1, k=K, x0=0.0, y0=97 * 30.0, dx=30.0, dy=30.0)
-BLOCKS = [(r, c) for r in range(3) for c in range(3)]
-RES = [K, K, K - 1, K, K - 2, K, K, K - 1, K]
+P = 1
 
 
 @pytest.fixture(scope="module")
 def scene():
-    rng = np.random.default_rng(11)
-    y, x = np.mgrid[0:97, 0:97] / 96.0
-    h = 400 * np.sin(5 * x) * np.cos(4 * y) + 150 * rng.standard_normal((97, 97)).cumsum(0) / 9
-    table, boxes, zr = PatchTable(K, P), NodeBoxes(K, P), []
-    for (r, c), lv in zip(BLOCKS, RES, strict=True):
-        g = h[r * 32 : r * 32 + 33, c * 32 : c * 32 + 33]
-        bound = bound_errors(g, np.ones(g.shape, bool), K)
-        table.add((r, c), bound)
-        step = 1 << (K - lv)
-        boxes.update((r, c), lv, g[::step, ::step], bound, (g.min(), g.max()))
-        zr.append((g.min(), g.max()))
-    return table, boxes, np.array(zr)
-
-
-def cameras() -> list[Camera]:
-    rng = np.random.default_rng(5)
-    out = []
-    for _ in range(8):
-        eye = (rng.uniform(-500, 3400), rng.uniform(-500, 3400), rng.uniform(300, 2500))
-        target = (rng.uniform(600, 2300), rng.uniform(600, 2300), 0.0)
-        fov = float(rng.choice([45.0, 90.0, 150.0]))
-        out.append(Camera.look_at(eye, target, fov_y=fov, viewport=(160, 120), near=2.0, far=2e4))
-    return out
+    return build(P)
 
 
 def _pairs(scene, metric: str, taus=(0.5, 1.0, 2.0)):
