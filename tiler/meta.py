@@ -18,7 +18,7 @@ import zarr
 from tiler.errors import StoreCorruptError, StoreVersionError
 from tiler.grid import BlockGrid
 from tiler.layout import grid_side
-from tiler.schema import ATTR, FORMAT_VERSION
+from tiler.schema import ATTR, FORMAT_VERSION, compact_metadata
 
 __all__ = ["BlockIndex", "StoreMeta", "read_meta", "tool_version", "write_meta"]
 
@@ -135,7 +135,8 @@ class StoreMeta:
 
 def write_meta(group: zarr.Group, meta: StoreMeta) -> None:
     """Write the root attribute (``complete`` as given in ``meta``)."""
-    group.attrs[ATTR] = json.loads(json.dumps(meta.to_json(), allow_nan=False))
+    with compact_metadata():
+        group.attrs[ATTR] = json.loads(json.dumps(meta.to_json(), allow_nan=False))
 
 
 def read_meta(group: zarr.Group) -> StoreMeta:

@@ -9,6 +9,8 @@ read back as the fill value is a *missing* chunk, never silently zeros.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -29,6 +31,7 @@ INDEX_NAMES = ("exists", "done", "has_nodata", "zmin", "zmax", "window", "digest
 # (76 vs 44 KiB; 56 ms). Measured in BENCHMARKS.md "Tiling".
 TABLE_CLEVEL = 5
 DEFAULT_CLEVEL = 3  # zstd 3 with 1 MiB blosc blocks: the size of zstd 5 in 1/3 the time
+LEVEL_BLOCKSIZE = 1 << 20  # blosc block of the level arrays: one per chunk up to k = 10
 WRITE_CONFIG = {"write_empty_chunks": True}
 INDEX_DTYPES = {
     "exists": ("bool", False),
@@ -40,29 +43,71 @@ INDEX_DTYPES = {
 }
 
 
-def compressor(level: int = DEFAULT_CLEVEL, typesize: int = 2, bits: bool = False) -> BloscCodec:
-    """Blosc (zstd inside) with byte shuffle, or bit shuffle for masks and index tables.
+def compressor(
+    level: int = DEFAULT_CLEVEL, typesize: int = 2, bits: bool = False, blocksize: int | None = None
+) -> BloscCodec:
+    """Blosc (zstd inside) with byte shuffle, or bit shuffle (``bits``); ``blocksize`` defaults
+    to 1 MiB for byte shuffle and blosc's automatic blocks for bit shuffle.
 
     Chosen by measurement (``bench/codecs.py``, BENCHMARKS.md): on zigzagged residuals, byte
     shuffle + zstd beats plain zstd by 15-35 % and lz4/lz4hc are 12-28 % larger; zstd 3 with
     1 MiB blosc blocks (one block per chunk) is 0.996x the size of zstd 5 with automatic
     blocks and compresses in 0.32x the time. Blosc is in the zarr v3 specification.
     """
+    if blocksize is None:
+        blocksize = 0 if bits else LEVEL_BLOCKSIZE
     return BloscCodec(
         cname="zstd",
         clevel=level,
         shuffle="bitshuffle" if bits else "shuffle",
         typesize=typesize,
-        blocksize=0 if bits else 1 << 20,
+        blocksize=blocksize,
     )
 
 
-def codecs(format_version: int, level: int, typesize: int, bits: bool = False) -> list[Any]:
+BITSHUFFLE_NAME = "blosc-zstd-bitshuffle"  # ``meta.compressor["name"]`` of bit-shuffled levels
+SHUFFLE_NAME = "blosc-zstd-shuffle"
+
+
+def level_bits(compressor_name: str) -> bool:
+    """Whether a store's level arrays are bit shuffled, from ``meta.compressor["name"]``
+    (stores written before the choice say byte shuffle)."""
+    return compressor_name == BITSHUFFLE_NAME
+
+
+def level_compressor_name(encoding: str) -> str:
+    """The level compressor of an encoding: bit shuffle for the integer residuals (whose high
+    bits are mostly zero), byte shuffle for the float XORs. Measured per chunk on the store's
+    real chunks (``bench/codecs.py``, BENCHMARKS.md "Codec choice"): bit shuffle 0.90-1.004x
+    the levels of the int16 inputs, 1.03-1.11x of the float32 ones."""
+    return SHUFFLE_NAME if encoding == "float-xor" else BITSHUFFLE_NAME
+
+
+def codecs(
+    format_version: int, level: int, typesize: int, bits: bool = False, blocksize: int | None = None
+) -> list[Any]:
     """The bytes-to-bytes codecs of an array: blosc, then crc32c from format 2 on."""
-    out: list[Any] = [compressor(level, typesize, bits)]
+    out: list[Any] = [compressor(level, typesize, bits, blocksize)]
     if format_version >= 2:
         out.append(Crc32cCodec())
     return out
+
+
+def table_blocksize(nbytes: int) -> int:
+    """Blosc block of an index table: the largest power of two <= its bytes, at most 2 MiB.
+
+    Bit shuffle applies to whole blocks, so a table in one block that is not a multiple of 8
+    values compressed 16x worse (k = 8); 2 MiB blocks make k = 10's order table 52 KiB instead
+    of 75 KiB with blosc's automatic blocks, in less time."""
+    return min(1 << 21, 1 << (max(int(nbytes), 1).bit_length() - 1))
+
+
+@contextmanager
+def compact_metadata() -> Iterator[None]:
+    """Write zarr metadata (``zarr.json``) without indentation inside the block: 8 KiB less
+    per ``k = 10`` store (2 % of a 1201² SRTM tile's), the same JSON to every reader."""
+    with zarr.config.set({"json_indent": None}):
+        yield
 
 
 def level_fill(storage_dtype: str | np.dtype) -> int:
@@ -127,7 +172,13 @@ def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]
                     shape=(rows, cols, n),
                     chunks=(1, 1, n),
                     dtype=meta.storage_dtype,
-                    compressors=codecs(v, comp_level, itemsize),
+                    compressors=codecs(
+                        v,
+                        comp_level,
+                        itemsize,
+                        level_bits(meta.compressor.get("name", "")),
+                        LEVEL_BLOCKSIZE,
+                    ),
                     fill_value=fill,
                     dimension_names=("block_row", "block_col", f"value_{i}"),  # per-level lengths
                     config=cfg,
@@ -202,7 +253,9 @@ def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]
                 dict(
                     data=np.asarray(table),
                     chunks=table.shape,  # one chunk: it compresses ~20x better than auto chunks
-                    compressors=codecs(v, TABLE_CLEVEL, table.dtype.itemsize, bits=True),
+                    compressors=codecs(
+                        v, TABLE_CLEVEL, table.dtype.itemsize, True, table_blocksize(table.nbytes)
+                    ),
                     dimension_names=("row", "col"),
                 ),
             )
@@ -215,9 +268,10 @@ def create_layout(
 ) -> None:
     """Create every array of an empty store (no data written but the two index tables).
 
-    ``concurrent`` (default) issues all the creations at once on zarr's event loop (one round
-    trip's latency instead of one per array: 23 arrays for ``k = 10``); ``False`` creates them
-    one after another, the reference the tests compare the metadata with."""
+    By default the arrays are created one after another. ``concurrent=True`` issues all the
+    creations at once on zarr's event loop (one round trip's latency instead of one per array:
+    23 arrays for ``k = 10``), with the same metadata (tested); it is opt-in because it changed
+    the cold start the README example's stall control relies on (CHANGELOG.md)."""
     specs = layout_specs(meta, comp_level)
     if not concurrent:
         for name, kw in specs:

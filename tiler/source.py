@@ -22,6 +22,7 @@ from tiler.encoding import encoding_for, storage_dtype_for
 from tiler.errors import SourceError
 from tiler.grid import BlockGrid
 from tiler.mosaic import MosaicReader, MosaicSpec, plan_mosaic
+from tiler.schema import level_compressor_name
 from tiler.store import StoreMeta, tool_version
 from tiler.vertical import vertical_meta
 
@@ -159,7 +160,10 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
         tool_version=tool_version(),
         error_cap=cap,
         error_fields=static_error.FIELDS,
-        compressor={"name": "blosc-zstd-shuffle", "level": opts.compression_level},
+        compressor={
+            "name": level_compressor_name(encoding_for(value)),
+            "level": opts.compression_level,
+        },
         extra=extra,
     )
 

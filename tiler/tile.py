@@ -39,7 +39,13 @@ from tiler.lease import DEFAULT_TIMEOUT_S, LEASE_KEY, WriterLease
 from tiler.location import Location, as_location
 from tiler.mosaic import MosaicReader, MosaicSpec
 from tiler.resume import check_same_job, create_journal, job_identity, source_fingerprint
-from tiler.schema import ATTR, DEFAULT_CLEVEL, FORMAT_VERSION, create_layout
+from tiler.schema import (
+    ATTR,
+    DEFAULT_CLEVEL,
+    FORMAT_VERSION,
+    compact_metadata,
+    create_layout,
+)
 from tiler.source import (
     SourceLike,
     _open_source,
@@ -451,8 +457,9 @@ def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
 def create_store(loc: Location, meta: StoreMeta, opts: TileOptions) -> zarr.Group:
     """Create the root, every array and the journal; leave the store in state ``tiling``."""
     meta = replace(meta, extra=dict(meta.extra, state="layout"))
-    group = fresh_group(loc, meta)
-    create_layout(group, meta, opts.compression_level)
-    create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
-    write_meta(group, replace(meta, extra=dict(meta.extra, state="tiling")))
+    with compact_metadata():
+        group = fresh_group(loc, meta)
+        create_layout(group, meta, opts.compression_level)
+        create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
+        write_meta(group, replace(meta, extra=dict(meta.extra, state="tiling")))
     return group

@@ -5,11 +5,12 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zarr
 from demtools import fractal
 
-from tiler import schema
+from tiler import encoding, schema
 from tiler.store import open_store
 from tiler.tile import TileOptions, tile
 
@@ -57,3 +58,88 @@ def test_concurrent_layout_refuses_an_existing_array(meta, tmp_path):
     schema.create_layout(g, meta, 3)
     with pytest.raises(Exception, match="levels|exists|already"):
         schema.create_layout(g, meta, 3)
+
+
+def _blosc(group: zarr.Group, name: str) -> dict:
+    """The blosc configuration of array ``name`` (inside the shard for sharded levels)."""
+    codecs = group[name].metadata.to_dict()["codecs"]
+    if codecs[0]["name"] == "sharding_indexed":
+        codecs = codecs[0]["configuration"]["codecs"]
+    return next(c["configuration"] for c in codecs if c["name"] == "blosc")
+
+
+@pytest.mark.parametrize(("dtype", "shuffle"), [("int16", "bitshuffle"), ("float32", "shuffle")])
+def test_level_shuffle_follows_the_encoding(dem_factory, tmp_path, dtype, shuffle):
+    """Integer residual levels (sharded and not) are bit shuffled, float XOR levels byte
+    shuffled; ``meta.compressor`` names which; the errors stay byte shuffled; lossless."""
+    data = fractal((300, 300), 1, dtype)
+    tile(dem_factory(data), tmp_path / "s.zarr", TileOptions(block_size=65))
+    store = open_store(tmp_path / "s.zarr")
+    group = zarr.open_group(tmp_path / "s.zarr", mode="r")
+    for i in range(store.meta.levels):
+        assert _blosc(group, f"levels/{i}")["shuffle"] == shuffle
+    assert _blosc(group, "errors")["shuffle"] == "shuffle"
+    assert schema.level_bits(store.meta.compressor["name"]) == (shuffle == "bitshuffle")
+    assert np.array_equal(store.read_block((1, 2)), data[64:129, 128:193])
+
+
+def test_an_older_store_keeps_byte_shuffle(meta):
+    """A store whose metadata names byte shuffle (written before the choice) is described by
+    its byte-shuffled layout (the name, not the encoding, decides)."""
+    old = replace(meta, compressor={"name": schema.SHUFFLE_NAME, "level": 3})
+    specs = dict(schema.layout_specs(old, 3))
+    assert specs["levels/4"]["compressors"][0].shuffle.value == "shuffle"
+    new = dict(schema.layout_specs(meta, 3))
+    assert new["levels/4"]["compressors"][0].shuffle.value == "bitshuffle"
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_bit_shuffle_is_smaller_per_level_on_integer_residuals(seed):
+    """The measurement behind the choice, level by level as the store compresses them (each
+    level its own chunk): bit shuffle beats byte shuffle on a rough integer block, and all
+    levels concatenated into one buffer (not what a store does) would say the opposite."""
+    from numcodecs import Blosc
+
+    def size(raw: np.ndarray, sh: int) -> int:
+        return len(Blosc("zstd", 3, sh, blocksize=schema.LEVEL_BLOCKSIZE).encode(raw))
+
+    levels = encoding.encode_levels(fractal((257, 257), seed), 8)
+    per_level = {sh: sum(size(lv, sh) for lv in levels) for sh in (Blosc.SHUFFLE, Blosc.BITSHUFFLE)}
+    assert per_level[Blosc.BITSHUFFLE] < per_level[Blosc.SHUFFLE]
+    joined = np.concatenate(levels)
+    assert size(joined, Blosc.BITSHUFFLE) > size(joined, Blosc.SHUFFLE)
+
+
+@pytest.mark.parametrize("k", [2, 4, 8, 9, 10])
+def test_table_blocks_are_whole_powers_of_two(k):
+    """Bit shuffle needs whole blocks: the tables' block is a power of two <= their bytes."""
+    from tiler.layout import order_index
+
+    n = order_index(k).nbytes
+    b = schema.table_blocksize(n)
+    assert b & (b - 1) == 0 and b <= min(n, 1 << 21) and 2 * b > min(n, 1 << 21)
+
+
+def test_table_blocksize_shrinks_the_order_table():
+    """k = 8's order table in one block that is not a multiple of 8 values compresses far
+    worse (the failure ``table_blocksize`` avoids) than in the chosen block."""
+    from numcodecs import Blosc
+
+    from tiler.layout import order_index
+
+    t = np.ascontiguousarray(order_index(8))
+    chosen = Blosc("zstd", 5, Blosc.BITSHUFFLE, blocksize=schema.table_blocksize(t.nbytes))
+    whole = Blosc("zstd", 5, Blosc.BITSHUFFLE, blocksize=t.nbytes)
+    assert len(chosen.encode(t)) * 4 < len(whole.encode(t))
+
+
+def test_store_metadata_is_written_compact(dem_factory, tmp_path):
+    """Every zarr.json of a tiled store is one line (no indentation); zarr's own default for
+    other groups in the process is left as it was (positive control: that one is indented)."""
+    tile(dem_factory(fractal((40, 40), 1)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    files = list((tmp_path / "s.zarr").rglob("zarr.json"))
+    assert len(files) >= 19  # root, 3 groups, 5 levels, errors, mask, 7 index, 2 tables
+    assert all(b"\n" not in p.read_bytes().strip() for p in files)
+    zarr.open_group(tmp_path / "other.zarr", mode="w", attributes={"a": 1})
+    assert b"\n" in (tmp_path / "other.zarr" / "zarr.json").read_bytes().strip()
+    assert open_store(tmp_path / "s.zarr").meta.complete
