@@ -138,7 +138,9 @@ def run(
 ) -> dict:
     """Measure every setting on every input, repetitions interleaved; the JSON-able result."""
     k = parse_block_size(block_size)
-    data = [(name, _chunks(arr, nd, k)) for name, arr, nd in _inputs(synth)]
+    inputs = _inputs(synth)
+    encoding = {name: _encoding(arr) for name, arr, _ in inputs}
+    data = [(name, _chunks(arr, nd, k)) for name, arr, nd in inputs]
     acc: dict[tuple, dict[str, Any]] = {}
     for rep in range(reps):
         for nthreads in threads:
@@ -166,6 +168,7 @@ def run(
         rows.append(
             {
                 "input": name,
+                "encoding": encoding[name],
                 "kind": kind,
                 "codec": codec,
                 "level": level,
@@ -178,7 +181,35 @@ def run(
                 "decode_s": statistics.median(a["dec"]),
             }
         )
-    return {"rows": rows, "summary": _summary(rows)}
+    return {"rows": rows, "summary": _summary(rows), "by_encoding": _by_encoding(rows)}
+
+
+def _encoding(arr: np.ndarray) -> str:
+    """The store encoding an input gets (``tiler.encoding``): integers residuals, floats xor."""
+    return "int-residual" if np.issubdtype(arr.dtype, np.integer) else "float-xor"
+
+
+def _by_encoding(rows: list[dict]) -> list[dict]:
+    """Per (encoding, kind, setting, threads): bytes and times summed over its inputs."""
+    tot: dict[tuple, dict[str, float]] = {}
+    for r in rows:
+        key = (r["encoding"], r["kind"], r["codec"], r["level"], r["shuffle"], r["blocksize"])
+        t = tot.setdefault((*key, r["threads"]), {"bytes": 0, "encode_s": 0.0, "decode_s": 0.0})
+        for f in t:
+            t[f] += r[f]
+    keys = ("encoding", "kind", "codec", "level", "shuffle", "blocksize", "threads")
+    return [dict(zip(keys, key, strict=True), **t) for key, t in tot.items()]
+
+
+def _print_by_encoding(rows: list[dict]) -> None:
+    print("\nper encoding (sums over its inputs):")
+    print(f"  {'encoding':12s} {'kind':6s} codec  lvl shuf blockKiB thr   bytes    enc_ms  dec_ms")
+    for r in sorted(rows, key=lambda r: (r["encoding"], r["kind"], r["bytes"])):
+        print(
+            f"  {r['encoding']:12s} {r['kind']:6s} {r['codec']:6s} {r['level']:3d} "
+            f"{r['shuffle']:4s} {r['blocksize'] // 1024:8d} {r['threads']:3d} {r['bytes']:9d} "
+            f"{1e3 * r['encode_s']:8.1f} {1e3 * r['decode_s']:7.1f}"
+        )
 
 
 def _summary(rows: list[dict]) -> list[dict]:
@@ -272,6 +303,7 @@ def main(argv: list[str] | None = None) -> int:
         a.only,
     )
     _print(res["summary"])
+    _print_by_encoding(res["by_encoding"])
     res["recommended"] = recommend(res["summary"])
     print(f"\nfastest setting at most {SIZE_SLACK - 1:.0%} larger than today's, per kind:")
     for kind, r in res["recommended"].items():
