@@ -27,8 +27,8 @@ SHARD_BLOCKS = 16  # blocks per shard edge for small levels
 INDEX_CHUNK = 256
 INDEX_NAMES = ("exists", "done", "has_nodata", "zmin", "zmax", "window", "digest")
 # The level/order index tables: blosc clevel 9 is zstd's ultra level 22, which took 2.0-3.4 s for
-# k = 10's order table (15.8 s for k = 11) on every tiling run for 32 KiB less than clevel 5
-# (76 vs 44 KiB; 56 ms). Measured in BENCHMARKS.md "Tiling".
+# k = 10's order table (15.8 s for k = 11) on every tiling run; clevel 5 with whole power-of-two
+# blocks (``table_blocksize``) makes it 44 KiB in ~17 ms. Measured in BENCHMARKS.md "Tiling".
 TABLE_CLEVEL = 5
 DEFAULT_CLEVEL = 3  # zstd 3 with 1 MiB blosc blocks: the size of zstd 5 in 1/3 the time
 LEVEL_BLOCKSIZE = 1 << 20  # blosc block of the level arrays: one per chunk up to k = 10
@@ -93,13 +93,17 @@ def codecs(
     return out
 
 
+TABLE_MAX_BLOCK = 1 << 23
+
+
 def table_blocksize(nbytes: int) -> int:
-    """Blosc block of an index table: the largest power of two <= its bytes, at most 2 MiB.
+    """Blosc block of an index table: the largest power of two <= its bytes, at most 8 MiB.
 
     Bit shuffle applies to whole blocks, so a table in one block that is not a multiple of 8
-    values compressed 16x worse (k = 8); 2 MiB blocks make k = 10's order table 52 KiB instead
-    of 75 KiB with blosc's automatic blocks, in less time."""
-    return min(1 << 21, 1 << (max(int(nbytes), 1).bit_length() - 1))
+    values compressed 16x worse (k = 8). Larger blocks compress the order table better: k = 10
+    45,070 B in 4 MiB blocks (51,667 in 2 MiB, 76,964 automatic; 17 vs 10 ms), k = 11 116 KiB
+    in 8 MiB (145 KiB in 2 MiB, the same time)."""
+    return min(TABLE_MAX_BLOCK, 1 << (max(int(nbytes), 1).bit_length() - 1))
 
 
 @contextmanager

@@ -110,14 +110,15 @@ def test_bit_shuffle_is_smaller_per_level_on_integer_residuals(seed):
     assert size(joined, Blosc.BITSHUFFLE) > size(joined, Blosc.SHUFFLE)
 
 
-@pytest.mark.parametrize("k", [2, 4, 8, 9, 10])
+@pytest.mark.parametrize("k", [2, 4, 8, 9, 10, 11, 12])
 def test_table_blocks_are_whole_powers_of_two(k):
     """Bit shuffle needs whole blocks: the tables' block is a power of two <= their bytes."""
     from tiler.layout import order_index
 
     n = order_index(k).nbytes
     b = schema.table_blocksize(n)
-    assert b & (b - 1) == 0 and b <= min(n, 1 << 21) and 2 * b > min(n, 1 << 21)
+    cap = min(n, schema.TABLE_MAX_BLOCK)
+    assert b & (b - 1) == 0 and b <= cap and 2 * b > cap
 
 
 def test_table_blocksize_shrinks_the_order_table():
