@@ -54,7 +54,7 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         if m.checksummed
         else f"none (format {m.format_version})",
         "generation": m.generation,
-        "compressor": f"{m.compressor.get('name')} level {m.compressor.get('level')}",
+        "compressor": compressor_text(m.compressor),
         "crs": crs,
         "extent": list(s.grid.extent),
         "value_range": vr,
@@ -90,3 +90,12 @@ def blocks_with_nodata(store: TerrainStore) -> int:
         elif not store.read_mask((int(br), int(bc)))[:h, :w].all():
             n += 1
     return n
+
+
+def compressor_text(compressor: dict[str, Any]) -> str:
+    """``meta.compressor`` in words: name, level and the bit-shuffled levels if any."""
+    text = f"{compressor.get('name')} level {compressor.get('level')}"
+    bits = compressor.get("bitshuffle_levels") or []
+    if bits:
+        text += f", levels {', '.join(str(i) for i in bits)} bit shuffled"
+    return text

@@ -65,22 +65,25 @@ def compressor(
     )
 
 
-BITSHUFFLE_NAME = "blosc-zstd-bitshuffle"  # ``meta.compressor["name"]`` of bit-shuffled levels
-SHUFFLE_NAME = "blosc-zstd-shuffle"
+COMPRESSOR_NAME = "blosc-zstd-shuffle"  # ``meta.compressor["name"]``
+BIT_SHUFFLED_FINEST = 2  # integer stores bit shuffle their two finest levels (spacing 1-2 samples)
 
 
-def level_bits(compressor_name: str) -> bool:
-    """Whether a store's level arrays are bit shuffled, from ``meta.compressor["name"]``
-    (stores written before the choice say byte shuffle)."""
-    return compressor_name == BITSHUFFLE_NAME
+def bitshuffle_levels(encoding: str, k: int) -> list[int]:
+    """The levels a new store bit shuffles (``meta.compressor["bitshuffle_levels"]``): the two
+    finest of an integer-residual store, whose residuals over 1-2 samples have mostly zero high
+    bits; none of a float-XOR store. Measured per level on real chunks (BENCHMARKS.md "Codec
+    choice"): the finest levels 0.91-0.96x, the coarser ones and float XORs up to 1.11x, and
+    bit-shuffled coarse levels decode up to 2x slower."""
+    if encoding == "float-xor":
+        return []
+    return list(range(max(0, k + 1 - BIT_SHUFFLED_FINEST), k + 1))
 
 
-def level_compressor_name(encoding: str) -> str:
-    """The level compressor of an encoding: bit shuffle for the integer residuals (whose high
-    bits are mostly zero), byte shuffle for the float XORs. Measured per chunk on the store's
-    real chunks (``bench/codecs.py``, BENCHMARKS.md "Codec choice"): bit shuffle 0.90-1.004x
-    the levels of the int16 inputs, 1.03-1.11x of the float32 ones."""
-    return SHUFFLE_NAME if encoding == "float-xor" else BITSHUFFLE_NAME
+def level_bits(compressor: dict[str, Any], level: int) -> bool:
+    """Whether ``level``'s array is bit shuffled, from ``meta.compressor`` (stores written
+    before the choice name no levels: all byte shuffled)."""
+    return level in (compressor.get("bitshuffle_levels") or ())
 
 
 def codecs(
@@ -180,7 +183,7 @@ def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]
                         v,
                         comp_level,
                         itemsize,
-                        level_bits(meta.compressor.get("name", "")),
+                        level_bits(meta.compressor, i),
                         LEVEL_BLOCKSIZE,
                     ),
                     fill_value=fill,

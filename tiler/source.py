@@ -22,7 +22,7 @@ from tiler.encoding import encoding_for, storage_dtype_for
 from tiler.errors import SourceError
 from tiler.grid import BlockGrid
 from tiler.mosaic import MosaicReader, MosaicSpec, plan_mosaic
-from tiler.schema import level_compressor_name
+from tiler.schema import COMPRESSOR_NAME, bitshuffle_levels
 from tiler.store import StoreMeta, tool_version
 from tiler.vertical import vertical_meta
 
@@ -161,8 +161,9 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
         error_cap=cap,
         error_fields=static_error.FIELDS,
         compressor={
-            "name": level_compressor_name(encoding_for(value)),
+            "name": COMPRESSOR_NAME,
             "level": opts.compression_level,
+            "bitshuffle_levels": bitshuffle_levels(encoding_for(value), k),
         },
         extra=extra,
     )

@@ -68,44 +68,60 @@ def _blosc(group: zarr.Group, name: str) -> dict:
     return next(c["configuration"] for c in codecs if c["name"] == "blosc")
 
 
-@pytest.mark.parametrize(("dtype", "shuffle"), [("int16", "bitshuffle"), ("float32", "shuffle")])
-def test_level_shuffle_follows_the_encoding(dem_factory, tmp_path, dtype, shuffle):
-    """Integer residual levels (sharded and not) are bit shuffled, float XOR levels byte
-    shuffled; ``meta.compressor`` names which; the errors stay byte shuffled; lossless."""
+@pytest.mark.parametrize("dtype", ["int16", "float32"])
+def test_level_shuffle_follows_the_encoding(dem_factory, tmp_path, dtype):
+    """An integer store bit shuffles its two finest levels and byte shuffles the rest (sharded
+    and not); a float store byte shuffles all; ``meta.compressor`` names the bit-shuffled
+    levels; the errors stay byte shuffled; lossless."""
     data = fractal((300, 300), 1, dtype)
     tile(dem_factory(data), tmp_path / "s.zarr", TileOptions(block_size=65))
     store = open_store(tmp_path / "s.zarr")
     group = zarr.open_group(tmp_path / "s.zarr", mode="r")
+    k = store.meta.k
+    want = [k - 1, k] if dtype == "int16" else []
+    assert store.meta.compressor["bitshuffle_levels"] == want
     for i in range(store.meta.levels):
+        shuffle = "bitshuffle" if i in want else "shuffle"
         assert _blosc(group, f"levels/{i}")["shuffle"] == shuffle
+        assert schema.level_bits(store.meta.compressor, i) == (i in want)
     assert _blosc(group, "errors")["shuffle"] == "shuffle"
-    assert schema.level_bits(store.meta.compressor["name"]) == (shuffle == "bitshuffle")
     assert np.array_equal(store.read_block((1, 2)), data[64:129, 128:193])
+    assert np.array_equal(store.read_block((1, 2), k - 2), data[64:129:4, 128:193:4])
+
+
+def test_bitshuffle_levels_at_small_k():
+    """The two finest levels, never a negative one."""
+    assert schema.bitshuffle_levels("int-residual", 10) == [9, 10]
+    assert schema.bitshuffle_levels("int-residual", 0) == [0]
+    assert schema.bitshuffle_levels("float-xor", 10) == []
 
 
 def test_an_older_store_keeps_byte_shuffle(meta):
-    """A store whose metadata names byte shuffle (written before the choice) is described by
-    its byte-shuffled layout (the name, not the encoding, decides)."""
-    old = replace(meta, compressor={"name": schema.SHUFFLE_NAME, "level": 3})
+    """A store whose metadata names no bit-shuffled levels (written before the choice) is
+    described by its byte-shuffled layout (the metadata, not the encoding, decides)."""
+    old = replace(meta, compressor={"name": schema.COMPRESSOR_NAME, "level": 3})
     specs = dict(schema.layout_specs(old, 3))
-    assert specs["levels/4"]["compressors"][0].shuffle.value == "shuffle"
+    shuffles = {specs[f"levels/{i}"]["compressors"][0].shuffle.value for i in range(meta.levels)}
+    assert shuffles == {"shuffle"}
     new = dict(schema.layout_specs(meta, 3))
-    assert new["levels/4"]["compressors"][0].shuffle.value == "bitshuffle"
+    assert new[f"levels/{meta.k}"]["compressors"][0].shuffle.value == "bitshuffle"
+    assert new["levels/0"]["compressors"][0].shuffle.value == "shuffle"
 
 
 @pytest.mark.parametrize("seed", [1, 3])
-def test_bit_shuffle_is_smaller_per_level_on_integer_residuals(seed):
+def test_bit_shuffle_is_smaller_on_the_finest_integer_levels(seed):
     """The measurement behind the choice, level by level as the store compresses them (each
-    level its own chunk): bit shuffle beats byte shuffle on a rough integer block, and all
-    levels concatenated into one buffer (not what a store does) would say the opposite."""
+    level its own chunk): bit shuffle beats byte shuffle on each level a store bit shuffles,
+    and all levels concatenated into one buffer (not what a store does) would say the
+    opposite."""
     from numcodecs import Blosc
 
     def size(raw: np.ndarray, sh: int) -> int:
         return len(Blosc("zstd", 3, sh, blocksize=schema.LEVEL_BLOCKSIZE).encode(raw))
 
     levels = encoding.encode_levels(fractal((257, 257), seed), 8)
-    per_level = {sh: sum(size(lv, sh) for lv in levels) for sh in (Blosc.SHUFFLE, Blosc.BITSHUFFLE)}
-    assert per_level[Blosc.BITSHUFFLE] < per_level[Blosc.SHUFFLE]
+    for i in schema.bitshuffle_levels("int-residual", 8):
+        assert size(levels[i], Blosc.BITSHUFFLE) < size(levels[i], Blosc.SHUFFLE)
     joined = np.concatenate(levels)
     assert size(joined, Blosc.BITSHUFFLE) > size(joined, Blosc.SHUFFLE)
 
