@@ -26,10 +26,10 @@ import numpy as np
 import rasterio.env
 import zarr
 
-from tiler import kernels
+from tiler import chunkwrite, kernels
 from tiler.errors import StoreError
 from tiler.grid import BlockGrid
-from tiler.location import Location
+from tiler.location import Location, as_location
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk
 from tiler.source import _open_source, read_window
@@ -52,8 +52,16 @@ def open_for_write(target: Any, name: str) -> zarr.Array:
     return zarr.open_array(target, path=name, mode="r+").with_config(WRITE_CONFIG)
 
 
+#: ``0`` makes block workers write every chunk through zarr (the reference, for comparisons)
+DIRECT_WRITES_ENV = "TERRASTREAM_DIRECT_WRITES"
+
+
 class BlockWorker:
-    """Reads, encodes and writes blocks for one thread or process (own dataset and arrays)."""
+    """Reads, encodes and writes blocks for one thread or process (own dataset and arrays).
+
+    On a local format-2 store a block's level, error and mask chunks are encoded and written
+    by :mod:`tiler.chunkwrite` (the bytes zarr would write, without a zarr call each); the
+    journal entry, the block's commit, is written through zarr after them."""
 
     def __init__(self, src: str, band: int, target: Any, grid: BlockGrid, params: Any):
         self.src, self.band, self.grid, self.params = src, band, grid, params
@@ -61,6 +69,22 @@ class BlockWorker:
         self.small = small_levels(params.k)
         names = [f"levels/{i}" for i in range(self.small, params.k + 1)]
         self.arrays = {n: open_for_write(target, n) for n in [*names, "errors", "mask", JOURNAL]}
+        self.direct: dict[str, chunkwrite.ChunkSpec] = {}
+        self.root = ""
+        loc = as_location(target)
+        if loc.is_local and os.environ.get(DIRECT_WRITES_ENV, "1").strip() != "0":
+            for n in [*names, "errors", "mask"]:
+                spec = chunkwrite.chunk_spec(n, self.arrays[n].metadata.to_dict())
+                if spec is not None:
+                    self.direct[n] = spec
+            self.root = str(loc.path)
+
+    def _write(self, name: str, block: tuple[int, int], values: np.ndarray) -> None:
+        spec = self.direct.get(name)
+        if spec is None:
+            self.arrays[name][block] = values
+        else:
+            chunkwrite.write_local(self.root, spec, block, values)
 
     def run(self, br: int, bc: int) -> tuple[int, int]:
         """Encode block ``(br, bc)``; write its data, then its journal entry (the commit)."""
@@ -70,10 +94,10 @@ class BlockWorker:
             read_window(self.ds, self.band, self.grid, br, bc), self.params
         )
         for i in range(self.small, self.params.k + 1):
-            self.arrays[f"levels/{i}"][br, bc] = res.levels[i]
-        self.arrays["errors"][br, bc] = res.errors
+            self._write(f"levels/{i}", (br, bc), res.levels[i])
+        self._write("errors", (br, bc), res.errors)
         if res.mask is not None:
-            self.arrays["mask"][br, bc] = res.mask
+            self._write("mask", (br, bc), res.mask)
         entry = JournalEntry(
             levels=res.levels[: self.small],
             exists=res.exists,
