@@ -68,7 +68,7 @@ class LevelSpec:
         return 16 * self.shard[0] * self.shard[1] + 4
 
 
-def _is_chain(codecs: Any, itemsize: int) -> bool:
+def is_block_chain(codecs: Any, itemsize: int) -> bool:
     """``[bytes little, blosc, crc32c]`` (any blosc settings: its frames describe themselves;
     one-byte types have no endianness, and zarr then writes ``bytes`` without one)."""
     c = list(codecs)
@@ -80,11 +80,12 @@ def _is_chain(codecs: Any, itemsize: int) -> bool:
     )
 
 
-def level_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
-    """The :class:`LevelSpec` of a level array from its zarr metadata (``to_dict()``), or None
-    if the array is not stored the way this module decodes (zarr then reads it)."""
-    if google_crc32c is None or blosc is None or not hasattr(os, "pread"):  # else zarr reads
-        return None
+def regular_array(
+    metadata: dict[str, Any],
+) -> tuple[np.dtype, tuple[int, ...], tuple[int, ...], list[Any]] | None:
+    """``(little-endian dtype, shape, chunk shape, codecs)`` of an array's zarr metadata
+    (``to_dict()``) if it has a regular chunk grid, default ``/`` chunk keys and no storage
+    transformers (the layouts this module and :mod:`tiler.chunkwrite` address), else None."""
     try:
         dtype = np.dtype(str(metadata["data_type"])).newbyteorder("<")
         shape = tuple(int(x) for x in metadata["shape"])
@@ -95,24 +96,35 @@ def level_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
     except (KeyError, TypeError, ValueError):
         return None
     if (
-        dtype.kind != "u"
-        or len(shape) != 3
-        or len(chunks) != 3
-        or grid.get("name") != "regular"
+        grid.get("name") != "regular"
         or cke.get("name") != "default"
         or dict(cke.get("configuration") or {}).get("separator", "/") != "/"
         or metadata.get("storage_transformers")
     ):
         return None
+    return dtype, shape, chunks, codecs
+
+
+def level_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
+    """The :class:`LevelSpec` of a level array from its zarr metadata (``to_dict()``), or None
+    if the array is not stored the way this module decodes (zarr then reads it)."""
+    if google_crc32c is None or blosc is None or not hasattr(os, "pread"):  # else zarr reads
+        return None
+    parsed = regular_array(metadata)
+    if parsed is None:
+        return None
+    dtype, shape, chunks, codecs = parsed
+    if dtype.kind != "u" or len(shape) != 3 or len(chunks) != 3:
+        return None
     n = shape[2]
-    if _is_chain(codecs, dtype.itemsize) and chunks == (1, 1, n):
+    if is_block_chain(codecs, dtype.itemsize) and chunks == (1, 1, n):
         return LevelSpec(name, n, dtype, None)
     if len(codecs) != 1 or dict(codecs[0]).get("name") != "sharding_indexed":
         return None
     cfg = dict(codecs[0].get("configuration") or {})
     if (
         tuple(int(x) for x in cfg.get("chunk_shape", ())) != (1, 1, n)
-        or not _is_chain(cfg.get("codecs", ()), dtype.itemsize)
+        or not is_block_chain(cfg.get("codecs", ()), dtype.itemsize)
         or [dict(c) for c in cfg.get("index_codecs", ())] != [_BYTES_LE, _CRC]
         or cfg.get("index_location", "end") != "end"
         or chunks[2] != n

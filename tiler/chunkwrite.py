@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from tiler.chunkread import _is_chain
+from tiler.chunkread import is_block_chain, regular_array
 
 try:  # zarr's own dependencies (its crc32c and blosc codecs)
     import google_crc32c
@@ -68,24 +68,15 @@ def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
     its chunks are not stored the way this module encodes them (zarr then writes them)."""
     if google_crc32c is None or Blosc is None or not _TYPESIZE_PASSED:
         return None
-    try:
-        dtype = np.dtype(str(metadata["data_type"])).newbyteorder("<")
-        shape = tuple(int(x) for x in metadata["shape"])
-        grid = metadata["chunk_grid"]
-        chunks = tuple(int(x) for x in grid["configuration"]["chunk_shape"])
-        cke = metadata["chunk_key_encoding"]
-        codecs = list(metadata["codecs"])
-    except (KeyError, TypeError, ValueError):
+    parsed = regular_array(metadata)
+    if parsed is None:
         return None
+    dtype, shape, chunks, codecs = parsed
     if (
         metadata.get("zarr_format") != 3
         or len(shape) < 3
-        or grid.get("name") != "regular"
         or chunks != (1, 1, *shape[2:])
-        or cke.get("name") != "default"
-        or dict(cke.get("configuration") or {}).get("separator", "/") != "/"
-        or metadata.get("storage_transformers")
-        or not _is_chain(codecs, dtype.itemsize)
+        or not is_block_chain(codecs, dtype.itemsize)
     ):
         return None
     cfg = dict(codecs[1].get("configuration") or {})
