@@ -453,6 +453,10 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine_info(),
         "notes": notes,
         "tiler_sources_digest": {"start": digest_start, "end": digest_end},
+        # the tiler's switches as this run saw them (unset: the defaults, direct writes on)
+        "environment": {
+            v: os.environ.get(v) for v in ("TERRASTREAM_KERNELS", "TERRASTREAM_DIRECT_WRITES")
+        },
         "load_average": {"start": list(load_start), "end": list(load_end)},
         "units": {"MB": "2**20 bytes", "ms": "median milliseconds"},
         "inputs": results,
