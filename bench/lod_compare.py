@@ -42,6 +42,7 @@ from bench.common import (  # noqa: E402
     S4097,
     ensure_store,
     machine_info,
+    portable,
 )
 from render.strategies.compare import HEADER, compare, plot_pareto  # noqa: E402
 from streamer.camera import Camera  # noqa: E402
@@ -218,12 +219,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# {time.perf_counter() - t0:.0f} s")
         name = Path(path).name.split(".")[0]
         plot_pareto(rows, out / f"lod_compare{tag}_{name}.png", title=f"{name} {w}x{h}")
-        results[path] = rows
+        results[portable(str(path))] = rows  # keys name no machine's paths
     if not results:
         print("error: no store was measured (see the # skipping lines)", file=sys.stderr)
         return 1
     js = out / f"lod_compare{tag}.json"
-    js.write_text(json.dumps(results, indent=1))
+    js.write_text(json.dumps(portable(results), indent=1))
     (out / f"lod_compare{tag}.md").write_text(markdown(results, a.metric))
     (out / f"lod_compare{tag}_machine.json").write_text(json.dumps(machine_info(), indent=1))
     print(f"wrote {js}")
