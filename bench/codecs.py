@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 from numcodecs import Blosc  # noqa: E402
 
 from bench.common import SHARED_DATA as DATA  # noqa: E402  ($TERRASTREAM_SHARED_DATA)
+from tiler.encoding import encoding_for  # noqa: E402
 from tiler.layout import grid_side, parse_block_size  # noqa: E402
 from tiler.static_error import default_cap  # noqa: E402
 from tiler.synth import synth_array  # noqa: E402
@@ -139,7 +140,7 @@ def run(
     """Measure every setting on every input, repetitions interleaved; the JSON-able result."""
     k = parse_block_size(block_size)
     inputs = _inputs(synth)
-    encoding = {name: _encoding(arr) for name, arr, _ in inputs}
+    encoding = {name: encoding_for(arr.dtype) for name, arr, _ in inputs}
     data = [(name, _chunks(arr, nd, k)) for name, arr, nd in inputs]
     acc: dict[tuple, dict[str, Any]] = {}
     for rep in range(reps):
@@ -182,11 +183,6 @@ def run(
             }
         )
     return {"rows": rows, "summary": _summary(rows), "by_encoding": _by_encoding(rows)}
-
-
-def _encoding(arr: np.ndarray) -> str:
-    """The store encoding an input gets (``tiler.encoding``): integers residuals, floats xor."""
-    return "int-residual" if np.issubdtype(arr.dtype, np.integer) else "float-xor"
 
 
 def _by_encoding(rows: list[dict]) -> list[dict]:

@@ -91,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"skip {name}: {src} is absent (bench/tiling.py makes the synthetic ones)")
             continue
         rows.append(bench_input(name, src, args.pairs, args.workers))
+    if not rows:
+        print("error: no input was measured (see the skip lines)", file=sys.stderr)
+        return 1
     print(f"\n{'input':<12} {'direct s':>9} {'zarr s':>8} {'ratio':>6}  chunks identical")
     for r in rows:
         m = r["median_s"]

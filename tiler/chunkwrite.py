@@ -93,29 +93,35 @@ def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
     return ChunkSpec(name, shape[2:], dtype, codec)
 
 
-def encode_chunk(values: np.ndarray, spec: ChunkSpec) -> bytes:
-    """A block's chunk bytes: blosc of its little-endian values, then their crc32c."""
+def _encode(values: np.ndarray, spec: ChunkSpec) -> tuple[Any, bytes]:
+    """The blosc payload of a block's little-endian values and its crc32c (4 bytes)."""
     arr = np.asarray(values)
     if arr.shape != spec.shape:
         raise ValueError(f"{spec.name}: a block's chunk is {spec.shape}, got {arr.shape}")
     raw = np.ascontiguousarray(arr, dtype=spec.dtype).reshape(-1).view(np.uint8)
     payload = spec.codec.encode(raw)
-    return bytes(payload) + google_crc32c.value(payload).to_bytes(4, "little")
+    return payload, google_crc32c.value(payload).to_bytes(4, "little")
+
+
+def encode_chunk(values: np.ndarray, spec: ChunkSpec) -> bytes:
+    """A block's chunk bytes: blosc of its little-endian values, then their crc32c."""
+    payload, crc = _encode(values, spec)
+    return bytes(payload) + crc
 
 
 def write_local(root: str, spec: ChunkSpec, block: tuple[int, int], values: np.ndarray) -> int:
     """Write ``block``'s chunk of ``spec``'s array under ``root`` (atomically: a temporary
     file renamed over the key, as zarr's ``LocalStore`` does); returns the bytes written."""
-    data = encode_chunk(values, spec)
+    payload, crc = _encode(values, spec)  # written as two pieces: no copy of the payload
     path = os.path.join(root, *spec.key(block).split("/"))
     os.makedirs(os.path.dirname(path), exist_ok=True)
     tmp = f"{path}.{uuid.uuid4().hex}.partial"
     try:
         with open(tmp, "wb") as f:
-            f.write(data)
+            n = f.write(payload) + f.write(crc)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    return len(data)
+    return n

@@ -11,6 +11,7 @@ import zarr
 from demtools import fractal
 
 from tiler import encoding, schema
+from tiler.info import store_info
 from tiler.store import open_store
 from tiler.tile import TileOptions, tile
 
@@ -85,6 +86,8 @@ def test_level_shuffle_follows_the_encoding(dem_factory, tmp_path, dtype):
         assert _blosc(group, f"levels/{i}")["shuffle"] == shuffle
         assert schema.level_bits(store.meta.compressor, i) == (i in want)
     assert _blosc(group, "errors")["shuffle"] == "shuffle"
+    text = store_info(str(tmp_path / "s.zarr"))["compressor"]
+    assert ("bit shuffled" in text) == bool(want) and (f"levels {k - 1}, {k}" in text) == bool(want)
     assert np.array_equal(store.read_block((1, 2)), data[64:129, 128:193])
     assert np.array_equal(store.read_block((1, 2), k - 2), data[64:129:4, 128:193:4])
 
