@@ -16,13 +16,16 @@ SRTM tile) it measures:
 * stored bytes by component (``TerrainStore.nbytes()``) vs the raw source, vs a full 2x2 raw
   pyramid of the same depth, and vs two COGs built in the same run, each in a child process
   measured the same way: ``rio_cogeo`` zstd + predictor 2 with internal overviews, and without;
-* read time: ``store.read_block`` (all levels, decoded grid) vs a rasterio window read of the same
+* read time: ``store.read_block`` (all levels, decoded) vs a rasterio window read of the same
   area of the COG, and a coarse view (levels ``0..k-2``) vs the COG's overview at the same
   resolution; fresh store / dataset per repetition, opened outside the timed region. The store
-  is read three ways in the same loop (``READ_VARIANTS``): direct chunk reads with the numpy
-  decode (``store``, what a fresh reader process does), with the numba decode
-  (``store_numba``, a process that loaded numba, e.g. a streamer session after ``warm_up``),
-  and through zarr (``store_zarr``, the read path before issue 14).
+  is read five ways in the same loop (``READ_VARIANTS``): the block's samples inside the DEM
+  (``extent=store.block_extent(...)``: the same area as the COG window) with direct chunk reads
+  and the numpy decode (``store``, what a fresh reader process does) or the numba decode
+  (``store_numba``, a process that loaded numba, e.g. a streamer session after ``warm_up``);
+  and, as references, the whole ``2**k+1`` grid with its padding (``store_grid``,
+  ``store_numba_grid``: the reads before the windowed decode) and through zarr
+  (``store_zarr``, the read path before issue 14).
 
 ``--reads-only STORE=SOURCE`` skips tiling: it builds a COG (with overviews) of SOURCE in
 ``--work-dir`` and times only the reads (``bench/results/tiling_reads.json``).

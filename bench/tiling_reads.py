@@ -40,14 +40,19 @@ def _median_ms(values: list[float]) -> float:
     return statistics.median(values) * 1e3
 
 
-#: How the store is read, each timed in the same loop (A/B in one run): ``direct_reads`` and
-#: the decode backend (``TERRASTREAM_KERNELS``). "store" is what a fresh reader process does
-#: (direct reads; numpy decode, since the read path loads numba only if the process already
+#: How the store is read, each timed in the same loop (A/B in one run): ``direct_reads``, the
+#: decode backend (``TERRASTREAM_KERNELS``) and ``extent``: True reads the block's samples inside
+#: the DEM (``read_block(..., extent=store.block_extent(...))``, what the xarray backend, export
+#: and ``accuracy`` read; the same area as the COG window), False the whole ``2**L+1`` grid,
+#: padding included (the read before the windowed decode). "store" is what a fresh reader process
+#: does (direct reads; numpy decode, since the read path loads numba only if the process already
 #: has it); "store_zarr" is the read path before issue 14 (one zarr call per level).
 READ_VARIANTS: dict[str, dict[str, Any]] = {
-    "store": {"direct_reads": True, "kernels": "numpy"},
-    "store_numba": {"direct_reads": True, "kernels": "numba"},
-    "store_zarr": {"direct_reads": False, "kernels": "numpy"},
+    "store": {"direct_reads": True, "kernels": "numpy", "extent": True},
+    "store_numba": {"direct_reads": True, "kernels": "numba", "extent": True},
+    "store_grid": {"direct_reads": True, "kernels": "numpy", "extent": False},
+    "store_numba_grid": {"direct_reads": True, "kernels": "numba", "extent": False},
+    "store_zarr": {"direct_reads": False, "kernels": "numpy", "extent": False},
 }
 
 
@@ -73,7 +78,7 @@ def _variants() -> dict[str, dict[str, Any]]:
     out = dict(READ_VARIANTS)
     with _kernels_env("auto"):
         if not kernels.warm_up("int16"):
-            out.pop("store_numba")
+            out = {v: cfg for v, cfg in out.items() if cfg["kernels"] != "numba"}
     return out
 
 
@@ -105,9 +110,10 @@ def time_reads(store_path: Path, cog_path: Path, repeat: int) -> dict[str, Any]:
 
     def timed(v: str, b: tuple[int, int], level: int | None) -> float:
         s = TerrainStore(store_path, direct_reads=variants[v]["direct_reads"])
+        ext = store.block_extent(b, level) if variants[v]["extent"] else None
         with _kernels_env(variants[v]["kernels"]):
             t0 = time.perf_counter()
-            s.read_block(b, level)
+            s.read_block(b, level, extent=ext)
             return time.perf_counter() - t0
 
     for b in blocks:
@@ -117,9 +123,13 @@ def time_reads(store_path: Path, cog_path: Path, repeat: int) -> dict[str, Any]:
         with rasterio.open(cog_path) as ds:
             ref = ds.read(1, window=win)
         for v, cfg in variants.items():
+            ext = store.block_extent(b) if cfg["extent"] else None
             with _kernels_env(cfg["kernels"]):
-                got = TerrainStore(store_path, direct_reads=cfg["direct_reads"]).read_block(b)
-            if not np.array_equal(got[:h, :w], ref):
+                got = TerrainStore(store_path, direct_reads=cfg["direct_reads"])
+                got = got.read_block(b, extent=ext)
+            if got.shape != ((h, w) if ext else (store.grid.side,) * 2):
+                mismatches.append({"block": list(b), "variant": v, "shape": list(got.shape)})
+            elif not np.array_equal(got[:h, :w], ref):
                 n_diff = int((got[:h, :w] != ref).sum())
                 mismatches.append({"block": list(b), "variant": v, "n_diff": n_diff})
         if ovr_level is not None:
@@ -145,11 +155,12 @@ def time_reads(store_path: Path, cog_path: Path, repeat: int) -> dict[str, Any]:
         # Informational: the same store object re-reading (zarr arrays already opened; zarr
         # keeps no chunk cache, so this still reads and decodes every chunk).
         s = TerrainStore(store_path)
+        ext = store.block_extent(b)
         with _kernels_env(variants["store"]["kernels"]):
-            s.read_block(b)
+            s.read_block(b, extent=ext)
             for _ in range(repeat):
                 t0 = time.perf_counter()
-                s.read_block(b)
+                s.read_block(b, extent=ext)
                 times["store_warm"].append(time.perf_counter() - t0)
         row = {"block": list(b), "window": [r0, c0, h, w]}
         for key, vals in times.items():
@@ -180,7 +191,7 @@ def time_reads(store_path: Path, cog_path: Path, repeat: int) -> dict[str, Any]:
 
 
 #: read variants that are references, not candidates for the targets (the code before)
-REFERENCE_VARIANTS = ("store_zarr",)
+REFERENCE_VARIANTS = ("store_zarr", "store_grid", "store_numba_grid")
 
 
 def read_targets(reads: dict[str, Any]) -> list[dict[str, Any]]:

@@ -152,42 +152,52 @@ def _unzz(z):
 
 
 @_jit
-def _decode_level(seq, p, g, h, m):
+def _decode_level(seq, p, g, h, m, mi, mj):
     """One level of :func:`decode_int` (vertices ``h`` apart, ``m`` coarse intervals per
-    side) from ``seq[p:]``; returns the position after it. Per coarse row, its edge midpoints,
-    then the row below it: vertical midpoints and centres, which share the column sums
-    ``g[y - h, x] + g[y + h, x]``. Integer sums are exact (or wrap alike), so the results
-    equal :func:`_predict_int`'s, and the numpy reference's, bit for bit."""
-    last = 2 * m * h
-    for i in range(m + 1):
+    side) from ``seq[p:]``; returns the position after the level. Per coarse row, its edge
+    midpoints, then the row below it: vertical midpoints and centres, which share the column
+    sums ``g[y - h, x] + g[y + h, x]``. Only coarse rows ``0..mi`` and columns ``0..mj`` are
+    decoded (the window, ``mi = mj = m`` for the whole grid); values past it are skipped. Integer
+    sums are exact (or wrap alike), so the results equal :func:`_predict_int`'s, and the numpy
+    reference's, bit for bit."""
+    end = p + (m + 1) * m + m * (2 * m + 1)
+    for i in range(mi + 1):
         row = g[i * 2 * h]
-        for j in range(m):  # horizontal edge midpoints of coarse row i
+        for j in range(mj):  # horizontal edge midpoints of coarse row i
             x = (2 * j + 1) * h
             pred = (np.int64(row[x - h]) + np.int64(row[x + h])) >> 1
             row[x] = _unzz(np.int64(seq[p + j])) + pred
         p += m
-        if i == m:
+        if i == mi:
             break
         a = row
         b = g[(i + 1) * 2 * h]
         c = g[(2 * i + 1) * h]
         s0 = np.int64(a[0]) + np.int64(b[0])
-        for j in range(m):  # vertical midpoint at 2jh, centre at (2j+1)h
+        for j in range(mj):  # vertical midpoint at 2jh, centre at (2j+1)h
             x = 2 * j * h
             s1 = np.int64(a[x + 2 * h]) + np.int64(b[x + 2 * h])
             c[x] = _unzz(np.int64(seq[p + 2 * j])) + (s0 >> 1)
             c[x + h] = _unzz(np.int64(seq[p + 2 * j + 1])) + ((s0 + s1) >> 2)
             s0 = s1
-        c[last] = _unzz(np.int64(seq[p + 2 * m])) + (s0 >> 1)
+        c[2 * mj * h] = _unzz(np.int64(seq[p + 2 * mj])) + (s0 >> 1)
         p += 2 * m + 1
-    return p
+    return end
 
 
 @_jit
-def decode_int(seq, g, k, first):
+def _window(n, h):
+    """Coarse intervals (``2h`` apart) that cover grid indices ``0..n-1``."""
+    return (n - 1 + 2 * h - 1) // (2 * h)
+
+
+@_jit
+def decode_int(seq, g, k, first, rows, cols):
     """Decode levels ``first..k`` of an integer grid ``g`` (side ``2**k+1``) in place.
 
     ``seq`` holds the stored values of those levels; the coarser vertices of ``g`` are set.
+    Only ``g[:rows, :cols]`` is wanted: each level decodes the coarse cells that cover it
+    (the rest of ``g`` is left as it was); ``rows = cols = 2**k+1`` decodes every vertex.
     """
     last = g.shape[0] - 1
     p = 0
@@ -199,17 +209,20 @@ def decode_int(seq, g, k, first):
         p = 4
     for lev in range(max(first, 1), k + 1):
         m = 1 << (lev - 1)
+        h = 1 << (k - lev)
+        mi = _window(rows, h)
+        mj = _window(cols, h)
         if lev == k:  # constant strides for the two finest levels (15/16 of the values)
-            p = _decode_level(seq, p, g, 1, m)
+            p = _decode_level(seq, p, g, 1, m, mi, mj)
         elif lev == k - 1:
-            p = _decode_level(seq, p, g, 2, m)
+            p = _decode_level(seq, p, g, 2, m, mi, mj)
         else:
-            p = _decode_level(seq, p, g, 1 << (k - lev), m)
+            p = _decode_level(seq, p, g, h, m, mi, mj)
 
 
 @_jit
-def _decode_level_float(seq, p, g, gbits, h, m, pred, pbits, rows):
-    """One level of :func:`decode_float` from ``seq[p:]``; returns the position after it.
+def _decode_level_float(seq, p, g, gbits, h, m, pred, pbits, rows, mi, mj):
+    """One level of :func:`decode_float` from ``seq[p:]``; returns the position after the level.
 
     Per coarse row (``2h`` apart): its edge midpoints, then the row below it. A coarse row's
     vertices are copied once to a contiguous float64 row (``rows``: two, swapped), a row's
@@ -217,7 +230,9 @@ def _decode_level_float(seq, p, g, gbits, h, m, pred, pbits, rows):
     centres in row 1; rounded to the dtype by the store), then XORed with the stored bits
     through ``pbits``, ``pred``'s unsigned view: branch-free contiguous loops instead of a
     per-sample :func:`_predict_float`, with its float operations in its order (the centre's
-    ``((tl + tr) + bl) + br``: float sums are not associative), so bit-identical values."""
+    ``((tl + tr) + bl) + br``: float sums are not associative), so bit-identical values. Only
+    coarse rows ``0..mi`` and columns ``0..mj`` are decoded (``mi = mj = m``: all)."""
+    end = p + (m + 1) * m + m * (2 * m + 1)
     a = rows[0]
     b = rows[1]
     pv = pred[0]
@@ -225,39 +240,40 @@ def _decode_level_float(seq, p, g, gbits, h, m, pred, pbits, rows):
     bv = pbits[0]
     bc = pbits[1]
     row = g[0]
-    for j in range(m + 1):
+    for j in range(mj + 1):
         a[j] = np.float64(row[2 * j * h])
-    for i in range(m + 1):
+    for i in range(mi + 1):
         y = 2 * i * h
-        for j in range(m):
+        for j in range(mj):
             pv[j] = (a[j] + a[j + 1]) * 0.5
         rb = gbits[y]
-        for j in range(m):
+        for j in range(mj):
             rb[(2 * j + 1) * h] = seq[p + j] ^ bv[j]
         p += m
-        if i == m:
+        if i == mi:
             break
         row = g[y + 2 * h]
-        for j in range(m + 1):
+        for j in range(mj + 1):
             b[j] = np.float64(row[2 * j * h])
-        for j in range(m + 1):
+        for j in range(mj + 1):
             pv[j] = (a[j] + b[j]) * 0.5
-        for j in range(m):
+        for j in range(mj):
             pc[j] = (((a[j] + a[j + 1]) + b[j]) + b[j + 1]) * 0.25
         cb = gbits[y + h]
-        for j in range(m):
+        for j in range(mj):
             cb[2 * j * h] = seq[p + 2 * j] ^ bv[j]
             cb[(2 * j + 1) * h] = seq[p + 2 * j + 1] ^ bc[j]
-        cb[2 * m * h] = seq[p + 2 * m] ^ bv[m]
+        cb[2 * mj * h] = seq[p + 2 * mj] ^ bv[mj]
         p += 2 * m + 1
         a, b = b, a
-    return p
+    return end
 
 
 @_jit
-def decode_float(seq, g, gbits, k, first, scratch, sbits):
-    """:func:`decode_int` for the float-xor encoding. ``scratch`` (the grid's dtype, ``(2, n)``
-    with ``n > 2**(k-1)``) and ``sbits`` (its unsigned view) hold one row's predictions."""
+def decode_float(seq, g, gbits, k, first, scratch, sbits, rows, cols):
+    """:func:`decode_int` for the float-xor encoding (the same ``rows``/``cols`` window).
+    ``scratch`` (the grid's dtype, ``(2, n)`` with ``n > 2**(k-1)``) and ``sbits`` (its
+    unsigned view) hold one row's predictions."""
     last = g.shape[0] - 1
     p = 0
     if first == 0:
@@ -266,12 +282,15 @@ def decode_float(seq, g, gbits, k, first, scratch, sbits):
         gbits[last, 0] = seq[2]
         gbits[last, last] = seq[3]
         p = 4
-    rows = np.empty((2, (last >> 1) + 1), np.float64)
+    buf = np.empty((2, (last >> 1) + 1), np.float64)
     # a constant stride for the finest level (3/4 of the values): 1025^2 float32 ~0.8x the
     # time; one for the next level too (as decode_int) compiled ~0.6 s longer for no gain
     for lev in range(max(first, 1), k + 1):
         m = 1 << (lev - 1)
+        h = 1 << (k - lev)
+        mi = _window(rows, h)
+        mj = _window(cols, h)
         if lev == k:
-            p = _decode_level_float(seq, p, g, gbits, 1, m, scratch, sbits, rows)
+            p = _decode_level_float(seq, p, g, gbits, 1, m, scratch, sbits, buf, mi, mj)
         else:
-            p = _decode_level_float(seq, p, g, gbits, 1 << (k - lev), m, scratch, sbits, rows)
+            p = _decode_level_float(seq, p, g, gbits, h, m, scratch, sbits, buf, mi, mj)

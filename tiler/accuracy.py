@@ -34,7 +34,7 @@ def store_array(store: TerrainStore, level: int | None = None) -> tuple[np.ndarr
             continue
         r0, c0 = br * bstep, bc * bstep
         nr, nc = min(bstep + 1, h - r0), min(bstep + 1, w - c0)
-        g = store.read_block((br, bc), level)[:nr, :nc]
+        g = store.read_block((br, bc), level, extent=(nr, nc))
         v = store.read_mask((br, bc))[::step, ::step][:nr, :nc]
         sub = (slice(r0, r0 + nr), slice(c0, c0 + nc))
         out[sub] = np.where(v, g, out[sub])

@@ -29,6 +29,9 @@ class LevelCodec:
     decode: Callable[[list[np.ndarray], np.dtype], list[np.ndarray]]
     decode_next: Callable[[list[np.ndarray], np.ndarray, np.dtype], np.ndarray]
     decode_grid: Callable[[list[np.ndarray], np.dtype, int | None], np.ndarray]
+    #: ``(raws, value_dtype, level, extent, work)``: the grid's top-left ``extent`` decoded
+    #: alone (see :func:`tiler.encoding.decode_grid`); None: decode the grid, then crop
+    decode_window: Callable[..., np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -57,9 +60,22 @@ class BoundCodec:
         """Decoded values of level ``len(levels)`` from its stored values."""
         return self.codec.decode_next(levels, raw, self.value_dtype)
 
-    def decode_grid(self, raws: list[np.ndarray], level: int | None = None) -> np.ndarray:
-        """The level-``level`` grid (value dtype) from stored levels ``0..level``."""
-        return self.codec.decode_grid(raws, self.value_dtype, level)
+    def decode_grid(
+        self,
+        raws: list[np.ndarray],
+        level: int | None = None,
+        extent: tuple[int, int] | None = None,
+        work: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The level-``level`` grid (value dtype) from stored levels ``0..level``; with
+        ``extent=(rows, cols)`` only its top-left part, as a new array (``work``: scratch)."""
+        if extent is None:
+            return self.codec.decode_grid(raws, self.value_dtype, level)
+        if self.codec.decode_window is not None:
+            return self.codec.decode_window(raws, self.value_dtype, level, extent, work)
+        g = self.codec.decode_grid(raws, self.value_dtype, level)
+        ext = encoding.window_extent(extent, g.shape[0])
+        return g if ext is None else g[: ext[0], : ext[1]].copy()
 
     def to_heights(self, values: np.ndarray) -> np.ndarray:
         """Decoded values as heights in the source dtype (dequantised for precision stores)."""
@@ -111,5 +127,6 @@ for _name in (encoding.INT_RESIDUAL, encoding.FLOAT_XOR):
             decode=encoding.decode_levels,
             decode_next=encoding.decode_next_level,
             decode_grid=encoding.decode_grid,
+            decode_window=encoding.decode_grid,
         )
     )

@@ -258,17 +258,45 @@ def _next_grid(g: np.ndarray, raw: np.ndarray, dtype: np.dtype) -> tuple[np.ndar
     return out
 
 
-def decode_grid(stored: list[np.ndarray], dtype: np.dtype, level: int | None = None) -> np.ndarray:
-    """The ``2**L+1`` grid of level ``L`` from the stored (residual) levels ``0..L``."""
+def decode_grid(
+    stored: list[np.ndarray],
+    dtype: np.dtype,
+    level: int | None = None,
+    extent: tuple[int, int] | None = None,
+    work: np.ndarray | None = None,
+) -> np.ndarray:
+    """The ``2**L+1`` grid of level ``L`` from the stored (residual) levels ``0..L``.
+
+    ``extent=(rows, cols)``: only the grid's top-left ``rows x cols`` (e.g. the part of an edge
+    block inside the DEM), decoded alone and returned as a new array; ``work``, an optional
+    ``2**L+1`` square array of ``dtype`` the compiled decoder may use as scratch for it.
+    """
     dtype = np.dtype(dtype)
     if level is None:
         level = len(stored) - 1
+    side = grid_side(level)
+    ext = window_extent(extent, side)
     mod = kernels.active(load=False)
     if mod is not None and _sizes_ok(stored, level):
-        g = np.empty((grid_side(level),) * 2, dtype=dtype)
-        kernels.decode(mod, joined(stored, level), g, level, 0)
-        return g
-    return decode_grid_numpy(stored, dtype, level)
+        if ext is not None and work is not None and work.shape == (side, side):
+            g = work if work.dtype == dtype else None
+        else:
+            g = None
+        if g is None:
+            g = np.empty((side, side), dtype=dtype)
+        kernels.decode(mod, joined(stored, level), g, level, 0, ext)
+        return g if ext is None else g[: ext[0], : ext[1]].copy()
+    return decode_grid_numpy(stored, dtype, level, ext)
+
+
+def window_extent(extent: tuple[int, int] | None, side: int) -> tuple[int, int] | None:
+    """``extent`` checked against a ``side``-square grid; None when it is the whole grid."""
+    if extent is None:
+        return None
+    rows, cols = (int(v) for v in extent)
+    if not (1 <= rows <= side and 1 <= cols <= side):
+        raise ValueError(f"extent {extent!r} is outside the {side}x{side} grid (1..{side} each)")
+    return None if rows == cols == side else (rows, cols)
 
 
 def joined(stored: list[np.ndarray], level: int) -> np.ndarray:
@@ -303,16 +331,49 @@ def _sizes_ok(stored: list[np.ndarray], level: int) -> bool:
 
 
 def decode_grid_numpy(
-    stored: list[np.ndarray], dtype: np.dtype, level: int | None = None
+    stored: list[np.ndarray],
+    dtype: np.dtype,
+    level: int | None = None,
+    extent: tuple[int, int] | None = None,
 ) -> np.ndarray:
     """Reference (numpy) form of :func:`decode_grid`."""
     dtype = np.dtype(dtype)
     if level is None:
         level = len(stored) - 1
+    ext = window_extent(extent, grid_side(level))
     g = _from_stored0(stored[0], dtype).reshape(2, 2)
+    if ext is None:
+        for i in range(1, level + 1):
+            g = _next_grid(g, stored[i], dtype)
+        return g
+    rows, cols = ext
+
+    def need(n: int, i: int) -> int:  # last level-i vertex index that covers 0..n-1 at ``level``
+        s = 1 << (level - i)
+        return (n - 1 + s - 1) // s
+
+    g = g[: need(rows, 0) + 1, : need(cols, 0) + 1]
     for i in range(1, level + 1):
-        g = _next_grid(g, stored[i], dtype)
-    return g
+        g = _next_window(g, stored[i], dtype, (1 << (i - 1)) + 1)
+        g = g[: need(rows, i) + 1, : need(cols, i) + 1]
+    return np.ascontiguousarray(g)
+
+
+def _next_window(g: np.ndarray, raw: np.ndarray, dtype: np.dtype, m: int) -> np.ndarray:
+    """:func:`_next_grid` for the top-left ``(a+1, b+1)`` vertices ``g`` of an ``(m, m)`` grid:
+    the next level's top-left ``(2a+1, 2b+1)`` (the stored values past it are not read)."""
+    a, b = g.shape[0] - 1, g.shape[1] - 1
+    h, v, c = _predict_parts(g)
+    rh, rv, rc, rt = _split(np.asarray(raw), m)
+    out = np.empty((2 * a + 1, 2 * b + 1), dtype=dtype)
+    out[::2, ::2] = g
+    head = min(a + 1, m - 1)  # even rows held in ``rh``; the last even row is ``rt``
+    out[0 : 2 * head : 2, 1::2] = _unresidual(rh[:head, :b], h[:head], dtype)
+    if a == m - 1:
+        out[2 * a, 1::2] = _unresidual(rt[:b], h[-1], dtype)
+    out[1::2, ::2] = _unresidual(rv[:a, : b + 1], v, dtype)
+    out[1::2, 1::2] = _unresidual(rc[:a, :b], c, dtype)
+    return out
 
 
 def level_values(grid: np.ndarray) -> np.ndarray:

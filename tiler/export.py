@@ -24,7 +24,7 @@ import rasterio
 from rasterio.transform import Affine
 from rasterio.windows import Window
 
-from tiler.encoding import decode_grid, dequantise
+from tiler.encoding import dequantise
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
 
@@ -110,7 +110,7 @@ def export_geotiff(
                 ncols = min(bstep + 1, width - c0)
                 if not store.index.exists[br, bc]:
                     continue
-                g = stored_block(store, (br, bc), level)[:nrows, :ncols]
+                g = stored_block(store, (br, bc), level, (nrows, ncols))
                 if store.index.has_nodata[br, bc]:
                     valid = store.read_mask((br, bc))[::step, ::step][:nrows, :ncols]
                     g = np.where(valid, g, fill)
@@ -120,11 +120,17 @@ def export_geotiff(
                 progress(br + 1, grid.rows)
 
 
-def stored_block(store: TerrainStore, block: tuple[int, int], level: int) -> np.ndarray:
+def stored_block(
+    store: TerrainStore,
+    block: tuple[int, int],
+    level: int,
+    extent: tuple[int, int] | None = None,
+) -> np.ndarray:
     """A block's grid at ``level`` in the source dtype, before any vertical scale/offset (the
-    integers a scaled DEM stores; ``read_block`` gives metres)."""
+    integers a scaled DEM stores; ``read_block`` gives metres); ``extent``: its top-left part
+    only (see ``read_block``)."""
     raws = store.read_levels_raw(block, level)
-    values = decode_grid(raws, store.meta.value_dtype, level)
+    values = store.codec.decode_grid(raws, level, extent)
     if store.meta.precision:
         return dequantise(values, store.meta.precision, store.dtype)
     return values.astype(store.dtype, copy=False)

@@ -231,12 +231,21 @@ def encode(mod: ModuleType, grid: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def decode(mod: ModuleType, seq: np.ndarray, g: np.ndarray, k: int, first: int) -> None:
-    """Decode levels ``first..k`` into ``g`` (side ``2**k+1``, coarser vertices set) in place."""
+def decode(
+    mod: ModuleType,
+    seq: np.ndarray,
+    g: np.ndarray,
+    k: int,
+    first: int,
+    extent: tuple[int, int] | None = None,
+) -> None:
+    """Decode levels ``first..k`` into ``g`` (side ``2**k+1``, coarser vertices set) in place;
+    with ``extent=(rows, cols)`` only what ``g[:rows, :cols]`` needs (the rest is left unset)."""
+    rows, cols = (g.shape[0], g.shape[1]) if extent is None else extent
     u = _UINT[g.dtype.itemsize]
     s = np.ascontiguousarray(seq).view(u)
     if g.dtype.kind == "f":
         scratch = np.empty((2, g.shape[0]), dtype=g.dtype)  # one row's predictions
-        mod.decode_float(s, g, g.view(u), k, first, scratch, scratch.view(u))
+        mod.decode_float(s, g, g.view(u), k, first, scratch, scratch.view(u), rows, cols)
     else:
-        mod.decode_int(s, g, k, first)
+        mod.decode_int(s, g, k, first, rows, cols)

@@ -366,8 +366,18 @@ class TerrainStore:
         raws = self.read_levels_raw(block, max_level)
         return [self.to_heights(v) for v in self.codec.decode(raws)]
 
-    def read_block(self, block: tuple[int, int], max_level: int | None = None) -> np.ndarray:
-        """The ``2**L+1`` grid of a block at level ``L`` (default finest), in the source dtype."""
+    def read_block(
+        self,
+        block: tuple[int, int],
+        max_level: int | None = None,
+        *,
+        extent: tuple[int, int] | None = None,
+    ) -> np.ndarray:
+        """The ``2**L+1`` grid of a block at level ``L`` (default finest), in the source dtype.
+
+        ``extent=(rows, cols)``: only the grid's top-left ``rows x cols``, decoded alone (an
+        edge block's samples inside the DEM: :meth:`block_extent`; the padding is not decoded).
+        """
         level = self.k if max_level is None else int(max_level)
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
@@ -375,7 +385,33 @@ class TerrainStore:
         seq = self._scratch(level_end(level) + 1) if self.direct_reads else None
         raws = self._levels_raw((br, bc), level, seq)
         self.check_unchanged()
-        return self.to_heights(self.codec.decode_grid(raws, level))
+        if extent is None:
+            return self.to_heights(self.codec.decode_grid(raws, level))
+        work = self._work_grid(level) if self.direct_reads else None
+        return self.to_heights(self.codec.decode_grid(raws, level, extent, work))
+
+    def block_extent(self, block: tuple[int, int], level: int | None = None) -> tuple[int, int]:
+        """``(rows, cols)`` of a block's level-``level`` grid that lie inside the DEM (its
+        shared last row and column included): the ``extent`` that drops only padding."""
+        level = self.k if level is None else int(level)
+        if not 0 <= level <= self.k:
+            raise StoreError(f"level {level} is outside 0..{self.k}")
+        _, _, h, w = self.grid.block_window(*self.check_block(block))
+        step = 1 << (self.k - level)
+        return (h - 1) // step + 1, (w - 1) // step + 1
+
+    def _work_grid(self, level: int) -> np.ndarray | None:
+        """This thread's reusable ``2**level+1`` square of the decoded dtype (a windowed
+        decode's scratch: a fresh 2 MiB grid costs its page faults on every read)."""
+        side = (1 << level) + 1
+        dtype = np.dtype(self.codec.value_dtype)
+        if side * side * dtype.itemsize > SCRATCH_MAX_BYTES:
+            return None
+        bufs = _SCRATCH.__dict__.setdefault("grid", {})
+        buf = bufs.get(dtype.str)
+        if buf is None or buf.size < side * side:
+            buf = bufs[dtype.str] = np.empty(side * side, dtype=dtype)
+        return buf[: side * side].reshape(side, side)
 
     def read_mask(self, block: tuple[int, int]) -> np.ndarray:
         """``(side, side)`` bool, True where the block has terrain (not nodata, not padding)."""

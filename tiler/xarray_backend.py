@@ -65,7 +65,7 @@ def read_level_chunk(url: str, level: int, br: int, bc: int) -> np.ndarray:
     dtype = height_dtype(store)
     if not store.index.exists[br, bc]:
         return np.full((nr, nc), np.nan, dtype=dtype)
-    g = store.read_block((br, bc), level)[:nr, :nc].astype(dtype)
+    g = store.read_block((br, bc), level, extent=(nr, nc)).astype(dtype)
     valid = store.read_mask((br, bc))[::step, ::step][:nr, :nc]
     g[~valid] = np.nan
     return g
