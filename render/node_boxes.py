@@ -49,8 +49,12 @@ Block = tuple[int, int]
 
 def _up32(x: np.ndarray) -> np.ndarray:
     """float32 of ``x`` rounded towards +inf (so pooling in float32 never narrows a range)."""
-    f = np.asarray(x, dtype=np.float64).astype(np.float32)
-    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+    x = np.asarray(x, dtype=np.float64)
+    f = x.astype(np.float32)
+    low = f < x  # (float32 promoted to float64 for the comparison)
+    if low.any():
+        f[low] = np.nextafter(f[low], np.float32(np.inf))
+    return f
 
 
 def _by_block(blocks: np.ndarray) -> list[tuple[Block, np.ndarray]]:

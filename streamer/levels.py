@@ -28,6 +28,7 @@ from tiler.kernels import ENV, requested
 from tiler.quadtree import (
     block_origins,
     half_diagonal,
+    max_pool,
     node_centres_at,
     sphere_radius,
     split_children,
@@ -156,8 +157,7 @@ class PatchErrorTable:
             src = np.asarray(field[d + p], dtype=np.float32)
             n, nd = src.shape[0], 1 << d
             if n >= nd:
-                r = n // nd
-                pooled.append(src.reshape(nd, r, nd, r).max(axis=(1, 3)))
+                pooled.append(max_pool(src, n // nd))
             else:  # stored at a coarser resolution (beyond the cap): repeat
                 pooled.append(np.repeat(np.repeat(src, nd // n, axis=0), nd // n, axis=1))
         return pooled

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tiler.quadtree import max_pool
+
 
 def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
     """Per depth ``d <= k``, ``(2**d, 2**d)`` booleans: the node's closed footprint (borders
@@ -26,10 +28,9 @@ def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
     anyv = quad[0] | quad[1] | quad[2] | quad[3]
     anym = ~(quad[0] & quad[1] & quad[2] & quad[3])
     out = [anyv & anym]
-    for d in range(k - 1, -1, -1):
-        n = 1 << d
-        anyv = anyv.reshape(n, 2, n, 2).any(axis=(1, 3))
-        anym = anym.reshape(n, 2, n, 2).any(axis=(1, 3))
+    for _ in range(k):
+        anyv = max_pool(anyv, 2)  # any over each 2x2
+        anym = max_pool(anym, 2)
         out.append(anyv & anym)
     return out[::-1]
 
@@ -67,7 +68,7 @@ def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.nda
     out = []
     for d, arr in enumerate(field):
         n, m = arr.shape[0], mixed[d].shape[0]
-        tiles = mixed[d].reshape(n, m // n, n, m // n).any(axis=(1, 3))
+        tiles = max_pool(mixed[d], m // n)  # any over each tile
         out.append(np.where(tiles, np.float32(np.inf), arr).astype(arr.dtype))
     return out
 
