@@ -7,7 +7,9 @@ decode the chunk files itself: ``bytes`` (little endian) → ``blosc`` → ``crc
 ``0..SHARDED_LEVELS-1`` the ``sharding_indexed`` codec (inner chunks with that chain, an index
 of ``(offset, nbytes)`` uint64 pairs plus its own crc32c at the end of the shard). The format
 is unchanged: :func:`level_spec` accepts an array only if its zarr metadata is exactly that
-chain (anything else keeps zarr's reader), and every crc32c is checked as zarr checks it.
+chain (anything else keeps zarr's reader), and every crc32c is checked as zarr checks it. The
+per-block ``errors`` and ``mask`` arrays (one unsharded chunk per block, the same chain) are read
+the same way (:func:`block_spec`), in their chunk's shape.
 
 Pure functions here take bytes; :func:`read_local` is the only one touching files.
 """
@@ -48,12 +50,13 @@ class LevelSpec:
     n: int  # values per block
     dtype: np.dtype  # little-endian storage dtype
     shard: tuple[int, int] | None  # blocks per shard (rows, cols), None if unsharded
+    shape: tuple[int, ...] = ()  # a block's chunk shape past (1, 1); () means (n,)
 
     def key(self, block: tuple[int, int]) -> str:
         """Store key of the chunk (or shard) holding ``block``."""
         br, bc = block
         if self.shard is None:
-            return f"{self.name}/c/{br}/{bc}/0"
+            return f"{self.name}/c/{br}/{bc}" + "/0" * max(1, len(self.shape))
         return f"{self.name}/c/{br // self.shard[0]}/{bc // self.shard[1]}/0"
 
     def inner(self, block: tuple[int, int]) -> int:
@@ -133,6 +136,21 @@ def level_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
     return LevelSpec(name, n, dtype, (chunks[0], chunks[1]))
 
 
+def block_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
+    """The :class:`LevelSpec` of another per-block array (``errors``, ``mask``: one unsharded
+    chunk ``(1, 1, ...)`` per block with the block chain), or None (zarr then reads it);
+    :func:`read_local` returns its values in the chunk's shape."""
+    if google_crc32c is None or blosc is None or not hasattr(os, "pread"):
+        return None
+    parsed = regular_array(metadata)
+    if parsed is None:
+        return None
+    dtype, shape, chunks, codecs = parsed
+    if len(shape) < 3 or chunks != (1, 1, *shape[2:]) or not is_block_chain(codecs, dtype.itemsize):
+        return None
+    return LevelSpec(name, int(np.prod(shape[2:])), dtype, None, tuple(shape[2:]))
+
+
 def check_crc(data: bytes, what: str) -> np.ndarray:
     """The payload of ``data`` (all but its trailing little-endian crc32c, as a uint8 view),
     checked."""
@@ -210,7 +228,8 @@ def read_local(
         return None
     try:
         if spec.shard is None:
-            return decode_chunk(_read_all(fd), spec, out)
+            values = decode_chunk(_read_all(fd), spec, out)
+            return values.reshape(spec.shape) if len(spec.shape) > 1 else values
         size = os.fstat(fd).st_size
         want = spec.index_nbytes
         if size < want:

@@ -149,12 +149,16 @@ class TerrainStore:
                 spec = chunkread.level_spec(name, self._arrays[name].metadata.to_dict())
                 if spec is not None:
                     self._direct[name] = spec
+            for name in ("errors", "mask"):
+                spec = chunkread.block_spec(name, self._arrays[name].metadata.to_dict())
+                if spec is not None:
+                    self._direct[name] = spec
         self._root = str(self.location.path) if self._direct else ""
 
     @property
     def direct_reads(self) -> bool:
         """Whether every level is read by :mod:`tiler.chunkread` (else zarr reads some)."""
-        return len(self._direct) == self.k + 1
+        return all(f"levels/{i}" in self._direct for i in range(self.k + 1))
 
     def __repr__(self) -> str:
         m = self.meta
@@ -224,6 +228,8 @@ class TerrainStore:
                 level=level,
             ) from exc
         if spec is not None:  # what zarr's reader makes of it: see _looks_missing
+            if out is None and name == "mask" and not self.index.has_nodata[block]:
+                return np.ones(spec.shape, dtype=bool)  # zarr's fill: such blocks write none
             if out is None or (
                 spec.shard is not None and out[0] == self._fill and np.all(out == self._fill)
             ):

@@ -185,3 +185,56 @@ def test_other_codec_chains_are_left_to_zarr(stores):
 
 def _entries(data: bytearray, spec: chunkread.LevelSpec) -> np.ndarray:
     return np.frombuffer(bytes(data[-spec.index_nbytes : -4]), dtype="<u8").reshape(-1, 2)
+
+
+@pytest.mark.parametrize("name", ["i", "f", "u"])
+def test_errors_and_mask_read_directly_equal_zarr_reads(stores, name):
+    direct = open_store(stores / f"{name}.zarr")
+    via_zarr = TerrainStore(stores / f"{name}.zarr", direct_reads=False)
+    assert {"errors", "mask"} <= direct._direct.keys() and not via_zarr._direct
+    nodata = 0
+    for b in direct.grid.blocks():
+        e_d, e_z = direct.read_errors(b), via_zarr.read_errors(b)
+        assert e_d.keys() == e_z.keys()
+        for f in e_d:
+            for a, z in zip(e_d[f], e_z[f], strict=True):
+                assert a.dtype == z.dtype and np.array_equal(a, z, equal_nan=True)
+        m_d, m_z = direct.read_mask(b), via_zarr.read_mask(b)
+        assert m_d.dtype == m_z.dtype == bool and np.array_equal(m_d, m_z)
+        nodata += int(direct.index.has_nodata[b])
+    assert name != "i" or nodata  # the int store has nodata blocks: their masks were read
+
+
+def test_errors_and_mask_damage_is_caught_on_the_direct_path(stores, tmp_path):
+    root = _copy(stores, tmp_path)
+    s = open_store(root)
+    holes = [b for b in s.grid.blocks() if s.index.has_nodata[b]]
+    plain = [b for b in s.grid.blocks() if not s.index.has_nodata[b]]
+    assert holes and plain
+    errors = root / s._direct["errors"].key((1, 1))
+    flip_bit(errors, np.random.default_rng(9))
+    with pytest.raises(ChunkChecksumError, match=r"errors of block \(1, 1\)"):
+        open_store(root).read_errors((1, 1))
+    (root / s._direct["errors"].key((0, 0))).unlink()
+    with pytest.raises(MissingChunkError, match=r"errors of block \(0, 0\)"):
+        open_store(root).read_errors((0, 0))
+    mask = root / s._direct["mask"].key(holes[0])
+    assert mask.exists() and not (root / s._direct["mask"].key(plain[0])).exists()
+    assert open_store(root).read_mask(plain[0]).all()  # no chunk written: zarr's fill
+    mask.unlink()
+    for reader in (open_store(root), TerrainStore(root, direct_reads=False)):
+        with pytest.raises(MissingChunkError, match="mask of block"):
+            reader.read_mask(holes[0])
+
+
+def test_errors_and_mask_of_other_chains_are_left_to_zarr(stores):
+    for name in ("errors", "mask"):
+        meta = zarr.open_array(stores / "i.zarr", path=name, mode="r").metadata.to_dict()
+        spec = chunkread.block_spec(name, meta)
+        assert spec is not None and spec.shape == tuple(meta["shape"][2:])
+        m = json.loads(json.dumps(meta))
+        m["codecs"].pop()  # no crc32c
+        assert chunkread.block_spec(name, m) is None
+        m = json.loads(json.dumps(meta))
+        m["chunk_grid"]["configuration"]["chunk_shape"] = [1, 1, 1, meta["shape"][3]]
+        assert chunkread.block_spec(name, m) is None
