@@ -278,12 +278,8 @@ def decode_grid(
     ext = window_extent(extent, side)
     mod = kernels.active(load=False)
     if mod is not None and _sizes_ok(stored, level):
-        if ext is not None and work is not None and work.shape == (side, side):
-            g = work if work.dtype == dtype else None
-        else:
-            g = None
-        if g is None:
-            g = np.empty((side, side), dtype=dtype)
+        reuse = ext is not None and work is not None and work.shape == (side, side)
+        g = work if reuse and work.dtype == dtype else np.empty((side, side), dtype=dtype)
         kernels.decode(mod, joined(stored, level), g, level, 0, ext)
         return g if ext is None else g[: ext[0], : ext[1]].copy()
     return decode_grid_numpy(stored, dtype, level, ext)
