@@ -87,6 +87,7 @@ from bench.tiling_report import (  # noqa: E402
     T_RSS_MIN_SIZE,  # noqa: F401
     T_SIZE_VS_COG,  # noqa: F401
     T_SIZE_VS_COG_OVR,  # noqa: F401
+    T_TIME_REAL_VS_COG_OVR,  # noqa: F401
     T_TIME_VS_COG_OVR,  # noqa: F401
     check_targets,
     print_report,
