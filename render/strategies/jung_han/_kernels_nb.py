@@ -9,7 +9,9 @@ operation repeats the numpy expression in the same order and precision, except t
 transform: numpy's ``rel @ basis.T`` goes through BLAS, whose rounding (FMA, blocking) depends on
 the batch size, so camera coordinates may differ from the reference's in the last bit; a result
 can only change where a ``δ_s`` or a bound lies within a few ulps of τ (the tests compare both
-paths exactly on several scenes). No fastmath (NaN and ∞ are meaningful here). The mesh
+paths exactly on several scenes). The pruning tries :func:`_quick_bound` before
+:func:`_bound`; it is never below it where finite, so it changes no decision. No fastmath (NaN
+and ∞ are meaningful here). The mesh
 assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb``, the whole
 assembly in one call in ``_assemble_nb``; they are re-exported here.
 """
@@ -150,6 +152,83 @@ def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi, wk):
 
 
 @_jit
+def _quick_bound(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, zlo, zhi):
+    """A cheaper upper bound on :func:`_bound`'s value for the same box (``xmin``,
+    ``xmin + 2 hx``, ``ymin``, ``ymin + 2 hy``, ``zlo``, ``zhi``), or ∞ where it does not give
+    one safely (a box whose depth comes within ``1e-6`` of its coordinates' magnitude of the
+    eye, NaN or ∞ inputs). ``pf``: :func:`_quick_frame` of the camera; ``w0..w2``: the box's
+    half extents along the camera axes from ``hx``, ``hy`` (``sum_j |R_ij| h_j``, j = x, y).
+
+    From the box's centre ``c`` and half extents ``w`` in camera coordinates every point of the
+    box has depth ``>= z = c_z - w_z`` and ``|q| = |p_xy| / p_z <= L / z``, ``L = |(|c_x| + w_x,
+    |c_y| + w_y)|``, so its gain ``|u_xy - q u_z| <= |u_xy| + |u_z| L / z``:
+    ``f dmax (|u_xy| + |u_z| L / z) / z`` is at least ``_bound``'s ``f dmax max gain / z_min``
+    (its corners are points of the box). The margin (``1e-6`` relative and absolute, against
+    ``_bound``'s ``1e-9``) is orders of magnitude above either computation's rounding while the
+    depth stays above ``1e-6`` of the coordinates' magnitude, so a box this puts below τ is
+    below τ by ``_bound`` too: the pruning, hence every output, is unchanged; it spares
+    ``_bound``'s eight projected corners where it is enough."""
+    if not dmax > 0.0:
+        return np.inf
+    hz = 0.5 * abs(zhi - zlo)
+    rx = xmin + hx - eye[0]
+    ry = ymin + hy - eye[1]
+    rz = 0.5 * (zlo + zhi) - eye[2]
+    cx = rx * basis[0, 0] + ry * basis[0, 1] + rz * basis[0, 2]
+    cy = rx * basis[1, 0] + ry * basis[1, 1] + rz * basis[1, 2]
+    cz = rx * basis[2, 0] + ry * basis[2, 1] + rz * basis[2, 2]
+    z = cz - (w2 + hz * pf[5])
+    scale = pf[2] + abs(xmin) + abs(ymin) + 2.0 * (hx + hy) + abs(zlo) + abs(zhi)
+    if not z > 1e-6 * scale:  # (NaN too)
+        return np.inf
+    lx = abs(cx) + w0 + hz * pf[3]
+    ly = abs(cy) + w1 + hz * pf[4]
+    b = focal * dmax * (pf[0] + pf[1] * math.sqrt(lx * lx + ly * ly) / z) / z
+    return b * (1.0 + 1e-6) + 1e-6
+
+
+@_jit
+def _quick_frame(basis, eye):
+    """:func:`_quick_bound`'s per-camera values: ``|u_xy|``, ``|u_z|``, the eye's magnitude
+    ``|e_x| + |e_y| + |e_z|`` and ``|R_iz|`` (i = 0, 1, 2), ``u`` = world up in camera axes."""
+    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
+    pf = np.empty(6)
+    pf[0], pf[1] = math.sqrt(u0 * u0 + u1 * u1), abs(u2)
+    pf[2] = abs(eye[0]) + abs(eye[1]) + abs(eye[2])
+    pf[3], pf[4], pf[5] = abs(u0), abs(u1), abs(u2)
+    return pf
+
+
+@_jit
+def _quick_extents(basis, hx, hy):
+    """Half extents along the camera axes of ``hx``, ``hy`` (:func:`_quick_bound`'s ``w``)."""
+    w0 = hx * abs(basis[0, 0]) + hy * abs(basis[0, 1])
+    w1 = hx * abs(basis[1, 0]) + hy * abs(basis[1, 1])
+    w2 = hx * abs(basis[2, 0]) + hy * abs(basis[2, 1])
+    return w0, w1, w2
+
+
+@_jit
+def bounds_pair(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi):
+    """``(quick, exact)``: :func:`_quick_bound` and :func:`_bound` of each box (the tests'
+    entry point; ``xmax - xmin`` and ``ymax - ymin`` are the boxes' sizes)."""
+    n = dmax.shape[0]
+    quick, exact = np.empty(n), np.empty(n)
+    pf = _quick_frame(basis, eye)
+    wk = np.empty((8, 5))
+    for i in range(n):
+        hx, hy = 0.5 * (xmax[i] - xmin[i]), 0.5 * (ymax[i] - ymin[i])
+        w0, w1, w2 = _quick_extents(basis, hx, hy)
+        quick[i] = _quick_bound(
+            basis, eye, focal, pf, dmax[i], xmin[i], ymin[i], hx, hy, w0, w1, w2, zlo[i], zhi[i]
+        )
+        exact[i] = _bound(
+            basis, eye, focal, dmax[i], xmin[i], xmax[i], ymin[i], ymax[i], zlo[i], zhi[i], wk
+        )
+    return quick, exact
+
+
+@_jit
 def _meets(o, pmin_x, pmax_x, pmin_y, pmax_y, normals, pmin, pmax, xmin, ymin, xmax, ymax):
     """``polygon_meets_rects`` of one rectangle (SAT; per-axis extents precomputed)."""
     if not (
@@ -237,6 +316,7 @@ def traverse(
         nd = np.empty((cap, 8), np.int64)
         pr = np.zeros(cap, np.bool_)
     wk = np.empty((8, 5))  # _bound's scratch
+    pf = _quick_frame(basis, eye)
     nr = roots.shape[0]
     for i in range(nr):
         nd[i, 0], nd[i, 1], nd[i, 2], nd[i, 3] = roots[i], 0, 0, 0
@@ -247,6 +327,8 @@ def traverse(
     while hi > lo:
         size = 1 << (k - d)
         half = size >> 1
+        hx, hy = 0.5 * size * abs(dx), 0.5 * size * abs(dy)
+        w0, w1, w2 = _quick_extents(basis, hx, hy)
         n_new = hi
         for j in range(lo, hi):
             s = nd[j, 0]
@@ -255,11 +337,18 @@ def traverse(
                 ii = poff[s] + ((1 << (2 * d)) - 1) // 3 + nd[j, 1]
                 xmin = x0 + float(c0[s] + nd[j, 3] * size) * dx
                 ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
-                b = _bound(
-                    basis, eye, focal, pyr[ii, 0], xmin, xmin + size * dx,
-                    ymax - size * dy, ymax, pyr[ii, 1], pyr[ii, 2], wk,
+                xmax, ymin = xmin + size * dx, ymax - size * dy
+                dm, zl, zh = pyr[ii, 0], pyr[ii, 1], pyr[ii, 2]
+                # the cheap bound first: below τ, _bound is too (the same pruning)
+                qb = _quick_bound(
+                    basis, eye, focal, pf, dm, min(xmin, xmax), min(ymin, ymax),
+                    hx, hy, w0, w1, w2, zl, zh,
                 )  # fmt: skip
-                pr[j] = b < tau
+                if qb < tau:
+                    pr[j] = True
+                else:
+                    b = _bound(basis, eye, focal, dm, xmin, xmax, ymin, ymax, zl, zh, wk)
+                    pr[j] = b < tau
             if pr[j] or leaf:
                 continue
             for qd in range(4):
