@@ -184,13 +184,13 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
                 assert np.array_equal(x, y)
 
 
-def test_quick_bound_is_never_below_the_exact_one(numba_kernels):
-    """The traversal prunes with a cheap bound before the exact one: wherever the cheap one is
-    finite it must be at least the exact one (then pruning, and every output, is unchanged). Boxes
-    and cameras at the extremes: coordinates near 1e7 m, heights from -11 km to +9 km, FOV 1-170°,
+def test_quick_bounds_bracket_the_exact_one(numba_kernels):
+    """The traversal decides with two cheap bounds before the exact one: wherever they are
+    finite, ``lo <= exact <= hi`` (then pruning, and every output, is unchanged). Boxes and
+    cameras at the extremes: coordinates near 1e7 m, heights from -11 km to +9 km, FOV 1-170°,
     boxes of 0.25 m to 4 km, beside and behind the eye."""
     rng = np.random.default_rng(2)
-    quick, exact = [], []
+    los, his, exact = [], [], []
     for _ in range(60):
         off = float(rng.choice([0.0, 1e4, 1e7]))
         eye = (off + rng.uniform(-5e3, 5e3), off + rng.uniform(-5e3, 5e3), rng.uniform(-11e3, 9e3))
@@ -205,17 +205,21 @@ def test_quick_bound_is_never_below_the_exact_one(numba_kernels):
         zhi = zlo + rng.uniform(0, 3e3, n)
         dmax = rng.uniform(0, 50, n)
         dmax[:20] = [0.0, np.nan, np.inf, *rng.uniform(0, 1, 17)]
-        q, e = numba_kernels.bounds_pair(basis, np.asarray(cam.eye, float), float(cam.focal_px),
-                                         dmax, x, x + size, y, y + size, zlo, zhi)  # fmt: skip
-        quick.append(q)
+        lo, hi, e = numba_kernels.bounds_pair(basis, np.asarray(cam.eye, float),
+                                              float(cam.focal_px), dmax, x, x + size, y, y + size,
+                                              zlo, zhi)  # fmt: skip
+        los.append(lo)
+        his.append(hi)
         exact.append(e)
-    q, e = np.concatenate(quick), np.concatenate(exact)
-    finite = np.isfinite(q)
-    assert finite.mean() > 0.3  # it does bound most boxes in front of the eye
-    assert np.all(q[finite] >= e[finite])
-    # positive control: a bound 10 % tighter than the quick one is below the exact one somewhere
-    tight = (q[finite] - 1e-6) / (1.0 + 1e-6) * 0.9
-    assert np.any(tight < e[finite])
+    lo, hi, e = np.concatenate(los), np.concatenate(his), np.concatenate(exact)
+    finite = np.isfinite(hi)
+    assert finite.mean() > 0.3  # they do bound most boxes in front of the eye
+    assert np.array_equal(finite, np.isfinite(lo))
+    assert np.all(hi[finite] >= e[finite])
+    assert np.all(lo[finite] <= e[finite])
+    # positive controls: 10 % tighter, either bound crosses the exact one somewhere
+    assert np.any((hi[finite] - 1e-6) / (1.0 + 1e-6) * 0.9 < e[finite])
+    assert np.any(lo[finite] / (1.0 - 1e-6) * 1.1 > e[finite])
 
 
 def test_forest_is_packed_once_while_the_frames_blocks_move(stores, numba_kernels):

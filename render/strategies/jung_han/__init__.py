@@ -89,8 +89,8 @@ bottom-up on the CPU with an exact projected vertex error, cracks removed by hei
   (:class:`~render.strategies.jung_han.kernels.Forest`) and the whole mesh assembly (vertex
   keys, heights, T-junction search, height adjustment, conforming split, GPU arrays) in one
   more kernel call, which finds vertices by their rank along a row or column instead of
-  searching sorted keys; the traversal tries a cheaper pruning bound (the box's centre and
-  half extents in camera axes, never below the exact bound where finite) before the exact one,
+  searching sorted keys; the traversal tries two cheap bounds from the box's centre and half
+  extents in camera axes (above and below the exact one where finite) before the exact one,
   so the pruning is the same; their node buffers and sort workspace are kept between frames;
   ``kernels="numpy"`` (or ``TERRASTREAM_KERNELS=numpy``) runs the numpy reference, which the
   tests compare exactly.

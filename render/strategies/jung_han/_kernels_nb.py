@@ -9,8 +9,8 @@ operation repeats the numpy expression in the same order and precision, except t
 transform: numpy's ``rel @ basis.T`` goes through BLAS, whose rounding (FMA, blocking) depends on
 the batch size, so camera coordinates may differ from the reference's in the last bit; a result
 can only change where a ``δ_s`` or a bound lies within a few ulps of τ (the tests compare both
-paths exactly on several scenes). The pruning tries :func:`_quick_bound` before
-:func:`_bound`; it is never below it where finite, so it changes no decision. No fastmath (NaN
+paths exactly on several scenes). The pruning tries :func:`_quick_bounds` before
+:func:`_bound`; they bracket it, so they change no decision. No fastmath (NaN
 and ∞ are meaningful here). The mesh
 assembly's kernels (T-junctions, conforming split, sorts) live in ``_mesh_nb``, the whole
 assembly in one call in ``_assemble_nb``; they are re-exported here.
@@ -152,24 +152,31 @@ def _bound(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi, wk):
 
 
 @_jit
-def _quick_bound(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, zlo, zhi):
-    """A cheaper upper bound on :func:`_bound`'s value for the same box (``xmin``,
-    ``xmin + 2 hx``, ``ymin``, ``ymin + 2 hy``, ``zlo``, ``zhi``), or ∞ where it does not give
-    one safely (a box whose depth comes within ``1e-6`` of its coordinates' magnitude of the
-    eye, NaN or ∞ inputs). ``pf``: :func:`_quick_frame` of the camera; ``w0..w2``: the box's
-    half extents along the camera axes from ``hx``, ``hy`` (``sum_j |R_ij| h_j``, j = x, y).
+def _quick_bounds(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, zlo, zhi):
+    """Cheap bounds ``(lo, hi)`` on :func:`_bound`'s value for the same box (``xmin``,
+    ``xmin + 2 hx``, ``ymin``, ``ymin + 2 hy``, ``zlo``, ``zhi``): ``lo <= _bound <= hi``, or
+    ``(-∞, ∞)`` where they are not safe (a box whose depth comes within ``1e-6`` of its
+    coordinates' magnitude of the eye, NaN or ∞ inputs). ``pf``: :func:`_quick_frame` of the
+    camera; ``w0..w2``: the box's half extents along the camera axes from ``hx``, ``hy``
+    (``sum_j |R_ij| h_j``, j = x, y).
 
-    From the box's centre ``c`` and half extents ``w`` in camera coordinates every point of the
-    box has depth ``>= z = c_z - w_z`` and ``|q| = |p_xy| / p_z <= L / z``, ``L = |(|c_x| + w_x,
-    |c_y| + w_y)|``, so its gain ``|u_xy - q u_z| <= |u_xy| + |u_z| L / z``:
-    ``f dmax (|u_xy| + |u_z| L / z) / z`` is at least ``_bound``'s ``f dmax max gain / z_min``
-    (its corners are points of the box). The margin (``1e-6`` relative and absolute, against
-    ``_bound``'s ``1e-9``) is orders of magnitude above either computation's rounding while the
-    depth stays above ``1e-6`` of the coordinates' magnitude, so a box this puts below τ is
-    below τ by ``_bound`` too: the pruning, hence every output, is unchanged; it spares
-    ``_bound``'s eight projected corners where it is enough."""
+    From the box's centre ``c`` and half extents ``w`` in camera coordinates:
+
+    * ``hi``: every point of the box has depth ``>= z = c_z - w_z`` and ``|q| = |p_xy| / p_z <=
+      L / z``, ``L = |(|c_x| + w_x, |c_y| + w_y)|``, so its gain ``|u_xy - q u_z| <= |u_xy| +
+      |u_z| L / z`` and ``f dmax (|u_xy| + |u_z| L / z) / z`` is at least ``_bound``'s
+      ``f dmax max gain / z_min`` (its corners are points of the box).
+    * ``lo``: the box's image ``q`` is the convex hull of its corners' (a perspective map of a
+      box in front of the eye) and the gain is convex in ``q``, so the corners' largest gain is
+      at least the centre's; ``z_min <= c_z``: ``f dmax gain(c) / c_z`` is at most ``_bound``.
+
+    The margins (``1e-6`` relative, and absolute on ``hi``, against ``_bound``'s ``1e-9``) are
+    orders of magnitude above either computation's rounding while the depth stays above
+    ``1e-6`` of the coordinates' magnitude, so ``hi < τ`` implies ``_bound < τ`` and ``lo >= τ``
+    implies ``_bound >= τ``: the pruning, hence every output, is unchanged; they spare
+    ``_bound``'s eight projected corners where they decide."""
     if not dmax > 0.0:
-        return np.inf
+        return -np.inf, np.inf
     hz = 0.5 * abs(zhi - zlo)
     rx = xmin + hx - eye[0]
     ry = ymin + hy - eye[1]
@@ -180,28 +187,33 @@ def _quick_bound(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, zl
     z = cz - (w2 + hz * pf[5])
     scale = pf[2] + abs(xmin) + abs(ymin) + 2.0 * (hx + hy) + abs(zlo) + abs(zhi)
     if not z > 1e-6 * scale:  # (NaN too)
-        return np.inf
+        return -np.inf, np.inf
     lx = abs(cx) + w0 + hz * pf[3]
     ly = abs(cy) + w1 + hz * pf[4]
-    b = focal * dmax * (pf[0] + pf[1] * math.sqrt(lx * lx + ly * ly) / z) / z
-    return b * (1.0 + 1e-6) + 1e-6
+    hi = focal * dmax * (pf[0] + pf[1] * math.sqrt(lx * lx + ly * ly) / z) / z
+    u2 = pf[6]
+    gx, gy = pf[7] - cx / cz * u2, pf[8] - cy / cz * u2
+    lo = focal * dmax * math.sqrt(gx * gx + gy * gy) / cz
+    return lo * (1.0 - 1e-6), hi * (1.0 + 1e-6) + 1e-6
 
 
 @_jit
 def _quick_frame(basis, eye):
-    """:func:`_quick_bound`'s per-camera values: ``|u_xy|``, ``|u_z|``, the eye's magnitude
-    ``|e_x| + |e_y| + |e_z|`` and ``|R_iz|`` (i = 0, 1, 2), ``u`` = world up in camera axes."""
+    """:func:`_quick_bounds`' per-camera values: ``|u_xy|``, ``|u_z|``, the eye's magnitude
+    ``|e_x| + |e_y| + |e_z|``, ``|R_iz|`` (i = 0, 1, 2), then ``u_z``, ``u_x``, ``u_y``; ``u`` =
+    world up in camera axes."""
     u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
-    pf = np.empty(6)
+    pf = np.empty(9)
     pf[0], pf[1] = math.sqrt(u0 * u0 + u1 * u1), abs(u2)
     pf[2] = abs(eye[0]) + abs(eye[1]) + abs(eye[2])
     pf[3], pf[4], pf[5] = abs(u0), abs(u1), abs(u2)
+    pf[6], pf[7], pf[8] = u2, u0, u1
     return pf
 
 
 @_jit
 def _quick_extents(basis, hx, hy):
-    """Half extents along the camera axes of ``hx``, ``hy`` (:func:`_quick_bound`'s ``w``)."""
+    """Half extents along the camera axes of ``hx``, ``hy`` (:func:`_quick_bounds`' ``w``)."""
     w0 = hx * abs(basis[0, 0]) + hy * abs(basis[0, 1])
     w1 = hx * abs(basis[1, 0]) + hy * abs(basis[1, 1])
     w2 = hx * abs(basis[2, 0]) + hy * abs(basis[2, 1])
@@ -210,22 +222,22 @@ def _quick_extents(basis, hx, hy):
 
 @_jit
 def bounds_pair(basis, eye, focal, dmax, xmin, xmax, ymin, ymax, zlo, zhi):
-    """``(quick, exact)``: :func:`_quick_bound` and :func:`_bound` of each box (the tests'
+    """``(lo, hi, exact)``: :func:`_quick_bounds` and :func:`_bound` of each box (the tests'
     entry point; ``xmax - xmin`` and ``ymax - ymin`` are the boxes' sizes)."""
     n = dmax.shape[0]
-    quick, exact = np.empty(n), np.empty(n)
+    lo, hi, exact = np.empty(n), np.empty(n), np.empty(n)
     pf = _quick_frame(basis, eye)
     wk = np.empty((8, 5))
     for i in range(n):
         hx, hy = 0.5 * (xmax[i] - xmin[i]), 0.5 * (ymax[i] - ymin[i])
         w0, w1, w2 = _quick_extents(basis, hx, hy)
-        quick[i] = _quick_bound(
+        lo[i], hi[i] = _quick_bounds(
             basis, eye, focal, pf, dmax[i], xmin[i], ymin[i], hx, hy, w0, w1, w2, zlo[i], zhi[i]
         )
         exact[i] = _bound(
             basis, eye, focal, dmax[i], xmin[i], xmax[i], ymin[i], ymax[i], zlo[i], zhi[i], wk
         )
-    return quick, exact
+    return lo, hi, exact
 
 
 @_jit
@@ -339,13 +351,15 @@ def traverse(
                 ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
                 xmax, ymin = xmin + size * dx, ymax - size * dy
                 dm, zl, zh = pyr[ii, 0], pyr[ii, 1], pyr[ii, 2]
-                # the cheap bound first: below τ, _bound is too (the same pruning)
-                qb = _quick_bound(
+                # the cheap bounds first: where they decide, _bound decides the same
+                qlo, qhi = _quick_bounds(
                     basis, eye, focal, pf, dm, min(xmin, xmax), min(ymin, ymax),
                     hx, hy, w0, w1, w2, zl, zh,
                 )  # fmt: skip
-                if qb < tau:
+                if qhi < tau:
                     pr[j] = True
+                elif qlo >= tau:
+                    pr[j] = False
                 else:
                     b = _bound(basis, eye, focal, dm, xmin, xmax, ymin, ymax, zl, zh, wk)
                     pr[j] = b < tau
