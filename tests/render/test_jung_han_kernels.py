@@ -222,6 +222,24 @@ def test_quick_bounds_bracket_the_exact_one(numba_kernels):
     assert np.any(lo[finite] / (1.0 - 1e-6) * 1.1 > e[finite])
 
 
+def test_row_major_ranks_equal_the_sorted_ones(numba_kernels):
+    """The assembly ranks its vertices once, knowing they are in row-major order (the sorted
+    unique keys): the same four arrays as sorting both orders."""
+    rng = np.random.default_rng(11)
+    for n in (0, 1, 7, 4000):
+        key = np.unique(rng.integers(0, 300 * 301, n, dtype=np.int64))  # row * 301 + col
+        vcol, vrow = key % 301, key // 301
+        want = numba_kernels.ranks(vcol, vrow)
+        got = numba_kernels.ranks_sorted(vcol, vrow)
+        for x, y in zip(want, got, strict=True):
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+    # positive control: vertices out of row-major order are not ranked right that way
+    p = rng.permutation(len(key))
+    assert not np.array_equal(
+        numba_kernels.ranks(vcol[p], vrow[p])[0], numba_kernels.ranks_sorted(vcol[p], vrow[p])[0]
+    )
+
+
 def test_forest_is_packed_once_while_the_frames_blocks_move(stores, numba_kernels):
     ref, fast = _pair(stores["rough"])
     cam = _cameras(ref.r)["oblique"]

@@ -87,6 +87,34 @@ def test_vertex_error_is_the_projected_distance():
     assert vertex_errors(np.array([0.0]), b[2:], cam)[0] == 0.0
 
 
+def test_closed_form_vertex_error_equals_the_two_projections():
+    """``vertex_errors``' closed form is the pixel distance of the two projections
+    (``exact_projected``) at the extremes: coordinates near 1e7 m, heights from -11 km to
+    +9 km, FOV 1-170°, δ from 1 mm to 1 km; ∞ where either point is at or behind the eye."""
+    from streamer.lod import exact_projected
+
+    rng = np.random.default_rng(4)
+    worst, n_inf = 0.0, 0
+    for _ in range(40):
+        off = float(rng.choice([0.0, 1e7]))
+        eye = (off + rng.uniform(-3e3, 3e3), off + rng.uniform(-3e3, 3e3), rng.uniform(-11e3, 9e3))
+        cam = Camera(eye, yaw=rng.uniform(0, 360), pitch=rng.uniform(-90, 30), viewport=SIZE,
+                     fov_y=rng.uniform(1, 170), near=0.1)  # fmt: skip
+        p = np.c_[off + rng.uniform(-2e4, 2e4, (300, 2)), rng.uniform(-11e3, 9e3, 300)]
+        d = rng.choice([-1.0, 1.0], 300) * 10.0 ** rng.uniform(-3, 3, 300)
+        got = vertex_errors(d, p, cam)
+        with np.errstate(invalid="ignore"):
+            want = exact_projected(d, p, cam)
+        ok = np.isfinite(want)
+        n_inf += int((~ok).sum())
+        assert np.all(np.isinf(got[~ok]))
+        # the two projections lose up to ~1e-12 px to cancellation: compare in absolute terms
+        worst = max(worst, float(np.max(np.abs(got[ok] - want[ok]) / (1.0 + want[ok]))))
+        # positive control: 0.1 % more δ is seen
+        assert np.any(np.abs(vertex_errors(1.001 * d, p, cam)[ok] - want[ok]) > 1e-4 * want[ok])
+    assert worst < 1e-6 and n_inf > 0
+
+
 def test_pruning_bound_covers_every_exact_error():
     rng = np.random.default_rng(1)
     for cam in (_oblique(), _nadir(X0 + 900, Y0 - 900, 2500.0)):

@@ -25,9 +25,11 @@ bottom-up on the CPU with an exact projected vertex error, cracks removed by hei
   and both ends are masked (every triangle touched is hidden before and after), ∞ when some
   but not all are (removal would change what is hidden).
 * **Error** (§5.1): ``δ_s`` = pixel distance between the projections of ``B`` and ``B + δ``
-  (:func:`streamer.lod.exact_projected`, the float64 twin of ``gluProject``); removal iff
-  ``δ_s < τ`` (strict, so τ = 0 removes nothing). ``δ = 0`` gives ``δ_s = 0``; a point behind
-  the eye (undefined projection) gives ∞.
+  (in float64, like ``gluProject``; :func:`vertex_errors` writes the difference of the two
+  projections as one fraction, ``f |δ| |c_z u_xy - c_xy u_z| / (c_z (c_z + δ u_z))``, which
+  equals :func:`streamer.lod.exact_projected` up to rounding without its cancellation); removal
+  iff ``δ_s < τ`` (strict, so τ = 0 removes nothing). ``δ = 0`` gives ``δ_s = 0``; a point at
+  or behind the eye's depth (undefined projection) gives ∞.
 * **Bottom-up simplification** (§5.2), with the 12 triangle flags of the paper's ``Block``
   (bit order TL, TR, BL, BR, LT, LB, RT, RB, T, B, L, R): a visible leaf starts with its 8
   triangles; an edge vertex (T, B, L, R) is removed iff *both* triangles sharing it are present

@@ -16,9 +16,10 @@ import numpy as np
 
 from render.strategies.jung_han._mesh_nb import (
     _argsort_ws,
-    _conform,
+    _conform_ranked,
     _jit,
-    _t_junctions,
+    _ranks_sorted,
+    _t_junctions_ranked,
     _unique_index,
 )
 
@@ -68,7 +69,10 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
         flat = ((vrow[u] - r0[s]) >> sh) * ((1 << lev[s]) + 1) + ((vcol[u] - c0[s]) >> sh)
         hv[u] = hh[hoff[s] + flat]
     tid = inv.reshape(m, 3)
-    ids, ends, frac, ia, ib = _t_junctions(t1, tid, vcol, vrow, ws)
+    # the vertices are the sorted unique keys, so in row-major order: ranked once, for the
+    # T-junction search and the split
+    ranks = _ranks_sorted(vcol, vrow, ws)
+    ids, ends, frac, ia, ib = _t_junctions_ranked(t1, tid, vcol, vrow, ranks)
     na = ids.shape[0] if stitching else 0  # the positive control: no adjustment, no split
     if na:
         vlev = np.empty(na, np.int64)
@@ -92,7 +96,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
         adjusted[a, 0], adjusted[a, 1] = vcol[ids[a]], vrow[ids[a]]
     ok = True
     if stitching and m:
-        t1, tid, s1, l1, ok = _conform(t1, tid, s1, l1, vcol, vrow, ws)
+        t1, tid, s1, l1, ok = _conform_ranked(t1, tid, s1, l1, vcol, vrow, ranks)
     m2 = t1.shape[0]
     tri_h = np.empty((m2, 3))
     gk = np.empty(3 * m2, np.int64)

@@ -27,6 +27,8 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     _jit,
     argsort_stable,
     conform,
+    ranks,
+    ranks_sorted,
     t_junctions,
     unique_index,
     ws_size,
@@ -50,20 +52,17 @@ def _cam(basis, eye, x, y, z):
 
 
 @_jit
-def _project(basis, eye, focal, vw, vh, x, y, z):
-    c0, c1, c2 = _cam(basis, eye, x, y, z)
-    s = focal / c2 if c2 > 0.0 else np.nan
-    return vw / 2.0 + c0 * s, vh / 2.0 - c1 * s
-
-
-@_jit
 def _vertex_error(basis, eye, focal, vw, vh, d, x, y, h):
-    """``vertex_errors`` of one vertex (``exact_projected``, 0 for δ = 0, ∞ if undefined)."""
+    """``vertex_errors`` of one vertex (0 for δ = 0, ∞ if undefined): the same closed form in
+    the same order (one camera transform, no difference of projections)."""
     if d == 0.0:
         return 0.0
-    x0, y0 = _project(basis, eye, focal, vw, vh, x, y, h)
-    x1, y1 = _project(basis, eye, focal, vw, vh, x, y, h + d)
-    rho = math.hypot(x1 - x0, y1 - y0)
+    c0, c1, c2 = _cam(basis, eye, x, y, h)
+    u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
+    z1 = c2 + d * u2
+    if not (c2 > 0.0 and z1 > 0.0):
+        return np.inf
+    rho = focal * abs(d) * math.hypot(c2 * u0 - c0 * u2, c2 * u1 - c1 * u2) / (c2 * z1)
     return rho if math.isfinite(rho) else np.inf
 
 

@@ -94,7 +94,31 @@ def _ranks(vcol, vrow, ws):
 
 
 @_jit
+def _ranks_sorted(vcol, vrow, ws):
+    """:func:`_ranks` of vertices already in row-major order (sorted by ``(vrow, vcol)``, as
+    the assembly's sorted unique keys ``row * wg + col`` are): the row order is the identity,
+    so only the column order is sorted."""
+    nv = vcol.shape[0]
+    big = 0
+    for i in range(nv):
+        big = max(big, vcol[i], vrow[i])
+    big += 2
+    ident = np.arange(nv)
+    perm_v = _argsort_ws(vcol * big + vrow, ws).copy()
+    rank_v = np.empty(nv, np.int64)
+    for i in range(nv):
+        rank_v[perm_v[i]] = i
+    return ident, ident, rank_v, perm_v
+
+
+@_jit
 def _t_junctions(tri, tid, vcol, vrow, ws):
+    """:func:`_t_junctions_ranked` with the vertices' :func:`_ranks`."""
+    return _t_junctions_ranked(tri, tid, vcol, vrow, _ranks(vcol, vrow, ws))
+
+
+@_jit
+def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
     """``pure.t_junctions`` with the corners' vertex ids ``tid`` (m, 3) (indices into
     ``vcol``/``vrow``, the drawn vertices, all distinct): ``(ids, ends (a, 2, 2), frac, ia,
     ib)`` in the reference's order, ``ia``/``ib`` the ids of the ends. Per group (axis, side)
@@ -104,7 +128,7 @@ def _t_junctions(tri, tid, vcol, vrow, ws):
     the nearest vertex before: one sweep over the vertices, no search."""
     m = tri.shape[0]
     nv = vcol.shape[0]
-    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow, ws)
+    rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
     found = np.full(nv, -1, np.int64)
     ends = np.zeros((nv, 2, 2), np.int64)
     frac = np.zeros(nv)
@@ -170,6 +194,12 @@ def _t_junctions(tri, tid, vcol, vrow, ws):
 
 @_jit
 def _conform(tri, tid, slot, level, vcol, vrow, ws):
+    """:func:`_conform_ranked` with the vertices' :func:`_ranks`."""
+    return _conform_ranked(tri, tid, slot, level, vcol, vrow, _ranks(vcol, vrow, ws))
+
+
+@_jit
+def _conform_ranked(tri, tid, slot, level, vcol, vrow, ranks):
     """``pure.conform`` (same triangles in the same order), carrying each corner's vertex id
     (``tid`` (m, 3): index into ``vcol``/``vrow``, the drawn vertices, all distinct; a split
     point gets the id of the vertex it is); ``(tri, tid, slot, level, ok)``, ``ok`` False if it
@@ -177,7 +207,7 @@ def _conform(tri, tid, slot, level, vcol, vrow, ws):
     ``searchsorted`` calls over the vertices sorted along the edge's line are the ends' ranks
     in that order: some vertex lies inside iff they are more than 1 apart, and the split point
     is the vertex half-way between."""
-    rank_h, perm_h, rank_v, perm_v = _ranks(vcol, vrow, ws)
+    rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
     n_out = 0
     cap = tri.shape[0] + tri.shape[0] // 4 + 64  # room for the usual splits: rarely grown
     out_t = np.empty((cap, 3, 2), np.int64)
@@ -311,3 +341,17 @@ def conform(tri, tid, slot, level, vcol, vrow):
 def unique_index(keys):
     """:func:`_unique_index`."""
     return _unique_index(keys, np.empty(0, np.int64))
+
+
+@_jit
+def ranks(vcol, vrow):
+    """:func:`_ranks` (copies, so the tests may compare the two orders)."""
+    rh, ph, rv, pv = _ranks(vcol, vrow, np.empty(0, np.int64))
+    return rh.copy(), ph.copy(), rv.copy(), pv.copy()
+
+
+@_jit
+def ranks_sorted(vcol, vrow):
+    """:func:`_ranks_sorted` (copies)."""
+    rh, ph, rv, pv = _ranks_sorted(vcol, vrow, np.empty(0, np.int64))
+    return rh.copy(), ph.copy(), rv.copy(), pv.copy()

@@ -11,7 +11,6 @@ import numpy as np
 
 from streamer.camera import Camera
 from streamer.frustum import as_polygon
-from streamer.lod import exact_projected
 
 Block = tuple[int, int]
 
@@ -159,10 +158,23 @@ class BlockTree:
 
 def vertex_errors(delta: np.ndarray, points: np.ndarray, camera: Camera) -> np.ndarray:
     """``δ_s``: pixel distance between the projections of ``B`` and ``B + δ`` (0 for δ = 0,
-    ∞ where undefined, e.g. behind the eye)."""
+    ∞ where undefined: either point at or behind the eye's depth).
+
+    In closed form rather than as the difference of two projections
+    (:func:`streamer.lod.exact_projected`, which it equals up to rounding): with ``c`` the
+    camera coordinates of ``B`` and ``u`` the world up in camera axes, moving ``B`` by ``δ``
+    moves its projection by ``f |δ| |c_z u_xy - c_xy u_z| / (c_z (c_z + δ u_z))``: one camera
+    transform and no cancellation of nearly equal screen coordinates."""
     d = np.asarray(delta, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        rho = exact_projected(d, points, camera)
+    c = camera.to_camera(points)
+    c0, c1, c2 = c[..., 0], c[..., 1], c[..., 2]
+    u0, u1, u2 = camera.right[2], camera.up[2], camera.forward[2]
+    z1 = c2 + d * u2
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        rho = (
+            camera.focal_px * np.abs(d) * np.hypot(c2 * u0 - c0 * u2, c2 * u1 - c1 * u2) / (c2 * z1)
+        )
+    rho = np.where((c2 > 0.0) & (z1 > 0.0), rho, np.inf)
     return np.where(d == 0.0, 0.0, np.where(np.isfinite(rho), rho, np.inf))
 
 
