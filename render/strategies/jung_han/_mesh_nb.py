@@ -146,15 +146,18 @@ def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
             pc, pr_ = tri[t, j, 0], tri[t, j, 1]
             qc, qr = tri[t, j1, 0], tri[t, j1, 1]
             oc, orr = tri[t, j2, 0], tri[t, j2, 1]
-            if pr_ == qr and abs(pc - qc) >= 2 and orr != pr_:
-                g = 0 if orr < pr_ else 1
-                best[g, rank_h[tid[t, j] if pc < qc else tid[t, j1]]] = 3 * t + j
-            elif pc == qc and abs(pr_ - qr) >= 2 and oc != pc:
-                g = 2 if oc < pc else 3
-                best[g, rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]] = 3 * t + j
-            else:
-                continue
-            has[g] = True
+            # both tests without short-circuits (fewer mispredicted branches), then one store
+            hz = (pr_ == qr) & (abs(pc - qc) >= 2) & (orr != pr_)
+            vt = (not hz) & (pc == qc) & (abs(pr_ - qr) >= 2) & (oc != pc)
+            if hz | vt:
+                if hz:
+                    g = 0 if orr < pr_ else 1
+                    r = rank_h[tid[t, j] if pc < qc else tid[t, j1]]
+                else:
+                    g = 2 if oc < pc else 3
+                    r = rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]
+                best[g, r] = 3 * t + j
+                has[g] = True
     for g in range(4):
         if not has[g]:
             continue
