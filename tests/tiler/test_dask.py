@@ -6,6 +6,7 @@ Every cluster is started and stopped inside the test, on loopback only.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
 import threading
@@ -145,10 +146,17 @@ def test_persistent_failure_names_the_block(tmp_path, thread_cluster, monkeypatc
 
 
 def _journal_entries(store: Path) -> int:
+    """Journal entries written whole: chunk files ``c.<row>.<col>.0``, not the
+    ``c.<row>.<col>.<uuid>.partial`` temporary file zarr leaves when a worker is killed in the
+    middle of its write (``pathlib.Path.with_suffix`` of the key)."""
     from tiler.resume import JOURNAL
 
-    base = store / JOURNAL  # one chunk file per block: c.<row>.<col>
-    return sum(1 for p in base.glob("c.*") if p.is_file()) if base.exists() else 0
+    base = store / JOURNAL
+    if not base.exists():
+        return 0
+    return sum(
+        1 for p in base.iterdir() if p.is_file() and re.fullmatch(r"c\.\d+\.\d+\.\d+", p.name)
+    )
 
 
 def test_killed_worker_then_rerun_is_identical_and_skips_finished(tmp_path):
