@@ -52,7 +52,7 @@ def _cam(basis, eye, x, y, z):
 
 
 @_jit
-def _vertex_error(basis, eye, focal, vw, vh, d, x, y, h):
+def _vertex_error(basis, eye, focal, d, x, y, h):
     """``vertex_errors`` of one vertex (0 for δ = 0, ∞ if undefined): the same closed form in
     the same order (one camera transform, no difference of projections)."""
     if d == 0.0:
@@ -69,7 +69,7 @@ def _vertex_error(basis, eye, focal, vw, vh, d, x, y, h):
 @_jit
 def _own_error(
     nd, j, v, size, half, k, lev, hoff, r0, c0, hh, dl,
-    basis, eye, focal, vw, vh, x0, y0, dx, dy,
+    basis, eye, focal, x0, y0, dx, dy,
 ):  # fmt: skip
     """δ_s of own vertex ``v`` (C, T, B, L, R) of node ``j`` (``JungHanSelector._own``)."""
     s = nd[j, 0]
@@ -79,7 +79,7 @@ def _own_error(
     flat = hoff[s] + (lr >> sh) * ((1 << lev[s]) + 1) + (lc >> sh)
     x = x0 + float(c0[s] + lc) * dx
     y = y0 - float(r0[s] + lr) * dy
-    return _vertex_error(basis, eye, focal, vw, vh, float(dl[flat]), x, y, hh[flat])
+    return _vertex_error(basis, eye, focal, float(dl[flat]), x, y, hh[flat])
 
 
 @_jit
@@ -314,7 +314,7 @@ def _grow1(a):
 def traverse(
     hh, dl, pyr, hoff, poff, lev, r0, c0, roots, root_inside,
     o, pext, normals, pmin, pmax, q, e,
-    basis, eye, focal, vw, vh, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pr,
+    basis, eye, focal, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pr,
 ):  # fmt: skip
     """The pruned top-down + bottom-up pass of one frame: ``(tri, tslot, tlev, nodes, flags,
     clamped, evaluated, nd, pr)`` in the numpy reference's order (see the module notes);
@@ -425,7 +425,7 @@ def traverse(
                     both = (present >> _EQ[ed, 0]) & (present >> _EQ[ed, 1]) & 1
                     rem = both == 1 and _own_error(
                         nd, j, 1 + ed, size, half, k, lev, hoff, r0, c0, hh, dl,
-                        basis, eye, focal, vw, vh, x0, y0, dx, dy,
+                        basis, eye, focal, x0, y0, dx, dy,
                     ) < tau  # fmt: skip
                     allrem = allrem and rem
                     if rem:
@@ -434,7 +434,7 @@ def traverse(
                 if dd_ >= 1 and allrem:
                     e0 = _own_error(
                         nd, j, 0, size, half, k, lev, hoff, r0, c0, hh, dl,
-                        basis, eye, focal, vw, vh, x0, y0, dx, dy,
+                        basis, eye, focal, x0, y0, dx, dy,
                     )  # fmt: skip
                     if e0 < tau:
                         st = 2

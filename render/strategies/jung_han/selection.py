@@ -318,7 +318,7 @@ class JungHanSelector:
             f.heights, f.delta, f.pyramid, hoff, poff,
             lev, r0, c0, roots, inside[roots].astype(np.int64), *pa,
             np.stack([camera.right, camera.up, camera.forward]), camera.eye, float(camera.focal_px),
-            float(camera.viewport[0]), float(camera.viewport[1]), float(tau),
+            float(tau),
             float(g.x0), float(g.y0), float(g.dx), float(g.dy), int(self.r.k),
             bool(self.prune), bool(self.culled_collapse), *self._nd,
         )  # fmt: skip
