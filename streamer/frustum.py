@@ -39,6 +39,7 @@ from tiler.grid import BlockGrid
 _EDGES = np.array(
     [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
 )
+_EDGE_PAIRS = tuple(map(tuple, _EDGES.tolist()))
 
 
 # --- polygons ---------------------------------------------------------------------------------
@@ -251,26 +252,43 @@ def frustum_hull(camera: Camera, zrange: tuple[float, float] | None = None) -> n
     With ``zrange=(zlo, zhi)`` the frustum is first clipped to that slab of heights (exact for
     terrain inside it); the result is empty ``(0, 2)`` when the frustum misses the slab.
     """
-    rel = camera.frustum_corners(relative=True)
+    rel = _corners_rel(camera)
     pts = rel
     if zrange is not None:
         zlo, zhi = (float(z) for z in zrange)
         if not (math.isfinite(zlo) and math.isfinite(zhi) and zlo <= zhi):
             raise FrustumError(f"zrange must be finite (zlo, zhi) with zlo <= zhi, got {zrange}")
-        zlo -= camera.position[2]
-        zhi -= camera.position[2]
-        z = rel[:, 2]
-        keep = [rel[(z >= zlo) & (z <= zhi)]]
-        a, b = rel[_EDGES[:, 0]], rel[_EDGES[:, 1]]
+        zlo -= float(camera.position[2])
+        zhi -= float(camera.position[2])
+        pts = [(x, y) for x, y, z in rel if zlo <= z <= zhi]
         for z0 in (zlo, zhi):
-            da, db = a[:, 2] - z0, b[:, 2] - z0
-            cross = da * db < 0.0
-            t = da[cross] / (da[cross] - db[cross])
-            hit = a[cross] + t[:, None] * (b[cross] - a[cross])
-            hit[:, 2] = z0
-            keep.append(hit)
-        pts = np.concatenate(keep)
-    return convex_hull(pts[:, :2]) + camera.eye[:2]
+            for i, j in _EDGE_PAIRS:
+                (ax, ay, az), (bx, by, bz) = rel[i], rel[j]
+                da, db = az - z0, bz - z0
+                if da * db < 0.0:
+                    t = da / (da - db)
+                    pts.append((ax + t * (bx - ax), ay + t * (by - ay)))
+    xy = np.array([(p[0], p[1]) for p in pts], dtype=np.float64).reshape(-1, 2)
+    return convex_hull(xy) + camera.eye[:2]
+
+
+def _corners_rel(camera: Camera) -> list[tuple[float, float, float]]:
+    """``camera.frustum_corners(relative=True)`` as Python float triples (the same arithmetic,
+    in the same order, without numpy's per-call cost on 8 points)."""
+    (rx, ry, rz), (ux, uy, uz) = camera.right.tolist(), camera.up.tolist()
+    fx, fy, fz = camera.forward.tolist()
+    tx, ty = camera.tan_half_x, camera.tan_half_y
+    out = []
+    for d in (float(camera.near), float(camera.far)):
+        for sx, sy in ((-tx, -ty), (tx, -ty), (tx, ty), (-tx, ty)):
+            out.append(
+                (
+                    d * (fx + sx * rx + sy * ux),
+                    d * (fy + sx * ry + sy * uy),
+                    d * (fz + sx * rz + sy * uz),
+                )
+            )
+    return out
 
 
 # --- blocks -----------------------------------------------------------------------------------

@@ -217,6 +217,52 @@ def test_convex_hull_is_the_numpy_scalar_chain_bit_for_bit():
     assert convex_hull([[0.0, 0.0]] * 3).shape == (1, 2)
 
 
+def _numpy_frustum_hull(camera: Camera, zrange=None, far_scale: float = 1.0) -> np.ndarray:
+    """``frustum_hull`` before it moved to Python floats: the corners and the slab clipping as
+    numpy arrays (``far_scale`` moves the far plane: the positive control only)."""
+    rel = camera.frustum_corners(relative=True)
+    rel[4:] *= far_scale
+    pts = rel
+    if zrange is not None:
+        zlo, zhi = (float(z) - camera.position[2] for z in zrange)
+        z = rel[:, 2]
+        keep = [rel[(z >= zlo) & (z <= zhi)]]
+        edges = np.array([(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
+                          (0, 4), (1, 5), (2, 6), (3, 7)])  # fmt: skip
+        a, b = rel[edges[:, 0]], rel[edges[:, 1]]
+        for z0 in (zlo, zhi):
+            da, db = a[:, 2] - z0, b[:, 2] - z0
+            cross = da * db < 0.0
+            t = da[cross] / (da[cross] - db[cross])
+            keep.append(a[cross] + t[:, None] * (b[cross] - a[cross]))
+        pts = np.concatenate(keep)
+    return convex_hull(pts[:, :2]) + camera.eye[:2]
+
+
+def test_frustum_hull_is_the_numpy_one_bit_for_bit():
+    """The Python-float corners and clipping give the numpy version's hull exactly, at the
+    extremes (coordinates near 1e7 m, heights -11 to +9 km, FOV 1-170 deg, a slab of zero
+    thickness at the eye, a frustum that misses the slab)."""
+    rng = np.random.default_rng(7)
+    n_empty = 0
+    for _ in range(400):
+        z = float(rng.choice([0.0, 0.5, 300.0, 8848.0, -11000.0]))
+        pos = (rng.uniform(-1e7, 1e7), rng.uniform(-1e7, 1e7), z)
+        cam = Camera(
+            pos, yaw=rng.uniform(0, 360), pitch=rng.uniform(-90, 90), roll=rng.uniform(-45, 45),
+            fov_y=rng.uniform(1, 170), near=float(rng.choice([0.1, 1.0])),
+            far=float(rng.choice([100.0, 1e5, 1e6])),
+        )  # fmt: skip
+        for zr in (None, (0.0, 10.0), (-11000.0, 8848.0), (z, z), (z - 1.0, z + 1.0)):
+            got, want = frustum_hull(cam, zr), _numpy_frustum_hull(cam, zr)
+            assert got.shape == want.shape and np.array_equal(got, want)
+            n_empty += len(got) == 0
+    assert n_empty > 0  # the empty case was exercised
+    # positive control: the comparison sees a far plane moved by one part in 1e12
+    cam = Camera((5e5, 5e6, 900.0), yaw=30.0, pitch=-12.0, far=3e4)
+    assert not np.array_equal(frustum_hull(cam), _numpy_frustum_hull(cam, None, 1.0 + 1e-12))
+
+
 # --- Qiu's extension --------------------------------------------------------------------------
 
 

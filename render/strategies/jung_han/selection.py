@@ -281,23 +281,24 @@ class JungHanSelector:
         ext = np.zeros(4)
         normals = np.zeros((0, 2))
         pmin = pmax = np.zeros(0)
+        # the edges, as np.roll(pp, -1, axis=0) - pp (computed once, for both tests)
+        e = np.concatenate((pp[1:], pp[:1])) - pp
         if len(pp):
-            ext = np.array([pp[:, 0].min(), pp[:, 0].max(), pp[:, 1].min(), pp[:, 1].max()])
+            lo, hi = pp.min(axis=0), pp.max(axis=0)
+            ext = np.array([lo[0], hi[0], lo[1], hi[1]])
         if len(pp) >= 2:  # as polygon_meets_rects
-            e = np.roll(pp, -1, axis=0) - pp
-            normals = np.stack([-e[:, 1], e[:, 0]], axis=1)
+            normals = np.empty_like(e)
+            normals[:, 0], normals[:, 1] = -e[:, 1], e[:, 0]
             proj = pp @ normals.T
             pmin, pmax = proj.min(axis=0), proj.max(axis=0)
-        q = np.ascontiguousarray(pp)
-        e = np.roll(q, -1, axis=0) - q  # as corners_inside
         return (
             np.ascontiguousarray(o, dtype=np.float64),
             ext,
-            np.ascontiguousarray(normals),
+            normals,
             np.ascontiguousarray(pmin),
             np.ascontiguousarray(pmax),
-            q,
-            np.ascontiguousarray(e),
+            np.ascontiguousarray(pp),
+            e,
         )
 
     def _traverse_nb(self, mod, camera, tau, pa, pairs, lev, r0, c0, meets, inside):
@@ -333,7 +334,7 @@ class JungHanSelector:
         """``_assemble`` by the compiled kernel (same outputs, see ``_assemble_nb``)."""
         g = self.r.grid
         jh_count = len(tri)
-        need = self._mod.ws_size(3 * (len(tri) + len(tri) // 4 + 64))  # with the usual splits
+        need = self._mod.ws_size_assemble(len(tri))
         if len(self._ws) < need:
             self._ws = np.empty(need + need // 4, np.int64)
         out = self._mod.assemble(  # the traversal packed the forest and set _hoff this frame
