@@ -184,6 +184,25 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
                 assert np.array_equal(x, y)
 
 
+def test_unique_corner_pairs_equal_numpy(numba_kernels):
+    """The GPU vertices' unique (group, vertex) pairs found along per-vertex chains equal
+    ``np.unique`` of the corner keys: sorted keys, first occurrences, inverse."""
+    rng = np.random.default_rng(11)
+    cases = [(0, 1, 1), (1, 1, 1), (40, 3, 7), (5000, 40, 900), (3000, 2000, 50)]
+    for m, groups, nv in cases:
+        grp = rng.integers(0, groups, m, dtype=np.int64) * 16 + rng.integers(0, 16, m)
+        tid = rng.integers(0, nv, (m, 3), dtype=np.int64)
+        key = (grp[:, None] * max(nv, 1) + tid).ravel()
+        want = np.unique(key, return_index=True, return_inverse=True)
+        got = numba_kernels.unique_corner_pairs(grp, tid, nv)
+        for x, y in zip(want, got, strict=True):
+            assert np.array_equal(x.ravel(), y)
+    # positive control: a corner moved to another vertex changes the pairs found
+    tid2 = tid.copy()
+    tid2[0, 0] = (tid2[0, 0] + 1) % nv
+    assert not np.array_equal(numba_kernels.unique_corner_pairs(grp, tid2, nv)[0], got[0])
+
+
 def test_quick_bounds_bracket_the_exact_one(numba_kernels):
     """The traversal decides with two cheap bounds before the exact one: wherever they are
     finite, ``lo <= exact <= hi`` (then pruning, and every output, is unchanged). Boxes and

@@ -15,15 +15,24 @@ from __future__ import annotations
 import numpy as np
 
 from render.strategies.jung_han._mesh_nb import (
+    _COUNTS,
     _argsort_ws,
     _conform_ranked,
     _jit,
     _ranks_sorted,
     _t_junctions_ranked,
+    _unique_corner_pairs,
     _unique_index,
 )
 
 _BIG = np.finfo(np.float64).max
+
+
+def ws_size_assemble(m: int) -> int:
+    """Length of the int64 workspace :func:`assemble` needs for ``m`` triangles (with the
+    usual splits; a frame that splits more allocates its own)."""
+    n = 3 * (m + m // 4 + 64)
+    return 7 * n + 3 * m + _COUNTS
 
 
 @_jit
@@ -42,7 +51,7 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
     """``JungHanSelector._assemble`` on the frame's triangles ``tri`` (m, 3, 2) with their slots
     and levels: ``(tri, tri_h, slot, level, adjusted, v_slot, v_level, v_cr, v_h, index,
     ok)`` (``ok`` False if the conforming split did not converge). ``ws``: the int64 workspace
-    of the sorts, kept by the caller between frames (:func:`~._mesh_nb.ws_size` of ``3 m`` or
+    of the sorts, kept by the caller between frames (:func:`ws_size_assemble` of ``m`` or
     more, else they allocate)."""
     m = tri.shape[0]
     order = _argsort_ws(slot, ws)  # a view of the workspace: used up before its next use
@@ -99,12 +108,14 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
         t1, tid, s1, l1, ok = _conform_ranked(t1, tid, s1, l1, vcol, vrow, ranks)
     m2 = t1.shape[0]
     tri_h = np.empty((m2, 3))
-    gk = np.empty(3 * m2, np.int64)
+    grp = np.empty(m2, np.int64)
     for t in range(m2):
         for v in range(3):
             tri_h[t, v] = hv[tid[t, v]]
-            gk[3 * t + v] = (s1[t] * 16 + l1[t]) * max(nv, 1) + tid[t, v]
-    guk, gfirst, ginv = _unique_index(gk, ws)
+        grp[t] = s1[t] * 16 + l1[t]
+    # GPU vertices, one per (slot, drawn level, vertex): np.unique of the corners' keys
+    # (s1 * 16 + l1) * max(nv, 1) + tid, by pairs
+    guk, gfirst, ginv = _unique_corner_pairs(grp, tid, nv, ws)
     ng = guk.shape[0]
     v_slot = np.empty(ng, np.int64)
     v_level = np.empty(ng, np.int64)

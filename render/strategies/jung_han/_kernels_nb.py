@@ -22,7 +22,10 @@ import math
 
 import numpy as np
 
-from render.strategies.jung_han._assemble_nb import assemble  # noqa: F401  (re-exported)
+from render.strategies.jung_han._assemble_nb import (  # noqa: F401  (re-exported)
+    assemble,
+    ws_size_assemble,
+)
 from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kernels, re-exported)
     _jit,
     argsort_stable,
@@ -30,6 +33,7 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     ranks,
     ranks_sorted,
     t_junctions,
+    unique_corner_pairs,
     unique_index,
     ws_size,
 )

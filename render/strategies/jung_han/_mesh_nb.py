@@ -317,6 +317,55 @@ def _unique_index(keys, ws):
     return uk, first, inv
 
 
+@_jit
+def _unique_corner_pairs(grp, tid, nv, ws):
+    """``np.unique(key, return_index=True, return_inverse=True)`` of the corner keys
+    ``key[3 t + v] = grp[t] * max(nv, 1) + tid[t, v]`` (``grp >= 0``, ``0 <= tid < nv``),
+    without sorting every key: a vertex lies in few groups, so each corner finds its pair
+    along its vertex's chain of distinct pairs, and only those are sorted. Its buffers are
+    carved from the int64 workspace ``ws`` (the chains from its end, the sort from its start;
+    a fresh one if shorter than ``nv + 7 * 3 m + _COUNTS``)."""
+    m = tid.shape[0]
+    n = 3 * m
+    nvx = max(nv, 1)
+    if ws.shape[0] < nv + 7 * n + _COUNTS:
+        ws = np.empty(nv + 7 * n + _COUNTS, np.int64)
+    top = ws.shape[0]
+    head = ws[top - nv : top]  # per vertex: its latest pair, -1 for none
+    ekey = ws[top - nv - n : top - nv]  # per pair: key, first corner, next pair of the vertex
+    efirst = ws[top - nv - 2 * n : top - nv - n]
+    enext = ws[top - nv - 3 * n : top - nv - 2 * n]
+    for v in range(nv):
+        head[v] = -1
+    inv = np.empty(n, np.int64)
+    ne = 0
+    for t in range(m):
+        gk = grp[t] * nvx
+        for c in range(3):
+            v = tid[t, c]
+            key = gk + v
+            e = head[v]
+            while e >= 0 and ekey[e] != key:
+                e = enext[e]
+            if e < 0:  # a new pair: its first corner is this one (np.unique's first index)
+                e = ne
+                ekey[e], efirst[e], enext[e] = key, 3 * t + c, head[v]
+                head[v] = e
+                ne += 1
+            inv[3 * t + c] = e
+    order = _argsort_ws(ekey[:ne], ws)  # the start of ws: below the chains (4 ne + counts)
+    rank = enext[:ne]  # the chains are done with
+    uk = np.empty(ne, np.int64)
+    first = np.empty(ne, np.int64)
+    for j in range(ne):
+        o = order[j]
+        rank[o] = j
+        uk[j], first[j] = ekey[o], efirst[o]
+    for i in range(n):
+        inv[i] = rank[inv[i]]
+    return uk, first, inv
+
+
 # The entry points called from Python: thin wrappers, so that a kernel compiled (and cached) as
 # another kernel's callee is never also called from Python (numba's cache can then load it
 # without what boxing its result arrays needs: "'descr' is NULL").
@@ -358,3 +407,9 @@ def ranks_sorted(vcol, vrow):
     """:func:`_ranks_sorted` (copies)."""
     rh, ph, rv, pv = _ranks_sorted(vcol, vrow, np.empty(0, np.int64))
     return rh.copy(), ph.copy(), rv.copy(), pv.copy()
+
+
+@_jit
+def unique_corner_pairs(grp, tid, nv):
+    """:func:`_unique_corner_pairs`."""
+    return _unique_corner_pairs(grp, tid, nv, np.empty(0, np.int64))
