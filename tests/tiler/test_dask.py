@@ -5,6 +5,7 @@ Every cluster is started and stopped inside the test, on loopback only.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -177,20 +178,38 @@ def test_killed_worker_then_rerun_is_identical_and_skips_finished(tmp_path):
         ) as cluster,
     ):
         with distributed.Client(cluster) as c:
-            pids = list(c.run(os.getpid).values())
-        killed = threading.Event()
+            pid_of = c.run(os.getpid)  # worker address -> pid
+        killed, done = threading.Event(), threading.Event()
 
         def killer() -> None:
+            """Once 12 blocks are journalled, SIGKILL a worker that is processing a block (an
+            idle one fails nothing: its next task just goes elsewhere); again, another one, if
+            its task had finished in between and the run goes on."""
             deadline = time.monotonic() + 120
             while time.monotonic() < deadline and _journal_entries(out) < 12:
                 time.sleep(0.02)
-            os.kill(pids[0], signal.SIGKILL)
-            killed.set()
+            sched = cluster.scheduler  # in this process (the workers are not)
+            while pid_of and not done.is_set() and time.monotonic() < deadline:
+                try:  # the scheduler's own state, read from this thread: retry a torn read
+                    busy = [a for a, w in list(sched.workers.items()) if w.processing]
+                except RuntimeError:
+                    continue
+                busy = [a for a in busy if a in pid_of]
+                if not busy:
+                    time.sleep(0.005)
+                    continue
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid_of.pop(busy[0]), signal.SIGKILL)
+                killed.set()
+                done.wait(2.0)
 
         t = threading.Thread(target=killer, name="test-killer", daemon=True)
         t.start()
-        with pytest.raises(BlockFailedError, match="KilledWorker|failed on every try"):
-            tile(src, out, TileOptions(block_size=17, scheduler=cluster.scheduler_address))
+        try:
+            with pytest.raises(BlockFailedError, match="KilledWorker|failed on every try"):
+                tile(src, out, TileOptions(block_size=17, scheduler=cluster.scheduler_address))
+        finally:
+            done.set()
         t.join(timeout=10)
         assert killed.is_set()
     at_failure = _journal_entries(out)
