@@ -1,4 +1,4 @@
-"""Ground-plane culling shapes and intersection tests (pure numpy, float64).
+"""Ground-plane culling shapes and intersection tests (numpy and Python floats, float64).
 
 * :func:`view_triangle` — Qiu et al.'s projected view frustum: an isosceles triangle with its
   apex at the camera's ground position, its axis along the horizontal view direction (from yaw)
