@@ -36,10 +36,9 @@ from streamer.errors import FrustumError
 from tiler.grid import BlockGrid
 
 # The 12 edges of the frustum as pairs of indices into Camera.frustum_corners().
-_EDGES = np.array(
-    [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
-)
-_EDGE_PAIRS = tuple(map(tuple, _EDGES.tolist()))
+_EDGE_PAIRS = (
+    (0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)
+)  # fmt: skip
 
 
 # --- polygons ---------------------------------------------------------------------------------

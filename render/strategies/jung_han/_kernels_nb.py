@@ -35,7 +35,6 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     t_junctions,
     unique_corner_pairs,
     unique_index,
-    ws_size,
 )
 from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE
 

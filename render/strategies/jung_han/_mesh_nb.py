@@ -22,17 +22,12 @@ _jit = cached_njit(**_OPTS)  # as tiler._kernels_nb, without its fastmath flags
 _COUNTS = 6 * 2049
 
 
-def ws_size(n: int) -> int:
-    """Length of the int64 workspace :func:`_argsort_ws` needs for ``n`` keys."""
-    return 4 * n + _COUNTS
-
-
 @_jit
 def _argsort_ws(keys, ws):
     """``np.argsort(keys, kind="stable")`` for non-negative int64 keys (LSD radix sort,
     11-bit digits: linear time, stable, so the same permutation). The keys move with their
     indices, so every pass reads its input in order. Its buffers are carved from the int64
-    workspace ``ws`` (a fresh one if shorter than :func:`ws_size`): the order returned is a view
+    workspace ``ws`` (a fresh one if shorter than ``4 n + _COUNTS``): the order returned is a view
     of ``ws``, valid until ``ws`` is used again. (A persistent workspace: fresh memory is
     faulted in and zeroed by the OS on every frame, which cost more than the sorts.)"""
     n = keys.shape[0]
