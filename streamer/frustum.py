@@ -252,8 +252,9 @@ def frustum_hull(camera: Camera, zrange: tuple[float, float] | None = None) -> n
     terrain inside it); the result is empty ``(0, 2)`` when the frustum misses the slab.
     """
     rel = _corners_rel(camera)
-    pts = rel
-    if zrange is not None:
+    if zrange is None:
+        pts = [(x, y) for x, y, _ in rel]
+    else:
         zlo, zhi = (float(z) for z in zrange)
         if not (math.isfinite(zlo) and math.isfinite(zhi) and zlo <= zhi):
             raise FrustumError(f"zrange must be finite (zlo, zhi) with zlo <= zhi, got {zrange}")
@@ -267,8 +268,7 @@ def frustum_hull(camera: Camera, zrange: tuple[float, float] | None = None) -> n
                 if da * db < 0.0:
                     t = da / (da - db)
                     pts.append((ax + t * (bx - ax), ay + t * (by - ay)))
-    xy = np.array([(p[0], p[1]) for p in pts], dtype=np.float64).reshape(-1, 2)
-    return convex_hull(xy) + camera.eye[:2]
+    return convex_hull(np.array(pts, dtype=np.float64).reshape(-1, 2)) + camera.eye[:2]
 
 
 def _corners_rel(camera: Camera) -> list[tuple[float, float, float]]:
