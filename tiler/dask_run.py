@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from tiler.errors import BlockFailedError, SchedulerError, StoreError
 from tiler.grid import BlockGrid
+from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location
 
 if TYPE_CHECKING:
@@ -153,36 +154,45 @@ def run_blocks_dask(run: BlockRun) -> str:
     def collect(finished: set[Any], *, final: bool = False) -> None:
         progress.add([block_of[f.key] for f in finished if f.status == "finished"], final=final)
 
-    try:
-        submit_more()
-        while pending:
-            res = distributed.wait(pending, timeout=WAIT_TIMEOUT_S, return_when="FIRST_COMPLETED")
-            finished = set(res.done)
-            if not finished:
-                raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
-            pending -= finished
-            collect(finished)
-            for fut in finished:
-                if fut.status != "finished":
-                    br, bc = block_of[fut.key]
-                    exc = fut.exception() if fut.status == "error" else None
-                    why = f"{type(exc).__name__}: {exc}" if exc is not None else fut.status
-                    raise BlockFailedError(
-                        f"block ({br}, {bc}) failed on every try ({opts.retries} "
-                        f"retries): {why}; the store is kept unfinished: rerun to resume "
-                        "(finished blocks are kept)",
-                        (br, bc),
-                    ) from exc
-            submit_more()
-            run.lease.check()
-    except BaseException:
-        if pending:
-            client.cancel(list(pending))
-        collect({f for f in pending if f.status == "finished"}, final=True)  # they stay done
-        raise
-    finally:
-        progress.flush()
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    def wait(fs: set[Any], timeout: float) -> set[Any]:
+        try:
+            return set(distributed.wait(fs, timeout=timeout, return_when="FIRST_COMPLETED").done)
+        except TimeoutError:  # distributed.wait raises where concurrent.futures returns none
+            return set()
+
+    with DeferredInterrupt() as interrupt:  # Ctrl-C is raised between waits (tiler.interrupt)
+        try:
+            try:
+                submit_more()
+                while pending:
+                    finished = wait_first(wait, pending, WAIT_TIMEOUT_S, interrupt)
+                    if not finished:
+                        raise StoreError(
+                            f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up"
+                        )
+                    pending -= finished
+                    collect(finished)
+                    for fut in finished:
+                        if fut.status != "finished":
+                            br, bc = block_of[fut.key]
+                            exc = fut.exception() if fut.status == "error" else None
+                            why = f"{type(exc).__name__}: {exc}" if exc is not None else fut.status
+                            raise BlockFailedError(
+                                f"block ({br}, {bc}) failed on every try ({opts.retries} "
+                                f"retries): {why}; the store is kept unfinished: rerun to resume "
+                                "(finished blocks are kept)",
+                                (br, bc),
+                            ) from exc
+                    submit_more()
+                    run.lease.check()
+            except BaseException:
+                if pending:
+                    client.cancel(list(pending))
+                collect({f for f in pending if f.status == "finished"}, final=True)  # stay done
+                raise
+        finally:
+            progress.flush()
+            client.close()
+            if cluster is not None:
+                cluster.close()
     return "dask"

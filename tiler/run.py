@@ -29,6 +29,7 @@ import zarr
 from tiler import chunkwrite, kernels
 from tiler.errors import StoreError
 from tiler.grid import BlockGrid
+from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location, as_location
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk
@@ -343,42 +344,49 @@ def _run_local(run: BlockRun) -> str:
         ok = [f.result() for f in finished if not f.cancelled() and f.exception() is None]
         progress.add(ok, flush=flush, final=final)
 
+    def wait(fs: set[Future], timeout: float) -> set[Future]:
+        return wait_futures(fs, timeout=timeout, return_when=FIRST_COMPLETED).done
+
     try:
-        while True:
-            while len(pending) < 2 * workers:
-                b = next(it, None)
-                if b is None:
-                    break
-                if executor == "processes":
-                    pending.add(_submit_blocking_sigint(pool, task, *b))
-                else:
-                    pending.add(pool.submit(task, *b))
-            if not pending:
-                break
-            finished, pending = wait_futures(
-                pending, timeout=WAIT_TIMEOUT_S, return_when=FIRST_COMPLETED
-            )
-            if not finished:
-                raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
-            collect(finished)
-            for fut in finished:
-                try:
-                    fut.result()  # re-raises a worker's exception here
-                except BrokenProcessPool as exc:
-                    raise StoreError(
-                        "a tiling worker process died (out of memory or killed); rerun the "
-                        "same call to resume (finished blocks are kept)"
-                    ) from exc
-            run.lease.check()
-    except BaseException:
-        pool.shutdown(wait=True, cancel_futures=True)
-        collect({f for f in pending if f.done()}, flush=True, final=True)  # they stay done
-        raise
+        # a Ctrl-C is raised between waits (tiler.interrupt), never inside the pool's locks
+        with DeferredInterrupt() as interrupt:
+            try:
+                while True:
+                    while len(pending) < 2 * workers:
+                        b = next(it, None)
+                        if b is None:
+                            break
+                        if executor == "processes":
+                            pending.add(_submit_blocking_sigint(pool, task, *b))
+                        else:
+                            pending.add(pool.submit(task, *b))
+                    if not pending:
+                        break
+                    finished = wait_first(wait, pending, WAIT_TIMEOUT_S, interrupt)
+                    if not finished:
+                        raise StoreError(
+                            f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up"
+                        )
+                    pending -= finished
+                    collect(finished)
+                    for fut in finished:
+                        try:
+                            fut.result()  # re-raises a worker's exception here
+                        except BrokenProcessPool as exc:
+                            raise StoreError(
+                                "a tiling worker process died (out of memory or killed); rerun "
+                                "the same call to resume (finished blocks are kept)"
+                            ) from exc
+                    run.lease.check()
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                collect({f for f in pending if f.done()}, flush=True, final=True)  # stay done
+                raise
+            pool.shutdown(wait=True)
+            collect(set(), flush=True)
     finally:
         for w in thread_workers:
             w.close()
-    pool.shutdown(wait=True)
-    collect(set(), flush=True)
     return executor
 
 

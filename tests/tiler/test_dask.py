@@ -283,33 +283,83 @@ def test_ctrl_c_with_worker_processes_prints_one_line(tmp_path):
     src = write_dem(tmp_path / "dem.tif", data)
     out = tmp_path / "o.zarr"
     env = dict(os.environ, PYTHONPATH=os.getcwd(), TERRASTREAM_KERNELS="numpy")
-    cmd = [sys.executable, "-m", "cli.main", "tile", str(src), str(out), "--block-size", "17"]
+    # the console script (see tests/reliability/test_interrupts.py for why not python -m)
+    cmd = [str(Path(sys.executable).with_name("terrastream")), "tile", str(src), str(out)]
+    cmd += ["--block-size", "17"]
     cmd += ["--workers", "2", "--scheduler", "processes"]
     p = subprocess.Popen(
         cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True,
     )  # fmt: skip
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and _journal_entries(out) < 5 and p.poll() is None:
-        time.sleep(0.05)
-    assert p.poll() is None, "the run ended before it could be interrupted"
-    os.killpg(p.pid, signal.SIGINT)
-    _, err = p.communicate(timeout=120)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and _journal_entries(out) < 5 and p.poll() is None:
+            time.sleep(0.05)
+        assert p.poll() is None, "the run ended before it could be interrupted"
+        os.killpg(p.pid, signal.SIGINT)
+        try:
+            _, err = p.communicate(timeout=60)
+        except subprocess.TimeoutExpired as exc:
+            pytest.fail(f"still running 60 s after Ctrl-C (hung); stderr: {exc.stderr!r}")
+    finally:  # a hung run must not leak its processes into the next tests
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
     assert p.returncode == 130, err
     assert "interrupted" in err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
 
 
 def test_scheduler_dask_starts_and_stops_a_local_cluster(tmp_path):
+    import psutil
+
+    def workers() -> set:
+        return {p for p in psutil.Process().children(recursive=True) if "spawn_main" in " ".join(
+            p.cmdline())}  # fmt: skip
+
+    before = workers()  # (not this test's: a worker left by another test is its own failure)
     src = _dem(tmp_path)
     ref = _reference(src, tmp_path / "ref.zarr", 65)
     out = tmp_path / "d.zarr"
     store = tile(src, out, TileOptions(block_size=65, workers=1, scheduler="dask"))
     assert store.tile_summary.executor == "dask"
     assert diff_stores(ref, out) == []
-    import psutil
-
-    left = [p for p in psutil.Process().children(recursive=True) if "spawn_main" in " ".join(
-        p.cmdline())]  # fmt: skip
+    left = list(workers() - before)
     _, alive = psutil.wait_procs(left, timeout=30)  # the cluster's worker processes exit
     assert not alive
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "dask"])
+def test_ctrl_c_in_process_raises_tiling_interrupted_and_resumes(
+    tmp_path, thread_cluster, scheduler
+):
+    """SIGINT to this process while tile() waits for its workers (tiler.interrupt): it raises
+    TilingInterrupted between waits, the workers stop, SIGINT's handler is put back, and the
+    rerun gives the uninterrupted store (worker threads and a dask cluster)."""
+    from tiler.errors import TilingInterrupted
+
+    src = _dem(tmp_path, shape=(200, 200), nodata=False)  # 13 x 13 blocks
+    ref = _reference(src, tmp_path / "ref.zarr", 17)
+    out = tmp_path / "o.zarr"
+    spec = thread_cluster.scheduler_address if scheduler == "dask" else "threads"
+    opts = TileOptions(block_size=17, workers=2, scheduler=spec)
+    stop = threading.Event()
+
+    def ctrl_c() -> None:
+        while not stop.is_set() and _journal_entries(out) < 3:
+            time.sleep(0.01)
+        if not stop.is_set():
+            os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=ctrl_c, name="test-ctrl-c")
+    t.start()
+    try:
+        with pytest.raises(TilingInterrupted):
+            tile(src, out, opts)
+    finally:
+        stop.set()
+        t.join(10)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert 3 <= _journal_entries(out) < 169
+    tile(src, out, opts)
+    assert diff_stores(ref, out) == []
