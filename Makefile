@@ -21,7 +21,7 @@ setup: $(STAMP) gl-libs
 test: setup   # ends with "GL tests: N ran (...), M skipped" (tests/conftest.py)
 	$(BIN)/python -m pytest
 
-reliability: setup   # the long fault-injection series (24 kills, 30,000-frame faulty session); counts in BENCHMARKS.md
+reliability: setup   # the long fault-injection series (24 kills, 24 Ctrl-Cs, 30,000-frame faulty session); counts in BENCHMARKS.md
 	TERRASTREAM_RELIABILITY_LONG=1 $(BIN)/python -m pytest -s tests/reliability tests/streamer/test_session_faults.py
 
 demo: setup
