@@ -21,16 +21,15 @@ import uuid
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from tiler.errors import BlockFailedError, SchedulerError, StoreError
+from tiler.errors import BlockFailedError, SchedulerError
 from tiler.grid import BlockGrid
-from tiler.interrupt import DeferredInterrupt, wait_first
+from tiler.interrupt import DeferredInterrupt
 from tiler.location import Location
 
 if TYPE_CHECKING:
     from tiler.run import BlockRun
 
 log = logging.getLogger("tiler.tile")
-WAIT_TIMEOUT_S = 600.0
 IN_FLIGHT_PER_THREAD = 3  # tasks queued per worker thread (keeps workers busy, memory bounded)
 
 
@@ -108,7 +107,7 @@ def _connect(spec: str, n_workers: int) -> tuple[Any, Any]:
 
 def run_blocks_dask(run: BlockRun) -> str:
     """Compute ``run.todo`` blocks as dask tasks (see the module doc); returns ``"dask"``."""
-    from tiler.run import BlockProgress, kernels_for
+    from tiler.run import BlockProgress, kernels_for, wait_blocks
 
     loc, opts, grid, params = run.loc, run.opts, run.grid, run.params
     if not loc.can_share_with_processes:
@@ -165,11 +164,7 @@ def run_blocks_dask(run: BlockRun) -> str:
             try:
                 submit_more()
                 while pending:
-                    finished = wait_first(wait, pending, WAIT_TIMEOUT_S, interrupt)
-                    if not finished:
-                        raise StoreError(
-                            f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up"
-                        )
+                    finished = wait_blocks(wait, pending, interrupt)
                     pending -= finished
                     collect(finished)
                     for fut in finished:

@@ -362,11 +362,7 @@ def _run_local(run: BlockRun) -> str:
                             pending.add(pool.submit(task, *b))
                     if not pending:
                         break
-                    finished = wait_first(wait, pending, WAIT_TIMEOUT_S, interrupt)
-                    if not finished:
-                        raise StoreError(
-                            f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up"
-                        )
+                    finished = wait_blocks(wait, pending, interrupt)
                     pending -= finished
                     collect(finished)
                     for fut in finished:
@@ -388,6 +384,17 @@ def _run_local(run: BlockRun) -> str:
         for w in thread_workers:
             w.close()
     return executor
+
+
+def wait_blocks(
+    wait: Callable[[set[Any], float], set[Any]], pending: set[Any], interrupt: DeferredInterrupt
+) -> set[Any]:
+    """The first finished of ``pending`` block futures (``wait``: see :func:`wait_first`); a
+    Ctrl-C is raised here; :class:`StoreError` if none finished within :data:`WAIT_TIMEOUT_S`."""
+    finished = wait_first(wait, pending, WAIT_TIMEOUT_S, interrupt)
+    if not finished:
+        raise StoreError(f"no block finished within {WAIT_TIMEOUT_S:.0f} s; giving up")
+    return finished
 
 
 def mark_done(arr: zarr.Array, done: np.ndarray, blocks: list[tuple[int, int]], grid) -> None:

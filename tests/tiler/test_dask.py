@@ -363,3 +363,26 @@ def test_ctrl_c_in_process_raises_tiling_interrupted_and_resumes(
     assert 3 <= _journal_entries(out) < 169
     tile(src, out, opts)
     assert diff_stores(ref, out) == []
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "dask"])
+def test_no_block_finished_within_the_timeout_is_a_store_error(
+    tmp_path, thread_cluster, scheduler, monkeypatch
+):
+    """Workers that never finish a block: a StoreError naming the timeout (with dask too, whose
+    wait raises TimeoutError where concurrent.futures returns no future)."""
+    from tiler import dask_run
+    from tiler import run as run_mod
+    from tiler.errors import StoreError
+
+    def stuck(*args):
+        time.sleep(3)  # 3 x the timeout; then the pool can shut down
+        raise RuntimeError("a block slower than the timeout")
+
+    monkeypatch.setattr(run_mod, "WAIT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(dask_run, "run_block_task", stuck)
+    monkeypatch.setattr(run_mod.BlockWorker, "run", stuck)
+    spec = thread_cluster.scheduler_address if scheduler == "dask" else "threads"
+    src = _dem(tmp_path, shape=(60, 60), nodata=False)
+    with pytest.raises(StoreError, match="no block finished within 1 s"):
+        tile(src, tmp_path / "o.zarr", TileOptions(block_size=17, workers=2, scheduler=spec))
