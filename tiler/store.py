@@ -42,6 +42,7 @@ from tiler.errors import (
     StoreIncompleteError,
     StoreVersionError,
 )
+from tiler.interrupt import DeferredInterrupt
 from tiler.layout import level_end, level_start
 from tiler.location import Location, as_location, is_url
 from tiler.meta import BlockIndex, StoreMeta, read_meta, tool_version, write_meta
@@ -336,9 +337,13 @@ class TerrainStore:
             return [self._read(f"levels/{i}", block, i, views[i]) for i in levels]
         if self.location.is_local or self.location.is_memory or max_level == 0:
             return [self._read(f"levels/{i}", block, i) for i in levels]
-        with ThreadPoolExecutor(
-            max_workers=min(8, max_level + 1), thread_name_prefix="terrastream-read"
-        ) as pool:
+        # a Ctrl-C is raised once the pool has stopped, never inside its locks (tiler.interrupt)
+        with (
+            DeferredInterrupt(),
+            ThreadPoolExecutor(
+                max_workers=min(8, max_level + 1), thread_name_prefix="terrastream-read"
+            ) as pool,
+        ):
             return list(pool.map(lambda i: self._read(f"levels/{i}", block, i), levels))
 
     def _scratch(self, n: int) -> np.ndarray | None:

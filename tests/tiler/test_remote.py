@@ -101,6 +101,32 @@ def test_range_server_opens_and_reads(served):
             check_range_support(f"{url}/missing.zarr")
 
 
+def test_ctrl_c_during_a_remote_blocks_level_reads_is_raised_after_its_pool(served, monkeypatch):
+    """A remote block's levels are read on a pool (tiler.store): a Ctrl-C that comes while the
+    main thread waits for them is raised by tiler.interrupt once the pool has stopped, not
+    inside the pool's bookkeeping (where it could leave a lock held and hang the shutdown)."""
+    import os
+    import signal
+
+    with LoopbackServer(served) as url:
+        s = open_store(f"{url}/s.zarr")
+        assert s.k > 0 and not s.direct_reads  # the pool path
+        read = s._read
+
+        def read_then_ctrl_c(name, block, level, *args):
+            if level == 0:  # in a pool thread, while the main thread waits on the futures
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.1)
+            return read(name, block, level, *args)
+
+        monkeypatch.setattr(s, "_read", read_then_ctrl_c)
+        with pytest.raises(KeyboardInterrupt) as e:
+            s.read_block((1, 1))
+    assert e.traceback[-1].path.name == "interrupt.py"  # raised by the check, after the pool
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert not [t for t in threading.enumerate() if t.name.startswith("terrastream-read")]
+
+
 def test_non_http_urls_are_not_probed():
     check_range_support("memory://x")  # nothing to ask: no error, no request
     check_range_support("some/local/store.zarr")  # a local path
