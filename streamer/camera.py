@@ -268,13 +268,27 @@ class Camera:
     def frustum_corners(self, relative: bool = False) -> np.ndarray:
         """``(8, 3)`` corners: near then far plane, each bottom-left, bottom-right, top-right,
         top-left (as seen in the image); world, or relative to the eye if ``relative``."""
-        sx = np.array([-1.0, 1.0, 1.0, -1.0]) * self.tan_half_x
-        sy = np.array([-1.0, -1.0, 1.0, 1.0]) * self.tan_half_y
-        out = []
-        for d in (self.near, self.far):
-            out.append(d * (self.forward + sx[:, None] * self.right + sy[:, None] * self.up))
-        rel = np.concatenate(out)
+        rel = np.array(self.frustum_corners_rel(), dtype=np.float64)
         return rel if relative else rel + self.eye
+
+    def frustum_corners_rel(self) -> list[tuple[float, float, float]]:
+        """:meth:`frustum_corners` relative to the eye as Python float triples: each is
+        ``d * (forward + sx * right + sy * up)`` for ``d`` near then far (no numpy call per
+        corner: ``streamer.frustum.frustum_hull`` runs every frame)."""
+        (rx, ry, rz), (ux, uy, uz) = self.right.tolist(), self.up.tolist()
+        fx, fy, fz = self.forward.tolist()
+        tx, ty = self.tan_half_x, self.tan_half_y
+        out = []
+        for d in (float(self.near), float(self.far)):
+            for sx, sy in ((-tx, -ty), (tx, -ty), (tx, ty), (-tx, ty)):
+                out.append(
+                    (
+                        d * (fx + sx * rx + sy * ux),
+                        d * (fy + sx * ry + sy * uy),
+                        d * (fz + sx * rz + sy * uz),
+                    )
+                )
+        return out
 
     def velocity_from(self, prev: Camera, dt: float) -> np.ndarray:
         """World velocity ``(position - prev.position) / dt`` from two successive poses."""

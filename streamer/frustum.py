@@ -35,7 +35,7 @@ from streamer.camera import Camera
 from streamer.errors import FrustumError
 from tiler.grid import BlockGrid
 
-# The 12 edges of the frustum as pairs of indices into Camera.frustum_corners().
+# The 12 edges of the frustum as pairs of indices into Camera.frustum_corners_rel().
 _EDGE_PAIRS = (
     (0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)
 )  # fmt: skip
@@ -251,7 +251,7 @@ def frustum_hull(camera: Camera, zrange: tuple[float, float] | None = None) -> n
     With ``zrange=(zlo, zhi)`` the frustum is first clipped to that slab of heights (exact for
     terrain inside it); the result is empty ``(0, 2)`` when the frustum misses the slab.
     """
-    rel = _corners_rel(camera)
+    rel = camera.frustum_corners_rel()
     if zrange is None:
         pts = [(x, y) for x, y, _ in rel]
     else:
@@ -269,25 +269,6 @@ def frustum_hull(camera: Camera, zrange: tuple[float, float] | None = None) -> n
                     t = da / (da - db)
                     pts.append((ax + t * (bx - ax), ay + t * (by - ay)))
     return convex_hull(np.array(pts, dtype=np.float64).reshape(-1, 2)) + camera.eye[:2]
-
-
-def _corners_rel(camera: Camera) -> list[tuple[float, float, float]]:
-    """``camera.frustum_corners(relative=True)`` as Python float triples (the same arithmetic,
-    in the same order, without numpy's per-call cost on 8 points)."""
-    (rx, ry, rz), (ux, uy, uz) = camera.right.tolist(), camera.up.tolist()
-    fx, fy, fz = camera.forward.tolist()
-    tx, ty = camera.tan_half_x, camera.tan_half_y
-    out = []
-    for d in (float(camera.near), float(camera.far)):
-        for sx, sy in ((-tx, -ty), (tx, -ty), (tx, ty), (-tx, ty)):
-            out.append(
-                (
-                    d * (fx + sx * rx + sy * ux),
-                    d * (fy + sx * ry + sy * uy),
-                    d * (fz + sx * rz + sy * uz),
-                )
-            )
-    return out
 
 
 # --- blocks -----------------------------------------------------------------------------------

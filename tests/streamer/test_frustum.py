@@ -220,7 +220,12 @@ def test_convex_hull_is_the_numpy_scalar_chain_bit_for_bit():
 def _numpy_frustum_hull(camera: Camera, zrange=None, far_scale: float = 1.0) -> np.ndarray:
     """``frustum_hull`` before it moved to Python floats: the corners and the slab clipping as
     numpy arrays (``far_scale`` moves the far plane: the positive control only)."""
-    rel = camera.frustum_corners(relative=True)
+    sx = np.array([-1.0, 1.0, 1.0, -1.0]) * camera.tan_half_x  # the corners as numpy did them
+    sy = np.array([-1.0, -1.0, 1.0, 1.0]) * camera.tan_half_y
+    rel = np.concatenate(
+        [d * (camera.forward + sx[:, None] * camera.right + sy[:, None] * camera.up)
+         for d in (camera.near, camera.far)]
+    )  # fmt: skip
     rel[4:] *= far_scale
     pts = rel
     if zrange is not None:
