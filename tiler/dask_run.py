@@ -161,30 +161,29 @@ def run_blocks_dask(run: BlockRun) -> str:
 
     with DeferredInterrupt() as interrupt:  # Ctrl-C is raised between waits (tiler.interrupt)
         try:
-            try:
+            submit_more()
+            while pending:
+                finished = wait_blocks(wait, pending, interrupt)
+                pending -= finished
+                collect(finished)
+                for fut in finished:
+                    if fut.status != "finished":
+                        br, bc = block_of[fut.key]
+                        exc = fut.exception() if fut.status == "error" else None
+                        why = f"{type(exc).__name__}: {exc}" if exc is not None else fut.status
+                        raise BlockFailedError(
+                            f"block ({br}, {bc}) failed on every try ({opts.retries} "
+                            f"retries): {why}; the store is kept unfinished: rerun to resume "
+                            "(finished blocks are kept)",
+                            (br, bc),
+                        ) from exc
                 submit_more()
-                while pending:
-                    finished = wait_blocks(wait, pending, interrupt)
-                    pending -= finished
-                    collect(finished)
-                    for fut in finished:
-                        if fut.status != "finished":
-                            br, bc = block_of[fut.key]
-                            exc = fut.exception() if fut.status == "error" else None
-                            why = f"{type(exc).__name__}: {exc}" if exc is not None else fut.status
-                            raise BlockFailedError(
-                                f"block ({br}, {bc}) failed on every try ({opts.retries} "
-                                f"retries): {why}; the store is kept unfinished: rerun to resume "
-                                "(finished blocks are kept)",
-                                (br, bc),
-                            ) from exc
-                    submit_more()
-                    run.lease.check()
-            except BaseException:
-                if pending:
-                    client.cancel(list(pending))
-                collect({f for f in pending if f.status == "finished"}, final=True)  # stay done
-                raise
+                run.lease.check()
+        except BaseException:
+            if pending:
+                client.cancel(list(pending))
+            collect({f for f in pending if f.status == "finished"}, final=True)  # stay done
+            raise
         finally:
             progress.flush()
             client.close()

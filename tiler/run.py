@@ -347,42 +347,42 @@ def _run_local(run: BlockRun) -> str:
     def wait(fs: set[Future], timeout: float) -> set[Future]:
         return wait_futures(fs, timeout=timeout, return_when=FIRST_COMPLETED).done
 
-    try:
-        # a Ctrl-C is raised between waits (tiler.interrupt), never inside the pool's locks
-        with DeferredInterrupt() as interrupt:
-            try:
-                while True:
-                    while len(pending) < 2 * workers:
-                        b = next(it, None)
-                        if b is None:
-                            break
-                        if executor == "processes":
-                            pending.add(_submit_blocking_sigint(pool, task, *b))
-                        else:
-                            pending.add(pool.submit(task, *b))
-                    if not pending:
+    # a Ctrl-C is raised between waits (tiler.interrupt), never inside the pool's locks
+    with DeferredInterrupt() as interrupt:
+        try:
+            while True:
+                while len(pending) < 2 * workers:
+                    b = next(it, None)
+                    if b is None:
                         break
-                    finished = wait_blocks(wait, pending, interrupt)
-                    pending -= finished
-                    collect(finished)
-                    for fut in finished:
-                        try:
-                            fut.result()  # re-raises a worker's exception here
-                        except BrokenProcessPool as exc:
-                            raise StoreError(
-                                "a tiling worker process died (out of memory or killed); rerun "
-                                "the same call to resume (finished blocks are kept)"
-                            ) from exc
-                    run.lease.check()
-            except BaseException:
-                pool.shutdown(wait=True, cancel_futures=True)
-                collect({f for f in pending if f.done()}, flush=True, final=True)  # stay done
-                raise
+                    if executor == "processes":
+                        pending.add(_submit_blocking_sigint(pool, task, *b))
+                    else:
+                        pending.add(pool.submit(task, *b))
+                if not pending:
+                    break
+                finished = wait_blocks(wait, pending, interrupt)
+                pending -= finished
+                collect(finished)
+                for fut in finished:
+                    try:
+                        fut.result()  # re-raises a worker's exception here
+                    except BrokenProcessPool as exc:
+                        raise StoreError(
+                            "a tiling worker process died (out of memory or killed); rerun "
+                            "the same call to resume (finished blocks are kept)"
+                        ) from exc
+                run.lease.check()
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            collect({f for f in pending if f.done()}, flush=True, final=True)  # stay done
+            raise
+        else:
             pool.shutdown(wait=True)
             collect(set(), flush=True)
-    finally:
-        for w in thread_workers:
-            w.close()
+        finally:
+            for w in thread_workers:
+                w.close()
     return executor
 
 
