@@ -42,6 +42,7 @@ def block_params(meta: StoreMeta) -> Any:
     from tiler.vertical import height_transform
 
     a, b = height_transform(meta)
+    rule = (meta.compressor or {}).get("sparse_byte_shuffle")
     return BlockParams(
         k=meta.k,
         dtype=meta.dtype,
@@ -52,6 +53,7 @@ def block_params(meta: StoreMeta) -> Any:
         encoding=meta.encoding,
         z_scale=a,
         z_offset=b,
+        sparse_byte=(float(rule["terrain_max"]), float(rule["slack"])) if rule else None,
     )
 
 

@@ -9,6 +9,11 @@ file the way zarr's ``LocalStore`` does (a temporary file renamed over the key: 
 writer never leaves half a chunk). The bytes are zarr's, bit for bit (tested);
 :func:`chunk_spec` accepts an array only if its metadata is exactly that chain with one chunk
 per block, and anything else keeps zarr's writer.
+
+One choice is ours, not zarr's: a sparse block's bit-shuffled level chunk may be written byte
+shuffled (:func:`encode_sparse`, the rule in :mod:`tiler.schema`). Blosc frames name their own
+shuffle, so zarr and every blosc reader decode it; the block worker writes those bytes on every
+path (direct, through the store for remote targets), so a store's bytes do not depend on it.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from tiler.chunkread import is_block_chain, regular_array
+from tiler.schema import keep_byte_frame
 
 try:  # zarr's own dependencies (its crc32c and blosc codecs)
     import google_crc32c
@@ -46,7 +52,14 @@ def _typesize_passed() -> bool:
 _TYPESIZE_PASSED = _typesize_passed()
 _SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
 
-__all__ = ["ChunkSpec", "chunk_spec", "encode_chunk", "write_local"]
+__all__ = [
+    "ChunkSpec",
+    "chunk_spec",
+    "encode_chunk",
+    "encode_sparse",
+    "write_local",
+    "write_local_bytes",
+]
 
 
 @dataclass(frozen=True)
@@ -57,6 +70,8 @@ class ChunkSpec:
     shape: tuple[int, ...]  # a block's chunk, without the two block axes
     dtype: np.dtype  # little-endian
     codec: Any  # numcodecs Blosc configured as the array's blosc codec
+    #: the same blosc with byte shuffle, for a bit-shuffled array (:func:`encode_sparse`)
+    byte_codec: Any = None
 
     def key(self, block: tuple[int, int]) -> str:
         """Store key of ``block``'s chunk."""
@@ -81,26 +96,35 @@ def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
         return None
     cfg = dict(codecs[1].get("configuration") or {})
     try:
-        codec = Blosc(
+        kw = dict(
             cname=str(cfg["cname"]),
             clevel=int(cfg["clevel"]),
-            shuffle=_SHUFFLE[str(cfg["shuffle"])],
             blocksize=int(cfg.get("blocksize", 0)),
             typesize=int(cfg.get("typesize", dtype.itemsize)),
         )
+        shuffle = _SHUFFLE[str(cfg["shuffle"])]
+        codec = Blosc(shuffle=shuffle, **kw)
+        byte_codec = Blosc(shuffle=Blosc.SHUFFLE, **kw) if shuffle == Blosc.BITSHUFFLE else None
     except (KeyError, TypeError, ValueError):
         return None
-    return ChunkSpec(name, shape[2:], dtype, codec)
+    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec)
+
+
+def _raw(values: np.ndarray, spec: ChunkSpec) -> np.ndarray:
+    arr = np.asarray(values)
+    if arr.shape != spec.shape:
+        raise ValueError(f"{spec.name}: a block's chunk is {spec.shape}, got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=spec.dtype).reshape(-1).view(np.uint8)
+
+
+def _crc(payload: Any) -> bytes:
+    return google_crc32c.value(payload).to_bytes(4, "little")
 
 
 def _encode(values: np.ndarray, spec: ChunkSpec) -> tuple[Any, bytes]:
     """The blosc payload of a block's little-endian values and its crc32c (4 bytes)."""
-    arr = np.asarray(values)
-    if arr.shape != spec.shape:
-        raise ValueError(f"{spec.name}: a block's chunk is {spec.shape}, got {arr.shape}")
-    raw = np.ascontiguousarray(arr, dtype=spec.dtype).reshape(-1).view(np.uint8)
-    payload = spec.codec.encode(raw)
-    return payload, google_crc32c.value(payload).to_bytes(4, "little")
+    payload = spec.codec.encode(_raw(values, spec))
+    return payload, _crc(payload)
 
 
 def encode_chunk(values: np.ndarray, spec: ChunkSpec) -> bytes:
@@ -109,19 +133,43 @@ def encode_chunk(values: np.ndarray, spec: ChunkSpec) -> bytes:
     return bytes(payload) + crc
 
 
-def write_local(root: str, spec: ChunkSpec, block: tuple[int, int], values: np.ndarray) -> int:
-    """Write ``block``'s chunk of ``spec``'s array under ``root`` (atomically: a temporary
-    file renamed over the key, as zarr's ``LocalStore`` does); returns the bytes written."""
-    payload, crc = _encode(values, spec)  # written as two pieces: no copy of the payload
+def encode_sparse(values: np.ndarray, spec: ChunkSpec, slack: float) -> tuple[bytes, bool]:
+    """A sparse block's chunk bytes and whether they are the byte-shuffled frame: both frames
+    of a bit-shuffled array are made and the byte-shuffled one kept when it is at most
+    ``slack`` times the other's size (:func:`tiler.schema.keep_byte_frame`); else, and for an
+    array that is not bit shuffled, :func:`encode_chunk`'s bytes."""
+    if spec.byte_codec is None:
+        return encode_chunk(values, spec), False
+    raw = _raw(values, spec)
+    bit, byte = spec.codec.encode(raw), spec.byte_codec.encode(raw)
+    keep = keep_byte_frame(len(bit), len(byte), slack)
+    payload = byte if keep else bit
+    return bytes(payload) + _crc(payload), keep
+
+
+def _write_file(root: str, spec: ChunkSpec, block: tuple[int, int], *pieces: Any) -> int:
     path = os.path.join(root, *spec.key(block).split("/"))
     os.makedirs(os.path.dirname(path), exist_ok=True)
     tmp = f"{path}.{uuid.uuid4().hex}.partial"
     try:
         with open(tmp, "wb") as f:
-            n = f.write(payload) + f.write(crc)
+            n = sum(f.write(p) for p in pieces)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
     return n
+
+
+def write_local(root: str, spec: ChunkSpec, block: tuple[int, int], values: np.ndarray) -> int:
+    """Write ``block``'s chunk of ``spec``'s array under ``root`` (atomically: a temporary
+    file renamed over the key, as zarr's ``LocalStore`` does); returns the bytes written."""
+    payload, crc = _encode(values, spec)  # written as two pieces: no copy of the payload
+    return _write_file(root, spec, block, payload, crc)
+
+
+def write_local_bytes(root: str, spec: ChunkSpec, block: tuple[int, int], data: bytes) -> int:
+    """Write already encoded chunk bytes (:func:`encode_sparse`) the way :func:`write_local`
+    does; returns the bytes written."""
+    return _write_file(root, spec, block, data)

@@ -93,9 +93,16 @@ def blocks_with_nodata(store: TerrainStore) -> int:
 
 
 def compressor_text(compressor: dict[str, Any]) -> str:
-    """``meta.compressor`` in words: name, level and the bit-shuffled levels if any."""
+    """``meta.compressor`` in words: name, level, the bit-shuffled levels if any and the
+    sparse-block rule if recorded."""
     text = f"{compressor.get('name')} level {compressor.get('level')}"
     bits = compressor.get("bitshuffle_levels") or []
     if bits:
         text += f", levels {', '.join(str(i) for i in bits)} bit shuffled"
+    rule = compressor.get("sparse_byte_shuffle")
+    if bits and isinstance(rule, dict):
+        text += (
+            f" (byte shuffled in blocks at most {rule.get('terrain_max', 0):.0%} terrain where "
+            f"at most {rule.get('slack', 1) - 1:.0%} larger)"
+        )
     return text

@@ -32,7 +32,7 @@ from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location, as_location
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
-from tiler.schema import WRITE_CONFIG, index_chunk
+from tiler.schema import WRITE_CONFIG, index_chunk, is_sparse
 from tiler.source import _open_source, read_window
 
 log = logging.getLogger("tiler.tile")
@@ -71,16 +71,32 @@ class BlockWorker:
         names = [f"levels/{i}" for i in range(self.small, params.k + 1)]
         self.arrays = {n: open_for_write(target, n) for n in [*names, "errors", "mask", JOURNAL]}
         self.direct: dict[str, chunkwrite.ChunkSpec] = {}
+        self.sparse: dict[str, chunkwrite.ChunkSpec] = {}  # bit-shuffled levels (sparse rule)
         self.root = ""
-        loc = as_location(target)
-        if loc.is_local and os.environ.get(DIRECT_WRITES_ENV, "1").strip() != "0":
-            for n in [*names, "errors", "mask"]:
-                spec = chunkwrite.chunk_spec(n, self.arrays[n].metadata.to_dict())
-                if spec is not None:
-                    self.direct[n] = spec
-            self.root = str(loc.path)
+        self.loc = as_location(target)
+        direct = self.loc.is_local and os.environ.get(DIRECT_WRITES_ENV, "1").strip() != "0"
+        for n in [*names, "errors", "mask"]:
+            spec = chunkwrite.chunk_spec(n, self.arrays[n].metadata.to_dict())
+            if spec is None:
+                continue
+            if direct:
+                self.direct[n] = spec
+            if n in names and spec.byte_codec is not None and params.sparse_byte is not None:
+                self.sparse[n] = spec
+        if direct:
+            self.root = str(self.loc.path)
 
-    def _write(self, name: str, block: tuple[int, int], values: np.ndarray) -> None:
+    def _write(
+        self, name: str, block: tuple[int, int], values: np.ndarray, sparse: bool = False
+    ) -> None:
+        spec = self.sparse.get(name) if sparse else None
+        if spec is not None:  # both frames; the bytes go to the store whichever way it is written
+            data, _ = chunkwrite.encode_sparse(values, spec, self.params.sparse_byte[1])
+            if name in self.direct:
+                chunkwrite.write_local_bytes(self.root, spec, block, data)
+            else:
+                self.loc.put_bytes(spec.key(block), data)
+            return
         spec = self.direct.get(name)
         if spec is None:
             self.arrays[name][block] = values
@@ -94,8 +110,14 @@ class BlockWorker:
         res = tile_mod.process_block(
             read_window(self.ds, self.band, self.grid, br, bc), self.params
         )
+        rule = self.params.sparse_byte
+        sparse = (
+            rule is not None
+            and res.mask is not None
+            and is_sparse(int(np.count_nonzero(res.mask)), res.mask.size, rule[0])
+        )
         for i in range(self.small, self.params.k + 1):
-            self._write(f"levels/{i}", (br, bc), res.levels[i])
+            self._write(f"levels/{i}", (br, bc), res.levels[i], sparse)
         self._write("errors", (br, bc), res.errors)
         if res.mask is not None:
             self._write("mask", (br, bc), res.mask)

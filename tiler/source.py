@@ -22,7 +22,7 @@ from tiler.encoding import encoding_for, storage_dtype_for
 from tiler.errors import SourceError
 from tiler.grid import BlockGrid
 from tiler.mosaic import MosaicReader, MosaicSpec, plan_mosaic
-from tiler.schema import COMPRESSOR_NAME, bitshuffle_levels
+from tiler.schema import COMPRESSOR_NAME, bitshuffle_levels, sparse_byte_shuffle
 from tiler.store import StoreMeta, tool_version
 from tiler.vertical import vertical_meta
 
@@ -160,13 +160,23 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
         tool_version=tool_version(),
         error_cap=cap,
         error_fields=static_error.FIELDS,
-        compressor={
-            "name": COMPRESSOR_NAME,
-            "level": opts.compression_level,
-            "bitshuffle_levels": bitshuffle_levels(encoding_for(value), k),
-        },
+        compressor=compressor_meta(encoding_for(value), k, opts.compression_level),
         extra=extra,
     )
+
+
+def compressor_meta(encoding: str, k: int, level: int) -> dict[str, object]:
+    """``meta.compressor`` of a new store: name, zstd level, the bit-shuffled levels and, where
+    there are any, the sparse-block rule (:func:`tiler.schema.sparse_byte_shuffle`)."""
+    out: dict[str, object] = {
+        "name": COMPRESSOR_NAME,
+        "level": level,
+        "bitshuffle_levels": bitshuffle_levels(encoding, k),
+    }
+    rule = sparse_byte_shuffle(encoding, k)
+    if rule is not None:
+        out["sparse_byte_shuffle"] = rule
+    return out
 
 
 def read_window(

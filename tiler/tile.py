@@ -160,6 +160,9 @@ class BlockParams:
     encoding: str = ""  # level codec name ("" = the default for the value dtype)
     z_scale: float = 1.0  # metres = value * z_scale + z_offset (tiler.vertical)
     z_offset: float = 0.0
+    #: the store's sparse-block rule, ``(terrain_max, slack)`` (tiler.schema.sparse_byte_shuffle);
+    #: None writes every chunk with its array's codec
+    sparse_byte: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

@@ -32,13 +32,16 @@ def _tile_both(monkeypatch, src: Path, tmp_path: Path, **kw) -> tuple[Path, Path
     """The same job tiled with direct writes and through zarr; the direct chunk writes made
     (none in the zarr run: the switch is honoured)."""
     calls = []
-    real = chunkwrite.write_local
 
-    def counting(*a, **k):
-        calls.append(a[1].name)
-        return real(*a, **k)
+    def counting(real):
+        def f(*a, **k):
+            calls.append(a[1].name)
+            return real(*a, **k)
 
-    monkeypatch.setattr(chunkwrite, "write_local", counting)
+        return f
+
+    for name in ("write_local", "write_local_bytes"):  # the latter: sparse blocks' chosen frames
+        monkeypatch.setattr(chunkwrite, name, counting(getattr(chunkwrite, name)))
     direct, ref = tmp_path / "direct.zarr", tmp_path / "zarr.zarr"
     tile(src, direct, TileOptions(**kw))
     n_direct = len(calls)
@@ -122,7 +125,11 @@ def test_remote_targets_keep_zarrs_writer(monkeypatch, dem_factory, tmp_path):
     store = zarr.storage.MemoryStore()
     tile(dem_factory(data), store, TileOptions(block_size=33))
     assert calls == []
-    assert np.array_equal(open_store(store).read_block((0, 1)), data[:33, 32:65])
+    st = open_store(store)
+    assert np.array_equal(st.read_block((0, 1)), data[:33, 32:65])
+    # the last row and column of blocks are sparse (6 of 33 samples): their chosen frames are
+    # put through the store too
+    assert np.array_equal(st.read_block((2, 2), extent=st.block_extent((2, 2))), data[64:, 64:])
 
 
 def test_a_failed_write_leaves_no_chunk(monkeypatch, tmp_path, dem_factory):

@@ -88,6 +88,9 @@ def test_level_shuffle_follows_the_encoding(dem_factory, tmp_path, dtype):
     assert _blosc(group, "errors")["shuffle"] == "shuffle"
     text = store_info(str(tmp_path / "s.zarr"))["compressor"]
     assert ("bit shuffled" in text) == bool(want) and (f"levels {k - 1}, {k}" in text) == bool(want)
+    assert ("byte shuffled in blocks at most 50% terrain where at most 5% larger" in text) == bool(
+        want
+    )
     assert np.array_equal(store.read_block((1, 2)), data[64:129, 128:193])
     assert np.array_equal(store.read_block((1, 2), k - 2), data[64:129:4, 128:193:4])
 
