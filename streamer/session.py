@@ -399,7 +399,8 @@ class Session:
                 if left <= 0:
                     raise LoadError(
                         f"{len(missing)} visible block level(s) did not load within "
-                        f"{cfg.wait_timeout_s:.1f} s; raise wait_timeout_s or check the store"
+                        f"{cfg.wait_timeout_s:.1f} s ({self._describe_missing(missing, now)}); "
+                        "raise wait_timeout_s or check the store"
                     )
                 if cfg.workers == 0:
                     nap = self._nap(left, now)
@@ -407,6 +408,27 @@ class Session:
                     self._cv.wait(timeout=self._nap(left, now))
                     continue
             time.sleep(nap)
+
+    def _describe_missing(self, missing: list[tuple[Block, int]], now: float, most: int = 3) -> str:
+        """The first ``most`` missing block levels and where each stands (caller holds the
+        lock): resident level, errors read, queued, fetching, failures in a row, next retry,
+        and the budget's bytes in use and reserved."""
+        ld, q, cache = self.loader, self.loader.queue, self.cache
+        parts = []
+        for b, lv in missing[:most]:
+            retry = q.retry_at.get(b, 0.0) - now
+            parts.append(
+                f"block {b} level {lv}: resident {cache.level(b)}, errors "
+                f"{'read' if b in ld.errors else 'not read'}, "
+                f"{'queued' if q.queued_key(b) is not None else 'not queued'}, fetching "
+                f"{sorted(ld.fetching.get(b, ()))}, {q.failures.get(b, 0)} failure(s) in a row"
+                + (f", retry in {retry:.2f} s" if retry > 0 else "")
+            )
+        more = f"; {len(missing) - most} more" if len(missing) > most else ""
+        budget = (
+            f"; budget {cache.nbytes:,} of {cache.budget:,} bytes ({cache.reserved:,} reserved)"
+        )
+        return "; ".join(parts) + more + budget
 
     def _finish_frame(
         self,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -92,6 +93,31 @@ def test_persistent_read_failure_reaches_update_and_session_survives(store):
         f = s.update(cams[-1])  # still usable; the failed block keeps the level it has
         assert f.stats.io_errors >= 2
         assert s.levels(bad["block"]) and len(s.levels(bad["block"])) == 5  # levels 0..4
+    assert not loader_threads()
+
+
+def test_a_wait_that_times_out_names_the_levels_and_their_state(store):
+    """A read stalled past ``wait_timeout_s`` raises LoadError naming a missing block level and
+    where it stands (fetching, failures, the budget), not just a count."""
+    release = threading.Event()
+
+    def hook(block, level):
+        release.wait(5.0)  # every read stalls until the test lets go
+
+    with open_session(store, budget_mb=64, workers=1, wait_timeout_s=0.3) as s:
+        s._read_hook = hook
+        cam = flight(store, 1)[0]
+        try:
+            with pytest.raises(LoadError) as info:
+                s.update(cam, wait=True)
+        finally:
+            release.set()
+    msg = str(info.value)
+    assert re.search(
+        r"did not load within 0\.3 s \(block \(\d+, \d+\) level \d+: resident -?\d+", msg
+    )
+    assert "fetching [-1]" in msg and "0 failure(s) in a row" in msg
+    assert re.search(r"budget [\d,]+ of [\d,]+ bytes \([\d,]+ reserved\)", msg), msg
     assert not loader_threads()
 
 
