@@ -70,23 +70,30 @@ def trailing_zeros(v: np.ndarray, cap: int) -> np.ndarray:
 @cache
 def level_index(k: int) -> np.ndarray:
     """``(2**k+1, 2**k+1)`` uint8 array: the level each vertex of a block first appears in."""
-    side = grid_side(k)
-    tz = trailing_zeros(np.arange(side), k)
-    lev = k - np.minimum(tz[:, None], tz[None, :])
-    out = lev.astype(np.uint8)
+    tz = trailing_zeros(np.arange(grid_side(k)), k).astype(np.uint8)
+    out = np.uint8(k) - np.minimum.outer(tz, tz)  # in uint8: 0.3 ms for k = 10 (28 in int64)
     out.setflags(write=False)
     return out
 
 
 @cache
 def order_index(k: int) -> np.ndarray:
-    """``(2**k+1, 2**k+1)`` int32 array: each vertex's row-major rank among its level's vertices."""
-    lev = level_index(k)
-    order = np.zeros(lev.shape, dtype=np.int64)
-    for i in range(k + 1):
-        m = lev == i
-        order[m] = np.arange(int(m.sum()))
-    out = order.astype(np.int32)
+    """``(2**k+1, 2**k+1)`` int32 array: each vertex's row-major rank among its level's vertices.
+
+    Level ``i``'s grid (stride ``s = 2**(k-i)``, side ``n = 2**i + 1``) adds every vertex of
+    its odd rows and the odd columns of its even rows, so the rank of its row ``R``'s first new
+    vertex is ``ceil(R/2) (n-1)/2 + floor(R/2) n``: written by strided slices, each vertex once
+    (1.6 ms for k = 10; a boolean mask per level took 15)."""
+    side = grid_side(k)
+    out = np.empty((side, side), dtype=np.int32)
+    top = 1 << k
+    out[::top, ::top] = np.arange(4, dtype=np.int32).reshape(2, 2)  # level 0: the corners
+    for i in range(1, k + 1):
+        s, n, h = 1 << (k - i), grid_side(i), 1 << (i - 1)
+        rows = np.arange(n, dtype=np.int32)
+        first = (rows + 1) // 2 * h + rows // 2 * n
+        out[s :: 2 * s, ::s] = first[1::2, None] + np.arange(n, dtype=np.int32)
+        out[:: 2 * s, s :: 2 * s] = first[0::2, None] + np.arange(h, dtype=np.int32)
     out.setflags(write=False)
     return out
 

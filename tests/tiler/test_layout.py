@@ -53,6 +53,34 @@ def test_qiu_5x5_tables():
     assert order_index(2)[2, 2] == 2  # level 1: (0,2),(2,0),(2,2),(2,4),(4,2)
 
 
+def _reference_tables(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tables by their definitions: the first level whose grid holds a vertex (trailing
+    zeros in int64), and the row-major rank among each level's vertices (a mask per level)."""
+    side = grid_side(k)
+    tz = np.array([k if v == 0 else (v & -v).bit_length() - 1 for v in range(side)])
+    lev = k - np.minimum(np.minimum(tz[:, None], tz[None, :]), k)
+    order = np.zeros((side, side), dtype=np.int64)
+    for i in range(k + 1):
+        m = lev == i
+        order[m] = np.arange(int(m.sum()))
+    return lev, order
+
+
+@pytest.mark.parametrize("k", [*range(1, 12), 13])
+def test_tables_equal_their_definitions(k):
+    """The uint8 level table and the strided order table equal the definitions, dtypes too;
+    a moved vertex in either reference is told apart (the comparison can fail)."""
+    lev, order = _reference_tables(k)
+    assert level_index(k).dtype == np.uint8 and order_index(k).dtype == np.int32
+    np.testing.assert_array_equal(level_index(k), lev)
+    np.testing.assert_array_equal(order_index(k), order)
+    order[1, 0], order[0, 1] = order[0, 1], order[1, 0]  # two level-k vertices swapped
+    assert not np.array_equal(order_index(k), order)
+    lev[0, 1] -= 1
+    assert not np.array_equal(level_index(k), lev)
+    assert not level_index(k).flags.writeable and not order_index(k).flags.writeable
+
+
 @pytest.mark.parametrize("k", range(1, 11))
 def test_sequence_index_is_a_permutation(k):
     seq = sequence_index(k).ravel()
