@@ -57,6 +57,9 @@ _DONE = object()
 #: held the lock 27 / 158 µs CPU (p50 / p99, bench/session_update.py --locks); 16 keeps the
 #: loaders' and the caller's waits for it to a few tens of µs
 PLAN_STEP_BLOCKS = 16
+#: a waiter that queued refused levels again pumps at least this often (s): the room they
+#: wait for can free without a notify (an eviction by the planning thread)
+REQUEUE_NAP_S = 0.05
 
 
 class Session:
@@ -405,9 +408,26 @@ class Session:
                 if cfg.workers == 0:
                     nap = self._nap(left, now)
                 else:
-                    self._cv.wait(timeout=self._nap(left, now))
+                    nap = self._nap(left, now)
+                    if self._requeue_missing(missing):
+                        nap = min(nap, REQUEUE_NAP_S)  # room may free without a notify
+                    self._cv.wait(timeout=nap)
                     continue
             time.sleep(nap)
+
+    def _requeue_missing(self, missing: list[tuple[Block, int]]) -> int:
+        """Queue again the blocks of ``missing`` that are neither queued nor being read or
+        decoded (caller holds the lock); how many. A level refused for lack of room (the
+        budget held by loads in flight) leaves the queue (``LoadQueue.pop``), and no new frame
+        queues it again while a wait is on: without this the wait ran into its timeout with
+        the room long free."""
+        ld, q = self.loader, self.loader.queue
+        n = 0
+        for b, _ in missing:
+            if q.queued_key(b) is None and not ld.fetching.get(b) and b not in ld.decoding:
+                ld.push(b)
+                n += 1
+        return n
 
     def _describe_missing(self, missing: list[tuple[Block, int]], now: float, most: int = 3) -> str:
         """The first ``most`` missing block levels and where each stands (caller holds the

@@ -121,6 +121,35 @@ def test_a_wait_that_times_out_names_the_levels_and_their_state(store):
     assert not loader_threads()
 
 
+def test_a_level_refused_for_room_during_a_wait_is_taken_once_room_frees(store):
+    """While a wait is on, a needed level the budget has no room for (every byte held by
+    loads in flight, simulated here) is refused and leaves the queue; once the room frees,
+    the wait must still load it instead of timing out. Positive control: without the wait
+    re-queueing what it misses, this update raised LoadError after ``wait_timeout_s``."""
+    with open_session(store, budget_mb=1, workers=1, wait_timeout_s=3.0) as s:
+        held = s.cache.budget
+        with s._cv:  # the whole budget held by (simulated) reservations of loads in flight
+            s.cache.nbytes += held
+            s.cache.reserved += held
+
+        def free() -> None:
+            time.sleep(0.4)
+            with s._cv:  # those loads end: their reservations are released
+                s.cache.nbytes -= held
+                s.cache.reserved -= held
+                s._cv.notify_all()
+
+        t = threading.Thread(target=free, name="test-free-room")
+        t.start()
+        cam = flight(store, 1)[0]
+        t0 = time.perf_counter()
+        f = s.update(cam, wait=True)
+        t.join(5.0)
+        assert time.perf_counter() - t0 < 2.5
+        assert f.stats.holes == 0 and not f.stats.stalled
+    assert not loader_threads()
+
+
 def test_transient_failure_is_retried(store):
     failures = {"n": 0}
 
