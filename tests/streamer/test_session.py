@@ -14,7 +14,7 @@ from rangeserver import LoopbackServer
 from streamer.camera import Camera
 from streamer.errors import BudgetError, StreamerError
 from streamer.paths import default_flythrough, line, teleports
-from streamer.session import LoadError, SessionClosedError, open_session
+from streamer.session import LoadError, Session, SessionClosedError, open_session
 from tiler.tile import TileOptions, tile
 
 
@@ -121,31 +121,77 @@ def test_a_wait_that_times_out_names_the_levels_and_their_state(store):
     assert not loader_threads()
 
 
-def test_a_level_refused_for_room_during_a_wait_is_taken_once_room_frees(store):
-    """While a wait is on, a needed level the budget has no room for (every byte held by
-    loads in flight, simulated here) is refused and leaves the queue; once the room frees,
-    the wait must still load it instead of timing out. Positive control: without the wait
-    re-queueing what it misses, this update raised LoadError after ``wait_timeout_s``."""
-    with open_session(store, budget_mb=1, workers=1, wait_timeout_s=3.0) as s:
-        held = s.cache.budget
-        with s._cv:  # the whole budget held by (simulated) reservations of loads in flight
-            s.cache.nbytes += held
-            s.cache.reserved += held
+def _hold_room(s, delay: float) -> threading.Thread:
+    """Every byte of the budget held by (simulated) reservations of loads in flight, released
+    after ``delay`` s with a notify, as those loads' ends would."""
+    held = s.cache.budget
+    with s._cv:
+        s.cache.nbytes += held
+        s.cache.reserved += held
 
-        def free() -> None:
-            time.sleep(0.4)
-            with s._cv:  # those loads end: their reservations are released
-                s.cache.nbytes -= held
-                s.cache.reserved -= held
-                s._cv.notify_all()
+    def free() -> None:
+        time.sleep(delay)
+        with s._cv:
+            s.cache.nbytes -= held
+            s.cache.reserved -= held
+            s._cv.notify_all()
 
-        t = threading.Thread(target=free, name="test-free-room")
-        t.start()
+    t = threading.Thread(target=free, name="test-free-room")
+    t.start()
+    return t
+
+
+def _drop_queue(s) -> threading.Thread:
+    """The load queue replaced by an empty one inside a wait — once the planning thread is
+    done (no later rebuild refills it) and a level has loaded — as a rebuild from wants read
+    before this frame's pins would leave it."""
+
+    def drop() -> None:
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            with s._cv:
+                if not s._planning and s._request is None and s.totals.loaded_bytes:
+                    s.loader.queue.rebuild([])
+                    s._cv.notify_all()
+                    return
+            time.sleep(0.001)
+
+    t = threading.Thread(target=drop, name="test-drop-queue")
+    t.start()
+    return t
+
+
+@pytest.mark.parametrize("requeue", [True, False], ids=["requeue", "control"])
+@pytest.mark.parametrize("how", ["room", "rebuild"])
+def test_a_wait_queues_again_what_left_the_queue(monkeypatch, store, how, requeue):
+    """A needed level can leave the load queue during a wait: refused while the budget has no
+    room (``LoadQueue.pop`` drops it) or dropped by a queue rebuild. The wait must queue it
+    again and load it once it can, not run into ``wait_timeout_s``. Control: with the
+    re-queueing switched off the same scene raises LoadError naming a level "not queued"."""
+    if not requeue:
+        monkeypatch.setattr(Session, "_requeue_missing", lambda self, missing: 0)
+    stall = threading.Event()
+
+    def slow(block, level):  # reads take a while, so the rebuild lands inside the wait
+        stall.wait(0.002)
+
+    with open_session(store, budget_mb=1, workers=1, wait_timeout_s=2.0) as s:
+        if how == "room":
+            t = _hold_room(s, 0.4)
+        else:
+            s._read_hook = slow
+            t = _drop_queue(s)
         cam = flight(store, 1)[0]
         t0 = time.perf_counter()
-        f = s.update(cam, wait=True)
-        t.join(5.0)
-        assert time.perf_counter() - t0 < 2.5
+        try:
+            if not requeue:
+                with pytest.raises(LoadError, match="not queued"):
+                    s.update(cam, wait=True)
+                return
+            f = s.update(cam, wait=True)
+        finally:
+            t.join(5.0)
+        assert time.perf_counter() - t0 < 1.8
         assert f.stats.holes == 0 and not f.stats.stalled
     assert not loader_threads()
 
