@@ -418,9 +418,9 @@ class Session:
     def _requeue_missing(self, missing: list[tuple[Block, int]]) -> int:
         """Queue again the blocks of ``missing`` that are neither queued nor being read or
         decoded (caller holds the lock); how many. A level refused for lack of room (the
-        budget held by loads in flight) leaves the queue (``LoadQueue.pop``), and no new frame
-        queues it again while a wait is on: without this the wait ran into its timeout with
-        the room long free."""
+        budget held by loads in flight) leaves the queue (``LoadQueue.pop``), and so does a
+        block the planning thread's rebuild did not know this frame wanted; no new frame
+        queues them again while a wait is on: without this the wait ran into its timeout."""
         ld, q = self.loader, self.loader.queue
         n = 0
         for b, _ in missing:
