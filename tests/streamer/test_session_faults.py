@@ -1,7 +1,8 @@
 """Sessions that heal: 10,000 frames with injected read faults (random failures, stalls, an
-outage of every read). Asserts no hole frames after recovery, the budget never exceeded and no
-session threads left; the positive control (retries disabled) shows the same faults do leave
-holes. TERRASTREAM_RELIABILITY_LONG=1 runs a longer flight with full-length (500 ms) stalls."""
+outage of every read). Asserts no hole after recovery but a block the injector failed 3 times
+in a row since (reported failed), the budget never exceeded and no session threads left; the
+positive control (retries disabled) shows the same faults do leave holes, which that check
+flags. TERRASTREAM_RELIABILITY_LONG=1 runs a longer flight with full-length (500 ms) stalls."""
 
 from __future__ import annotations
 
@@ -43,6 +44,9 @@ class Faults:
     seed: int = 7
     outage: tuple[float, float] = (float("inf"), float("inf"))
     counts: dict = field(default_factory=lambda: {"fail": 0, "stall": 0, "outage": 0, "reads": 0})
+    #: per block: injected failures in a row since the outage ended (reset by a read that is
+    #: let through): a block the session may rightly report failed after recovery
+    streak: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self._rng = random.Random(self.seed)
@@ -52,6 +56,10 @@ class Faults:
         now = time.monotonic()
         self.outage = (now, now + OUTAGE_S)
 
+    def _failed(self, block, now: float) -> None:
+        if now >= self.outage[1]:
+            self.streak[block] = self.streak.get(block, 0) + 1
+
     def __call__(self, block, level) -> None:
         now = time.monotonic()
         with self._lock:
@@ -59,10 +67,13 @@ class Faults:
             u, v = self._rng.random(), self._rng.random()
             if self.outage[0] <= now < self.outage[1]:
                 self.counts["outage"] += 1
+                self._failed(block, now)
                 raise ConnectionError(f"injected outage reading {block} level {level}")
             if u < self.p_fail:
                 self.counts["fail"] += 1
+                self._failed(block, now)
                 raise OSError(f"injected failure reading {block} level {level}")
+            self.streak[block] = 0
             stall = v < self.p_stall
             if stall:
                 self.counts["stall"] += 1
@@ -107,9 +118,28 @@ def fly(store, faults: Faults, frames: int = FRAMES, **options) -> dict:
             if waited:
                 after = recovered_at is not None and time.monotonic() > recovered_at
                 out["waited"].append((i, after, f.stats.holes, f.stats.failed_blocks))
+                holes = {b for b, (res, _) in f.blocks.items() if res < 0}
+                with faults._lock:  # the injector's current post-outage runs of failures
+                    runs = {b: faults.streak.get(b, 0) for b in holes}
+                out.setdefault("holes", {})[i] = (holes, set(f.failed), runs)
         out["summary"] = s.summary()
         out["last"] = f
     out["threads"] = session_threads()
+    return out
+
+
+def unexplained_holes(run: dict, retries: int = 3) -> list:
+    """Waited frames after recovery with a hole that is not a block the session reports
+    failed because the injector failed it ``retries`` times in a row after the outage
+    (at 5 % a read that happens, rarely, and is reported honestly): the outage not healed."""
+    out = []
+    for i, after, n_holes, _ in run["waited"]:
+        if not after or not n_holes:
+            continue
+        holes, failed, runs = run["holes"][i]
+        fresh = {b for b in failed & holes if runs[b] >= retries}
+        if len(holes) != n_holes or holes != fresh:
+            out.append((i, sorted(holes), sorted(failed), runs))
     return out
 
 
@@ -126,9 +156,9 @@ def test_healing_session_survives_faults(store):
     assert faults.counts["outage"] > 0
     assert summary["io_errors"] >= faults.counts["fail"] + faults.counts["outage"]
     assert len(after) >= 20, f"too few waited frames after the outage: {run['waited'][-3:]}"
-    holes_after = [w for w in after if w[2] > 0]
-    assert not holes_after, f"waited frames with holes after recovery: {holes_after}"
-    assert run["last"].stats.holes == 0
+    unexplained = unexplained_holes(run)
+    assert not unexplained, f"waited frames with holes after recovery: {unexplained}"
+    assert run["waited"][-1][0] == FRAMES - 1 and run["waited"][-1][1]  # checked above
     assert run["over_budget"] == 0
     assert summary["peak_resident_bytes"] <= BUDGET_MB * 2**20
     assert summary["frames"] == FRAMES
@@ -144,6 +174,7 @@ def test_without_retries_the_same_faults_leave_holes(store):
     after = [w for w in run["waited"] if w[1]]
     assert len(after) >= 5, run["waited"][-5:]
     assert any(h > 0 for _, _, h, _ in after), run["waited"][-5:]
+    assert unexplained_holes(run), "the healing test's hole check misses unhealed holes"
     assert run["summary"]["failed_blocks"]
     assert run["summary"]["hole_frames"] > 0
     assert not run["threads"]
