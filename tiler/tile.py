@@ -34,6 +34,7 @@ from tiler.errors import (
     StoreExistsError,
     TilingInterrupted,
 )
+from tiler.interrupt import DeferredInterrupt
 from tiler.layout import grid_side, parse_block_size
 from tiler.lease import DEFAULT_TIMEOUT_S, LEASE_KEY, WriterLease
 from tiler.location import Location, as_location
@@ -458,9 +459,13 @@ def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
 
 
 def create_store(loc: Location, meta: StoreMeta, opts: TileOptions) -> zarr.Group:
-    """Create the root, every array and the journal; leave the store in state ``tiling``."""
+    """Create the root, every array and the journal; leave the store in state ``tiling``.
+
+    A Ctrl-C meanwhile is raised once the layout is written (~0.1 s): raised inside zarr's
+    synchronous call it left zarr's event loop with pending writes, which logged asyncio
+    errors and tracebacks after the CLI's one line (:mod:`tiler.interrupt`)."""
     meta = replace(meta, extra=dict(meta.extra, state="layout"))
-    with compact_metadata():
+    with DeferredInterrupt(), compact_metadata():
         group = fresh_group(loc, meta)
         create_layout(group, meta, opts.compression_level)
         create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)

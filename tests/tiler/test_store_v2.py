@@ -210,6 +210,41 @@ def test_ctrl_c_raises_tiling_interrupted_and_resumes_exactly(dem_factory, tmp_p
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
 
 
+@pytest.mark.parametrize("deferred", [True, False], ids=["deferred", "control"])
+def test_ctrl_c_during_the_layout_is_raised_after_it(dem_factory, tmp_path, monkeypatch, deferred):
+    """A real SIGINT while the layout is created (zarr's synchronous calls) is raised once the
+    layout is written: the store is left in state ``tiling`` and a rerun gives the
+    uninterrupted store. Control: without the deferral it lands inside the layout, which is
+    left in state ``layout`` (inside zarr's calls it left pending writes on zarr's loop)."""
+    import signal
+
+    import tiler.tile as tile_mod
+
+    if threading.current_thread() is not threading.main_thread():  # pragma: no cover
+        pytest.skip("signals are delivered to the main thread only")
+    if not deferred:
+        monkeypatch.setattr(tile_mod, "DeferredInterrupt", contextlib.nullcontext)
+    real = tile_mod.create_layout
+
+    def interrupted(group, meta, level, **kw):
+        signal.raise_signal(signal.SIGINT)  # the handler runs before the next bytecode
+        return real(group, meta, level, **kw)
+
+    monkeypatch.setattr(tile_mod, "create_layout", interrupted)
+    src = dem_factory(fractal((60, 60), 14))
+    opts = TileOptions(block_size=17, workers=1, executor="threads")
+    with pytest.raises(TilingInterrupted):
+        tile(src, tmp_path / "s.zarr", opts)
+    state = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())
+    state = state["attributes"]["terrastream"]["state"]
+    assert state == ("tiling" if deferred else "layout")
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    monkeypatch.undo()
+    tile(src, tmp_path / "s.zarr", opts)
+    tile(src, tmp_path / "ref.zarr", opts)
+    assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+
+
 def test_resume_with_other_source_or_option_refused(dem_factory, tmp_path, monkeypatch):
     a = dem_factory(fractal((60, 60), 11), "a.tif")
     b = dem_factory(fractal((60, 60), 12), "b.tif")
