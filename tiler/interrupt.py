@@ -1,4 +1,5 @@
-"""Ctrl-C during a block run, raised where the run loop chooses.
+"""Ctrl-C during a block run (or while the store's layout is created), raised where the code
+chooses.
 
 A ``KeyboardInterrupt`` raised wherever the main thread happens to be can land inside the
 bookkeeping of ``concurrent.futures`` or ``distributed`` while one of their locks is held (a

@@ -84,7 +84,7 @@ def bitshuffle_levels(encoding: str, k: int) -> list[int]:
 #: or nodata, whose residuals are 0) has its bit-shuffled level chunks written byte shuffled when
 #: that frame is at most ``SPARSE_BYTE_SLACK`` times the bit-shuffled one's bytes. Bit unshuffle
 #: costs the whole 1025² chunk however little of it is terrain; byte unshuffle decodes such a
-#: chunk in 0.45-0.6x the time (N44W072's edge blocks: +0.8-3.4 % bytes on level 10, 2-14 %
+#: chunk in 0.43-0.63x the time (N44W072's edge blocks: +0.8-3.4 % bytes on level 10, 3-14 %
 #: fewer on level 9; smooth synthetic terrain +37 %, so there bit shuffle stays). Measured in
 #: BENCHMARKS.md "Tiling"; blosc frames name their own shuffle, so every reader decodes both.
 SPARSE_TERRAIN_MAX = 0.5
