@@ -20,6 +20,7 @@ import zarr
 
 from tiler.errors import SourceError, StoreCorruptError
 from tiler.grid import BlockGrid
+from tiler.interrupt import DeferredInterrupt
 from tiler.location import Location
 from tiler.resume import (
     JOURNAL,
@@ -106,11 +107,17 @@ def build(
     summary.executor = run_blocks(
         src, loc, opts, grid, block_params(meta), todo, done, report, lease, asm.blocks_done
     )
-    try:
-        finish(group, loc, meta, asm)
-    except SourceError:
-        loc.remove()  # an all-nodata source: leave nothing that looks like a store
-        raise
+    # a Ctrl-C during the final writes (zarr's synchronous calls: raised inside them it left
+    # writes pending on zarr's loop) waits for them; once they are done the store is complete
+    # and the run ends as finished
+    with DeferredInterrupt(raise_on_exit=False) as late:
+        try:
+            finish(group, loc, meta, asm)
+        except SourceError:
+            loc.remove()  # an all-nodata source: leave nothing that looks like a store
+            raise
+    if late.interrupted:
+        log.warning("Ctrl-C during the final writes: they were completed, the store is finished")
 
 
 def _region_entries(

@@ -33,7 +33,10 @@ class DeferredInterrupt:
     and a Ctrl-C that arrived after the last :meth:`check` is raised then, so none is lost.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, raise_on_exit: bool = True) -> None:
+        #: False: a Ctrl-C noticed by no :meth:`check` is left in :attr:`interrupted` on
+        #: leaving, not raised (work that, once done, leaves nothing to interrupt)
+        self.raise_on_exit = raise_on_exit
         self.interrupted = False
         self._old: Any = None
 
@@ -67,7 +70,7 @@ class DeferredInterrupt:
         if self._old is not None:
             signal.signal(signal.SIGINT, self._old)
             self._old = None
-        if exc_type is None:
+        if exc_type is None and self.raise_on_exit:
             self.check()
 
 

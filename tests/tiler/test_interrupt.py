@@ -98,6 +98,14 @@ def test_an_interrupt_after_the_last_check_is_raised_on_leaving():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_raise_on_exit_false_keeps_the_flag_and_raises_nothing():
+    with DeferredInterrupt(raise_on_exit=False) as interrupt:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+    assert interrupt.interrupted
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_an_error_leaving_the_block_is_not_replaced_by_the_interrupt():
     with pytest.raises(ValueError, match="the run's own error"):
         _interrupted_inside(ValueError("the run's own error"))

@@ -245,6 +245,51 @@ def test_ctrl_c_during_the_layout_is_raised_after_it(dem_factory, tmp_path, monk
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
 
 
+@pytest.mark.parametrize("deferred", [True, False], ids=["deferred", "control"])
+def test_ctrl_c_during_the_final_writes_lets_them_finish(
+    dem_factory, tmp_path, monkeypatch, caplog, deferred
+):
+    """A real SIGINT while ``finish`` writes the shards and the index (zarr's synchronous
+    calls) waits for them: the store is complete and equals an uninterrupted one, with a
+    warning. Control: without the deferral it lands inside, and the store is left unfinished."""
+    import signal
+
+    import tiler.assemble as asm_mod
+
+    if threading.current_thread() is not threading.main_thread():  # pragma: no cover
+        pytest.skip("signals are delivered to the main thread only")
+    src = dem_factory(fractal((60, 60), 15))
+    opts = TileOptions(block_size=17, workers=1, executor="threads")
+    tile(src, tmp_path / "ref.zarr", opts)  # uninterrupted
+    if not deferred:
+        monkeypatch.setattr(
+            asm_mod, "DeferredInterrupt", lambda **kw: contextlib.nullcontext(_NoFlag())
+        )
+    real = asm_mod.finish
+
+    def interrupted(*a, **kw):
+        signal.raise_signal(signal.SIGINT)  # the handler runs before the next bytecode
+        return real(*a, **kw)
+
+    monkeypatch.setattr(asm_mod, "finish", interrupted)
+    if deferred:
+        with caplog.at_level(logging.WARNING, logger="tiler.tile"):
+            tile(src, tmp_path / "s.zarr", opts)
+        assert "Ctrl-C during the final writes" in caplog.text
+        assert open_store(tmp_path / "s.zarr").meta.complete
+        assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
+    else:
+        with pytest.raises(TilingInterrupted):
+            tile(src, tmp_path / "s.zarr", opts)
+        doc = json.loads((tmp_path / "s.zarr" / "zarr.json").read_text())
+        assert doc["attributes"]["terrastream"]["complete"] is False
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+class _NoFlag:
+    interrupted = False
+
+
 def test_resume_with_other_source_or_option_refused(dem_factory, tmp_path, monkeypatch):
     a = dem_factory(fractal((60, 60), 11), "a.tif")
     b = dem_factory(fractal((60, 60), 12), "b.tif")
