@@ -220,8 +220,6 @@ def test_ctrl_c_during_the_layout_is_raised_after_it(dem_factory, tmp_path, monk
 
     import tiler.tile as tile_mod
 
-    if threading.current_thread() is not threading.main_thread():  # pragma: no cover
-        pytest.skip("signals are delivered to the main thread only")
     if not deferred:
         monkeypatch.setattr(tile_mod, "DeferredInterrupt", contextlib.nullcontext)
     real = tile_mod.create_layout
@@ -256,8 +254,6 @@ def test_ctrl_c_during_the_final_writes_lets_them_finish(
 
     import tiler.assemble as asm_mod
 
-    if threading.current_thread() is not threading.main_thread():  # pragma: no cover
-        pytest.skip("signals are delivered to the main thread only")
     src = dem_factory(fractal((60, 60), 15))
     opts = TileOptions(block_size=17, workers=1, executor="threads")
     tile(src, tmp_path / "ref.zarr", opts)  # uninterrupted
