@@ -84,9 +84,10 @@ def bitshuffle_levels(encoding: str, k: int) -> list[int]:
 #: or nodata, whose residuals are 0) has its bit-shuffled level chunks written byte shuffled when
 #: that frame is at most ``SPARSE_BYTE_SLACK`` times the bit-shuffled one's bytes. Bit unshuffle
 #: costs the whole 1025² chunk however little of it is terrain; byte unshuffle decodes such a
-#: chunk in 0.43-0.63x the time (N44W072's edge blocks: +0.8-3.4 % bytes on level 10, 3-14 %
-#: fewer on level 9; smooth synthetic terrain +37 %, so there bit shuffle stays). Measured in
-#: BENCHMARKS.md "Tiling"; blosc frames name their own shuffle, so every reader decodes both.
+#: chunk in 0.39-0.62x the time (N44W072's edge blocks: +0.8-3.4 % bytes on level 10, 3-14 %
+#: fewer on level 9; the smooth 4097² synthetic's level 10 +11-37 %, so there bit shuffle
+#: stays). Measured by bench/level_codecs.py (BENCHMARKS.md "Tiling"); blosc frames name their
+#: own shuffle, so every reader decodes both.
 SPARSE_TERRAIN_MAX = 0.5
 SPARSE_BYTE_SLACK = 1.05
 
