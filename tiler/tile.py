@@ -461,7 +461,7 @@ def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
 def create_store(loc: Location, meta: StoreMeta, opts: TileOptions) -> zarr.Group:
     """Create the root, every array and the journal; leave the store in state ``tiling``.
 
-    A Ctrl-C meanwhile is raised once the layout is written (~0.1 s): raised inside zarr's
+    A Ctrl-C meanwhile is raised once the layout is written (~0.05 s): raised inside zarr's
     synchronous call it left zarr's event loop with pending writes, which logged asyncio
     errors and tracebacks after the CLI's one line (:mod:`tiler.interrupt`)."""
     meta = replace(meta, extra=dict(meta.extra, state="layout"))

@@ -1,7 +1,9 @@
-"""The store layout created at once (concurrently) equals the one created array by array."""
+"""The store layout built in memory and written at once, or created concurrently, equals the one
+created array by array through the store."""
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -34,31 +36,66 @@ def meta(dem_factory, tmp_path):
 
 
 @pytest.mark.parametrize("version", [1, 2])
-def test_concurrent_layout_is_byte_identical(meta, tmp_path, version):
+@pytest.mark.parametrize("method", ["memory", "concurrent"])
+@pytest.mark.parametrize("compact", [False, True])
+def test_layout_methods_are_byte_identical(meta, tmp_path, version, method, compact):
     m = replace(meta, format_version=version)
-    for name, concurrent in (("seq", False), ("conc", True)):
-        group = zarr.open_group(tmp_path / name, mode="w")
-        schema.create_layout(group, m, 3, concurrent=concurrent)
-    assert diff_stores(tmp_path / "seq", tmp_path / "conc") == []
+    with schema.compact_metadata() if compact else contextlib.nullcontext():
+        for name, how in (("seq", "sequential"), (method, method)):
+            group = zarr.open_group(tmp_path / name, mode="w")
+            schema.create_layout(group, m, 3, method=how)
+    assert diff_stores(tmp_path / "seq", tmp_path / method) == []
     arrays = {p for p, _ in schema.layout_specs(m, 3)}
     assert arrays == set(schema.array_names(m.k))  # every array of the format, each once
-    assert (tmp_path / "conc" / "order_index" / "c" / "0" / "0").is_file()  # the tables' data
+    assert (tmp_path / method / "order_index" / "c" / "0" / "0").is_file()  # the tables' data
+    assert not list((tmp_path / method).rglob("*.partial"))
+
+
+def test_memory_layout_into_a_zarr_store_object(meta):
+    """A store that is not a local directory (here zarr's MemoryStore) gets the same keys and
+    bytes, written in one gather."""
+    from zarr.storage import MemoryStore
+
+    stores = {how: MemoryStore() for how in ("sequential", "memory")}
+    for how, st in stores.items():
+        schema.create_layout(zarr.open_group(st, mode="w"), meta, 3, method=how)
+    a, b = (dict(st._store_dict) for st in stores.values())
+    assert a.keys() == b.keys() and len(a) > 20
+    assert all(a[k].to_bytes() == b[k].to_bytes() for k in a)
 
 
 def test_layout_comparison_sees_a_difference(meta, tmp_path):
     """Positive control: another compression level changes the compared metadata files."""
-    schema.create_layout(zarr.open_group(tmp_path / "a", mode="w"), meta, 3, concurrent=False)
+    schema.create_layout(zarr.open_group(tmp_path / "a", mode="w"), meta, 3, method="sequential")
     schema.create_layout(zarr.open_group(tmp_path / "b", mode="w"), meta, 4)
     diff = diff_stores(tmp_path / "a", tmp_path / "b")
     assert "levels/0/zarr.json" in diff and "errors/zarr.json" in diff
     assert "order_index/zarr.json" not in diff  # the tables keep their own level
 
 
-def test_concurrent_layout_refuses_an_existing_array(meta, tmp_path):
+@pytest.mark.parametrize("method", schema.LAYOUT_METHODS)
+def test_layout_refuses_an_existing_array(meta, tmp_path, method):
     g = zarr.open_group(tmp_path / "x", mode="w")
     schema.create_layout(g, meta, 3)
+    before = _files(tmp_path / "x")
     with pytest.raises(Exception, match="levels|exists|already"):
+        schema.create_layout(g, meta, 3, method=method)
+    if method == "memory":  # refused before anything was written
+        assert _files(tmp_path / "x") == before
+
+
+def test_memory_layout_refuses_an_existing_array_in_a_store_object(meta):
+    from zarr.storage import MemoryStore
+
+    g = zarr.open_group(MemoryStore(), mode="w")
+    schema.create_layout(g, meta, 3)
+    with pytest.raises(zarr.errors.ContainsArrayError, match="levels/0"):
         schema.create_layout(g, meta, 3)
+
+
+def test_layout_method_is_checked(meta, tmp_path):
+    with pytest.raises(ValueError, match="method='fast'"):
+        schema.create_layout(zarr.open_group(tmp_path / "y", mode="w"), meta, 3, method="fast")
 
 
 def _blosc(group: zarr.Group, name: str) -> dict:
