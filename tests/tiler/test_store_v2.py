@@ -180,6 +180,28 @@ def test_missing_array_refused_on_open(dem_factory, tmp_path):
         open_store(tmp_path / "s.zarr")
 
 
+def test_damaged_array_metadata_refused_on_open(dem_factory, tmp_path):
+    """The arrays are opened at once: a damaged one among them is named; a group where an
+    array belongs is damage too; the first damaged array in the layout's order is reported."""
+    import shutil
+
+    tile(dem_factory(fractal((40, 40), 9)), tmp_path / "s.zarr", TileOptions(block_size=17))
+    open_store(tmp_path / "s.zarr")  # the control: the intact store opens
+    (tmp_path / "s.zarr" / "errors" / "zarr.json").write_text("{not json")
+    with pytest.raises(StoreCorruptError, match="metadata of array 'errors'.* is damaged"):
+        open_store(tmp_path / "s.zarr")
+    (tmp_path / "s.zarr" / "levels" / "2" / "zarr.json").write_text("[]")
+    with pytest.raises(StoreCorruptError, match="'levels/2'"):
+        open_store(tmp_path / "s.zarr")
+    shutil.rmtree(tmp_path / "s.zarr" / "levels" / "2")
+    (tmp_path / "s.zarr" / "levels" / "2").mkdir()
+    (tmp_path / "s.zarr" / "levels" / "2" / "zarr.json").write_text(
+        '{"zarr_format": 3, "node_type": "group", "attributes": {}}'
+    )
+    with pytest.raises(StoreCorruptError, match="a group where array 'levels/2' belongs"):
+        open_store(tmp_path / "s.zarr")
+
+
 def _interrupt(monkeypatch, n):
     import tiler.tile as tile_mod
 
