@@ -57,6 +57,7 @@ __all__ = [
     "chunk_spec",
     "encode_chunk",
     "encode_sparse",
+    "single_chunk",
     "write_local",
     "write_local_bytes",
 ]
@@ -94,20 +95,58 @@ def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
         or not is_block_chain(codecs, dtype.itemsize)
     ):
         return None
-    cfg = dict(codecs[1].get("configuration") or {})
+    parsed_blosc = _blosc_kw(codecs[1], dtype.itemsize)
+    if parsed_blosc is None:
+        return None
+    kw, shuffle = parsed_blosc
+    codec = Blosc(shuffle=shuffle, **kw)
+    byte_codec = Blosc(shuffle=Blosc.SHUFFLE, **kw) if shuffle == Blosc.BITSHUFFLE else None
+    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec)
+
+
+def _blosc_kw(codec_meta: dict[str, Any], itemsize: int) -> tuple[dict[str, Any], int] | None:
+    """numcodecs ``Blosc`` keywords (but ``shuffle``) and shuffle of a zarr ``blosc`` codec's
+    metadata, or None if unparsable."""
+    cfg = dict(codec_meta.get("configuration") or {})
     try:
         kw = dict(
             cname=str(cfg["cname"]),
             clevel=int(cfg["clevel"]),
             blocksize=int(cfg.get("blocksize", 0)),
-            typesize=int(cfg.get("typesize", dtype.itemsize)),
+            typesize=int(cfg.get("typesize", itemsize)),
         )
-        shuffle = _SHUFFLE[str(cfg["shuffle"])]
-        codec = Blosc(shuffle=shuffle, **kw)
-        byte_codec = Blosc(shuffle=Blosc.SHUFFLE, **kw) if shuffle == Blosc.BITSHUFFLE else None
+        return kw, _SHUFFLE[str(cfg["shuffle"])]
     except (KeyError, TypeError, ValueError):
         return None
-    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec)
+
+
+def single_chunk(values: np.ndarray, metadata: dict[str, Any]) -> tuple[str, bytes] | None:
+    """The key (relative to the array) and zarr's bytes of the only chunk of an array stored
+    in one chunk with this module's codec chain (``bytes`` → ``blosc`` → ``crc32c``), holding
+    ``values``; None if the array is not stored that way (zarr then writes it). The store's
+    two index tables (:func:`tiler.schema.create_layout`)."""
+    if google_crc32c is None or Blosc is None or not _TYPESIZE_PASSED:
+        return None
+    parsed = regular_array(metadata)
+    if parsed is None:
+        return None
+    dtype, shape, chunks, codecs = parsed
+    arr = np.asarray(values)
+    if (
+        metadata.get("zarr_format") != 3
+        or chunks != shape
+        or arr.shape != shape
+        or arr.dtype.newbyteorder("<") != dtype
+        or not is_block_chain(codecs, dtype.itemsize)
+    ):
+        return None
+    parsed_blosc = _blosc_kw(codecs[1], dtype.itemsize)
+    if parsed_blosc is None:
+        return None
+    codec = Blosc(shuffle=parsed_blosc[1], **parsed_blosc[0])
+    raw = np.ascontiguousarray(arr, dtype=dtype).reshape(-1).view(np.uint8)
+    payload = codec.encode(raw)
+    return "c/" + "/".join("0" * len(shape)), bytes(payload) + _crc(payload)
 
 
 def _raw(values: np.ndarray, spec: ChunkSpec) -> np.ndarray:

@@ -147,3 +147,41 @@ def test_a_failed_write_leaves_no_chunk(monkeypatch, tmp_path, dem_factory):
     assert [p for p in (tmp_path / "new").rglob("*") if p.is_file()] == []
     with pytest.raises(ValueError, match="a block's chunk is"):
         chunkwrite.encode_chunk(np.zeros((3,)), spec)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "bits"), [("uint8", True), ("int32", True), ("int16", False), (">u2", True)]
+)
+def test_single_chunk_is_zarrs_bytes(tmp_path, dtype, bits):
+    """The index tables' one chunk (tiler.schema's layout): zarr's bytes for the same array,
+    whatever the dtype, byte order or shuffle."""
+    from tiler import schema
+
+    values = (np.arange(33 * 17) * 7919 % 251).reshape(33, 17).astype(dtype)
+    g = zarr.open_group(tmp_path / "t.zarr", mode="w")
+    codecs = schema.codecs(2, 5, values.dtype.itemsize, bits, 4096)
+    arr = g.create_array("t", data=values, chunks=values.shape, compressors=codecs)
+    key, data = chunkwrite.single_chunk(values, arr.metadata.to_dict())
+    assert key == "c/0/0"
+    assert data == (tmp_path / "t.zarr" / "t" / "c" / "0" / "0").read_bytes()
+    other = chunkwrite.single_chunk(values + 1, arr.metadata.to_dict())
+    assert other is not None and other[1] != data  # the control: other values, other bytes
+
+
+def test_single_chunk_only_where_it_applies(tmp_path):
+    """None (zarr writes) for several chunks, no crc32c (format 1), other shapes or dtypes."""
+    from tiler import schema
+
+    g = zarr.open_group(tmp_path / "t.zarr", mode="w")
+    v = np.zeros((8, 8), np.int32)
+    chunked = g.create_array("a", shape=(8, 8), chunks=(4, 8), dtype="int32",
+                             compressors=schema.codecs(2, 5, 4))  # fmt: skip
+    v1 = g.create_array("b", shape=(8, 8), chunks=(8, 8), dtype="int32",
+                        compressors=schema.codecs(1, 5, 4))  # fmt: skip
+    ok = g.create_array("c", shape=(8, 8), chunks=(8, 8), dtype="int32",
+                        compressors=schema.codecs(2, 5, 4))  # fmt: skip
+    assert chunkwrite.single_chunk(v, chunked.metadata.to_dict()) is None
+    assert chunkwrite.single_chunk(v, v1.metadata.to_dict()) is None
+    assert chunkwrite.single_chunk(v[:4], ok.metadata.to_dict()) is None
+    assert chunkwrite.single_chunk(v.astype(np.int64), ok.metadata.to_dict()) is None
+    assert chunkwrite.single_chunk(v, ok.metadata.to_dict()) is not None
