@@ -33,6 +33,7 @@ from tiler.resume import (
 from tiler.run import open_for_write, progress_reporter, run_blocks
 from tiler.schema import INDEX_DTYPES, chunk_key, expected_table, index_chunk, shard_shape
 from tiler.store import StoreMeta, read_meta, write_meta
+from tiler.zarr_batch import open_arrays, read_all, write_all
 
 log = logging.getLogger("tiler.tile")
 
@@ -88,7 +89,8 @@ def build(
     else:
         group = create_store(loc, meta, opts)
     grid = meta.grid
-    done = done_blocks(group[JOURNAL])
+    # a store just created has an empty journal: nothing to read back
+    done = done_blocks(group[JOURNAL]) if resume else np.zeros(grid.shape, dtype=bool)
     todo = [b for b in grid.blocks() if not done[b]]
     total = grid.rows * grid.cols
     skipped = total - len(todo)
@@ -140,24 +142,28 @@ def write_small_levels(
     entries: dict[tuple[int, int], JournalEntry],
     region: tuple[int, int, int, int],
 ) -> None:
-    """Write the small levels of one shard region from journal entries (other blocks: kept)."""
+    """Write the small levels of one shard region from journal entries (other blocks: kept).
+
+    The levels' arrays are opened, and their shards written, all at once
+    (:mod:`tiler.zarr_batch`)."""
     r0, r1, c0, c1 = region
-    for i in range(small_levels(meta.k)):
-        arr = open_for_write(loc, f"levels/{i}")
-        if len(entries) == (r1 - r0) * (c1 - c0):
-            data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
-        else:  # repair: the blocks that are fine are read back (they verified clean)
-            data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
-            for br in range(r0, r1):
+    names = [f"levels/{i}" for i in range(small_levels(meta.k))]
+    writes = []
+    for i, arr in enumerate(open_arrays(loc, names)):
+        data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
+        if len(entries) < (r1 - r0) * (c1 - c0):  # repair: the blocks that are fine are read
+            for br in range(r0, r1):  # back (they verified clean)
                 for bc in range(c0, c1):
                     if (br, bc) not in entries:
                         data[br - r0, bc - c0] = arr[br, bc]
         for (br, bc), e in entries.items():
             data[br - r0, bc - c0] = e.levels[i]
-        # the region is one whole shard: drop the old one first, so a damaged shard index is
-        # never read back for a partial update
-        loc.delete_key(chunk_key(f"levels/{i}", (r0, c0), *meta.grid.shape))
-        arr[r0:r1, c0:c1] = data
+        writes.append((arr, (slice(r0, r1), slice(c0, c1)), data))
+    # the region is one whole shard: drop the old one first, so a damaged shard index is never
+    # read back for a partial update (the store is unfinished meanwhile: tiling or repair)
+    for name in names:
+        loc.delete_key(chunk_key(name, (r0, c0), *meta.grid.shape))
+    write_all(writes)
 
 
 class ShardAssembler:
@@ -238,25 +244,32 @@ def finish(
         write_index(loc, grid, index)
         write_meta(group, replace(meta, extra=dict(meta.extra, state="finishing")))
         loc.delete_prefix(JOURNAL)
+        complete(group, meta, index)
+        return
     complete(group, meta)
 
 
 def write_index(loc: Location, grid: BlockGrid, index: dict[str, np.ndarray]) -> None:
-    """Write the index arrays and the block windows."""
-    for name, values in index.items():
-        open_for_write(loc, f"index/{name}")[...] = values
+    """Write the index arrays and the block windows (opened and written at once)."""
     win = np.zeros((grid.rows, grid.cols, 4), dtype=np.int32)
     for br, bc in grid.blocks():
         win[br, bc] = grid.block_window(br, bc)
-    open_for_write(loc, "index/window")[...] = win
+    values = {**index, "window": win}
+    arrays = open_arrays(loc, [f"index/{name}" for name in values])
+    write_all([(arr, ..., v) for arr, v in zip(arrays, values.values(), strict=True)])
 
 
-def complete(group: zarr.Group, meta: StoreMeta) -> None:
-    """Write the source checksum and value range, and ``complete: true`` (last)."""
-    digests = group["index/digest"][...]
+def complete(
+    group: zarr.Group, meta: StoreMeta, index: dict[str, np.ndarray] | None = None
+) -> None:
+    """Write the source checksum and value range, and ``complete: true`` (last). ``index``:
+    the index just written (else ``digest``, ``zmin`` and ``zmax`` are read from the store)."""
+    if index is not None:
+        digests, zmin, zmax = index["digest"], index["zmin"], index["zmax"]
+    else:
+        names = ["index/digest", "index/zmin", "index/zmax"]
+        digests, zmin, zmax = read_all(Location(group.store), names)
     checksum = hashlib.blake2b(digests.astype("<u8").tobytes(), digest_size=16).hexdigest()
-    zmin = group["index/zmin"][...]
-    zmax = group["index/zmax"][...]
     source = dict(meta.source, checksum=f"blake2b-128:{checksum}")
     extra = {k: v for k, v in meta.extra.items() if k != "state"}
     extra["value_range"] = [float(np.nanmin(zmin)), float(np.nanmax(zmax))]

@@ -34,6 +34,7 @@ from tiler.location import Location, as_location
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk, is_sparse
 from tiler.source import _open_source, read_window
+from tiler.zarr_batch import open_arrays
 
 log = logging.getLogger("tiler.tile")
 WAIT_TIMEOUT_S = 600.0
@@ -69,11 +70,12 @@ class BlockWorker:
         self.ds = _open_source(src, band)
         self.small = small_levels(params.k)
         names = [f"levels/{i}" for i in range(self.small, params.k + 1)]
-        self.arrays = {n: open_for_write(target, n) for n in [*names, "errors", "mask", JOURNAL]}
+        self.loc = as_location(target)
+        every = [*names, "errors", "mask", JOURNAL]  # opened at once (tiler.zarr_batch)
+        self.arrays = dict(zip(every, open_arrays(self.loc, every), strict=True))
         self.direct: dict[str, chunkwrite.ChunkSpec] = {}
         self.sparse: dict[str, chunkwrite.ChunkSpec] = {}  # bit-shuffled levels (sparse rule)
         self.root = ""
-        self.loc = as_location(target)
         direct = self.loc.is_local and os.environ.get(DIRECT_WRITES_ENV, "1").strip() != "0"
         for n in [*names, "errors", "mask"]:
             spec = chunkwrite.chunk_spec(n, self.arrays[n].metadata.to_dict())

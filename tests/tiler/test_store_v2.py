@@ -504,7 +504,7 @@ def test_killed_while_finishing_is_finished_by_a_rerun(dem_factory, tmp_path, mo
     opts = TileOptions(block_size=17, executor="threads")
     tile(src, tmp_path / "ref.zarr", opts)
 
-    def killed(group, meta):
+    def killed(group, meta, index=None):
         raise KeyboardInterrupt("killed after the journal was consumed")
 
     monkeypatch.setattr(assemble, "complete", killed)
