@@ -328,6 +328,56 @@ class Loader:
         elif not self.fetching.get(b) and b in self.raw and b not in self.decoding:
             self._drop_raw(b)  # levels fetched beyond a gap that will not be filled
 
+    # -- what a waiting frame lacks (Session.update(..., wait=True)) -------------------------
+
+    def missing(self, needed: dict[Block, int]) -> list[tuple[Block, int]]:
+        """The ``(block, level)`` of ``needed`` not resident yet, or without errors read."""
+        errors, cache = self.errors, self.cache
+        return [(b, lv) for b, lv in needed.items() if cache.level(b) < lv or b not in errors]
+
+    def mark_demand(self, needed: dict[Block, int], due: float) -> None:
+        """Mark the levels ``needed`` lacks as demanded, due at ``due`` unless due earlier."""
+        with self.cv:
+            for b, lv in needed.items():
+                for level in range(self.cache.level(b) + 1, lv + 1):
+                    self.demanded.add((b, level))
+                    self.due.setdefault((b, level), due)
+
+    def requeue_idle(self, missing: list[tuple[Block, int]]) -> int:
+        """Queue again the blocks of ``missing`` that are neither queued nor being read or
+        decoded (caller holds the lock); how many. A level refused for lack of room (the
+        budget held by loads in flight) leaves the queue (``LoadQueue.pop``), and so does a
+        block the planning thread's rebuild did not know this frame wanted; no new frame
+        queues them again while a wait is on: without this the wait ran into its timeout."""
+        q = self.queue
+        n = 0
+        for b, _ in missing:
+            if q.queued_key(b) is None and not self.fetching.get(b) and b not in self.decoding:
+                self.push(b)
+                n += 1
+        return n
+
+    def describe_missing(self, missing: list[tuple[Block, int]], now: float, most: int = 3) -> str:
+        """The first ``most`` missing block levels and where each stands (caller holds the
+        lock): resident level, errors read, queued, fetching, failures in a row, next retry,
+        and the budget's bytes in use and reserved."""
+        q, cache = self.queue, self.cache
+        parts = []
+        for b, lv in missing[:most]:
+            retry = q.retry_at.get(b, 0.0) - now
+            parts.append(
+                f"block {b} level {lv}: resident {cache.level(b)}, errors "
+                f"{'read' if b in self.errors else 'not read'}, "
+                f"{'queued' if q.queued_key(b) is not None else 'not queued'}, fetching "
+                f"{sorted(self.fetching.get(b, ()))}, {q.failures.get(b, 0)} failure(s) in a row"
+                + (f", retry in {retry:.2f} s" if retry > 0 else "")
+            )
+        more = f"; {len(missing) - most} more" if len(missing) > most else ""
+        budget = (
+            f"; budget {cache.nbytes:,} of {cache.budget:,} bytes ({cache.reserved:,} reserved)"
+        )
+        return "; ".join(parts) + more + budget
+
     # -- inline loading (workers=0) and shutdown -------------------------------------------
 
     def load_inline(self, allowance: int | None) -> None:

@@ -352,7 +352,7 @@ class Session:
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0
         if cfg.workers == 0:
             self._plan_prefetch()
-            self._mark_demand(needed)
+            self.loader.mark_demand(needed, self._due)
             self.loader.load_inline(cfg.inline_bytes_per_frame)
         t1 = time.perf_counter()
         if wait:
@@ -367,33 +367,22 @@ class Session:
         t2, c2 = time.perf_counter(), time.thread_time()
         return self._finish_frame(camera, needed, t2, c2, update_s, update_cpu, t2 - t1)
 
-    def _missing(self, needed: dict[Block, int]) -> list[tuple[Block, int]]:
-        errors, cache = self.loader.errors, self.cache
-        return [(b, lv) for b, lv in needed.items() if cache.level(b) < lv or b not in errors]
-
-    def _mark_demand(self, needed: dict[Block, int]) -> None:
-        ld = self.loader
-        with self._cv:
-            for b, lv in needed.items():
-                for level in range(self.cache.level(b) + 1, lv + 1):
-                    ld.demanded.add((b, level))
-                    ld.due.setdefault((b, level), self._due)
-
     def _wait_for(self, needed: dict[Block, int]) -> None:
         """Wait until every block of ``needed`` is loaded or failed (see :meth:`update`)."""
-        self._mark_demand(needed)
+        self.loader.mark_demand(needed, self._due)
         cfg = self.config
         start = time.monotonic()
         deadline = start + cfg.wait_timeout_s
-        q = self.loader.queue
+        ld = self.loader
+        q = ld.queue
         while True:
             if cfg.workers == 0:
-                self.loader.load_inline(None)
+                ld.load_inline(None)
             else:
-                self.loader.pump()
+                ld.pump()
             with self._cv:
                 now = time.monotonic()
-                missing = [(b, lv) for b, lv in self._missing(needed) if not q.given_up(b, start)]
+                missing = [(b, lv) for b, lv in ld.missing(needed) if not q.given_up(b, start)]
                 if not missing:
                     return
                 if cfg.workers == 0 and not q.next_retry(now):
@@ -402,53 +391,18 @@ class Session:
                 if left <= 0:
                     raise LoadError(
                         f"{len(missing)} visible block level(s) did not load within "
-                        f"{cfg.wait_timeout_s:.1f} s ({self._describe_missing(missing, now)}); "
+                        f"{cfg.wait_timeout_s:.1f} s ({ld.describe_missing(missing, now)}); "
                         "raise wait_timeout_s or check the store"
                     )
                 if cfg.workers == 0:
                     nap = self._nap(left, now)
                 else:
                     nap = self._nap(left, now)
-                    if self._requeue_missing(missing):
+                    if ld.requeue_idle(missing):
                         nap = min(nap, REQUEUE_NAP_S)  # room may free without a notify
                     self._cv.wait(timeout=nap)
                     continue
             time.sleep(nap)
-
-    def _requeue_missing(self, missing: list[tuple[Block, int]]) -> int:
-        """Queue again the blocks of ``missing`` that are neither queued nor being read or
-        decoded (caller holds the lock); how many. A level refused for lack of room (the
-        budget held by loads in flight) leaves the queue (``LoadQueue.pop``), and so does a
-        block the planning thread's rebuild did not know this frame wanted; no new frame
-        queues them again while a wait is on: without this the wait ran into its timeout."""
-        ld, q = self.loader, self.loader.queue
-        n = 0
-        for b, _ in missing:
-            if q.queued_key(b) is None and not ld.fetching.get(b) and b not in ld.decoding:
-                ld.push(b)
-                n += 1
-        return n
-
-    def _describe_missing(self, missing: list[tuple[Block, int]], now: float, most: int = 3) -> str:
-        """The first ``most`` missing block levels and where each stands (caller holds the
-        lock): resident level, errors read, queued, fetching, failures in a row, next retry,
-        and the budget's bytes in use and reserved."""
-        ld, q, cache = self.loader, self.loader.queue, self.cache
-        parts = []
-        for b, lv in missing[:most]:
-            retry = q.retry_at.get(b, 0.0) - now
-            parts.append(
-                f"block {b} level {lv}: resident {cache.level(b)}, errors "
-                f"{'read' if b in ld.errors else 'not read'}, "
-                f"{'queued' if q.queued_key(b) is not None else 'not queued'}, fetching "
-                f"{sorted(ld.fetching.get(b, ()))}, {q.failures.get(b, 0)} failure(s) in a row"
-                + (f", retry in {retry:.2f} s" if retry > 0 else "")
-            )
-        more = f"; {len(missing) - most} more" if len(missing) > most else ""
-        budget = (
-            f"; budget {cache.nbytes:,} of {cache.budget:,} bytes ({cache.reserved:,} reserved)"
-        )
-        return "; ".join(parts) + more + budget
 
     def _finish_frame(
         self,

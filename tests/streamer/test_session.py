@@ -13,8 +13,9 @@ from rangeserver import LoopbackServer
 
 from streamer.camera import Camera
 from streamer.errors import BudgetError, StreamerError
+from streamer.loader import Loader
 from streamer.paths import default_flythrough, line, teleports
-from streamer.session import LoadError, Session, SessionClosedError, open_session
+from streamer.session import LoadError, SessionClosedError, open_session
 from tiler.tile import TileOptions, tile
 
 
@@ -169,7 +170,7 @@ def test_a_wait_queues_again_what_left_the_queue(monkeypatch, store, how, requeu
     again and load it once it can, not run into ``wait_timeout_s``. Control: with the
     re-queueing switched off the same scene raises LoadError naming a level "not queued"."""
     if not requeue:
-        monkeypatch.setattr(Session, "_requeue_missing", lambda self, missing: 0)
+        monkeypatch.setattr(Loader, "requeue_idle", lambda self, missing: 0)
     stall = threading.Event()
 
     def slow(block, level):  # reads take a while, so the rebuild lands inside the wait
