@@ -79,45 +79,43 @@ class ChunkSpec:
         return f"{self.name}/c/{block[0]}/{block[1]}" + "/0" * len(self.shape)
 
 
-def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
-    """The :class:`ChunkSpec` of an array from its zarr metadata (``to_dict()``), or None if
-    its chunks are not stored the way this module encodes them (zarr then writes them)."""
+def _chain(metadata: dict[str, Any]) -> tuple[np.dtype, tuple, tuple, dict, int] | None:
+    """``(little-endian dtype, shape, chunk shape, Blosc keywords but shuffle, shuffle)`` of a
+    zarr v3 array with a regular grid and this module's codec chain, else None."""
     if google_crc32c is None or Blosc is None or not _TYPESIZE_PASSED:
         return None
     parsed = regular_array(metadata)
     if parsed is None:
         return None
     dtype, shape, chunks, codecs = parsed
-    if (
-        metadata.get("zarr_format") != 3
-        or len(shape) < 3
-        or chunks != (1, 1, *shape[2:])
-        or not is_block_chain(codecs, dtype.itemsize)
-    ):
+    if metadata.get("zarr_format") != 3 or not is_block_chain(codecs, dtype.itemsize):
         return None
-    parsed_blosc = _blosc_kw(codecs[1], dtype.itemsize)
-    if parsed_blosc is None:
-        return None
-    kw, shuffle = parsed_blosc
-    codec = Blosc(shuffle=shuffle, **kw)
-    byte_codec = Blosc(shuffle=Blosc.SHUFFLE, **kw) if shuffle == Blosc.BITSHUFFLE else None
-    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec)
-
-
-def _blosc_kw(codec_meta: dict[str, Any], itemsize: int) -> tuple[dict[str, Any], int] | None:
-    """numcodecs ``Blosc`` keywords (but ``shuffle``) and shuffle of a zarr ``blosc`` codec's
-    metadata, or None if unparsable."""
-    cfg = dict(codec_meta.get("configuration") or {})
+    cfg = dict(codecs[1].get("configuration") or {})
     try:
         kw = dict(
             cname=str(cfg["cname"]),
             clevel=int(cfg["clevel"]),
             blocksize=int(cfg.get("blocksize", 0)),
-            typesize=int(cfg.get("typesize", itemsize)),
+            typesize=int(cfg.get("typesize", dtype.itemsize)),
         )
-        return kw, _SHUFFLE[str(cfg["shuffle"])]
+        shuffle = _SHUFFLE[str(cfg["shuffle"])]
     except (KeyError, TypeError, ValueError):
         return None
+    return dtype, shape, chunks, kw, shuffle
+
+
+def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
+    """The :class:`ChunkSpec` of an array from its zarr metadata (``to_dict()``), or None if
+    its chunks are not stored the way this module encodes them (zarr then writes them)."""
+    parsed = _chain(metadata)
+    if parsed is None:
+        return None
+    dtype, shape, chunks, kw, shuffle = parsed
+    if len(shape) < 3 or chunks != (1, 1, *shape[2:]):
+        return None
+    codec = Blosc(shuffle=shuffle, **kw)
+    byte_codec = Blosc(shuffle=Blosc.SHUFFLE, **kw) if shuffle == Blosc.BITSHUFFLE else None
+    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec)
 
 
 def single_chunk(values: np.ndarray, metadata: dict[str, Any]) -> tuple[str, bytes] | None:
@@ -125,27 +123,15 @@ def single_chunk(values: np.ndarray, metadata: dict[str, Any]) -> tuple[str, byt
     in one chunk with this module's codec chain (``bytes`` → ``blosc`` → ``crc32c``), holding
     ``values``; None if the array is not stored that way (zarr then writes it). The store's
     two index tables (:func:`tiler.schema.create_layout`)."""
-    if google_crc32c is None or Blosc is None or not _TYPESIZE_PASSED:
-        return None
-    parsed = regular_array(metadata)
+    parsed = _chain(metadata)
     if parsed is None:
         return None
-    dtype, shape, chunks, codecs = parsed
+    dtype, shape, chunks, kw, shuffle = parsed
     arr = np.asarray(values)
-    if (
-        metadata.get("zarr_format") != 3
-        or chunks != shape
-        or arr.shape != shape
-        or arr.dtype.newbyteorder("<") != dtype
-        or not is_block_chain(codecs, dtype.itemsize)
-    ):
+    if chunks != shape or arr.shape != shape or arr.dtype.newbyteorder("<") != dtype:
         return None
-    parsed_blosc = _blosc_kw(codecs[1], dtype.itemsize)
-    if parsed_blosc is None:
-        return None
-    codec = Blosc(shuffle=parsed_blosc[1], **parsed_blosc[0])
     raw = np.ascontiguousarray(arr, dtype=dtype).reshape(-1).view(np.uint8)
-    payload = codec.encode(raw)
+    payload = Blosc(shuffle=shuffle, **kw).encode(raw)
     return "c/" + "/".join("0" * len(shape)), bytes(payload) + _crc(payload)
 
 
