@@ -21,7 +21,7 @@ from zarr.core.sync import sync
 from tiler.location import Location
 from tiler.schema import WRITE_CONFIG
 
-__all__ = ["open_arrays", "read_all", "write_all"]
+__all__ = ["open_arrays", "open_each", "read_all", "write_all"]
 
 
 def _store_kwargs(loc: Location) -> dict[str, Any]:
@@ -40,6 +40,18 @@ def open_arrays(loc: Location, names: Sequence[str], mode: str = "r+") -> list[z
     """The arrays ``names`` of the store at ``loc``, opened concurrently (for writing, every
     chunk written: ``WRITE_CONFIG``, as :func:`tiler.run.open_for_write`)."""
     return [zarr.Array(a) for a in sync(_open(loc, names, mode))]
+
+
+def open_each(store: Any, names: Sequence[str]) -> list[zarr.Array | BaseException]:
+    """The arrays ``names`` of zarr store ``store``, opened for reading concurrently; where
+    one cannot be opened, the exception instead (``zarr.errors.ArrayNotFoundError`` if
+    absent; the caller decides)."""
+
+    async def go() -> list[Any]:
+        opens = (zasync.open_array(store=store, path=n, mode="r", zarr_format=3) for n in names)
+        return await asyncio.gather(*opens, return_exceptions=True)
+
+    return [a if isinstance(a, BaseException) else zarr.Array(a) for a in sync(go())]
 
 
 def write_all(writes: Sequence[tuple[zarr.Array, Any, np.ndarray]]) -> None:

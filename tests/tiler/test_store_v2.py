@@ -198,7 +198,7 @@ def test_damaged_array_metadata_refused_on_open(dem_factory, tmp_path):
     (tmp_path / "s.zarr" / "levels" / "2" / "zarr.json").write_text(
         '{"zarr_format": 3, "node_type": "group", "attributes": {}}'
     )
-    with pytest.raises(StoreCorruptError, match="a group where array 'levels/2' belongs"):
+    with pytest.raises(StoreCorruptError, match="array 'levels/2' .* damaged.*node_type"):
         open_store(tmp_path / "s.zarr")
 
 
