@@ -29,10 +29,9 @@ def _store_kwargs(loc: Location) -> dict[str, Any]:
 
 
 async def _open(loc: Location, names: Sequence[str], mode: str) -> list[zarr.AsyncArray]:
-    kw = _store_kwargs(loc)
-    arrays = await asyncio.gather(
-        *(zasync.open_array(store=loc.target, path=n, mode=mode, **kw) for n in names)
-    )
+    kw = {**_store_kwargs(loc), "mode": mode, "zarr_format": 3}  # (terrastream stores are v3)
+    opens = (zasync.open_array(store=loc.target, path=n, **kw) for n in names)
+    arrays = await asyncio.gather(*opens)
     return [a.with_config(WRITE_CONFIG) if mode != "r" else a for a in arrays]
 
 
