@@ -12,7 +12,7 @@ import asyncio
 import os
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from typing import Any
 
 import numpy as np
@@ -307,15 +307,11 @@ def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]
 LAYOUT_METHODS = ("memory", "sequential", "concurrent")
 
 
-def layout_documents(meta: Any, comp_level: int) -> dict[str, bytes]:
-    """Every key :func:`create_layout` writes below the root group, with zarr's own bytes: the
-    arrays' and their parent groups' ``zarr.json`` and the two index tables' chunks, made by
+def _documents(specs: list[tuple[str, dict[str, Any]]]) -> dict[str, bytes]:
+    """Every key the arrays of ``specs`` write below the root group, with zarr's own bytes:
+    the arrays' and their parent groups' ``zarr.json`` and the index tables' chunks, made by
     zarr in a ``MemoryStore`` (no store round trip per array; the root's own ``zarr.json`` is
     left out)."""
-    return _documents(layout_specs(meta, comp_level))
-
-
-def _documents(specs: list[tuple[str, dict[str, Any]]]) -> dict[str, bytes]:
     from zarr.core.buffer import default_buffer_prototype
     from zarr.core.sync import sync
     from zarr.storage import MemoryStore
@@ -364,6 +360,8 @@ def _write_documents(group: zarr.Group, docs: dict[str, bytes], arrays: list[str
     from zarr.storage import LocalStore
 
     store, prefix = group.store, f"{group.path}/" if group.path else ""
+    if store.read_only:
+        raise ValueError(f"cannot create a layout in the read-only store {store}")
     if isinstance(store, LocalStore):
         base = os.path.join(str(store.root), group.path)
         for name in arrays:
@@ -377,9 +375,14 @@ def _write_documents(group: zarr.Group, docs: dict[str, bytes], arrays: list[str
                 os.makedirs(folder, exist_ok=True)
                 made.add(folder)
             tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
-            with open(tmp, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
+            try:
+                with open(tmp, "wb") as f:
+                    f.write(data)
+                os.replace(tmp, path)
+            except BaseException:
+                with suppress(FileNotFoundError):
+                    os.unlink(tmp)
+                raise
         return
 
     async def put_all() -> None:
@@ -397,7 +400,7 @@ def create_layout(group: zarr.Group, meta: Any, comp_level: int, *, method: str 
     """Create every array of an empty store (no data written but the two index tables).
 
     ``method``: ``"memory"`` (default) has zarr build every document in memory
-    (:func:`layout_documents`) and writes them to the group's store at once; ``"sequential"``
+    (``_documents``) and writes them to the group's store at once; ``"sequential"``
     creates the arrays through the store one after another (the reference: ~2 ms of zarr's
     store round trips per array on a local disk, 23 arrays for ``k = 10``); ``"concurrent"``
     issues those creations all at once on zarr's event loop. The three write the same bytes

@@ -203,3 +203,31 @@ def test_store_metadata_is_written_compact(dem_factory, tmp_path):
     zarr.open_group(tmp_path / "other.zarr", mode="w", attributes={"a": 1})
     assert b"\n" in (tmp_path / "other.zarr" / "zarr.json").read_bytes().strip()
     assert open_store(tmp_path / "s.zarr").meta.complete
+
+
+def test_memory_layout_refuses_a_read_only_store(meta, tmp_path):
+    zarr.open_group(tmp_path / "r", mode="w")
+    g = zarr.open_group(zarr.storage.LocalStore(tmp_path / "r", read_only=True), mode="r")
+    with pytest.raises(ValueError, match="read-only"):
+        schema.create_layout(g, meta, 3)
+    assert not (tmp_path / "r" / "levels").exists()
+
+
+def test_a_failed_layout_write_leaves_no_partial_file(meta, tmp_path, monkeypatch):
+    """A write that fails (disk full) removes its temporary file and raises."""
+    import os
+
+    real = os.replace
+    calls = []
+
+    def failing(src, dst):
+        calls.append(dst)
+        if len(calls) == 5:
+            raise OSError(28, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", failing)
+    with pytest.raises(OSError, match="No space"):
+        schema.create_layout(zarr.open_group(tmp_path / "f", mode="w"), meta, 3)
+    monkeypatch.undo()
+    assert len(calls) == 5 and not list((tmp_path / "f").rglob("*.partial"))
