@@ -46,13 +46,21 @@ def verify(
                 typer.echo(f"... and {len(rep.problems) - MAX_LISTED} more (--json lists all)")
             checks = "crc32c checksums" if rep.checksummed else "no checksums (format 1)"
             status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
+            if rep.unrepairable:
+                status += f", {len(rep.unrepairable)} problem(s) --repair cannot mend"
             typer.echo(
                 f"{store}: {status}; {rep.chunks_checked} chunks checked ({checks}), "
                 f"{rep.blocks_total} blocks"
                 + (", source digests compared" if rep.source_checked else "")
             )
         if not rep.ok:
-            if not as_json:
+            if not as_json and rep.unrepairable:  # (what `tile --repair` refuses)
+                typer.echo(
+                    f"error: {store} is damaged beyond what --repair mends "
+                    f"({rep.unrepairable[0]}); tile the DEM again with --overwrite",
+                    err=True,
+                )
+            elif not as_json:
                 typer.echo(
                     f"error: {store} is damaged; rerun `terrastream tile SRC {store} --repair` "
                     "to recompute the bad blocks from the source",

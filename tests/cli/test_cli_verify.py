@@ -58,3 +58,19 @@ def test_verify_names_a_flipped_bit_and_repair_mends_it(store):
 def test_verify_of_a_missing_store_is_a_usage_error(tmp_path):
     r = run("verify", tmp_path / "nope.zarr")
     assert r.exit_code == 2 and "nope.zarr" in r.output
+
+
+def test_verify_does_not_advise_a_repair_that_refuses(store):
+    """Damaged array metadata is beyond --repair (it refuses, naming it): verify says to tile
+    again with --overwrite instead; the bad-chunk case above is the control (it says --repair)."""
+    src, dst = store
+    (dst / "levels" / "3" / "zarr.json").write_text("[1, 2]")
+    r = run("verify", dst)
+    assert r.exit_code == 1, r.output
+    assert "levels/3" in r.output and "--overwrite" in r.output and "--repair`" not in r.output
+    assert "problem(s) --repair cannot mend" in r.output
+    r = run("tile", src, dst, "--block-size", "129", "--repair")
+    assert r.exit_code == 1 and "cannot be repaired" in r.output
+    r = run("tile", src, dst, "--block-size", "129", "--overwrite")
+    assert r.exit_code == 0, r.output
+    assert run("verify", dst).exit_code == 0
