@@ -46,6 +46,8 @@ def verify(
                 typer.echo(f"... and {len(rep.problems) - MAX_LISTED} more (--json lists all)")
             checks = "crc32c checksums" if rep.checksummed else "no checksums (format 1)"
             status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
+            if rep.bad_tables:
+                status += f", {len(rep.bad_tables)} damaged index table(s)"
             if rep.unrepairable:
                 status += f", {len(rep.unrepairable)} problem(s) --repair cannot mend"
             typer.echo(
@@ -63,7 +65,7 @@ def verify(
             elif not as_json:
                 typer.echo(
                     f"error: {store} is damaged; rerun `terrastream tile SRC {store} --repair` "
-                    "to recompute the bad blocks from the source",
+                    "to recompute the bad blocks from the source (and rewrite damaged tables)",
                     err=True,
                 )
             raise typer.Exit(EXIT_RUNTIME)

@@ -74,3 +74,17 @@ def test_verify_does_not_advise_a_repair_that_refuses(store):
     r = run("tile", src, dst, "--block-size", "129", "--overwrite")
     assert r.exit_code == 0, r.output
     assert run("verify", dst).exit_code == 0
+
+
+def test_verify_counts_a_damaged_table_and_repair_rewrites_it(store):
+    src, dst = store
+    table = dst / "order_index" / "c" / "0" / "0"
+    before = table.read_bytes()
+    table.unlink()
+    r = run("verify", dst)
+    assert r.exit_code == 1 and "1 damaged index table(s)" in r.output and "--repair" in r.output
+    r = run("tile", src, dst, "--block-size", "129", "--repair")
+    assert r.exit_code == 0, r.output
+    assert table.read_bytes() == before
+    r = run("verify", dst)
+    assert r.exit_code == 0 and "damaged index table" not in r.output
