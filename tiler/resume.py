@@ -54,6 +54,11 @@ def entry_nbytes(k: int, storage_dtype: str) -> int:
     return n * np.dtype(storage_dtype).itemsize + _ROW.itemsize
 
 
+#: a store's ``state`` while a tiling run has not finished it (``tiler.tile``,
+#: ``tiler.assemble``): rerunning the same command finishes it; ``repair`` is not one of them
+TILING_STATES = ("layout", "tiling", "finishing")
+
+
 def create_journal(group: zarr.Group, rows: int, cols: int, k: int, storage_dtype: str) -> None:
     """Create the (empty) journal array."""
     n = entry_nbytes(k, storage_dtype)

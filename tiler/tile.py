@@ -39,7 +39,13 @@ from tiler.layout import grid_side, parse_block_size
 from tiler.lease import DEFAULT_TIMEOUT_S, LEASE_KEY, WriterLease
 from tiler.location import Location, as_location
 from tiler.mosaic import MosaicReader, MosaicSpec
-from tiler.resume import check_same_job, create_journal, job_identity, source_fingerprint
+from tiler.resume import (
+    TILING_STATES,
+    check_same_job,
+    create_journal,
+    job_identity,
+    source_fingerprint,
+)
 from tiler.schema import (
     ATTR,
     DEFAULT_CLEVEL,
@@ -344,11 +350,14 @@ def _tile(
     bad_parent = loc.parent_writable()
     if bad_parent is not None and not loc.exists():
         raise StoreError(f"cannot write {loc.url!r}: {bad_parent!r} is not a writable directory")
-    if opts.repair:
+    kind, old, why = inspect_destination(loc)
+    unfinished = kind == "store" and old.extra.get("state") in TILING_STATES
+    if opts.repair and not unfinished:
         from tiler.assemble import repair_store
 
         return repair_store(src, loc, opts, job, progress, summary)
-    kind, old, why = inspect_destination(loc)
+    if opts.repair:  # an interrupted tiling is finished, as the same command without --repair
+        log.info("%s is an unfinished tiling, not a damaged store: finishing it", loc.url)
     if kind == "foreign":
         verb = "overwrite" if opts.overwrite else "write into"
         raise StoreExistsError(

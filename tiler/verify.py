@@ -19,6 +19,7 @@ import numpy as np
 from tiler.errors import StoreError
 from tiler.layout import level_size
 from tiler.location import Location, as_location
+from tiler.resume import TILING_STATES
 from tiler.schema import (
     INDEX_NAMES,
     SHARDED_LEVELS,
@@ -59,6 +60,13 @@ class VerifyReport:
     bad_blocks: set[tuple[int, int]] = field(default_factory=set)
     bad_tables: list[str] = field(default_factory=list)
     unrepairable: list[str] = field(default_factory=list)
+    #: the store's state while unfinished (``layout``, ``tiling``, ``finishing``, ``repair``)
+    state: str | None = None
+
+    @property
+    def unfinished(self) -> bool:
+        """An interrupted tiling (not a repair): rerunning the same ``tile`` finishes it."""
+        return self.state in TILING_STATES
 
     @property
     def ok(self) -> bool:
@@ -80,6 +88,7 @@ class VerifyReport:
             "format_version": self.format_version,
             "checksummed": self.checksummed,
             "complete": self.complete,
+            "state": self.state,
             "chunks_checked": self.chunks_checked,
             "blocks_total": self.blocks_total,
             "source_checked": self.source_checked,
@@ -120,6 +129,17 @@ def verify_store(
     grid = meta.grid
     rows, cols = grid.shape
     rep.blocks_total = rows * cols
+    if not meta.complete:
+        rep.state = str(meta.extra.get("state") or "tiling")
+    if rep.unfinished:  # its written chunks are still checked below, its missing ones not
+        rep.add(
+            "unfinished",
+            "",
+            None,
+            None,
+            f"the store is unfinished (state {rep.state!r}: an interrupted tiling); rerun the "
+            "same `terrastream tile` command to finish it",
+        )
     arrays = _open_arrays(group, meta, rep)
     idx = _check_index(arrays, loc, meta, rep)
     for i in range(meta.levels):
@@ -223,8 +243,8 @@ def _check_index(arrays: dict, loc: Location, meta: StoreMeta, rep: VerifyReport
     if meta.complete and "done" in out:
         for b in zip(*np.nonzero(~out["done"]), strict=True):
             rep.add("mismatch", "index/done", b, None, f"block {b} is not marked done")
-    if "window" in out:
-        grid = meta.grid
+    if "window" in out and (meta.complete or meta.extra.get("state") == "repair"):
+        grid = meta.grid  # (an unfinished tiling writes the index when it finishes)
         for b in grid.blocks():
             if tuple(out["window"][b]) != grid.block_window(*b):
                 rep.add("mismatch", "index/window", b, None, f"block {b} has a wrong window")
@@ -267,7 +287,7 @@ def _check_level(arr: Any, level: int, loc: Location, meta: StoreMeta, rep: Veri
                             continue
                     else:
                         v = region[br - r0, bc - c0]
-                    if meta.checksummed and np.all(v == fill):
+                    if meta.checksummed and not rep.unfinished and np.all(v == fill):
                         rep.add(
                             "missing",
                             f"levels/{level}",
@@ -297,8 +317,8 @@ def _check_blocks(
         except _READ_ERRORS as exc:
             rep.add("checksum", name, b, level, f"{what} of block {b}: {exc}")
             continue
-        if not meta.checksummed and not has_nodata:
-            continue
+        if (not meta.checksummed and not has_nodata) or rep.unfinished:
+            continue  # (an unfinished tiling lacks what its rerun writes: not damage)
         if fill is not None:
             suspect = bool(np.all(v == fill))
         elif name == "errors":

@@ -46,6 +46,8 @@ def verify(
                 typer.echo(f"... and {len(rep.problems) - MAX_LISTED} more (--json lists all)")
             checks = "crc32c checksums" if rep.checksummed else "no checksums (format 1)"
             status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
+            if rep.unfinished:
+                status = f"unfinished ({rep.state}), {status}"
             if rep.bad_tables:
                 status += f", {len(rep.bad_tables)} damaged index table(s)"
             if rep.unrepairable:
@@ -56,7 +58,14 @@ def verify(
                 + (", source digests compared" if rep.source_checked else "")
             )
         if not rep.ok:
-            if not as_json and rep.unrepairable:  # (what `tile --repair` refuses)
+            if not as_json and rep.unfinished:
+                then = " (then `--repair` the bad blocks listed)" if rep.bad_blocks else ""
+                typer.echo(
+                    f"error: {store} is unfinished (an interrupted tiling); rerun the same "
+                    f"`terrastream tile SRC {store}` command to finish it{then}",
+                    err=True,
+                )
+            elif not as_json and rep.unrepairable:  # (what `tile --repair` refuses)
                 typer.echo(
                     f"error: {store} is damaged beyond what --repair mends "
                     f"({rep.unrepairable[0]}); tile the DEM again with --overwrite",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -88,3 +89,53 @@ def test_verify_counts_a_damaged_table_and_repair_rewrites_it(store):
     assert table.read_bytes() == before
     r = run("verify", dst)
     assert r.exit_code == 0 and "damaged index table" not in r.output
+
+
+def test_verify_of_an_interrupted_store_says_to_finish_it(dem_factory, tmp_path, monkeypatch):
+    """An interrupted tiling is unfinished, not damaged: verify says to rerun the same command
+    (not --repair) and does not report the index the finishing step has not written yet as
+    wrong windows; the advice works. (The finished stores above are the control.)"""
+    import tiler.tile as tile_mod
+    from tiler.errors import TilingInterrupted
+    from tiler.tile import TileOptions, tile
+
+    src, dst = dem_factory(fractal((90, 70), 5)), tmp_path / "u.zarr"
+    real, count = tile_mod.process_block, [0]
+
+    def interrupted(window, params):
+        count[0] += 1
+        if count[0] > 2:
+            raise KeyboardInterrupt("simulated Ctrl-C")
+        return real(window, params)
+
+    monkeypatch.setattr(tile_mod, "process_block", interrupted)
+    with pytest.raises(TilingInterrupted):
+        tile(src, dst, TileOptions(block_size=33, workers=1, executor="threads"))
+    monkeypatch.undo()
+    r = run("verify", dst)
+    assert r.exit_code == 1, r.output
+    assert "unfinished (tiling)" in r.output and "rerun the same" in r.output
+    assert "--repair" not in r.output and "wrong window" not in r.output
+    assert json.loads(run("verify", dst, "--json").output)["state"] == "tiling"
+    # the written chunks are still checked: a flipped bit in one is named (the control)
+    damaged = tmp_path / "damaged.zarr"
+    shutil.copytree(dst, damaged)
+    flip_bit(chunk_files(damaged, "errors")[0], np.random.default_rng(2))
+    r = run("verify", damaged)
+    assert r.exit_code == 1 and "checksum: errors block" in r.output, r.output
+    assert "1 bad block(s)" in r.output and "then `--repair`" in r.output
+    # --repair of an unfinished tiling finishes it as the same command would (resumes)
+    resumed = tmp_path / "resumed.zarr"
+    shutil.copytree(dst, resumed)
+    r = run("tile", src, resumed, "--block-size", "33", "--workers", "1", "--repair", "--json")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output.strip().splitlines()[-1])["blocks_resumed"] == 2
+    assert run("verify", resumed).exit_code == 0
+    r = run("tile", src, dst, "--block-size", "33", "--workers", "1")
+    assert r.exit_code == 0, r.output
+    assert run("verify", dst).exit_code == 0
+    files = {  # the two finished stores, byte for byte (both resumed the same run)
+        d: {str(f.relative_to(d)): f.read_bytes() for f in d.rglob("*") if f.is_file()}
+        for d in (dst, resumed)
+    }
+    assert files[dst] == files[resumed] and len(files[dst]) > 20
