@@ -11,7 +11,9 @@ Exit statuses (rio's convention), also printed at the end of every command's ``-
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import re
 import sys
 import traceback
@@ -179,6 +181,12 @@ def fail_on_errors() -> Iterator[None]:
     except KeyboardInterrupt:
         typer.echo(INTERRUPTED_MESSAGE, err=True)
         raise typer.Exit(EXIT_INTERRUPTED) from None
+    except BrokenPipeError:
+        # the reader of our output went away (`| head`): exit 1 without a message, as other
+        # tools do; stdout goes to /dev/null so the interpreter's last flush does not fail too
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise typer.Exit(EXIT_RUNTIME) from None
     except Exception as exc:  # noqa: BLE001 - the CLI's last line: one message, no traceback
         if state.verbose >= 2:
             traceback.print_exception(exc, file=sys.stderr)
