@@ -253,8 +253,8 @@ def processes_unsafe() -> str | None:
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             text = f.read()
-    except OSError:
-        return None
+    except OSError:  # e.g. '<stdin>' (python - < script.py): a worker could not re-import it
+        return f"the main script {path!r} is not a file worker processes can import"
     if _GUARD.search(text):
         return None
     return f"the main script {path!r} has no `if __name__ == '__main__':` guard"

@@ -474,6 +474,47 @@ def test_tile_from_a_plain_script_without_main_guard(dem_factory, tmp_path):
     assert "no `if __name__ == '__main__':` guard" in r.stderr
 
 
+def test_tile_from_a_script_on_standard_input(dem_factory, tmp_path):
+    """``python - < script.py``: spawned workers cannot re-import '<stdin>' (every worker died,
+    reported as "out of memory or killed"); threads are used instead, with the reason. The
+    same text run as a guarded file uses processes (the control)."""
+    src = dem_factory(fractal((120, 120), 19))
+    import os
+
+    def script(dst: str, guard: bool) -> str:
+        body = (
+            "import logging\n"
+            "logging.basicConfig(level=logging.INFO)\n"
+            "from tiler.tile import TileOptions, tile\n"
+            f"s = tile({str(src)!r}, {dst!r}, TileOptions(block_size=17, workers=2, "
+            'executor="processes"))\n'
+            'print("blocks", s.tile_summary.blocks_computed, s.tile_summary.executor)\n'
+        )
+        if guard:
+            body = "if __name__ == '__main__':\n" + textwrap.indent(body, "    ")
+        return body
+
+    env = dict(os.environ, PYTHONPATH=os.getcwd())
+    r = subprocess.run(
+        [sys.executable, "-"],
+        input=script(str(tmp_path / "a.zarr"), False),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "blocks 64 threads" in r.stdout
+    assert "'<stdin>' is not a file worker processes can import" in r.stderr
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text(script(str(tmp_path / "b.zarr"), True))
+    r = subprocess.run(
+        [sys.executable, str(guarded)], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    assert "blocks 64 processes" in r.stdout
+
+
 def test_all_fill_index_chunks_are_written(dem_factory, tmp_path):
     # one exactly fitting block: has_nodata is all False (= the fill value) and must be stored
     s = tile(dem_factory(fractal((17, 17), 20)), tmp_path / "s.zarr", TileOptions(block_size=17))
