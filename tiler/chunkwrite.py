@@ -18,14 +18,13 @@ path (direct, through the store for remote targets), so a store's bytes do not d
 
 from __future__ import annotations
 
-import contextlib
 import os
-import uuid
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from tiler.atomic import write_atomic
 from tiler.chunkread import is_block_chain, regular_array
 from tiler.schema import keep_byte_frame
 
@@ -173,18 +172,7 @@ def encode_sparse(values: np.ndarray, spec: ChunkSpec, slack: float) -> tuple[by
 
 
 def _write_file(root: str, spec: ChunkSpec, block: tuple[int, int], *pieces: Any) -> int:
-    path = os.path.join(root, *spec.key(block).split("/"))
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = f"{path}.{uuid.uuid4().hex}.partial"
-    try:
-        with open(tmp, "wb") as f:
-            n = sum(f.write(p) for p in pieces)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    return n
+    return write_atomic(os.path.join(root, *spec.key(block).split("/")), *pieces)
 
 
 def write_local(root: str, spec: ChunkSpec, block: tuple[int, int], values: np.ndarray) -> int:

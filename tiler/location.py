@@ -29,6 +29,7 @@ import zarr
 from zarr.abc.store import Store
 from zarr.buffer import default_buffer_prototype
 
+from tiler.atomic import partial_name, write_atomic
 from tiler.errors import StorageOptionsError, StoreError
 
 T = TypeVar("T")
@@ -326,12 +327,7 @@ class Location:
             _run(self.target.set(key, buf))
             return
         if self.is_local:
-            path = self._key_path(key)
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
-            with open(tmp, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
+            write_atomic(self._key_path(key), data)
             return
         fs, _ = self._fs()
         fs.pipe_file(self._key_path(key), data)
@@ -489,7 +485,7 @@ def _link_if_absent(path: str, data: bytes) -> bool:
     filesystem without hard links, ``O_EXCL`` creation (content written just after) is used.
     """
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+    tmp = partial_name(path)
     with open(tmp, "wb") as f:
         f.write(data)
     try:

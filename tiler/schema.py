@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import os
-import threading
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -20,6 +19,7 @@ import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec
 
 from tiler import static_error
+from tiler.atomic import write_atomic
 from tiler.layout import level_index, level_size, order_index
 
 FORMAT_VERSION = 2
@@ -351,9 +351,9 @@ def _documents(specs: list[tuple[str, dict[str, Any]]]) -> dict[str, bytes]:
 
 def _write_documents(group: zarr.Group, docs: dict[str, bytes], arrays: list[str]) -> None:
     """Write ``docs`` (keys relative to ``group``) to the group's store: a local directory by
-    plain file writes (each a temporary file renamed over the key, as zarr's ``LocalStore``
-    does), any other store in one gather of ``set`` calls. Refuses, before writing anything,
-    if one of ``arrays`` exists already (as zarr's ``create_array`` does)."""
+    plain file writes (:func:`tiler.atomic.write_atomic`), any other store in one gather of
+    ``set`` calls. Refuses, before writing anything, if one of ``arrays`` exists already (as
+    zarr's ``create_array`` does)."""
     from zarr.core.buffer import default_buffer_prototype
     from zarr.core.sync import sync
     from zarr.errors import ContainsArrayError
@@ -367,22 +367,8 @@ def _write_documents(group: zarr.Group, docs: dict[str, bytes], arrays: list[str
         for name in arrays:
             if os.path.exists(os.path.join(base, name, "zarr.json")):
                 raise ContainsArrayError(str(store), prefix + name)
-        made: set[str] = set()
         for key, data in docs.items():
-            path = os.path.join(base, key)
-            folder = os.path.dirname(path)
-            if folder not in made:
-                os.makedirs(folder, exist_ok=True)
-                made.add(folder)
-            tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
-            try:
-                with open(tmp, "wb") as f:
-                    f.write(data)
-                os.replace(tmp, path)
-            except BaseException:
-                with suppress(FileNotFoundError):
-                    os.unlink(tmp)
-                raise
+            write_atomic(os.path.join(base, key), data)
         return
 
     async def put_all() -> None:
