@@ -24,33 +24,36 @@ from tiler.schema import WRITE_CONFIG
 __all__ = ["open_arrays", "open_each", "read_all", "write_all"]
 
 
-def _store_kwargs(loc: Location) -> dict[str, Any]:
-    return {"storage_options": loc.storage_options} if loc.storage_options else {}
+async def _open(
+    store: Any, names: Sequence[str], mode: str, kw: dict[str, Any], errors: bool = False
+) -> list[Any]:
+    """The arrays ``names`` of ``store`` (zarr format 3: terrastream stores are v3), opened
+    concurrently; for writing with ``WRITE_CONFIG``; ``errors``: a failed open's exception
+    in its place instead of raised."""
+    opens = (zasync.open_array(store=store, path=n, mode=mode, zarr_format=3, **kw) for n in names)
+    found = await asyncio.gather(*opens, return_exceptions=errors)
+    if mode == "r":
+        return list(found)
+    return [a if isinstance(a, BaseException) else a.with_config(WRITE_CONFIG) for a in found]
 
 
-async def _open(loc: Location, names: Sequence[str], mode: str) -> list[zarr.AsyncArray]:
-    kw = {**_store_kwargs(loc), "mode": mode, "zarr_format": 3}  # (terrastream stores are v3)
-    opens = (zasync.open_array(store=loc.target, path=n, **kw) for n in names)
-    arrays = await asyncio.gather(*opens)
-    return [a.with_config(WRITE_CONFIG) if mode != "r" else a for a in arrays]
+def _loc_args(loc: Location) -> tuple[Any, dict[str, Any]]:
+    return loc.target, {"storage_options": loc.storage_options} if loc.storage_options else {}
 
 
 def open_arrays(loc: Location, names: Sequence[str], mode: str = "r+") -> list[zarr.Array]:
     """The arrays ``names`` of the store at ``loc``, opened concurrently (for writing, every
     chunk written: ``WRITE_CONFIG``, as :func:`tiler.run.open_for_write`)."""
-    return [zarr.Array(a) for a in sync(_open(loc, names, mode))]
+    store, kw = _loc_args(loc)
+    return [zarr.Array(a) for a in sync(_open(store, names, mode, kw))]
 
 
 def open_each(store: Any, names: Sequence[str]) -> list[zarr.Array | BaseException]:
     """The arrays ``names`` of zarr store ``store``, opened for reading concurrently; where
     one cannot be opened, the exception instead (``zarr.errors.ArrayNotFoundError`` if
     absent; the caller decides)."""
-
-    async def go() -> list[Any]:
-        opens = (zasync.open_array(store=store, path=n, mode="r", zarr_format=3) for n in names)
-        return await asyncio.gather(*opens, return_exceptions=True)
-
-    return [a if isinstance(a, BaseException) else zarr.Array(a) for a in sync(go())]
+    found = sync(_open(store, names, "r", {}, errors=True))
+    return [a if isinstance(a, BaseException) else zarr.Array(a) for a in found]
 
 
 def write_all(writes: Sequence[tuple[zarr.Array, Any, np.ndarray]]) -> None:
@@ -66,8 +69,10 @@ def write_all(writes: Sequence[tuple[zarr.Array, Any, np.ndarray]]) -> None:
 def read_all(loc: Location, names: Sequence[str]) -> list[np.ndarray]:
     """The whole of each array ``names`` at ``loc``, opened and read concurrently."""
 
+    store, kw = _loc_args(loc)
+
     async def go() -> list[np.ndarray]:
-        arrays = await _open(loc, names, "r")
+        arrays = await _open(store, names, "r", kw)
         return list(await asyncio.gather(*(a.getitem(...) for a in arrays)))
 
     return [np.asarray(v) for v in sync(go())]
