@@ -197,8 +197,9 @@ class TerrainStore:
     def _open_arrays(self, names: list[str]) -> None:
         """Open ``names`` at once (:func:`tiler.zarr_batch.open_each`: one round trip's
         latency on a remote store instead of one per array; ~0.75x the time for the 22
-        arrays of a local ``k = 10`` store, ``bench/tiling_phases.py``); the first failure in ``names``' order is raised as
-        :meth:`_array` raises it (a group where an array belongs: damaged metadata)."""
+        arrays of a local ``k = 10`` store, ``bench/tiling_phases.py``); the first failure in
+        ``names``' order is raised as :meth:`_array` raises it (a group where an array belongs:
+        damaged metadata)."""
         found = open_each(self._group.store, names)
         for name, obj in zip(names, found, strict=True):
             if isinstance(obj, BaseException):
