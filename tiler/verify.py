@@ -109,9 +109,12 @@ class VerifyReport:
 
 
 def verify_store(
-    location: str | os.PathLike | Location | Any, *, source: str | os.PathLike | None = None
+    location: str | os.PathLike | Location | Any,
+    *,
+    source: str | os.PathLike | list[str | os.PathLike] | None = None,
 ) -> VerifyReport:
-    """Check every chunk and the metadata of a store (and, given ``source``, the block digests)."""
+    """Check every chunk and the metadata of a store (and, given ``source`` — one DEM or the
+    mosaic's list — the block digests, read with the store's band and reprojection)."""
     loc = as_location(location)
     rep = VerifyReport(location=loc.url)
     try:
@@ -175,7 +178,8 @@ def verify_store(
                 "the source checksum in the metadata does not match the block digests",
             )
     if source is not None and "digest" in idx:
-        _check_source(str(source), meta, idx["digest"], rep)
+        paths = [str(source)] if isinstance(source, str | os.PathLike) else [str(p) for p in source]
+        _check_source(paths, meta, idx["digest"], rep)
     return rep
 
 
@@ -329,23 +333,65 @@ def _check_blocks(
             rep.add("missing", name, b, level, f"{what} of block {b} is missing")
 
 
-def _check_source(src: str, meta: StoreMeta, digests: np.ndarray, rep: VerifyReport) -> None:
-    from tiler.source import _open_source, read_window
+def source_plan(paths: list[str], meta: StoreMeta) -> Any:
+    """The :class:`~tiler.mosaic.MosaicSpec` of ``paths`` as ``meta``'s store was tiled from
+    them: the job's band and, for a reprojected store, its CRS, resolution and resampling."""
+    from tiler.mosaic import plan_mosaic
+
+    band = int((meta.extra.get("job") or {}).get("band") or 1)
+    rp = meta.extra.get("reprojection")
+    if not rp:
+        return plan_mosaic(paths, band=band)
+    res = rp.get("resolution")
+    return plan_mosaic(
+        paths,
+        band=band,
+        dst_crs=meta.crs_wkt,
+        resolution=(float(res[0]), float(res[1])) if res else None,
+        resampling=str(rp.get("resampling") or "bilinear"),
+    )
+
+
+def _same_grid(spec: Any, meta: StoreMeta) -> str | None:
+    """Why ``spec``'s grid is not the store's (size, then geotransform), or None."""
+    if (spec.height, spec.width) != (meta.height, meta.width):
+        return f"{spec.height}x{spec.width} samples, the store {meta.height}x{meta.width}"
+    a, b = np.asarray(spec.transform, float), np.asarray(meta.geotransform, float)[:6]
+    if not np.allclose(a, b, rtol=1e-9, atol=1e-9 * max(1.0, float(np.abs(a[:2]).max()))):
+        return f"geotransform {tuple(a.tolist())}, the store {tuple(b.tolist())}"
+    return None
+
+
+def _check_source(
+    paths: list[str], meta: StoreMeta, digests: np.ndarray, rep: VerifyReport
+) -> None:
+    from tiler.mosaic import MosaicReader
+    from tiler.source import read_window
 
     rep.source_checked = True
     grid = meta.grid
-    with _open_source(src, 1) as ds:
-        if (ds.height, ds.width) != (meta.height, meta.width):
+    src = paths[0] if len(paths) == 1 else f"{paths[0]} + {len(paths) - 1} more"
+    band = int((meta.extra.get("job") or {}).get("band") or 1)
+    n_store = len(meta.source.get("paths") or [meta.source.get("path")])
+    with MosaicReader(source_plan(paths, meta)) as ds:
+        why = _same_grid(ds.spec, meta)
+        if why is not None:
+            more = (
+                f"; the store was tiled from {n_store} sources: give each (in the tiling's order)"
+                if n_store != len(paths)
+                else ""
+            )
             rep.add(
                 "source",
                 "index/digest",
                 None,
                 None,
-                f"source {src!r} is {ds.height}x{ds.width}, the store {meta.height}x{meta.width}",
+                f"source {src!r} (band {band}{', reprojected' if ds.spec.warp else ''}) plans "
+                f"onto {why}: not the DEM this store was tiled from{more}",
             )
             return
         for b in grid.blocks():
-            data = np.asarray(read_window(ds, 1, grid, *b), dtype=np.dtype(meta.dtype))
+            data = np.asarray(read_window(ds, band, grid, *b), dtype=np.dtype(meta.dtype))
             h, w = data.shape
             d = hashlib.blake2b(
                 data.tobytes() + np.array([h, w], np.int64).tobytes(), digest_size=8

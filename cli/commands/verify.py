@@ -17,8 +17,12 @@ MAX_LISTED = 20  # problems printed one per line; the rest are counted (all are 
 def verify(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
     source: Annotated[
-        Path | None,
-        typer.Option("--source", help="Also recompute every block's digest from this source DEM."),
+        list[Path] | None,
+        typer.Option(
+            "--source",
+            help="Also recompute every block's digest from this source DEM (read with the "
+            "store's band and reprojection); repeat it for each source of a mosaic, in order.",
+        ),
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
 ) -> None:
@@ -33,8 +37,9 @@ def verify(
     with fail_on_errors():
         if is_local(store) and not Path(store).exists():
             open_store_arg(store)  # the usage error
-        input_file(source, "--source")
-        rep = verify_store(store, source=source)
+        for path in source or []:
+            input_file(path, "--source")
+        rep = verify_store(store, source=source or None)
         if as_json:
             typer.echo(json.dumps(rep.to_json(), indent=2))
         else:
@@ -46,6 +51,8 @@ def verify(
                 typer.echo(f"... and {len(rep.problems) - MAX_LISTED} more (--json lists all)")
             checks = "crc32c checksums" if rep.checksummed else "no checksums (format 1)"
             status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
+            if not rep.ok and not rep.bad_blocks and all(p.kind == "source" for p in rep.problems):
+                status = "the source does not match"
             if rep.unfinished:
                 status = f"unfinished ({rep.state}), {status}"
             if rep.bad_tables:
@@ -69,6 +76,17 @@ def verify(
                 typer.echo(
                     f"error: {store} is damaged beyond what --repair mends "
                     f"({rep.unrepairable[0]}); tile the DEM again with --overwrite",
+                    err=True,
+                )
+            elif not as_json and all(p.kind == "source" for p in rep.problems):
+                # the store's own checks passed: `--repair` (which mends what they find) has
+                # nothing to recompute, so it is not the advice
+                n = len(rep.bad_blocks)
+                what = f"{n} block(s) differ from" if n else "the store does not match"
+                typer.echo(
+                    f"error: {store} is intact but {what} the source given: it is not the DEM "
+                    "this store was tiled from (or it changed since, or the sources differ from "
+                    "the tiling's). To store it, tile it again with --overwrite",
                     err=True,
                 )
             elif not as_json:
