@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -26,7 +27,7 @@ import numpy as np
 import rasterio
 import rasterio.errors
 from rasterio.crs import CRS
-from rasterio.enums import Resampling
+from rasterio.enums import MaskFlags, Resampling
 from rasterio.features import geometry_mask
 from rasterio.transform import Affine
 from rasterio.vrt import WarpedVRT
@@ -63,6 +64,8 @@ class SourceInfo:
     footprint: tuple[int, int, int, int] = (0, 0, 0, 0)  # row0, col0, row1, col1 on the target
     # when reprojecting: the hull of the source's sample centres in target coordinates (a ring)
     hull: tuple[tuple[float, float], ...] = ()
+    # GDAL marks the band's invalid samples by a mask (a per-dataset mask or an alpha band)
+    masked: bool = False
 
 
 @dataclass(frozen=True)
@@ -92,9 +95,37 @@ def _open(path: str) -> rasterio.DatasetReader:
     if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
         raise SourceNotFoundError(f"source raster {path!r} does not exist")
     try:
-        return rasterio.open(path)
+        with warnings.catch_warnings():  # (no geotransform: read_info says what to do)
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            return rasterio.open(path)
     except rasterio.errors.RasterioIOError as exc:
         raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
+
+
+def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
+    """Refuse a raster without a geotransform (GDAL's identity and no CRS), naming what it has
+    instead (ground control points, RPCs or nothing) and how to put it on a grid."""
+    if not (ds.transform.is_identity and ds.crs is None):
+        return
+    name = os.path.basename(path.rstrip("/"))
+    gcps, gcp_crs = ds.gcps
+    if gcps:
+        srs = f"EPSG:{gcp_crs.to_epsg()}" if gcp_crs and gcp_crs.to_epsg() else "<CRS>"
+        raise SourceError(
+            f"{path!r} is georeferenced by {len(gcps)} ground control points, not a "
+            f"geotransform; warp it onto a grid first, e.g. `gdalwarp -t_srs {srs} {name} "
+            "grid.tif`, and tile that"
+        )
+    if ds.rpcs:
+        raise SourceError(
+            f"{path!r} is georeferenced by RPCs, not a geotransform; orthorectify it onto a "
+            f"grid first, e.g. `gdalwarp -rpc -t_srs <CRS> {name} grid.tif`, and tile that"
+        )
+    raise SourceError(
+        f"{path!r} is not georeferenced (no geotransform, ground control points or RPCs); "
+        f"give it a grid first, e.g. `gdal_translate -a_ullr 0 {ds.height} {ds.width} 0 {name} "
+        "grid.tif` for one unit per sample (add -a_srs <CRS> for a CRS), and tile that"
+    )
 
 
 def read_info(path: str, band: int) -> SourceInfo:
@@ -107,7 +138,9 @@ def read_info(path: str, band: int) -> SourceInfo:
                 f"{path!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2"
             )
         t = ds.transform
+        _check_georeferenced(ds, path)
         nodata = ds.nodatavals[band - 1]
+        flags = ds.mask_flag_enums[band - 1]
         units = ds.units[band - 1] if ds.units else None
         size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None
         return SourceInfo(
@@ -122,6 +155,7 @@ def read_info(path: str, band: int) -> SourceInfo:
             offset=float(ds.offsets[band - 1]) if ds.offsets else 0.0,
             units=units or None,
             size_bytes=size,
+            masked=MaskFlags.per_dataset in flags or MaskFlags.alpha in flags,
         )
 
 
@@ -138,11 +172,12 @@ def _same(values: list, what: str, infos: Sequence[SourceInfo]) -> object:
 
 def _mosaic_nodata(infos: Sequence[SourceInfo], dtype: np.dtype, covered: bool) -> float | None:
     """The first source's nodata; if none has one: None when the sources cover the whole
-    grid, else NaN (floats) or the dtype's minimum (integers) for the gaps."""
+    grid and none has a mask, else NaN (floats) or the dtype's minimum (integers) for the gaps
+    and the masked samples."""
     for info in infos:
         if info.nodata is not None:
             return info.nodata
-    if covered:
+    if covered and not any(i.masked for i in infos):
         return None
     return float("nan") if dtype.kind == "f" else float(np.iinfo(dtype).min)
 
@@ -429,11 +464,12 @@ class MosaicReader:
         """Samples of rows ``r0..r0+h`` and columns ``c0..c0+w`` of the target grid."""
         spec = self.spec
         hits = self.sources_for(r0, c0, h, w)
-        if len(hits) == 1 and not spec.warp:
+        if len(hits) == 1 and not spec.warp and not spec.sources[hits[0]].masked:
             fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[hits[0]])
             if fr0 <= r0 and fc0 <= c0 and r0 + h <= fr1 and c0 + w <= fc1:  # inside one source
                 win = Window(c0 - fc0, r0 - fr0, w, h)
                 data = self._dataset(hits[0]).read(spec.band, window=win)
+                self._check_chosen_nodata(data, None, hits[0])
                 return data.astype(self.dtype, copy=False)
         fill = np.asarray(spec.nodata if spec.nodata is not None else 0).astype(self.dtype)
         out = np.full((h, w), fill, dtype=self.dtype)
@@ -451,6 +487,9 @@ class MosaicReader:
                 nodata = spec.sources[i].nodata
             data = ds.read(spec.band, window=win)
             valid = _valid(data, nodata)
+            if spec.sources[i].masked and not spec.warp:  # (GDAL's warper applies it itself)
+                valid &= ds.read_masks(spec.band, window=win) != 0
+            self._check_chosen_nodata(data, valid, i)
             if spec.warp and spec.sources[i].hull:
                 valid &= geometry_mask(
                     [{"type": "Polygon", "coordinates": [spec.sources[i].hull]}],
@@ -465,6 +504,26 @@ class MosaicReader:
             if filled.all():
                 break
         return out
+
+    def _check_chosen_nodata(self, data: np.ndarray, valid: np.ndarray | None, i: int) -> None:
+        """Refuse a valid sample equal to a nodata value no source declared (the one
+        :func:`_mosaic_nodata` chose for gaps and masked samples): it would read as nodata."""
+        spec = self.spec
+        if spec.nodata is None or np.isnan(spec.nodata):
+            return
+        if any(s.nodata is not None for s in spec.sources):
+            return
+        same = data == np.asarray(spec.nodata).astype(data.dtype)
+        if valid is not None:
+            same &= valid
+        if same.any():
+            path = spec.sources[i].path
+            raise SourceError(
+                f"{path!r} has valid samples equal to {spec.nodata:g}, the nodata value chosen "
+                "for its masked samples or the mosaic's gaps (no source declares one); give "
+                f"the source a nodata value no sample takes, e.g. `gdal_translate -a_nodata V "
+                f"{os.path.basename(path)} fixed.tif`"
+            )
 
     def read(self, band: int, window: Window) -> np.ndarray:
         """``DatasetReader.read``-like access for one band and a window (what the tiler uses)."""

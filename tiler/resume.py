@@ -138,7 +138,13 @@ def source_fingerprint(ds: Any, band: int) -> str:
     h = hashlib.blake2b(digest_size=16)
     spec = getattr(ds, "spec", None)  # a tiler.mosaic.MosaicReader: every source and the warp
     if spec is not None:
-        parts = [(os.path.basename(s.path), *astuple(s)[1:]) for s in spec.sources]
+        # (``masked``, added later, only when True: an unmasked source keeps the fingerprint
+        # of the stores tiled before it existed, so they still resume and repair)
+        parts = [
+            (os.path.basename(s.path), *astuple(replace(s, masked=False))[1:-1])
+            + ((True,) if s.masked else ())
+            for s in spec.sources
+        ]
         h.update(repr((astuple(replace(spec, sources=())), parts)).encode())
     else:
         h.update(repr((ds.height, ds.width, ds.dtypes[band - 1], tuple(ds.transform)[:6])).encode())

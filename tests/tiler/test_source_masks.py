@@ -1,0 +1,182 @@
+"""A source's GDAL mask (a per-dataset mask or an alpha band) marks nodata, as GDAL's warper
+already took it when reprojecting; rasters without a geotransform are refused with what they
+have instead and how to grid them. Each case beside its control (the same samples unmasked, a
+georeferenced raster)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from demtools import fractal, write_dem
+from rasterio.control import GroundControlPoint
+from rasterio.crs import CRS
+from rasterio.enums import ColorInterp
+from rasterio.transform import from_origin
+from typer.testing import CliRunner
+
+from cli.main import app
+from tiler.errors import SourceError
+from tiler.mosaic import MosaicReader, plan_mosaic
+from tiler.resume import source_fingerprint
+from tiler.tile import TileOptions, tile
+
+PROFILE = dict(
+    driver="GTiff", count=1, crs="EPSG:32633", transform=from_origin(500000.0, 5e6, 30.0, 30.0)
+)
+
+
+def _masked(path: Path, data: np.ndarray, valid: np.ndarray) -> Path:
+    """A GeoTIFF with an internal per-dataset mask (GDAL's ``.msk`` kind), no nodata value."""
+    h, w = data.shape
+    with (
+        rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True),
+        rasterio.open(path, "w", width=w, height=h, dtype=data.dtype, **PROFILE) as dst,
+    ):
+        dst.write(data, 1)
+        dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
+    return path
+
+
+def _gray_alpha(path: Path, data: np.ndarray, valid: np.ndarray) -> Path:
+    h, w = data.shape
+    prof = dict(PROFILE, count=2)
+    with rasterio.open(path, "w", width=w, height=h, dtype="uint8", **prof) as dst:
+        dst.write(data, 1)
+        dst.write(np.where(valid, 255, 0).astype(np.uint8), 2)
+        dst.colorinterp = [ColorInterp.gray, ColorInterp.alpha]
+    return path
+
+
+def _stored(store) -> tuple[np.ndarray, np.ndarray]:
+    """The store's finest samples and mask (one block)."""
+    (b,) = list(store.meta.grid.blocks())
+    h, w = store.meta.height, store.meta.width
+    mask = store.read_mask(b)
+    return store.read_block(b, store.meta.k)[:h, :w], (
+        np.ones((h, w), bool) if mask is None else mask[:h, :w]
+    )
+
+
+def test_a_per_dataset_mask_is_nodata(tmp_path):
+    data = fractal((60, 50), 1)
+    valid = np.ones(data.shape, bool)
+    valid[:, :20] = False
+    valid[45:, 30:] = False
+    src = _masked(tmp_path / "m.tif", data, valid)
+    s = tile(src, tmp_path / "m.zarr", TileOptions(block_size=65, workers=1))
+    assert s.meta.nodata == -32768  # chosen: the source declares none
+    h, m = _stored(s)
+    assert np.array_equal(m, valid)
+    assert np.array_equal(h[valid], data[valid])
+    # the control: the same samples unmasked are all terrain, with no nodata value
+    plain = write_dem(tmp_path / "p.tif", data)
+    s = tile(plain, tmp_path / "p.zarr", TileOptions(block_size=65, workers=1))
+    assert s.meta.nodata is None and _stored(s)[1].all()
+
+
+def test_an_alpha_band_is_nodata_and_the_reprojection_agrees(tmp_path):
+    data = (fractal((60, 50), 2) % 200 + 20).astype(np.uint8)
+    valid = np.ones(data.shape, bool)
+    valid[:25] = False
+    src = _gray_alpha(tmp_path / "a.tif", data, valid)
+    s = tile(src, tmp_path / "a.zarr", TileOptions(block_size=65, workers=1))
+    assert s.meta.nodata == 0
+    h, m = _stored(s)
+    assert np.array_equal(m, valid) and np.array_equal(h[valid], data[valid])
+    # GDAL's warper applied the mask before: reprojected, the masked rows stay nodata
+    opts = TileOptions(block_size=65, workers=1, dst_crs="EPSG:32633", resampling="nearest")
+    w = tile(src, tmp_path / "w.zarr", opts)
+    hw, mw = _stored(w)
+    assert not mw[:20].any() and mw[30:55, 2:-2].all(), (mw[:20].sum(), mw[30:55].mean())
+
+
+def test_a_masked_source_is_filled_by_the_next_source(tmp_path):
+    data = fractal((40, 40), 3)
+    valid = np.ones(data.shape, bool)
+    valid[10:20, 10:30] = False
+    under = fractal((40, 40), 4)
+    first = _masked(tmp_path / "first.tif", data, valid)
+    second = write_dem(tmp_path / "second.tif", under)
+    with MosaicReader(plan_mosaic([first, second])) as r:
+        got = r.read_window(0, 0, 40, 40)
+    assert np.array_equal(got, np.where(valid, data, under))  # first-valid: the mask is a hole
+
+
+def test_a_valid_sample_equal_to_the_chosen_nodata_is_refused(tmp_path):
+    data = (fractal((40, 30), 5) % 200 + 20).astype(np.uint8)
+    valid = np.ones(data.shape, bool)
+    valid[:5] = False
+    data[30, 7] = 0  # valid, but 0 is what masked uint8 samples become
+    src = _gray_alpha(tmp_path / "a.tif", data, valid)
+    with pytest.raises(SourceError, match=r"valid samples equal to 0.*-a_nodata"):
+        tile(src, tmp_path / "a.zarr", TileOptions(block_size=33, workers=1))
+    data[30, 7] = 1  # the control
+    tile(_gray_alpha(tmp_path / "b.tif", data, valid), tmp_path / "b.zarr", TileOptions(33))
+
+
+def test_an_unmasked_source_keeps_its_fingerprint_layout(tmp_path):
+    """Stores tiled before ``masked`` existed still resume and repair: an unmasked source's
+    fingerprint is the one of the fields it had then (a masked one's differs, as its data)."""
+    import hashlib
+    from dataclasses import astuple, fields, replace
+    from os.path import basename
+
+    from rasterio.windows import Window
+
+    from tiler.mosaic import SourceInfo
+
+    names = [f.name for f in fields(SourceInfo)]
+    assert names[-1] == "masked", names  # a field added later goes after it, and here
+    src = write_dem(tmp_path / "d.tif", fractal((300, 280), 6))
+    with MosaicReader(plan_mosaic([src])) as r:
+        h = hashlib.blake2b(digest_size=16)
+        parts = [(basename(s.path), *astuple(s)[1:-1]) for s in r.spec.sources]
+        h.update(repr((astuple(replace(r.spec, sources=())), parts)).encode())
+        for rr, cc in ((0, 0), (150, 140), (299, 279)):
+            r0, c0 = max(0, min(rr, 300 - 256)), max(0, min(cc, 280 - 256))
+            win = Window(c0, r0, min(256, 280 - c0), min(256, 300 - r0))
+            h.update(np.ascontiguousarray(r.read(1, window=win)).tobytes())
+        assert source_fingerprint(r, 1) == h.hexdigest()
+    valid = np.ones((300, 280), bool)
+    valid[0, 0] = False
+    m = _masked(tmp_path / "m.tif", fractal((300, 280), 6), valid)
+    with MosaicReader(plan_mosaic([m])) as r2:
+        assert source_fingerprint(r2, 1) != h.hexdigest()
+
+
+def _no_transform(path: Path, data: np.ndarray, gcps: bool = False) -> Path:
+    h, w = data.shape
+    with rasterio.open(
+        path, "w", driver="GTiff", width=w, height=h, count=1, dtype=data.dtype
+    ) as d:
+        d.write(data, 1)
+        if gcps:
+            pts = [(0, 0), (0, w), (h, 0), (h, w)]
+            d.gcps = (
+                [GroundControlPoint(r, c, 5e5 + 30 * c, 5e6 - 30 * r) for r, c in pts],
+                CRS.from_epsg(32633),
+            )
+    return path
+
+
+@pytest.mark.parametrize(
+    ("gcps", "needle"),
+    [
+        (False, r"not georeferenced .*gdal_translate -a_ullr 0 40 30 0"),
+        (True, r"4 ground control points.*gdalwarp -t_srs EPSG:32633"),
+    ],
+)
+def test_a_raster_without_a_geotransform_is_refused_with_the_way_to_grid_it(tmp_path, gcps, needle):
+    src = _no_transform(tmp_path / "n.tif", fractal((40, 30), 7), gcps)
+    for dst_crs in (None, "auto"):  # (the advice was "give a target CRS", then "give none")
+        with pytest.raises(SourceError, match=needle):
+            tile(src, tmp_path / "n.zarr", TileOptions(block_size=33, dst_crs=dst_crs))
+    r = CliRunner().invoke(app, ["tile", str(src), str(tmp_path / "c.zarr")])
+    assert r.exit_code == 2 and "rotated" not in r.output, r.output
+    assert "NotGeoreferencedWarning" not in r.output, r.output
+    # the control: the advice's grid (north-up, one unit per sample, no CRS) tiles
+    gridded = write_dem(tmp_path / "g.tif", fractal((40, 30), 7), crs=None, origin=(0, 40), cell=1)
+    assert tile(gridded, tmp_path / "g.zarr", TileOptions(block_size=33)).meta.height == 40
