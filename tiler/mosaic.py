@@ -232,14 +232,16 @@ def _plan_aligned(
 ) -> MosaicSpec:
     for info in infos:
         a, b, _, d, e, _ = info.transform
-        if abs(b) > 1e-12 * abs(a) or abs(d) > 1e-12 * abs(e) or e >= 0:
+        if abs(b) > 1e-12 * abs(a) or abs(d) > 1e-12 * abs(e) or e == 0:
             raise SourceError(
-                f"{info.path!r} has a rotated or south-up geotransform {info.transform}; give a "
-                "target CRS to reproject it north-up while tiling"
+                f"{info.path!r} has a rotated geotransform {info.transform}; give a target CRS "
+                "to reproject it north-up while tiling"
             )
-    a, _, c, _, e, f = infos[0].transform
-    for info in infos:
-        ia, ie = info.transform[0], info.transform[4]
+    # a south-up source (rows from south to north) is placed, and read, flipped: no resampling
+    north = [_north_up(info) for info in infos]
+    a, _, c, _, e, f = north[0]
+    for info, nt in zip(infos, north, strict=True):
+        ia, ie = nt[0], nt[4]
         if abs(ia - a) > 1e-9 * abs(a) or abs(ie - e) > 1e-9 * abs(e):
             raise SourceError(
                 f"sources have different pixel sizes ({infos[0].path!r}: {a:g} x {-e:g}, "
@@ -247,9 +249,9 @@ def _plan_aligned(
                 "resample them onto one grid"
             )
     offsets = []
-    for info in infos:
-        col = (info.transform[2] - c) / a
-        row = (info.transform[5] - f) / e
+    for info, nt in zip(infos, north, strict=True):
+        col = (nt[2] - c) / a
+        row = (nt[5] - f) / e
         if abs(col - round(col)) > ALIGN_TOL or abs(row - round(row)) > ALIGN_TOL:
             raise SourceError(
                 f"{info.path!r} is not on the pixel grid of {infos[0].path!r} (offset of "
@@ -276,6 +278,14 @@ def _plan_aligned(
         nodata=_mosaic_nodata(infos, dtype, _covers([p.footprint for p in placed], height, width)),
         source_crs_wkt=src_crs.to_wkt() if src_crs else None,
     )
+
+
+def _north_up(info: SourceInfo) -> tuple[float, float, float, float, float, float]:
+    """The source's geotransform with its rows counted from the north (as it is if they are)."""
+    a, b, c, d, e, f = info.transform
+    if e > 0:  # row 0 is the southern edge: the north-up grid starts at the last row's end
+        return (a, b, c, d, -e, f + e * info.height)
+    return info.transform
 
 
 def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> SourceInfo:
@@ -467,8 +477,7 @@ class MosaicReader:
         if len(hits) == 1 and not spec.warp and not spec.sources[hits[0]].masked:
             fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[hits[0]])
             if fr0 <= r0 and fc0 <= c0 and r0 + h <= fr1 and c0 + w <= fc1:  # inside one source
-                win = Window(c0 - fc0, r0 - fr0, w, h)
-                data = self._dataset(hits[0]).read(spec.band, window=win)
+                data, _ = self._read_aligned(hits[0], r0 - fr0, c0 - fc0, h, w)
                 self._check_chosen_nodata(data, None, hits[0])
                 return data.astype(self.dtype, copy=False)
         fill = np.asarray(spec.nodata if spec.nodata is not None else 0).astype(self.dtype)
@@ -478,17 +487,15 @@ class MosaicReader:
             fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[i])
             ir0, ir1 = max(r0, fr0), min(r0 + h, fr1)
             ic0, ic1 = max(c0, fc0), min(c0 + w, fc1)
-            ds = self._dataset(i)
-            if spec.warp:
+            if spec.warp:  # (GDAL's warper applies the source's mask itself)
                 win = Window(ic0, ir0, ic1 - ic0, ir1 - ir0)
-                nodata = spec.nodata
+                data = self._dataset(i).read(spec.band, window=win)
+                valid = _valid(data, spec.nodata)
             else:  # aligned: the footprint is the source's own pixel grid
-                win = Window(ic0 - fc0, ir0 - fr0, ic1 - ic0, ir1 - ir0)
-                nodata = spec.sources[i].nodata
-            data = ds.read(spec.band, window=win)
-            valid = _valid(data, nodata)
-            if spec.sources[i].masked and not spec.warp:  # (GDAL's warper applies it itself)
-                valid &= ds.read_masks(spec.band, window=win) != 0
+                data, mask = self._read_aligned(i, ir0 - fr0, ic0 - fc0, ir1 - ir0, ic1 - ic0)
+                valid = _valid(data, spec.sources[i].nodata)
+                if mask is not None:
+                    valid &= mask
             self._check_chosen_nodata(data, valid, i)
             if spec.warp and spec.sources[i].hull:
                 valid &= geometry_mask(
@@ -504,6 +511,23 @@ class MosaicReader:
             if filled.all():
                 break
         return out
+
+    def _read_aligned(
+        self, i: int, r0: int, c0: int, h: int, w: int
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Rows ``r0..r0+h``, columns ``c0..c0+w`` of source ``i`` counted north-up, and its
+        mask there (True = valid; None without one): a south-up source's rows are read from
+        the bottom and flipped, sample for sample."""
+        info = self.spec.sources[i]
+        ds = self._dataset(i)
+        flip = info.transform[4] > 0
+        win = Window(c0, info.height - r0 - h if flip else r0, w, h)
+        data = ds.read(self.spec.band, window=win)
+        mask = ds.read_masks(self.spec.band, window=win) != 0 if info.masked else None
+        if flip:
+            data = data[::-1]
+            mask = None if mask is None else mask[::-1]
+        return data, mask
 
     def _check_chosen_nodata(self, data: np.ndarray, valid: np.ndarray | None, i: int) -> None:
         """Refuse a valid sample equal to a nodata value no source declared (the one

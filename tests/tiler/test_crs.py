@@ -18,6 +18,7 @@ from tiler.crs import (
     utm_epsg,
 )
 from tiler.errors import GeographicStoreError, SourceError, StoreError
+from tiler.mosaic import MosaicReader, plan_mosaic
 from tiler.tile import TileOptions, tile
 
 
@@ -153,29 +154,48 @@ def test_srtm_auto_is_zone_19_and_close_to_the_source(tmp_path):
     assert err["rms"] < 2.5 and err["p99"] < 8.0, err
 
 
-def test_south_up_source_is_refused_unless_reprojected(tmp_path):
+def _south_up(path, data, x0, y0, b=0.0):
     from rasterio.transform import Affine
 
-    data = np.arange(20 * 30, dtype=np.int16).reshape(20, 30)
-    path = tmp_path / "south_up.tif"
-    x0, y0 = 499980.0, 4999980.0  # on the 30 m grid the target snaps to
     with rasterio.open(
         path,
         "w",
         driver="GTiff",
-        width=30,
-        height=20,
+        width=data.shape[1],
+        height=data.shape[0],
         count=1,
-        dtype="int16",
+        dtype=data.dtype,
         crs="EPSG:32633",
-        transform=Affine(30.0, 0.0, x0, 0.0, 30.0, y0),
+        transform=Affine(30.0, b, x0, 0.0, 30.0, y0),
     ) as dst:
         dst.write(data, 1)
-    with pytest.raises(SourceError, match="south-up"):
-        tile(path, tmp_path / "a.zarr", TileOptions(block_size=17))
+    return path
+
+
+def test_south_up_source_is_flipped_sample_for_sample(tmp_path):
+    data = np.arange(20 * 30, dtype=np.int16).reshape(20, 30)
+    x0, y0 = 499980.0, 4999980.0  # on the 30 m grid the target snaps to
+    path = _south_up(tmp_path / "south_up.tif", data, x0, y0)
+    a = tile(path, tmp_path / "a.zarr", TileOptions(block_size=33))  # (was refused)
+    assert a.meta.geotransform == (30.0, 0.0, x0, 0.0, -30.0, y0 + 600.0)
+    np.testing.assert_array_equal(a.read_block((0, 0))[:20, :30], data[::-1])
+    # the same as GDAL's warp onto that grid (nearest: no resampling either)
     opts = TileOptions(block_size=33, dst_crs="EPSG:32633", resampling="nearest", resolution=30.0)
     s = tile(path, tmp_path / "b.zarr", opts)
     assert (s.meta.height, s.meta.width) == (20, 30)
-    assert s.meta.geotransform == (30.0, 0.0, x0, 0.0, -30.0, y0 + 600.0)
+    assert s.meta.geotransform == a.meta.geotransform
     np.testing.assert_array_equal(s.read_block((0, 0))[:20, :30], data[::-1])
+    # a mosaic of it and a north-up neighbour to its east, windows across both
+    east = np.arange(20 * 10, dtype=np.int16).reshape(20, 10) + 1000
+    n = write_dem(tmp_path / "east.tif", east, crs="EPSG:32633", origin=(x0 + 900.0, y0 + 600.0))
+    m = tile([path, n], tmp_path / "m.zarr", TileOptions(block_size=17))
+    with MosaicReader(plan_mosaic([path, n])) as r:
+        np.testing.assert_array_equal(
+            r.read_window(3, 25, 12, 10), np.hstack([data[::-1], east])[3:15, 25:35]
+        )
+    assert (m.meta.height, m.meta.width) == (20, 40)
+    # the control: a rotated geotransform is still refused (no flip makes it north-up)
+    rot = _south_up(tmp_path / "rot.tif", data, x0, y0, b=0.5)
+    with pytest.raises(SourceError, match="rotated"):
+        tile(rot, tmp_path / "r.zarr", TileOptions(block_size=33))
     assert s.read_mask((0, 0))[:20, :30].all()  # edge samples on the hull are kept

@@ -180,3 +180,21 @@ def test_a_raster_without_a_geotransform_is_refused_with_the_way_to_grid_it(tmp_
     # the control: the advice's grid (north-up, one unit per sample, no CRS) tiles
     gridded = write_dem(tmp_path / "g.tif", fractal((40, 30), 7), crs=None, origin=(0, 40), cell=1)
     assert tile(gridded, tmp_path / "g.zarr", TileOptions(block_size=33)).meta.height == 40
+
+
+def test_a_south_up_masked_source_flips_its_mask_with_its_samples(tmp_path):
+    data = fractal((40, 30), 8)
+    valid = np.ones(data.shape, bool)
+    valid[:8, :5] = False  # the file's first rows: the south-west corner
+    h, w = data.shape
+    prof = dict(PROFILE, transform=rasterio.Affine(30.0, 0.0, 5e5, 0.0, 30.0, 5e6 - 30.0 * h))
+    with (
+        rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True),
+        rasterio.open(tmp_path / "s.tif", "w", width=w, height=h, dtype=data.dtype, **prof) as d,
+    ):
+        d.write(data, 1)
+        d.write_mask(np.where(valid, 255, 0).astype(np.uint8))
+    s = tile(tmp_path / "s.tif", tmp_path / "s.zarr", TileOptions(block_size=65, workers=1))
+    got, mask = _stored(s)
+    assert np.array_equal(mask, valid[::-1]) and not mask[-8:, :5].any()
+    assert np.array_equal(got[mask], data[::-1][valid[::-1]])
