@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import rasterio
 from rasterio.crs import CRS
 from rasterio.errors import CRSError
 from rasterio.warp import transform_bounds
@@ -33,7 +34,8 @@ def parse_dst_crs(value: str) -> str:
     if text.lower() == AUTO:
         return AUTO
     try:
-        crs = CRS.from_user_input(text)
+        with rasterio.Env():  # GDAL's errors to logging, not an "ERROR 1: PROJ: ..." on stderr
+            crs = CRS.from_user_input(text)
     except CRSError as exc:
         raise SourceError(
             f"target CRS {value!r} is not understood ({exc}); give 'auto', an EPSG code such "

@@ -76,6 +76,19 @@ def test_parse_dst_crs_and_resampling():
         TileOptions(dst_crs="nonsense")
 
 
+def test_an_unknown_crs_is_one_message_not_gdal_noise_on_stderr(capfd):
+    """GDAL printed "ERROR 1: PROJ: ... crs not found" to the process's stderr before the
+    message; the control shows that the capture sees such a line when GDAL has no handler."""
+    from rasterio.errors import CRSError
+
+    with pytest.raises(CRSError):
+        CRS.from_user_input("EPSG:999998")  # the control: outside rasterio.Env
+    assert "ERROR 1: PROJ" in capfd.readouterr().err
+    with pytest.raises(SourceError, match="not understood"):
+        parse_dst_crs("EPSG:999998")
+    assert "ERROR" not in capfd.readouterr().err
+
+
 LON0, LAT0, CELL_DEG = -71.9, 44.9, 1.0 / 120.0
 
 
