@@ -53,6 +53,10 @@ class SourceNotFoundError(SourceError, FileNotFoundError):
     """The source raster does not exist."""
 
 
+class SourceReadError(TilerError, OSError):
+    """A source raster that opened but failed to read (truncated, damaged, its server failed)."""
+
+
 class StoreError(TilerError, OSError):
     """A store that cannot be written or read as asked."""
 

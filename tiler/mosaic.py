@@ -20,7 +20,7 @@ import math
 import os
 import warnings
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -37,7 +37,7 @@ from rasterio.windows import Window
 
 from tiler.crs import choose_crs, parse_dst_crs, parse_resampling
 from tiler.encoding import parse_dtype
-from tiler.errors import SourceError, SourceNotFoundError
+from tiler.errors import SourceError, SourceNotFoundError, SourceReadError
 from tiler.store import is_url
 from tiler.vertical import metres_per_unit
 
@@ -406,6 +406,24 @@ def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
     return valid
 
 
+def _read(fn: Callable[..., np.ndarray], band: int, win: Window, path: str) -> np.ndarray:
+    """``fn(band, window=win)`` (a dataset's ``read`` or ``read_masks``), a GDAL read failure
+    raised as :class:`SourceReadError` naming the file and the window."""
+    try:
+        return fn(band, window=win)
+    except rasterio.errors.RasterioIOError as exc:
+        cause: BaseException = exc
+        while cause.__cause__ is not None:  # GDAL's first complaint says the most
+            cause = cause.__cause__
+        rows = f"{int(win.row_off)}..{int(win.row_off + win.height) - 1}"
+        cols = f"{int(win.col_off)}..{int(win.col_off + win.width) - 1}"
+        raise SourceReadError(
+            f"reading {path!r} failed in rows {rows}, columns {cols} of its grid (GDAL says: "
+            f"{cause}); the file may be truncated or damaged (`gdalinfo -checksum` reads all "
+            "of it), or, for a URL, its server failed"
+        ) from exc
+
+
 class MosaicReader:
     """Reads windows of a :class:`MosaicSpec`'s target grid; one per thread or process."""
 
@@ -489,7 +507,7 @@ class MosaicReader:
             ic0, ic1 = max(c0, fc0), min(c0 + w, fc1)
             if spec.warp:  # (GDAL's warper applies the source's mask itself)
                 win = Window(ic0, ir0, ic1 - ic0, ir1 - ir0)
-                data = self._dataset(i).read(spec.band, window=win)
+                data = _read(self._dataset(i).read, spec.band, win, spec.sources[i].path)
                 valid = _valid(data, spec.nodata)
             else:  # aligned: the footprint is the source's own pixel grid
                 data, mask = self._read_aligned(i, ir0 - fr0, ic0 - fc0, ir1 - ir0, ic1 - ic0)
@@ -522,8 +540,8 @@ class MosaicReader:
         ds = self._dataset(i)
         flip = info.transform[4] > 0
         win = Window(c0, info.height - r0 - h if flip else r0, w, h)
-        data = ds.read(self.spec.band, window=win)
-        mask = ds.read_masks(self.spec.band, window=win) != 0 if info.masked else None
+        data = _read(ds.read, self.spec.band, win, info.path)
+        mask = _read(ds.read_masks, self.spec.band, win, info.path) != 0 if info.masked else None
         if flip:
             data = data[::-1]
             mask = None if mask is None else mask[::-1]

@@ -198,3 +198,32 @@ def test_a_south_up_masked_source_flips_its_mask_with_its_samples(tmp_path):
     got, mask = _stored(s)
     assert np.array_equal(mask, valid[::-1]) and not mask[-8:, :5].any()
     assert np.array_equal(got[mask], data[::-1][valid[::-1]])
+
+
+def test_a_damaged_source_tile_fails_naming_the_file_and_window(tmp_path):
+    """A deflate tile zeroed in the middle: GDAL's read error became "RasterioIOError: Read
+    failed" without the file or where; it is a SourceReadError (exit 1) naming both."""
+    from tiler.errors import SourceReadError
+
+    data = fractal((600, 520), 9)
+    prof = dict(PROFILE, compress="deflate", tiled=True, blockxsize=128, blockysize=128)
+    good = tmp_path / "good.tif"
+    with rasterio.open(good, "w", width=520, height=600, dtype=data.dtype, **prof) as d:
+        d.write(data, 1)
+    with rasterio.open(good) as d:  # tile (x 3, y 1): outside the fingerprint's three windows
+        off = int(d.get_tag_item("BLOCK_OFFSET_3_1", "TIFF", bidx=1))
+        size = int(d.get_tag_item("BLOCK_SIZE_3_1", "TIFF", bidx=1))
+    raw = bytearray(good.read_bytes())
+    raw[off + 8 : off + size - 8] = bytes(size - 16)
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(SourceReadError, match=r"reading '.*bad\.tif' failed in rows .*GDAL says"):
+        tile(bad, tmp_path / "bad.zarr", TileOptions(block_size=129, workers=1))
+    r = CliRunner().invoke(
+        app, ["tile", str(bad), str(tmp_path / "cli.zarr"), "--block-size", "129"]
+    )
+    assert r.exit_code == 1 and "bad.tif" in r.output and "RasterioIOError" not in r.output, (
+        r.output
+    )
+    # the control: the intact file tiles
+    assert tile(good, tmp_path / "good.zarr", TileOptions(block_size=129, workers=1)).meta.complete
