@@ -128,6 +128,26 @@ def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
     )
 
 
+def _check_nodata(path: str, dtype: str, nodata: float | None) -> None:
+    """Refuse an integer band whose declared nodata no sample can take (a fraction; rasterio
+    already drops NaN and out-of-range ones): GDAL then reads none as nodata, while casting it
+    would hide another value."""
+    dt = np.dtype(dtype)
+    if nodata is None or dt.kind not in "iu" or not math.isfinite(nodata):
+        return
+    info = np.iinfo(dt)
+    inside = info.min <= nodata <= info.max
+    if nodata != math.floor(nodata) or not inside:
+        cast = f", cast to {dt.name} it would hide the samples equal to {int(nodata)}"
+        raise SourceError(
+            f"{path!r} declares nodata {nodata:g} for its {dt.name} samples, which none can "
+            f"take (GDAL reads none as nodata{cast if inside else ''}); fix the declaration: "
+            "`gdal_edit.py -a_nodata V` with the value its nodata samples hold, or "
+            "`-unsetnodata` (a file you cannot edit: `gdal_translate -of VRT -a_nodata V` "
+            "and tile the VRT)"
+        )
+
+
 def read_info(path: str, band: int) -> SourceInfo:
     """Header of one source (opened and closed again)."""
     with _open(path) as ds:
@@ -140,6 +160,7 @@ def read_info(path: str, band: int) -> SourceInfo:
         t = ds.transform
         _check_georeferenced(ds, path)
         nodata = ds.nodatavals[band - 1]
+        _check_nodata(path, ds.dtypes[band - 1], nodata)
         flags = ds.mask_flag_enums[band - 1]
         units = ds.units[band - 1] if ds.units else None
         size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None

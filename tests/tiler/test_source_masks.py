@@ -227,3 +227,33 @@ def test_a_damaged_source_tile_fails_naming_the_file_and_window(tmp_path):
     )
     # the control: the intact file tiles
     assert tile(good, tmp_path / "good.zarr", TileOptions(block_size=129, workers=1)).meta.complete
+
+
+def _with_nodata_vrt(path: Path, tif: Path, shape: tuple[int, int], nodata: str) -> Path:
+    """A VRT of ``tif`` (int16) declaring ``nodata`` (rasterio will not write such values)."""
+    h, w = shape
+    path.write_text(
+        f"""<VRTDataset rasterXSize="{w}" rasterYSize="{h}">
+  <SRS>EPSG:32633</SRS><GeoTransform>500000, 30, 0, 5000000, 0, -30</GeoTransform>
+  <VRTRasterBand dataType="Int16" band="1"><NoDataValue>{nodata}</NoDataValue>
+    <SimpleSource><SourceFilename relativeToVRT="1">{tif.name}</SourceFilename>
+      <SourceBand>1</SourceBand></SimpleSource></VRTRasterBand>
+</VRTDataset>"""
+    )
+    return path
+
+
+@pytest.mark.parametrize("nodata", ["-9999.5", "0.25"])
+def test_an_integer_nodata_no_sample_can_take_is_refused(tmp_path, nodata):
+    """int16 with nodata -9999.5: GDAL reads no sample as nodata, the cast to int16 hid the
+    samples equal to -9999 ("1 with nodata"). Refused, naming the value and the fix (rasterio
+    itself drops NaN and out-of-range ones); the control, -9999 declared, hides that sample."""
+    data = fractal((40, 30), 10)
+    data[5, 5] = -9999
+    tif = write_dem(tmp_path / "d.tif", data)
+    vrt = _with_nodata_vrt(tmp_path / "d.vrt", tif, data.shape, nodata)
+    with pytest.raises(SourceError, match=r"declares nodata .* for its int16.*-a_nodata"):
+        tile(vrt, tmp_path / "d.zarr", TileOptions(block_size=65))
+    ctl = _with_nodata_vrt(tmp_path / "ok.vrt", tif, data.shape, "-9999")
+    ok = tile(ctl, tmp_path / "ok.zarr", TileOptions(block_size=65))
+    assert ok.meta.nodata == -9999 and not _stored(ok)[1][5, 5] and _stored(ok)[1].sum() == 1199
