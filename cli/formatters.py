@@ -19,6 +19,11 @@ def _crs_note(d: dict) -> str:
         return f" (reprojected from {d.get('source_crs')}, {rep['requested']}, {rep['resampling']})"
     if d.get("crs_geographic"):
         return " (geographic: tiles losslessly, but to stream or render retile with --dst-crs auto)"
+    if d.get("crs_unit"):
+        return (
+            f" (x/y in {d['crs_unit']}: tiles losslessly, but to stream or render retile with "
+            "--dst-crs auto)"
+        )
     return ""
 
 

@@ -46,6 +46,12 @@ def parse_dst_crs(value: str) -> str:
             f"target CRS {value!r} is geographic (degrees); choose a projected CRS in metres, "
             "or 'auto'"
         )
+    unit = non_metre_unit(crs.to_wkt())
+    if unit is not None:
+        raise SourceError(
+            f"target CRS {value!r} has x/y in {unit[0]} ({unit[1]:.7g} m) while heights are "
+            "metres; choose a projected CRS in metres, or 'auto'"
+        )
     return crs.to_wkt()
 
 
@@ -136,6 +142,27 @@ def is_geographic(crs_wkt: str | None) -> bool:
     return bool(crs_wkt) and CRS.from_wkt(crs_wkt).is_geographic
 
 
+def horizontal_unit(crs_wkt: str | None) -> tuple[str, float] | None:
+    """``(name, metres per unit)`` of a projected CRS's x/y; None without a CRS or for a
+    geographic one."""
+    if not crs_wkt:
+        return None
+    crs = CRS.from_wkt(crs_wkt)
+    if crs.is_geographic:
+        return None
+    try:
+        name, factor = crs.linear_units_factor
+    except CRSError:
+        return None
+    return str(name), float(factor)
+
+
+def non_metre_unit(crs_wkt: str | None) -> tuple[str, float] | None:
+    """:func:`horizontal_unit` when it is not the metre (e.g. US survey feet), else None."""
+    unit = horizontal_unit(crs_wkt)
+    return unit if unit is not None and abs(unit[1] - 1.0) > 1e-9 else None
+
+
 def require_projected(meta_or_store: Any) -> None:
     """Raise ``GeographicStoreError`` if a store (or its ``StoreMeta``) is in a geographic CRS.
 
@@ -143,11 +170,26 @@ def require_projected(meta_or_store: Any) -> None:
     """
     meta = getattr(meta_or_store, "meta", meta_or_store)
     wkt = getattr(meta, "crs_wkt", None)
-    if not is_geographic(wkt):
-        return
     url = getattr(meta_or_store, "url", None)
     where = f"store {url!r}" if url else "this store"
     src = (getattr(meta, "source", None) or {}).get("path") or "SRC"
+    unit = non_metre_unit(wkt)
+    if unit is not None:
+        raise GeographicStoreError(
+            "{where} is in {crs}, whose x/y are in {unit} ({factor:.7g} m) while heights are "
+            "metres: drawn, it would be stretched {stretch:.3g}x across, so it cannot be "
+            "streamed or rendered. Tile the source again with a target CRS in metres: "
+            "{retile}.",
+            params={"retile": "tile({src!r}, dst, TileOptions(dst_crs='auto'))"},
+            where=where,
+            crs=crs_name(wkt),
+            unit=unit[0],
+            factor=unit[1],
+            stretch=1.0 / unit[1],
+            src=str(src),
+        )
+    if not is_geographic(wkt):
+        return
     raise GeographicStoreError(
         "{where} is in a geographic CRS ({crs}): its x/y are degrees while heights are metres, "
         "so it cannot be streamed or rendered. Tile the source again with a projected target "

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from tiler.crs import crs_name, is_geographic
+from tiler.crs import crs_name, is_geographic, non_metre_unit
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
 from tiler.vertical import height_transform
@@ -67,6 +67,7 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         else crs,
         "reprojection": m.extra.get("reprojection"),  # {"requested", "crs", ...} or None
         "crs_geographic": is_geographic(m.crs_wkt),
+        "crs_unit": (non_metre_unit(m.crs_wkt) or (None,))[0],  # x/y's unit when not metres
         "sources": m.extra.get("mosaic", {}).get("count", 1),
         "bytes_per_level": [
             {"level": i, "values_per_block": level_size(i), "bytes": b}

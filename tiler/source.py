@@ -17,7 +17,7 @@ import rasterio
 from rasterio.windows import Window
 
 from tiler import static_error
-from tiler.crs import crs_name, is_geographic
+from tiler.crs import crs_name, is_geographic, non_metre_unit
 from tiler.encoding import encoding_for, storage_dtype_for
 from tiler.errors import SourceError
 from tiler.grid import BlockGrid
@@ -119,6 +119,16 @@ def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreM
             "a target CRS ('auto' picks the UTM zone) for those.",
             label,
             crs_name(spec.crs_wkt),
+        )
+    unit = non_metre_unit(spec.crs_wkt)
+    if unit is not None:
+        log.warning(
+            "%s is in %s, whose x and y are in %s while heights are metres; the store is "
+            "lossless but cannot be streamed or rendered. Reproject while tiling with a target "
+            "CRS in metres ('auto' picks the UTM zone) for those.",
+            label,
+            crs_name(spec.crs_wkt),
+            unit[0],
         )
     first = spec.sources[0]
     extra: dict = {"source_crs_wkt": spec.source_crs_wkt}
