@@ -47,7 +47,7 @@ def export(
     from tiler.export import export_cog, export_geotiff
 
     with fail_on_errors():
-        output_file(out, "OUT", overwrite=overwrite)
+        output_file(out, "OUT", suffixes=(".tif", ".tiff"), overwrite=overwrite)
         s = open_store_arg(store_location(store, storage_options))
         if level is not None and not 0 <= level <= s.k:
             raise UsageError(

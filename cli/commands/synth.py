@@ -34,7 +34,7 @@ def synth(
     from tiler.synth import synth_dem
 
     with fail_on_errors():
-        output_file(out, "OUT", overwrite=overwrite)
+        output_file(out, "OUT", suffixes=(".tif", ".tiff"), overwrite=overwrite)
         bar = Progress("synth", "sample")
         t0 = time.perf_counter()
 

@@ -66,6 +66,11 @@ CASES = {
                           "the directory '{tmp}/no' for {tmp}/no/d.tif does not exist"),
     "synth-out-is-dir": (["synth", "{dir}", "--size", "65"], 2, "is a directory; give a file name"),
     "export-missing-dir": (["export", "{store}", "{tmp}/no/e.tif"], 2, "the directory '{tmp}/no'"),
+    # both wrote a GeoTIFF under any name (e.png held a TIFF)
+    "synth-out-extension": (["synth", "{tmp}/d.png", "--size", "65"], 2,
+                            "from its extension '.png'; use one of .tif, .tiff"),
+    "export-out-extension": (["export", "{store}", "{tmp}/e.png"], 2,
+                             "from its extension '.png'; use one of .tif, .tiff"),
     "tile-dst-missing-parent": (["tile", "{src}", "{tmp}/no/s.zarr", "--block-size", "33"], 2,
                                 "the directory '{tmp}/no' for {tmp}/no/s.zarr does not exist"),
     "tile-dst-is-file": (["tile", "{src}", "{src}", "--block-size", "33"], 2,
