@@ -303,6 +303,7 @@ def repair_store(
                 **job,
                 "compression_level": old_job.get("compression_level", job["compression_level"]),
             },
+            repair=True,
         )
         bad = sorted(report.bad_blocks)
         for name in report.bad_tables:

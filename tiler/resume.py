@@ -175,12 +175,18 @@ def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
     }
 
 
-def check_same_job(url: str, old: dict[str, Any] | None, new: dict[str, Any]) -> None:
-    """Raise JobMismatchError naming every differing item and both of its values."""
+def check_same_job(
+    url: str, old: dict[str, Any] | None, new: dict[str, Any], *, repair: bool = False
+) -> None:
+    """Raise JobMismatchError naming every differing item and both of its values (``repair``:
+    the store is a finished one being repaired, not an unfinished one being resumed)."""
+    store = "a store" if repair else "an unfinished store"
+    then = "repair it" if repair else "finish it"
     if old is None:
         raise JobMismatchError(
-            f"{url!r} holds an unfinished store from an older terrastream (no job identity); "
-            "it cannot be resumed: remove it or tile with overwrite to start again."
+            f"{url!r} holds {store} from an older terrastream (no job identity); it cannot be "
+            f"{'repaired' if repair else 'resumed'}: remove it or tile with overwrite to start "
+            "again."
         )
     diffs = [
         f"{key}: store has {old.get(key)!r}, this run has {value!r}"
@@ -189,6 +195,6 @@ def check_same_job(url: str, old: dict[str, Any] | None, new: dict[str, Any]) ->
     ]
     if diffs:
         raise JobMismatchError(
-            f"{url!r} holds an unfinished store of another job ({'; '.join(diffs)}); rerun with "
-            "the original source and settings to finish it, or tile with overwrite to start again."
+            f"{url!r} holds {store} of another job ({'; '.join(diffs)}); rerun with the "
+            f"original source and settings to {then}, or tile with overwrite to start again."
         )

@@ -80,3 +80,23 @@ def test_cli_verify_of_another_dem_does_not_advise_repair(tmp_path):
     assert "--repair" not in r.output, r.output
     mosaic = runner.invoke(app, ["verify", str(dst), "--source", str(src), "--source", str(src)])
     assert mosaic.exit_code == 0, mosaic.output  # (the same DEM twice: the first wins everywhere)
+
+
+def test_repair_with_another_band_is_refused_as_a_finished_stores_repair(tmp_path):
+    """`tile --repair` of a finished store with another band said it "holds an unfinished
+    store of another job ... to finish it"; it names the repair now (the resume of an
+    unfinished store keeps its wording: tests/tiler/test_store_v2.py)."""
+    import pytest
+
+    from tiler.errors import JobMismatchError
+
+    b1, b2 = fractal((70, 60), 1), fractal((70, 60), 2)
+    src = _two_band(tmp_path / "two.tif", b1, b2)
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=33, band=2, workers=1))
+    with pytest.raises(JobMismatchError) as e:
+        tile(src, tmp_path / "s.zarr", TileOptions(block_size=33, band=1, repair=True))
+    msg = str(e.value)
+    assert "holds a store of another job" in msg and "band: store has 2, this run has 1" in msg
+    assert "to repair it" in msg and "unfinished" not in msg, msg
+    # the control: the same band repairs (nothing to do on an intact store)
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=33, band=2, repair=True))
