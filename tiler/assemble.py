@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -33,6 +34,7 @@ from tiler.resume import (
 from tiler.run import open_for_write, progress_reporter, run_blocks
 from tiler.schema import INDEX_DTYPES, chunk_key, expected_table, index_chunk, shard_shape
 from tiler.store import StoreMeta, read_meta, write_meta
+from tiler.vertical import height_transform
 from tiler.zarr_batch import open_arrays, read_all, write_all
 
 log = logging.getLogger("tiler.tile")
@@ -259,6 +261,26 @@ def write_index(loc: Location, grid: BlockGrid, index: dict[str, np.ndarray]) ->
     write_all([(arr, ..., v) for arr, v in zip(arrays, values.values(), strict=True)])
 
 
+def _warn_type_minimum(meta: StoreMeta, lowest_m: float) -> None:
+    """Warn when a signed integer DEM without a nodata value reaches its type's minimum
+    (SRTM's voids are -32768): likely an undeclared nodata value, tiled as heights."""
+    dtype = np.dtype(meta.dtype)
+    if meta.nodata is not None or dtype.kind != "i" or not np.isfinite(lowest_m):
+        return
+    a, b = height_transform(meta)
+    lowest = (lowest_m - b) / a
+    if round(lowest) == np.iinfo(dtype).min:
+        name = meta.source.get("name") or "the source"
+        path = os.path.basename(str(meta.source.get("path") or "SRC").rstrip("/"))
+        low = int(np.iinfo(dtype).min)
+        log.warning(
+            "%s reaches %d, the %s minimum, and declares no nodata value: its samples of %d "
+            "are tiled as heights (%g m). If they mark voids, declare it (`gdal_edit.py "
+            "-a_nodata %d %s`) and tile again with --overwrite",
+            name, low, dtype.name, low, lowest_m, low, path,
+        )  # fmt: skip
+
+
 def complete(
     group: zarr.Group, meta: StoreMeta, index: dict[str, np.ndarray] | None = None
 ) -> None:
@@ -273,6 +295,7 @@ def complete(
     source = dict(meta.source, checksum=f"blake2b-128:{checksum}")
     extra = {k: v for k, v in meta.extra.items() if k != "state"}
     extra["value_range"] = [float(np.nanmin(zmin)), float(np.nanmax(zmax))]
+    _warn_type_minimum(meta, extra["value_range"][0])
     write_meta(group, replace(meta, source=source, complete=True, extra=extra))
     log.info("store complete: %s", group.store)
 

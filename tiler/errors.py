@@ -53,6 +53,23 @@ class SourceNotFoundError(SourceError, FileNotFoundError):
     """The source raster does not exist."""
 
 
+class HeightRangeError(SourceError):
+    """Valid samples beyond any terrain's heights (an undeclared nodata value, other units):
+    ``value`` (metres), ``raw`` (as stored), ``count`` and the first one's ``row``/``col`` in
+    its block's window."""
+
+    def __init__(self, message: str, *, value: float, raw: float, count: int, row: int, col: int):
+        super().__init__(message)
+        self.value, self.raw, self.count, self.row, self.col = value, raw, count, row, col
+
+    def __reduce__(self) -> tuple:  # through a worker process
+        return (_height_range, (str(self), self.value, self.raw, self.count, self.row, self.col))
+
+
+def _height_range(msg: str, value: float, raw: float, count: int, row: int, col: int):
+    return HeightRangeError(msg, value=value, raw=raw, count=count, row=row, col=col)
+
+
 class SourceReadError(TilerError, OSError):
     """A source raster that opened but failed to read (truncated, damaged, its server failed)."""
 

@@ -27,7 +27,7 @@ import rasterio.env
 import zarr
 
 from tiler import chunkwrite, kernels
-from tiler.errors import StoreError
+from tiler.errors import HeightRangeError, StoreError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location, as_location
@@ -109,9 +109,27 @@ class BlockWorker:
         """Encode block ``(br, bc)``; write its data, then its journal entry (the commit)."""
         from tiler import tile as tile_mod  # tests patch tile_mod.process_block
 
-        res = tile_mod.process_block(
-            read_window(self.ds, self.band, self.grid, br, bc), self.params
-        )
+        try:
+            res = tile_mod.process_block(
+                read_window(self.ds, self.band, self.grid, br, bc), self.params
+            )
+        except HeightRangeError as exc:  # where in the DEM, and which source
+            r0, c0, _, _ = self.grid.block_window(br, bc)
+            name = os.path.basename(self.ds.spec.sources[0].path.rstrip("/"))
+            more = (
+                f" (+ {len(self.ds.spec.sources) - 1} more)"
+                if len(self.ds.spec.sources) > 1
+                else ""
+            )
+            raise HeightRangeError(
+                f"{name}{more}, block {(br, bc)}, first at row {r0 + exc.row}, column "
+                f"{c0 + exc.col} of the DEM: " + str(exc).replace(" SRC`", f" {name}`"),
+                value=exc.value,
+                raw=exc.raw,
+                count=exc.count,
+                row=r0 + exc.row,
+                col=c0 + exc.col,
+            ) from None
         rule = self.params.sparse_byte
         sparse = (
             rule is not None

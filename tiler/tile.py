@@ -28,6 +28,7 @@ import zarr
 from tiler import codecs, static_error
 from tiler.encoding import fill_invalid, quantise
 from tiler.errors import (
+    HeightRangeError,
     SchedulerError,
     SourceError,
     StoreError,
@@ -230,6 +231,32 @@ def valid_mask(data: np.ndarray, nodata: float | None) -> np.ndarray:
     return valid
 
 
+#: metres: a valid sample beyond ±1000 km is not a height (Earth's relief is -11..+9 km,
+#: Mars' -8..+21 km) but an undeclared nodata value (-3.4e38) or heights in other units;
+#: tiled, it overflows the error bounds and cannot be drawn
+MAX_HEIGHT_M = 1e6
+
+
+def _height_range(data: np.ndarray, valid: np.ndarray, params: BlockParams) -> HeightRangeError:
+    """The :class:`HeightRangeError` of the first valid sample of ``data`` beyond
+    :data:`MAX_HEIGHT_M` (its row and column in the window, the count of such samples)."""
+    metres = data.astype(np.float64) * params.z_scale + params.z_offset
+    bad = valid & ~(np.abs(metres) < MAX_HEIGHT_M)
+    r, c = (int(v[0]) for v in np.nonzero(bad))
+    raw = data[r, c].item()
+    return HeightRangeError(
+        f"{int(bad.sum()):,} sample(s) of {metres[r, c]:g} m: beyond ±{MAX_HEIGHT_M / 1e3:g} km, "
+        f"not a height. If {raw!r} marks nodata, declare it (`gdal_edit.py -a_nodata {raw!r} "
+        "SRC`, or tile a VRT: `gdal_translate -of VRT -a_nodata ...`); if the heights are in "
+        "other units, declare the band's scale or units",
+        value=float(metres[r, c]),
+        raw=float(raw),
+        count=int(bad.sum()),
+        row=r,
+        col=c,
+    )
+
+
 def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     """Encode one block from its source window (pure: same input, same output)."""
     k = params.k
@@ -254,6 +281,8 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
         if (params.z_scale, params.z_offset) != (1.0, 0.0):  # heights in metres (tiler.vertical)
             a, b = params.z_scale, params.z_offset
             zmin, zmax = sorted((zmin * a + b, zmax * a + b))
+        if not max(abs(zmin), abs(zmax)) < MAX_HEIGHT_M:
+            raise _height_range(data, valid[:h, :w], params)
     else:
         zmin = zmax = float("nan")
     if params.precision:

@@ -1,0 +1,82 @@
+"""Values that cannot be heights: beyond ±1000 km (an undeclared nodata value such as float32's
+-3.4e38, heights in millimetres) are refused naming the file, the block, the first sample and
+the declaration that fixes it (they overflowed the error bounds, then `render` failed with
+"argument out of range"); a signed integer DEM reaching its type's minimum without a nodata
+value (SRTM's -32768 voids) is tiled with a warning. Controls: the same DEMs with nodata
+declared, and real extremes (-11 km, +9 km)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from demtools import fractal, write_dem
+
+from tiler.errors import HeightRangeError
+from tiler.tile import BlockParams, TileOptions, process_block, tile
+
+F32_MIN = float(np.finfo(np.float32).min)
+
+
+def _dem(value: float, dtype: str = "float32") -> np.ndarray:
+    data = fractal((70, 60), 1, dtype=dtype)
+    data[40:45, 50:55] = value
+    return data
+
+
+@pytest.mark.parametrize("executor", ["threads", "processes"])
+def test_an_undeclared_float_sentinel_is_refused_naming_where(tmp_path, executor):
+    src = write_dem(tmp_path / "und.tif", _dem(F32_MIN))
+    opts = TileOptions(block_size=33, executor=executor, workers=2)
+    with pytest.raises(HeightRangeError) as e:
+        tile(src, tmp_path / "s.zarr", opts)
+    msg = str(e.value)
+    assert msg.startswith("und.tif, block (1, 1), first at row 40, column 50 of the DEM"), msg
+    assert "25 sample(s) of -3.40282e+38 m" in msg and "-a_nodata" in msg and "und.tif`" in msg
+    assert (e.value.row, e.value.col, e.value.count) == (40, 50, 25)
+    # the control: declared, the same samples are nodata and the store is complete
+    ok = write_dem(tmp_path / "ok.tif", _dem(F32_MIN), nodata=F32_MIN)
+    s = tile(ok, tmp_path / "ok.zarr", opts)
+    assert s.meta.complete and s.meta.extra["value_range"][0] > -1e4
+
+
+def test_heights_in_millimetres_are_refused_and_real_extremes_are_not(tmp_path):
+    mm = (fractal((40, 30), 2, dtype="float64") * 1000 + 8_000_000).astype(np.int32)
+    with pytest.raises(HeightRangeError, match="other units, declare the band's scale"):
+        tile(write_dem(tmp_path / "mm.tif", mm), tmp_path / "mm.zarr", TileOptions(33))
+    # the controls: a trench at -11 km beside a peak at +9 km (and float32), tiled as heights
+    ext = fractal((40, 30), 3)
+    ext[5, 5], ext[30, 20] = -11_000, 9_000
+    s = tile(write_dem(tmp_path / "ext.tif", ext), tmp_path / "ext.zarr", TileOptions(33))
+    assert s.meta.extra["value_range"] == [-11000.0, 9000.0]
+    f = ext.astype(np.float32)
+    s = tile(write_dem(tmp_path / "f.tif", f), tmp_path / "f.zarr", TileOptions(33))
+    assert s.meta.complete
+
+
+def test_process_block_refuses_through_the_api_too():
+    data = _dem(-1e30)[:33, :33].copy()
+    data[3, 4] = 1e30
+    params = BlockParams(k=5, dtype="float32", storage_dtype="uint32", nodata=None,
+                         precision=None, error_cap=4)  # fmt: skip
+    with pytest.raises(HeightRangeError, match=r"1 sample\(s\) of 1e\+30 m"):
+        process_block(data, params)
+
+
+def test_the_int16_minimum_without_nodata_is_tiled_with_a_warning(tmp_path, caplog):
+    voids = fractal((40, 30), 4)
+    voids[10:15, 10:15] = -32768
+    with caplog.at_level(logging.WARNING, logger="tiler.tile"):
+        s = tile(write_dem(tmp_path / "v.tif", voids), tmp_path / "v.zarr", TileOptions(33))
+    assert s.meta.complete and s.meta.extra["value_range"][0] == -32768
+    assert "v.tif reaches -32768, the int16 minimum, and declares no nodata value" in caplog.text
+    assert "`gdal_edit.py -a_nodata -32768 v.tif`" in caplog.text
+    # the controls: declared, or not reached, no warning
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="tiler.tile"):
+        tile(write_dem(tmp_path / "d.tif", voids, nodata=-32768), tmp_path / "d.zarr",
+             TileOptions(33))  # fmt: skip
+        voids[10:15, 10:15] = -32767
+        tile(write_dem(tmp_path / "n.tif", voids), tmp_path / "n.zarr", TileOptions(33))
+    assert "minimum" not in caplog.text
