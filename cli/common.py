@@ -154,7 +154,10 @@ def one_line(exc: BaseException) -> str:
     text = _NUMPY_REPR.sub(r"\1", " ".join(raw.split())) or type(exc).__name__
     if isinstance(exc, (*_library_errors(), UsageError)):
         return text
-    return f"{type(exc).__name__}: {text}"
+    name = type(exc).__name__
+    if name.islower():  # struct.error, socket.error...: not "error: error: ..."
+        name = f"{type(exc).__module__}.{name}"
+    return f"{name}: {text}"
 
 
 #: Typer's (vendored click's) usage errors and exits, and click's own: handled by the runner

@@ -130,6 +130,10 @@ class KernelUnavailableError(TilerError, ImportError):
     """The compiled kernels were required (``TERRASTREAM_KERNELS=numba``) but cannot load."""
 
 
+class StoreHeightsError(StoreError, ValueError):
+    """The store holds values no terrain has (tiled before they were refused): not drawable."""
+
+
 class GeographicStoreError(StoreError, ValueError):
     """A store whose x/y are degrees (geographic CRS): it cannot be streamed or rendered."""
 

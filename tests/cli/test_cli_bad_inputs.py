@@ -204,6 +204,16 @@ def test_numpy_reprs_are_shown_as_values():
     assert one_line(exc) == "bad extent 1.5 .. 7"
 
 
+def test_a_lowercase_exception_type_is_named_with_its_module():
+    """struct.error printed as "error: error: argument out of range"."""
+    import struct
+
+    from cli.common import one_line
+
+    assert one_line(struct.error("argument out of range")) == "struct.error: argument out of range"
+    assert one_line(KeyError("k")) == "KeyError: 'k'"  # the control: a class name as it is
+
+
 def _damaged(tmp_path, how: str):
     import numpy as np
     import rasterio

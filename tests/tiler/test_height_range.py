@@ -80,3 +80,31 @@ def test_the_int16_minimum_without_nodata_is_tiled_with_a_warning(tmp_path, capl
         voids[10:15, 10:15] = -32767
         tile(write_dem(tmp_path / "n.tif", voids), tmp_path / "n.zarr", TileOptions(33))
     assert "minimum" not in caplog.text
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # (the overflow the refusal now spares)
+def test_a_store_tiled_with_such_values_before_is_refused_by_the_viewers(tmp_path, monkeypatch):
+    """Stores tiled before the refusal may hold -3.4e38 "heights": every viewer refuses them
+    naming the value (`render` failed with "struct.error: argument out of range")."""
+    from typer.testing import CliRunner
+
+    import tiler.tile as tile_mod
+    from cli.main import app
+    from streamer.session import open_session
+    from tiler.errors import StoreHeightsError
+
+    src = write_dem(tmp_path / "und.tif", _dem(F32_MIN))
+    monkeypatch.setattr(tile_mod, "MAX_HEIGHT_M", float("inf"))  # as tiled before
+    tile(src, tmp_path / "old.zarr", TileOptions(block_size=33, workers=1))
+    monkeypatch.undo()
+    with pytest.raises(StoreHeightsError, match=r"heights of -3\.40282e\+38 m"):
+        open_session(str(tmp_path / "old.zarr"))
+    r = CliRunner().invoke(
+        app, ["render", str(tmp_path / "old.zarr"), "-o", str(tmp_path / "o.png")]
+    )
+    assert r.exit_code == 2 and "beyond ±1000 km" in r.output and "und.tif" in r.output, r.output
+    # the control: the same DEM declared opens
+    ok = write_dem(tmp_path / "ok.tif", _dem(F32_MIN), nodata=F32_MIN)
+    tile(ok, tmp_path / "ok.zarr", TileOptions(block_size=33, workers=1))
+    with open_session(str(tmp_path / "ok.zarr")) as s:
+        assert s.store.meta.complete
