@@ -16,6 +16,7 @@ nodata.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import warnings
@@ -27,7 +28,7 @@ import numpy as np
 import rasterio
 import rasterio.errors
 from rasterio.crs import CRS
-from rasterio.enums import MaskFlags, Resampling
+from rasterio.enums import ColorInterp, MaskFlags, Resampling
 from rasterio.features import geometry_mask
 from rasterio.transform import Affine
 from rasterio.vrt import WarpedVRT
@@ -40,6 +41,8 @@ from tiler.encoding import parse_dtype
 from tiler.errors import SourceError, SourceNotFoundError, SourceReadError
 from tiler.store import is_url
 from tiler.vertical import metres_per_unit
+
+log = logging.getLogger(__name__)
 
 ALIGN_TOL = 1e-3  # pixels: how far a source's origin may sit off the mosaic's pixel grid
 MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
@@ -128,6 +131,23 @@ def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
     )
 
 
+def _warn_colour(path: str, band: int, interp: ColorInterp) -> None:
+    """Warn when the band GDAL names a colour (a palette's indices, an RGB image's channel):
+    its values are tiled as heights all the same."""
+    colours = {ColorInterp.palette: "a palette's colour indices"}
+    for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha):
+        colours[c] = f"the {c.name} channel of an image"
+    what = colours.get(interp)
+    if what is not None:
+        log.warning(
+            "band %d of %r holds %s, not heights as far as GDAL knows; it is tiled as heights "
+            "(a DEM is one band of heights: check the file, or choose the band)",
+            band,
+            path,
+            what,
+        )
+
+
 def _check_nodata(path: str, dtype: str, nodata: float | None) -> None:
     """Refuse an integer band whose declared nodata no sample can take (a fraction; rasterio
     already drops NaN and out-of-range ones): GDAL then reads none as nodata, while casting it
@@ -162,6 +182,7 @@ def read_info(path: str, band: int) -> SourceInfo:
         nodata = ds.nodatavals[band - 1]
         _check_nodata(path, ds.dtypes[band - 1], nodata)
         flags = ds.mask_flag_enums[band - 1]
+        _warn_colour(path, band, ds.colorinterp[band - 1])
         units = ds.units[band - 1] if ds.units else None
         size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None
         return SourceInfo(

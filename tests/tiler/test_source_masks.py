@@ -257,3 +257,28 @@ def test_an_integer_nodata_no_sample_can_take_is_refused(tmp_path, nodata):
     ctl = _with_nodata_vrt(tmp_path / "ok.vrt", tif, data.shape, "-9999")
     ok = tile(ctl, tmp_path / "ok.zarr", TileOptions(block_size=65))
     assert ok.meta.nodata == -9999 and not _stored(ok)[1][5, 5] and _stored(ok)[1].sum() == 1199
+
+
+def test_a_colour_band_is_tiled_with_a_warning(tmp_path, caplog):
+    """An RGB image's red channel or a palette's indices went in as heights silently."""
+    import logging
+
+    data = (fractal((40, 30), 11) % 200).astype(np.uint8)
+    rgb = tmp_path / "rgb.tif"
+    with rasterio.open(rgb, "w", width=30, height=40, dtype="uint8", photometric="RGB",
+                       **dict(PROFILE, count=3)) as d:  # fmt: skip
+        for i in (1, 2, 3):
+            d.write(data, i)
+    pal = tmp_path / "pal.tif"
+    with rasterio.open(pal, "w", width=30, height=40, dtype="uint8", **PROFILE) as d:
+        d.write(data, 1)
+        d.write_colormap(1, {i: (i, 255 - i, 0, 255) for i in range(256)})
+    for src, what in ((rgb, "the red channel of an image"), (pal, "a palette's colour indices")):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="tiler.mosaic"):
+            tile(src, tmp_path / f"{src.stem}.zarr", TileOptions(block_size=65))
+        assert f"band 1 of '{src}' holds {what}, not heights" in caplog.text, caplog.text
+    caplog.clear()  # the control: a grey band of heights
+    with caplog.at_level(logging.WARNING, logger="tiler.mosaic"):
+        tile(write_dem(tmp_path / "g.tif", data), tmp_path / "g.zarr", TileOptions(block_size=65))
+    assert "not heights" not in caplog.text
