@@ -240,8 +240,8 @@ def finish(
         index["done"][...] = True
         if not index["exists"].any():
             raise SourceError(
-                f"{meta.source.get('path')!r} holds no terrain: every sample is nodata or NaN; "
-                "nothing was written"
+                f"{meta.source.get('path')!r} holds no terrain: every sample is nodata, NaN or "
+                "masked; nothing was written"
             )
         write_index(loc, grid, index)
         write_meta(group, replace(meta, extra=dict(meta.extra, state="finishing")))
