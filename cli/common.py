@@ -85,6 +85,10 @@ def setup_logging(verbose: int, quiet: bool) -> None:
     logging.basicConfig(level=base, format="%(levelname)s %(name)s: %(message)s", force=True)
     for name in OWN_LOGGERS:
         logging.getLogger(name).setLevel(own)
+    # dask's distributed sets its loggers to INFO when imported (its config), which printed ~30
+    # lines per `tile --scheduler dask`, under -q too; its config from the environment is read
+    # then, and by the worker processes (a user's own setting wins)
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", logging.getLevelName(base).lower())
 
 
 def _library_errors() -> tuple[type[BaseException], ...]:

@@ -21,7 +21,7 @@ import uuid
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from tiler.errors import BlockFailedError, SchedulerError
+from tiler.errors import BlockFailedError, SchedulerError, SourceError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt
 from tiler.location import Location
@@ -170,6 +170,8 @@ def run_blocks_dask(run: BlockRun) -> str:
                     if fut.status != "finished":
                         br, bc = block_of[fut.key]
                         exc = fut.exception() if fut.status == "error" else None
+                        if isinstance(exc, SourceError):  # the source's data: a rerun fails alike
+                            raise exc
                         why = f"{type(exc).__name__}: {exc}" if exc is not None else fut.status
                         raise BlockFailedError(
                             f"block ({br}, {bc}) failed on every try ({opts.retries} "

@@ -386,3 +386,38 @@ def test_no_block_finished_within_the_timeout_is_a_store_error(
     src = _dem(tmp_path, shape=(60, 60), nodata=False)
     with pytest.raises(StoreError, match="no block finished within 1 s"):
         tile(src, tmp_path / "o.zarr", TileOptions(block_size=17, workers=2, scheduler=spec))
+
+
+@pytest.mark.parametrize("user_level", [None, "info"])
+def test_the_cli_keeps_dask_quiet_unless_asked(tmp_path, user_level):
+    """`tile --scheduler dask` printed ~30 "INFO distributed..." lines, under -q too; the
+    control: a user's DASK_LOGGING__DISTRIBUTED=info still gets them (so the check can fire)."""
+    import subprocess
+
+    src = _dem(tmp_path, shape=(60, 50))
+    env = {k: v for k, v in os.environ.items() if k != "DASK_LOGGING__DISTRIBUTED"}
+    if user_level:
+        env["DASK_LOGGING__DISTRIBUTED"] = user_level
+    args = ["-q", "tile", str(src), str(tmp_path / "s.zarr"), "--block-size", "33"]
+    run = subprocess.run(
+        [sys.executable, "-m", "cli.main", *args, "--scheduler", "dask", "--workers", "1"],
+        capture_output=True, text=True, timeout=240, env=env,
+        cwd=Path(__file__).resolve().parents[2],
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    noisy = "INFO distributed" in run.stderr
+    assert noisy == bool(user_level), run.stderr[-2000:]
+
+
+def test_a_source_error_in_a_task_is_raised_as_itself(tmp_path):
+    """A block whose source samples are refused (HeightRangeError) failed as "block (0, 0)
+    failed on every try ... rerun to resume", which a rerun cannot; the source's own error is
+    raised now (the control, a task failure of another kind, stays a BlockFailedError: above)."""
+    from tiler.errors import HeightRangeError
+
+    data = fractal((60, 50), 3, dtype="float32")
+    data[20, 30] = -3.4e38
+    src = write_dem(tmp_path / "und.tif", data)
+    opts = TileOptions(block_size=33, scheduler="dask", workers=1, retries=0)
+    with pytest.raises(HeightRangeError, match=r"und\.tif, block \(0, 0\), first at row 20"):
+        tile(src, tmp_path / "s.zarr", opts)
