@@ -34,12 +34,25 @@ def open_store_arg(url: Any, hint: str = "STORE", *, projected: bool = False) ->
             f"no store at {str(url)!r}: the path does not exist (make one with terrastream tile)",
             hint=hint,
         )
+    not_a_store(url, hint)
     store = open_store(url)
     if projected:
         from tiler.crs import require_projected
 
         require_projected(store)
     return store
+
+
+def not_a_store(url: Any, hint: str = "STORE") -> None:
+    """A usage error when a local ``url`` is a file (a store is a directory): often the DEM
+    itself, given where its store was meant ("Not a directory: 'dem.tif/zarr.json'")."""
+    path = Path(str(url))
+    if is_local(url) and path.is_file():
+        raise UsageError(
+            f"{str(url)!r} is a file, not a store (a directory `terrastream tile` makes); if it "
+            f"is a DEM, tile it first: terrastream tile {url} {path.with_suffix('.zarr')}",
+            hint=hint,
+        )
 
 
 def input_file(path: Path | None, hint: str) -> Path | None:

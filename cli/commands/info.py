@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from cli.checks import is_local, open_store_arg
+from cli.checks import is_local, not_a_store, open_store_arg
 from cli.common import fail_on_errors
 from cli.formatters import format_info
 from cli.options import StorageOptionsOpt, store_location
@@ -28,6 +28,7 @@ def info(
     with fail_on_errors():
         if is_local(store) and not Path(store).exists():
             open_store_arg(store)  # the usage error
+        not_a_store(store)
         d = store_info(store_location(store, storage_options))
         if as_json:
             typer.echo(json.dumps(d, indent=2))

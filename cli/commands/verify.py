@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from cli.checks import input_file, is_local, open_store_arg
+from cli.checks import input_file, is_local, not_a_store, open_store_arg
 from cli.common import EXIT_RUNTIME, fail_on_errors
 
 MAX_LISTED = 20  # problems printed one per line; the rest are counted (all are in --json)
@@ -37,6 +37,7 @@ def verify(
     with fail_on_errors():
         if is_local(store) and not Path(store).exists():
             open_store_arg(store)  # the usage error
+        not_a_store(store)
         for path in source or []:
             input_file(path, "--source")
         rep = verify_store(store, source=source or None)

@@ -75,6 +75,12 @@ CASES = {
                                 "the directory '{tmp}/no' for {tmp}/no/s.zarr does not exist"),
     "tile-dst-is-file": (["tile", "{src}", "{src}", "--block-size", "33"], 2,
                          "exists and is a file, not a store directory"),
+    # the DEM given where its store belongs: "NotADirectoryError: ... 'dem.tif/zarr.json'", and
+    # verify called it "damaged beyond what --repair mends"
+    "render-store-is-file": (["render", "{src}", "-o", "{tmp}/v.png"], 2,
+                             "is a file, not a store (a directory `terrastream tile` makes)"),
+    "info-store-is-file": (["info", "{src}"], 2, "if it is a DEM, tile it first: terrastream tile"),
+    "verify-store-is-file": (["verify", "{src}"], 2, "is a file, not a store"),
     "flythrough-out-proc": (["flythrough", "{store}", "--out", "/proc/terrastream-frames"], 2,
                             "cannot create the directory '/proc/terrastream-frames'"),
     "flythrough-out-is-file": (["flythrough", "{store}", "--out", "{src}"], 2,
