@@ -500,6 +500,11 @@ def open_store(
     loc = as_location(url)
     if loc.is_local and not os.path.exists(loc.path):
         raise StoreError(f"no store at {loc.url!r}: the path does not exist")
+    if loc.is_local and os.path.isfile(loc.path):  # (a DEM where its store was meant)
+        raise StoreError(
+            f"{loc.url!r} is a file, not a store (a directory tiler.tile.tile makes); if it is "
+            "a DEM, tile it first"
+        )
     from tiler.remote import check_range_support
 
     check_range_support(loc.url)  # HTTP servers must serve byte ranges

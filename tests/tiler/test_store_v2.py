@@ -25,6 +25,7 @@ from tiler.errors import (
     MissingChunkError,
     StoreChangedError,
     StoreCorruptError,
+    StoreError,
     StoreExistsError,
     StoreLockedError,
     StoreVersionError,
@@ -641,3 +642,17 @@ def test_every_backend_reads_verifies_and_checks_generation(store_url):
     s.check_unchanged(force=True)  # quiet: nothing changed
     assert verify_store(url, source=src).ok
     assert s.nbytes()["total"] > 0 or url.startswith("http")  # HTTP cannot list
+
+
+def test_a_file_is_not_a_store(dem_factory, tmp_path):
+    """The DEM given where its store was meant raised NotADirectoryError on 'dem.tif/zarr.json'
+    (the API: open_store, open_session, xarray's engine); a StoreError naming it now."""
+    from streamer.session import open_session
+    from tiler.store import open_store
+
+    src = dem_factory(fractal((40, 40), 6))
+    for opener in (open_store, open_session):
+        with pytest.raises(StoreError, match="is a file, not a store"):
+            opener(str(src))
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=33))
+    assert open_store(tmp_path / "s.zarr").meta.complete  # the control: the store opens
