@@ -275,10 +275,10 @@ def test_a_colour_band_is_tiled_with_a_warning(tmp_path, caplog):
         d.write_colormap(1, {i: (i, 255 - i, 0, 255) for i in range(256)})
     for src, what in ((rgb, "the red channel of an image"), (pal, "a palette's colour indices")):
         caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="tiler.mosaic"):
+        with caplog.at_level(logging.WARNING, logger="tiler.source_header"):
             tile(src, tmp_path / f"{src.stem}.zarr", TileOptions(block_size=65))
         assert f"band 1 of '{src}' holds {what}, not heights" in caplog.text, caplog.text
     caplog.clear()  # the control: a grey band of heights
-    with caplog.at_level(logging.WARNING, logger="tiler.mosaic"):
+    with caplog.at_level(logging.WARNING, logger="tiler.source_header"):
         tile(write_dem(tmp_path / "g.tif", data), tmp_path / "g.zarr", TileOptions(block_size=65))
     assert "not heights" not in caplog.text

@@ -1,0 +1,151 @@
+"""One source raster's header, read and checked: what the mosaic needs to place and read it
+(:class:`SourceInfo`, :func:`read_info`), and the refusals and warnings a file's own
+declarations call for (no geotransform, a nodata no sample can take, a colour band)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import rasterio
+import rasterio.errors
+from rasterio.enums import ColorInterp, MaskFlags
+
+from tiler.encoding import parse_dtype
+from tiler.errors import SourceError, SourceNotFoundError
+from tiler.store import is_url
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """One source raster's header: what the mosaic needs to place and read it."""
+
+    path: str
+    width: int
+    height: int
+    transform: tuple[float, float, float, float, float, float]  # Affine order a..f
+    crs_wkt: str | None
+    dtype: str
+    nodata: float | None
+    scale: float
+    offset: float
+    units: str | None
+    size_bytes: int | None
+    footprint: tuple[int, int, int, int] = (0, 0, 0, 0)  # row0, col0, row1, col1 on the target
+    # when reprojecting: the hull of the source's sample centres in target coordinates (a ring)
+    hull: tuple[tuple[float, float], ...] = ()
+    # GDAL marks the band's invalid samples by a mask (a per-dataset mask or an alpha band)
+    masked: bool = False
+
+
+def _open(path: str) -> rasterio.DatasetReader:
+    if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
+        raise SourceNotFoundError(f"source raster {path!r} does not exist")
+    try:
+        with warnings.catch_warnings():  # (no geotransform: read_info says what to do)
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            return rasterio.open(path)
+    except rasterio.errors.RasterioIOError as exc:
+        raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
+
+
+def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
+    """Refuse a raster without a geotransform (GDAL's identity and no CRS), naming what it has
+    instead (ground control points, RPCs or nothing) and how to put it on a grid."""
+    if not (ds.transform.is_identity and ds.crs is None):
+        return
+    name = os.path.basename(path.rstrip("/"))
+    gcps, gcp_crs = ds.gcps
+    if gcps:
+        srs = f"EPSG:{gcp_crs.to_epsg()}" if gcp_crs and gcp_crs.to_epsg() else "<CRS>"
+        raise SourceError(
+            f"{path!r} is georeferenced by {len(gcps)} ground control points, not a "
+            f"geotransform; warp it onto a grid first, e.g. `gdalwarp -t_srs {srs} {name} "
+            "grid.tif`, and tile that"
+        )
+    if ds.rpcs:
+        raise SourceError(
+            f"{path!r} is georeferenced by RPCs, not a geotransform; orthorectify it onto a "
+            f"grid first, e.g. `gdalwarp -rpc -t_srs <CRS> {name} grid.tif`, and tile that"
+        )
+    raise SourceError(
+        f"{path!r} is not georeferenced (no geotransform, ground control points or RPCs); "
+        f"give it a grid first, e.g. `gdal_translate -a_ullr 0 {ds.height} {ds.width} 0 {name} "
+        "grid.tif` for one unit per sample (add -a_srs <CRS> for a CRS), and tile that"
+    )
+
+
+def _warn_colour(path: str, band: int, interp: ColorInterp) -> None:
+    """Warn when the band GDAL names a colour (a palette's indices, an RGB image's channel):
+    its values are tiled as heights all the same."""
+    colours = {ColorInterp.palette: "a palette's colour indices"}
+    for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha):
+        colours[c] = f"the {c.name} channel of an image"
+    what = colours.get(interp)
+    if what is not None:
+        log.warning(
+            "band %d of %r holds %s, not heights as far as GDAL knows; it is tiled as heights "
+            "(a DEM is one band of heights: check the file, or choose the band)",
+            band,
+            path,
+            what,
+        )
+
+
+def _check_nodata(path: str, dtype: str, nodata: float | None) -> None:
+    """Refuse an integer band whose declared nodata no sample can take (a fraction; rasterio
+    already drops NaN and out-of-range ones): GDAL then reads none as nodata, while casting it
+    would hide another value."""
+    dt = np.dtype(dtype)
+    if nodata is None or dt.kind not in "iu" or not math.isfinite(nodata):
+        return
+    info = np.iinfo(dt)
+    inside = info.min <= nodata <= info.max
+    if nodata != math.floor(nodata) or not inside:
+        cast = f", cast to {dt.name} it would hide the samples equal to {int(nodata)}"
+        raise SourceError(
+            f"{path!r} declares nodata {nodata:g} for its {dt.name} samples, which none can "
+            f"take (GDAL reads none as nodata{cast if inside else ''}); fix the declaration: "
+            "`gdal_edit.py -a_nodata V` with the value its nodata samples hold, or "
+            "`-unsetnodata` (a file you cannot edit: `gdal_translate -of VRT -a_nodata V` "
+            "and tile the VRT)"
+        )
+
+
+def read_info(path: str, band: int) -> SourceInfo:
+    """Header of one source (opened and closed again)."""
+    with _open(path) as ds:
+        if band > ds.count:
+            raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
+        if ds.height < 2 or ds.width < 2:
+            raise SourceError(
+                f"{path!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2"
+            )
+        t = ds.transform
+        _check_georeferenced(ds, path)
+        nodata = ds.nodatavals[band - 1]
+        _check_nodata(path, ds.dtypes[band - 1], nodata)
+        flags = ds.mask_flag_enums[band - 1]
+        _warn_colour(path, band, ds.colorinterp[band - 1])
+        units = ds.units[band - 1] if ds.units else None
+        size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None
+        return SourceInfo(
+            path=path,
+            width=ds.width,
+            height=ds.height,
+            transform=(t.a, t.b, t.c, t.d, t.e, t.f),
+            crs_wkt=ds.crs.to_wkt() if ds.crs else None,
+            dtype=parse_dtype(ds.dtypes[band - 1]).name,
+            nodata=None if nodata is None else float(nodata),
+            scale=float(ds.scales[band - 1]) if ds.scales else 1.0,
+            offset=float(ds.offsets[band - 1]) if ds.offsets else 0.0,
+            units=units or None,
+            size_bytes=size,
+            masked=MaskFlags.per_dataset in flags or MaskFlags.alpha in flags,
+        )
