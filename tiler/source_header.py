@@ -121,6 +121,17 @@ def _check_nodata(path: str, dtype: str, nodata: float | None) -> None:
 def read_info(path: str, band: int) -> SourceInfo:
     """Header of one source (opened and closed again)."""
     with _open(path) as ds:
+        if ds.count == 0:  # GDAL opened it (a zarr store, a vector file...) but as no raster
+            if os.path.isfile(os.path.join(path, "zarr.json")):
+                raise SourceError(
+                    f"{path!r} is a zarr store, not a DEM (a terrastream store is tiled "
+                    f"already: `terrastream export {path} dem.tif` rebuilds its DEM); give the "
+                    "source DEM"
+                )
+            raise SourceError(
+                f"{path!r} has no raster bands (GDAL's {ds.driver} driver opened it); give a "
+                "DEM raster"
+            )
         if band > ds.count:
             raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
         if ds.height < 2 or ds.width < 2:

@@ -282,3 +282,13 @@ def test_a_colour_band_is_tiled_with_a_warning(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="tiler.source_header"):
         tile(write_dem(tmp_path / "g.tif", data), tmp_path / "g.zarr", TileOptions(block_size=65))
     assert "not heights" not in caplog.text
+
+
+def test_a_store_given_as_the_source_is_named(tmp_path):
+    """`tile dem.zarr out.zarr` (the arguments swapped, or a store for a DEM) said "band 1 does
+    not exist: 'dem.zarr' has 0 band(s)" (GDAL's zarr driver opens it with no bands)."""
+    src = write_dem(tmp_path / "d.tif", fractal((40, 30), 12))
+    tile(src, tmp_path / "d.zarr", TileOptions(block_size=33))
+    with pytest.raises(SourceError, match=r"is a zarr store, not a DEM .*terrastream export"):
+        tile(tmp_path / "d.zarr", tmp_path / "out.zarr", TileOptions(block_size=33))
+    assert not (tmp_path / "out.zarr").exists()  # refused before anything was written
