@@ -115,20 +115,19 @@ class BlockWorker:
             )
         except HeightRangeError as exc:  # where in the DEM, and which source
             r0, c0, _, _ = self.grid.block_window(br, bc)
-            name = os.path.basename(self.ds.spec.sources[0].path.rstrip("/"))
-            more = (
-                f" (+ {len(self.ds.spec.sources) - 1} more)"
-                if len(self.ds.spec.sources) > 1
-                else ""
-            )
+            row, col = r0 + exc.row, c0 + exc.col
+            srcs = self.ds.spec.sources
+            hits = self.ds.sources_for(row, col, 1, 1) or [0]  # (of a mosaic: the sample's)
+            name = os.path.basename(srcs[hits[0]].path.rstrip("/"))
+            more = " (or a source after it)" if len(hits) > 1 else ""
             raise HeightRangeError(
-                f"{name}{more}, block {(br, bc)}, first at row {r0 + exc.row}, column "
-                f"{c0 + exc.col} of the DEM: " + str(exc).replace(" SRC`", f" {name}`"),
+                f"{name}{more}, block {(br, bc)}, first at row {row}, column {col} of the "
+                "DEM: " + str(exc).replace(" SRC`", f" {name}`"),
                 value=exc.value,
                 raw=exc.raw,
                 count=exc.count,
-                row=r0 + exc.row,
-                col=c0 + exc.col,
+                row=row,
+                col=col,
             ) from None
         rule = self.params.sparse_byte
         sparse = (

@@ -108,3 +108,15 @@ def test_a_store_tiled_with_such_values_before_is_refused_by_the_viewers(tmp_pat
     tile(ok, tmp_path / "ok.zarr", TileOptions(block_size=33, workers=1))
     with open_session(str(tmp_path / "ok.zarr")) as s:
         assert s.store.meta.complete
+
+
+def test_in_a_mosaic_the_source_holding_the_sample_is_named(tmp_path):
+    west = write_dem(tmp_path / "west.tif", fractal((40, 30), 5, dtype="float32"))
+    east_data = fractal((40, 30), 6, dtype="float32")
+    east_data[10, 12] = F32_MIN
+    east = write_dem(tmp_path / "east.tif", east_data, origin=(500000.0 + 30 * 30, 5e6))
+    with pytest.raises(HeightRangeError) as e:
+        tile([west, east], tmp_path / "m.zarr", TileOptions(block_size=33, workers=1))
+    msg = str(e.value)  # (the control, west's name, would be the mosaic's first source)
+    assert msg.startswith("east.tif, block (0, 1), first at row 10, column 42"), msg
+    assert "`gdal_edit.py -a_nodata -3.4028234663852886e+38 east.tif`" in msg, msg
