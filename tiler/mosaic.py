@@ -346,6 +346,10 @@ class MosaicReader:
         self._fp = fp
         self.dtype = np.dtype(spec.dtype)
         self.height, self.width = spec.height, spec.width
+        # the nodata value :func:`_mosaic_nodata` chose (no source declares one), if a sample
+        # could take it (not NaN): a valid sample equal to it would read as nodata
+        chosen = spec.nodata is not None and not np.isnan(spec.nodata)
+        self._chosen = chosen and all(s.nodata is None for s in spec.sources)
 
     def __enter__(self) -> MosaicReader:
         return self
@@ -459,11 +463,9 @@ class MosaicReader:
     def _check_chosen_nodata(self, data: np.ndarray, valid: np.ndarray | None, i: int) -> None:
         """Refuse a valid sample equal to a nodata value no source declared (the one
         :func:`_mosaic_nodata` chose for gaps and masked samples): it would read as nodata."""
+        if not self._chosen:
+            return
         spec = self.spec
-        if spec.nodata is None or np.isnan(spec.nodata):
-            return
-        if any(s.nodata is not None for s in spec.sources):
-            return
         same = data == np.asarray(spec.nodata).astype(data.dtype)
         if valid is not None:
             same &= valid

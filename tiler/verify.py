@@ -371,9 +371,9 @@ def _check_source(
     rep.source_checked = True
     grid = meta.grid
     src = paths[0] if len(paths) == 1 else f"{paths[0]} + {len(paths) - 1} more"
-    band = int((meta.extra.get("job") or {}).get("band") or 1)
     n_store = len(meta.source.get("paths") or [meta.source.get("path")])
     with MosaicReader(source_plan(paths, meta)) as ds:
+        band = ds.spec.band
         why = _same_grid(ds.spec, meta)
         if why is not None:
             more = (
