@@ -17,7 +17,8 @@ from rasterio.crs import CRS
 from rasterio.errors import CRSError
 from rasterio.warp import transform_bounds
 
-from tiler.errors import GeographicStoreError, SourceError, StoreHeightsError
+from tiler.errors import GeographicStoreError, SourceError
+from tiler.vertical import require_heights
 
 UTM_MARGIN_DEG = 1.0  # how far past its 6-degree zone an extent may reach and still use UTM
 UTM_LAT_RANGE = (-80.0, 84.0)
@@ -163,28 +164,6 @@ def non_metre_unit(crs_wkt: str | None) -> tuple[str, float] | None:
     return unit if unit is not None and abs(unit[1] - 1.0) > 1e-9 else None
 
 
-#: metres, as ``tiler.tile.MAX_HEIGHT_M`` (which refuses such samples since; a store tiled before
-#: may hold them)
-MAX_DRAWABLE_M = 1e6
-
-
-def _require_heights(meta: Any, where: str, src: str) -> None:
-    """Refuse a store whose value range reaches beyond ±1000 km (float32's -3.4e38 tiled as a
-    height: the draw failed with "argument out of range")."""
-    vr = (getattr(meta, "extra", None) or {}).get("value_range")
-    if not vr or not all(v == v for v in vr):
-        return
-    worst = max(vr, key=abs)
-    if abs(worst) < MAX_DRAWABLE_M:
-        return
-    raise StoreHeightsError(
-        f"{where} holds heights of {worst:g} m, beyond ±{MAX_DRAWABLE_M / 1e3:g} km: not "
-        "terrain (an undeclared nodata value, or heights in other units), so it cannot be "
-        f"streamed or rendered. Declare it in the source (`gdal_edit.py -a_nodata V {src}`) "
-        "and tile it again with --overwrite (this version refuses such samples)"
-    )
-
-
 def require_projected(meta_or_store: Any) -> None:
     """Raise ``GeographicStoreError`` if a store (or its ``StoreMeta``) is in a geographic CRS
     or one whose x/y are not metres, ``StoreHeightsError`` if it holds values beyond ±1000 km.
@@ -196,7 +175,7 @@ def require_projected(meta_or_store: Any) -> None:
     url = getattr(meta_or_store, "url", None)
     where = f"store {url!r}" if url else "this store"
     src = (getattr(meta, "source", None) or {}).get("path") or "SRC"
-    _require_heights(meta, where, str(src))
+    require_heights(meta, where, str(src))
     unit = non_metre_unit(wkt)
     if unit is not None:
         raise GeographicStoreError(

@@ -55,10 +55,10 @@ class SourceNotFoundError(SourceError, FileNotFoundError):
 
 class HeightRangeError(SourceError):
     """Valid samples beyond any terrain's heights (an undeclared nodata value, other units):
-    ``value`` (metres), ``raw`` (as stored), ``count`` and the first one's ``row``/``col`` in
-    its block's window."""
+    ``value`` (metres), ``raw`` (the first one as the source holds it, written out),
+    ``count`` and the first one's ``row``/``col`` (in its block's window, or in the DEM)."""
 
-    def __init__(self, message: str, *, value: float, raw: float, count: int, row: int, col: int):
+    def __init__(self, message: str, *, value: float, raw: str, count: int, row: int, col: int):
         super().__init__(message)
         self.value, self.raw, self.count, self.row, self.col = value, raw, count, row, col
 
@@ -66,7 +66,7 @@ class HeightRangeError(SourceError):
         return (_height_range, (str(self), self.value, self.raw, self.count, self.row, self.col))
 
 
-def _height_range(msg: str, value: float, raw: float, count: int, row: int, col: int):
+def _height_range(msg: str, value: float, raw: str, count: int, row: int, col: int):
     return HeightRangeError(msg, value=value, raw=raw, count=count, row=row, col=col)
 
 

@@ -34,6 +34,7 @@ from tiler.location import Location, as_location
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk, is_sparse
 from tiler.source import _open_source, read_window
+from tiler.vertical import height_range_message
 from tiler.zarr_batch import open_arrays
 
 log = logging.getLogger("tiler.tile")
@@ -122,7 +123,7 @@ class BlockWorker:
             more = " (or a source after it)" if len(hits) > 1 else ""
             raise HeightRangeError(
                 f"{name}{more}, block {(br, bc)}, first at row {row}, column {col} of the "
-                "DEM: " + str(exc).replace(" SRC`", f" {name}`"),
+                f"DEM: {height_range_message(exc.count, exc.value, exc.raw, name)}",
                 value=exc.value,
                 raw=exc.raw,
                 count=exc.count,

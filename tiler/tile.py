@@ -63,6 +63,7 @@ from tiler.source import (
     read_window,
 )
 from tiler.store import StoreMeta, TerrainStore, read_meta, write_meta
+from tiler.vertical import MAX_HEIGHT_M, height_range_message
 
 __all__ = [
     "BlockParams",
@@ -231,27 +232,18 @@ def valid_mask(data: np.ndarray, nodata: float | None) -> np.ndarray:
     return valid
 
 
-#: metres: a valid sample beyond ±1000 km is not a height (Earth's relief is -11..+9 km,
-#: Mars' -8..+21 km) but an undeclared nodata value (-3.4e38) or heights in other units;
-#: tiled, it overflows the error bounds and cannot be drawn
-MAX_HEIGHT_M = 1e6
-
-
 def _height_range(data: np.ndarray, valid: np.ndarray, params: BlockParams) -> HeightRangeError:
     """The :class:`HeightRangeError` of the first valid sample of ``data`` beyond
     :data:`MAX_HEIGHT_M` (its row and column in the window, the count of such samples)."""
     metres = data.astype(np.float64) * params.z_scale + params.z_offset
     bad = valid & ~(np.abs(metres) < MAX_HEIGHT_M)
     r, c = (int(v[0]) for v in np.nonzero(bad))
-    raw = data[r, c].item()
+    raw, count = repr(data[r, c].item()), int(bad.sum())
     return HeightRangeError(
-        f"{int(bad.sum()):,} sample(s) of {metres[r, c]:g} m: beyond ±{MAX_HEIGHT_M / 1e3:g} km, "
-        f"not a height. If {raw!r} marks nodata, declare it (`gdal_edit.py -a_nodata {raw!r} "
-        "SRC`, or tile a VRT: `gdal_translate -of VRT -a_nodata ...`); if the heights are in "
-        "other units, declare the band's scale or units",
+        height_range_message(count, float(metres[r, c]), raw),
         value=float(metres[r, c]),
-        raw=float(raw),
-        count=int(bad.sum()),
+        raw=raw,
+        count=count,
         row=r,
         col=c,
     )

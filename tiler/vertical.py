@@ -109,3 +109,40 @@ def height_dtype(meta: Any) -> np.dtype:
     if height_transform(meta) != (1.0, 0.0):
         return np.dtype(np.float64)
     return np.dtype(meta.dtype)
+
+
+#: metres: a valid sample beyond ±1000 km is not a height (Earth's relief is -11..+9 km, Mars'
+#: -8..+21 km) but an undeclared nodata value (float32's -3.4e38) or heights in other units;
+#: tiled, it overflowed the error bounds and could not be drawn (``tiler.tile`` refuses such
+#: samples, :func:`require_heights` stores tiled before it did)
+MAX_HEIGHT_M = 1e6
+
+
+def height_range_message(count: int, metres: float, raw: str, src: str = "SRC") -> str:
+    """Why ``count`` samples, the first ``raw`` as the source holds it (``metres`` as a height),
+    are refused, and the declarations that fix it in the source ``src``."""
+    return (
+        f"{count:,} sample(s) of {metres:g} m: beyond ±{MAX_HEIGHT_M / 1e3:g} km, not a "
+        f"height. If {raw} marks nodata, declare it (`gdal_edit.py -a_nodata {raw} {src}`, or "
+        "tile a VRT: `gdal_translate -of VRT -a_nodata ...`); if the heights are in other "
+        "units, declare the band's scale or units"
+    )
+
+
+def require_heights(meta: Any, where: str, src: str) -> None:
+    """Refuse a store whose recorded value range reaches beyond :data:`MAX_HEIGHT_M` (tiled
+    before such samples were refused: the draw failed with "argument out of range")."""
+    from tiler.errors import StoreHeightsError
+
+    vr = (getattr(meta, "extra", None) or {}).get("value_range")
+    if not vr or not all(v == v for v in vr):
+        return
+    worst = max(vr, key=abs)
+    if abs(worst) < MAX_HEIGHT_M:
+        return
+    raise StoreHeightsError(
+        f"{where} holds heights of {worst:g} m, beyond ±{MAX_HEIGHT_M / 1e3:g} km: not "
+        "terrain (an undeclared nodata value, or heights in other units), so it cannot be "
+        f"streamed or rendered. Declare it in the source (`gdal_edit.py -a_nodata V {src}`) "
+        "and tile it again with --overwrite (this version refuses such samples)"
+    )
