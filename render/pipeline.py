@@ -1,18 +1,17 @@
-"""Rendering with a streaming session: single views, the tau trade-off sweep, fly-throughs."""
+"""Rendering with a streaming session: single views and the tau trade-off sweep (fly-throughs:
+:mod:`render.flythrough`)."""
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from render import coverage, cracks, measure
-from render.errors import RenderError
 from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step, stream_step
@@ -387,108 +386,6 @@ def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "")
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
-
-
-@dataclass(frozen=True)
-class FlyRow:
-    """One fly-through frame (a CSV row)."""
-
-    frame: int
-    triangles: int
-    patches: int
-    selection_ms: float
-    gpu_ms: float
-    loaded_mb: float
-    resident_mb: float
-    stalled: bool
-    clamped: int
-
-
-def flythrough(
-    store: TerrainStore,
-    cameras: Sequence[Camera],
-    out_dir: str | Path,
-    *,
-    tau: float = 1.0,
-    metric: str = "qiu",
-    patch_log2: int = 4,
-    workers: int = 2,
-    budget_mb: float = 256.0,
-    fps: float = 30.0,
-    save_every: int = 1,
-    on_frame: Callable[[FlyRow], None] | None = None,
-    lod: str = DEFAULT,
-    options: ViewOptions | None = None,
-) -> tuple[list[FlyRow], dict[str, Any]]:
-    """Stream and render each camera with strategy ``lod``; write PNG frames and
-    ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
-    ``metric`` and ``patch_log2``, and how frames are drawn)."""
-    o = options or ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
-    lod, tau, metric = o.lod, o.tau, o.metric
-    from PIL import Image
-
-    if not cameras:
-        raise RenderError("the camera path has no frames")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
-    strat = get_strategy(lod, r, **o.strategy_options())
-    draw = o.draw_options()
-    rows: list[FlyRow] = []
-    with open_session(
-        store,
-        budget_mb=budget_mb,
-        workers=workers,
-        tau=tau,
-        metric=stream_metric(lod, metric),
-        patch_log2=r.p,
-        culling="hull",
-        fps=fps,
-        nodata=o.nodata,
-    ) as session:
-        for i, cam in enumerate(cameras):
-            step = frame_step(
-                session, strat, cam, tau, metric, dt=1.0 / fps, wait=i == 0, options=draw
-            )
-            frame, st, ms = step.frame, step.stats, step.selection_ms
-            if save_every and i % save_every == 0:
-                Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
-            fs = frame.stats
-            row = FlyRow(
-                frame=i,
-                triangles=st.triangles,
-                patches=st.patches,
-                selection_ms=ms,
-                gpu_ms=st.frame_ms,
-                loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
-                resident_mb=fs.resident_bytes / 2**20,
-                stalled=fs.stalled,
-                clamped=st.clamped,
-            )
-            rows.append(row)
-            if on_frame:
-                on_frame(row)
-        summary = session.summary()
-    r.close()
-    with open(out / "frames.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
-        w.writeheader()
-        for row in rows:
-            w.writerow(asdict(row))
-    tri = np.array([x.triangles for x in rows])
-    summary = {
-        "frames": len(rows),
-        "mean_triangles": float(tri.mean()),
-        "max_triangles": int(tri.max()),
-        "mean_selection_ms": float(np.mean([x.selection_ms for x in rows])),
-        "max_selection_ms": float(np.max([x.selection_ms for x in rows])),
-        "mean_gpu_ms": float(np.mean([x.gpu_ms for x in rows])),
-        "stall_frames": int(sum(x.stalled for x in rows)),
-        "clamped_frames": int(sum(x.clamped > 0 for x in rows)),
-        "loaded_mb": float(summary["loaded_bytes"] / 2**20),
-        "peak_resident_mb": float(summary["peak_resident_bytes"] / 2**20),
-    }
-    return rows, summary
 
 
 def finite(x: float) -> float | None:

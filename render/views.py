@@ -14,11 +14,12 @@ import numpy as np
 
 from render.errors import CameraSpecError
 from streamer.camera import Camera
+from streamer.clip import MIN_NEAR, near_plane
+from streamer.clip import reach as scene_reach
+from streamer.clip import zrange as _zrange
 from streamer.errors import CameraError
 from tiler.store import TerrainStore
 
-#: the smallest near plane (m): log depth resolves it together with a far plane of 1e6 km
-MIN_NEAR = 0.01
 #: elongation (long / short horizontal side) beyond which the overview looks along the DEM
 STRIP_RATIO = 4.0
 
@@ -33,44 +34,6 @@ def parse_triple(text: str, name: str) -> tuple[float, float, float]:
         template = "{" + name + "} must be three numbers x,y,z, got {got}"
         raise CameraSpecError(template, got=repr(text))
     return vals  # type: ignore[return-value]
-
-
-def _zrange(store: TerrainStore) -> tuple[float, float]:
-    idx = store.index
-    with np.errstate(invalid="ignore"):
-        lo, hi = float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax))
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        return 0.0, 0.0
-    return lo, hi
-
-
-def _local_top(store: TerrainStore, x: float, y: float, radius: float) -> float:
-    """The highest stored block top within ``radius`` (m) of ``(x, y)`` (the global top when
-    the store gives no block geometry); ``-inf`` when no block is that near."""
-    g, zmax = store.grid, np.asarray(store.index.zmax, dtype=np.float64)
-    if not hasattr(g, "block_bounds"):
-        return _zrange(store)[1]
-    br, bc = np.meshgrid(np.arange(zmax.shape[0]), np.arange(zmax.shape[1]), indexing="ij")
-    x0, y0, x1, y1 = g.block_bounds(br, bc)
-    ddx = np.maximum(np.maximum(x0 - x, x - x1), 0.0)
-    ddy = np.maximum(np.maximum(y0 - y, y - y1), 0.0)
-    near = (np.hypot(ddx, ddy) <= radius) & np.isfinite(zmax)
-    return float(zmax[near].max()) if near.any() else -math.inf
-
-
-def near_plane(
-    store: TerrainStore, eye: tuple[float, float, float], tan_half_diagonal: float, cap: float
-) -> float:
-    """A near plane (at most ``cap``, at least :data:`MIN_NEAR`) that clips no terrain: half the
-    camera's clearance above the highest block top within reach of the near rectangle, divided
-    by ``1 + tan_half_diagonal`` (the rectangle's corners reach that far below the eye)."""
-    reach = cap * (1.0 + tan_half_diagonal) * 2.0
-    top = _local_top(store, eye[0], eye[1], reach)
-    clearance = eye[2] - top
-    if not math.isfinite(clearance):
-        return max(cap, MIN_NEAR)
-    near = 0.5 * clearance / (1.0 + tan_half_diagonal)
-    return float(min(max(near, MIN_NEAR), max(cap, MIN_NEAR)))
 
 
 def _tan_half_diag(size: tuple[int, int], fov: float) -> float:
@@ -166,13 +129,7 @@ def make_camera(
             raise CameraSpecError("{look_at}/{yaw}/{pitch} need {position} x,y,z")
         return overview_camera(store, size, fov)
     eye = parse_triple(position, "position")
-    x0, y0, x1, y1 = store.grid.extent
-    zlo, zhi = _zrange(store)
-    reach = (
-        math.hypot(x1 - x0, y1 - y0)
-        + math.hypot(eye[0] - 0.5 * (x0 + x1), eye[1] - 0.5 * (y0 + y1))
-        + abs(eye[2] - zlo)
-    )
+    reach = scene_reach(store, eye)
     if look_at is not None:
         if yaw is not None or pitch is not None:
             raise CameraSpecError("give either {look_at} or {yaw}/{pitch}, not both")

@@ -21,6 +21,10 @@ class KeyframeError(PathError):
     """A keyframe file that is malformed (missing columns, unsorted or non-finite values)."""
 
 
+class PathOutOfViewError(PathError):
+    """A camera path none of whose frames sees the DEM: its figures and frames would be vacuous."""
+
+
 class FrustumError(StreamerError, ValueError):
     """A polygon, frame rate, extension length or culling mode that is not valid."""
 

@@ -20,7 +20,8 @@ import numpy as np
 
 from streamer import paths
 from streamer.camera import Camera
-from streamer.errors import PathError
+from streamer.clip import fit_clip
+from streamer.errors import PathError, PathOutOfViewError
 from streamer.session import FrameStats, Session
 from tiler.store import TerrainStore
 
@@ -81,14 +82,21 @@ def make_path(
 ) -> list[Camera]:
     """A fly-through over the store: a keyframe file, or one of :data:`PATH_KINDS`.
 
-    Speeds are world units per second (default: one block edge per second).
+    Speeds are world units per second (default: one block edge per second). A keyframe file's
+    cameras see the whole DEM: their clipping planes are :func:`streamer.clip.fit_clip`'s
+    unless ``near`` or ``far`` is given.
     """
     grid = store.grid
     zmin, zmax = store.meta.extra.get("value_range", (0.0, 0.0))
     edge = grid.step * grid.dx
     v = edge if speed is None else float(speed)
     if path_file is not None:
-        return paths.keyframes(path_file, frames, **camera_kw)
+        cams = paths.keyframes(path_file, frames, **camera_kw)
+        if "near" in camera_kw or "far" in camera_kw:
+            return cams
+        # clipping planes as `render --camera` chooses them: a far plane beyond the whole DEM
+        # (a fixed one left a camera 150 km up seeing nothing), a near one from the clearance
+        return [fit_clip(store, c) for c in cams]
     x0, y0, x1, y1 = grid.extent
     cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
     height = zmax + max(0.1 * (zmax - zmin), 0.02 * edge)
@@ -168,6 +176,22 @@ def run_flythrough(
         if on_frame is not None:
             on_frame(i, frame.stats)
     return RunResult(rows=rows, summary=session.summary())
+
+
+def out_of_view(store: TerrainStore, frames: int) -> PathOutOfViewError:
+    """The error for a camera path of ``frames`` frames none of which sees the DEM."""
+    x0, y0, x1, y1 = store.grid.extent
+    return PathOutOfViewError(
+        f"none of the {frames} frame(s) of the camera path sees the DEM (x {x0:.0f} .. "
+        f"{x1:.0f}, y {y0:.0f} .. {y1:.0f}): there is nothing to stream or draw; point the "
+        "path at the terrain"
+    )
+
+
+def require_view(result: RunResult, store: TerrainStore) -> None:
+    """Raise :class:`PathOutOfViewError` when no frame of ``result`` had a block in view."""
+    if result.rows and not any(r["visible_blocks"] for r in result.rows):
+        raise out_of_view(store, len(result.rows))
 
 
 def plot_run(result: RunResult, out: str | Path, title: str = "") -> None:

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import input_file, open_store_arg, output_dir
-from cli.common import fail_on_errors
+from cli.common import UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -61,8 +61,9 @@ def flythrough(
 
     Example: terrastream flythrough demo.zarr --frames 120 --tau 1 --out frames/
     """
+    from render.flythrough import flythrough as run
     from render.pipeline import ViewOptions
-    from render.pipeline import flythrough as run
+    from streamer.errors import PathOutOfViewError
     from streamer.run import make_path
 
     with fail_on_errors():
@@ -85,17 +86,20 @@ def flythrough(
                     f"{r.loaded_mb:>7.2f} {'yes' if r.stalled else ''}"
                 )
 
-        _, summary = run(
-            s,
-            cams,
-            out,
-            workers=workers,
-            budget_mb=budget_mb,
-            fps=fps,
-            save_every=every,
-            on_frame=on_frame,
-            options=opts,
-        )
+        try:
+            _, summary = run(
+                s,
+                cams,
+                out,
+                workers=workers,
+                budget_mb=budget_mb,
+                fps=fps,
+                save_every=every,
+                on_frame=on_frame,
+                options=opts,
+            )
+        except PathOutOfViewError as exc:
+            raise UsageError(str(exc), hint="--path") from None
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
         typer.echo(
             f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
@@ -104,6 +108,19 @@ def flythrough(
             f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MiB; "
             f"wrote {out}/frames.csv"
         )
+        if summary["empty_frames"]:
+            n, unseen = summary["empty_frames"], summary["unseen_frames"]
+            why = "the camera sees none of the DEM there"
+            if unseen < n:
+                why = (
+                    f"{unseen} saw none of the DEM, {n - unseen} had none of its levels loaded "
+                    "yet (stalled)"
+                )
+            typer.echo(
+                f"warning: {n} of {summary['frames']} frames drew no terrain (the first: frame "
+                f"{summary['first_empty_frame']}): {why}",
+                err=True,
+            )
 
 
 def register(app: typer.Typer) -> None:

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
-from cli.common import EXIT_RUNTIME, fail_on_errors
+from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
 from cli.formatters import format_summary
 from cli.options import (
     METRIC_DEFAULT,
@@ -62,7 +62,8 @@ def stream(
 
     Example: terrastream stream demo.zarr --frames 600 --latency-ms 20 --plot io.png
     """
-    from streamer.run import make_path, plot_run, run_flythrough
+    from streamer.errors import PathOutOfViewError
+    from streamer.run import make_path, plot_run, require_view, run_flythrough
     from streamer.session import SessionConfig, open_session
 
     with fail_on_errors():
@@ -107,6 +108,10 @@ def stream(
                 result = run_flythrough(session, cams, on_frame=on_frame)
             finally:
                 bar.close()
+        try:  # before any output: a flight that saw nothing is an error
+            require_view(result, s)
+        except PathOutOfViewError as exc:
+            raise UsageError(str(exc), hint="--path") from None
         typer.echo("\n".join(lines))
         typer.echo("")
         typer.echo(format_summary(result.summary))

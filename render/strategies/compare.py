@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from render import measure
+from render.errors import EmptyViewError
 from render.pipeline import ViewOptions, open_render_session, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step, stream_step
@@ -176,10 +177,16 @@ def compare(
     for name in names:
         strat = get_strategy(name, r, **nodata_options(name, o.nodata))
         for tau in taus:
-            tr = tradeoff(
-                store, mid, [tau], renderer=r, repeats=repeats, stream_tau=0.0,
-                options=replace(o, lod=name),
-            )  # fmt: skip
+            try:
+                tr = tradeoff(
+                    store, mid, [tau], renderer=r, repeats=repeats, stream_tau=0.0,
+                    options=replace(o, lod=name),
+                )  # fmt: skip
+            except EmptyViewError as exc:
+                raise EmptyViewError(
+                    f"{exc} (compare measures the camera path's middle frame, {i_mid} of "
+                    f"{len(cameras)}: give a path whose middle frame sees the DEM)"
+                ) from None
             row = asdict(tr[0])
             tri, cpu, gpu = [], [], []
             with open_render_session(store, 0.0, metric, r.p, nodata=o.nodata) as s:

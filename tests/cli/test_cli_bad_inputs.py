@@ -251,3 +251,23 @@ def test_damaged_geotiff_is_one_line_exit_1_with_the_cause(tmp_path, how, cause,
     assert len(lines) == 1 and lines[0].startswith("error: "), r.output
     assert cause in lines[0] and "See previous exception" not in lines[0]
     assert "Traceback" not in r.output
+
+
+def test_a_stream_path_that_sees_none_of_the_dem_is_exit_2_and_writes_nothing(paths):
+    from tiler.store import open_store
+
+    d = paths["tmp"]
+    x0, y0, x1, y1 = open_store(paths["store"]).grid.extent
+    kf = d / "away.csv"
+    away = f"{x1 + 1e6},{y1 + 1e6},3000,45,-10"  # beyond the north-east corner, looking away
+    kf.write_text(f"t,x,y,z,yaw,pitch\n0,{away}\n1,{away}\n")
+    r = run("stream", paths["store"], "--path", kf, "--frames", "3", "--json", d / "away.json")
+    assert r.exit_code == 2, r.output
+    assert "error: --path: none of the 3 frame(s) of the camera path sees the DEM" in r.output
+    assert "no level could be loaded" not in r.output and not (d / "away.json").exists()
+    # positive control: the same flight over the DEM's centre streams and writes its JSON
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    kf.write_text(f"t,x,y,z,yaw,pitch\n0,{cx},{cy},3000,0,-45\n1,{cx},{cy + 50},3000,0,-45\n")
+    r = run("stream", paths["store"], "--path", kf, "--frames", "3", "--json", d / "over.json")
+    assert r.exit_code == 0, r.output
+    assert (d / "over.json").exists()

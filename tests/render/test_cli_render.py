@@ -120,3 +120,96 @@ def test_a_view_of_no_terrain_is_an_error_not_a_sky_png(store, tmp_path):
     )  # fmt: skip
     assert res.exit_code == 2, res.output
     assert "drew no terrain" in res.output and not out.exists()
+
+
+def _keyframes(tmp_path, rows) -> str:
+    p = tmp_path / "k.csv"
+    p.write_text("t,x,y,z,yaw,pitch\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
+    return str(p)
+
+
+def _fly(store, path, out, frames=3):
+    return runner.invoke(
+        app,
+        ["flythrough", store, "--path", path, "--frames", str(frames), "--size", "64x48",
+         "--patch-log2", "2", "--out", str(out)],
+    )  # fmt: skip
+
+
+def test_a_flythrough_that_sees_no_terrain_is_an_error_not_blank_frames(store, tmp_path):
+    from tiler.store import open_store
+
+    x0, y0, x1, y1 = open_store(store).grid.extent
+    away = (x1 + 1e6, y1 + 1e6, 3000, 45, -10)  # beyond the north-east corner, looking away
+    res = _fly(store, _keyframes(tmp_path, [(0, *away), (1, *away)]), tmp_path / "f")
+    assert res.exit_code == 2, res.output
+    assert "--path: none of the 3 frame(s) of the camera path sees the DEM" in res.output
+    assert not list((tmp_path / "f").iterdir())  # no blank PNG, no frames.csv or summary
+    # positive control: turning to look at the DEM half way draws, and names the empty frames
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    turn = [(0, cx, cy, 3000, 0, 80), (1, cx, cy, 3000, 0, -89)]
+    res = _fly(store, _keyframes(tmp_path, turn), tmp_path / "g", frames=2)
+    assert res.exit_code == 0, res.output
+    assert "warning: 1 of 2 frames drew no terrain (the first: frame 0)" in res.output
+    summary = json.loads((tmp_path / "g" / "summary.json").read_text())
+    assert summary["empty_frames"] == 1 and summary["first_empty_frame"] == 0
+
+
+def test_a_keyframe_flythrough_150_km_up_draws_the_dem(store, tmp_path):
+    from tiler.store import open_store
+
+    x0, y0, x1, y1 = open_store(store).grid.extent
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    high = [(0, cx, cy, 150_000, 0, -90), (1, cx, cy, 150_000, 0, -89)]
+    res = _fly(store, _keyframes(tmp_path, high), tmp_path / "f", frames=2)
+    assert res.exit_code == 0, res.output  # the far plane once stopped at 100 km: no terrain
+    rows = (tmp_path / "f" / "frames.csv").read_text().splitlines()
+    assert all(int(r.split(",")[1]) > 0 for r in rows[1:])  # triangles per frame
+
+
+def test_compare_names_the_middle_frame_it_measures_when_it_sees_no_terrain(store, tmp_path):
+    from tiler.store import open_store
+
+    x0, y0, x1, y1 = open_store(store).grid.extent
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    args = ["compare", store, "--frames", "3", "--lods", "qiu", "--taus", "1", "--size", "64x48",
+            "--patch-log2", "2", "--path"]  # fmt: skip
+    up = [(0, cx, cy, 3000, 0, -89), (1, cx, cy, 3000, 0, 80), (2, cx, cy, 3000, 0, -89)]
+    res = runner.invoke(app, [*args, _keyframes(tmp_path, up)])
+    assert res.exit_code == 2, res.output
+    assert "holds no terrain sample" in res.output
+    assert "compare measures the camera path's middle frame, 1 of 3" in res.output
+    # positive control: the same path looking down throughout is measured
+    down = [(0, cx, cy, 3000, 0, -89), (1, cx, cy, 3000, 0, -80), (2, cx, cy, 3000, 0, -89)]
+    res = runner.invoke(app, [*args, _keyframes(tmp_path, down)])
+    assert res.exit_code == 0, res.output
+
+
+def test_a_flythrough_whose_frames_saw_the_dem_but_drew_nothing_is_an_error(
+    store, tmp_path, monkeypatch
+):
+    import dataclasses
+
+    import render.flythrough as fly
+    from render.errors import RenderError
+    from render.flythrough import flythrough
+    from streamer.run import make_path
+    from tiler.store import open_store
+
+    s = open_store(store)
+    cams = make_path(s, "default", frames=2, viewport=(64, 48))
+    real = fly.frame_step
+
+    def nothing_drawn(*a, **kw):  # the frames see the DEM, the draw puts nothing on screen
+        step = real(*a, **kw)
+        return dataclasses.replace(step, stats=dataclasses.replace(step.stats, triangles=0))
+
+    monkeypatch.setattr(fly, "frame_step", nothing_drawn)
+    with pytest.raises(RenderError, match=r"none of the 2 frame\(s\) drew terrain, though 2 saw"):
+        flythrough(s, cams, tmp_path / "f", patch_log2=2)
+    assert not list((tmp_path / "f").iterdir())
+    # positive control: drawn for real, the same frames are written
+    monkeypatch.setattr(fly, "frame_step", real)
+    rows, summary = flythrough(s, cams, tmp_path / "g", patch_log2=2)
+    assert summary["empty_frames"] == 0 and all(r.visible_blocks > 0 for r in rows)
+    assert len(list((tmp_path / "g").glob("frame_*.png"))) == 2

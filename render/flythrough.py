@@ -1,0 +1,148 @@
+"""Fly-throughs: stream and render a camera path to PNG frames, ``frames.csv`` and a summary.
+
+Each frame is streamed through a session (``culling="hull"``: the blocks the renderer draws)
+and drawn with the resident levels, as in real time: frames wait for their data until the first
+one that sees the DEM, later ones draw what has arrived (``stalled`` when a level is missing).
+A path none of whose frames draws terrain is an error, not a folder of blank frames."""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from render.errors import RenderError
+from render.pipeline import ViewOptions
+from render.renderer import RenderConfig, TerrainRenderer
+from render.step import frame_step
+from render.strategies import DEFAULT, get_strategy, stream_metric
+from streamer.camera import Camera
+from streamer.run import out_of_view
+from streamer.session import open_session
+from tiler.store import TerrainStore
+
+
+@dataclass(frozen=True)
+class FlyRow:
+    """One fly-through frame (a CSV row)."""
+
+    frame: int
+    triangles: int
+    patches: int
+    selection_ms: float
+    gpu_ms: float
+    loaded_mb: float
+    resident_mb: float
+    stalled: bool
+    clamped: int
+    visible_blocks: int  # blocks in the view (0: the camera sees none of the DEM)
+
+
+def flythrough(
+    store: TerrainStore,
+    cameras: Sequence[Camera],
+    out_dir: str | Path,
+    *,
+    tau: float = 1.0,
+    metric: str = "qiu",
+    patch_log2: int = 4,
+    workers: int = 2,
+    budget_mb: float = 256.0,
+    fps: float = 30.0,
+    save_every: int = 1,
+    on_frame: Callable[[FlyRow], None] | None = None,
+    lod: str = DEFAULT,
+    options: ViewOptions | None = None,
+) -> tuple[list[FlyRow], dict[str, Any]]:
+    """Stream and render each camera with strategy ``lod``; write PNG frames and
+    ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
+    ``metric`` and ``patch_log2``, and how frames are drawn). A path none of whose frames
+    draws terrain raises :class:`streamer.errors.PathOutOfViewError` (its PNGs removed)."""
+    o = options or ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
+    lod, tau, metric = o.lod, o.tau, o.metric
+    from PIL import Image
+
+    if not cameras:
+        raise RenderError("the camera path has no frames")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
+    strat = get_strategy(lod, r, **o.strategy_options())
+    draw = o.draw_options()
+    rows: list[FlyRow] = []
+    with open_session(
+        store,
+        budget_mb=budget_mb,
+        workers=workers,
+        tau=tau,
+        metric=stream_metric(lod, metric),
+        patch_log2=r.p,
+        culling="hull",
+        fps=fps,
+        nodata=o.nodata,
+    ) as session:
+        seen = False  # frames wait for their data until the first one that sees the DEM
+        for i, cam in enumerate(cameras):
+            step = frame_step(
+                session, strat, cam, tau, metric, dt=1.0 / fps, wait=not seen, options=draw
+            )
+            frame, st, ms = step.frame, step.stats, step.selection_ms
+            seen = seen or frame.stats.visible_blocks > 0
+            if save_every and i % save_every == 0:
+                Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
+            fs = frame.stats
+            row = FlyRow(
+                frame=i,
+                triangles=st.triangles,
+                patches=st.patches,
+                selection_ms=ms,
+                gpu_ms=st.frame_ms,
+                loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
+                resident_mb=fs.resident_bytes / 2**20,
+                stalled=fs.stalled,
+                clamped=st.clamped,
+                visible_blocks=fs.visible_blocks,
+            )
+            rows.append(row)
+            if on_frame:
+                on_frame(row)
+        summary = session.summary()
+    r.close()
+    empty = [x.frame for x in rows if x.triangles == 0]
+    if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind
+        for i in range(0, len(rows), save_every or len(rows) + 1):
+            (out / f"frame_{i:05d}.png").unlink(missing_ok=True)
+        if not seen:
+            raise out_of_view(store, len(rows))
+        raise RenderError(
+            f"none of the {len(rows)} frame(s) drew terrain, though "
+            f"{sum(x.visible_blocks > 0 for x in rows)} saw the DEM: none of its levels was "
+            "resident when they were drawn; run `terrastream verify` on the store"
+        )
+    with open(out / "frames.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
+        w.writeheader()
+        for row in rows:
+            w.writerow(asdict(row))
+    tri = np.array([x.triangles for x in rows])
+    summary = {
+        "frames": len(rows),
+        "mean_triangles": float(tri.mean()),
+        "max_triangles": int(tri.max()),
+        "mean_selection_ms": float(np.mean([x.selection_ms for x in rows])),
+        "max_selection_ms": float(np.max([x.selection_ms for x in rows])),
+        "mean_gpu_ms": float(np.mean([x.gpu_ms for x in rows])),
+        "stall_frames": int(sum(x.stalled for x in rows)),
+        "clamped_frames": int(sum(x.clamped > 0 for x in rows)),
+        "empty_frames": len(empty),
+        "first_empty_frame": empty[0] if empty else None,
+        # of the empty frames, those that saw none of the DEM (the others were stalled)
+        "unseen_frames": int(sum(x.visible_blocks == 0 for x in rows if x.triangles == 0)),
+        "loaded_mb": float(summary["loaded_bytes"] / 2**20),
+        "peak_resident_mb": float(summary["peak_resident_bytes"] / 2**20),
+    }
+    return rows, summary

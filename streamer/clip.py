@@ -1,0 +1,80 @@
+"""Clipping planes for a camera over a store (pure): a near plane that follows the camera's
+clearance above the terrain and a far plane beyond the whole DEM.
+
+The renderer writes a logarithmic depth (docs/RENDER.md, "Precision and extremes"), so a near
+plane of a few centimetres and a far plane of 1,000 km coexist: the near plane is chosen from
+the clearance (:func:`near_plane`), the far plane from the scene's size (:func:`reach`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from streamer.camera import Camera
+from tiler.store import TerrainStore
+
+#: the smallest near plane (m): log depth resolves it together with a far plane of 1e6 km
+MIN_NEAR = 0.01
+
+
+def zrange(store: TerrainStore) -> tuple[float, float]:
+    """The lowest block bottom and highest block top of the store (``(0, 0)`` without terrain)."""
+    idx = store.index
+    with np.errstate(invalid="ignore"):
+        lo, hi = float(np.nanmin(idx.zmin)), float(np.nanmax(idx.zmax))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return 0.0, 0.0
+    return lo, hi
+
+
+def local_top(store: TerrainStore, x: float, y: float, radius: float) -> float:
+    """The highest stored block top within ``radius`` (m) of ``(x, y)`` (the global top when
+    the store gives no block geometry); ``-inf`` when no block is that near."""
+    g, zmax = store.grid, np.asarray(store.index.zmax, dtype=np.float64)
+    if not hasattr(g, "block_bounds"):
+        return zrange(store)[1]
+    br, bc = np.meshgrid(np.arange(zmax.shape[0]), np.arange(zmax.shape[1]), indexing="ij")
+    x0, y0, x1, y1 = g.block_bounds(br, bc)
+    ddx = np.maximum(np.maximum(x0 - x, x - x1), 0.0)
+    ddy = np.maximum(np.maximum(y0 - y, y - y1), 0.0)
+    near = (np.hypot(ddx, ddy) <= radius) & np.isfinite(zmax)
+    return float(zmax[near].max()) if near.any() else -math.inf
+
+
+def near_plane(
+    store: TerrainStore, eye: tuple[float, float, float], tan_half_diagonal: float, cap: float
+) -> float:
+    """A near plane (at most ``cap``, at least :data:`MIN_NEAR`) that clips no terrain: half the
+    camera's clearance above the highest block top within reach of the near rectangle, divided
+    by ``1 + tan_half_diagonal`` (the rectangle's corners reach that far below the eye)."""
+    reach_ = cap * (1.0 + tan_half_diagonal) * 2.0
+    top = local_top(store, eye[0], eye[1], reach_)
+    clearance = eye[2] - top
+    if not math.isfinite(clearance):
+        return max(cap, MIN_NEAR)
+    near = 0.5 * clearance / (1.0 + tan_half_diagonal)
+    return float(min(max(near, MIN_NEAR), max(cap, MIN_NEAR)))
+
+
+def reach(store: TerrainStore, eye: tuple[float, float, float]) -> float:
+    """An upper bound of the distance from ``eye`` to any terrain of the store: the DEM's
+    diagonal, plus the eye's horizontal offset from its centre, plus its height above the
+    lowest block."""
+    x0, y0, x1, y1 = store.grid.extent
+    zlo, _ = zrange(store)
+    return (
+        math.hypot(x1 - x0, y1 - y0)
+        + math.hypot(eye[0] - 0.5 * (x0 + x1), eye[1] - 0.5 * (y0 + y1))
+        + abs(eye[2] - zlo)
+    )
+
+
+def fit_clip(store: TerrainStore, camera: Camera) -> Camera:
+    """``camera`` with a far plane beyond the whole DEM (1.5 × :func:`reach`) and a near plane
+    that follows its clearance (:func:`near_plane`), as ``terrastream render --camera`` uses."""
+    eye = (float(camera.position[0]), float(camera.position[1]), float(camera.position[2]))
+    r = reach(store, eye)
+    near = near_plane(store, eye, camera.tan_half_diagonal, max(0.5, r * 1e-4))
+    return dataclasses.replace(camera, near=near, far=max(1.5 * r, 2.0 * near))

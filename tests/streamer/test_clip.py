@@ -1,0 +1,96 @@
+"""Clipping planes of cameras over a store (streamer.clip) and keyframe paths that use them:
+a keyframe camera sees the whole DEM whatever its height, and a path that sees none of it is an
+error, not a fly-through of empty frames."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from demtools import fractal, write_dem
+
+from streamer.camera import Camera
+from streamer.clip import MIN_NEAR, fit_clip, reach, zrange
+from streamer.errors import PathOutOfViewError
+from streamer.run import make_path, require_view, run_flythrough
+from streamer.session import open_session
+from tiler.tile import TileOptions, tile
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    d = tmp_path_factory.mktemp("clip")
+    src = write_dem(d / "d.tif", fractal((129, 129), 4), cell=30.0)
+    return tile(src, d / "s.zarr", TileOptions(block_size=33, executor="threads"))
+
+
+def corners(store) -> np.ndarray:
+    x0, y0, x1, y1 = store.grid.extent
+    zlo, zhi = zrange(store)
+    return np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (zlo, zhi)])
+
+
+def centre(store) -> tuple[float, float]:
+    x0, y0, x1, y1 = store.grid.extent
+    return 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+
+
+@pytest.mark.parametrize("height", [2.0, 3000.0, 150_000.0, 9_000_000.0])
+def test_the_far_plane_reaches_every_corner_and_the_near_plane_clips_no_terrain(store, height):
+    cx, cy = centre(store)
+    _, zhi = zrange(store)
+    cam = fit_clip(store, Camera((cx, cy, zhi + height), yaw=270.0, pitch=-20.0))
+    dist = np.linalg.norm(corners(store) - np.array(cam.position), axis=1)
+    assert cam.far >= dist.max() and cam.far >= reach(store, tuple(cam.position))
+    # the near rectangle's corners stay above the highest block top
+    assert cam.position[2] - cam.near * (1 + cam.tan_half_diagonal) > zhi
+    assert cam.near >= MIN_NEAR
+
+
+def test_a_camera_under_the_terrain_gets_the_smallest_near_plane(store):
+    cx, cy = centre(store)
+    zlo, _ = zrange(store)
+    cam = fit_clip(store, Camera((cx, cy, zlo - 50.0), pitch=10.0))
+    assert cam.near == MIN_NEAR and math.isfinite(cam.far)
+
+
+def keyframe_file(tmp_path, rows) -> str:
+    p = tmp_path / "k.csv"
+    p.write_text("t,x,y,z,yaw,pitch\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
+    return str(p)
+
+
+def fly(store, cams) -> list[int]:
+    """Blocks in view per frame, culled by the frustum hull (what the renderer draws)."""
+    with open_session(store, budget_mb=16, workers=1, culling="hull") as s:
+        result = run_flythrough(s, cams, realtime=False)
+    return [r["visible_blocks"] for r in result.rows]
+
+
+def test_a_keyframe_camera_150_km_up_sees_the_dem(store, tmp_path):
+    cx, cy = centre(store)
+    path = keyframe_file(tmp_path, [(0, cx, cy, 150_000, 0, -90), (1, cx, cy, 150_000, 0, -89)])
+    cams = make_path(store, path_file=path, frames=2, viewport=(160, 120))
+    assert all(c.far > 150_000 for c in cams)
+    assert all(n > 0 for n in fly(store, cams))
+    # positive control: the fixed 100 km far plane of keyframe cameras saw nothing from there
+    fixed = make_path(store, path_file=path, frames=2, viewport=(160, 120), far=100_000.0)
+    assert fly(store, fixed) == [0, 0]
+
+
+def test_a_path_that_sees_none_of_the_dem_is_an_error(store, tmp_path):
+    x0, y0, x1, y1 = store.grid.extent
+    away = (x1 + 1e6, y1 + 1e6, 3000, 45, -10)  # beyond the north-east corner, looking away
+    path = keyframe_file(tmp_path, [(0, *away), (1, *away)])
+    cams = make_path(store, path_file=path, frames=3, viewport=(160, 120))
+    with open_session(store, budget_mb=16, workers=1) as s:
+        result = run_flythrough(s, cams, realtime=False)
+    with pytest.raises(PathOutOfViewError, match=r"none of the 3 frame\(s\) .* sees the DEM"):
+        require_view(result, store)
+    # positive control: a path over the terrain passes
+    cx, cy = centre(store)
+    path = keyframe_file(tmp_path, [(0, cx, cy, 3000, 0, -45), (1, cx, cy + 100, 3000, 0, -45)])
+    cams = make_path(store, path_file=path, frames=3, viewport=(160, 120))
+    with open_session(store, budget_mb=16, workers=1) as s:
+        require_view(run_flythrough(s, cams, realtime=False), store)
