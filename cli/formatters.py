@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 def human_bytes(n: float) -> str:
     """``1536`` → ``1.5 KiB``."""
@@ -10,6 +12,15 @@ def human_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
     return f"{n:.1f} TiB"
+
+
+def _blocks_text(d: dict[str, Any]) -> str:
+    """The blocks line's counts: e.g. ``4 with terrain, of which 4 with nodata; 12 without
+    terrain, not stored`` (the nodata count is a part of the terrain count, not beside it)."""
+    total = d["block_cols"] * d["block_rows"]
+    t, n = d["blocks_with_terrain"], d["blocks_with_nodata"]
+    text = f"{t} with terrain, of which {n} with nodata"
+    return text + (f"; {total - t} without terrain, not stored" if total > t else "")
 
 
 def _crs_note(d: dict) -> str:
@@ -48,7 +59,7 @@ def format_info(d: dict) -> str:
         f"samples        {d['width']} x {d['height']} {d['dtype']} (width x height)"
         + (f", quantised to {d['precision']} m" if d["precision"] else ", lossless"),
         f"blocks         {d['block_cols']} x {d['block_rows']} of {d['block_size']}^2 "
-        f"({d['blocks_with_terrain']} with terrain, {d['blocks_with_nodata']} with nodata)",
+        f"({_blocks_text(d)})",
         f"levels         {d['levels']} (encoding {d['encoding']}, {d['compressor']})",
         f"nodata         {'none' if d['nodata'] is None else format(d['nodata'], 'g')}",
         f"checksums      {d.get('checksums', 'none')}",

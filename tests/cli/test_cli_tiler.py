@@ -41,6 +41,23 @@ def test_tile_info_export_round_trip(src, tmp_path):
         np.testing.assert_array_equal(a.read(1), b.read(1))
 
 
+def test_info_counts_blocks_with_nodata_as_a_part_of_those_with_terrain(dem_factory, tmp_path):
+    data = fractal((129, 129), 3).astype("float32")
+    data[:, :100] = np.nan  # block columns 0-2 all nodata, column 3 part nodata
+    src = dem_factory(data, nodata=float("nan"))
+    assert run("tile", src, tmp_path / "s.zarr", "--block-size", "33").exit_code == 0
+    r = run("info", tmp_path / "s.zarr")
+    assert (
+        "4 x 4 of 33^2 (4 with terrain, of which 4 with nodata; 12 without terrain, not "
+        in r.output
+    )
+    # the control: a DEM without nodata says so
+    assert run("tile", dem_factory(fractal((129, 129), 3), "b.tif"), tmp_path / "b.zarr",
+               "--block-size", "33").exit_code == 0  # fmt: skip
+    r = run("info", tmp_path / "b.zarr")
+    assert "4 x 4 of 33^2 (16 with terrain, of which 0 with nodata)" in r.output
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
