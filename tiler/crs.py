@@ -9,9 +9,11 @@ within UTM's latitudes), otherwise an azimuthal equidistant projection centred o
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
+import numpy as np
 import rasterio
 from rasterio.crs import CRS
 from rasterio.errors import CRSError
@@ -20,7 +22,14 @@ from rasterio.warp import transform_bounds
 from tiler.errors import GeographicStoreError, SourceError
 from tiler.vertical import require_heights
 
+log = logging.getLogger(__name__)
+
 UTM_MARGIN_DEG = 1.0  # how far past its 6-degree zone an extent may reach and still use UTM
+#: the largest stretch of distances across (the azimuthal projection's scale factor at the
+#: DEM's farthest point) that ``auto`` chooses without a warning, and beyond which it refuses
+AUTO_STRETCH_WARN = 1.01
+AUTO_STRETCH_MAX = 1.10
+EARTH_RADIUS_M = 6_371_008.8  # the mean radius (IUGG)
 UTM_LAT_RANGE = (-80.0, 84.0)
 AUTO = "auto"
 RESAMPLINGS = ("nearest", "bilinear", "cubic", "cubic_spline", "lanczos", "average")
@@ -87,6 +96,7 @@ def auto_crs(bounds_lonlat: tuple[float, float, float, float]) -> CRS:
     centred on the extent (distances from the centre exact, scale error < 1 % within ~1600 km).
     """
     west, south, east, north = (float(v) for v in bounds_lonlat)
+    south, north = max(south, -90.0), min(north, 90.0)  # grid edges half a cell past a pole
     if east < west:  # crosses the antimeridian
         east += 360.0
     lon = (west + east) / 2.0
@@ -104,9 +114,50 @@ def auto_crs(bounds_lonlat: tuple[float, float, float, float]) -> CRS:
     if fits:
         return CRS.from_epsg(epsg)
     lon = (lon + 180.0) % 360.0 - 180.0
-    return CRS.from_proj4(
-        f"+proj=aeqd +lat_0={lat:.6f} +lon_0={lon:.6f} +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs"
+    proj = f"+proj=aeqd +lat_0={lat:.6f} +lon_0={lon:.6f} +x_0=0 +y_0=0 +datum=WGS84 +units=m"
+    reach, stretch = aeqd_stretch((west, south, east, north), lat, lon)
+    where = (
+        f"the DEM reaches {reach / 1000:,.0f} km from its centre ({lat:.4g}°, {lon:.4g}°), where "
+        "the azimuthal equidistant projection that `--dst-crs auto` chooses for it stretches "
+        + (
+            "distances without bound (the DEM holds the centre's antipode)"
+            if math.isinf(stretch)
+            else f"distances across the radius by {100 * (stretch - 1):.1f} %"
+        )
     )
+    if stretch > AUTO_STRETCH_MAX:
+        raise SourceError(
+            f"{where}: a flat terrain store holds a region, not a globe or a continent; tile it "
+            "in pieces (`gdalwarp -te` on parts within ~4,800 km of their centres), or name a "
+            f"projection with --dst-crs (this one, accepting the stretch: '{proj}')"
+        )
+    if stretch > AUTO_STRETCH_WARN:
+        log.warning("%s; tile smaller parts for less", where)
+    return CRS.from_proj4(proj + " +no_defs")
+
+
+def aeqd_stretch(
+    bounds_lonlat: tuple[float, float, float, float], lat0: float, lon0: float
+) -> tuple[float, float]:
+    """``(farthest distance m, largest scale factor)`` of the azimuthal equidistant projection
+    centred at ``(lat0, lon0)`` over a ``(west, south, east, north)`` degree box, on the mean
+    sphere: its scale across the radius is ``c / sin c`` at angular distance ``c`` (``inf``
+    when the box holds the antipode, ``c = π``)."""
+    west, south, east, north = bounds_lonlat
+    anti_lat, anti_lon = -lat0, lon0 + 180.0
+    in_lon = east - west >= 360.0 or (anti_lon - west) % 360.0 <= east - west
+    if south <= anti_lat <= north and in_lon:
+        return math.pi * EARTH_RADIUS_M, math.inf
+    t = np.linspace(0.0, 1.0, 257)
+    lons = np.concatenate([west + t * (east - west), np.full_like(t, east),
+                           west + t * (east - west), np.full_like(t, west)])  # fmt: skip
+    lats = np.concatenate([np.full_like(t, south), south + t * (north - south),
+                           np.full_like(t, north), south + t * (north - south)])  # fmt: skip
+    p0, l0 = math.radians(lat0), math.radians(lon0)
+    p, lam = np.radians(lats), np.radians(lons)
+    h = np.sin((p - p0) / 2) ** 2 + math.cos(p0) * np.cos(p) * np.sin((lam - l0) / 2) ** 2
+    c = float((2 * np.arcsin(np.sqrt(np.clip(h, 0.0, 1.0)))).max())  # the farthest: on the edge
+    return c * EARTH_RADIUS_M, (c / math.sin(c) if c > 1e-12 else 1.0)
 
 
 def choose_crs(dst_crs: str, src_crs: CRS | None, bounds: tuple[float, ...]) -> CRS:

@@ -223,6 +223,8 @@ def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, flo
         [c0 + edge * (c1 - c0), c1 + 0 * edge, c1 - edge * (c1 - c0), c0 + 0 * edge]
     )
     xs, ys = t * (cols + 0.5, rows + 0.5)
+    if src_crs.is_geographic:  # a sample centre on a pole, widened past it
+        ys = np.clip(ys, -90.0, 90.0)
     tx, ty = warp_transform(src_crs, target, xs.tolist(), ys.tolist())
     ring = list(zip(tx, ty, strict=True))
     return tuple((*ring, ring[0]))
@@ -236,6 +238,15 @@ def _bounds(info: SourceInfo) -> tuple[float, float, float, float]:
         strict=True,
     )
     return min(xs), min(ys), max(xs), max(ys)
+
+
+def _on_earth(bounds: tuple[float, ...], crs: CRS | None) -> tuple[float, float, float, float]:
+    """``bounds`` with latitudes clamped to the poles when ``crs`` is geographic (the pixel
+    edges of a grid whose first row is centred on a pole lie half a pixel past it)."""
+    left, bottom, right, top = bounds
+    if crs is not None and crs.is_geographic:
+        bottom, top = max(bottom, -90.0), min(top, 90.0)
+    return left, bottom, right, top
 
 
 def _union_bounds(infos: Sequence[SourceInfo]) -> tuple[float, float, float, float]:
@@ -264,7 +275,7 @@ def _plan_warped(
     resampling: str,
 ) -> MosaicSpec:
     resampling = parse_resampling(resampling)
-    bounds = _union_bounds(infos)
+    bounds = _on_earth(_union_bounds(infos), src_crs)
     target = choose_crs(dst_crs, src_crs, bounds)
     if resolution is not None:
         res = (resolution, resolution) if np.isscalar(resolution) else tuple(resolution)
@@ -284,7 +295,7 @@ def _plan_warped(
     t = Affine(res[0], 0.0, left, 0.0, -res[1], top)
     placed = []
     for i in infos:
-        sb = transform_bounds(src_crs, target, *_bounds(i), densify_pts=51)
+        sb = transform_bounds(src_crs, target, *_on_earth(_bounds(i), src_crs), densify_pts=51)
         c0 = max(0, math.floor((sb[0] - left) / res[0]) - 2)
         c1 = min(width, math.ceil((sb[2] - left) / res[0]) + 2)
         r0 = max(0, math.floor((top - sb[3]) / res[1]) - 2)

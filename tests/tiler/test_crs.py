@@ -230,3 +230,64 @@ def test_south_up_source_is_flipped_sample_for_sample(tmp_path):
     with pytest.raises(SourceError, match="rotated"):
         tile(rot, tmp_path / "r.zarr", TileOptions(block_size=33))
     assert s.read_mask((0, 0))[:20, :30].all()  # edge samples on the hull are kept
+
+
+# --- how far auto's azimuthal projection stretches a DEM ---------------------------------------
+
+
+def test_aeqd_stretch_on_the_sphere():
+    from tiler.crs import EARTH_RADIUS_M, aeqd_stretch
+
+    reach, k = aeqd_stretch((-1.0, -1.0, 1.0, 1.0), 0.0, 0.0)
+    assert reach == pytest.approx(np.radians(np.hypot(1, 1)) * EARTH_RADIUS_M, rel=1e-3)
+    c = np.radians(np.hypot(1, 1))
+    assert k == pytest.approx(1 + c**2 / 6, rel=1e-6)  # c / sin c for small c
+    # a quarter of the globe away (a corner at 90° of arc): c / sin c = π/2
+    reach, k = aeqd_stretch((-90.0, -10.0, 90.0, 10.0), 0.0, 0.0)
+    assert k == pytest.approx(np.pi / 2, rel=1e-3)
+    # the antipode inside the box: without bound, also across the antimeridian
+    assert aeqd_stretch((-180.0, -90.0, 180.0, 90.0), 0.0, 0.0)[1] == np.inf
+    assert aeqd_stretch((170.0, -5.0, 190.0, 5.0), 0.0, 0.0)[1] == np.inf
+    assert aeqd_stretch((170.0, 5.0, 190.0, 15.0), 0.0, 0.0)[1] < np.inf  # antipode south of it
+
+
+@pytest.mark.parametrize(
+    ("bounds", "stretch"),
+    [
+        ((-180.5, -90.5, 180.5, 90.5), "without bound"),  # a global grid, edges past the poles
+        ((-180.0, -90.0, 180.0, 90.0), "without bound"),
+        ((-100.0, -40.0, 100.0, 60.0), "by 87.2 %"),  # a hemisphere
+    ],
+    ids=["global-grid", "global", "hemisphere"],
+)
+def test_auto_refuses_an_extent_no_flat_projection_holds(bounds, stretch):
+    with pytest.raises(SourceError, match="a flat terrain store holds a region") as e:
+        auto_crs(bounds)
+    msg = str(e.value)
+    assert f"stretches distances {stretch}" in msg or f"across the radius {stretch}" in msg
+    assert "name a projection with --dst-crs (this one, accepting the stretch: '+proj=aeqd" in msg
+
+
+def test_auto_warns_of_a_stretch_past_one_percent_and_says_nothing_below(caplog):
+    caplog.set_level("WARNING", logger="tiler.crs")
+    auto_crs((-10.0, 35.0, 30.0, 60.0))  # Europe: 2,000 km from its centre
+    assert "across the radius by 1.9 %; tile smaller parts for less" in caplog.text
+    caplog.clear()
+    auto_crs((10.0, 84.5, 20.0, 86.0))  # polar but small: no warning (the control)
+    auto_crs((-72.0, 44.0, -71.0, 45.0))  # UTM
+    assert not caplog.records
+
+
+def test_a_grid_whose_first_row_is_centred_on_the_pole_tiles_with_auto(tmp_path):
+    """Its pixel edges lie half a pixel past 90°N: PROJ refused the hull ("aeqd: Invalid
+    latitude", exit 1); the pole's row is now kept, its samples in the store."""
+    from rasterio.transform import from_origin
+
+    data = np.full((41, 181), 300, np.int16)
+    data[0] = 777  # the row on the pole
+    src = write_dem(tmp_path / "cap.tif", data, crs="EPSG:4326", origin=(-181.0, 90.125),
+                    cell=2.0)  # fmt: skip
+    with rasterio.open(src, "r+") as f:  # 2° of longitude by 0.25° of latitude
+        f.transform = from_origin(-181.0, 90.125, 2.0, 0.25)
+    store = tile(src, tmp_path / "cap.zarr", TileOptions(dst_crs="auto", resampling="nearest"))
+    assert store.meta.extra["value_range"] == [300, 777]
