@@ -67,6 +67,9 @@ FLAG_NAMES = {
     "precision": "--precision",
     "budget_mb": "--budget-mb",
     "tau": "--tau",
+    "resolution": "--resolution",
+    "dst_crs": "--dst-crs",
+    "dst_crs_auto": "--dst-crs auto",
     "retile": "`terrastream tile {src} DST --dst-crs auto`",
 }
 

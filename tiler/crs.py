@@ -118,7 +118,7 @@ def auto_crs(bounds_lonlat: tuple[float, float, float, float]) -> CRS:
     reach, stretch = aeqd_stretch((west, south, east, north), lat, lon)
     where = (
         f"the DEM reaches {reach / 1000:,.0f} km from its centre ({lat:.4g}°, {lon:.4g}°), where "
-        "the azimuthal equidistant projection that `--dst-crs auto` chooses for it stretches "
+        "the azimuthal equidistant projection chosen for it stretches "
         + (
             "distances without bound (the DEM holds the centre's antipode)"
             if math.isinf(stretch)
@@ -127,12 +127,15 @@ def auto_crs(bounds_lonlat: tuple[float, float, float, float]) -> CRS:
     )
     if stretch > AUTO_STRETCH_MAX:
         raise SourceError(
-            f"{where}: a flat terrain store holds a region, not a globe or a continent; tile it "
-            "in pieces (`gdalwarp -te` on parts within ~4,800 km of their centres), or name a "
-            f"projection with --dst-crs (this one, accepting the stretch: '{proj}')"
-        )
+            "{dst_crs_auto}: {where}: a flat terrain store holds a region, not a globe or a "
+            "continent; tile it in pieces (`gdalwarp -te` on parts within ~4,800 km of their "
+            "centres), or name a projection with {dst_crs} (this one, accepting the stretch: "
+            "'{proj}')",
+            params={"dst_crs_auto": "dst_crs='auto'", "dst_crs": "dst_crs"},
+            where=where, proj=proj,
+        )  # fmt: skip
     if stretch > AUTO_STRETCH_WARN:
-        log.warning("%s; tile smaller parts for less", where)
+        log.warning("auto CRS: %s; tile smaller parts for less", where)
     return CRS.from_proj4(proj + " +no_defs")
 
 

@@ -201,6 +201,9 @@ def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> Sou
     return replace(info, footprint=(r0, c0, r1, c1))
 
 
+#: how many times finer than the source's pixel a target ``resolution`` may be (per axis):
+#: finer is a unit mistake (degrees given as metres), not an upsampling anyone wants
+MAX_UPSAMPLE = 100.0
 HULL_POINTS = 64  # points per edge of a source's sample-centre hull
 HULL_EPS = 1e-3  # source pixels the hull is widened by, so samples on it are kept (no ties)
 
@@ -281,10 +284,20 @@ def _plan_warped(
         res = (resolution, resolution) if np.isscalar(resolution) else tuple(resolution)
         if not all(math.isfinite(r) and r > 0 for r in res):
             raise SourceError(f"resolution must be positive target CRS units, got {resolution}")
-    else:
-        r = float(f"{_finest_pixel(infos[0], bounds, src_crs, target):.3g}")
+    native = _finest_pixel(infos[0], bounds, src_crs, target)
+    if resolution is None:
+        r = float(f"{native:.3g}")
         res = (r, r)
+    elif min(res) < native / MAX_UPSAMPLE:
+        raise SourceError(
+            "{resolution} {res:g} is {factor:,.0f}x finer than the source's pixels (~{native:.4g}"
+            " m in the target CRS): it is in the target CRS's metres, not the source's units; "
+            "give at least {least:.3g} (or none: the source's own)",
+            params={"resolution": "resolution"},
+            res=min(res), factor=native / min(res), native=native, least=native / MAX_UPSAMPLE,
+        )  # fmt: skip
     left, bottom, right, top = transform_bounds(src_crs, target, *bounds, densify_pts=51)
+    ew, ns = right - left, top - bottom
     # snap to multiples of the resolution (gdalwarp -tap), so separate runs share one grid
     left = math.floor(left / res[0]) * res[0]
     right = math.ceil(right / res[0]) * res[0]
@@ -292,6 +305,13 @@ def _plan_warped(
     top = math.ceil(top / res[1]) * res[1]
     width = round((right - left) / res[0])
     height = round((top - bottom) / res[1])
+    if resolution is not None and min(width, height) < 2:
+        raise SourceError(
+            "{resolution} {res:g} leaves a {w}x{h} grid across the sources' {ew:,.0f} x "
+            "{ns:,.0f} m: a DEM needs at least 2x2 samples; give at most {most:.3g}",
+            params={"resolution": "resolution"},
+            res=max(res), w=width, h=height, ew=ew, ns=ns, most=min(ew, ns) / 2,
+        )  # fmt: skip
     t = Affine(res[0], 0.0, left, 0.0, -res[1], top)
     placed = []
     for i in infos:

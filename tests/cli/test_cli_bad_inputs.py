@@ -40,6 +40,10 @@ CASES = {
     "path-is-dir": (["stream", "{store}", "--path", "{dir}"], 2, "is a directory, not a file"),
     "flythrough-path-missing": (["flythrough", "{store}", "--path", "{tmp}/k.csv",
                                  "--out", "{tmp}/f"], 2, "'{tmp}/k.csv' does not exist"),
+    "resolution-units": (["tile", "{src}", "{tmp}/r.zarr", "--dst-crs", "EPSG:32633",
+                          "--resolution", "0.0003"], 2,
+                         "error: --resolution 0.0003 is 100,000x finer than the source's pixels "
+                         "(~30 m in the target CRS)"),
     "budget-inf": (["stream", "{store}", "--budget-mb", "inf"], 2,
                    "'inf' is not a finite number; give one in the range 0<x"),
     "budget-nan": (["flythrough", "{store}", "--budget-mb", "nan"], 2,

@@ -265,7 +265,8 @@ def test_auto_refuses_an_extent_no_flat_projection_holds(bounds, stretch):
         auto_crs(bounds)
     msg = str(e.value)
     assert f"stretches distances {stretch}" in msg or f"across the radius {stretch}" in msg
-    assert "name a projection with --dst-crs (this one, accepting the stretch: '+proj=aeqd" in msg
+    assert msg.startswith("dst_crs='auto': the DEM reaches")
+    assert "name a projection with dst_crs (this one, accepting the stretch: '+proj=aeqd" in msg
 
 
 def test_auto_warns_of_a_stretch_past_one_percent_and_says_nothing_below(caplog):
@@ -291,3 +292,20 @@ def test_a_grid_whose_first_row_is_centred_on_the_pole_tiles_with_auto(tmp_path)
         f.transform = from_origin(-181.0, 90.125, 2.0, 0.25)
     store = tile(src, tmp_path / "cap.zarr", TileOptions(dst_crs="auto", resampling="nearest"))
     assert store.meta.extra["value_range"] == [300, 777]
+
+
+def test_a_resolution_in_the_wrong_units_is_refused_before_anything_is_written(tmp_path):
+    """0.0003 (degrees, meant for a geographic source) as metres planned a 3.7e8-sample-wide
+    grid and ended in a MemoryError ("Unable to allocate 125 GiB") after creating the store."""
+    src = write_dem(tmp_path / "g.tif", np.full((41, 41), 100, np.int16), crs="EPSG:4326",
+                    origin=(10.0, 45.0), cell=0.01)  # fmt: skip
+    dst = tmp_path / "s.zarr"
+    with pytest.raises(SourceError, match=r"resolution 0.0003 is [\d,]+x finer than the source's"):
+        tile(src, dst, TileOptions(dst_crs="auto", resolution=0.0003))
+    with pytest.raises(SourceError, match=r"resolution 5e\+06 leaves a 1x1 grid .* give at most"):
+        tile(src, dst, TileOptions(dst_crs="auto", resolution=5e6))
+    assert not dst.exists()
+    # the controls: 8x finer than the source's pixel (786 m across at 45°N), and a coarse one
+    assert tile(src, dst, TileOptions(dst_crs="auto", resolution=100.0)).grid.width > 300
+    coarse = tile(src, tmp_path / "c.zarr", TileOptions(dst_crs="auto", resolution=1500.0))
+    assert coarse.grid.width >= 2
