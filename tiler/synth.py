@@ -241,9 +241,19 @@ def _check_slice(s: slice, size: int, what: str) -> tuple[int, int]:
     return start, stop
 
 
+#: the largest side :func:`synth_dem` writes: 1.1e12 samples, 2 TiB as int16 (beyond it
+#: GDAL refuses the GeoTIFF's tile arrays, after the file was created)
+MAX_SYNTH_SIZE = 2**20 + 1
+
+
 def _check_size(size: int) -> int:
     if isinstance(size, bool) or not isinstance(size, int | np.integer) or size < 2:
         raise SourceError(f"Expected the DEM size to be an integer >= 2, got {size!r}.")
+    if size > MAX_SYNTH_SIZE:
+        raise SourceError(
+            f"size {size:,} is beyond the {MAX_SYNTH_SIZE:,} samples per side synth writes "
+            f"({float(size) ** 2:.3g} samples); give at most {MAX_SYNTH_SIZE}"
+        )
     return int(size)
 
 

@@ -25,7 +25,7 @@ def synth(
         bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
     ] = False,
 ) -> None:
-    """Write a deterministic fractal DEM, window by window (any size, bounded memory).
+    """Write a deterministic fractal DEM, window by window (bounded memory, up to 2^20+1 per side).
 
     Progress goes to stderr (a bar on a terminal, a line every few seconds otherwise).
 

@@ -44,6 +44,9 @@ CASES = {
                           "--resolution", "0.0003"], 2,
                          "error: --resolution 0.0003 is 100,000x finer than the source's pixels "
                          "(~30 m in the target CRS)"),
+    "synth-size-huge": (["synth", "{tmp}/huge.tif", "--size", "100000000"], 2,
+                        "error: size 100,000,000 is beyond the 1,048,577 samples per side synth "
+                        "writes (1e+16 samples)"),
     "budget-inf": (["stream", "{store}", "--budget-mb", "inf"], 2,
                    "'inf' is not a finite number; give one in the range 0<x"),
     "budget-nan": (["flythrough", "{store}", "--budget-mb", "nan"], 2,
