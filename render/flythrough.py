@@ -74,44 +74,46 @@ def flythrough(
     strat = get_strategy(lod, r, **o.strategy_options())
     draw = o.draw_options()
     rows: list[FlyRow] = []
-    with open_session(
-        store,
-        budget_mb=budget_mb,
-        workers=workers,
-        tau=tau,
-        metric=stream_metric(lod, metric),
-        patch_log2=r.p,
-        culling="hull",
-        fps=fps,
-        nodata=o.nodata,
-    ) as session:
-        seen = False  # frames wait for their data until the first one that sees the DEM
-        for i, cam in enumerate(cameras):
-            step = frame_step(
-                session, strat, cam, tau, metric, dt=1.0 / fps, wait=not seen, options=draw
-            )
-            frame, st, ms = step.frame, step.stats, step.selection_ms
-            seen = seen or frame.stats.visible_blocks > 0
-            if save_every and i % save_every == 0:
-                Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
-            fs = frame.stats
-            row = FlyRow(
-                frame=i,
-                triangles=st.triangles,
-                patches=st.patches,
-                selection_ms=ms,
-                gpu_ms=st.frame_ms,
-                loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
-                resident_mb=fs.resident_bytes / 2**20,
-                stalled=fs.stalled,
-                clamped=st.clamped,
-                visible_blocks=fs.visible_blocks,
-            )
-            rows.append(row)
-            if on_frame:
-                on_frame(row)
-        summary = session.summary()
-    r.close()
+    try:
+        with open_session(
+            store,
+            budget_mb=budget_mb,
+            workers=workers,
+            tau=tau,
+            metric=stream_metric(lod, metric),
+            patch_log2=r.p,
+            culling="hull",
+            fps=fps,
+            nodata=o.nodata,
+        ) as session:
+            seen = False  # frames wait for their data until the first one that sees the DEM
+            for i, cam in enumerate(cameras):
+                step = frame_step(
+                    session, strat, cam, tau, metric, dt=1.0 / fps, wait=not seen, options=draw
+                )
+                frame, st, ms = step.frame, step.stats, step.selection_ms
+                seen = seen or frame.stats.visible_blocks > 0
+                if save_every and i % save_every == 0:
+                    Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
+                fs = frame.stats
+                row = FlyRow(
+                    frame=i,
+                    triangles=st.triangles,
+                    patches=st.patches,
+                    selection_ms=ms,
+                    gpu_ms=st.frame_ms,
+                    loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
+                    resident_mb=fs.resident_bytes / 2**20,
+                    stalled=fs.stalled,
+                    clamped=st.clamped,
+                    visible_blocks=fs.visible_blocks,
+                )
+                rows.append(row)
+                if on_frame:
+                    on_frame(row)
+            summary = session.summary()
+    finally:
+        r.close()
     empty = [x.frame for x in rows if x.triangles == 0]
     if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind
         for i in range(0, len(rows), save_every or len(rows) + 1):
