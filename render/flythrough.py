@@ -116,7 +116,7 @@ def flythrough(
         r.close()
     empty = [x.frame for x in rows if x.triangles == 0]
     if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind
-        for i in range(0, len(rows), save_every or len(rows) + 1):
+        for i in range(0, len(rows), save_every) if save_every else ():  # only this run's
             (out / f"frame_{i:05d}.png").unlink(missing_ok=True)
         if not seen:
             raise out_of_view(store, len(rows))
