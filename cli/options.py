@@ -222,7 +222,9 @@ StorageOptionsOpt = Annotated[
         metavar="JSON",
         help="fsspec storage options for an s3://, gs://... store: a JSON object with keys "
         "such as endpoint_url, key, secret, anon (default: the environment, e.g. "
-        "AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY).",
+        "AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY); for http(s):// "
+        'stores, the key "timeout": seconds without a byte before a read gives up '
+        "(default 30).",
     ),
 ]
 

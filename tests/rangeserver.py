@@ -18,6 +18,26 @@ class RangeHandler(SimpleHTTPRequestHandler):
     latency_s = 0.0
     requests = 0
     _lock = threading.Lock()
+    #: faults for block data (the chunks of ``levels/``, ``errors/``, ``mask/``), per server:
+    #: answer with this HTTP status, or (``stall`` set) answer nothing until ``release`` is set
+    fail_status: int | None = None
+    stall: threading.Event
+    release: threading.Event
+
+    def _faulty(self) -> bool:
+        """Apply the server's fault to a block-data request; True if it was answered so."""
+        if not any(f"/{a}/" in self.path for a in ("levels", "errors", "mask")):
+            return False
+        if "/c/" not in self.path:  # an array's metadata, not a chunk
+            return False
+        if self.stall.is_set():
+            self.release.wait(timeout=600)  # a server that stopped answering (SIGSTOP)
+            self.close_connection = True
+            return True
+        if self.fail_status is not None:
+            self.send_error(self.fail_status)
+            return True
+        return False
 
     def log_message(self, *args) -> None:  # keep test output clean
         pass
@@ -27,6 +47,8 @@ class RangeHandler(SimpleHTTPRequestHandler):
             RangeHandler.requests += 1
         if self.latency_s:
             time.sleep(self.latency_s)
+        if self._faulty():
+            return
         path = self.translate_path(self.path)
         if not os.path.isfile(path):
             self.send_error(404)
@@ -67,14 +89,22 @@ class RangeHandler(SimpleHTTPRequestHandler):
         self.end_headers()
 
 
+class _Server(ThreadingHTTPServer):
+    request_queue_size = 64  # opening a store fetches ~20 keys at once (default backlog: 5)
+
+
 class LoopbackServer:
     """``with LoopbackServer(directory, latency_s) as url:`` serves a folder on 127.0.0.1."""
 
     def __init__(self, directory: str | os.PathLike, latency_s: float = 0.0) -> None:
-        handler = type("H", (RangeHandler,), {"latency_s": latency_s})
-        self._server = ThreadingHTTPServer(
-            ("127.0.0.1", 0), partial(handler, directory=str(directory))
+        self.stall, self.release = threading.Event(), threading.Event()
+        handler = type(
+            "H",
+            (RangeHandler,),
+            {"latency_s": latency_s, "stall": self.stall, "release": self.release},
         )
+        self.handler = handler  # set ``handler.fail_status`` to answer block data with it
+        self._server = _Server(("127.0.0.1", 0), partial(handler, directory=str(directory)))
         self._server.daemon_threads = True
         self._thread = threading.Thread(
             target=self._server.serve_forever, name="test-http-server", daemon=True
@@ -85,6 +115,7 @@ class LoopbackServer:
         return f"http://127.0.0.1:{self._server.server_address[1]}"
 
     def __exit__(self, *exc) -> None:
+        self.release.set()
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=5)

@@ -110,6 +110,23 @@ class MissingChunkError(BlockDataError):
     """A chunk the index says was written is absent (deleted or never synced)."""
 
 
+class StoreUnavailableError(StoreError):
+    """The store's server or the network failed a read (timeout, refused or dropped connection,
+    an HTTP 5xx or 403): not damage in the store; retrying later may succeed. ``array``,
+    ``block`` and ``level`` name what was being read (None when it was not a block)."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        array: str | None = None,
+        block: tuple[int, int] | None = None,
+        level: int | None = None,
+    ):
+        super().__init__(message)
+        self.array, self.block, self.level = array, block, level
+
+
 class StoreChangedError(StoreError):
     """The store was replaced or rewritten while a reader had it open; reopen it."""
 

@@ -31,6 +31,7 @@ from zarr.buffer import default_buffer_prototype
 
 from tiler.atomic import partial_name, write_atomic
 from tiler.errors import StorageOptionsError, StoreError
+from tiler.transport import http_options
 
 T = TypeVar("T")
 
@@ -169,6 +170,7 @@ class Location:
                 f"storage options apply to URLs (s3://, gs://, http://...), not to {self.url!r}; "
                 "drop them for a local path or a zarr Store object"
             )
+        self._fsspec_options()  # a bad `timeout` is refused here, before anything runs
 
     # ---- identity ------------------------------------------------------------------------
     @property
@@ -223,8 +225,15 @@ class Location:
         return self.is_local
 
     # ---- whole-store operations ----------------------------------------------------------
+    def _fsspec_options(self) -> dict[str, Any]:
+        """The options fsspec gets: ``http(s)://`` adds read timeouts (:mod:`tiler.transport`)."""
+        if isinstance(self.target, str) and self.target.startswith(("http://", "https://")):
+            return http_options(self.storage_options)
+        return dict(self.storage_options or {})
+
     def _zarr_kwargs(self) -> dict[str, Any]:
-        return {"storage_options": self.storage_options} if self.storage_options else {}
+        so = self._fsspec_options()
+        return {"storage_options": so} if so else {}
 
     def open_group(self, mode: str = "r", **kwargs: Any) -> zarr.Group:
         """Open the root zarr group (``kwargs`` go to ``zarr.open_group``).
@@ -250,7 +259,7 @@ class Location:
     def _fs(self) -> tuple[Any, str]:
         import fsspec
 
-        return fsspec.core.url_to_fs(self.target, **(self.storage_options or {}))
+        return fsspec.core.url_to_fs(self.target, **self._fsspec_options())
 
     def exists(self) -> bool:
         """True if anything is stored at this location."""

@@ -61,6 +61,7 @@ from tiler.schema import (
     index_chunk,
     level_fill,
 )
+from tiler.transport import is_transport_error, unavailable
 from tiler.vertical import from_metres, to_metres
 from tiler.zarr_batch import open_each
 
@@ -167,8 +168,11 @@ class TerrainStore:
         m = self.meta
         return f"TerrainStore({self.url!r}, {m.height}x{m.width} {m.dtype}, k={m.k})"
 
-    def _open_error(self, name: str, exc: BaseException) -> StoreCorruptError | None:
-        """The error opening array ``name`` failed with, as the store's damage (else None)."""
+    def _open_error(self, name: str, exc: BaseException) -> StoreError | None:
+        """The error opening array ``name`` failed with, as the store's damage or the server's
+        failure (else None)."""
+        if is_transport_error(exc):
+            return unavailable(f"the metadata of array {name!r}", self.url, exc, array=name)
         if isinstance(exc, (KeyError, zarr.errors.ArrayNotFoundError)):
             return StoreCorruptError(
                 f"store {self.url!r} has no array {name!r}: the store is damaged; "
@@ -218,7 +222,12 @@ class TerrainStore:
             if now - self._last_check < REMOTE_CHECK_INTERVAL_S:
                 return
             self._last_check = now
-        token = self.location.change_token()
+        try:
+            token = self.location.change_token()
+        except Exception as exc:
+            if not is_transport_error(exc):
+                raise
+            raise unavailable("the root metadata (was the store replaced?)", self.url, exc) from exc
         if token == self._token:
             return
         gen = None
@@ -247,7 +256,13 @@ class TerrainStore:
                 out = chunkread.read_local(self._root, spec, block, into)
             else:
                 out = self._array(name)[block]
-        except _READ_ERRORS as exc:
+        except Exception as exc:
+            if is_transport_error(exc):
+                where = {"array": name, "block": block, "level": level}
+                subject = f"{what} of block {block} (array {name!r})"
+                raise unavailable(subject, self.url, exc, **where) from exc
+            if not isinstance(exc, _READ_ERRORS):
+                raise
             cls = ChunkChecksumError if "checksum" in str(exc) else BlockDataError
             raise cls(
                 f"cannot read {what} of block {block} (array {name!r}) from {self.url!r}: {exc}; "

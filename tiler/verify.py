@@ -30,6 +30,7 @@ from tiler.schema import (
     shard_shape,
 )
 from tiler.store import StoreMeta, read_meta
+from tiler.transport import is_transport_error, unavailable
 
 _READ_ERRORS = (ValueError, OSError, RuntimeError, KeyError)
 
@@ -120,7 +121,11 @@ def verify_store(
     try:
         group = loc.open_group("r")
         meta = read_meta(group)
-    except (StoreError, FileNotFoundError, ValueError, KeyError) as exc:
+    except Exception as exc:
+        if is_transport_error(exc):
+            raise unavailable("the root metadata (verify concluded nothing)", loc.url, exc) from exc
+        if not isinstance(exc, StoreError | FileNotFoundError | ValueError | KeyError):
+            raise
         rep.add("metadata", "", None, None, f"root metadata unreadable: {exc}")
         rep.unrepairable.append(f"root metadata unreadable: {exc}")
         return rep
@@ -159,8 +164,8 @@ def verify_store(
         rep.chunks_checked += 1
         try:
             ok = np.array_equal(arrays[name][...], expected_table(name, meta.k))
-        except _READ_ERRORS as exc:
-            ok, why = False, str(exc)
+        except Exception as exc:
+            ok, why = False, str(_damage(exc, f"table {name!r}", rep))
         else:
             why = "content differs from its definition"
         if not ok:
@@ -198,7 +203,8 @@ def _open_arrays(group: Any, meta: StoreMeta, rep: VerifyReport) -> dict[str, An
     for name, shape in want.items():
         try:
             arr = group[name]
-        except _READ_ERRORS as exc:
+        except Exception as exc:
+            _damage(exc, f"the metadata of array {name!r}", rep)
             msg = f"array {name!r} is missing or its metadata is damaged: {exc}"
             rep.add("metadata", name, None, None, msg)
             rep.unrepairable.append(msg)
@@ -233,7 +239,8 @@ def _check_index(arrays: dict, loc: Location, meta: StoreMeta, rep: VerifyReport
                 key = chunk_key(f"index/{n}", (r0, c0), rows, cols)
                 try:
                     part = arr[sl]
-                except _READ_ERRORS as exc:
+                except Exception as exc:
+                    _damage(exc, f"chunk {key!r}", rep)
                     _bad_all(rep, "checksum", f"index/{n}", blocks, f"chunk {key!r}: {exc}")
                     continue
                 if meta.checksummed and meta.complete and not loc.key_exists(key):
@@ -255,6 +262,18 @@ def _check_index(arrays: dict, loc: Location, meta: StoreMeta, rep: VerifyReport
     return out
 
 
+def _damage(exc: Exception, subject: str, rep: VerifyReport) -> Exception:
+    """``exc``, a read failure to report as damage; a failure of the server or the network is
+    raised instead (verify cannot conclude anything from it), and anything else re-raised."""
+    if is_transport_error(exc):
+        raise unavailable(
+            f"{subject} (verify stopped: nothing was concluded about the store)", rep.location, exc
+        ) from exc
+    if not isinstance(exc, _READ_ERRORS):
+        raise exc
+    return exc
+
+
 def _bad_all(rep: VerifyReport, kind: str, array: str, blocks: list, msg: str) -> None:
     rep.problems.append(Problem(kind, array, None, None, f"{array}: {msg}"))
     rep.bad_blocks.update(blocks)
@@ -273,14 +292,16 @@ def _check_level(arr: Any, level: int, loc: Location, meta: StoreMeta, rep: Veri
             rep.chunks_checked += 1
             try:
                 region = arr[r0:r1, c0:c1]
-            except _READ_ERRORS:
-                region = None
+            except Exception as exc:
+                _damage(exc, f"level {level} of blocks {(r0, c0)}..{(r1 - 1, c1 - 1)}", rep)
+                region = None  # read block by block below, to name the damaged ones
             for br in range(r0, r1):
                 for bc in range(c0, c1):
                     if region is None:
                         try:
                             v = arr[br, bc]
-                        except _READ_ERRORS as exc:
+                        except Exception as exc:
+                            _damage(exc, f"level {level} of block {(br, bc)}", rep)
                             rep.add(
                                 "checksum",
                                 f"levels/{level}",
@@ -318,7 +339,8 @@ def _check_blocks(
         rep.chunks_checked += 1
         try:
             v = arr[b]
-        except _READ_ERRORS as exc:
+        except Exception as exc:
+            _damage(exc, f"{what} of block {b}", rep)
             rep.add("checksum", name, b, level, f"{what} of block {b}: {exc}")
             continue
         if (not meta.checksummed and not has_nodata) or rep.unfinished:

@@ -295,3 +295,41 @@ def test_reads_use_obstore_by_default_and_fsspec_on_request(
     assert type(c._group.store).__name__ == "ObjectStore"
     blk = next(iter(a.blocks()))
     assert np.array_equal(a.read_block(blk), c.read_block(blk))
+
+
+@pytest.mark.parametrize("reader", ["obstore", "fsspec"])
+def test_an_s3_server_that_goes_away_is_unavailable_not_damage(tmp_path, monkeypatch, reader):
+    """Reads after the S3 server stopped raise StoreUnavailableError naming the block (obstore
+    raised its GenericError and s3fs botocore's EndpointConnectionError, which sessions took
+    for bugs); a read before it stopped is the control."""
+    from tiler.errors import StoreUnavailableError
+    from tiler.location import S3_READER_ENV
+    from tiler.store import open_store
+
+    if reader == "obstore":
+        pytest.importorskip("obstore")
+    own = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    own.start()
+    try:
+        host, port = own.get_host_and_port()
+        for k in ENV_KEYS:
+            monkeypatch.delenv(k, raising=False)
+        monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://{host}:{port}")
+        monkeypatch.setenv("AWS_DEFAULT_REGION", "us-east-1")
+        for k, v in CREDS.items():
+            monkeypatch.setenv(k, v)
+        monkeypatch.setenv(S3_READER_ENV, reader)
+        s3fs.S3FileSystem.clear_instance_cache()
+        s3fs.S3FileSystem().mkdir(f"terrastream-gone-{reader}")
+        url = f"s3://terrastream-gone-{reader}/g.zarr"
+        tile(_dem(tmp_path, nodata=False), url, TileOptions(block_size=33, workers=1))
+        s = open_store(url)
+        blocks = list(s.blocks())
+        s.read_level_raw(blocks[0], 1)  # the control: the server answers
+    finally:
+        own.stop()
+    with pytest.raises(StoreUnavailableError) as e:
+        s.read_level_raw(blocks[1], 2)
+    assert (e.value.block, e.value.level) == (tuple(blocks[1]), 2)
+    msg = str(e.value)
+    assert "the server or the network failed, not the store" in msg and "\n" not in msg

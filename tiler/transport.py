@@ -1,0 +1,96 @@
+"""Telling a failed connection from a damaged store, and how long a remote read may hang.
+
+A read of a remote store can fail because the server or the network did (a timeout, a refused
+or dropped connection, an HTTP 503 or 403) or because the store is damaged (a checksum that
+does not match, a chunk that is missing). The first is worth retrying and says nothing about
+the store; the second is worth ``terrastream verify``. :func:`is_transport_error` tells them
+apart for the clients terrastream reads through: aiohttp (fsspec's ``http(s)://``), obstore
+(``s3://``), botocore (s3fs) and the built-in ``TimeoutError``/``ConnectionError``.
+
+Pure: no I/O; the client libraries are only looked up if they are already imported.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any
+
+from tiler.errors import StorageOptionsError, StoreUnavailableError
+
+#: default seconds an ``http(s)://`` read may go without a byte (connect, then each read)
+HTTP_TIMEOUT_S = 30.0
+#: the storage option (``http(s)://`` only) that sets it, in seconds
+TIMEOUT_OPTION = "timeout"
+
+
+def is_transport_error(exc: BaseException) -> bool:
+    """True if ``exc`` is the server's or the network's failure, not the store's content."""
+    if isinstance(exc, TimeoutError | ConnectionError):
+        return True
+    aiohttp = sys.modules.get("aiohttp")
+    if aiohttp is not None and isinstance(exc, aiohttp.ClientError):
+        return True  # ClientResponseError (5xx, 403...), payload, disconnect, connector errors
+    boto = sys.modules.get("botocore.exceptions")  # s3fs lets some through untranslated
+    if boto is not None and isinstance(exc, boto.ConnectionError | boto.HTTPClientError):
+        return True
+    obstore_exc = sys.modules.get("obstore.exceptions")
+    if obstore_exc is not None and isinstance(exc, obstore_exc.BaseError):
+        # NotFoundError is a missing key, which zarr's ObjectStore turns into an absent chunk
+        return not isinstance(exc, obstore_exc.NotFoundError)
+    return False
+
+
+def describe(exc: BaseException, most: int = 400) -> str:
+    """``exc``'s first line with its type (a bare ``TimeoutError()`` has no message; obstore's
+    go on with a multi-line debug dump), at most ``most`` characters."""
+    text = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), "")
+    if len(text) > most:
+        text = text[: most - 3] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def advice(exc: BaseException) -> str:
+    """What to do about the transport error ``exc``."""
+    if isinstance(exc, TimeoutError):
+        return (
+            "the server did not answer in time: check it and the connection, or raise the "
+            f"storage option {TIMEOUT_OPTION!r} (seconds; http(s) stores), and try again"
+        )
+    return "the server or the network failed, not the store: check them and try again"
+
+
+def unavailable(subject: str, url: str, exc: BaseException, **where: Any) -> StoreUnavailableError:
+    """The error for a transport failure ``exc`` fetching ``subject`` from ``url`` (``where``:
+    ``array``/``block``/``level``), worded with what to do."""
+    return StoreUnavailableError(
+        f"cannot fetch {subject} from {url!r}: {describe(exc)}; {advice(exc)}", **where
+    )
+
+
+def http_options(options: dict[str, Any] | None) -> dict[str, Any]:
+    """fsspec options for an ``http(s)://`` store: ``timeout`` (seconds without a byte, default
+    :data:`HTTP_TIMEOUT_S`) becomes aiohttp's connect and read timeouts, unless
+    ``client_kwargs`` sets its own ``timeout``. aiohttp's default (300 s in total, per
+    request) let a server that stopped answering hang a flight for five minutes.
+    """
+    so = dict(options or {})
+    seconds = so.pop(TIMEOUT_OPTION, HTTP_TIMEOUT_S)
+    if (
+        isinstance(seconds, bool)
+        or not isinstance(seconds, int | float)
+        or not (math.isfinite(seconds) and seconds > 0)
+    ):
+        raise StorageOptionsError(
+            f"storage option {TIMEOUT_OPTION!r} must be a number of seconds > 0, got "
+            f'{seconds!r}; e.g. {{"{TIMEOUT_OPTION}": 30}}'
+        )
+    client = dict(so.get("client_kwargs") or {})
+    if "timeout" not in client:
+        import aiohttp
+
+        client["timeout"] = aiohttp.ClientTimeout(
+            total=None, sock_connect=float(seconds), sock_read=float(seconds)
+        )
+    so["client_kwargs"] = client
+    return so
