@@ -100,7 +100,9 @@ def format_summary(d: dict) -> str:
             f"frames {d['frames']}, stall frames {d['stall_frames']} (over the "
             f"{d.get('stall_set', 'triangle')} set), io errors {d['io_errors']}, "
             f"frames with holes {d.get('hole_frames', 0)}, "
-            f"blocks failed at the end {len(d.get('failed_blocks', []))}",
+            f"blocks failed at the end {len(d.get('failed_blocks', []))} (failing "
+            f"{d.get('failing_blocks', 0)}, of which needed by a frame "
+            f"{d.get('failing_blocks_needed', 0)})",
             f"late bytes {d.get('late_bytes', 0) * mb:.3f} MiB (after their frame was due); "
             f"frames drawn coarser than needed, by levels: {d.get('coarse_frames_by_levels', {})}",
             f"warm-up before frame 0: {d['warmup_bytes'] * mb:.2f} MiB in {d['warmup_ms']:.0f} ms",

@@ -209,6 +209,7 @@ class _Totals:
         budget_bytes: int,
         stall_set: str,
         failed_now: list[Block],
+        failing: dict[str, Any],
     ) -> dict[str, Any]:
         """The ``summary()`` mapping of a session (see :meth:`streamer.session.Session.summary`)."""
         return {
@@ -237,6 +238,7 @@ class _Totals:
             "failed_frames": self.failed_frames,
             "failed_blocks": [list(b) for b in failed_now],
             "failed_blocks_ever": len(self.failed_ever),
+            **failing,
             "reloaded_bytes": self.reloaded_bytes,
             "reloaded_levels": self.reloaded_levels,
         }

@@ -24,6 +24,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 import zarr.errors
@@ -33,7 +34,7 @@ from streamer.frames import SessionConfig, _Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
 from streamer.nodata import rule_errors
-from tiler.errors import StoreCorruptError, StoreError
+from tiler.errors import StoreCorruptError, StoreError, StoreUnavailableError
 from tiler.store import TerrainStore
 
 log = logging.getLogger(__name__)
@@ -81,7 +82,8 @@ class Loader:
         self.frame_late = 0
         self.prio: dict[Block, float] = {}
         self.unreported: list[tuple[Block, BaseException]] = []
-        self.last_error: dict[Block, BaseException] = {}
+        self.last_error: dict[Block, BaseException] = {}  # blocks whose latest read failed
+        self.latest_error: BaseException | None = None  # the latest read error of any block
         self.frame_realtime = 0
         self.frame_prefetched = 0
         self.frame_io_s = 0.0
@@ -175,7 +177,9 @@ class Loader:
             return
         with self.cv:
             jobs = []
-            while not self.closed and self._in_flight < self.config.workers:
+            # after a bug no new job starts: the failing block would be retried in a tight
+            # loop; the session re-raises the bug and clears it, and pumping resumes
+            while not self.closed and self.bug is None and self._in_flight < self.config.workers:
                 job = self.next_job()
                 if job is None:
                     break
@@ -215,6 +219,10 @@ class Loader:
         b, level = job
         try:
             self._fetch(b, level)
+        except Exception as exc:
+            what = "its errors" if level < 0 else f"level {level}"
+            exc.add_note(f"raised by a terrastream loader thread reading {what} of block {b}")
+            raise
         finally:
             with self.cv:
                 self.fetching.get(b, set()).discard(level)
@@ -236,6 +244,7 @@ class Loader:
                 was_failed = self.queue.is_failed(b)
                 count = self.queue.failed_read(b, time.monotonic())
                 self.last_error[b] = exc
+                self.latest_error = exc
                 if self.queue.is_failed(b) and not was_failed:
                     self.unreported.append((b, exc))
                 self.frame_io_s += time.perf_counter() - t0
@@ -377,6 +386,29 @@ class Loader:
             f"; budget {cache.nbytes:,} of {cache.budget:,} bytes ({cache.reserved:,} reserved)"
         )
         return "; ".join(parts) + more + budget
+
+    def stuck(self) -> str:
+        """Where the loads stand, for a wait that timed out (caller holds the lock)."""
+        reading = sum(len(v) for v in self.fetching.values())
+        text = f"{len(self.queue)} load(s) queued, {reading} read(s) running"
+        if self.last_error:
+            text += f", {len(self.last_error)} block(s) failing; latest: {self.latest_error}"
+        return text
+
+    def failing(self) -> dict[str, Any]:
+        """The blocks whose latest read failed: how many, how many a frame needed, how many
+        for the server's fault (:class:`StoreUnavailableError`), and the latest error (caller
+        holds the lock)."""
+        needed = {b for b, _ in self.demanded}
+        errs = self.last_error
+        return {
+            "failing_blocks": len(errs),
+            "failing_blocks_needed": sum(1 for b in errs if b in needed),
+            "failing_blocks_unreachable": sum(
+                1 for e in errs.values() if isinstance(e, StoreUnavailableError)
+            ),
+            "last_read_error": None if self.latest_error is None else str(self.latest_error),
+        }
 
     # -- inline loading (workers=0) and shutdown -------------------------------------------
 

@@ -194,6 +194,56 @@ def require_view(result: RunResult, store: TerrainStore) -> None:
         raise out_of_view(store, len(result.rows))
 
 
+#: seconds ``stream`` waits after the flight for reads still in flight (``Session.close``)
+CLOSE_WAIT_S = 10.0
+#: summary keys ``stream --json`` repeats as they stood after that wait (``at_close``)
+AT_CLOSE = (
+    "io_errors",
+    "failed_blocks",
+    "failing_blocks",
+    "failing_blocks_needed",
+    "failing_blocks_unreachable",
+    "last_read_error",
+)
+
+
+def flight_problem(summary: dict[str, Any], unfinished: list[str], url: str) -> str | None:
+    """Why a finished flight must not exit 0 (None: it may).
+
+    ``summary`` is the session's summary taken after :meth:`Session.close` (which waited
+    :data:`CLOSE_WAIT_S` for reads in flight) and ``unfinished`` the threads close left
+    running: a read never answered; blocks a frame needed whose latest read failed, or blocks
+    that failed every retry (worded by cause, the server's or the store's, and by whether a
+    frame needed them or they were only read ahead); or nothing loaded at all. A read ahead
+    that failed once and may still work is not a failure."""
+    reads = [n for n in unfinished if n.startswith("terrastream-load")]
+    if reads:
+        return (
+            f"{len(reads)} read(s) of {url!r} were still unanswered {CLOSE_WAIT_S:.0f} s after "
+            "the flight ended: the server stopped answering; check it (an http(s) store's "
+            "reads give up after the storage option 'timeout', default 30 s)"
+        )
+    failed = len(summary.get("failed_blocks") or [])
+    needed = int(summary.get("failing_blocks_needed", 0))
+    if not failed and not needed:  # a read ahead that failed and may yet work is no failure
+        if summary.get("loaded_bytes"):
+            return None
+        return "no level could be loaded; run `terrastream verify` on the store or check its server"
+    if needed:
+        what = f"{needed} block(s) a frame needed could not be read by the end"
+        what += f" ({failed} failed every retry)" if failed else ""
+    else:
+        what = (
+            f"{failed} block(s) read ahead of the camera failed every retry (no frame needed them)"
+        )
+    last = summary.get("last_read_error") or "unknown"
+    if summary.get("failing_blocks_unreachable", 0) == summary.get("failing_blocks", 0):
+        cause = "the server or the network failed, not the store: check them and stream again"
+    else:
+        cause = f"run `terrastream verify {url}` (the store may be damaged)"
+    return f"{what}; {cause} (latest error: {last})"
+
+
 def plot_run(result: RunResult, out: str | Path, title: str = "") -> None:
     """Plot needed / real-time / prefetched MiB and I/O ms per frame (Qiu's Table 3) to a PNG."""
     import matplotlib

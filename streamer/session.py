@@ -41,7 +41,7 @@ import numpy as np
 from streamer import levels as levels_kernels
 from streamer.cache import Block
 from streamer.camera import Camera
-from streamer.errors import BudgetError, LoadError, SessionClosedError, StreamerError
+from streamer.errors import BudgetError, LoadError, LodError, SessionClosedError, StreamerError
 from streamer.frames import Frame, FrameStats, SessionConfig
 from streamer.loader import READ_ERRORS, Loader
 from streamer.lod import FIELD_FOR_METRIC
@@ -99,6 +99,7 @@ class Session:
         self._prefetch_blocks = 0
         self._shown: dict[Block, tuple[int, int]] = {}  # the last frame's blocks
         self._closed = False
+        self.unfinished: list[str] = []  # threads still running when close() returned
         self._plan_pool = (
             ThreadPoolExecutor(1, thread_name_prefix="terrastream-plan")
             if self.config.workers
@@ -136,14 +137,20 @@ class Session:
     def __enter__(self) -> Session:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        self._close(10.0, raise_bug=exc_type is None)  # never mask the exception in flight
 
-    def close(self, timeout_s: float = 10.0) -> None:
-        """Stop the loader and planning threads (bounded wait) and release the cache."""
+    def close(self, timeout_s: float = 10.0) -> list[str]:
+        """Stop the loader and planning threads, waiting at most ``timeout_s`` for reads in
+        flight; the names of threads still running then (a read the server never answers).
+        An exception a loader or planning thread raised that no :meth:`update` re-raised yet
+        is raised here, once the threads are stopped."""
+        return self._close(timeout_s, raise_bug=True)
+
+    def _close(self, timeout_s: float, *, raise_bug: bool) -> list[str]:
         with self._cv:
             if self._closed:
-                return
+                return []
             self._closed = True
         t0 = time.monotonic()
         alive = self.loader.close(timeout_s)
@@ -155,9 +162,21 @@ class Session:
                     alive.append(t.name)
         if alive:
             log.warning("session threads still running after %.1f s: %s", timeout_s, alive)
+        self.unfinished = alive
+        if raise_bug:
+            self._raise_background_error()
+        else:
+            with self._cv:
+                left = self._plan_error or self.loader.bug
+            if left is not None:
+                log.error("a session thread failed: %r", left)
+        return alive
 
     def set_tau(self, tau: float) -> None:
         """Change the screen-space error threshold for what is drawn *and* what is streamed."""
+        self._check_open()
+        if isinstance(tau, bool) or not isinstance(tau, int | float | np.integer | np.floating):
+            raise LodError(f"tau must be a number of pixels > 0, got {tau!r}")
         self.config = replace(self.config, tau=float(tau))  # validated by SessionConfig
 
     # -- planning -------------------------------------------------------------------------
@@ -294,6 +313,7 @@ class Session:
         """Wait until the loader has nothing queued or running (failed blocks in backoff
         aside), pumping for retries; ``LoadError`` at ``deadline``."""
         while True:
+            self._raise_background_error()  # a loader bug ends the wait with its cause
             self.loader.pump()
             with self._cv:
                 now = time.monotonic()
@@ -302,7 +322,11 @@ class Session:
                     return
                 left = deadline - now
                 if left <= 0:
-                    raise LoadError(f"warm-up did not finish within {limit:.1f} s")
+                    raise LoadError(
+                        f"warm-up did not finish within {limit:.1f} s ({self.loader.stuck()}); "
+                        "pass a larger timeout_s (or wait_timeout_s), or check the store's "
+                        "server"
+                    )
                 self._cv.wait(timeout=self._nap(left, now))
 
     def _only_backoff(self, now: float) -> bool:
@@ -376,6 +400,7 @@ class Session:
         ld = self.loader
         q = ld.queue
         while True:
+            self._raise_background_error()  # a loader bug ends the wait with its cause
             if cfg.workers == 0:
                 ld.load_inline(None)
             else:
@@ -507,7 +532,9 @@ class Session:
         with self._cv:
             used_bytes = sum(self._cum_bytes[top] for top in t.used.values() if top >= 0)
             failed_now = sorted(self.loader.queue.failed_blocks())
+            failing = self.loader.failing()
         return t.summary(
+            failing=failing,
             used_bytes=used_bytes,
             peak_resident_bytes=self.cache.peak_nbytes,
             budget_bytes=self.cache.budget,

@@ -208,4 +208,29 @@ def test_stream_keeps_going_on_read_errors_and_fails_when_blocks_stay_unreadable
     r = run("stream", broken, "--frames", "20", "--fps", "100", "--size", "64x48")
     assert r.exit_code == 1, r.output
     assert "frames 20" in r.stdout  # it flew the whole path and printed its summary
-    assert "still unreadable at the end" in r.output and "terrastream verify" in r.output
+    assert "a frame needed could not be read by the end" in r.output
+    assert "terrastream verify" in r.output and "MissingChunkError" not in r.output
+
+
+@pytest.mark.parametrize("fault", ["503", "stall"])
+def test_stream_over_a_failing_server_blames_the_server_not_the_store(store, fault):
+    """A server answering 503 for block data, or not answering at all: exit 1 naming the
+    server (not `verify`); the same flight over the healthy server is the control (exit 0)."""
+    from rangeserver import LoopbackServer
+
+    srv = LoopbackServer(store.parent)
+    with srv as url:
+        args = ("stream", f"{url}/{store.name}", "--frames", "60", "--fps", "60", "--size",
+                "64x48")  # fmt: skip
+        r = run(*args)
+        assert r.exit_code == 0, r.output  # the control
+        args += ("--storage-options", '{"timeout": 0.25}')  # a stalled read gives up soon
+        if fault == "503":
+            srv.handler.fail_status = 503
+        else:
+            srv.stall.set()  # a SIGSTOPped server: connections accepted, nothing answered
+        r = run(*args)
+    assert r.exit_code == 1, r.output
+    assert "the server or the network failed, not the store" in r.output
+    assert "verify" not in r.output.split("incomplete:")[-1]
+    assert ("503" if fault == "503" else "did not answer in time") in r.output
