@@ -324,6 +324,12 @@ def default_flythrough(
     loop = np.stack([cx + ax * np.sin(phi), cy + ay * np.cos(phi)], axis=1)
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(loop, axis=0).T))])
     perimeter = float(arc[-1])
+    if v / rate > perimeter:  # each frame a random point of the loop; beyond ~1e16, NaN poses
+        raise PathError(
+            f"speed {v:g} at {rate:g} fps moves the camera {v / rate:.4g} per frame, more than "
+            f"the default path's whole loop ({perimeter:.4g}); pass a speed of at most "
+            f"{perimeter * rate:.4g} (world units per second)"
+        )
     s0 = float(np.interp(1.25 * math.pi, phi, arc))  # start at bearing 225 (south-west)
     reach = drop / math.tan(math.radians(FLYTHROUGH_PITCH))
     lead = min(reach, 0.25 * perimeter)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -312,3 +313,24 @@ def test_default_flythrough_invalid(kw, match):
     }
     with pytest.raises(PathError, match=match):
         default_flythrough(**args)
+
+
+def test_default_flythrough_refuses_a_speed_beyond_a_loop_per_frame():
+    """`stream --speed 1e25` ended with "yaw must be finite, got nan"; now the speed is refused
+    naming the bound, and a speed at the bound still gives finite poses."""
+    grid = BlockGrid(height=65, width=65, k=6)
+    with pytest.raises(PathError, match=r"speed 1e\+25 at 30 fps .* more than the default"):
+        default_flythrough(grid, 0.0, 1.0, 5, 30.0, speed=1e25)
+    bound = float(
+        re.search(r"at most (\S+) ", _message(grid, 1e9)).group(1)  # type: ignore[union-attr]
+    )
+    cams = default_flythrough(grid, 0.0, 1.0, 5, 30.0, speed=0.999 * bound)
+    assert all(np.isfinite([c.yaw, c.pitch, *c.position]).all() for c in cams)
+
+
+def _message(grid, speed) -> str:
+    try:
+        default_flythrough(grid, 0.0, 1.0, 5, 30.0, speed=speed)
+    except PathError as exc:
+        return str(exc)
+    raise AssertionError("not refused")
