@@ -180,18 +180,24 @@ def test_a_block_only_read_ahead_fails_without_a_frame_needing_it(store):
 # -- a server that stops answering ----------------------------------------------------------
 
 
+def _fly_into_a_stall(srv, store, **kw):
+    """A session over ``store`` whose server answers no block read: a few frames that queue
+    reads (none waits); returns the open session."""
+    s = open_session(store, budget_mb=64, workers=2, **kw)
+    srv.stall.set()  # the store's metadata and index were read when it was opened
+    cams = default_flythrough(
+        s.grid, *s.store.meta.extra["value_range"], 20, 60.0, viewport=(160, 120)
+    )
+    for cam in cams:
+        s.update(cam)
+        time.sleep(0.02)
+    return s
+
+
 def test_reads_a_stalled_server_never_answers_are_left_visible_at_close(root):
     srv = LoopbackServer(root)
     with srv as url:
-        s = open_session(TerrainStore(f"{url}/s.zarr"), budget_mb=64, workers=2)
-        cams = default_flythrough(
-            s.grid, *s.store.meta.extra["value_range"], 40, 60.0, viewport=(160, 120)
-        )
-        s.update(cams[0], wait=True)
-        srv.stall.set()
-        for cam in cams[1:]:
-            s.update(cam)
-            time.sleep(0.01)
+        s = _fly_into_a_stall(srv, TerrainStore(f"{url}/s.zarr"))
         unfinished = s.close(0.5)  # the default timeout (30 s) has not run out
         assert [n for n in unfinished if n.startswith("terrastream-load")]
         assert s.summary()["io_errors"] == 0  # nothing failed yet: the reads just hang
@@ -204,18 +210,11 @@ def test_with_a_timeout_a_stalled_server_becomes_failed_reads_of_the_server(root
     srv = LoopbackServer(root)
     with srv as url:
         st = TerrainStore(Location(f"{url}/s.zarr", {"timeout": 0.3}))
-        s = open_session(st, budget_mb=64, workers=2, raise_on_failure=False)
-        cams = default_flythrough(
-            s.grid, *s.store.meta.extra["value_range"], 40, 60.0, viewport=(160, 120)
-        )
-        s.update(cams[0], wait=True)
-        srv.stall.set()
-        for cam in cams[1:]:
-            s.update(cam)
-            time.sleep(0.02)
+        s = _fly_into_a_stall(srv, st, raise_on_failure=False)
         assert s.close(5.0) == []  # every read gave up within its timeout
         end = s.summary()
     assert end["io_errors"] >= 1 and end["failing_blocks"] >= 1
+    assert end["failing_blocks_needed"] >= 1  # the frames' own blocks
     assert end["failing_blocks_unreachable"] == end["failing_blocks"]
     assert "did not answer in time" in end["last_read_error"]
     problem = flight_problem(end, [], url)
