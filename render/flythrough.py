@@ -3,7 +3,8 @@
 Each frame is streamed through a session (``culling="hull"``: the blocks the renderer draws)
 and drawn with the resident levels, as in real time: frames wait for their data until the first
 one that sees the DEM, later ones draw what has arrived (``stalled`` when a level is missing).
-A path none of whose frames draws terrain is an error, not a folder of blank frames."""
+A path none of whose frames draws terrain is an error, not a folder of blank frames; a flight
+whose reads failed or went unanswered says so in ``summary["problem"]`` (the CLI exits 1)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step
 from render.strategies import DEFAULT, get_strategy, stream_metric
 from streamer.camera import Camera
-from streamer.run import out_of_view
+from streamer.run import CLOSE_WAIT_S, flight_problem, out_of_view
 from streamer.session import open_session
 from tiler.store import TerrainStore
 
@@ -111,9 +112,12 @@ def flythrough(
                 rows.append(row)
                 if on_frame:
                     on_frame(row)
+            # reads still in flight may finish, fail or never answer: say which (as `stream`)
+            unfinished = session.close(CLOSE_WAIT_S)
             summary = session.summary()
     finally:
         r.close()
+    problem = flight_problem(summary, unfinished, str(getattr(store, "url", store)))
     empty = [x.frame for x in rows if x.triangles == 0]
     if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind
         for i in range(0, len(rows), save_every) if save_every else ():  # only this run's
@@ -123,7 +127,7 @@ def flythrough(
         raise RenderError(
             f"none of the {len(rows)} frame(s) drew terrain, though "
             f"{sum(x.visible_blocks > 0 for x in rows)} saw the DEM: none of its levels was "
-            "resident when they were drawn; run `terrastream verify` on the store"
+            "resident when they were drawn; " + (problem or "run `terrastream verify` on the store")
         )
     with open(out / "frames.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
@@ -145,6 +149,10 @@ def flythrough(
         # of the empty frames, those that saw none of the DEM (the others were stalled)
         "unseen_frames": int(sum(x.visible_blocks == 0 for x in rows if x.triangles == 0)),
         "loaded_mb": float(summary["loaded_bytes"] / 2**20),
+        "io_errors": int(summary["io_errors"]),
+        "failing_blocks": int(summary["failing_blocks"]),
+        # why the fly-through is incomplete (streamer.run.flight_problem), or None
+        "problem": problem,
         "peak_resident_mb": float(summary["peak_resident_bytes"] / 2**20),
     }
     return rows, summary

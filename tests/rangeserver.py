@@ -21,6 +21,7 @@ class RangeHandler(SimpleHTTPRequestHandler):
     #: faults for block data (the chunks of ``levels/``, ``errors/``, ``mask/``), per server:
     #: answer with this HTTP status, or (``stall`` set) answer nothing until ``release`` is set
     fail_status: int | None = None
+    fail_match: str | None = None  # only chunks whose path holds this (None: every chunk)
     stall: threading.Event
     release: threading.Event
 
@@ -29,6 +30,8 @@ class RangeHandler(SimpleHTTPRequestHandler):
         if not any(f"/{a}/" in self.path for a in ("levels", "errors", "mask")):
             return False
         if "/c/" not in self.path:  # an array's metadata, not a chunk
+            return False
+        if self.fail_match is not None and self.fail_match not in self.path:
             return False
         if self.stall.is_set():
             self.release.wait(timeout=600)  # a server that stopped answering (SIGSTOP)

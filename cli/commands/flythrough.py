@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import input_file, open_store_arg, output_dir
-from cli.common import UsageError, fail_on_errors
+from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -121,6 +121,12 @@ def flythrough(
                 f"{summary['first_empty_frame']}): {why}",
                 err=True,
             )
+        if summary["problem"]:  # the frames and summary are written; the run is incomplete
+            typer.echo(
+                f"error: the fly-through over {store!r} is incomplete: {summary['problem']}",
+                err=True,
+            )
+            raise typer.Exit(EXIT_RUNTIME)
 
 
 def register(app: typer.Typer) -> None:

@@ -213,3 +213,57 @@ def test_a_flythrough_whose_frames_saw_the_dem_but_drew_nothing_is_an_error(
     rows, summary = flythrough(s, cams, tmp_path / "g", patch_log2=2)
     assert summary["empty_frames"] == 0 and all(r.visible_blocks > 0 for r in rows)
     assert len(list((tmp_path / "g").glob("frame_*.png"))) == 2
+
+
+@pytest.mark.parametrize("only", [None, "/errors/c/0/0"], ids=["every-block", "one-block"])
+def test_a_flythrough_over_a_failing_server_exits_1_blaming_the_server(store, tmp_path, only):
+    """Block data answered with 503 (every block, or one block's errors, which stops the
+    fly-through at that block's failure): exit 1 naming the server, not `verify`. The healthy
+    server is the control (exit 0, no verdict in summary.json)."""
+    from pathlib import Path
+
+    from rangeserver import LoopbackServer
+
+    root = Path(store).parent
+    srv = LoopbackServer(root)
+    with srv as url:
+        args = ["flythrough", f"{url}/{Path(store).name}", "--size", "64x48", "--frames",
+                "3", "--patch-log2", "2", "--out"]  # fmt: skip
+        res = runner.invoke(app, [*args, str(tmp_path / "ok")])
+        assert res.exit_code == 0, res.output  # the control
+        assert json.loads((tmp_path / "ok" / "summary.json").read_text())["problem"] is None
+        srv.handler.fail_status, srv.handler.fail_match = 503, only
+        res = runner.invoke(app, [*args, str(tmp_path / "bad")])
+    assert res.exit_code == 1, res.output
+    assert "the server or the network failed, not the store" in res.output
+    assert "verify" not in res.output and "503" in res.output
+
+
+def test_a_flythrough_whose_reads_go_unanswered_says_so(tmp_path, monkeypatch):
+    """The server stops answering after frame 0 (its reads ahead hang): the frames are drawn
+    and written, and the summary's verdict names the unanswered reads. The control: the same
+    flight over the healthy server has no verdict."""
+    from pathlib import Path
+
+    from rangeserver import LoopbackServer
+
+    import render.flythrough as fly
+    from streamer.run import make_path
+    from tiler.store import open_store
+
+    monkeypatch.setattr(fly, "CLOSE_WAIT_S", 0.5)
+    (tmp_path / "big").mkdir()
+    big = tile_dem(tmp_path / "big", rough(257, 7), 33)  # 8 x 8 blocks: reads go on ahead
+    srv = LoopbackServer(Path(big).parent)
+    with srv as url:
+        s = open_store(f"{url}/{Path(big).name}")
+        cams = make_path(s, "default", frames=4, viewport=(64, 48))
+        _, summary = fly.flythrough(s, cams, tmp_path / "ok", patch_log2=2)
+        assert summary["problem"] is None  # the control
+        s = open_store(f"{url}/{Path(big).name}")
+        _, summary = fly.flythrough(
+            s, cams, tmp_path / "bad", patch_log2=2, on_frame=lambda row: srv.stall.set()
+        )
+        srv.release.set()
+    assert summary["problem"] and "still unanswered" in summary["problem"]
+    assert len(list((tmp_path / "bad").glob("frame_*.png"))) == 4
