@@ -71,6 +71,7 @@ FLAG_NAMES = {
     "dst_crs": "--dst-crs",
     "dst_crs_auto": "--dst-crs auto",
     "retile": "`terrastream tile {src} DST --dst-crs auto`",
+    "more_time": "",  # a session's wait timeouts are not options of the commands
 }
 
 

@@ -57,6 +57,8 @@ _DONE = object()
 #: held the lock 27 / 158 µs CPU (p50 / p99, bench/session_update.py --locks); 16 keeps the
 #: loaders' and the caller's waits for it to a few tens of µs
 PLAN_STEP_BLOCKS = 16
+#: what a wait that timed out suggests besides the server (the CLI has no such option: "")
+MORE_TIME = {"more_time": ", or allow more time (warm_up's timeout_s, wait_timeout_s)"}
 #: a waiter that queued refused levels again pumps at least this often (s): the room they
 #: wait for can free without a notify (an eviction by the planning thread)
 REQUEUE_NAP_S = 0.05
@@ -323,9 +325,11 @@ class Session:
                 left = deadline - now
                 if left <= 0:
                     raise LoadError(
-                        f"warm-up did not finish within {limit:.1f} s ({self.loader.stuck()}); "
-                        "pass a larger timeout_s (or wait_timeout_s), or check the store's "
-                        "server"
+                        "warm-up did not finish within {limit:.1f} s ({state}): check the "
+                        "store's server{more_time}",
+                        params=MORE_TIME,
+                        limit=limit,
+                        state=self.loader.stuck(),
                     )
                 self._cv.wait(timeout=self._nap(left, now))
 
@@ -415,9 +419,12 @@ class Session:
                 left = deadline - now
                 if left <= 0:
                     raise LoadError(
-                        f"{len(missing)} visible block level(s) did not load within "
-                        f"{cfg.wait_timeout_s:.1f} s ({ld.describe_missing(missing, now)}); "
-                        "raise wait_timeout_s or check the store"
+                        "{n} visible block level(s) did not load within {limit:.1f} s "
+                        "({state}): check the store's server{more_time}",
+                        params=MORE_TIME,
+                        n=len(missing),
+                        limit=cfg.wait_timeout_s,
+                        state=ld.describe_missing(missing, now),
                     )
                 if cfg.workers == 0:
                     nap = self._nap(left, now)

@@ -46,6 +46,22 @@ def _errors():
         "1 MiB; raise --budget-mb or the error threshold --tau",
     )
 
+    from streamer.errors import LoadError
+    from streamer.session import MORE_TIME
+
+    yield (
+        "more-time",
+        LoadError(
+            "warm-up did not finish within {limit:.1f} s ({state}): check the store's "
+            "server{more_time}",
+            params=MORE_TIME,
+            limit=30.0,
+            state="{4 read(s) running}",  # braces in a value are kept as they are
+        ),
+        "s ({4 read(s) running}): check the store's server, or allow more time (warm_up's",
+        "s ({4 read(s) running}): check the store's server",  # the CLI has no such option
+    )
+
 
 @pytest.mark.parametrize(
     ("error", "api", "cli"), [e[1:] for e in _errors()], ids=[e[0] for e in _errors()]
@@ -69,3 +85,12 @@ def test_plain_library_errors_are_unchanged():
     e = SourceError("band 3 does not exist")
     assert str(e) == one_line(e) == "band 3 does not exist"
     assert str(pickle.loads(pickle.dumps(e))) == "band 3 does not exist"
+
+
+def test_a_wait_timeout_offers_the_cli_no_option_it_lacks():
+    from streamer.errors import LoadError
+    from streamer.session import MORE_TIME
+
+    err = LoadError("timed out ({state}): check the server{more_time}", params=MORE_TIME, state="x")
+    assert str(err).endswith("or allow more time (warm_up's timeout_s, wait_timeout_s)")
+    assert one_line(err).endswith("timed out (x): check the server")
