@@ -264,6 +264,19 @@ def test_a_flythrough_whose_reads_go_unanswered_says_so(tmp_path, monkeypatch):
         _, summary = fly.flythrough(
             s, cams, tmp_path / "bad", patch_log2=2, on_frame=lambda row: srv.stall.set()
         )
-        srv.release.set()
+        srv.release.set()  # the hung reads fail now: let their threads end inside the test
+        _join_loaders()
     assert summary["problem"] and "still unanswered" in summary["problem"]
     assert len(list((tmp_path / "bad").glob("frame_*.png"))) == 4
+
+
+def _join_loaders(timeout_s: float = 10.0) -> None:
+    """Wait for session loader threads left running (reads a stalled server released)."""
+    import threading
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    for t in threading.enumerate():
+        if t.name.startswith("terrastream-load"):
+            t.join(timeout=max(0.0, deadline - time.monotonic()))
+    assert not [t for t in threading.enumerate() if t.name.startswith("terrastream-load")]

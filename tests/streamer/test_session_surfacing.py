@@ -203,7 +203,11 @@ def test_reads_a_stalled_server_never_answers_are_left_visible_at_close(root):
         assert s.summary()["io_errors"] == 0  # nothing failed yet: the reads just hang
         problem = flight_problem(s.summary(), unfinished, url)
         assert "still unanswered" in problem and "stopped answering" in problem
-        srv.release.set()
+        srv.release.set()  # the hung reads fail now: their threads end inside the test
+        for t in threading.enumerate():
+            if t.name.startswith("terrastream-load"):
+                t.join(timeout=10)
+        assert not [t for t in threading.enumerate() if t.name.startswith("terrastream-load")]
 
 
 def test_with_a_timeout_a_stalled_server_becomes_failed_reads_of_the_server(root):
