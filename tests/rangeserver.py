@@ -22,14 +22,16 @@ class RangeHandler(SimpleHTTPRequestHandler):
     #: answer with this HTTP status, or (``stall`` set) answer nothing until ``release`` is set
     fail_status: int | None = None
     fail_match: str | None = None  # only chunks whose path holds this (None: every chunk)
+    fail_scope = "blocks"  # "all": every key, the store's metadata and index too
     stall: threading.Event
     release: threading.Event
 
     def _faulty(self) -> bool:
         """Apply the server's fault to a block-data request; True if it was answered so."""
-        if not any(f"/{a}/" in self.path for a in ("levels", "errors", "mask")):
-            return False
-        if "/c/" not in self.path:  # an array's metadata, not a chunk
+        block_chunk = "/c/" in self.path and any(  # not an array's metadata
+            f"/{a}/" in self.path for a in ("levels", "errors", "mask")
+        )
+        if self.fail_scope != "all" and not block_chunk:
             return False
         if self.fail_match is not None and self.fail_match not in self.path:
             return False

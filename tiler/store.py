@@ -40,6 +40,7 @@ from tiler.errors import (
     StoreCorruptError,
     StoreError,
     StoreIncompleteError,
+    StoreUnavailableError,
     StoreVersionError,
 )
 from tiler.interrupt import DeferredInterrupt
@@ -61,7 +62,7 @@ from tiler.schema import (
     index_chunk,
     level_fill,
 )
-from tiler.transport import is_transport_error, unavailable
+from tiler.transport import is_transport_error, server_errors, unavailable
 from tiler.vertical import from_metres, to_metres
 from tiler.zarr_batch import open_each
 
@@ -116,14 +117,16 @@ class TerrainStore:
     ) -> None:
         self.location = as_location(url)
         self.url = self.location.url
-        self._token = self.location.change_token()
-        try:
-            self._group = self.location.open_group("r")
-        except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
-            raise StoreError(f"no terrastream store at {self.url!r}: {exc}") from exc
-        except (ValueError, KeyError, json.JSONDecodeError) as exc:
-            raise StoreCorruptError(f"cannot open {self.url!r} as a zarr store: {exc}") from exc
-        self.meta = read_meta(self._group)
+        with server_errors("the store's metadata", self.url):
+            self._token = self.location.change_token()
+            try:
+                self._group = self.location.open_group("r")
+            except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+                raise StoreError(f"no terrastream store at {self.url!r}: {exc}") from exc
+            except (ValueError, KeyError, json.JSONDecodeError) as exc:
+                msg = f"cannot open {self.url!r} as a zarr store: {exc}"
+                raise StoreCorruptError(msg) from exc
+            self.meta = read_meta(self._group)
         if not self.meta.complete and not allow_incomplete:
             raise StoreIncompleteError(
                 f"store {self.url!r} was never finished (interrupted tiling?); run the same "
@@ -309,7 +312,10 @@ class TerrainStore:
             return False
         key = chunk_key(name, block, *self.grid.shape)
         sharded = name.startswith("levels/") and int(name.split("/")[1]) < SHARDED_LEVELS
-        return sharded or not self.location.key_exists(key)
+        if sharded:
+            return True
+        with server_errors(f"whether chunk {key!r} exists", self.url):
+            return not self.location.key_exists(key)
 
     @cached_property
     def index(self) -> BlockIndex:
@@ -317,7 +323,10 @@ class TerrainStore:
         out = {}
         for n in INDEX_NAMES:
             try:
-                out[n] = self._array(f"index/{n}")[...]
+                with server_errors(f"the block index 'index/{n}'", self.url):
+                    out[n] = self._array(f"index/{n}")[...]
+            except StoreUnavailableError:
+                raise
             except _READ_ERRORS as exc:
                 raise StoreCorruptError(
                     f"the block index 'index/{n}' of {self.url!r} is damaged ({exc}); the store "
@@ -330,7 +339,9 @@ class TerrainStore:
                 for br in range(0, rows, ir):
                     for bc in range(0, cols, ic):
                         key = chunk_key(f"index/{n}", (br, bc), rows, cols)
-                        if not self.location.key_exists(key):
+                        with server_errors(f"whether chunk {key!r} exists", self.url):
+                            found = self.location.key_exists(key)
+                        if not found:
                             raise MissingChunkError(
                                 f"chunk {key!r} of the block index is missing from {self.url!r}; "
                                 "the store is damaged: verify it and repair it from the source",

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from tiler.errors import StorageOptionsError, StoreUnavailableError
@@ -66,6 +68,18 @@ def unavailable(subject: str, url: str, exc: BaseException, **where: Any) -> Sto
     return StoreUnavailableError(
         f"cannot fetch {subject} from {url!r}: {describe(exc)}; {advice(exc)}", **where
     )
+
+
+@contextmanager
+def server_errors(subject: str, url: str) -> Iterator[None]:
+    """Inside, a transport failure becomes :func:`unavailable`'s error; others pass as they
+    are."""
+    try:
+        yield
+    except Exception as exc:
+        if isinstance(exc, StoreUnavailableError) or not is_transport_error(exc):
+            raise
+        raise unavailable(subject, url, exc) from exc
 
 
 def http_options(options: dict[str, Any] | None) -> dict[str, Any]:

@@ -117,7 +117,7 @@ def test_damage_over_http_is_still_damage(root, tmp_path):
 def test_a_server_that_stops_answering_times_out_as_unavailable(root):
     srv = LoopbackServer(root)
     with srv as url:
-        s = TerrainStore(Location(f"{url}/s.zarr", {"timeout": 1.0}))
+        s = TerrainStore(Location(f"{url}/s.zarr", {"timeout": 2.0}))
         s.read_level_raw((0, 0), 0)
         srv.stall.set()  # accepts connections, never answers (a SIGSTOPped server)
         t0 = time.monotonic()
@@ -140,3 +140,20 @@ def test_verify_over_a_failing_server_concludes_nothing(root):
         srv.handler.fail_status = 503
         with pytest.raises(StoreUnavailableError, match="verify stopped: nothing was concluded"):
             verify_store(f"{url}/s.zarr")
+
+
+@pytest.mark.parametrize(
+    ("match", "subject"),
+    [(None, "the store's metadata"), ("/c/", "the block index")],
+    ids=["metadata", "index"],
+)
+def test_opening_over_a_failing_server_is_unavailable_not_damage(root, match, subject):
+    """A 503 for the root metadata (or the block index's chunks) raised aiohttp's error when a
+    store was opened (and the index's was worded "the store is damaged")."""
+    srv = LoopbackServer(root)
+    with srv as url:
+        TerrainStore(f"{url}/s.zarr").index  # noqa: B018 - the control: a healthy server
+        srv.handler.fail_status, srv.handler.fail_scope, srv.handler.fail_match = 503, "all", match
+        with pytest.raises(StoreUnavailableError, match=f"cannot fetch {subject}") as e:
+            TerrainStore(f"{url}/s.zarr").index  # noqa: B018 - read when first used
+    assert "503" in str(e.value) and "damaged" not in str(e.value)
