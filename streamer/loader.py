@@ -177,8 +177,8 @@ class Loader:
             return
         with self.cv:
             jobs = []
-            # after a bug no new job starts: the failing block would be retried in a tight
-            # loop; the session re-raises the bug and clears it, and pumping resumes
+            # after a bug no new job starts (the failing block would only be retried); the
+            # session re-raises the bug and clears it, and pumping resumes
             while not self.closed and self.bug is None and self._in_flight < self.config.workers:
                 job = self.next_job()
                 if job is None:
