@@ -1,11 +1,12 @@
 """Telling a failed connection from a damaged store, and how long a remote read may hang.
 
 A read of a remote store can fail because the server or the network did (a timeout, a refused
-or dropped connection, an HTTP 503 or 403) or because the store is damaged (a checksum that
-does not match, a chunk that is missing). The first is worth retrying and says nothing about
-the store; the second is worth ``terrastream verify``. :func:`is_transport_error` tells them
-apart for the clients terrastream reads through: aiohttp (fsspec's ``http(s)://``), obstore
-(``s3://``), botocore (s3fs) and the built-in ``TimeoutError``/``ConnectionError``.
+or dropped connection, an HTTP 503), because access was refused (HTTP 401/403, a
+``PermissionError``), or because the store is damaged (a checksum that does not match, a chunk
+that is missing). The first two are fixed outside the store and say nothing about it; the last
+is worth ``terrastream verify``. :func:`is_transport_error` tells them apart for the clients
+terrastream reads through: aiohttp (fsspec's ``http(s)://``), obstore (``s3://``), botocore
+(s3fs) and the built-in ``TimeoutError``/``ConnectionError``/``PermissionError``.
 
 Pure: no I/O; the client libraries are only looked up if they are already imported.
 """
@@ -27,9 +28,10 @@ TIMEOUT_OPTION = "timeout"
 
 
 def is_transport_error(exc: BaseException) -> bool:
-    """True if ``exc`` is the server's or the network's failure, not the store's content."""
-    if isinstance(exc, TimeoutError | ConnectionError):
-        return True
+    """True if ``exc`` is the server's or the network's failure (or a refused access), not the
+    store's content."""
+    if isinstance(exc, TimeoutError | ConnectionError | PermissionError):
+        return True  # s3fs turns a 403 into PermissionError
     aiohttp = sys.modules.get("aiohttp")
     if aiohttp is not None and isinstance(exc, aiohttp.ClientError):
         return True  # ClientResponseError (5xx, 403...), payload, disconnect, connector errors
@@ -54,6 +56,11 @@ def describe(exc: BaseException, most: int = 400) -> str:
 
 def advice(exc: BaseException) -> str:
     """What to do about the transport error ``exc``."""
+    if isinstance(exc, PermissionError) or getattr(exc, "status", None) in (401, 403):
+        return (
+            "access was refused, not the store damaged: check the credentials (storage "
+            "options, AWS_* variables) or the files' permissions, and try again"
+        )
     if isinstance(exc, TimeoutError):
         return (
             "the server did not answer in time: check it and the connection, or raise the "

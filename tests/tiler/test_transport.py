@@ -157,3 +157,20 @@ def test_opening_over_a_failing_server_is_unavailable_not_damage(root, match, su
         with pytest.raises(StoreUnavailableError, match=f"cannot fetch {subject}") as e:
             TerrainStore(f"{url}/s.zarr").index  # noqa: B018 - read when first used
     assert "503" in str(e.value) and "damaged" not in str(e.value)
+
+
+def test_a_refused_access_is_not_damage(root):
+    """s3fs turns a 403 into PermissionError, which was worded "the store is damaged: verify
+    it"; a 403 over HTTP and a PermissionError now say access was refused."""
+    from tiler.transport import advice
+
+    assert is_transport_error(PermissionError(13, "Forbidden"))
+    assert advice(PermissionError(13, "Forbidden")).startswith("access was refused")
+    assert "access" not in advice(TimeoutError())  # the control
+    srv = LoopbackServer(root)
+    with srv as url:
+        s = TerrainStore(f"{url}/s.zarr")
+        srv.handler.fail_status = 403
+        with pytest.raises(StoreUnavailableError, match="403.*access was refused") as e:
+            s.read_level_raw((0, 0), 2)
+    assert "verify" not in str(e.value)
