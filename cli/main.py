@@ -8,6 +8,9 @@ help) unless it asks for another class.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import sys
 from typing import Annotated
 
@@ -89,13 +92,39 @@ def build_app() -> typer.Typer:
 app = build_app()
 
 
+def leave_hung_reads(code: int | str | None) -> None:
+    """End the process now with ``code`` (as ``sys.exit`` takes it) if loader threads are still
+    blocked in reads a server never answered: the command has said so and exits 1 (``stream``,
+    ``flythrough``: :func:`streamer.run.flight_problem`), and the interpreter would otherwise
+    wait out each read's timeout (30 s by default) at exit. Output is flushed first."""
+    loader = sys.modules.get("streamer.loader")
+    hung = loader.threads_alive() if loader is not None else []
+    if not hung:
+        return
+    logging.getLogger("terrastream").debug(
+        "leaving %d read thread(s) the server never answered: %s", len(hung), ", ".join(hung)
+    )
+    if code is not None and not isinstance(code, int):  # sys.exit("message")
+        sys.stderr.write(f"{code}\n")
+        code = 1
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    logging.shutdown()
+    os._exit(code or 0)
+
+
 def main() -> None:
     """Console entry point."""
     try:
         app()
     except KeyboardInterrupt:  # outside a command (while parsing, say)
         sys.stderr.write(INTERRUPTED_MESSAGE + "\n")
+        leave_hung_reads(EXIT_INTERRUPTED)
         sys.exit(EXIT_INTERRUPTED)
+    except SystemExit as exc:
+        leave_hung_reads(exc.code)
+        raise
 
 
 if __name__ == "__main__":

@@ -39,6 +39,16 @@ from tiler.store import TerrainStore
 
 log = logging.getLogger(__name__)
 
+#: the name prefix of every loader thread (``terrastream-load_N``)
+THREAD_PREFIX = "terrastream-load"
+
+
+def threads_alive() -> list[str]:
+    """Names of loader threads still running in this process (of any session), e.g. reads a
+    server never answered after their session closed; they end when the read times out."""
+    return [t.name for t in threading.enumerate() if t.name.startswith(THREAD_PREFIX)]
+
+
 PER_BLOCK = 4  # raw levels of one block fetched at once
 
 #: Errors a block read can raise; anything else surfaces as a bug.
@@ -91,7 +101,7 @@ class Loader:
         self.closed = False
         self._in_flight = 0
         self._pool = (
-            ThreadPoolExecutor(config.workers, thread_name_prefix="terrastream-load")
+            ThreadPoolExecutor(config.workers, thread_name_prefix=THREAD_PREFIX)
             if config.workers
             else None
         )
