@@ -46,6 +46,7 @@ from streamer.frames import Frame, FrameStats, SessionConfig
 from streamer.loader import READ_ERRORS, Loader
 from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
+from streamer.waits import wait_for, wait_idle
 from tiler.crs import require_projected
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
@@ -57,11 +58,6 @@ _DONE = object()
 #: held the lock 27 / 158 µs CPU (p50 / p99, bench/session_update.py --locks); 16 keeps the
 #: loaders' and the caller's waits for it to a few tens of µs
 PLAN_STEP_BLOCKS = 16
-#: what a wait that timed out suggests besides the server (the CLI has no such option: "")
-MORE_TIME = {"more_time": ", or allow more time (warm_up's timeout_s, wait_timeout_s)"}
-#: a waiter that queued refused levels again pumps at least this often (s): the room they
-#: wait for can free without a notify (an eviction by the planning thread)
-REQUEUE_NAP_S = 0.05
 
 
 class Session:
@@ -300,7 +296,7 @@ class Session:
             if self.config.workers == 0:
                 self.loader.load_inline(None)
                 continue
-            self._wait_idle(deadline, limit)
+            wait_idle(self.loader, self._raise_background_error, deadline, limit)
         with self._cv:
             self.loader.frame_realtime = self.loader.frame_prefetched = 0
             self.loader.frame_io_s = 0.0
@@ -310,43 +306,6 @@ class Session:
         }
         self.totals.warmup = out
         return out
-
-    def _wait_idle(self, deadline: float, limit: float) -> None:
-        """Wait until the loader has nothing queued or running (failed blocks in backoff
-        aside), pumping for retries; ``LoadError`` at ``deadline``."""
-        while True:
-            self._raise_background_error()  # a loader bug ends the wait with its cause
-            self.loader.pump()
-            with self._cv:
-                now = time.monotonic()
-                pending = self.loader.busy() and not self._only_backoff(now)
-                if not pending:
-                    return
-                left = deadline - now
-                if left <= 0:
-                    raise LoadError(
-                        "warm-up did not finish within {limit:.1f} s ({state}): check the "
-                        "store's server{more_time}",
-                        params=MORE_TIME,
-                        limit=limit,
-                        state=self.loader.stuck(),
-                    )
-                self._cv.wait(timeout=self._nap(left, now))
-
-    def _only_backoff(self, now: float) -> bool:
-        """Nothing runs and every queued block waits for a retry of a failed read."""
-        q = self.loader.queue
-        return (
-            not self.loader.decoding
-            and not any(self.loader.fetching.values())
-            and all(q.is_failed(b) for b in q.retry_at)
-            and q.next_retry(now) is not None
-        )
-
-    def _nap(self, left: float, now: float) -> float:
-        """How long a waiter sleeps: until the next retry is due, at most ``left``."""
-        nxt = self.loader.queue.next_retry(now)
-        return max(1e-4, min(left, nxt if nxt is not None else left))
 
     def update(self, camera: Camera, dt: float | None = None, *, wait: bool = False) -> Frame:
         """Schedule loads for this camera and report what can be drawn now.
@@ -384,57 +343,16 @@ class Session:
             self.loader.load_inline(cfg.inline_bytes_per_frame)
         t1 = time.perf_counter()
         if wait:
-            self._wait_for(needed)
+            wait_for(self.loader, cfg, self._raise_background_error, needed, self._due)
             fresh = self.planner.needed(camera)
             if fresh != needed:
                 # the errors arrived while waiting: wait for what they say is needed
                 with self._cv:
                     self._pin_and_queue(fresh)
                 needed = fresh
-                self._wait_for(needed)
+                wait_for(self.loader, cfg, self._raise_background_error, needed, self._due)
         t2, c2 = time.perf_counter(), time.thread_time()
         return self._finish_frame(camera, needed, t2, c2, update_s, update_cpu, t2 - t1)
-
-    def _wait_for(self, needed: dict[Block, int]) -> None:
-        """Wait until every block of ``needed`` is loaded or failed (see :meth:`update`)."""
-        self.loader.mark_demand(needed, self._due)
-        cfg = self.config
-        start = time.monotonic()
-        deadline = start + cfg.wait_timeout_s
-        ld = self.loader
-        q = ld.queue
-        while True:
-            self._raise_background_error()  # a loader bug ends the wait with its cause
-            if cfg.workers == 0:
-                ld.load_inline(None)
-            else:
-                ld.pump()
-            with self._cv:
-                now = time.monotonic()
-                missing = [(b, lv) for b, lv in ld.missing(needed) if not q.given_up(b, start)]
-                if not missing:
-                    return
-                if cfg.workers == 0 and not q.next_retry(now):
-                    return  # nothing more can load inline
-                left = deadline - now
-                if left <= 0:
-                    raise LoadError(
-                        "{n} visible block level(s) did not load within {limit:.1f} s "
-                        "({state}): check the store's server{more_time}",
-                        params=MORE_TIME,
-                        n=len(missing),
-                        limit=cfg.wait_timeout_s,
-                        state=ld.describe_missing(missing, now),
-                    )
-                if cfg.workers == 0:
-                    nap = self._nap(left, now)
-                else:
-                    nap = self._nap(left, now)
-                    if ld.requeue_idle(missing):
-                        nap = min(nap, REQUEUE_NAP_S)  # room may free without a notify
-                    self._cv.wait(timeout=nap)
-                    continue
-            time.sleep(nap)
 
     def _finish_frame(
         self,

@@ -47,7 +47,7 @@ def _errors():
     )
 
     from streamer.errors import LoadError
-    from streamer.session import MORE_TIME
+    from streamer.waits import MORE_TIME
 
     yield (
         "more-time",
@@ -89,7 +89,7 @@ def test_plain_library_errors_are_unchanged():
 
 def test_a_wait_timeout_offers_the_cli_no_option_it_lacks():
     from streamer.errors import LoadError
-    from streamer.session import MORE_TIME
+    from streamer.waits import MORE_TIME
 
     err = LoadError("timed out ({state}): check the server{more_time}", params=MORE_TIME, state="x")
     assert str(err).endswith("or allow more time (warm_up's timeout_s, wait_timeout_s)")

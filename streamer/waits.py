@@ -1,0 +1,106 @@
+"""How a session's caller waits for its loads: the warm-up's wait for an idle loader and
+``update(wait=True)``'s wait for a frame's levels, both bounded, both ended at once by a loader
+bug, both sleeping until the next retry is due or a load finishes (the loader's condition).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from streamer.cache import Block
+from streamer.errors import LoadError
+from streamer.frames import SessionConfig
+from streamer.loader import Loader
+
+#: what a wait that timed out suggests besides the server (the CLI has no such option: "")
+MORE_TIME = {"more_time": ", or allow more time (warm_up's timeout_s, wait_timeout_s)"}
+#: a waiter that queued refused levels again pumps at least this often (s): the room they
+#: wait for can free without a notify (an eviction by the planning thread)
+REQUEUE_NAP_S = 0.05
+
+
+def wait_idle(ld: Loader, raise_bug: Callable[[], None], deadline: float, limit: float) -> None:
+    """Wait until ``ld`` has nothing queued or running (failed blocks in backoff aside),
+    pumping for retries; ``LoadError`` at ``deadline`` (``limit``: the seconds it allowed)."""
+    while True:
+        raise_bug()  # a loader bug ends the wait with its cause
+        ld.pump()
+        with ld.cv:
+            now = time.monotonic()
+            pending = ld.busy() and not only_backoff(ld, now)
+            if not pending:
+                return
+            left = deadline - now
+            if left <= 0:
+                raise LoadError(
+                    "warm-up did not finish within {limit:.1f} s ({state}): check the "
+                    "store's server{more_time}",
+                    params=MORE_TIME,
+                    limit=limit,
+                    state=ld.stuck(),
+                )
+            ld.cv.wait(timeout=nap(ld, left, now))
+
+
+def only_backoff(ld: Loader, now: float) -> bool:
+    """Nothing runs and every queued block waits for a retry of a failed read (caller holds
+    the lock)."""
+    q = ld.queue
+    return (
+        not ld.decoding
+        and not any(ld.fetching.values())
+        and all(q.is_failed(b) for b in q.retry_at)
+        and q.next_retry(now) is not None
+    )
+
+
+def nap(ld: Loader, left: float, now: float) -> float:
+    """How long a waiter sleeps: until the next retry is due, at most ``left``."""
+    nxt = ld.queue.next_retry(now)
+    return max(1e-4, min(left, nxt if nxt is not None else left))
+
+
+def wait_for(
+    ld: Loader,
+    cfg: SessionConfig,
+    raise_bug: Callable[[], None],
+    needed: dict[Block, int],
+    due: float,
+) -> None:
+    """Wait until every block of ``needed`` is loaded or failed (``Session.update``'s
+    ``wait=True``; ``due``: the frame's due time, for the late-bytes count)."""
+    ld.mark_demand(needed, due)
+    start = time.monotonic()
+    deadline = start + cfg.wait_timeout_s
+    q = ld.queue
+    while True:
+        raise_bug()  # a loader bug ends the wait with its cause
+        if cfg.workers == 0:
+            ld.load_inline(None)
+        else:
+            ld.pump()
+        with ld.cv:
+            now = time.monotonic()
+            missing = [(b, lv) for b, lv in ld.missing(needed) if not q.given_up(b, start)]
+            if not missing:
+                return
+            if cfg.workers == 0 and not q.next_retry(now):
+                return  # nothing more can load inline
+            left = deadline - now
+            if left <= 0:
+                raise LoadError(
+                    "{n} visible block level(s) did not load within {limit:.1f} s "
+                    "({state}): check the store's server{more_time}",
+                    params=MORE_TIME,
+                    n=len(missing),
+                    limit=cfg.wait_timeout_s,
+                    state=ld.describe_missing(missing, now),
+                )
+            sleep = nap(ld, left, now)
+            if cfg.workers:
+                if ld.requeue_idle(missing):
+                    sleep = min(sleep, REQUEUE_NAP_S)  # room may free without a notify
+                ld.cv.wait(timeout=sleep)
+                continue
+        time.sleep(sleep)
