@@ -86,6 +86,7 @@ def flythrough(
             culling="hull",
             fps=fps,
             nodata=o.nodata,
+            raise_on_failure=False,  # fly on, as `stream`: failures are in the summary's verdict
         ) as session:
             seen = False  # frames wait for their data until the first one that sees the DEM
             for i, cam in enumerate(cameras):

@@ -217,9 +217,10 @@ def test_a_flythrough_whose_frames_saw_the_dem_but_drew_nothing_is_an_error(
 
 @pytest.mark.parametrize("only", [None, "/errors/c/0/0"], ids=["every-block", "one-block"])
 def test_a_flythrough_over_a_failing_server_exits_1_blaming_the_server(store, tmp_path, only):
-    """Block data answered with 503 (every block, or one block's errors, which stops the
-    fly-through at that block's failure): exit 1 naming the server, not `verify`. The healthy
-    server is the control (exit 0, no verdict in summary.json)."""
+    """Block data answered with 503 (every block, or one block's errors): exit 1 naming the
+    server, not `verify`; with one block failing the fly-through goes on and writes every
+    frame, `frames.csv` and `summary.json` with the verdict. The healthy server is the
+    control (exit 0, no verdict in summary.json)."""
     from pathlib import Path
 
     from rangeserver import LoopbackServer
@@ -237,6 +238,11 @@ def test_a_flythrough_over_a_failing_server_exits_1_blaming_the_server(store, tm
     assert res.exit_code == 1, res.output
     assert "the server or the network failed, not the store" in res.output
     assert "verify" not in res.output and "503" in res.output
+    if only:  # flew on past the failing block: everything written, the verdict in the summary
+        assert len(list((tmp_path / "bad").glob("frame_*.png"))) == 3
+        assert (tmp_path / "bad" / "frames.csv").is_file()
+        summary = json.loads((tmp_path / "bad" / "summary.json").read_text())
+        assert "the server or the network failed" in summary["problem"]
 
 
 def test_a_flythrough_whose_reads_go_unanswered_says_so(tmp_path, monkeypatch):
