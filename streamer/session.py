@@ -151,9 +151,10 @@ class Session:
                 return []
             self._closed = True
         t0 = time.monotonic()
+        if self._plan_pool is not None:  # told first: it ends while the loader's reads are awaited
+            self._plan_pool.shutdown(wait=False, cancel_futures=True)
         alive = self.loader.close(timeout_s)
         if self._plan_pool is not None:
-            self._plan_pool.shutdown(wait=False, cancel_futures=True)
             for t in list(getattr(self._plan_pool, "_threads", ())):
                 t.join(timeout=max(0.0, timeout_s - (time.monotonic() - t0)))
                 if t.is_alive():
