@@ -114,7 +114,7 @@ def format_summary(d: dict) -> str:
             f"(loaded/used {d['loaded_bytes'] / used:.2f}), "
             f"wasted {d['wasted_bytes'] * mb:.2f} MiB",
             f"peak resident {d['peak_resident_bytes'] * mb:.2f} MiB of a "
-            f"{d['budget_bytes'] * mb:.0f} MiB budget; max update {d['max_update_ms']:.2f} ms "
+            f"{d['budget_bytes'] * mb:.2f} MiB budget; max update {d['max_update_ms']:.2f} ms "
             f"(CPU {d['max_update_cpu_ms']:.2f} ms)",
         ]
     )

@@ -168,6 +168,14 @@ def test_stream_sizes_are_mib(store):
     assert r.exit_code == 0, r.output
     assert "needed MiB" in r.stdout and "MiB budget" in r.stdout
     assert not re.search(r"\bMB\b", r.stdout)
+    # a budget under 1 MiB is printed as it is, not rounded to "0 MiB" below the peak
+    r = run("stream", store, "--frames", "3", "--fps", "200", "--size", "64x48",
+            "--budget-mb", "0.2")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    peak, budget = re.search(
+        r"peak resident ([\d.]+) MiB of a ([\d.]+) MiB budget", r.stdout
+    ).groups()
+    assert budget == "0.20" and float(peak) <= float(budget)
 
 
 @pytest.mark.gl
