@@ -94,9 +94,10 @@ app = build_app()
 
 def leave_hung_reads(code: int | str | None) -> None:
     """End the process now with ``code`` (as ``sys.exit`` takes it) if loader threads are still
-    blocked in reads a server never answered: the command has said so and exits 1 (``stream``,
-    ``flythrough``: :func:`streamer.run.flight_problem`), and the interpreter would otherwise
-    wait out each read's timeout (30 s by default) at exit. Output is flushed first."""
+    blocked in reads a server never answered, instead of letting the interpreter wait out each
+    read's timeout (30 s by default) at exit. The command has finished with them: ``stream``
+    and ``flythrough`` report them and exit 1 (:func:`streamer.run.flight_problem`); the
+    others wait for every level they draw or fail. Output is flushed first."""
     loader = sys.modules.get("streamer.loader")
     hung = loader.threads_alive() if loader is not None else []
     if not hung:
