@@ -33,8 +33,6 @@ import zarr
 
 from tiler import chunkread, codecs, static_error
 from tiler.errors import (
-    BlockDataError,
-    ChunkChecksumError,
     MissingChunkError,
     StoreChangedError,
     StoreCorruptError,
@@ -47,6 +45,7 @@ from tiler.interrupt import DeferredInterrupt
 from tiler.layout import level_end, level_start
 from tiler.location import Location, as_location, is_url
 from tiler.meta import BlockIndex, StoreMeta, read_meta, tool_version, write_meta
+from tiler.read_errors import READ_ERRORS, missing_chunk, open_error, read_error
 from tiler.schema import (
     ATTR,
     DEFAULT_CLEVEL,
@@ -90,9 +89,6 @@ REMOTE_CHECK_INTERVAL_S = 1.0
 #: read_block decompresses a block's levels into a per-thread buffer up to this size
 SCRATCH_MAX_BYTES = 16 << 20
 _SCRATCH = threading.local()
-_READ_ERRORS = (ValueError, OSError, RuntimeError)
-# a metadata document that is valid JSON but not an object fails inside zarr's parsing
-_META_ERRORS = (*_READ_ERRORS, AttributeError, TypeError)
 
 
 class TerrainStore:
@@ -172,20 +168,8 @@ class TerrainStore:
         return f"TerrainStore({self.url!r}, {m.height}x{m.width} {m.dtype}, k={m.k})"
 
     def _open_error(self, name: str, exc: BaseException) -> StoreError | None:
-        """The error opening array ``name`` failed with, as the store's damage or the server's
-        failure (else None)."""
-        if is_transport_error(exc):
-            return unavailable(f"the metadata of array {name!r}", self.url, exc, array=name)
-        if isinstance(exc, (KeyError, zarr.errors.ArrayNotFoundError)):
-            return StoreCorruptError(
-                f"store {self.url!r} has no array {name!r}: the store is damaged; "
-                "tile the DEM again (or repair the store)"
-            )
-        if isinstance(exc, _META_ERRORS):
-            return StoreCorruptError(
-                f"the metadata of array {name!r} in {self.url!r} is damaged: {exc}"
-            )
-        return None
+        """The error opening array ``name`` failed with (:func:`tiler.read_errors.open_error`)."""
+        return open_error(self.url, name, exc)
 
     def _array(self, name: str) -> zarr.Array:
         with self._lock:
@@ -260,20 +244,10 @@ class TerrainStore:
             else:
                 out = self._array(name)[block]
         except Exception as exc:
-            if is_transport_error(exc):
-                where = {"array": name, "block": block, "level": level}
-                subject = f"{what} of block {block} (array {name!r})"
-                raise unavailable(subject, self.url, exc, **where) from exc
-            if not isinstance(exc, _READ_ERRORS):
+            err = read_error(self.url, name, block, level, exc)
+            if err is None:
                 raise
-            cls = ChunkChecksumError if "checksum" in str(exc) else BlockDataError
-            raise cls(
-                f"cannot read {what} of block {block} (array {name!r}) from {self.url!r}: {exc}; "
-                "the store is damaged: verify it and repair it from the source",
-                array=name,
-                block=block,
-                level=level,
-            ) from exc
+            raise err from exc
         if spec is not None:  # what zarr's reader makes of it: see _looks_missing
             if out is None and name == "mask" and not self.index.has_nodata[block]:
                 return np.ones(spec.shape, dtype=bool)  # zarr's fill: such blocks write none
@@ -289,14 +263,7 @@ class TerrainStore:
     def _missing(
         self, what: str, name: str, block: tuple[int, int], level: int | None
     ) -> MissingChunkError:
-        return MissingChunkError(
-            f"{what} of block {block} (array {name!r}) is missing from {self.url!r} although "
-            "the store says it was written; the store is damaged: verify it and repair it "
-            "from the source",
-            array=name,
-            block=block,
-            level=level,
-        )
+        return missing_chunk(self.url, what, name, block, level)
 
     def _looks_missing(self, name: str, block: tuple[int, int], out: np.ndarray) -> bool:
         if name.startswith("levels/"):
@@ -327,7 +294,7 @@ class TerrainStore:
                     out[n] = self._array(f"index/{n}")[...]
             except StoreUnavailableError:
                 raise
-            except _READ_ERRORS as exc:
+            except READ_ERRORS as exc:
                 raise StoreCorruptError(
                     f"the block index 'index/{n}' of {self.url!r} is damaged ({exc}); the store "
                     "is damaged: verify it and repair it from the source"
