@@ -352,8 +352,21 @@ def format_row(r: TradeoffRow) -> str:
     )
 
 
+ERROR_PANEL = "measured screen error px"
+
+
 def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "") -> None:
     """tau vs triangles, times, bytes, measured error and PSNR, as a PNG."""
+    import matplotlib.pyplot as plt
+
+    fig = tradeoff_figure(rows, title)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
+def tradeoff_figure(rows: Sequence[TradeoffRow], title: str = "") -> Any:
+    """The matplotlib figure of :func:`plot_tradeoff` (six panels; the error panel carries
+    the ``y = tau`` line the measured error is read against)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -368,7 +381,7 @@ def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "")
             ("CPU selection ms", [r.selection_ms for r in rs]),
             ("GPU frame ms (LOD)", [r.frame_ms for r in rs]),
             ("resident MiB", [r.resident_bytes / 2**20 for r in rs]),
-            ("measured screen error px", [r.max_screen_error_px for r in rs]),
+            (ERROR_PANEL, [r.max_screen_error_px for r in rs]),
             ("PSNR dB vs full res", [r.psnr_db for r in rs]),
         ]
         for a, (name, ys) in zip(ax.ravel(), panels, strict=True):
@@ -378,14 +391,15 @@ def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "")
             a.set_xscale("log", base=2)
             a.set_xlabel("tau (px)")
             a.set_title(name)
-    ax[1, 0].plot(t, t, "k:", label="tau")
+    taus = sorted({r.tau for r in rows})
     for a in ax.ravel():
+        if a.get_title() == ERROR_PANEL:  # the bound the measured error is read against
+            a.plot(taus, taus, "k:", label="tau")
         a.grid(alpha=0.3)
         a.legend(fontsize=7)
     fig.suptitle(title or "speed / accuracy trade-off")
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    return fig
 
 
 def finite(x: float) -> float | None:
