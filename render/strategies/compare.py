@@ -259,6 +259,10 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[tuple[float, flo
     return front
 
 
+#: one marker per strategy in :func:`plot_pareto`
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+
+
 def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = "") -> None:
     """Triangles per frame (middle camera) vs measured max and p99 error, per strategy."""
     import matplotlib
@@ -267,10 +271,13 @@ def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = ""
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.5))
-    for name in sorted({r["strategy"] for r in rows}):
+    for i, name in enumerate(sorted({r["strategy"] for r in rows})):
         rs = sorted((r for r in rows if r["strategy"] == name), key=lambda r: r["tau"])
+        # a marker each, open and shrinking: strategies that select alike (chunk-tessellation
+        # and its GPU selection) stay visible where their points coincide
+        style = {"marker": MARKERS[i % len(MARKERS)], "ms": max(4, 10 - i), "mfc": "none"}
         for a, key in zip(ax, ("max_screen_error_px", "p99_screen_error_px"), strict=True):
-            a.plot([r[key] for r in rs], [r["triangles"] for r in rs], "o-", label=name)
+            a.plot([r[key] for r in rs], [r["triangles"] for r in rs], "-", label=name, **style)
             for r in rs:
                 a.annotate(f"τ={r['tau']:g}", (r[key], r["triangles"]), fontsize=7)
     for a, key in zip(ax, ("max_screen_error_px", "p99_screen_error_px"), strict=True):
