@@ -334,7 +334,8 @@ def repair_store(
         summary.blocks_total = meta.grid.rows * meta.grid.cols
         summary.blocks_repaired = summary.blocks_computed = len(bad)
         if bad:
-            log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, src)
+            where = getattr(src, "label", src)  # a MosaicSpec: its paths, not its repr
+            log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, where)
             write_meta(group, replace(meta, complete=False, extra=dict(meta.extra, state="repair")))
             create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
             grid = meta.grid

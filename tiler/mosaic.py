@@ -67,6 +67,13 @@ class MosaicSpec:
         """The target grid's transform (pixel corners)."""
         return Affine(*self.transform)
 
+    @property
+    def label(self) -> str:
+        """The sources for a message: the first one's path and how many more."""
+        first = self.sources[0].path if self.sources else "(no source)"
+        more = len(self.sources) - 1
+        return first + (f" and {more} more source(s)" if more > 0 else "")
+
 
 def _same(values: list, what: str, infos: Sequence[SourceInfo]) -> object:
     first = values[0]

@@ -141,7 +141,7 @@ def test_quiet_store_verifies_clean(dem_factory, tmp_path):
     assert rep.ok and rep.source_checked and rep.chunks_checked > 20, rep.problems
 
 
-def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path):
+def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path, caplog):
     data = fractal((150, 150), 7)
     src = dem_factory(data)
     opts = TileOptions(block_size=65)
@@ -156,8 +156,13 @@ def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path):
     rep = verify_store(tmp_path / "s.zarr")
     assert not rep.ok and rep.bad_blocks == {(1, 2)}
     reader = open_store(tmp_path / "s.zarr")  # open across the repair: same generation
-    fixed = tile(src, tmp_path / "s.zarr", TileOptions(block_size=65, repair=True))
+    with caplog.at_level(logging.WARNING, logger="tiler"):
+        fixed = tile(src, tmp_path / "s.zarr", TileOptions(block_size=65, repair=True))
     assert fixed.tile_summary.blocks_repaired == 1
+    said = [r.getMessage() for r in caplog.records if "repairing" in r.getMessage()]
+    assert said == [
+        f"repairing 1 damaged block(s) of {(tmp_path / 's.zarr').as_posix()} from {src}"
+    ]
     np.testing.assert_array_equal(reader.read_block((1, 2)), fixed.read_block((1, 2)))
     assert verify_store(tmp_path / "s.zarr").ok
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
