@@ -237,7 +237,9 @@ def flight_problem(summary: dict[str, Any], unfinished: list[str], url: str) -> 
             f"{failed} block(s) read ahead of the camera failed every retry (no frame needed them)"
         )
     last = summary.get("last_read_error") or "unknown"
-    if summary.get("failing_blocks_unreachable", 0) == summary.get("failing_blocks", 0):
+    if "replaced or rewritten" in last:  # tiler.errors.StoreChangedError: not damage
+        cause = "the store was replaced or rewritten while it was streamed: stream it again"
+    elif summary.get("failing_blocks_unreachable", 0) == summary.get("failing_blocks", 0):
         cause = "the server or the network failed, not the store: check them and stream again"
     else:
         cause = f"run `terrastream verify {url}` (the store may be damaged)"

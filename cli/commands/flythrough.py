@@ -51,6 +51,7 @@ def flythrough(
             "--workers",
             "Loader threads of the streaming session (0: load inside each frame).",
             min=0,
+            max=64,
         ),
     ] = 2,
     every: Annotated[int, integer("--every", "Save every N-th PNG.", min=0)] = 1,

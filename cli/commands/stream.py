@@ -43,7 +43,9 @@ def stream(
         bool, typer.Option("--no-prefetch", help="Load only what frames need now.")
     ] = False,
     budget_mb: BudgetOpt = 256.0,
-    workers: Annotated[int, integer("--workers", "Loader threads of the session.", min=1)] = 4,
+    workers: Annotated[
+        int, integer("--workers", "Loader threads of the session.", min=1, max=64)
+    ] = 4,
     latency_ms: Annotated[
         float, number("--latency-ms", "Delay added to every store request, ms.", min=0.0)
     ] = 0.0,
