@@ -14,7 +14,9 @@ dict and heap updates, never a read, a decode or a plan.
 
 Only the errors a read can raise are counted as read failures (:data:`READ_ERRORS`): ``OSError``
 (which includes the tiler's ``StoreError`` family and timeouts) and zarr's own errors. Anything
-else is a bug: it is kept and re-raised by the session's next ``update``.
+else is a bug: it is kept and re-raised by the session's next ``update``. A store replaced or
+rewritten under the session (:class:`StoreChangedError`) is neither: it is final (``fatal``), no
+read is retried or started after it, and every later ``update`` raises it.
 """
 
 from __future__ import annotations
@@ -34,7 +36,12 @@ from streamer.frames import SessionConfig, _Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
 from streamer.nodata import rule_errors
-from tiler.errors import StoreCorruptError, StoreError, StoreUnavailableError
+from tiler.errors import (
+    StoreChangedError,
+    StoreCorruptError,
+    StoreError,
+    StoreUnavailableError,
+)
 from tiler.store import TerrainStore
 
 log = logging.getLogger(__name__)
@@ -98,6 +105,7 @@ class Loader:
         self.frame_prefetched = 0
         self.frame_io_s = 0.0
         self.bug: BaseException | None = None
+        self.fatal: StoreChangedError | None = None  # the store changed under the session
         self.closed = False
         self._in_flight = 0
         self._pool = (
@@ -188,8 +196,14 @@ class Loader:
         with self.cv:
             jobs = []
             # after a bug no new job starts (the failing block would only be retried); the
-            # session re-raises the bug and clears it, and pumping resumes
-            while not self.closed and self.bug is None and self._in_flight < self.config.workers:
+            # session re-raises the bug and clears it, and pumping resumes. After a store
+            # change nothing starts again.
+            while (
+                not self.closed
+                and self.bug is None
+                and self.fatal is None
+                and self._in_flight < self.config.workers
+            ):
                 job = self.next_job()
                 if job is None:
                     break
@@ -251,6 +265,11 @@ class Loader:
                 if level >= 0:
                     self.cache.release(self.level_bytes[level])
                 self.totals.io_errors += 1
+                if isinstance(exc, StoreChangedError):  # final: not a block's failure to retry
+                    self.fatal = self.fatal or exc
+                    self.latest_error = exc
+                    self.cv.notify_all()
+                    return
                 was_failed = self.queue.is_failed(b)
                 count = self.queue.failed_read(b, time.monotonic())
                 self.last_error[b] = exc
@@ -407,8 +426,8 @@ class Loader:
 
     def failing(self) -> dict[str, Any]:
         """The blocks whose latest read failed: how many, how many a frame needed, how many
-        for the server's fault (:class:`StoreUnavailableError`), and the latest error (caller
-        holds the lock)."""
+        for the server's fault (:class:`StoreUnavailableError`), the latest error, and the
+        store's change if one ended the loading (caller holds the lock)."""
         needed = {b for b, _ in self.demanded}
         errs = self.last_error
         return {
@@ -418,6 +437,7 @@ class Loader:
                 1 for e in errs.values() if isinstance(e, StoreUnavailableError)
             ),
             "last_read_error": None if self.latest_error is None else str(self.latest_error),
+            "store_changed": None if self.fatal is None else str(self.fatal),
         }
 
     # -- inline loading (workers=0) and shutdown -------------------------------------------
@@ -427,7 +447,7 @@ class Loader:
         spent = 0
         while allowance is None or spent < allowance:
             with self.cv:
-                job = self.next_job()
+                job = None if self.fatal is not None else self.next_job()
             if job is None:
                 return
             before = self.totals.loaded_bytes

@@ -22,6 +22,7 @@ from streamer import paths
 from streamer.camera import Camera
 from streamer.clip import fit_clip
 from streamer.errors import PathError, PathOutOfViewError
+from streamer.loader import THREAD_PREFIX
 from streamer.session import FrameStats, Session
 from tiler.store import TerrainStore
 
@@ -204,6 +205,7 @@ AT_CLOSE = (
     "failing_blocks_needed",
     "failing_blocks_unreachable",
     "last_read_error",
+    "store_changed",
 )
 
 
@@ -215,8 +217,14 @@ def flight_problem(summary: dict[str, Any], unfinished: list[str], url: str) -> 
     running: a read never answered; blocks a frame needed whose latest read failed, or blocks
     that failed every retry (worded by cause, the server's or the store's, and by whether a
     frame needed them or they were only read ahead); or nothing loaded at all. A read ahead
-    that failed once and may still work is not a failure."""
-    reads = [n for n in unfinished if n.startswith("terrastream-load")]
+    that failed once and may still work is not a failure; a store replaced or rewritten while
+    it was streamed (``store_changed``) comes first."""
+    if summary.get("store_changed"):
+        return (
+            "the store was replaced or rewritten while it was streamed: stream it again "
+            f"({summary['store_changed']})"
+        )
+    reads = [n for n in unfinished if n.startswith(THREAD_PREFIX)]
     if reads:
         return (
             f"{len(reads)} read(s) of {url!r} were still unanswered {CLOSE_WAIT_S:.0f} s after "
@@ -237,9 +245,7 @@ def flight_problem(summary: dict[str, Any], unfinished: list[str], url: str) -> 
             f"{failed} block(s) read ahead of the camera failed every retry (no frame needed them)"
         )
     last = summary.get("last_read_error") or "unknown"
-    if "replaced or rewritten" in last:  # tiler.errors.StoreChangedError: not damage
-        cause = "the store was replaced or rewritten while it was streamed: stream it again"
-    elif summary.get("failing_blocks_unreachable", 0) == summary.get("failing_blocks", 0):
+    if summary.get("failing_blocks_unreachable", 0) == summary.get("failing_blocks", 0):
         cause = "the server or the network failed, not the store: check them and stream again"
     else:
         cause = f"run `terrastream verify {url}` (the store may be damaged)"

@@ -48,6 +48,7 @@ from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
 from streamer.waits import wait_for, wait_idle
 from tiler.crs import require_projected
+from tiler.errors import StoreChangedError
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
 from tiler.vertical import height_dtype
@@ -97,6 +98,7 @@ class Session:
         self._prefetch_blocks = 0
         self._shown: dict[Block, tuple[int, int]] = {}  # the last frame's blocks
         self._closed = False
+        self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
         self._plan_pool = (
             ThreadPoolExecutor(1, thread_name_prefix="terrastream-plan")
@@ -163,7 +165,7 @@ class Session:
             log.warning("session threads still running after %.1f s: %s", timeout_s, alive)
         self.unfinished = alive
         if raise_bug:
-            self._raise_background_error()
+            self._raise_background_error(fatal=not self._fatal_raised)
         else:
             with self._cv:
                 left = self._plan_error or self.loader.bug
@@ -261,15 +263,23 @@ class Session:
                 self._planning = False
                 self._plan_error = exc
 
-    def _raise_background_error(self) -> None:
-        """Re-raise a planning failure or a loader bug on the caller's thread."""
+    def _raise_background_error(self, *, fatal: bool = True) -> None:
+        """Re-raise a planning failure or a loader bug on the caller's thread, and (``fatal``)
+        a change of the store under the session, which every later call raises again."""
         with self._cv:
             plan_exc, self._plan_error = self._plan_error, None
             bug, self.loader.bug = self.loader.bug, None
+            changed = self.loader.fatal if fatal else None
         if plan_exc is not None:
             raise StreamerError(f"prefetch planning failed: {plan_exc}") from plan_exc
         if bug is not None:
             raise bug
+        if changed is not None:
+            self._fatal_raised = True
+            raise StoreChangedError(
+                f"{changed}; the session stopped loading when it saw the change (a remote "
+                "store's levels read in the second before may be the new store's)"
+            ) from changed
 
     # -- the frame ------------------------------------------------------------------------
 

@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable
 
 from streamer.cache import Block
-from streamer.errors import LoadError
+from streamer.errors import LoadError, SessionClosedError
 from streamer.frames import SessionConfig
 from streamer.loader import Loader
 
@@ -25,6 +25,7 @@ def wait_idle(ld: Loader, raise_bug: Callable[[], None], deadline: float, limit:
     pumping for retries; ``LoadError`` at ``deadline`` (``limit``: the seconds it allowed)."""
     while True:
         raise_bug()  # a loader bug ends the wait with its cause
+        closed_meanwhile(ld)
         ld.pump()
         with ld.cv:
             now = time.monotonic()
@@ -41,6 +42,13 @@ def wait_idle(ld: Loader, raise_bug: Callable[[], None], deadline: float, limit:
                     state=ld.stuck(),
                 )
             ld.cv.wait(timeout=nap(ld, left, now))
+
+
+def closed_meanwhile(ld: Loader) -> None:
+    """Raise :class:`SessionClosedError` when another thread closed the session during a wait
+    (``Loader.close`` wakes the waiter)."""
+    if ld.closed:
+        raise SessionClosedError("the session was closed by another thread while this call waited")
 
 
 def only_backoff(ld: Loader, now: float) -> bool:
@@ -76,6 +84,7 @@ def wait_for(
     q = ld.queue
     while True:
         raise_bug()  # a loader bug ends the wait with its cause
+        closed_meanwhile(ld)
         if cfg.workers == 0:
             ld.load_inline(None)
         else:

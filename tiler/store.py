@@ -98,7 +98,9 @@ class TerrainStore:
     :class:`ChunkChecksumError`, a chunk the index says was written but is absent raises
     :class:`MissingChunkError` (both name array, block and level), and a store replaced or
     rewritten since it was opened raises :class:`StoreChangedError` (checked after each read
-    batch; at most once a second for remote stores).
+    batch; at most once a second for remote stores, so reads in the second before it is seen
+    may return the new store's chunks). Once seen, the change is final: every later read
+    raises it.
 
     Level chunks of a local format-2 store are read and decoded by :mod:`tiler.chunkread`
     (same checks, no zarr call per chunk); ``direct_reads=False`` reads them through zarr.
@@ -143,6 +145,9 @@ class TerrainStore:
         self._lock = threading.Lock()
         self._arrays: dict[str, zarr.Array] = {}
         self._last_check = time.monotonic()
+        #: the change :meth:`check_unchanged` saw: every later read raises it (a reader never
+        #: goes on mixing the old store's data with the new one's)
+        self._changed: str | None = None
         if self.meta.complete:  # a missing array is damage, not an empty one
             self._open_arrays(array_names(self.k))
         self._direct: dict[str, chunkread.LevelSpec] = {}
@@ -203,7 +208,10 @@ class TerrainStore:
                 self._arrays.setdefault(name, arr)
 
     def check_unchanged(self, *, force: bool = False) -> None:
-        """Raise StoreChangedError if the store was replaced or rewritten since it was opened."""
+        """Raise StoreChangedError if the store was replaced or rewritten since it was opened
+        (once seen, on every later call and read: the change is final for this reader)."""
+        if self._changed is not None:
+            raise StoreChangedError(self._changed)
         if not self.location.is_local and not self.location.is_memory and not force:
             now = time.monotonic()
             if now - self._last_check < REMOTE_CHECK_INTERVAL_S:
@@ -221,10 +229,11 @@ class TerrainStore:
         with contextlib.suppress(StoreError, FileNotFoundError, ValueError, KeyError):
             gen = read_meta(self.location.open_group("r")).generation
         if gen is None or gen != self.meta.generation:
-            raise StoreChangedError(
+            self._changed = (
                 f"store {self.url!r} was replaced or rewritten while it was open (generation "
                 f"{self.meta.generation!r} -> {gen!r}); reopen it to read the new store"
             )
+            raise StoreChangedError(self._changed)
         self._token = token
 
     def _read(
@@ -236,6 +245,8 @@ class TerrainStore:
     ) -> np.ndarray:
         """One block of one array, with checksum and missing-chunk errors naming the block
         (a direct level read decompresses into ``into`` when given)."""
+        if self._changed is not None:
+            raise StoreChangedError(self._changed)
         what = f"level {level}" if level is not None else name
         spec = self._direct.get(name)
         try:

@@ -65,6 +65,7 @@ def stream(
     Example: terrastream stream demo.zarr --frames 600 --latency-ms 20 --plot io.png
     """
     from streamer.errors import PathOutOfViewError
+    from streamer.loader import THREAD_PREFIX
     from streamer.run import (
         AT_CLOSE,
         CLOSE_WAIT_S,
@@ -130,7 +131,7 @@ def stream(
         typer.echo(format_summary(result.summary))
         problem = flight_problem(end, unfinished, store)
         result.summary["at_close"] = {k: end[k] for k in AT_CLOSE} | {
-            "unanswered_reads": sum(n.startswith("terrastream-load") for n in unfinished),
+            "unanswered_reads": sum(n.startswith(THREAD_PREFIX) for n in unfinished),
             "problem": problem,
         }
         if json_out:

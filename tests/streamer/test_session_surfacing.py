@@ -258,12 +258,12 @@ def test_flight_problem_verdicts():
 
 
 def test_a_replaced_store_is_not_called_damaged():
-    """A store replaced mid-flight (``StoreChangedError``) says so, not "verify"; the control:
-    a checksum error still sends the user to ``terrastream verify``."""
+    """A store replaced mid-flight (``store_changed``, set from ``StoreChangedError``) says so,
+    not "verify"; the control: a checksum error still sends the user to ``terrastream verify``."""
     base = {"loaded_bytes": 10, "failed_blocks": [(0, 0)], "failing_blocks": 1,
             "failing_blocks_needed": 1, "failing_blocks_unreachable": 0}  # fmt: skip
     changed = "store 'u' was replaced or rewritten while it was open (generation 'a' -> 'b')"
-    problem = flight_problem({**base, "last_read_error": changed}, [], "u")
+    problem = flight_problem({**base, "store_changed": changed}, [], "u")
     assert "replaced or rewritten while it was streamed" in problem and "verify" not in problem
     damaged = flight_problem({**base, "last_read_error": "crc32c checksum mismatch"}, [], "u")
     assert "terrastream verify u" in damaged
