@@ -100,6 +100,8 @@ class RenderStats:
     violations: int
     max_level: int
     min_level: int
+    #: pixels covered with terrain (:meth:`FrameServices.drawn_pixels`); None: not counted
+    drawn_px: int | None = None
 
 
 @dataclass(frozen=True)
@@ -473,6 +475,14 @@ class FrameServices:
         masked ones stay :data:`render.gpu.MASKED`."""
         h = np.asarray(h, dtype=np.float64)
         return np.where(h > MASKED_BELOW, h + self.zref, h)
+
+    def drawn_pixels(self) -> int:
+        """How many pixels the last draw covered with terrain (depth written below the clear
+        depth 1.0), whatever their colour: 0 for a view of sky only."""
+        w, h = self.config.size
+        self.make_current()
+        depth = np.frombuffer(self.fbo.read(attachment=-1, dtype="f4"), dtype=np.float32)
+        return int(np.count_nonzero(depth[: w * h] < 1.0))
 
     def image(self) -> np.ndarray:
         """The framebuffer as an ``(h, w, 3)`` uint8 array, top row first."""

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from render import coverage, cracks, measure
+from render.errors import EmptyViewError
 from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step, stream_step
@@ -135,7 +136,7 @@ def render_view(
     metric = stream_metric(o.lod, o.metric)
     with open_render_session(store, o.tau, metric, r.p, nodata=o.nodata) as session:
         step = frame_step(session, strat, camera, o.tau, o.metric, options=o.draw_options())
-    return r.image(), step.stats
+    return r.image(), replace(step.stats, drawn_px=r.drawn_pixels())
 
 
 def nadir_for(camera: Camera, zmid: float) -> Camera:
@@ -237,6 +238,15 @@ def tradeoff(
     ref_img = r.image()
     r.draw(camera, ref_p, clear=CLEAR)
     footprint = ~measure.is_clear(r.image(), CLEAR)
+    if not footprint.any():  # every figure would compare sky with sky
+        raise EmptyViewError(
+            f"the view from ({camera.position[0]:.1f}, {camera.position[1]:.1f}, "
+            f"{camera.position[2]:.1f}) draws no terrain pixel at full resolution "
+            f"({ref_st.triangles:,} triangles in the {camera.viewport[0]}x"
+            f"{camera.viewport[1]} view): it holds no terrain sample, or the DEM is smaller "
+            "than a pixel from there; its error, PSNR and crack figures would be vacuous: aim "
+            "the camera at the terrain, closer"
+        )
     ref_heights = measure.heights_fn(store, ref_p)
     if "nodata" in (lod_options or {}):
         raise ValueError("pass the nodata rule as options=ViewOptions(nodata=...): it also plans "

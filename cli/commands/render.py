@@ -85,6 +85,13 @@ def render(
                 "--look-at, --pitch) or run `terrastream verify` on the store",
                 hint="--camera",
             )
+        if st.drawn_px == 0:  # triangles, but none covers a pixel: a picture of sky
+            raise UsageError(
+                f"the view of {store!r} drew no terrain pixel ({st.triangles:,} triangles, "
+                f"all smaller than a pixel or outside the {size} view): the DEM is too far "
+                "from the camera to be seen; move the camera closer (--camera, --look-at)",
+                hint="--camera",
+            )
         Image.fromarray(img).save(out)
         if as_json:
             d = {"out": str(out), "tau": tau, "metric": metric, "lod": lod, "nodata_rule": rule}

@@ -122,6 +122,35 @@ def test_a_view_of_no_terrain_is_an_error_not_a_sky_png(store, tmp_path):
     assert "drew no terrain" in res.output and not out.exists()
 
 
+def _looking_down(store, height):
+    from tiler.store import open_store
+
+    x0, y0, x1, y1 = open_store(store).grid.extent
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    return ["--camera", f"{cx},{cy},{height}", "--look-at", f"{cx},{cy + 1},0"]
+
+
+def test_a_dem_smaller_than_a_pixel_is_an_error_not_a_sky_png(store, tmp_path):
+    """Looking straight down from 10,000 km the DEM is far below a pixel: triangles are
+    drawn but no pixel is terrain. ``render`` and ``tradeoff`` (once PSNR 100 and 0.00 px
+    from sky against sky) fail; the control: from a height where it covers a few pixels,
+    both succeed and ``render --json`` counts them."""
+    out = tmp_path / "sky.png"
+    far = _looking_down(store, 1e7)
+    res = runner.invoke(app, ["render", store, "--size", "96x64", *far, "-o", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "drew no terrain pixel" in res.output and not out.exists()
+    tr = ["tradeoff", store, "--size", "96x64", "--taus", "1", "--repeats", "1"]
+    res = runner.invoke(app, [*tr, *far])
+    assert res.exit_code == 2, res.output
+    assert "draws no terrain pixel at full resolution" in res.output
+    near = _looking_down(store, 30_000)
+    res = runner.invoke(app, ["render", store, "--size", "96x64", *near, "-o", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    assert 0 < json.loads(res.output.splitlines()[-1])["drawn_px"] < 96 * 64
+    assert runner.invoke(app, [*tr, *near]).exit_code == 0
+
+
 def _keyframes(tmp_path, rows) -> str:
     p = tmp_path / "k.csv"
     p.write_text("t,x,y,z,yaw,pitch\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
@@ -177,7 +206,7 @@ def test_compare_names_the_middle_frame_it_measures_when_it_sees_no_terrain(stor
     up = [(0, cx, cy, 3000, 0, -89), (1, cx, cy, 3000, 0, 80), (2, cx, cy, 3000, 0, -89)]
     res = runner.invoke(app, [*args, _keyframes(tmp_path, up)])
     assert res.exit_code == 2, res.output
-    assert "holds no terrain sample" in res.output
+    assert "holds no terrain sample" in res.output and "draws no terrain pixel" in res.output
     assert "compare measures the camera path's middle frame, 1 of 3" in res.output
     # positive control: the same path looking down throughout is measured
     down = [(0, cx, cy, 3000, 0, -89), (1, cx, cy, 3000, 0, -80), (2, cx, cy, 3000, 0, -89)]
