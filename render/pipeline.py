@@ -109,6 +109,19 @@ def draw_timed(
     return best
 
 
+#: a one-shot view whose strategy clamps (wants levels the session streamed with
+#: :func:`render.strategies.stream_metric` did not load: seamless-patches' and
+#: geometry-splitting's own split rules, jung-han's) is streamed again at these fractions of its
+#: stream tau; the last (0) loads every block in view at full resolution
+RESTREAM = (0.5, 0.25, 0.0)
+
+
+def restream_taus(tau: float) -> list[float]:
+    """The stream taus a one-shot view tries in turn: ``tau``, then :data:`RESTREAM`'s
+    fractions of it while the strategy still clamps."""
+    return [tau] + [f * tau for f in RESTREAM if tau > 0]
+
+
 def render_view(
     store: TerrainStore,
     camera: Camera,
@@ -134,8 +147,11 @@ def render_view(
     r = renderer
     strat = get_strategy(o.lod, r, **o.strategy_options())
     metric = stream_metric(o.lod, o.metric)
-    with open_render_session(store, o.tau, metric, r.p, nodata=o.nodata) as session:
-        step = frame_step(session, strat, camera, o.tau, o.metric, options=o.draw_options())
+    for st_tau in restream_taus(o.tau):  # once, unless the strategy wants unloaded levels
+        with open_render_session(store, st_tau, metric, r.p, nodata=o.nodata) as session:
+            step = frame_step(session, strat, camera, o.tau, o.metric, options=o.draw_options())
+        if not step.stats.clamped:
+            break
     return r.image(), replace(step.stats, drawn_px=r.drawn_pixels())
 
 
@@ -194,6 +210,9 @@ class TradeoffRow:
     terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
     nodata_in_view: int = 0
     near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
+    #: the stream tau whose session supplied the levels (:func:`restream_taus`: a fraction of
+    #: the row's when its strategy wanted levels the first session did not load)
+    stream_tau: float | None = None
 
 
 def tradeoff(
@@ -254,13 +273,15 @@ def tradeoff(
     strat = get_strategy(lod, r, **o.strategy_options(), **(lod_options or {}))
     rows = []
     for tau in taus:
-        st_tau = tau if stream_tau is None else stream_tau
         sm = stream_metric(lod, metric)
-        with open_render_session(store, st_tau, sm, r.p, nodata=o.nodata) as s:
-            # the levels each tau's session would hold (the data is on the GPU already)
-            frame, res = stream_step(s, None, camera)
-            loaded = s.summary()["loaded_bytes"]
-        patches, sel_ms = strat.select(camera, tau, metric, resident=res)
+        for st_tau in restream_taus(tau if stream_tau is None else stream_tau):
+            with open_render_session(store, st_tau, sm, r.p, nodata=o.nodata) as s:
+                # the levels each tau's session would hold (the data is on the GPU already)
+                frame, res = stream_step(s, None, camera)
+                loaded = s.summary()["loaded_bytes"]
+            patches, sel_ms = strat.select(camera, tau, metric, resident=res)
+            if not strat.counts(patches).clamped:  # else it wants levels not loaded: more
+                break
         for _ in range(max(0, repeats - 1)):
             patches, ms = strat.select(camera, tau, metric, resident=res)
             sel_ms = min(sel_ms, ms)
@@ -310,6 +331,7 @@ def tradeoff(
             terrain_in_view=cov.terrain_in_view,
             nodata_in_view=cov.nodata_in_view,
             near_clipped_samples=cov.near_clipped,
+            stream_tau=float(st_tau),
         )
         rows.append(row)
         if log:

@@ -37,6 +37,8 @@ def _rows(store):
 
 
 def test_blocks_are_planned_joinable_and_the_mesh_is_watertight(store, monkeypatch):
+    # what the planner loads, not re-streamed finer (render.pipeline.RESTREAM)
+    monkeypatch.setattr("render.pipeline.RESTREAM", ())
     rows = _rows(store)
     assert all(r.open_edges == 0 and r.gap_edges == 0 for r in rows), [
         (r.tau, r.open_edges, r.gap_edges) for r in rows
