@@ -45,12 +45,25 @@ def open_store_arg(url: Any, hint: str = "STORE", *, projected: bool = False) ->
 
 def not_a_store(url: Any, hint: str = "STORE") -> None:
     """A usage error when a local ``url`` is a file (a store is a directory): often the DEM
-    itself, given where its store was meant ("Not a directory: 'dem.tif/zarr.json'")."""
+    itself, given where its store was meant ("Not a directory: 'dem.tif/zarr.json'"); or a
+    directory with no zarr metadata at all (one with arrays but no root ``zarr.json`` is a
+    damaged store: opening it says so, exit 1)."""
     path = Path(str(url))
     if is_local(url) and path.is_file():
         raise UsageError(
             f"{str(url)!r} is a file, not a store (a directory `terrastream tile` makes); if it "
             f"is a DEM, tile it first: terrastream tile {url} {path.with_suffix('.zarr')}",
+            hint=hint,
+        )
+    if (
+        is_local(url)
+        and path.is_dir()
+        and not (path / "zarr.json").exists()
+        and not any(path.glob("*/zarr.json"))
+    ):
+        raise UsageError(
+            f"{str(url)!r} is a directory but not a store (no zarr.json, no arrays): give "
+            "the directory `terrastream tile` wrote",
             hint=hint,
         )
 

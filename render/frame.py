@@ -37,6 +37,7 @@ from render.errors import RenderError
 from render.gpu import MASKED_BELOW, HeightPool, check_gl, create_context
 from render.node_boxes import NodeBoxes
 from render.select import Patches, PatchTable, check_drawable
+from render.views import CAMERA_CELL_LIMIT
 from streamer.camera import Camera
 from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
 from tiler.crs import require_projected
@@ -331,6 +332,12 @@ class FrameServices:
         cx, cy, cz = camera.position
         ci = math.floor((cx - g.x0) / g.dx)
         ri = math.floor((g.y0 - cy) / g.dy)
+        if max(abs(ci), abs(ri)) >= CAMERA_CELL_LIMIT:
+            raise RenderError(
+                f"the camera at ({cx:.6g}, {cy:.6g}) lies {max(abs(ci), abs(ri)):.3g} cells "
+                "from the DEM's origin, beyond the renderer's 32-bit cell index (2^31 "
+                "cells); bring the camera closer to the DEM"
+            )
         fx = cx - (g.x0 + ci * g.dx)
         fy = cy - (g.y0 - ri * g.dy)
         mvp = camera.projection_matrix() @ camera.view_matrix()

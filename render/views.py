@@ -36,6 +36,16 @@ def parse_triple(text: str, name: str) -> tuple[float, float, float]:
     return vals  # type: ignore[return-value]
 
 
+#: the renderer passes the camera's cell to the shaders as 32-bit ints (``cam_cell``)
+CAMERA_CELL_LIMIT = 2**31 - 1
+
+
+def camera_cells(grid, x: float, y: float) -> float:
+    """How many cells the point ``(x, y)`` lies from the grid's origin, the larger of the two
+    axes (the renderer's ``cam_cell`` must stay within :data:`CAMERA_CELL_LIMIT`)."""
+    return max(abs((x - grid.x0) / grid.dx), abs((grid.y0 - y) / grid.dy))
+
+
 def _tan_half_diag(size: tuple[int, int], fov: float) -> float:
     t = math.tan(math.radians(fov) / 2)
     return t * math.hypot(1.0, size[0] / size[1])
@@ -129,6 +139,15 @@ def make_camera(
             raise CameraSpecError("{look_at}/{yaw}/{pitch} need {position} x,y,z")
         return overview_camera(store, size, fov)
     eye = parse_triple(position, "position")
+    g = store.grid
+    if camera_cells(g, eye[0], eye[1]) > CAMERA_CELL_LIMIT - 2:
+        far = CAMERA_CELL_LIMIT * min(abs(g.dx), abs(g.dy))
+        raise CameraSpecError(
+            "{position} {got} lies more than 2^31 cells from the DEM's origin, beyond the "
+            "renderer's 32-bit cell index; put the camera within {far} m of the DEM",
+            got=position,
+            far=f"{far:.3g}",
+        )
     reach = scene_reach(store, eye)
     if look_at is not None:
         if yaw is not None or pitch is not None:

@@ -88,6 +88,10 @@ CASES = {
                              "is a file, not a store (a directory `terrastream tile` makes)"),
     "info-store-is-file": (["info", "{src}"], 2, "if it is a DEM, tile it first: terrastream tile"),
     "verify-store-is-file": (["verify", "{src}"], 2, "is a file, not a store"),
+    # an empty directory given as the store: "No group found in store" with exit 1
+    "info-store-is-empty-dir": (["info", "{dir}"], 2, "is a directory but not a store"),
+    "render-store-is-empty-dir": (["render", "{dir}", "-o", "{tmp}/v.png"], 2,
+                                  "is a directory but not a store (no zarr.json, no arrays)"),
     "flythrough-out-proc": (["flythrough", "{store}", "--out", "/proc/terrastream-frames"], 2,
                             "cannot create the directory '/proc/terrastream-frames'"),
     "flythrough-out-is-file": (["flythrough", "{store}", "--out", "{src}"], 2,
@@ -278,3 +282,16 @@ def test_a_stream_path_that_sees_none_of_the_dem_is_exit_2_and_writes_nothing(pa
     r = run("stream", paths["store"], "--path", kf, "--frames", "3", "--json", d / "over.json")
     assert r.exit_code == 0, r.output
     assert (d / "over.json").exists()
+
+
+def test_a_store_missing_its_root_metadata_is_damage_not_a_usage_error(paths, tmp_path):
+    """The control of ``*-store-is-empty-dir``: a directory with arrays but no root
+    ``zarr.json`` is a damaged store (exit 1), not "not a store"."""
+    import shutil
+
+    dmg = tmp_path / "d.zarr"
+    shutil.copytree(paths["store"], dmg)
+    (dmg / "zarr.json").unlink()
+    res = run("info", dmg)
+    assert res.exit_code == 1, res.output
+    assert "not a store" not in res.output and "no terrastream store" in res.output

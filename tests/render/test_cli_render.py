@@ -315,3 +315,25 @@ def _join_loaders(timeout_s: float = 10.0) -> None:
         if t.name.startswith("terrastream-load"):
             t.join(timeout=max(0.0, deadline - time.monotonic()))
     assert not [t for t in threading.enumerate() if t.name.startswith("terrastream-load")]
+
+
+def test_a_camera_beyond_the_32_bit_cell_index_is_named(store, tmp_path):
+    """``--camera 1e11,…`` once ended in ``struct.error`` (exit 1); now exit 2 naming the flag,
+    and the API's camera is refused by the renderer with the reason. The control: 1e8 m away
+    (well inside 2^31 cells) gets past the check, to the sub-pixel view's own error."""
+    from render.errors import RenderError
+    from render.pipeline import render_view
+    from streamer.camera import Camera
+    from tiler.store import open_store
+
+    out = tmp_path / "x.png"
+    base = ["render", store, "--size", "96x64", "-o", str(out), "--yaw", "0", "--pitch", "-10"]
+    res = runner.invoke(app, [*base, "--camera", "1e11,0,3000"])
+    assert res.exit_code == 2, res.output
+    assert "--camera 1e11,0,3000 lies more than 2^31 cells" in res.output
+    res = runner.invoke(app, [*base, "--camera", "1e8,0,3000"])
+    assert res.exit_code == 2 and "2^31" not in res.output, res.output
+    s = open_store(store)
+    far = Camera((1e11, 0.0, 3000.0), yaw=0, pitch=-10, viewport=(96, 64), far=1e12)
+    with pytest.raises(RenderError, match="32-bit cell index"):
+        render_view(s, far)
