@@ -190,6 +190,21 @@ def check_nodata_rule(lods: list[str] | None, rule: str) -> str:
     return rule
 
 
+def check_metric(lod: str, metric: str) -> str:
+    """``metric`` when strategy ``lod`` selects with it (or it is the default), else a usage
+    error naming ``--metric``: the strategy has its own error and would silently ignore it."""
+    from render.strategies import strategy_class, strategy_names
+
+    if metric == METRIC_DEFAULT or strategy_class(lod).uses_metric:
+        return metric
+    takers = [n for n in strategy_names() if strategy_class(n).uses_metric]
+    raise UsageError(
+        f"--lod {lod} selects with its own error and does not use --metric {metric}; drop "
+        f"--metric, or use a strategy that takes it: {', '.join(takers)}",
+        "--metric",
+    )
+
+
 def parse_size(text: str) -> tuple[int, int]:
     """``1024x768`` → ``(1024, 768)``; a clear error otherwise."""
     try:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -28,8 +28,12 @@ from cli.options import (
     parse_taus,
 )
 
+#: what ``--quick`` sets, unless given on the command line
+QUICK: dict[str, Any] = {"size": "256x192", "frames": 4, "taus": "1,4"}
+
 
 def compare(
+    ctx: typer.Context,
     store: StoreArg,
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
@@ -48,7 +52,12 @@ def compare(
     patch_log2: PatchOpt = 4,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     quick: Annotated[
-        bool, typer.Option("--quick", help="256x192, 4 frames, taus 1,4 (a smoke run).")
+        bool,
+        typer.Option(
+            "--quick",
+            help="256x192, 4 frames, taus 1,4 (a smoke run); --size, --frames or --taus "
+            "given beside it are kept.",
+        ),
     ] = False,
     json_out: Annotated[
         Path | None,
@@ -69,8 +78,12 @@ def compare(
     from streamer.run import make_path
 
     with fail_on_errors():
-        if quick:
-            size, frames, taus = "256x192", 4, "1,4"
+        if quick:  # its values, except for those given on the command line
+            given = {n for n in QUICK if _source(ctx, n) == "COMMANDLINE"}
+            size, frames, taus = (
+                v if n in given else QUICK[n]
+                for n, v in (("size", size), ("frames", frames), ("taus", taus))
+            )
         viewport = parse_size(size)
         values = parse_taus(taus)
         names = parse_lods(lods)
@@ -89,6 +102,13 @@ def compare(
         if plot:
             plot_pareto(rows, plot, title=f"{Path(store).name} {viewport[0]}x{viewport[1]}")
             typer.echo(f"wrote {plot}")
+
+
+def _source(ctx: typer.Context, name: str) -> str | None:
+    """Where parameter ``name`` got its value (click's ``ParameterSource`` name: typer
+    vendors its own click, so the enum is compared by name)."""
+    src = ctx.get_parameter_source(name)
+    return None if src is None else src.name
 
 
 def parse_lods(text: str | None) -> list[str] | None:

@@ -24,6 +24,7 @@ from cli.options import (
     SizeOpt,
     StoreArg,
     TauOpt,
+    check_metric,
     check_nodata_rule,
     integer,
     number,
@@ -70,6 +71,7 @@ def flythrough(
     with fail_on_errors():
         viewport = parse_size(size)
         rule = check_nodata_rule([lod], nodata_rule)
+        check_metric(lod, metric)
         opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
         input_file(path, "--path")
         output_dir(out, "--out")

@@ -28,6 +28,7 @@ from cli.options import (
     StoreArg,
     TauOpt,
     YawOpt,
+    check_metric,
     check_nodata_rule,
     parse_size,
     store_location,
@@ -71,6 +72,7 @@ def render(
     with fail_on_errors():
         viewport = parse_size(size)
         rule = check_nodata_rule([lod], nodata_rule)
+        check_metric(lod, metric)
         opts = ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour, nodata=rule)
         output_file(out, "--out", suffixes=image_suffixes())
         s = open_store_arg(store_location(store, storage_options), projected=True)

@@ -28,6 +28,7 @@ from cli.options import (
     StoreArg,
     TausOpt,
     YawOpt,
+    check_metric,
     check_nodata_rule,
     integer,
     parse_size,
@@ -66,6 +67,7 @@ def tradeoff(
         viewport = parse_size(size)
         values = parse_taus(taus)
         rule = check_nodata_rule([lod], nodata_rule)
+        check_metric(lod, metric)
         opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2, nodata=rule)
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)

@@ -26,6 +26,7 @@ from cli.options import (
     StoreArg,
     TauOpt,
     YawOpt,
+    check_metric,
     check_nodata_rule,
     integer,
     parse_size,
@@ -73,7 +74,8 @@ def view(
     with fail_on_errors():
         viewport = parse_size(size)
         opts = ViewOptions(
-            lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, wireframe=wireframe,
+            lod=lod, tau=tau, metric=check_metric(lod, metric), patch_log2=patch_log2,
+            wireframe=wireframe,
             nodata=check_nodata_rule([lod], nodata_rule),
         )  # fmt: skip
         if screenshot is not None and frames is None:

@@ -88,6 +88,13 @@ CASES = {
                              "is a file, not a store (a directory `terrastream tile` makes)"),
     "info-store-is-file": (["info", "{src}"], 2, "if it is a DEM, tile it first: terrastream tile"),
     "verify-store-is-file": (["verify", "{src}"], 2, "is a file, not a store"),
+    # --metric was silently ignored by strategies with their own error (and echoed in JSON)
+    "render-metric-unused": (["render", "{store}", "--lod", "seamless-patches", "--metric",
+                              "conservative", "-o", "{tmp}/v.png"], 2,
+                             "--lod seamless-patches selects with its own error and does not "
+                             "use --metric conservative"),
+    "tradeoff-metric-unused": (["tradeoff", "{store}", "--lod", "jung-han", "--metric",
+                                "conservative-view"], 2, "does not use --metric"),
     # an empty directory given as the store: "No group found in store" with exit 1
     "info-store-is-empty-dir": (["info", "{dir}"], 2, "is a directory but not a store"),
     "render-store-is-empty-dir": (["render", "{dir}", "-o", "{tmp}/v.png"], 2,

@@ -337,3 +337,16 @@ def test_a_camera_beyond_the_32_bit_cell_index_is_named(store, tmp_path):
     far = Camera((1e11, 0.0, 3000.0), yaw=0, pitch=-10, viewport=(96, 64), far=1e12)
     with pytest.raises(RenderError, match="32-bit cell index"):
         render_view(s, far)
+
+
+def test_compare_quick_keeps_what_is_given_beside_it(store, tmp_path):
+    """``--quick`` once replaced ``--taus``, ``--size`` and ``--frames`` given beside it; the
+    control: without ``--taus`` it sweeps its own 1,4."""
+    js = tmp_path / "c.json"
+    args = ["compare", store, "--quick", "--lods", "qiu", "--patch-log2", "2", "--json", str(js)]
+    res = runner.invoke(app, [*args, "--taus", "2"])
+    assert res.exit_code == 0, res.output
+    assert [r["tau"] for r in json.loads(js.read_text())] == [2.0]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert [r["tau"] for r in json.loads(js.read_text())] == [1.0, 4.0]
