@@ -28,8 +28,9 @@ def info(
     with fail_on_errors():
         if is_local(store) and not Path(store).exists():
             open_store_arg(store)  # the usage error
+        location = store_location(store, storage_options)  # options on a path: usage error
         not_a_store(store)
-        d = store_info(store_location(store, storage_options))
+        d = store_info(location)
         if as_json:
             typer.echo(json.dumps(d, indent=2))
             return

@@ -17,6 +17,7 @@ class _Store:
 
     class grid:  # noqa: N801 - mimics TerrainStore.grid
         extent = (0.0, 0.0, 1000.0, 1000.0)
+        x0, y0 = 0.0, 1000.0  # the top-left corner
         dx = dy = 10.0
 
     class index:  # noqa: N801

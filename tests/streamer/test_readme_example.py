@@ -60,10 +60,14 @@ def test_the_readme_streaming_example_streams(demo_dir, monkeypatch):
 
 def test_the_example_without_warm_start_and_pacing_stalls(demo_dir, monkeypatch):
     """Positive control: the old text (no warm start, no pacing) stalls on far more frames than
-    the example is allowed (the detector the example's test relies on fires)."""
+    the example is allowed (the detector the example's test relies on fires). Its reads answer
+    in 200 ms (``latency_ms``): on a local store an unpaced flight slowed by a busy machine
+    (CI beside other work) once let the loads keep up, 6-18 stalled frames instead of 207-486."""
     monkeypatch.chdir(demo_dir)
-    old = EXAMPLE.replace(", warm_start=True", "").replace("paced(cameras, fps=60)", "cameras")
-    assert old != EXAMPLE
+    old = EXAMPLE.replace(", warm_start=True", ", latency_ms=200").replace(
+        "paced(cameras, fps=60)", "cameras"
+    )
+    assert "warm_start" not in old and "paced(" not in old.split("for cam in")[1]
     namespace: dict = {}
     with contextlib.redirect_stdout(io.StringIO()):
         exec(compile(old, "README.md", "exec"), namespace)  # noqa: S102 - the example
