@@ -45,14 +45,21 @@ class FiniteFloat:
     """Parser: a finite number within optional bounds; the message names the value given."""
 
     def __init__(
-        self, min: float | None = None, max: float | None = None, *, min_open: bool = False
+        self,
+        min: float | None = None,
+        max: float | None = None,
+        *,
+        min_open: bool = False,
+        max_open: bool = False,
+        why: str = "",
     ) -> None:
-        self.min, self.max, self.min_open = min, max, min_open
+        self.min, self.max, self.why = min, max, why
+        self.min_open, self.max_open = min_open, max_open
 
     def describe(self) -> str:
         """``x>0``, ``1<=x<=170`` ... for the help text and messages."""
         lo = "" if self.min is None else f"{self.min:g}{'<' if self.min_open else '<='}"
-        hi = "" if self.max is None else f"<={self.max:g}"
+        hi = "" if self.max is None else f"{'<' if self.max_open else '<='}{self.max:g}"
         return f"{lo}x{hi}" if lo or hi else "finite"
 
     def __call__(self, value: Any) -> float | None:
@@ -67,9 +74,10 @@ class FiniteFloat:
                 f"{value!r} is not a finite number; give one in the range {self.describe()}"
             )
         below = self.min is not None and (x <= self.min if self.min_open else x < self.min)
-        above = self.max is not None and x > self.max
+        above = self.max is not None and (x >= self.max if self.max_open else x > self.max)
         if below or above:
-            raise typer.BadParameter(f"{value} is not in the range {self.describe()}")
+            why = f" ({self.why})" if self.why else ""
+            raise typer.BadParameter(f"{value} is not in the range {self.describe()}{why}")
         return x
 
 
@@ -173,7 +181,8 @@ PathOpt = Annotated[
 PatchOpt = Annotated[int, integer("--patch-log2", "Patch cells per side, log2.", min=1, max=7)]
 TauOpt = Annotated[float, number("--tau", "Screen-space error threshold, pixels.", min=0.0)]
 BudgetOpt = Annotated[
-    float, number("--budget-mb", "Resident byte budget, MiB.", min=0.0, min_open=True)
+    float,
+    number("--budget-mb", "Resident byte budget, MiB.", min=2**-20, why="one byte, 2^-20 MiB"),
 ]
 
 

@@ -66,7 +66,7 @@ class SessionConfig:
 
     def __post_init__(self) -> None:
         checks = [
-            ("budget_mb", self.budget_mb > 0),
+            ("budget_mb", self.budget_mb * 2**20 >= 1),  # at least a byte
             ("workers", self.workers >= 0 and self.workers <= 64),
             ("fps", self.fps > 0 and math.isfinite(self.fps)),
             ("tau", self.tau >= 0),

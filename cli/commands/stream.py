@@ -27,6 +27,10 @@ from cli.options import (
 )
 from cli.progress import Progress
 
+#: ``--latency-ms`` must stay below the session's wait for a frame's reads
+#: (``SessionConfig.wait_timeout_s``, 30 s): at or above it no read could finish in a wait
+LATENCY_MAX_MS = 30_000.0
+
 
 def stream(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
@@ -47,7 +51,15 @@ def stream(
         int, integer("--workers", "Loader threads of the session.", min=1, max=64)
     ] = 4,
     latency_ms: Annotated[
-        float, number("--latency-ms", "Delay added to every store request, ms.", min=0.0)
+        float,
+        number(
+            "--latency-ms",
+            "Delay added to every store request, ms.",
+            min=0.0,
+            max=LATENCY_MAX_MS,
+            max_open=True,
+            why="a read must finish within the 30 s a frame waits",
+        ),
     ] = 0.0,
     tau: TauOpt = 1.0,
     metric: MetricOpt = METRIC_DEFAULT,

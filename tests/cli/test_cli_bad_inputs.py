@@ -48,10 +48,11 @@ CASES = {
                         "error: size 100,000,000 is beyond the 1,048,577 samples per side synth "
                         "writes (1e+16 samples)"),
     "budget-inf": (["stream", "{store}", "--budget-mb", "inf"], 2,
-                   "'inf' is not a finite number; give one in the range 0<x"),
+                   "'inf' is not a finite number; give one in the range 9.53674e-07<=x"),
     "budget-nan": (["flythrough", "{store}", "--budget-mb", "nan"], 2,
                    "'nan' is not a finite number"),
-    "budget-zero": (["stream", "{store}", "--budget-mb", "0"], 2, "0 is not in the range 0<x"),
+    "budget-zero": (["stream", "{store}", "--budget-mb", "0"], 2,
+                    "0 is not in the range 9.53674e-07<=x (one byte"),
     "stream-json-missing-dir": (["stream", "{store}", "--json", "{tmp}/no/s.json"], 2,
                                 "the directory '{tmp}/no' for {tmp}/no/s.json does not exist"),
     "stream-plot-extension": (["stream", "{store}", "--plot", "{tmp}/p.xyz"], 2,
@@ -95,6 +96,12 @@ CASES = {
                              "use --metric conservative"),
     "tradeoff-metric-unused": (["tradeoff", "{store}", "--lod", "jung-han", "--metric",
                                 "conservative-view"], 2, "does not use --metric"),
+    # "budget must be a positive number of bytes, got 0" named no flag
+    "stream-budget-below-a-byte": (["stream", "{store}", "--budget-mb", "1e-7"], 2,
+                                   "'--budget-mb': 1e-7 is not in the range"),
+    # a warm-up that could never finish was blamed on the store's server
+    "stream-latency-beyond-the-wait": (["stream", "{store}", "--latency-ms", "40000"], 2,
+                                       "'--latency-ms': 40000 is not in the range 0<=x<30000"),
     # an empty directory given as the store: "No group found in store" with exit 1
     "info-store-is-empty-dir": (["info", "{dir}"], 2, "is a directory but not a store"),
     "render-store-is-empty-dir": (["render", "{dir}", "-o", "{tmp}/v.png"], 2,
@@ -302,3 +309,10 @@ def test_a_store_missing_its_root_metadata_is_damage_not_a_usage_error(paths, tm
     res = run("info", dmg)
     assert res.exit_code == 1, res.output
     assert "not a store" not in res.output and "no terrastream store" in res.output
+
+
+def test_the_latency_bound_is_the_sessions_wait():
+    from cli.commands.stream import LATENCY_MAX_MS
+    from streamer.frames import SessionConfig
+
+    assert 1000 * SessionConfig().wait_timeout_s == LATENCY_MAX_MS
