@@ -35,6 +35,16 @@ def open_error(url: str, name: str, exc: BaseException) -> StoreError | None:
     return None
 
 
+#: what a read raises when the interpreter or its I/O loop is shutting down under it (a
+#: program that ended without closing its session): not the data's fault
+_SHUTDOWN = ("after shutdown", "after interpreter shutdown", "event loop is closed")
+
+
+def is_shutdown_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a read cut short by the interpreter's or the I/O loop's shutdown."""
+    return isinstance(exc, RuntimeError) and any(t in str(exc).lower() for t in _SHUTDOWN)
+
+
 def read_error(
     url: str, name: str, block: tuple[int, int], level: int | None, exc: BaseException
 ) -> StoreError | None:
@@ -47,6 +57,12 @@ def read_error(
         return unavailable(subject, url, exc, array=name, block=block, level=level)
     if not isinstance(exc, READ_ERRORS):
         return None
+    if is_shutdown_error(exc):
+        return StoreError(
+            f"reading {what} of block {block} (array {name!r}) from {url!r} was cut short: "
+            f"the program was shutting down ({exc}), not the store's damage; close the "
+            "session (or use `with open_session(...)`) before the program ends",
+        )
     cls = ChunkChecksumError if "checksum" in str(exc) else BlockDataError
     return cls(
         f"cannot read {what} of block {block} (array {name!r}) from {url!r}: {exc}; "

@@ -48,3 +48,20 @@ def test_missing_chunk_names_what_is_missing():
     err = missing_chunk(URL, "level 10", "levels/10", (3, 4), 10)
     assert isinstance(err, MissingChunkError) and err.block == (3, 4)
     assert str(err).startswith("level 10 of block (3, 4) (array 'levels/10') is missing")
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["cannot schedule new futures after shutdown",
+     "cannot schedule new futures after interpreter shutdown", "Event loop is closed"],
+)  # fmt: skip
+def test_a_read_cut_short_by_shutdown_is_not_damage(text):
+    """A program that ended without closing its HTTP session: the fsspec loop's RuntimeError
+    was worded "the store is damaged: verify it". The control: another RuntimeError from a
+    chunk's codec still is damage."""
+    err = read_error(URL, "levels/3", (1, 2), 3, RuntimeError(text))
+    assert type(err).__name__ == "StoreError"
+    assert "shutting down" in str(err) and "close the session" in str(err)
+    assert "damaged" not in str(err).replace("not the store's damage", "")
+    codec = read_error(URL, "levels/3", (1, 2), 3, RuntimeError("blosc decompression failed"))
+    assert isinstance(codec, BlockDataError) and "the store is damaged" in str(codec)
