@@ -42,8 +42,9 @@ class LevelCache:
             raise BudgetError(f"budget must be a positive number of bytes, got {budget_bytes}")
         self.budget = int(budget_bytes)
         self._entries: dict[Block, _Entry] = {}
-        self.nbytes = 0
-        self.peak_nbytes = 0
+        self.nbytes = 0  # resident levels + reservations of levels being read
+        self.peak_nbytes = 0  # largest resident (decoded levels only)
+        self.peak_held = 0  # largest resident + reserved: what the budget bounds
         self.frame = 0
         self.evicted_bytes = 0
         self.reserved = 0  # bytes of levels being fetched (counted in nbytes)
@@ -235,7 +236,7 @@ class LevelCache:
             return False
         self.nbytes += nbytes
         self.reserved += nbytes
-        self.peak_nbytes = max(self.peak_nbytes, self.nbytes)
+        self.peak_held = max(self.peak_held, self.nbytes)
         return True
 
     def release(self, nbytes: int) -> None:
@@ -267,7 +268,8 @@ class LevelCache:
         e.levels.append(values)
         e.nbytes += n
         self.nbytes += n
-        self.peak_nbytes = max(self.peak_nbytes, self.nbytes)
+        self.peak_nbytes = max(self.peak_nbytes, self.nbytes - self.reserved)
+        self.peak_held = max(self.peak_held, self.nbytes)
         return True
 
     def drop_level(self, block: Block) -> None:

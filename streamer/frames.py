@@ -206,6 +206,7 @@ class _Totals:
         *,
         used_bytes: int,
         peak_resident_bytes: int,
+        peak_held_bytes: int,
         budget_bytes: int,
         stall_set: str,
         failed_now: list[Block],
@@ -226,7 +227,8 @@ class _Totals:
             "loaded_bytes": self.loaded_bytes,
             "used_bytes": used_bytes,
             "wasted_bytes": max(0, self.loaded_bytes - used_bytes),
-            "peak_resident_bytes": peak_resident_bytes,
+            "peak_resident_bytes": peak_resident_bytes,  # decoded levels
+            "peak_held_bytes": peak_held_bytes,  # + reads in flight: what the budget bounds
             "budget_bytes": budget_bytes,
             "max_update_ms": self.max_update_ms,
             "max_update_cpu_ms": self.max_update_cpu_ms,

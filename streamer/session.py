@@ -473,6 +473,7 @@ class Session:
             failing=failing,
             used_bytes=used_bytes,
             peak_resident_bytes=self.cache.peak_nbytes,
+            peak_held_bytes=self.cache.peak_held,
             budget_bytes=self.cache.budget,
             stall_set=self.stall_set,
             failed_now=failed_now,

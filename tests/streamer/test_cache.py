@@ -69,7 +69,7 @@ class CacheMachine(RuleBasedStateMachine):
     @invariant()
     def never_over_budget(self):
         assert 0 <= self.cache.nbytes <= self.cache.budget
-        assert self.cache.peak_nbytes <= self.cache.budget
+        assert self.cache.peak_nbytes <= self.cache.peak_held <= self.cache.budget
         total = sum(sum(a.nbytes for a in self.cache.levels(b)) for b in self.cache.blocks())
         assert total + self.cache.reserved == self.cache.nbytes
 
@@ -101,3 +101,19 @@ def test_prefetch_is_evicted_before_visible():
 def test_rejects_bad_budget():
     with pytest.raises(BudgetError, match="got 0"):
         LevelCache(0)
+
+
+def test_reservations_count_against_the_budget_not_as_resident():
+    """A level being read holds budget (``peak_held``) but is not resident until it arrives:
+    ``peak_nbytes`` once counted reservations, so a session whose reads all failed reported a
+    peak resident above the bytes it ever loaded. The control: the level arriving makes both
+    peaks its size."""
+    c = LevelCache(1000)
+    c.set_wants({(0, 0): (0, 0, 1.0)}, [400])
+    assert c.reserve((0, 0), 400)
+    assert (c.peak_nbytes, c.peak_held) == (0, 400)
+    c.release(400)  # the read failed
+    assert (c.nbytes, c.peak_nbytes, c.peak_held) == (0, 0, 400)
+    assert c.reserve((0, 0), 400)
+    assert c.add_level((0, 0), 0, np.zeros(100, np.float32), reserved=True)
+    assert (c.nbytes, c.peak_nbytes, c.peak_held) == (400, 400, 400)
