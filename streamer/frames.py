@@ -195,8 +195,11 @@ class _Totals:
             self.hull_stall_frames = (self.hull_stall_frames or 0) + int(st.hull_stalled)
         if st.levels_short > 0:
             self.coarse_frames[st.levels_short] = self.coarse_frames.get(st.levels_short, 0) + 1
-        self.failed_frames += int(st.failed_blocks > 0)
-        self.failed_ever.update(frame.failed)
+        # frames a failure cost something: a failed block drawn short of its needed level (a
+        # failed read beyond it, say a prefetch level, leaves the frame as it should be)
+        blocks = frame.blocks
+        self.failed_frames += int(any(blocks[b][0] < blocks[b][1] for b in frame.failed))
+        self.failed_ever.update(frame.failed)  # blocks a frame needed, failed at some time
         self.max_update_ms = max(self.max_update_ms, st.update_ms)
         self.max_update_cpu_ms = max(self.max_update_cpu_ms, st.update_cpu_ms)
         self.frames += 1
