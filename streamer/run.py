@@ -165,17 +165,24 @@ def run_flythrough(
 
     With ``first_wait`` the session is warmed up for the first camera (see
     :meth:`Session.warm_up`; reported as ``warmup_ms``/``warmup_bytes``) and frame 0 waits.
+    An exception that stops the flight carries the frames flown so far as ``exc.partial``
+    (a :class:`RunResult`).
     """
     fps = session.config.fps
-    rows = []
-    if first_wait and cameras:
-        session.warm_up(cameras[0])
-    for i, cam in enumerate(paced(cameras, fps) if realtime else cameras):
-        frame = session.update(cam, 1.0 / fps, wait=first_wait and i == 0)
-        row = asdict(frame.stats)
-        rows.append(row)
-        if on_frame is not None:
-            on_frame(i, frame.stats)
+    rows: list[dict[str, Any]] = []
+    try:
+        if first_wait and cameras:
+            session.warm_up(cameras[0])
+        for i, cam in enumerate(paced(cameras, fps) if realtime else cameras):
+            frame = session.update(cam, 1.0 / fps, wait=first_wait and i == 0)
+            row = asdict(frame.stats)
+            rows.append(row)
+            if on_frame is not None:
+                on_frame(i, frame.stats)
+    except Exception as exc:
+        # the frames flown so far, for the caller's report (stream --json/--plot)
+        exc.partial = RunResult(rows=rows, summary=session.summary())  # type: ignore[attr-defined]
+        raise
     return RunResult(rows=rows, summary=session.summary())
 
 

@@ -129,6 +129,10 @@ def stream(
         with open_session(s, budget_mb=budget_mb, workers=workers, **cfg) as session:
             try:
                 result = run_flythrough(session, cams, on_frame=on_frame)
+            except Exception as exc:
+                bar.close()
+                write_partial(getattr(exc, "partial", None), exc, len(cams), json_out, plot)
+                raise
             finally:
                 bar.close()
             # reads still in flight may finish, fail or never answer: the exit status says
@@ -155,6 +159,27 @@ def stream(
         if problem:
             typer.echo(f"error: the flight over {store!r} is incomplete: {problem}", err=True)
             raise typer.Exit(EXIT_RUNTIME)
+
+
+def write_partial(partial, exc: BaseException, frames: int, json_out, plot) -> None:
+    """A flight stopped by ``exc``: write its ``--json``/``--plot`` for the frames flown (the
+    summary says where and why it stopped) before the error is reported."""
+    from cli.common import one_line
+    from streamer.run import plot_run
+
+    if partial is None or not partial.rows or not (json_out or plot):
+        return
+    partial.summary["stopped"] = {
+        "after_frames": len(partial.rows),
+        "of_frames": frames,
+        "error": one_line(exc),
+    }
+    if json_out:
+        partial.to_json(json_out)
+        typer.echo(f"wrote {json_out} (the {len(partial.rows)} of {frames} frames flown)")
+    if plot:
+        plot_run(partial, plot)
+        typer.echo(f"wrote {plot} (the {len(partial.rows)} of {frames} frames flown)")
 
 
 def register(app: typer.Typer) -> None:

@@ -246,3 +246,42 @@ def test_stream_over_a_failing_server_blames_the_server_not_the_store(store, fau
     assert "the server or the network failed, not the store" in r.output
     assert "verify" not in r.output.split("incomplete:")[-1]
     assert ("503" if fault == "503" else "did not answer in time") in r.output
+
+
+def test_a_flight_stopped_midway_still_writes_its_json_and_plot(store, tmp_path, monkeypatch):
+    """A budget error at frame 6 (raised on purpose) once left no ``--json`` or ``--plot`` of
+    the 5 frames flown; they are written, saying where and why the flight stopped, then the
+    error exits 2. The control: the same flight without the error writes all 12 frames and
+    no ``stopped``."""
+    import json
+
+    from streamer.errors import BudgetError
+    from streamer.session import Session
+
+    js, png = tmp_path / "f.json", tmp_path / "f.png"
+    args = ("stream", store, "--frames", "12", "--fps", "200", "--size", "64x48",
+            "--json", js, "--plot", png)  # fmt: skip
+    r = run(*args)
+    assert r.exit_code == 0, r.output
+    d = json.loads(js.read_text())
+    assert len(d["frames"]) == 12 and "stopped" not in d["summary"]
+    js.unlink()
+    png.unlink()
+    update, calls = Session.update, []
+
+    def failing(self, *a, **kw):
+        calls.append(1)
+        if len(calls) == 6:
+            raise BudgetError("the visible blocks need more than the budget (on purpose)")
+        return update(self, *a, **kw)
+
+    monkeypatch.setattr(Session, "update", failing)
+    r = run(*args)
+    assert r.exit_code == 2, r.output
+    assert "(on purpose)" in r.output and "the 5 of 12 frames flown" in r.output
+    d = json.loads(js.read_text())
+    assert len(d["frames"]) == 5 and png.stat().st_size > 0
+    assert (
+        d["summary"]["stopped"]["after_frames"] == 5
+        and "on purpose" in d["summary"]["stopped"]["error"]
+    )
