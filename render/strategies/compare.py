@@ -19,8 +19,9 @@ quarter of the depth of the view centre (nodes split on the way: Eq. 7's split d
 proportional to the distance). Per motion, ``popping_<motion>_px`` is the largest screen
 displacement (seen from the later camera) of the drawn surface at any full-resolution sample
 drawn in both frames, i.e. the jump caused by the LOD change alone, and
-``popping_<motion>_lod_frames`` how many of the frames changed the drawn surface (a row with 0
-LOD frames says nothing about popping). ``popping_px`` is the larger of the two.
+``popping_<motion>_lod_frames`` how many of the frames changed the drawn surface's height at a
+sample drawn in both (a LOD change; samples entering or leaving the view do not count; a row
+with 0 LOD frames says nothing about popping). ``popping_px`` is the larger of the two.
 """
 
 from __future__ import annotations
@@ -79,8 +80,8 @@ def popping(
 ) -> Popping:
     """Largest screen displacement (px, seen by the later camera) of the drawn surface at
     samples drawn in both frames, over consecutive pairs of ``cams``, and how many pairs
-    changed the drawn surface. ``prepare(cam)`` runs before each selection (e.g. streaming its
-    data in)."""
+    changed the drawn height at a sample drawn in both (culling alone does not count).
+    ``prepare(cam)`` runs before each selection (e.g. streaming its data in)."""
     prev = None
     worst, changed = 0.0, 0
     for cam in cams:
@@ -89,9 +90,11 @@ def popping(
         sel, _ = strat.select(cam, tau, metric)
         surf = strat.surface(cam, sel)
         if prev is not None and not _same(prev, surf):
-            changed += 1
             rows, cols, ha, hb = common_samples(prev, surf)
             moved = ha != hb  # equal drawn heights do not move on screen
+            # only a sample drawn in both frames at another height is a LOD change: samples
+            # entering or leaving the view (culling) are not
+            changed += int(moved.any())
             x, y = strat.r.grid.sample_xy(rows[moved], cols[moved])
             d = measure.pixel_errors(cam, x, y, ha[moved], hb[moved])
             if d.size:

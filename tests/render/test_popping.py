@@ -58,3 +58,27 @@ def test_a_perturbed_surface_pops(strat):
 def test_a_dolly_crosses_lod_changes(strat):
     pop = popping(strat, dolly(CAM, 1500.0, 8), 2.0, "qiu")
     assert pop.frames == 8 and pop.lod_frames >= 2 and pop.max_px > 0.0
+
+
+class Culled:
+    """``strat`` whose drawn surface loses one more sample every frame, heights unchanged
+    (what a camera panning over a fixed LOD does at the view's edge)."""
+
+    def __init__(self, strat) -> None:
+        self.s, self.r, self.n = strat, strat.r, 0
+
+    def select(self, *a, **kw):
+        return self.s.select(*a, **kw)
+
+    def surface(self, cam, sel):
+        rows, cols, h = self.s.surface(cam, sel)
+        self.n += 1
+        return rows[self.n :], cols[self.n :], h[self.n :]
+
+
+def test_culling_alone_is_not_a_lod_change(strat):
+    """Samples leaving the view with no height changed were counted as LOD frames; the
+    control (``Perturbed`` above, heights changed) is counted."""
+    pop = popping(Culled(strat), [CAM] * 4, 2.0, "qiu")
+    assert (pop.max_px, pop.lod_frames, pop.frames) == (0.0, 0, 3)
+    assert popping(Perturbed(strat, 0.5), [CAM] * 4, 2.0, "qiu").lod_frames == 3
