@@ -83,7 +83,6 @@ def stream(
         CLOSE_WAIT_S,
         flight_problem,
         make_path,
-        plot_run,
         require_view,
         run_flythrough,
     )
@@ -150,12 +149,7 @@ def stream(
             "unanswered_reads": sum(n.startswith(THREAD_PREFIX) for n in unfinished),
             "problem": problem,
         }
-        if json_out:
-            result.to_json(json_out)
-            typer.echo(f"wrote {json_out}")
-        if plot:
-            plot_run(result, plot)
-            typer.echo(f"wrote {plot}")
+        write_outputs(result, json_out, plot)
         if problem:
             typer.echo(f"error: the flight over {store!r} is incomplete: {problem}", err=True)
             raise typer.Exit(EXIT_RUNTIME)
@@ -165,7 +159,6 @@ def write_partial(partial, exc: BaseException, frames: int, json_out, plot) -> N
     """A flight stopped by ``exc``: write its ``--json``/``--plot`` for the frames flown (the
     summary says where and why it stopped) before the error is reported."""
     from cli.common import one_line
-    from streamer.run import plot_run
 
     if partial is None or not partial.rows or not (json_out or plot):
         return
@@ -174,12 +167,19 @@ def write_partial(partial, exc: BaseException, frames: int, json_out, plot) -> N
         "of_frames": frames,
         "error": one_line(exc),
     }
+    write_outputs(partial, json_out, plot, f" (the {len(partial.rows)} of {frames} frames flown)")
+
+
+def write_outputs(result, json_out, plot, what: str = "") -> None:
+    """Write ``--json`` and ``--plot`` of a flight's ``result``, saying so (``what`` added)."""
+    from streamer.run import plot_run
+
     if json_out:
-        partial.to_json(json_out)
-        typer.echo(f"wrote {json_out} (the {len(partial.rows)} of {frames} frames flown)")
+        result.to_json(json_out)
+        typer.echo(f"wrote {json_out}{what}")
     if plot:
-        plot_run(partial, plot)
-        typer.echo(f"wrote {plot} (the {len(partial.rows)} of {frames} frames flown)")
+        plot_run(result, plot)
+        typer.echo(f"wrote {plot}{what}")
 
 
 def register(app: typer.Typer) -> None:
