@@ -43,6 +43,15 @@ class FlyRow:
     visible_blocks: int  # blocks in the view (0: the camera sees none of the DEM)
 
 
+def write_rows(out: Path, rows: list[FlyRow]) -> None:
+    """``frames.csv``: one line per frame flown."""
+    with open(out / "frames.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
+        w.writeheader()
+        for row in rows:
+            w.writerow(asdict(row))
+
+
 def flythrough(
     store: TerrainStore,
     cameras: Sequence[Camera],
@@ -62,7 +71,9 @@ def flythrough(
     """Stream and render each camera with strategy ``lod``; write PNG frames and
     ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
     ``metric`` and ``patch_log2``, and how frames are drawn). A path none of whose frames
-    draws terrain raises :class:`streamer.errors.PathOutOfViewError` (its PNGs removed)."""
+    draws terrain raises :class:`streamer.errors.PathOutOfViewError` (its PNGs removed); an
+    error that stops the flight is raised after ``frames.csv`` of the frames flown is written
+    (their count: ``exc.frames_flown``)."""
     o = options or ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
     lod, tau, metric = o.lod, o.tau, o.metric
     from PIL import Image
@@ -116,6 +127,11 @@ def flythrough(
             # reads still in flight may finish, fail or never answer: say which (as `stream`)
             unfinished = session.close(CLOSE_WAIT_S)
             summary = session.summary()
+    except Exception as exc:  # a flight stopped midway keeps the statistics of its frames
+        if rows:
+            write_rows(out, rows)
+            exc.frames_flown = len(rows)  # type: ignore[attr-defined]
+        raise
     finally:
         r.close()
     problem = flight_problem(summary, unfinished, str(getattr(store, "url", store)))
@@ -130,11 +146,7 @@ def flythrough(
             f"{sum(x.visible_blocks > 0 for x in rows)} saw the DEM: none of its levels was "
             "resident when they were drawn; " + (problem or "run `terrastream verify` on the store")
         )
-    with open(out / "frames.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
-        w.writeheader()
-        for row in rows:
-            w.writerow(asdict(row))
+    write_rows(out, rows)
     tri = np.array([x.triangles for x in rows])
     summary = {
         "frames": len(rows),

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import input_file, open_store_arg, output_dir
-from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
+from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors, one_line
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -103,6 +103,15 @@ def flythrough(
             )
         except PathOutOfViewError as exc:
             raise UsageError(str(exc), hint="--path") from None
+        except Exception as exc:
+            flown = getattr(exc, "frames_flown", 0)
+            if flown:  # frames.csv has them; the summary says where and why it stopped
+                stopped = {"after_frames": flown, "of_frames": len(cams), "error": one_line(exc)}
+                (out / "summary.json").write_text(json.dumps({"stopped": stopped}, indent=1))
+                typer.echo(
+                    f"wrote {out}/frames.csv and summary.json ({flown} of {len(cams)} frames)"
+                )
+            raise
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
         typer.echo(
             f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
