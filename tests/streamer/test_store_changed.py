@@ -115,7 +115,9 @@ def test_a_session_stops_at_a_replaced_store_and_says_so(root, monkeypatch):
     assert flown == 5 and err is not None
     assert "the session stopped loading when it saw the change" in str(err)
     assert after == 0  # no read started after the change was seen
-    assert summary["io_errors"] <= 2  # the reads in flight, not a retry loop
+    # the reads in flight, and any that raced the swap (two renames: the store is briefly
+    # absent, a 404), not a retry loop (the old code counted hundreds)
+    assert summary["io_errors"] <= 6, summary["io_errors"]
     assert summary["store_changed"] and "replaced or rewritten" in summary["store_changed"]
     problem = flight_problem(summary, [], url)
     assert problem.startswith("the store was replaced or rewritten while it was streamed")
