@@ -22,7 +22,7 @@ from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step
 from render.strategies import DEFAULT, get_strategy, stream_metric
 from streamer.camera import Camera
-from streamer.run import CLOSE_WAIT_S, flight_problem, out_of_view
+from streamer.run import close_for_verdict, flight_problem, out_of_view
 from streamer.session import open_session
 from tiler.store import TerrainStore
 
@@ -125,8 +125,7 @@ def flythrough(
                 if on_frame:
                     on_frame(row)
             # reads still in flight may finish, fail or never answer: say which (as `stream`)
-            unfinished = session.close(CLOSE_WAIT_S)
-            summary = session.summary()
+            unfinished, summary = close_for_verdict(session)
     except Exception as exc:  # a flight stopped midway keeps the statistics of its frames
         if rows:
             write_rows(out, rows)

@@ -24,6 +24,7 @@ from streamer.clip import fit_clip
 from streamer.errors import PathError, PathOutOfViewError
 from streamer.loader import THREAD_PREFIX
 from streamer.session import FrameStats, Session
+from tiler.errors import StoreChangedError
 from tiler.store import TerrainStore
 
 PATH_KINDS = ("default", "line", "circle", "canyon", "teleports")
@@ -214,6 +215,17 @@ AT_CLOSE = (
     "last_read_error",
     "store_changed",
 )
+
+
+def close_for_verdict(session: Session) -> tuple[list[str], dict[str, Any]]:
+    """Close a flown session (waiting :data:`CLOSE_WAIT_S` for reads in flight) and return the
+    threads left running and the summary then, for :func:`flight_problem`. A store change
+    seen by a read during that wait is not raised: the summary's ``store_changed`` says it."""
+    try:
+        unfinished = session.close(CLOSE_WAIT_S)
+    except StoreChangedError:
+        unfinished = session.unfinished
+    return unfinished, session.summary()
 
 
 def flight_problem(summary: dict[str, Any], unfinished: list[str], url: str) -> str | None:

@@ -80,7 +80,7 @@ def stream(
     from streamer.loader import THREAD_PREFIX
     from streamer.run import (
         AT_CLOSE,
-        CLOSE_WAIT_S,
+        close_for_verdict,
         flight_problem,
         make_path,
         require_view,
@@ -135,8 +135,7 @@ def stream(
             finally:
                 bar.close()
             # reads still in flight may finish, fail or never answer: the exit status says
-            unfinished = session.close(CLOSE_WAIT_S)
-            end = session.summary()
+            unfinished, end = close_for_verdict(session)
         try:  # before any output: a flight that saw nothing is an error
             require_view(result, s)
         except PathOutOfViewError as exc:

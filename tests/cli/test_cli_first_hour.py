@@ -285,3 +285,36 @@ def test_a_flight_stopped_midway_still_writes_its_json_and_plot(store, tmp_path,
         d["summary"]["stopped"]["after_frames"] == 5
         and "on purpose" in d["summary"]["stopped"]["error"]
     )
+
+
+def test_a_store_change_seen_at_close_is_the_verdict_not_a_lost_report(
+    store, tmp_path, monkeypatch
+):
+    """A store replaced after the last frame is seen by a read during ``close()``'s wait, and
+    ``close()`` raises it: ``stream`` then exited 1 without its ``--json``. It exits 1 with
+    the JSON written and the replacement as the verdict. The control: ``close()`` itself
+    still raises the change to a Python caller who never saw it."""
+    import json
+
+    import pytest
+
+    from streamer.session import Session
+    from tiler.errors import StoreChangedError
+
+    close = Session.close
+    changed = StoreChangedError("store 's.zarr' was replaced or rewritten while it was open")
+
+    def close_seeing_a_change(self, timeout_s=10.0):
+        with self._cv:
+            self.loader.fatal = changed  # what a read during the wait sets
+        return close(self, timeout_s)
+
+    monkeypatch.setattr(Session, "close", close_seeing_a_change)
+    with pytest.raises(StoreChangedError):  # the control: the library raises it
+        Session(str(store)).close()
+    js = tmp_path / "c.json"
+    r = run("stream", store, "--frames", "3", "--fps", "200", "--size", "64x48", "--json", js)
+    assert r.exit_code == 1, r.output
+    problem = json.loads(js.read_text())["summary"]["at_close"]["problem"]
+    assert problem.startswith("the store was replaced or rewritten while it was streamed")
+    assert "replaced or rewritten while it was streamed" in r.output
