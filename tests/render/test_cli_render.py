@@ -286,7 +286,7 @@ def test_a_flythrough_whose_reads_go_unanswered_says_so(tmp_path, monkeypatch):
     from streamer.run import make_path
     from tiler.store import open_store
 
-    monkeypatch.setattr(fly, "CLOSE_WAIT_S", 0.5)
+    monkeypatch.setattr("streamer.run.CLOSE_WAIT_S", 0.5)  # close_for_verdict's wait
     (tmp_path / "big").mkdir()
     big = tile_dem(tmp_path / "big", rough(257, 7), 33)  # 8 x 8 blocks: reads go on ahead
     srv = LoopbackServer(Path(big).parent)
