@@ -42,6 +42,7 @@ def _marks() -> tuple[list[tuple[float, str]], object]:
     """Wrap the tiler's steps so each call records ``(time, event)``; returns the list and an
     undo function."""
     import tiler.assemble as asm
+    import tiler.destination as dest
     import tiler.run as run
     import tiler.tile as tile_mod
 
@@ -67,7 +68,7 @@ def _marks() -> tuple[list[tuple[float, str]], object]:
         saved.append((mod, name, real))
         setattr(mod, name, f)
 
-    wrap(tile_mod, "create_store", "create")
+    wrap(dest, "create_store", "create")
     wrap(asm, "write_small_levels", "small")
     wrap(asm, "finish", "finish")
     wrap(tile_mod, "TerrainStore", "open")

@@ -10,6 +10,7 @@ from pathlib import Path
 from demtools import fractal
 
 import tiler.assemble as asm
+import tiler.destination as dest
 import tiler.run as run
 import tiler.tile as tile_mod
 
@@ -20,7 +21,7 @@ from bench import tiling_phases  # noqa: E402
 
 def test_phases_cover_the_call_and_the_wrappers_are_removed(dem_factory, tmp_path):
     src = dem_factory(fractal((300, 280), 2))  # a 513² block: padded, as the SRTM tile's edges
-    before = (tile_mod.create_store, asm.finish, run.BlockWorker.run, tile_mod.TerrainStore)
+    before = (dest.create_store, asm.finish, run.BlockWorker.run, tile_mod.TerrainStore)
     out = tmp_path / "p.json"
     res = tiling_phases.main([str(src), "--reps", "2", "--layout-reps", "2", "--out", str(out)])
     assert json.loads(out.read_text())["reps"] == 2
@@ -32,4 +33,4 @@ def test_phases_cover_the_call_and_the_wrappers_are_removed(dem_factory, tmp_pat
     assert set(res["layout_and_open_median_ms"]) == {
         "layout_memory", "layout_sequential", "open_default", "open_one_by_one",
     }  # fmt: skip
-    assert before == (tile_mod.create_store, asm.finish, run.BlockWorker.run, tile_mod.TerrainStore)
+    assert before == (dest.create_store, asm.finish, run.BlockWorker.run, tile_mod.TerrainStore)

@@ -73,7 +73,7 @@ def build(
     resume: bool,
 ) -> None:
     """Create (or resume) the store at ``loc`` and run it to completion."""
-    from tiler.tile import create_store
+    from tiler.destination import create_store
 
     if resume:
         group = loc.open_group("r+")

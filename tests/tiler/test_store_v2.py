@@ -246,17 +246,17 @@ def test_ctrl_c_during_the_layout_is_raised_after_it(dem_factory, tmp_path, monk
     left in state ``layout`` (inside zarr's calls it left pending writes on zarr's loop)."""
     import signal
 
-    import tiler.tile as tile_mod
+    import tiler.destination as dest
 
     if not deferred:
-        monkeypatch.setattr(tile_mod, "DeferredInterrupt", contextlib.nullcontext)
-    real = tile_mod.create_layout
+        monkeypatch.setattr(dest, "DeferredInterrupt", contextlib.nullcontext)
+    real = dest.create_layout
 
     def interrupted(group, meta, level, **kw):
         signal.raise_signal(signal.SIGINT)  # the handler runs before the next bytecode
         return real(group, meta, level, **kw)
 
-    monkeypatch.setattr(tile_mod, "create_layout", interrupted)
+    monkeypatch.setattr(dest, "create_layout", interrupted)
     src = dem_factory(fractal((60, 60), 14))
     opts = TileOptions(block_size=17, workers=1, executor="threads")
     with pytest.raises(TilingInterrupted):
@@ -334,13 +334,13 @@ def test_resume_with_other_source_or_option_refused(dem_factory, tmp_path, monke
 def test_killed_during_layout_is_recreated(dem_factory, tmp_path):
     from dataclasses import replace
 
-    import tiler.tile as tile_mod
+    import tiler.destination as dest
 
     src = dem_factory(fractal((40, 40), 13))
     tile(src, tmp_path / "ref.zarr", TileOptions(block_size=17))
     meta = open_store(tmp_path / "ref.zarr").meta
     meta = replace(meta, complete=False, extra=dict(meta.extra, state="layout"))
-    tile_mod.fresh_group(Location(tmp_path / "s.zarr"), meta)  # the kill: root written only
+    dest.fresh_group(Location(tmp_path / "s.zarr"), meta)  # the kill: root written only
     tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
 
