@@ -1,0 +1,325 @@
+"""Planning a mosaic (:func:`plan_mosaic`): every source's header read once and laid out on
+one target grid, aligned (same CRS, pixel size and grid) or reprojected (each source's
+footprint from its warped sample-centre hull), as a picklable :class:`MosaicSpec` that
+:class:`tiler.mosaic.MosaicReader` reads from (see :mod:`tiler.mosaic` for the overlap rule).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from rasterio.crs import CRS
+from rasterio.transform import Affine
+from rasterio.warp import transform as warp_transform
+from rasterio.warp import transform_bounds
+
+from tiler.crs import choose_crs, parse_dst_crs, parse_resampling
+from tiler.encoding import parse_dtype
+from tiler.errors import SourceError
+from tiler.source_header import SourceInfo, read_info
+from tiler.vertical import metres_per_unit
+
+ALIGN_TOL = 1e-3  # pixels: how far a source's origin may sit off the mosaic's pixel grid
+
+
+@dataclass(frozen=True)
+class MosaicSpec:
+    """Picklable description of a mosaic on its target grid (what a worker re-opens)."""
+
+    sources: tuple[SourceInfo, ...]
+    band: int
+    width: int
+    height: int
+    transform: tuple[float, float, float, float, float, float]
+    crs_wkt: str | None
+    dtype: str
+    nodata: float | None
+    source_crs_wkt: str | None
+    warp: bool = False
+    resampling: str = "bilinear"
+    dst_crs: str | None = None  # as requested ("auto" or WKT)
+
+    @property
+    def affine(self) -> Affine:
+        """The target grid's transform (pixel corners)."""
+        return Affine(*self.transform)
+
+    @property
+    def label(self) -> str:
+        """The sources for a message: the first one's path and how many more."""
+        first = self.sources[0].path if self.sources else "(no source)"
+        more = len(self.sources) - 1
+        return first + (f" and {more} more source(s)" if more > 0 else "")
+
+
+def _same(values: list, what: str, infos: Sequence[SourceInfo]) -> object:
+    first = values[0]
+    for v, info in zip(values, infos, strict=True):
+        if v != first:
+            raise SourceError(
+                f"sources disagree on {what}: {infos[0].path!r} has {first!r}, "
+                f"{info.path!r} has {v!r}; a mosaic needs one {what}"
+            )
+    return first
+
+
+def _mosaic_nodata(infos: Sequence[SourceInfo], dtype: np.dtype, covered: bool) -> float | None:
+    """The first source's nodata; if none has one: None when the sources cover the whole
+    grid and none has a mask, else NaN (floats) or the dtype's minimum (integers) for the gaps
+    and the masked samples."""
+    for info in infos:
+        if info.nodata is not None:
+            return info.nodata
+    if covered and not any(i.masked for i in infos):
+        return None
+    return float("nan") if dtype.kind == "f" else float(np.iinfo(dtype).min)
+
+
+def _covers(rects: Sequence[tuple[int, int, int, int]], height: int, width: int) -> bool:
+    """True when the union of ``(r0, c0, r1, c1)`` rectangles covers ``height x width``."""
+    rows = sorted({0, height, *(r[0] for r in rects), *(r[2] for r in rects)})
+    cols = sorted({0, width, *(r[1] for r in rects), *(r[3] for r in rects)})
+    ri = {v: i for i, v in enumerate(rows)}
+    ci = {v: i for i, v in enumerate(cols)}
+    cover = np.zeros((len(rows) - 1, len(cols) - 1), dtype=bool)
+    for r0, c0, r1, c1 in rects:
+        cover[ri[r0] : ri[r1], ci[c0] : ci[c1]] = True
+    return bool(cover.all())
+
+
+def plan_mosaic(
+    paths: Sequence[str | os.PathLike],
+    band: int = 1,
+    dst_crs: str | None = None,
+    resolution: float | tuple[float, float] | None = None,
+    resampling: str = "bilinear",
+) -> MosaicSpec:
+    """Read every source's header and lay them out on one target grid (see module doc)."""
+    paths = [str(p) for p in paths]
+    if not paths:
+        raise SourceError("no source rasters given")
+    infos = [read_info(p, band) for p in paths]
+    dtype = parse_dtype(np.result_type(*[np.dtype(i.dtype) for i in infos]))
+    _same(
+        [(i.scale, i.offset, metres_per_unit(i.units)) for i in infos],
+        "height scale, offset and metres per vertical unit",
+        infos,
+    )
+    crss = [CRS.from_wkt(i.crs_wkt) if i.crs_wkt else None for i in infos]
+    for c, info in zip(crss, infos, strict=True):
+        if c != crss[0]:
+            raise SourceError(
+                f"sources are in different CRSs ({infos[0].path!r}: {crss[0]}, {info.path!r}: "
+                f"{c}); give a target CRS to reproject them onto one grid"
+            )
+    src_crs = crss[0]
+    if dst_crs is None and resolution is not None:
+        raise SourceError("a resolution applies when reprojecting; give a target CRS too")
+    if dst_crs is None:
+        return _plan_aligned(infos, band, dtype, src_crs)
+    return _plan_warped(infos, band, dtype, src_crs, parse_dst_crs(dst_crs), resolution, resampling)
+
+
+def _plan_aligned(
+    infos: list[SourceInfo], band: int, dtype: np.dtype, src_crs: CRS | None
+) -> MosaicSpec:
+    for info in infos:
+        a, b, _, d, e, _ = info.transform
+        if abs(b) > 1e-12 * abs(a) or abs(d) > 1e-12 * abs(e) or e == 0:
+            raise SourceError(
+                f"{info.path!r} has a rotated geotransform {info.transform}; give a target CRS "
+                "to reproject it north-up while tiling"
+            )
+    # a south-up source (rows from south to north) is placed, and read, flipped: no resampling
+    north = [_north_up(info) for info in infos]
+    a, _, c, _, e, f = north[0]
+    for info, nt in zip(infos, north, strict=True):
+        ia, ie = nt[0], nt[4]
+        if abs(ia - a) > 1e-9 * abs(a) or abs(ie - e) > 1e-9 * abs(e):
+            raise SourceError(
+                f"sources have different pixel sizes ({infos[0].path!r}: {a:g} x {-e:g}, "
+                f"{info.path!r}: {ia:g} x {-ie:g}); give a target CRS and resolution to "
+                "resample them onto one grid"
+            )
+    offsets = []
+    for info, nt in zip(infos, north, strict=True):
+        col = (nt[2] - c) / a
+        row = (nt[5] - f) / e
+        if abs(col - round(col)) > ALIGN_TOL or abs(row - round(row)) > ALIGN_TOL:
+            raise SourceError(
+                f"{info.path!r} is not on the pixel grid of {infos[0].path!r} (offset of "
+                f"{col:.4f}, {row:.4f} pixels); give a target CRS to resample them onto one grid"
+            )
+        offsets.append((round(row), round(col)))
+    r_min = min(r for r, _ in offsets)
+    c_min = min(c_ for _, c_ in offsets)
+    placed = tuple(
+        _with_footprint(i, r - r_min, c_ - c_min, r - r_min + i.height, c_ - c_min + i.width)
+        for i, (r, c_) in zip(infos, offsets, strict=True)
+    )
+    height = max(p.footprint[2] for p in placed)
+    width = max(p.footprint[3] for p in placed)
+    t = Affine(a, 0.0, c + c_min * a, 0.0, e, f + r_min * e)
+    return MosaicSpec(
+        sources=placed,
+        band=band,
+        width=width,
+        height=height,
+        transform=tuple(t)[:6],
+        crs_wkt=src_crs.to_wkt() if src_crs else None,
+        dtype=dtype.name,
+        nodata=_mosaic_nodata(infos, dtype, _covers([p.footprint for p in placed], height, width)),
+        source_crs_wkt=src_crs.to_wkt() if src_crs else None,
+    )
+
+
+def _north_up(info: SourceInfo) -> tuple[float, float, float, float, float, float]:
+    """The source's geotransform with its rows counted from the north (as it is if they are)."""
+    a, b, c, d, e, f = info.transform
+    if e > 0:  # row 0 is the southern edge: the north-up grid starts at the last row's end
+        return (a, b, c, d, -e, f + e * info.height)
+    return info.transform
+
+
+def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> SourceInfo:
+    return replace(info, footprint=(r0, c0, r1, c1))
+
+
+#: how many times finer than the source's pixel a target ``resolution`` may be (per axis):
+#: finer is a unit mistake (degrees given as metres), not an upsampling anyone wants
+MAX_UPSAMPLE = 100.0
+HULL_POINTS = 64  # points per edge of a source's sample-centre hull
+HULL_EPS = 1e-3  # source pixels the hull is widened by, so samples on it are kept (no ties)
+
+
+def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, float], ...]:
+    """The ring through the source's outer sample centres, in target coordinates.
+
+    Reprojected samples outside it would be extrapolated (GDAL holds edge values constant
+    there), so they are left out: the store ends where the source's samples end.
+    """
+    t = Affine(*info.transform)
+    n = HULL_POINTS
+    e = HULL_EPS
+    r0, c0, r1, c1 = -e, -e, info.height - 1 + e, info.width - 1 + e
+    edge = np.linspace(0.0, 1.0, n, endpoint=False)
+    rows = np.concatenate(
+        [r0 + 0 * edge, r0 + edge * (r1 - r0), r1 + 0 * edge, r1 - edge * (r1 - r0)]
+    )
+    cols = np.concatenate(
+        [c0 + edge * (c1 - c0), c1 + 0 * edge, c1 - edge * (c1 - c0), c0 + 0 * edge]
+    )
+    xs, ys = t * (cols + 0.5, rows + 0.5)
+    if src_crs.is_geographic:  # a sample centre on a pole, widened past it
+        ys = np.clip(ys, -90.0, 90.0)
+    tx, ty = warp_transform(src_crs, target, xs.tolist(), ys.tolist())
+    ring = list(zip(tx, ty, strict=True))
+    return tuple((*ring, ring[0]))
+
+
+def _bounds(info: SourceInfo) -> tuple[float, float, float, float]:
+    """``(left, bottom, right, top)`` of a source's pixel corners (any affine transform)."""
+    t = Affine(*info.transform)
+    xs, ys = zip(
+        *(t * p for p in ((0, 0), (info.width, 0), (0, info.height), (info.width, info.height))),
+        strict=True,
+    )
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def _on_earth(bounds: tuple[float, ...], crs: CRS | None) -> tuple[float, float, float, float]:
+    """``bounds`` with latitudes clamped to the poles when ``crs`` is geographic (the pixel
+    edges of a grid whose first row is centred on a pole lie half a pixel past it)."""
+    left, bottom, right, top = bounds
+    if crs is not None and crs.is_geographic:
+        bottom, top = max(bottom, -90.0), min(top, 90.0)
+    return left, bottom, right, top
+
+
+def _union_bounds(infos: Sequence[SourceInfo]) -> tuple[float, float, float, float]:
+    b = np.array([_bounds(i) for i in infos])
+    return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+
+def _finest_pixel(info: SourceInfo, bounds: tuple[float, ...], src_crs: CRS, target: CRS) -> float:
+    """The source's finer pixel side, in target units, at the centre of the extent: the
+    default resolution, so reprojection loses no detail along either axis."""
+    a, b, _, d, e, _ = info.transform
+    cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
+    xs, ys = warp_transform(src_crs, target, [cx, cx + a, cx + b], [cy, cy + d, cy + e])
+    dx = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
+    dy = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
+    return min(dx, dy)
+
+
+def _plan_warped(
+    infos: list[SourceInfo],
+    band: int,
+    dtype: np.dtype,
+    src_crs: CRS | None,
+    dst_crs: str,
+    resolution: float | tuple[float, float] | None,
+    resampling: str,
+) -> MosaicSpec:
+    resampling = parse_resampling(resampling)
+    bounds = _on_earth(_union_bounds(infos), src_crs)
+    target = choose_crs(dst_crs, src_crs, bounds)
+    if resolution is not None:
+        res = (resolution, resolution) if np.isscalar(resolution) else tuple(resolution)
+        if not all(math.isfinite(r) and r > 0 for r in res):
+            raise SourceError(f"resolution must be positive target CRS units, got {resolution}")
+    native = _finest_pixel(infos[0], bounds, src_crs, target)
+    if resolution is None:
+        r = float(f"{native:.3g}")
+        res = (r, r)
+    elif min(res) < native / MAX_UPSAMPLE:
+        raise SourceError(
+            "{resolution} {res:g} is {factor:,.0f}x finer than the source's pixels (~{native:.4g}"
+            " m in the target CRS): it is in the target CRS's metres, not the source's units; "
+            "give at least {least:.3g} (or none: the source's own)",
+            params={"resolution": "resolution"},
+            res=min(res), factor=native / min(res), native=native, least=native / MAX_UPSAMPLE,
+        )  # fmt: skip
+    left, bottom, right, top = transform_bounds(src_crs, target, *bounds, densify_pts=51)
+    ew, ns = right - left, top - bottom
+    # snap to multiples of the resolution (gdalwarp -tap), so separate runs share one grid
+    left = math.floor(left / res[0]) * res[0]
+    right = math.ceil(right / res[0]) * res[0]
+    bottom = math.floor(bottom / res[1]) * res[1]
+    top = math.ceil(top / res[1]) * res[1]
+    width = round((right - left) / res[0])
+    height = round((top - bottom) / res[1])
+    if resolution is not None and min(width, height) < 2:
+        raise SourceError(
+            "{resolution} {res:g} leaves a {w}x{h} grid across the sources' {ew:,.0f} x "
+            "{ns:,.0f} m: a DEM needs at least 2x2 samples; give at most {most:.3g}",
+            params={"resolution": "resolution"},
+            res=max(res), w=width, h=height, ew=ew, ns=ns, most=min(ew, ns) / 2,
+        )  # fmt: skip
+    t = Affine(res[0], 0.0, left, 0.0, -res[1], top)
+    placed = []
+    for i in infos:
+        sb = transform_bounds(src_crs, target, *_on_earth(_bounds(i), src_crs), densify_pts=51)
+        c0 = max(0, math.floor((sb[0] - left) / res[0]) - 2)
+        c1 = min(width, math.ceil((sb[2] - left) / res[0]) + 2)
+        r0 = max(0, math.floor((top - sb[3]) / res[1]) - 2)
+        r1 = min(height, math.ceil((top - sb[1]) / res[1]) + 2)
+        placed.append(replace(_with_footprint(i, r0, c0, r1, c1), hull=_hull(i, src_crs, target)))
+    return MosaicSpec(
+        sources=tuple(placed),
+        band=band,
+        width=width,
+        height=height,
+        transform=tuple(t)[:6],
+        crs_wkt=target.to_wkt(),
+        dtype=dtype.name,
+        nodata=_mosaic_nodata(infos, dtype, covered=False),
+        source_crs_wkt=src_crs.to_wkt() if src_crs else None,
+        warp=True,
+        resampling=resampling,
+        dst_crs=dst_crs,
+    )
