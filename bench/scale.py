@@ -346,7 +346,8 @@ def s3_reads(rounds: int, out: Path) -> dict:
 
     from streamer.run import make_path
     from streamer.session import open_session
-    from tiler.location import S3_READER_ENV, Location
+    from tiler.location import Location
+    from tiler.s3_reader import S3_READER_ENV
     from tiler.store import TerrainStore
     from tiler.synth import synth_dem
     from tiler.tile import TileOptions, tile

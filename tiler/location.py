@@ -31,6 +31,7 @@ from zarr.buffer import default_buffer_prototype
 
 from tiler.atomic import partial_name, write_atomic
 from tiler.errors import StorageOptionsError, StoreError
+from tiler.s3_reader import S3_READER_ENV, open_s3_reader
 from tiler.transport import http_options
 
 T = TypeVar("T")
@@ -82,61 +83,6 @@ def parse_storage_options(text: str | None) -> dict[str, Any] | None:
             f"{text!r}"
         )
     return value
-
-
-#: ``obstore`` (default where installed) or ``fsspec``: the zarr store used to read s3:// stores
-S3_READER_ENV = "TERRASTREAM_S3_READER"
-_OBSTORE_KEYS = {
-    "key": "access_key_id",
-    "secret": "secret_access_key",
-    "token": "session_token",
-    "endpoint_url": "endpoint",
-}
-
-
-def open_s3_reader(url: str, storage_options: dict[str, Any] | None = None) -> Store | None:
-    """A read-only zarr ``ObjectStore`` (obstore, Rust HTTP client) for an ``s3://`` URL, or None
-    if obstore is missing or an option has no obstore equivalent (then fsspec reads it).
-
-    Credentials, region and endpoint also come from the environment (``AWS_*``), like s3fs.
-    """
-    if not url.startswith("s3://"):
-        return None
-    try:
-        from obstore.store import S3Store
-        from zarr.storage import ObjectStore
-    except ImportError:
-        return None
-    so = dict(storage_options or {})
-    client = dict(so.pop("client_kwargs", None) or {})
-    config: dict[str, Any] = {}
-    if "region_name" in client:
-        config["region"] = client.pop("region_name")
-    if "endpoint_url" in client:
-        so.setdefault("endpoint_url", client.pop("endpoint_url"))
-    if client:
-        return None
-    if so.pop("anon", False):
-        config["skip_signature"] = True
-    for k in list(so):
-        if k in _OBSTORE_KEYS:
-            config[_OBSTORE_KEYS[k]] = so.pop(k)
-    if so:
-        return None  # e.g. profile, requester_pays: only s3fs knows them
-    endpoint = (
-        config.get("endpoint")
-        or os.environ.get("AWS_ENDPOINT_URL_S3")
-        or (os.environ.get("AWS_ENDPOINT_URL"))
-    )
-    if endpoint and str(endpoint).startswith("http://"):
-        config["endpoint"] = endpoint
-        client_options = {"allow_http": True}
-    else:
-        client_options = {}
-    bucket, _, prefix = url[len("s3://") :].partition("/")
-    store = S3Store(bucket, prefix=prefix.strip("/") or None, client_options=client_options,
-                    **config)  # fmt: skip
-    return ObjectStore(store, read_only=True)
 
 
 class Location:

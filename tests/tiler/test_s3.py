@@ -270,7 +270,7 @@ def test_reads_use_obstore_by_default_and_fsspec_on_request(
     bench/results/s3_reads.json); TERRASTREAM_S3_READER=fsspec and options only s3fs knows
     fall back to fsspec; both read the same values."""
     pytest.importorskip("obstore")
-    from tiler.location import S3_READER_ENV, open_s3_reader
+    from tiler.s3_reader import S3_READER_ENV, open_s3_reader
     from tiler.store import open_store
 
     src = _dem(tmp_path)
@@ -303,7 +303,7 @@ def test_an_s3_server_that_goes_away_is_unavailable_not_damage(tmp_path, monkeyp
     raised its GenericError and s3fs botocore's EndpointConnectionError, which sessions took
     for bugs); a read before it stopped is the control."""
     from tiler.errors import StoreUnavailableError
-    from tiler.location import S3_READER_ENV
+    from tiler.s3_reader import S3_READER_ENV
     from tiler.store import open_store
 
     if reader == "obstore":
