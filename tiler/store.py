@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from tiler import chunkread, codecs, static_error
+from tiler import chunkread, codecs, scratch, static_error
 from tiler.errors import (
     MissingChunkError,
     StoreChangedError,
@@ -86,9 +86,6 @@ __all__ = [
 
 
 REMOTE_CHECK_INTERVAL_S = 1.0
-#: read_block decompresses a block's levels into a per-thread buffer up to this size
-SCRATCH_MAX_BYTES = 16 << 20
-_SCRATCH = threading.local()
 
 
 class TerrainStore:
@@ -379,19 +376,8 @@ class TerrainStore:
             return list(pool.map(lambda i: self._read(f"levels/{i}", block, i), levels))
 
     def _scratch(self, n: int) -> np.ndarray | None:
-        """This thread's reusable buffer for ``n`` stored values (read_block's raw sequence),
-        shared by the thread's stores; None above :data:`SCRATCH_MAX_BYTES`. A fresh 2 MiB
-        array costs ~0.5-1 ms of page faults per 1025² block."""
-        dtype = np.dtype(self.meta.storage_dtype)
-        if n * dtype.itemsize > SCRATCH_MAX_BYTES:
-            return None
-        # one owner array per dtype, so the level views share it as their base (a view of a
-        # view of another dtype would not, and encoding.joined would copy the sequence)
-        bufs = _SCRATCH.__dict__.setdefault("seq", {})
-        buf = bufs.get(dtype.str)
-        if buf is None or buf.size < n:
-            buf = bufs[dtype.str] = np.empty(SCRATCH_MAX_BYTES // dtype.itemsize, dtype=dtype)
-        return buf[:n]
+        """This thread's reusable buffer for ``n`` stored values (:func:`tiler.scratch.buffer`)."""
+        return scratch.buffer(n, np.dtype(self.meta.storage_dtype))
 
     def decode_next(self, levels: list[np.ndarray], raw: np.ndarray) -> np.ndarray:
         """Decode the next level from its raw values and the decoded levels ``0..L-1``
@@ -444,17 +430,9 @@ class TerrainStore:
         return (h - 1) // step + 1, (w - 1) // step + 1
 
     def _work_grid(self, level: int) -> np.ndarray | None:
-        """This thread's reusable ``2**level+1`` square of the decoded dtype (a windowed
-        decode's scratch: a fresh 2 MiB grid costs its page faults on every read)."""
-        side = (1 << level) + 1
-        dtype = np.dtype(self.codec.value_dtype)
-        if side * side * dtype.itemsize > SCRATCH_MAX_BYTES:
-            return None
-        bufs = _SCRATCH.__dict__.setdefault("grid", {})
-        buf = bufs.get(dtype.str)
-        if buf is None or buf.size < side * side:
-            buf = bufs[dtype.str] = np.empty(side * side, dtype=dtype)
-        return buf[: side * side].reshape(side, side)
+        """This thread's reusable ``2**level+1`` square of the decoded dtype, a windowed
+        decode's scratch (:func:`tiler.scratch.square`)."""
+        return scratch.square((1 << level) + 1, np.dtype(self.codec.value_dtype))
 
     def read_mask(self, block: tuple[int, int]) -> np.ndarray:
         """``(side, side)`` bool, True where the block has terrain (not nodata, not padding)."""
