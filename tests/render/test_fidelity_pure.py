@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from render.frame import ramp_map
+from render.frame_types import ramp_map
 from render.views import MIN_NEAR, near_plane
 from streamer.nodata import NODATA_RULES, check_rule, gap_widths, mixed_nodes, raise_mixed
 
@@ -87,7 +87,7 @@ def test_patch_sizes_that_cannot_be_stitched_are_refused(p):
     stitching would split the whole view to one level (it did not settle in 64 rounds on
     N44W072): refused with the value and what to use."""
     from render.errors import RenderError
-    from render.frame import RenderConfig
+    from render.frame_types import RenderConfig
 
     with pytest.raises(RenderError, match=f"patch_log2 must be in 1..7, got {p}"):
         RenderConfig(patch_log2=p)
