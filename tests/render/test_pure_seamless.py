@@ -182,7 +182,7 @@ def test_paper_rho_tau_is_the_projected_cell_in_pixels():
 
 
 def test_neighbour_caps_are_the_lowest_drawn_cap_around_each_block():
-    from render.strategies.seamless.selection import _neighbour_caps
+    from render.strategies.seamless.frame import neighbour_caps
 
     rng = np.random.default_rng(3)
     drawn = sorted(rng.choice(20, 13, replace=False).tolist())
@@ -194,9 +194,9 @@ def test_neighbour_caps_are_the_lowest_drawn_cap_around_each_block():
              ((-1, 0), (0, 1), (1, 0), (0, -1))) if n in caps])
         for b in map(tuple, blk.tolist())
     ]  # fmt: skip
-    got = _neighbour_caps(blk, cap)
+    got = neighbour_caps(blk, cap)
     assert got.tolist() == want
     assert got.tolist() != cap.tolist()  # some neighbour is lower: the rule does something
     # positive control: a block at the row's end is not the next row's first block's neighbour
     edge = np.array([(0, 4), (1, 0)], np.int64)
-    assert _neighbour_caps(edge, np.array([1, 7])).tolist() == [1, 7]
+    assert neighbour_caps(edge, np.array([1, 7])).tolist() == [1, 7]

@@ -263,7 +263,7 @@ def test_positive_controls_the_resolution_kernels_are_checked(
 def test_resolution_helpers_equal_numpy(numba_kernels):
     # the compiled resolution's own sort, depth list and edge resolution against numpy's
     from render.strategies.seamless._resolve_nb import _argsort, _depths, _edge_resolution
-    from render.strategies.seamless.selection import edge_resolution
+    from render.strategies.seamless.layout import edge_resolution
 
     rng = np.random.default_rng(5)
     for n in (0, 1, 2, 7, 64, 1000):

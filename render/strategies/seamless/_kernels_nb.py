@@ -1,6 +1,6 @@
 """Numba kernels of ``seamless-patches``' selection (re-exported by :mod:`._resolve_nb`, the
-module :mod:`.kernels` loads): the per-depth edge ε of ``_Frame.epsilon`` (with its
-``node_delta`` look-ups), the frustum disc test of ``_Frame.visible``, one depth of the
+module :mod:`.kernels` loads): the per-depth edge ε of ``SelectionFrame.epsilon`` (with its
+``node_delta`` look-ups), the frustum disc test of ``SelectionFrame.visible``, one depth of the
 traversal and the shared-edge grouping of ``_edge_groups``, each giving exactly the numpy
 reference's output. The float work is the reference's operations in the reference's order on
 float64 (no fastmath), so the results are the same bits."""
@@ -56,7 +56,7 @@ def _lower(keys, x):
 
 @_jit
 def _node_delta(d, gr, gc, grows, gcols, bkeys, border, slots, arr, has_arr):
-    """``_Frame.node_delta`` of one node: its stored error, -1 outside the drawn blocks."""
+    """``SelectionFrame.node_delta`` of one node: its stored error, -1 outside the drawn blocks."""
     m = bkeys.shape[0]
     if m == 0 or gr < 0 or gc < 0 or gr >= (grows << d) or gc >= (gcols << d):
         return -1.0
@@ -75,8 +75,8 @@ def epsilon(
     idx, rows, cols, d, k, blk, bkeys, border, slots, arr, has_arr, grows, gcols, zr,
     x0, y0, dx, dy, ex, ey, ez, focal, tau, c, paper, paper_rho,
 ):  # fmt: skip
-    """``_Frame.epsilon`` without the spike guard: ``(n, 4)`` ε of the nodes' edges N, E, S, W
-    (``arr`` = the table's depth-``d`` array, ``has_arr`` False where the table has none;
+    """``SelectionFrame.epsilon`` without the spike guard: ``(n, 4)`` ε of the nodes' edges N, E,
+    S, W (``arr`` = the table's depth-``d`` array, ``has_arr`` False where the table has none;
     ``paper``: ρ is ``paper_rho``, ∞ beside a node of infinite δ)."""
     n = idx.shape[0]
     out = np.zeros((n, 4))
@@ -179,7 +179,7 @@ def edge_groups(d, gr, gc, depths, order, sk, nr, nc):
 
 @_jit
 def disc_meets(idx, rows, cols, blk, x0, y0, step, dx, dy, s_dx, s_dy, radius, cull):
-    """``DiscCull(poly)(cx, cy, radius)[0]`` of the nodes' centres (``_Frame.visible``'s
+    """``DiscCull(poly)(cx, cy, radius)[0]`` of the nodes' centres (``SelectionFrame.visible``'s
     ``node_centres_at`` arithmetic): ``cull`` = ``(o, px, py, ex, ey, ee_safe, ok, all_ok, ccw)``
     of the :class:`render.select.DiscCull`."""
     o, px, py, ex, ey, ee_safe, ok, all_ok, ccw = cull
@@ -219,8 +219,8 @@ def traverse_depth(
     idx, rows, cols, d, k, c, use_win, win_r, win_c, cull_mode, cull_geo, cull, eps_args,
     dmax, cap,
 ):  # fmt: skip
-    """One depth of ``_traverse`` without the spike guard: ``_Frame.visible`` (window rule, then
-    :func:`disc_meets` where ``cull_mode`` is 1, nothing meets where it is 2: an empty hull),
+    """One depth of ``_traverse`` without the spike guard: ``SelectionFrame.visible`` (window rule,
+    then :func:`disc_meets` where ``cull_mode`` is 1, nothing meets where it is 2: an empty hull),
     :func:`epsilon` of the visible nodes, the split rule and the children. Returns the visible
     nodes' leaves ``(idx, rows, cols, eps)``, the children ``(idx, rows, cols)``, the clamped
     count and whether any node was visible. ``cull_geo`` = ``disc_meets``' ``(x0, y0, step, dx,

@@ -23,8 +23,9 @@ from render.strategies.base import (
     Strategy,
     triangle_screen_errors,
 )
+from render.strategies.seamless.layout import RHO_FORMS, PatchLayout
 from render.strategies.seamless.meshes import mesh_kinds, mesh_of, rotate
-from render.strategies.seamless.selection import RHO_FORMS, PatchLayout, select_layout
+from render.strategies.seamless.selection import select_layout
 from streamer.camera import Camera
 
 HERE = Path(__file__).parent
