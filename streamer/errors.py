@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from tiler.errors import NamedParams
 
 
@@ -39,6 +41,18 @@ class BudgetError(StreamerError, ValueError):
 
 class LoadError(StreamerError, OSError):
     """A block level that could not be read after every retry."""
+
+    @classmethod
+    def after_retries(
+        cls, block: tuple[int, int], exc: BaseException, retries: int, heal: bool, frame: Any
+    ) -> LoadError:
+        """The error a session raises once for ``block`` (``frame``: the frame it ends)."""
+        err = cls(
+            f"block {block} could not be read after {retries} tries: {exc}; it stays at the "
+            "level it has" + (" and is retried while it is needed" if heal else "")
+        )
+        err.frame = frame  # type: ignore[attr-defined]
+        return err
 
 
 class SessionClosedError(StreamerError, RuntimeError):

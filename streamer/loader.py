@@ -368,6 +368,16 @@ class Loader:
 
     # -- what a waiting frame lacks (Session.update(..., wait=True)) -------------------------
 
+    def take_frame_counts(self) -> tuple[int, int, float, int, list[tuple[Block, BaseException]]]:
+        """The bytes read in time, prefetched, the I/O seconds, the bytes that came late and
+        the failures not yet reported since the last frame, reset (hold :attr:`cv`)."""
+        out = (self.frame_realtime, self.frame_prefetched, self.frame_io_s, self.frame_late,
+               self.unreported)  # fmt: skip
+        self.frame_realtime = self.frame_prefetched = self.frame_late = 0
+        self.frame_io_s = 0.0
+        self.unreported = []
+        return out
+
     def missing(self, needed: dict[Block, int]) -> list[tuple[Block, int]]:
         """The ``(block, level)`` of ``needed`` not resident yet, or without errors read."""
         errors, cache = self.errors, self.cache

@@ -403,11 +403,7 @@ class Session:
                 top = lv if lv < have else have
                 if top > used.get(b, -1):
                     used[b] = top
-            realtime, prefetched, io_s = ld.frame_realtime, ld.frame_prefetched, ld.frame_io_s
-            late, ld.frame_late = ld.frame_late, 0
-            ld.frame_realtime = ld.frame_prefetched = 0
-            ld.frame_io_s = 0.0
-            news, ld.unreported = ld.unreported, []
+            realtime, prefetched, io_s, late, news = ld.take_frame_counts()
             failed = frozenset(b for b in ld.queue.failed_blocks() if b in needed)
             resident = self.cache.nbytes
             errors = self.totals.io_errors
@@ -438,16 +434,10 @@ class Session:
         )
         frame = Frame(camera=camera, blocks=blocks, stats=stats, failed=failed)
         self._record(frame)
-        news = [(b, e) for b, e in news if self.config.raise_on_failure]
-        if news:
+        if news and self.config.raise_on_failure:
             b, exc = news[0]
-            err = LoadError(
-                f"block {b} could not be read after {self.config.retries} tries: {exc}; "
-                "it stays at the level it has"
-                + (" and is retried while it is needed" if self.config.heal else "")
-            )
-            err.frame = frame  # type: ignore[attr-defined]
-            raise err from exc
+            cfg = self.config
+            raise LoadError.after_retries(b, exc, cfg.retries, cfg.heal, frame) from exc
         return frame
 
     def _record(self, frame: Frame) -> None:
