@@ -1,0 +1,168 @@
+"""The package layers, checked from the source (no imports run): tiler <- streamer <- render <-
+cli, moderngl and glfw only in render, and the modules docs/RENDER.md lists as GL-free reach no
+GL module through their project imports. Each rule has a positive control: a small tree that
+breaks it on purpose, which the checker must report."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("tiler", "streamer", "render", "cli")
+#: what each package may import of the others (the layers point one way)
+ALLOWED = {
+    "tiler": set(),
+    "streamer": {"tiler"},
+    "render": {"tiler", "streamer"},
+    "cli": {"tiler", "streamer", "render"},
+}
+GL = ("moderngl", "glfw")
+
+
+def module_name(root: Path, path: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def imports(root: Path, path: Path) -> set[str]:
+    """Absolute names a module imports (relative imports resolved), at any depth of its code."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    name = module_name(root, path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")
+                up = up[: len(up) - (node.level - 1)]
+                base = ".".join([*up, base] if base else up)
+            out.add(base)
+            out.update(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
+    return out
+
+
+def modules(root: Path) -> dict[str, Path]:
+    return {
+        module_name(root, p): p
+        for pkg in PACKAGES
+        if (root / pkg).is_dir()
+        for p in sorted((root / pkg).rglob("*.py"))
+    }
+
+
+def layer_violations(root: Path) -> list[str]:
+    """``module imports name`` for every import that points the wrong way or reaches GL
+    outside render."""
+    found = []
+    for name, path in modules(root).items():
+        pkg = name.split(".")[0]
+        for imp in sorted(imports(root, path)):
+            top = imp.split(".")[0]
+            if top in PACKAGES and top != pkg and top not in ALLOWED[pkg]:
+                found.append(f"{name} imports {imp}")
+            if top in GL and pkg != "render":
+                found.append(f"{name} imports {imp}")
+    return found
+
+
+def gl_reach(root: Path, start: str) -> list[str]:
+    """An import chain from module ``start`` to a GL module through project modules ([] if
+    none)."""
+    mods = modules(root)
+    edges = {n: imports(root, p) for n, p in mods.items()}
+    parts = start.split(".")
+    first = [".".join(parts[:j]) for j in range(1, len(parts) + 1)]  # its packages run first
+    seen = set(first)
+    stack = [(m, [m]) for m in first if m in mods]
+    while stack:
+        n, chain = stack.pop()
+        for imp in sorted(edges.get(n, ())):
+            if imp.split(".")[0] in GL:
+                return [*chain, imp]
+            # a module and the packages it sits in run when it is imported
+            parts = imp.split(".")
+            for j in range(1, len(parts) + 1):
+                m = ".".join(parts[:j])
+                if m in mods and m not in seen:
+                    seen.add(m)
+                    stack.append((m, [*chain, m]))
+    return []
+
+
+def gl_free_render_modules() -> list[str]:
+    """The render modules docs/RENDER.md's table marks ``no`` in its GL column."""
+    text = (ROOT / "docs" / "RENDER.md").read_text(encoding="utf-8")
+    names = []
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 3 and cells[1] == "no":
+            names += re.findall(r"`([a-z_]+)\.py`", cells[0])
+    return [f"render.{n}" for n in names]
+
+
+def test_the_layers_point_one_way():
+    assert layer_violations(ROOT) == []
+
+
+def test_the_gl_free_render_modules_reach_no_gl():
+    names = gl_free_render_modules()
+    assert "render.frame_types" in names and "render.mesh" in names  # the table was read
+    mods = modules(ROOT)
+    reach = {n: gl_reach(ROOT, n) for n in names}
+    assert all(n in mods for n in names), [n for n in names if n not in mods]
+    assert {n: c for n, c in reach.items() if c} == {}
+
+
+def _tree(tmp_path: Path, files: dict[str, str]) -> Path:
+    for rel, text in files.items():
+        p = tmp_path / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(text, encoding="utf-8")
+    return tmp_path
+
+
+@pytest.mark.parametrize(
+    ("files", "expected"),
+    [
+        ({"tiler/a.py": "from render.gpu import X\n"}, "tiler.a imports render.gpu"),
+        ({"streamer/s.py": "def f():\n    import cli.main\n"}, "streamer.s imports cli.main"),
+        (
+            {"tiler/b/__init__.py": "from ..c import y\n", "tiler/c.py": "import moderngl\n"},
+            "tiler.c imports moderngl",
+        ),  # fmt: skip
+        ({"render/r.py": "from cli import options\n"}, "render.r imports cli"),
+    ],
+)
+def test_control_a_wrong_way_import_is_reported(tmp_path, files, expected):
+    root = _tree(tmp_path, {"render/__init__.py": "", **files})
+    assert expected in layer_violations(root)
+
+
+def test_control_gl_reached_through_a_helper_is_reported(tmp_path):
+    root = _tree(
+        tmp_path,
+        {
+            "render/__init__.py": "",
+            "render/sub/__init__.py": "from render import gpu\n",
+            "render/sub/leaf.py": "x = 1\n",
+            "render/pure.py": "from render import helper\n",
+            "render/helper.py": "from render.gpu import ctx\n",
+            "render/gpu.py": "import moderngl\n",
+            "render/clean.py": "import numpy\n",
+        },
+    )
+    assert gl_reach(root, "render.pure") == [
+        "render.pure", "render.helper", "render.gpu", "moderngl",
+    ]  # fmt: skip
+    assert gl_reach(root, "render.clean") == []
+    # a module whose own package imports GL reaches it too
+    assert gl_reach(root, "render.sub.leaf") == ["render.sub", "render.gpu", "moderngl"]
