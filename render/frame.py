@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import moderngl
 import numpy as np
@@ -49,6 +49,9 @@ from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
 from tiler.crs import require_projected
 from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
+
+if TYPE_CHECKING:
+    from streamer.session import Session
 
 Block = tuple[int, int]
 T = TypeVar("T")
@@ -131,7 +134,7 @@ class FrameServices:
         self.make_current()
         return self.pool.upload(block, levels, mask)
 
-    def sync(self, frame_blocks: dict[Block, tuple[int, int]], session) -> None:
+    def sync(self, frame_blocks: dict[Block, tuple[int, int]], session: Session) -> None:
         """Upload what a streaming frame holds (``Frame.blocks``) and drop long-gone blocks."""
         self._frame += 1
         for b, (res, _need) in frame_blocks.items():

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from functools import cache
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,9 @@ from streamer.lod import Metric, horizontal_px, qiu_eq7
 from tiler.grid import BlockGrid
 from tiler.kernels import pick_warm, warm
 from tiler.quadtree import half_diagonal, node_span
+
+if TYPE_CHECKING:
+    from render.select import DiscCull
 
 _NONE = np.zeros(0)
 _NONE_B = np.zeros(0, np.bool_)
@@ -92,7 +96,7 @@ def walk(
     win: np.ndarray | None,
     bx0: np.ndarray,
     by1: np.ndarray,
-    cull,
+    cull: DiscCull | None,
     min_depth: int,
     boxes: NodeBoxes | None,
     box_slots: tuple[np.ndarray, np.ndarray] | None,

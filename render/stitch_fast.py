@@ -163,7 +163,10 @@ class _Samples:
 _SAMPLES = _Samples()
 
 
-def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
+def exact_bounds(
+    kn: ModuleType, ck: _Check, b: np.ndarray, d: np.ndarray, r: np.ndarray, c: np.ndarray,
+    lv: np.ndarray, snap: np.ndarray,
+) -> np.ndarray:  # fmt: skip
     """:func:`render.snap_error.snap_exact` of leaves ``(b, d, r, c)`` of blocks held at full
     resolution: one call of the kernel ``kn.exact_all`` reading the pooled grids, each leaf's
     edges taking their group's templates (one cell count, spacing and snaps)."""
@@ -180,7 +183,10 @@ def exact_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
     return kn.exact_all(ck.buf, ck.off, ck.side, b, d, r, c, lo, hi, *_SAMPLES.arrays, k)
 
 
-def strip_bounds(kn, ck: _Check, b, d, r, c, lv, snap) -> np.ndarray:
+def strip_bounds(
+    kn: ModuleType, ck: _Check, b: np.ndarray, d: np.ndarray, r: np.ndarray, c: np.ndarray,
+    lv: np.ndarray, snap: np.ndarray,
+) -> np.ndarray:  # fmt: skip
     """:func:`render.snap_error.snap_excess` with the cells' bounds (as
     :func:`render.node_boxes.snap_over` calls it) of leaves ``(b, d, r, c)``: per group of one
     cell count and snaps, the reference's matrix product, the rest in the kernels ``kn``."""

@@ -19,6 +19,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import moderngl
 import numpy as np
@@ -59,6 +60,7 @@ class Pose:
 
     @classmethod
     def of(cls, camera: Camera) -> Pose:
+        """The pose of ``camera`` (its position, yaw and pitch)."""
         return cls(*camera.position, camera.yaw, camera.pitch)
 
 
@@ -74,7 +76,9 @@ class Controls:
     look_dy: float = 0.0  # mouse down (screen y grows downwards) = look down
 
 
-def fly(pose: Pose, c: Controls, dt: float, speed: float, deg_per_px: float = LOOK_DEG_PER_PX):
+def fly(
+    pose: Pose, c: Controls, dt: float, speed: float, deg_per_px: float = LOOK_DEG_PER_PX
+) -> Pose:
     """The pose after ``dt`` seconds: turn by the mouse (pitch kept in [-89, 89]), then move
     along the view direction (W/S), the horizontal right (D/A) and world up (E/Q) at ``speed``
     units/s (times :data:`BOOST` with Shift); diagonal moves are not faster."""
@@ -96,7 +100,7 @@ def speed_for(z: float, zlo: float, spacing: float) -> float:
     return max(10.0 * spacing, 0.5 * (z - zlo))
 
 
-def camera_at(pose: Pose, store: TerrainStore, size, fov: float = 45.0) -> Camera:
+def camera_at(pose: Pose, store: TerrainStore, size: tuple[int, int], fov: float = 45.0) -> Camera:
     """The camera of a pose, with near/far fitted to its height and the DEM's extent."""
     x0, y0, x1, y1 = store.grid.extent
     zlo, zhi = float(np.nanmin(store.index.zmin)), float(np.nanmax(store.index.zmax))
@@ -182,7 +186,9 @@ class _Overlay:
         self.ctx.disable(moderngl.BLEND)
 
 
-def open_window(size: tuple[int, int], title: str, *, visible: bool = True):
+def open_window(
+    size: tuple[int, int], title: str, *, visible: bool = True
+) -> tuple[Any, Any, moderngl.Context]:
     """``(glfw, window, ctx)``: a fixed-size window with a current OpenGL 4.5 core context."""
     try:
         import glfw
@@ -237,7 +243,7 @@ class ViewResult:
     screenshot: Path | None
 
 
-def status_line(fps: float, st: RenderStats, tau: float, metric: str, mb: float, wire: bool):
+def status_line(fps: float, st: RenderStats, tau: float, metric: str, mb: float, wire: bool) -> str:
     """The on-screen line (also the window title)."""
     return (
         f"{fps:5.1f} fps | {st.triangles:,} triangles | tau {tau:.3g} px ({metric}) | "

@@ -18,6 +18,7 @@ from streamer.clip import MIN_NEAR, near_plane
 from streamer.clip import reach as scene_reach
 from streamer.clip import zrange as _zrange
 from streamer.errors import CameraError
+from tiler.grid import BlockGrid
 from tiler.store import TerrainStore
 
 #: elongation (long / short horizontal side) beyond which the overview looks along the DEM
@@ -40,7 +41,7 @@ def parse_triple(text: str, name: str) -> tuple[float, float, float]:
 CAMERA_CELL_LIMIT = 2**31 - 1
 
 
-def camera_cells(grid, x: float, y: float) -> float:
+def camera_cells(grid: BlockGrid, x: float, y: float) -> float:
     """How many cells the point ``(x, y)`` lies from the grid's origin, the larger of the two
     axes (the renderer's ``cam_cell`` must stay within :data:`CAMERA_CELL_LIMIT`)."""
     return max(abs((x - grid.x0) / grid.dx), abs((grid.y0 - y) / grid.dy))

@@ -15,9 +15,14 @@ under ``"gap"`` it streams only the levels that rule draws."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from tiler.quadtree import max_pool
+
+if TYPE_CHECKING:
+    from tiler.store import TerrainStore
 
 
 def mixed_nodes(valid: np.ndarray, k: int) -> list[np.ndarray]:
@@ -73,7 +78,7 @@ def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.nda
     return out
 
 
-def boundary_errors(store, block: tuple[int, int], field: str) -> list[np.ndarray]:
+def boundary_errors(store: TerrainStore, block: tuple[int, int], field: str) -> list[np.ndarray]:
     """The block's stored error ``field`` with its mask boundaries raised (:func:`raise_mixed`);
     the stored field itself when the block has no nodata or padding."""
     errors = store.read_errors(block)[field]
@@ -86,7 +91,7 @@ def boundary_errors(store, block: tuple[int, int], field: str) -> list[np.ndarra
 
 
 def rule_errors(
-    store, block: tuple[int, int], field: str, rule: str = "full"
+    store: TerrainStore, block: tuple[int, int], field: str, rule: str = "full"
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
     """What a session plans the block with under the nodata ``rule``: ``"full"`` its
     :func:`boundary_errors` and no gap widths; ``"gap"`` the stored field and its

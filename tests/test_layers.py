@@ -1,6 +1,7 @@
-"""The package layers, checked from the source (no imports run): tiler <- streamer <- render <-
-cli, moderngl and glfw only in render, and the modules docs/RENDER.md lists as GL-free reach no
-GL module through their project imports. Each rule has a positive control: a small tree that
+"""The package layers and the public API's shape, checked from the source (no imports run):
+tiler <- streamer <- render <- cli, moderngl and glfw only in render, the modules docs/RENDER.md
+lists as GL-free reach no GL module through their project imports, and public functions are
+typed (module-level ones documented too). Each rule has a positive control: a small tree that
 breaks it on purpose, which the checker must report."""
 
 from __future__ import annotations
@@ -166,3 +167,59 @@ def test_control_gl_reached_through_a_helper_is_reported(tmp_path):
     assert gl_reach(root, "render.clean") == []
     # a module whose own package imports GL reaches it too
     assert gl_reach(root, "render.sub.leaf") == ["render.sub", "render.gpu", "moderngl"]
+
+
+def _api_problems(node: ast.AST, prefix: str, in_class: bool) -> list[str]:
+    """:func:`untyped_or_undocumented` of one module's (or public class's) body."""
+    found = []
+    for ch in ast.iter_child_nodes(node):
+        if isinstance(ch, ast.ClassDef) and not ch.name.startswith("_"):
+            found += _api_problems(ch, f"{prefix}.{ch.name}", True)
+        if not isinstance(ch, ast.FunctionDef | ast.AsyncFunctionDef) or ch.name.startswith("_"):
+            continue
+        if any("jit" in ast.unparse(d) for d in ch.decorator_list):
+            continue
+        args = [*ch.args.posonlyargs, *ch.args.args, *ch.args.kwonlyargs]
+        args = [a for a in args if a.arg not in ("self", "cls")]
+        if any(a.annotation is None for a in args) or ch.returns is None:
+            found.append(f"{prefix}.{ch.name}: not typed")
+        if not in_class and not ast.get_docstring(ch):
+            found.append(f"{prefix}.{ch.name}: no docstring")
+    return found
+
+
+def untyped_or_undocumented(root: Path) -> list[str]:
+    """Public functions and methods (of public classes) with a parameter or return type
+    missing, and public module-level functions without a docstring; numba kernels (``*jit``
+    decorators: typed by their callers' arrays) are left out."""
+    found = []
+    for name, path in modules(root).items():
+        found += _api_problems(ast.parse(path.read_text(encoding="utf-8")), name, False)
+    return found
+
+
+def test_public_functions_are_typed_and_documented():
+    assert untyped_or_undocumented(ROOT) == []
+
+
+def test_control_an_untyped_or_undocumented_function_is_reported(tmp_path):
+    root = _tree(
+        tmp_path,
+        {
+            "tiler/__init__.py": "",
+            "tiler/m.py": (
+                'def f(a: int) -> int:\n    """Doc."""\n    return a\n'
+                'def g(a) -> int:\n    """Doc."""\n    return a\n'
+                'def h(a: int):\n    """Doc."""\n    return a\n'
+                "def u(a: int) -> int:\n    return a\n"
+                "def _private(a):\n    return a\n"
+                "class C:\n    def m(self, x) -> None:\n        pass\n"
+                "    def __init__(self) -> None:\n        pass\n"
+                "@cached_njit\ndef kernel(a):\n    return a\n"
+            ),
+        },
+    )
+    assert untyped_or_undocumented(root) == [
+        "tiler.m.g: not typed", "tiler.m.h: not typed", "tiler.m.u: no docstring",
+        "tiler.m.C.m: not typed",
+    ]  # fmt: skip

@@ -439,7 +439,9 @@ def wait_blocks(
     return finished
 
 
-def mark_done(arr: zarr.Array, done: np.ndarray, blocks: list[tuple[int, int]], grid) -> None:
+def mark_done(
+    arr: zarr.Array, done: np.ndarray, blocks: list[tuple[int, int]], grid: BlockGrid
+) -> None:
     """Set ``done`` for ``blocks`` and rewrite the touched chunks of ``index/done``."""
     if not blocks:
         return

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -26,6 +26,9 @@ from cli.options import (
     store_location,
 )
 from cli.progress import Progress
+
+if TYPE_CHECKING:
+    from streamer.run import RunResult
 
 #: ``--latency-ms`` must stay below the session's wait for a frame's reads
 #: (``SessionConfig.wait_timeout_s``, 30 s): at or above it no read could finish in a wait
@@ -154,7 +157,13 @@ def stream(
             raise typer.Exit(EXIT_RUNTIME)
 
 
-def write_partial(partial, exc: BaseException, frames: int, json_out, plot) -> None:
+def write_partial(
+    partial: RunResult | None,
+    exc: BaseException,
+    frames: int,
+    json_out: Path | None,
+    plot: Path | None,
+) -> None:
     """A flight stopped by ``exc``: write its ``--json``/``--plot`` for the frames flown (the
     summary says where and why it stopped) before the error is reported."""
     from cli.common import one_line
@@ -169,7 +178,9 @@ def write_partial(partial, exc: BaseException, frames: int, json_out, plot) -> N
     write_outputs(partial, json_out, plot, f" (the {len(partial.rows)} of {frames} frames flown)")
 
 
-def write_outputs(result, json_out, plot, what: str = "") -> None:
+def write_outputs(
+    result: RunResult, json_out: Path | None, plot: Path | None, what: str = ""
+) -> None:
     """Write ``--json`` and ``--plot`` of a flight's ``result``, saying so (``what`` added)."""
     from streamer.run import plot_run
 

@@ -19,10 +19,14 @@ Strategy packages are imported on first use (each compiles its own shaders).
 from __future__ import annotations
 
 from importlib import import_module
+from typing import TYPE_CHECKING, Any
 
 from render.errors import RenderError
 from render.strategies.base import Strategy
 from streamer.nodata import check_rule
+
+if TYPE_CHECKING:
+    from render.frame import FrameServices
 
 DEFAULT = "qiu"
 #: name -> "module:Class"
@@ -111,7 +115,7 @@ def stream_metric(name: str, metric: str) -> str:
     return metric if strategy_class(name).uses_metric else "conservative"
 
 
-def get_strategy(name: str, renderer, **options) -> Strategy:
+def get_strategy(name: str, renderer: FrameServices, **options: Any) -> Strategy:
     """An instance of strategy ``name`` drawing with ``renderer``."""
     return strategy_class(name)(renderer, **options)
 

@@ -114,7 +114,9 @@ def _same(a, b) -> bool:
 DENSE_LIMIT = 1 << 26
 
 
-def common_samples(a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def common_samples(
+    a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(rows, cols, height in a, height in b)`` at the samples two surfaces (``(rows, cols,
     heights)``, see :meth:`Strategy.surface`) both draw; NaN heights are not drawn."""
     (r0, c0, h0), (r1, c1, h1) = a, b

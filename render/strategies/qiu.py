@@ -29,17 +29,19 @@ from streamer.lod import FIELD_FOR_METRIC, get_metric, takes_box
 from streamer.nodata import check_rule
 
 
-def field_for(metric) -> str:
+def field_for(metric: str) -> str:
     """The stored error field a metric selects with (a callable metric: ``bound``)."""
     return FIELD_FOR_METRIC.get(metric, "qiu") if isinstance(metric, str) else "bound"
 
 
-def metric_table(r: FrameServices, metric) -> PatchTable:
+def metric_table(r: FrameServices, metric: str) -> PatchTable:
     """The renderer's pooled patch errors for the metric's error field."""
     return r.patch_table(field_for(metric))
 
 
-def always_split(delta, centre_xyz, radius, camera) -> np.ndarray:
+def always_split(
+    delta: np.ndarray, centre_xyz: np.ndarray, radius: np.ndarray, camera: Camera
+) -> np.ndarray:
     """A metric that splits every node (full-resolution reference)."""
     return np.full(np.shape(delta), np.inf)
 
@@ -48,7 +50,7 @@ def select_clod(
     r: FrameServices,
     camera: Camera,
     tau: float,
-    metric="qiu",
+    metric: str = "qiu",
     *,
     resident: dict[Block, int] | None = None,
     full: bool = False,
@@ -133,7 +135,9 @@ class PatchGrid:
         self.tri_probe = progs["tri_probe"]
         self.cells = n
 
-    def vao(self, prog: moderngl.Program, inst: np.ndarray, indexed: bool = True):
+    def vao(
+        self, prog: moderngl.Program, inst: np.ndarray, indexed: bool = True
+    ) -> moderngl.VertexArray:
         """A vertex array of the patch mesh with ``inst`` as per-instance attributes."""
         ctx = self.r.ctx
         buf = ctx.buffer(np.ascontiguousarray(inst).tobytes())
@@ -223,11 +227,20 @@ class QiuStrategy(Strategy[Patches]):
         self.grid = patch_grid(renderer)
         self.prog, self.wire = self.grid.prog, self.grid.wire
 
-    def select(self, camera, tau, metric="qiu", *, resident=None) -> tuple[Patches, float]:
+    def select(
+        self,
+        camera: Camera,
+        tau: float,
+        metric: str = "qiu",
+        *,
+        resident: dict[Block, int] | None = None,
+    ) -> tuple[Patches, float]:
         sel, ms = select_clod(self.r, camera, tau, metric, resident=resident, nodata=self.nodata)
         return (sel if self.stitching else unstitched(sel)), ms
 
-    def select_full(self, camera: Camera, resident=None) -> tuple[Patches, float]:
+    def select_full(
+        self, camera: Camera, resident: dict[Block, int] | None = None
+    ) -> tuple[Patches, float]:
         """Every visible node at full resolution (the reference mesh)."""
         return select_clod(self.r, camera, 0.0, "qiu", resident=resident, full=True)
 
@@ -268,7 +281,7 @@ class QiuStrategy(Strategy[Patches]):
             camera, prog, cap, lambda: self.render(prog, sel), "reading patch triangles back"
         )
 
-    def surface(self, camera: Camera, sel: Patches):
+    def surface(self, camera: Camera, sel: Patches) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         step = self.r.grid.step
         rs, cs, hs = [], [], []
         heights = measure.heights_fn(self.r.store, sel)

@@ -86,7 +86,12 @@ class ChunkTessellation(Strategy[Patches | GpuChunks]):
         check_gl(ctx, "creating the chunk-tessellation programs")
 
     def select(
-        self, camera, tau, metric="qiu", *, resident=None
+        self,
+        camera: Camera,
+        tau: float,
+        metric: str = "qiu",
+        *,
+        resident: dict[Block, int] | None = None,
     ) -> tuple[Patches | GpuChunks, float]:
         if self.gpu is not None:
             return self.gpu.select(camera, tau, resident=resident, stitching=self.stitching)
@@ -95,7 +100,9 @@ class ChunkTessellation(Strategy[Patches | GpuChunks]):
         )
         return (sel if self.stitching else unstitched(sel)), ms  # unmatched outer factors
 
-    def select_twin(self, camera: Camera, tau: float, resident=None) -> Patches:
+    def select_twin(
+        self, camera: Camera, tau: float, resident: dict[Block, int] | None = None
+    ) -> Patches:
         """The CPU selection the GPU traversal reproduces: :func:`select_clod` with the
         traversal's start depth (:func:`start_depth`; 0, i.e. the CPU variant itself, when
         ``k <= 2c``)."""
@@ -176,7 +183,9 @@ class ChunkTessellation(Strategy[Patches | GpuChunks]):
     def drawn_blocks(self, sel: Patches | GpuChunks) -> set[Block]:
         return patch_blocks(self.patches(sel))
 
-    def surface(self, camera: Camera, sel: Patches | GpuChunks):
+    def surface(
+        self, camera: Camera, sel: Patches | GpuChunks
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         tri, h = self.triangles(camera, sel)
         ok = (h > MASKED_BELOW).all(axis=1)
         return measure.rasterise(tri[ok], h[ok])

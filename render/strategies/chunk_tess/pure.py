@@ -8,7 +8,9 @@ import numpy as np
 from streamer.camera import Camera
 
 
-def kim_metric(delta, centre_xyz, radius, camera: Camera) -> np.ndarray:
+def kim_metric(
+    delta: np.ndarray, centre_xyz: np.ndarray, radius: np.ndarray, camera: Camera
+) -> np.ndarray:
     """Pixel distance between the bounding sphere's point nearest the eye and that point raised
     by ``delta`` (inf when the eye is inside the sphere or the point is not in front).
 

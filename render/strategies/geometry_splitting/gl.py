@@ -366,7 +366,7 @@ class GeometrySplitting(Strategy[Selection]):
         idx = np.unique(self.leaf_nodes(sel)[:, 0])
         return {sel.blocks[int(i)] for i in idx}
 
-    def surface(self, camera: Camera, sel: Selection):
+    def surface(self, camera: Camera, sel: Selection) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         tri, h = self.triangles(camera, sel)
         ok = (h > MASKED_BELOW).all(axis=1)
         return measure.rasterise(tri[ok], h[ok])

@@ -3,6 +3,7 @@ exact deepest-depth errors, height ranges; :func:`stored_tree`) and Eq. 1's proj
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,7 +52,9 @@ class BlockTree:
         return np.stack([s, lo | (hi << 16)], 1)
 
 
-def quad_errors(h: np.ndarray, valid: np.ndarray | None, depths) -> dict[int, np.ndarray]:
+def quad_errors(
+    h: np.ndarray, valid: np.ndarray | None, depths: Iterable[int]
+) -> dict[int, np.ndarray]:
     """``δ`` per depth in ``depths`` of a full-resolution ``(2**k+1)²`` grid: the largest
     vertical distance of a valid sample (its own last row and column included) from the node's
     quad, cut along its a-d diagonal (samples x nodes arrays, vectorised over the nodes)."""

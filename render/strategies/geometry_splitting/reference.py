@@ -5,6 +5,7 @@ GPU's leaves and splits with it node for node."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,12 +14,15 @@ from streamer.camera import Camera
 
 Block = tuple[int, int]
 
+if TYPE_CHECKING:
+    from render.strategies.geometry_splitting.gl import GeometrySplitting
+
 #: relative sphere margin of the frustum test (float32 safety); the GPU's ``CULL_MARGIN``
 CULL_MARGIN = 1e-4
 
 
 def expand_reference(
-    st, camera: Camera, tau: float, resident: dict[Block, int] | None = None
+    st: GeometrySplitting, camera: Camera, tau: float, resident: dict[Block, int] | None = None
 ) -> tuple[list[int], np.ndarray, np.ndarray]:
     """CPU twin (float64) of the expansion: node counts after each pass, the leaves and the
     nodes that split, both ``(block index, depth, row, col)`` sorted."""

@@ -19,6 +19,7 @@ from render.strategies.seamless.layout import (
 from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 from streamer.frustum import frustum_hull
+from streamer.levels import PatchErrorTable
 from tiler.quadtree import block_origins, half_diagonal, node_centres_at, node_span
 
 Block = tuple[int, int]
@@ -85,7 +86,9 @@ class SelectionFrame:
         self.rounds = self.nb is not None and hasattr(self.nb, "resolve_round")
         self._whole_args: tuple | None = None
 
-    def node_delta(self, d: int, gr: np.ndarray, gc: np.ndarray, table=None) -> np.ndarray:
+    def node_delta(
+        self, d: int, gr: np.ndarray, gc: np.ndarray, table: PatchErrorTable | None = None
+    ) -> np.ndarray:
         """Stored error (``bound``, level ``d + 1``; level ``d + r`` from ``table`` =
         ``tables[r - 1]``) of the depth-``d`` nodes at global node ``(gr, gc)``; -1 outside the
         drawn blocks."""
@@ -172,7 +175,7 @@ class SelectionFrame:
                 out[:, e] = np.maximum(out[:, e], guard)
         return out
 
-    def node_distance(self, d: int, gr: np.ndarray, gc: np.ndarray, zo: np.ndarray):
+    def node_distance(self, d: int, gr: np.ndarray, gc: np.ndarray, zo: np.ndarray) -> np.ndarray:
         """Distance from the eye to the nearest point of the depth-``d`` nodes' boxes."""
         g, size = self.grid, 1 << (self.k - d)
         ex, ey, ez = self.eye
@@ -219,7 +222,9 @@ class SelectionFrame:
             keep &= meets
         return keep
 
-    def fused_depth(self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray):
+    def fused_depth(
+        self, idx: np.ndarray, d: int, rows: np.ndarray, cols: np.ndarray
+    ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], int, bool]:
         """:meth:`visible`, :meth:`epsilon` and the split rule of one depth in one kernel call
         (numba, no spike guard): ``(leaves (idx, rows, cols, eps), children, clamped, any
         visible)``; the same values as the numpy steps of :func:`_traverse`."""

@@ -6,6 +6,8 @@ the GPU."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from render.errors import SelectionError
@@ -18,6 +20,9 @@ from render.strategies.seamless.meshes import DIRS
 from streamer.camera import Camera
 
 Block = tuple[int, int]
+
+if TYPE_CHECKING:
+    from render.strategies.seamless.gl import SeamlessPatches
 
 
 class _Leaves:
@@ -209,7 +214,9 @@ def _layout(fr: SelectionFrame, idx, d, rows, cols, eps, level, clamped: int, vi
     )
 
 
-def select_layout(st, camera: Camera, tau: float, resident: dict | None) -> PatchLayout:
+def select_layout(
+    st: SeamlessPatches, camera: Camera, tau: float, resident: dict[Block, int] | None
+) -> PatchLayout:
     """The leaf patches and edge levels of strategy ``st`` (its frame services ``st.r``, tile
     resolutions ``st.c``, error table ``st.table`` and block z ranges ``st.zr``) at ``tau``."""
     fr = SelectionFrame(st, camera, tau, resident)
