@@ -53,7 +53,7 @@ def inspect_destination(loc: Location) -> tuple[str, StoreMeta | None, str]:
         return "foreign", None, str(exc)
 
 
-def _clear(loc: Location) -> None:
+def clear_destination(loc: Location) -> None:
     """Remove everything at ``loc`` but the writer lease."""
     if loc.is_local:
         if loc.path.is_dir():
@@ -64,7 +64,7 @@ def _clear(loc: Location) -> None:
     loc.remove()
 
 
-def _clean_siblings(loc: Location) -> None:
+def clean_siblings(loc: Location) -> None:
     """Remove leftovers of interrupted overwrites (``<dst>.tmp-*``, ``<dst>.old-*``)."""
     p = loc.path
     for sib in p.parent.glob(p.name + ".tmp-*"):

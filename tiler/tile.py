@@ -27,9 +27,9 @@ import zarr
 
 from tiler import codecs, static_error
 from tiler.destination import (
-    _clean_siblings,
-    _clear,
     check_unfinished_is_recreatable,
+    clean_siblings,
+    clear_destination,
     inspect_destination,
 )
 from tiler.encoding import fill_invalid, quantise
@@ -398,7 +398,7 @@ def _tile(
         if kind == "store" and opts.overwrite and loc.can_rename:
             token = uuid.uuid4().hex[:12]
             tmp = loc.sibling(f".tmp-{token}")
-            _clean_siblings(loc)
+            clean_siblings(loc)
             try:
                 build(src, tmp, meta, opts, progress, summary, lease, resume=False)
             except BaseException:
@@ -411,7 +411,7 @@ def _tile(
             trash.remove()
             log.info("replaced %s with the new store (directory swap)", loc.url)
         elif kind == "store" and opts.overwrite:
-            _clear(loc)
+            clear_destination(loc)
             lease.reassert()
             build(src, loc, meta, opts, progress, summary, lease, resume=False)
         elif kind == "store" and old.extra.get("state") in ("tiling", "finishing"):
@@ -421,7 +421,7 @@ def _tile(
         else:
             if kind == "store":
                 check_unfinished_is_recreatable(loc, old, job)
-            _clear(loc)
+            clear_destination(loc)
             lease.reassert()
             build(src, loc, meta, opts, progress, summary, lease, resume=False)
     store = TerrainStore(loc)
