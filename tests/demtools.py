@@ -63,3 +63,20 @@ def fractal(shape: tuple[int, int], seed: int = 0, dtype: str = "int16") -> np.n
     if np.dtype(dtype).kind == "f":
         return g.astype(dtype)
     return np.rint(g).astype(dtype)
+
+
+def budget_error_at(monkeypatch: pytest.MonkeyPatch, call: int) -> None:
+    """Make the ``call``-th ``Session.update`` from now raise a ``BudgetError`` (a flight
+    outgrowing its budget mid-way); the other calls run as usual."""
+    from streamer.errors import BudgetError
+    from streamer.session import Session
+
+    update, calls = Session.update, []
+
+    def failing(self, *a, **kw):
+        calls.append(1)
+        if len(calls) == call:
+            raise BudgetError("the visible blocks need more than the budget (on purpose)")
+        return update(self, *a, **kw)
+
+    monkeypatch.setattr(Session, "update", failing)

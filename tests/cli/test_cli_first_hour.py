@@ -9,7 +9,7 @@ import logging
 import re
 
 import pytest
-from demtools import fractal
+from demtools import budget_error_at, fractal
 from typer.testing import CliRunner
 
 from cli import progress as progress_mod
@@ -255,9 +255,6 @@ def test_a_flight_stopped_midway_still_writes_its_json_and_plot(store, tmp_path,
     no ``stopped``."""
     import json
 
-    from streamer.errors import BudgetError
-    from streamer.session import Session
-
     js, png = tmp_path / "f.json", tmp_path / "f.png"
     args = ("stream", store, "--frames", "12", "--fps", "200", "--size", "64x48",
             "--json", js, "--plot", png)  # fmt: skip
@@ -267,15 +264,7 @@ def test_a_flight_stopped_midway_still_writes_its_json_and_plot(store, tmp_path,
     assert len(d["frames"]) == 12 and "stopped" not in d["summary"]
     js.unlink()
     png.unlink()
-    update, calls = Session.update, []
-
-    def failing(self, *a, **kw):
-        calls.append(1)
-        if len(calls) == 6:
-            raise BudgetError("the visible blocks need more than the budget (on purpose)")
-        return update(self, *a, **kw)
-
-    monkeypatch.setattr(Session, "update", failing)
+    budget_error_at(monkeypatch, 6)
     r = run(*args)
     assert r.exit_code == 2, r.output
     assert "(on purpose)" in r.output and "the 5 of 12 frames flown" in r.output

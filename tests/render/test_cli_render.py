@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from demtools import budget_error_at
 from gltools import make_context, rough, tile_dem
 from typer.testing import CliRunner
 
@@ -356,22 +357,11 @@ def test_a_flythrough_stopped_midway_keeps_its_frames_csv(store, tmp_path, monke
     """An error at frame 3 (a budget error raised on purpose) once left PNG frames without
     ``frames.csv``; the frames flown are in ``frames.csv`` and ``summary.json`` says where and
     why it stopped, then the error exits 2. The control: without the error, all 4 frames."""
-    from streamer.errors import BudgetError
-    from streamer.session import Session
-
     args = ["flythrough", store, "--frames", "4", "--size", "64x48", "--patch-log2", "2"]
     res = runner.invoke(app, [*args, "--out", str(tmp_path / "a")])
     assert res.exit_code == 0, res.output
     assert len((tmp_path / "a" / "frames.csv").read_text().splitlines()) == 1 + 4
-    update, calls = Session.update, []
-
-    def failing(self, *a, **kw):
-        calls.append(1)
-        if len(calls) == 3:
-            raise BudgetError("the visible blocks need more than the budget (on purpose)")
-        return update(self, *a, **kw)
-
-    monkeypatch.setattr(Session, "update", failing)
+    budget_error_at(monkeypatch, 3)
     res = runner.invoke(app, [*args, "--out", str(tmp_path / "b")])
     assert res.exit_code == 2, res.output
     assert "(on purpose)" in res.output and "(2 of 4 frames)" in res.output
