@@ -12,7 +12,7 @@ height is the linear interpolant ``I`` of ``S`` at ``T``'s corners, so at a samp
 computed exactly: ``I - S`` is linear on each piece of the overlay of ``T`` with the cells'
 triangles, so its largest magnitude is at the overlay's vertices (``T``'s edges cut by the
 cell lines ``i = m``, ``j = m``, ``i - j = m``, and the grid vertices in ``T``), each a fixed
-linear combination of the patch's vertex heights (:func:`_difference_rows`, one matrix per
+linear combination of the patch's vertex heights (:func:`difference_rows`, one matrix per
 cell count and snaps, cached). A patch with a masked vertex uses the looser
 ``max(max_box S - min_T h, max_T h - min_box S)`` (``min_T``/``max_T`` over ``T``'s valid
 corners, ``I`` lies between them; ``min_box``/``max_box`` over the valid level-``L`` vertices
@@ -34,7 +34,7 @@ from render.mesh import grid_indices, grid_vertices, snap_vertices
 
 
 @cache
-def _strip_template(cells_log2: int, snaps: tuple[int, int, int, int]):
+def strip_template(cells_log2: int, snaps: tuple[int, int, int, int]) -> list:
     """Per edge (N, E, S, W) the moved triangles of its strip of cells: corner ``(j, i)`` index
     arrays ``(m, 3)`` each and bounding boxes ``(m, 4)`` ``(j0, j1, i0, i1)`` inclusive."""
     n = 1 << cells_log2
@@ -77,7 +77,7 @@ def _surface_weights(n: int, i: float, j: float) -> dict[int, float]:
 
 
 @cache
-def _difference_rows(cells_log2: int, snaps: tuple[int, int, int, int]):
+def difference_rows(cells_log2: int, snaps: tuple[int, int, int, int]) -> list:
     """Per edge: a matrix ``W`` ``(points, (n+1)**2)`` (and the first row of each triangle)
     with ``W @ h`` = ``I - S`` at every
     vertex of the overlay of each moved triangle ``T`` of the strip with the cell
@@ -86,7 +86,7 @@ def _difference_rows(cells_log2: int, snaps: tuple[int, int, int, int]):
     magnitude over ``T`` is at those points."""
     n = 1 << cells_log2
     out = []
-    for part in _strip_template(cells_log2, snaps):
+    for part in strip_template(cells_log2, snaps):
         if part is None:
             out.append(None)
             continue
@@ -148,8 +148,8 @@ def snap_excess(
     for grp in np.unique(key, axis=0):
         idx = todo[(key == grp).all(axis=1)]
         key_t = (int(grp[0]), tuple(int(t) for t in grp[1:]))
-        tmpl = _strip_template(*key_t)
-        weights = _difference_rows(*key_t)
+        tmpl = strip_template(*key_t)
+        weights = difference_rows(*key_t)
         h = np.asarray(heights(idx), dtype=np.float64)
         cb = None if cell_bounds is None else np.asarray(cell_bounds(idx), dtype=np.float64)
         flat = h.reshape(len(idx), -1)
@@ -178,14 +178,14 @@ def snap_excess(
 
 
 @cache
-def _sample_rows(cells_log2: int, snaps: tuple[int, int, int, int], spacing_log2: int):
+def sample_rows(cells_log2: int, snaps: tuple[int, int, int, int], spacing_log2: int) -> list:
     """Per edge: the full-resolution samples of the moved triangles of its strip, as flat
     indices into the patch's ``(n*2**s+1)**2`` sample window and, per sample, its triangle's 3
     corner indices and barycentric weights (``(q,)``, ``(q, 3)``, ``(q, 3)``)."""
     s = 1 << spacing_log2
     side = (1 << cells_log2) * s + 1
     out = []
-    for part in _strip_template(cells_log2, snaps):
+    for part in strip_template(cells_log2, snaps):
         if part is None:
             out.append(None)
             continue
@@ -228,7 +228,7 @@ def snap_exact(
     key = np.concatenate([cells[todo, None], sp[todo, None], sn[todo]], 1)
     for grp in np.unique(key, axis=0):
         idx = todo[(key == grp).all(axis=1)]
-        rows = _sample_rows(int(grp[0]), tuple(int(t) for t in grp[2:]), int(grp[1]))
+        rows = sample_rows(int(grp[0]), tuple(int(t) for t in grp[2:]), int(grp[1]))
         flat = np.asarray(windows(idx), dtype=np.float64).reshape(len(idx), -1)
         for e, part in enumerate(rows):
             if part is None:

@@ -22,7 +22,7 @@ import numpy as np
 
 from render.errors import SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho
-from render.snap_error import _difference_rows, _sample_rows, _strip_template
+from render.snap_error import difference_rows, sample_rows, strip_template
 from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric
@@ -108,7 +108,7 @@ def _strips(cells: int, snaps: tuple[int, int, int, int]) -> list:
     """Per edge the strip's triangles ``(tj, ti, box)`` and difference rows ``(W, starts)``
     (:mod:`render.snap_error`'s cached ones, contiguous int64 for the kernels), or None."""
     out = []
-    for part, wt in zip(_strip_template(cells, snaps), _difference_rows(cells, snaps), strict=True):
+    for part, wt in zip(strip_template(cells, snaps), difference_rows(cells, snaps), strict=True):
         if part is None:
             out.append(None)
             continue
@@ -119,11 +119,11 @@ def _strips(cells: int, snaps: tuple[int, int, int, int]) -> list:
 
 @cache
 def _samples(cells: int, snaps: tuple[int, int, int, int], spacing: int) -> list:
-    """:func:`render.snap_error._sample_rows` with the window indices as rows and columns
+    """:func:`render.snap_error.sample_rows` with the window indices as rows and columns
     (``at_j, at_i, cor_j, cor_i, wts``, contiguous) for the kernels."""
     side = (1 << (cells + spacing)) + 1
     out = []
-    for part in _sample_rows(cells, snaps, spacing):
+    for part in sample_rows(cells, snaps, spacing):
         if part is None:
             out.append(None)
             continue

@@ -157,7 +157,9 @@ class Frame:
 
 
 @dataclass
-class _Totals:
+class Totals:
+    """Counters a session accumulates over its frames (its ``summary()``)."""
+
     frames: int = 0
     stall_frames: int = 0
     needed_bytes: int = 0

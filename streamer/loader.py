@@ -32,7 +32,7 @@ import numpy as np
 import zarr.errors
 
 from streamer.cache import Block, LevelCache
-from streamer.frames import SessionConfig, _Totals
+from streamer.frames import SessionConfig, Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
 from streamer.nodata import rule_errors
@@ -88,7 +88,7 @@ class Loader:
             max_backoff_s=config.max_backoff_s,
             heal=config.heal,
         )
-        self.totals = _Totals()
+        self.totals = Totals()
         self.cv = threading.Condition(threading.Lock())
         self.fetching: dict[Block, set[int]] = {}  # levels being read (-1: errors)
         self.raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded

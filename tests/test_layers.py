@@ -1,8 +1,8 @@
 """The package layers and the public API's shape, checked from the source (no imports run):
 tiler <- streamer <- render <- cli, moderngl and glfw only in render, the modules docs/RENDER.md
-lists as GL-free reach no GL module through their project imports, and public functions are
-typed (module-level ones documented too). Each rule has a positive control: a small tree that
-breaks it on purpose, which the checker must report."""
+lists as GL-free reach no GL module through their project imports, public functions are typed
+(module-level ones documented too), and no module imports another's private names. Each rule
+has a positive control: a small tree that breaks it on purpose, which the checker must report."""
 
 from __future__ import annotations
 
@@ -222,4 +222,58 @@ def test_control_an_untyped_or_undocumented_function_is_reported(tmp_path):
     assert untyped_or_undocumented(root) == [
         "tiler.m.g: not typed", "tiler.m.h: not typed", "tiler.m.u: no docstring",
         "tiler.m.C.m: not typed",
+    ]  # fmt: skip
+
+
+def _is_private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def private_imports(root: Path) -> list[str]:
+    """``from M import _x`` of project modules where ``M`` is not itself a private module (the
+    numba kernel modules ``_*_nb`` share helpers among themselves) and ``_x`` is not a private
+    module of ``M``'s package imported by a module of that package."""
+    mods = modules(root)
+    found = []
+    for name, path in mods.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")
+                up = up[: len(up) - (node.level - 1)]
+                base = ".".join([*up, base] if base else up)
+            if base.split(".")[0] not in PACKAGES or _is_private(base.rpartition(".")[2]):
+                continue
+            for a in node.names:
+                if not _is_private(a.name):
+                    continue
+                if f"{base}.{a.name}" in mods and base == package:
+                    continue  # a package's own private module
+                found.append(f"{name} imports {base}.{a.name}")
+    return found
+
+
+def test_no_module_imports_another_modules_private_names():
+    assert private_imports(ROOT) == []
+
+
+def test_control_a_private_name_imported_across_modules_is_reported(tmp_path):
+    root = _tree(
+        tmp_path,
+        {
+            "tiler/__init__.py": "",
+            "tiler/a.py": "def _helper():\n    pass\n",
+            "tiler/_k_nb.py": "def _jit():\n    pass\n",
+            "tiler/b.py": "from tiler.a import _helper\nfrom tiler import _k_nb\n",
+            "tiler/c.py": "from ._k_nb import _jit\nfrom .a import __doc__\n",
+            "streamer/__init__.py": "",
+            "streamer/s.py": "from tiler import _k_nb\nfrom tiler.a import _helper as h\n",
+        },
+    )
+    assert sorted(private_imports(root)) == [
+        "streamer.s imports tiler._k_nb", "streamer.s imports tiler.a._helper",
+        "tiler.b imports tiler.a._helper",
     ]  # fmt: skip

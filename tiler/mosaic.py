@@ -33,7 +33,7 @@ from rasterio.windows import Window
 
 from tiler.errors import SourceError, SourceReadError
 from tiler.mosaic_plan import MosaicSpec, plan_mosaic  # noqa: F401  (re-exported)
-from tiler.source_header import SourceInfo, _open, read_info  # noqa: F401  (re-exported)
+from tiler.source_header import SourceInfo, open_raster, read_info  # noqa: F401  (re-exported)
 
 MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
 WARP_TOLERANCE = 0.01  # source pixels of transform approximation (GDAL: 0.125); see notes
@@ -109,7 +109,7 @@ class MosaicReader:
                 old_vrt.close()
             old.close()
         spec = self.spec
-        ds = _open(spec.sources[i].path)
+        ds = open_raster(spec.sources[i].path)
         vrt = None
         if spec.warp:
             info = spec.sources[i]

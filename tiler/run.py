@@ -33,7 +33,7 @@ from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location, as_location
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk, is_sparse
-from tiler.source import _open_source, read_window
+from tiler.source import open_source, read_window
 from tiler.vertical import height_range_message
 from tiler.zarr_batch import open_arrays
 
@@ -68,7 +68,7 @@ class BlockWorker:
 
     def __init__(self, src: str, band: int, target: Any, grid: BlockGrid, params: Any):
         self.src, self.band, self.grid, self.params = src, band, grid, params
-        self.ds = _open_source(src, band)
+        self.ds = open_source(src, band)
         self.small = small_levels(params.k)
         names = [f"levels/{i}" for i in range(self.small, params.k + 1)]
         self.loc = as_location(target)

@@ -2,7 +2,7 @@
 
 A source is one raster or many (a mosaic, see :mod:`tiler.mosaic`), optionally reprojected to
 a target CRS while it is read. :func:`plan_source` turns what the user gave into a picklable
-:class:`~tiler.mosaic.MosaicSpec` that every worker re-opens with :func:`_open_source`.
+:class:`~tiler.mosaic.MosaicSpec` that every worker re-opens with :func:`open_source`.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def plan_source(src: SourceLike, opts: TileOptions) -> MosaicSpec:
     )
 
 
-def _open_source(src: SourceLike, band: int) -> MosaicReader:
+def open_source(src: SourceLike, band: int) -> MosaicReader:
     """A window reader over the planned source(s); close it (or use ``with``) when done."""
     if not isinstance(src, MosaicSpec):
         paths = [str(src)] if isinstance(src, str | os.PathLike) else [str(p) for p in src]
@@ -94,7 +94,8 @@ def source_label(spec: MosaicSpec) -> dict:
     return out
 
 
-def _source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreMeta:
+def source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreMeta:
+    """The store metadata a tiling of ``ds`` with ``opts`` writes (before its job identity)."""
     spec = ds.spec
     label = source_label(spec)["name"]
     dtype = np.dtype(spec.dtype)

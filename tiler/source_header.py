@@ -44,7 +44,9 @@ class SourceInfo:
     masked: bool = False
 
 
-def _open(path: str) -> rasterio.DatasetReader:
+def open_raster(path: str) -> rasterio.DatasetReader:
+    """Open a source raster with rasterio; a missing file or one GDAL cannot read is a
+    :class:`SourceError` naming the path."""
     if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
         raise SourceNotFoundError(f"source raster {path!r} does not exist")
     try:
@@ -120,7 +122,7 @@ def _check_nodata(path: str, dtype: str, nodata: float | None) -> None:
 
 def read_info(path: str, band: int) -> SourceInfo:
     """Header of one source (opened and closed again)."""
-    with _open(path) as ds:
+    with open_raster(path) as ds:
         if ds.count == 0:  # GDAL opened it (a zarr store, a vector file...) but as no raster
             if os.path.isfile(os.path.join(path, "zarr.json")):
                 raise SourceError(

@@ -57,11 +57,11 @@ from tiler.schema import (
 )
 from tiler.source import (
     SourceLike,
-    _open_source,
-    _source_meta,
     check_source_options,
+    open_source,
     plan_source,
     read_window,
+    source_meta,
 )
 from tiler.store import TerrainStore
 from tiler.vertical import MAX_HEIGHT_M, height_range_message
@@ -361,9 +361,9 @@ def _tile(
     progress: Callable[[TileProgress], None] | None,
 ) -> TerrainStore:
     summary = TileSummary()
-    with _open_source(src, opts.band) as ds:
+    with open_source(src, opts.band) as ds:
         opts = _clamp_block_size(ds, opts, summary.notes)
-        meta = _source_meta(ds, src, opts)
+        meta = source_meta(ds, src, opts)
         fingerprint = source_fingerprint(ds, opts.band)
     meta = replace(meta, format_version=FORMAT_VERSION)
     job = job_identity(fingerprint, opts, meta)

@@ -1,9 +1,9 @@
-"""The session's totals over frames (``streamer.frames._Totals``): what a failed block costs."""
+"""The session's totals over frames (``streamer.frames.Totals``): what a failed block costs."""
 
 from __future__ import annotations
 
 from streamer.camera import Camera
-from streamer.frames import Frame, FrameStats, _Totals
+from streamer.frames import Frame, FrameStats, Totals
 
 
 def _frame(blocks, failed):
@@ -21,7 +21,7 @@ def test_a_failed_block_that_has_its_needed_level_costs_the_frame_nothing():
     """A visible block whose read of a level beyond the needed one failed every retry is
     failed (``failed_blocks_ever``), but the frame drew it as it should: not a failed frame
     (it once was). The control: the same block short of its level makes the frame failed."""
-    t = _Totals()
+    t = Totals()
     t.add(_frame({(0, 0): (3, 3), (0, 1): (3, 3)}, [(0, 0)]))
     assert t.failed_frames == 0 and len(t.failed_ever) == 1
     t.add(_frame({(0, 0): (1, 3), (0, 1): (3, 3)}, [(0, 0)]))
