@@ -94,8 +94,9 @@ app = build_app()
 
 def leave_hung_reads(code: int | str | None) -> None:
     """End the process now with ``code`` (as ``sys.exit`` takes it) if loader threads are still
-    blocked in reads a server never answered, instead of letting the interpreter wait out each
-    read's timeout (30 s by default) at exit. The command has finished with them: ``stream``
+    blocked in reads a server never answered. They are daemons (:mod:`streamer.pool`), so the
+    interpreter would not wait for them either; this also skips finalizing it under reads that
+    may still complete. The command has finished with them: ``stream``
     and ``flythrough`` report them and exit 1 (:func:`streamer.run.flight_problem`); any
     other command has written what it draws by then. Output is flushed first."""
     loader = sys.modules.get("streamer.loader")

@@ -3,8 +3,9 @@
 A :class:`Loader` owns the shared state of a session (cache, queue, error table, counters) and
 its lock. Work is *pumped*: whenever there may be something to do (an update, a finished read,
 a waiter waking for a retry) up to ``workers`` jobs are taken from the queue and submitted to a
-``concurrent.futures.ThreadPoolExecutor`` (threads ``terrastream-load_N``); a completion
-callback records the outcome and pumps again. Nothing polls.
+:class:`streamer.pool.DaemonPool` (daemon threads ``terrastream-load_N``: a read a server never
+answers does not hold the interpreter at exit); a completion callback records the outcome and
+pumps again. Nothing polls.
 
 A job reads one thing of one block with no lock held: its error field (level ``-1``) or one raw
 level (up to ``PER_BLOCK`` levels of a block in flight at once; under a level-by-level scheme
@@ -25,7 +26,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,7 @@ from streamer.frames import SessionConfig, Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
 from streamer.nodata import rule_errors
+from streamer.pool import DaemonPool
 from tiler.errors import (
     StoreChangedError,
     StoreCorruptError,
@@ -108,11 +110,7 @@ class Loader:
         self.fatal: StoreChangedError | None = None  # the store changed under the session
         self.closed = False
         self._in_flight = 0
-        self._pool = (
-            ThreadPoolExecutor(config.workers, thread_name_prefix=THREAD_PREFIX)
-            if config.workers
-            else None
-        )
+        self._pool = DaemonPool(config.workers, THREAD_PREFIX) if config.workers else None
 
     # -- queue keys ------------------------------------------------------------------------
 
@@ -477,7 +475,7 @@ class Loader:
         if self._pool is None:
             return []
         self._pool.shutdown(wait=False, cancel_futures=True)
-        threads = list(getattr(self._pool, "_threads", ()))
+        threads = self._pool.threads
         deadline = time.monotonic() + timeout_s
         for t in threads:
             t.join(timeout=max(0.0, deadline - time.monotonic()))

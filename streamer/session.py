@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Collection, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import replace
 from typing import Any
 
@@ -46,6 +46,7 @@ from streamer.frames import Frame, FrameStats, SessionConfig
 from streamer.loader import READ_ERRORS, Loader
 from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
+from streamer.pool import DaemonPool
 from streamer.waits import wait_for, wait_idle
 from tiler.crs import require_projected
 from tiler.errors import StoreChangedError
@@ -100,11 +101,7 @@ class Session:
         self._closed = False
         self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
-        self._plan_pool = (
-            ThreadPoolExecutor(1, thread_name_prefix="terrastream-plan")
-            if self.config.workers
-            else None
-        )
+        self._plan_pool = DaemonPool(1, "terrastream-plan") if self.config.workers else None
 
     @property
     def config(self) -> SessionConfig:
@@ -157,7 +154,7 @@ class Session:
             self._plan_pool.shutdown(wait=False, cancel_futures=True)
         alive = self.loader.close(timeout_s)
         if self._plan_pool is not None:
-            for t in list(getattr(self._plan_pool, "_threads", ())):
+            for t in self._plan_pool.threads:
                 t.join(timeout=max(0.0, timeout_s - (time.monotonic() - t0)))
                 if t.is_alive():
                     alive.append(t.name)

@@ -1,7 +1,9 @@
 """A read the server never answers does not keep ``terrastream`` alive after the command has
 reported it: :func:`cli.main.leave_hung_reads` ends the process with the command's status
-instead of letting the interpreter wait out each read's timeout at exit. The control runs the
-same session without it and waits for the timeout."""
+instead of letting the interpreter wait out each read's timeout at exit. Nor does it keep a
+plain Python program alive: the loader's threads are daemons (:mod:`streamer.pool`). The
+control runs the same session on a ``ThreadPoolExecutor`` (joined at exit, the loader's pool
+before) and waits for the timeout."""
 
 from __future__ import annotations
 
@@ -29,7 +31,20 @@ SCRIPT = textwrap.dedent(
     from tiler.location import Location
     from tiler.store import TerrainStore
 
-    url, timeout, leave = sys.argv[1], float(sys.argv[2]), sys.argv[3] == "leave"
+    url, timeout, mode = sys.argv[1], float(sys.argv[2]), sys.argv[3]
+    if mode == "joined":  # the control: the pool the loader had, joined at interpreter exit
+        from concurrent.futures import ThreadPoolExecutor
+        import streamer.loader
+
+        class Joined(ThreadPoolExecutor):
+            def __init__(self, workers, prefix):
+                super().__init__(workers, thread_name_prefix=prefix)
+
+            @property
+            def threads(self):
+                return list(self._threads)
+
+        streamer.loader.DaemonPool = Joined
     store = TerrainStore(Location(url, {"timeout": timeout}))
     s = open_session(store, budget_mb=64, workers=2, raise_on_failure=False)
     print("open", flush=True)  # the test stalls the server's block reads now
@@ -39,7 +54,7 @@ SCRIPT = textwrap.dedent(
         s.update(cam)
     time.sleep(0.3)
     print("unfinished", s.close(0.2), time.monotonic(), flush=True)
-    if leave:
+    if mode == "leave":
         leave_hung_reads(1)
     sys.exit(1)
     """
@@ -54,13 +69,13 @@ def root(tmp_path_factory) -> Path:
     return d
 
 
-def _run(root: Path, leave: bool) -> tuple[int, float, str]:
+def _run(root: Path, mode: str) -> tuple[int, float, str]:
     """Exit status, seconds from the session's close to the process's end, and the line the
     script printed after closing."""
     srv = LoopbackServer(root)
     with srv as url, subprocess.Popen(
         [sys.executable, "-c", SCRIPT, f"{url}/s.zarr", str(READ_TIMEOUT_S),
-         "leave" if leave else "wait"],
+         mode],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     ) as p:  # fmt: skip
         try:
@@ -77,15 +92,17 @@ def _run(root: Path, leave: bool) -> tuple[int, float, str]:
                 p.kill()
 
 
-def test_the_process_ends_when_the_command_does_not_at_the_reads_timeout(root):
-    rc, after, line = _run(root, leave=True)
+@pytest.mark.parametrize("mode", ["leave", "plain"])
+def test_the_process_ends_when_the_command_does_not_at_the_reads_timeout(root, mode):
+    """``leave``: the CLI's exit path; ``plain``: a Python program that just ends."""
+    rc, after, line = _run(root, mode)
     assert "terrastream-load" in line  # reads were still hanging when the session closed
     assert rc == 1
     assert after < READ_TIMEOUT_S / 2, f"the process lingered {after:.1f} s after closing"
 
 
-def test_control_without_it_the_interpreter_waits_for_the_hung_reads(root):
-    rc, after, line = _run(root, leave=False)
+def test_control_with_a_joined_pool_the_interpreter_waits_for_the_hung_reads(root):
+    rc, after, line = _run(root, "joined")
     assert "terrastream-load" in line
     assert rc == 1
     assert after > READ_TIMEOUT_S / 2, f"the process ended {after:.1f} s after closing"

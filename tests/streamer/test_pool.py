@@ -1,0 +1,72 @@
+"""``streamer.pool.DaemonPool``: ThreadPoolExecutor's contract on named daemon threads."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from streamer.pool import DaemonPool
+
+
+def test_results_exceptions_and_named_daemon_threads():
+    pool = DaemonPool(2, "t-pool")
+    try:
+        assert pool.submit(lambda a, b: a + b, 2, 3).result(timeout=5) == 5
+        err = pool.submit(lambda: 1 / 0).exception(timeout=5)
+        assert isinstance(err, ZeroDivisionError)
+        names = {pool.submit(lambda: threading.current_thread().name).result(timeout=5)
+                 for _ in range(20)}  # fmt: skip
+        assert names <= {"t-pool_0", "t-pool_1"}
+        assert all(t.daemon for t in pool.threads)
+        assert 1 <= len(pool.threads) <= 2
+    finally:
+        pool.shutdown(wait=True)
+    assert not any(t.is_alive() for t in pool.threads)
+
+
+def test_never_more_threads_than_workers_and_idle_ones_are_reused():
+    pool = DaemonPool(3, "t-cap")
+    gate = threading.Event()
+    try:
+        futs = [pool.submit(gate.wait, 5) for _ in range(10)]
+        assert len(pool.threads) == 3  # seven wait in the queue
+        gate.set()
+        assert all(f.result(timeout=5) for f in futs)
+        for _ in range(10):  # sequential work after that starts no thread
+            pool.submit(int).result(timeout=5)
+        assert len(pool.threads) == 3
+    finally:
+        gate.set()
+        pool.shutdown(wait=True)
+
+
+def test_shutdown_cancels_queued_work_and_refuses_new():
+    pool = DaemonPool(1, "t-cancel")
+    gate = threading.Event()
+    running = pool.submit(gate.wait, 5)
+    queued = [pool.submit(int) for _ in range(3)]
+    done: list[bool] = []
+    queued[0].add_done_callback(lambda f: done.append(f.cancelled()))
+    pool.shutdown(wait=False, cancel_futures=True)
+    assert all(f.cancelled() for f in queued) and done == [True]
+    assert not running.cancelled()  # started work runs to its end
+    with pytest.raises(RuntimeError, match="shut down"):
+        pool.submit(int)
+    gate.set()
+    assert running.result(timeout=5) is True
+    for t in pool.threads:
+        t.join(timeout=5)
+        assert not t.is_alive()
+
+
+def test_control_without_cancel_queued_work_still_runs():
+    pool = DaemonPool(1, "t-drain")
+    futs = [pool.submit(lambda i=i: i) for i in range(5)]
+    pool.shutdown(wait=True)
+    assert [f.result(timeout=0) for f in futs] == list(range(5))
+
+
+def test_a_pool_needs_a_worker():
+    with pytest.raises(ValueError, match="workers=0"):
+        DaemonPool(0, "t-none")
