@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from render.errors import RenderError
+from render.errors import EmptyViewError, RenderError
 from render.pipeline import ViewOptions
 from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step
@@ -41,6 +41,7 @@ class FlyRow:
     stalled: bool
     clamped: int
     visible_blocks: int  # blocks in the view (0: the camera sees none of the DEM)
+    drawn_px: int  # terrain pixels drawn (0 with triangles: all below a pixel, or masked)
 
 
 def write_rows(out: Path, rows: list[FlyRow]) -> None:
@@ -120,6 +121,7 @@ def flythrough(
                     stalled=fs.stalled,
                     clamped=st.clamped,
                     visible_blocks=fs.visible_blocks,
+                    drawn_px=r.drawn_pixels() if st.triangles else 0,
                 )
                 rows.append(row)
                 if on_frame:
@@ -134,12 +136,19 @@ def flythrough(
     finally:
         r.close()
     problem = flight_problem(summary, unfinished, str(getattr(store, "url", store)))
-    empty = [x.frame for x in rows if x.triangles == 0]
+    empty = [x.frame for x in rows if x.drawn_px == 0]
     if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind
         for i in range(0, len(rows), save_every) if save_every else ():  # only this run's
             (out / f"frame_{i:05d}.png").unlink(missing_ok=True)
         if not seen:
             raise out_of_view(store, len(rows))
+        if any(x.triangles for x in rows):
+            raise EmptyViewError(
+                f"none of the {len(rows)} frame(s) drew a terrain pixel, though "
+                f"{sum(x.triangles > 0 for x in rows)} drew triangles: they were all smaller "
+                "than a pixel or outside the view, or the terrain is too sparse to draw (a "
+                "triangle with a nodata corner is not drawn); fly closer to the DEM"
+            )
         raise RenderError(
             f"none of the {len(rows)} frame(s) drew terrain, though "
             f"{sum(x.visible_blocks > 0 for x in rows)} saw the DEM: none of its levels was "
@@ -158,8 +167,10 @@ def flythrough(
         "clamped_frames": int(sum(x.clamped > 0 for x in rows)),
         "empty_frames": len(empty),
         "first_empty_frame": empty[0] if empty else None,
-        # of the empty frames, those that saw none of the DEM (the others were stalled)
+        # of the empty frames (no terrain pixel), those that saw none of the DEM, and those
+        # whose triangles covered no pixel (the others were stalled: nothing resident)
         "unseen_frames": int(sum(x.visible_blocks == 0 for x in rows if x.triangles == 0)),
+        "pixelless_frames": int(sum(x.triangles > 0 and x.drawn_px == 0 for x in rows)),
         "loaded_mb": float(summary["loaded_bytes"] / 2**20),
         "io_errors": int(summary["io_errors"]),
         "failing_blocks": int(summary["failing_blocks"]),

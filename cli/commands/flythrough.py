@@ -122,12 +122,18 @@ def flythrough(
         )
         if summary["empty_frames"]:
             n, unseen = summary["empty_frames"], summary["unseen_frames"]
+            tiny = summary["pixelless_frames"]
             why = "the camera sees none of the DEM there"
             if unseen < n:
-                why = (
-                    f"{unseen} saw none of the DEM, {n - unseen} had none of its levels loaded "
-                    "yet (stalled)"
-                )
+                parts = [f"{unseen} saw none of the DEM"]
+                if n - unseen - tiny:
+                    parts.append(f"{n - unseen - tiny} had none of its levels loaded yet (stalled)")
+                if tiny:
+                    parts.append(
+                        f"{tiny} drew triangles covering no pixel (too far, or terrain too "
+                        "sparse to draw)"
+                    )
+                why = ", ".join(parts)
             typer.echo(
                 f"warning: {n} of {summary['frames']} frames drew no terrain (the first: frame "
                 f"{summary['first_empty_frame']}): {why}",

@@ -88,10 +88,17 @@ def render(
                 hint="--camera",
             )
         if st.drawn_px == 0:  # triangles, but none covers a pixel: a picture of sky
+            sparse = (
+                ", or its terrain is too sparse to draw (a triangle with a nodata corner is "
+                "not drawn: `terrastream info` counts the blocks with nodata)"
+                if s.index.has_nodata.any()
+                else ""
+            )
             raise UsageError(
                 f"the view of {store!r} drew no terrain pixel ({st.triangles:,} triangles, "
                 f"all smaller than a pixel or outside the {size} view): the DEM is too far "
-                "from the camera to be seen; move the camera closer (--camera, --look-at)",
+                f"from the camera to be seen{sparse}; move the camera closer (--camera, "
+                "--look-at)",
                 hint="--camera",
             )
         Image.fromarray(img).save(out)

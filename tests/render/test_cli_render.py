@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -123,6 +124,30 @@ def test_a_view_of_no_terrain_is_an_error_not_a_sky_png(store, tmp_path):
     assert "drew no terrain" in res.output and not out.exists()
 
 
+def test_terrain_too_sparse_to_draw_is_named_as_a_cause(tmp_path):
+    """Valid samples no two of which are neighbours: every triangle has a nodata corner, so
+    the overview draws nothing. The error names sparse terrain as a cause (the store has
+    nodata); the control, the far-away view of a store without nodata above, does not."""
+    import numpy as np
+
+    data = np.full((65, 65), np.nan, dtype=np.float32)
+    data[::4, ::4] = rough(65, 3)[::4, ::4]
+    sparse = str(tile_dem(tmp_path, data, 33, nodata=float("nan")))
+    out = tmp_path / "sparse.png"
+    res = runner.invoke(app, ["render", sparse, "--size", "96x64", "-o", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "too sparse to draw" in res.output and not out.exists()
+
+
+def test_control_a_store_without_nodata_is_not_called_sparse(store, tmp_path):
+    out = tmp_path / "sky.png"
+    res = runner.invoke(
+        app, ["render", store, "--size", "96x64", *_looking_down(store, 1e7), "-o", str(out)]
+    )
+    assert res.exit_code == 2, res.output
+    assert "drew no terrain pixel" in res.output and "sparse" not in res.output
+
+
 def _looking_down(store, height):
     from tiler.store import open_store
 
@@ -185,16 +210,59 @@ def test_a_flythrough_that_sees_no_terrain_is_an_error_not_blank_frames(store, t
     assert summary["empty_frames"] == 1 and summary["first_empty_frame"] == 0
 
 
-def test_a_keyframe_flythrough_150_km_up_draws_the_dem(store, tmp_path):
+def _centre(store):
     from tiler.store import open_store
 
     x0, y0, x1, y1 = open_store(store).grid.extent
-    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    return 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+
+
+def test_a_flythrough_whose_triangles_cover_no_pixel_is_an_error_not_sky_frames(store, tmp_path):
+    """Frames that draw triangles but no terrain pixel (a DEM below a pixel from 10,000 km,
+    or terrain too sparse to draw) were written as all-sky PNGs with exit 0 and
+    ``empty_frames`` 0. The control: the same path 3 km up draws, and ``frames.csv`` counts
+    the terrain pixels of every frame."""
+    import numpy as np
+
+    cx, cy = _centre(store)
+    far = [(0, cx, cy, 1e7, 0, -89), (1, cx, cy, 1e7, 0, -89)]
+    res = _fly(store, _keyframes(tmp_path, far), tmp_path / "far")
+    assert res.exit_code == 2, res.output
+    assert "none of the 3 frame(s) drew a terrain pixel, though 3 drew triangles" in res.output
+    assert not list((tmp_path / "far").glob("*.png"))
+
+    data = np.full((65, 65), np.nan, dtype=np.float32)
+    data[::4, ::4] = rough(65, 3)[::4, ::4]  # no two valid samples are neighbours
+    (tmp_path / "sp").mkdir()
+    sparse = str(tile_dem(tmp_path / "sp", data, 33, nodata=float("nan")))
+    near = [(0, cx, cy, 3000, 0, -89), (1, cx, cy, 3000, 0, -89)]
+    res = _fly(sparse, _keyframes(tmp_path, near), tmp_path / "sparse")
+    assert res.exit_code == 2, res.output
+    assert "too sparse to draw" in res.output
+
+    res = _fly(store, _keyframes(tmp_path, near), tmp_path / "near")
+    assert res.exit_code == 0, res.output
+    with open(tmp_path / "near" / "frames.csv") as f:
+        px = [int(row["drawn_px"]) for row in csv.DictReader(f)]
+    assert len(px) == 3 and all(0 < p <= 64 * 48 for p in px)
+    summary = json.loads((tmp_path / "near" / "summary.json").read_text())
+    assert summary["empty_frames"] == 0 and summary["pixelless_frames"] == 0
+
+
+def test_a_keyframe_flythrough_150_km_up_draws_the_dem(tmp_path):
+    """A 192 km DEM (3 km cells) seen from 150 km up fills the view's pixels. (With the
+    module's 1.9 km DEM this test once passed on triangles alone: the DEM was below a pixel
+    there and every frame was sky.)"""
+    (tmp_path / "big").mkdir()
+    big = str(tile_dem(tmp_path / "big", rough(65, 7), 33, cell=3000.0))
+    cx, cy = _centre(big)
     high = [(0, cx, cy, 150_000, 0, -90), (1, cx, cy, 150_000, 0, -89)]
-    res = _fly(store, _keyframes(tmp_path, high), tmp_path / "f", frames=2)
+    res = _fly(big, _keyframes(tmp_path, high), tmp_path / "f", frames=2)
     assert res.exit_code == 0, res.output  # the far plane once stopped at 100 km: no terrain
-    rows = (tmp_path / "f" / "frames.csv").read_text().splitlines()
-    assert all(int(r.split(",")[1]) > 0 for r in rows[1:])  # triangles per frame
+    with open(tmp_path / "f" / "frames.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2
+    assert all(int(r["triangles"]) > 0 and int(r["drawn_px"]) > 64 * 48 // 2 for r in rows)
 
 
 def test_compare_names_the_middle_frame_it_measures_when_it_sees_no_terrain(store, tmp_path):
