@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import weakref
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
@@ -21,7 +22,10 @@ _STOP = None  # the sentinel a worker thread ends on
 
 
 class DaemonPool:
-    """Up to ``workers`` daemon threads named ``{prefix}_N``, started as work arrives."""
+    """Up to ``workers`` daemon threads named ``{prefix}_N``, started as work arrives.
+
+    As in ``ThreadPoolExecutor``, the threads hold no reference to the pool: a pool nobody
+    shut down (a session never closed) ends its idle threads when it is garbage-collected."""
 
     def __init__(self, workers: int, prefix: str) -> None:
         if workers < 1:
@@ -33,6 +37,7 @@ class DaemonPool:
         self._idle = threading.Semaphore(0)
         self._threads: list[threading.Thread] = []
         self._shutdown = False
+        weakref.finalize(self, _stop, self._queue, workers)
 
     @property
     def threads(self) -> list[threading.Thread]:
@@ -49,7 +54,10 @@ class DaemonPool:
             self._queue.put((fut, fn, args))
             if not self._idle.acquire(blocking=False) and len(self._threads) < self._workers:
                 t = threading.Thread(
-                    target=self._work, name=f"{self._prefix}_{len(self._threads)}", daemon=True
+                    target=_work,
+                    args=(self._queue, self._idle),
+                    name=f"{self._prefix}_{len(self._threads)}",
+                    daemon=True,
                 )
                 t.start()
                 self._threads.append(t)
@@ -76,21 +84,29 @@ class DaemonPool:
             for t in threads:
                 t.join()
 
-    def _work(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is _STOP:
-                return
-            fut, fn, args = item
-            del item
-            if fut.set_running_or_notify_cancel():
-                try:
-                    result = fn(*args)
-                except BaseException as exc:  # as ThreadPoolExecutor: the future carries it
-                    fut.set_exception(exc)
-                    del exc
-                else:
-                    fut.set_result(result)
-                    del result
-            del fut, fn, args
-            self._idle.release()
+
+def _stop(q: queue.SimpleQueue, n: int) -> None:
+    """End up to ``n`` workers of a collected pool (once each has finished its work)."""
+    for _ in range(n):
+        q.put(_STOP)
+
+
+def _work(q: queue.SimpleQueue, idle: threading.Semaphore) -> None:
+    """A worker thread's loop: run items until the stop sentinel (no reference to the pool)."""
+    while True:
+        item = q.get()
+        if item is _STOP:
+            return
+        fut, fn, args = item
+        del item
+        if fut.set_running_or_notify_cancel():
+            try:
+                result = fn(*args)
+            except BaseException as exc:  # as ThreadPoolExecutor: the future carries it
+                fut.set_exception(exc)
+                del exc
+            else:
+                fut.set_result(result)
+                del result
+        del fut, fn, args
+        idle.release()

@@ -70,3 +70,40 @@ def test_control_without_cancel_queued_work_still_runs():
 def test_a_pool_needs_a_worker():
     with pytest.raises(ValueError, match="workers=0"):
         DaemonPool(0, "t-none")
+
+
+def _alive(prefix: str) -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith(prefix)]
+
+
+def _wait_gone(prefix: str, timeout_s: float = 5.0) -> list[str]:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while _alive(prefix) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return _alive(prefix)
+
+
+def test_a_pool_never_shut_down_ends_its_idle_threads_when_collected():
+    """A session nobody closed must not leak its loader threads (ThreadPoolExecutor's
+    behaviour too): the threads hold no reference to the pool."""
+    import gc
+
+    pool = DaemonPool(2, "t-gc")
+    assert pool.submit(int, "7").result(timeout=5) == 7
+    assert _alive("t-gc")
+    del pool
+    gc.collect()
+    assert _wait_gone("t-gc") == []
+
+
+def test_control_a_live_pool_keeps_its_idle_threads():
+    import time
+
+    pool = DaemonPool(2, "t-live")
+    pool.submit(int).result(timeout=5)
+    time.sleep(0.2)
+    assert _alive("t-live")  # idle, waiting for work: not ended while the pool lives
+    pool.shutdown(wait=True)
+    assert _alive("t-live") == []
