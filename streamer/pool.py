@@ -67,6 +67,7 @@ class DaemonPool:
         """Take no more work; with ``cancel_futures`` cancel what has not started; with
         ``wait`` join the threads (unbounded: callers that may meet a hung read pass False
         and join :attr:`threads` with their own deadline)."""
+        dropped = []
         with self._lock:
             self._shutdown = True
             if cancel_futures:
@@ -76,10 +77,12 @@ class DaemonPool:
                     except queue.Empty:
                         break
                     if item is not _STOP:
-                        item[0].cancel()
+                        dropped.append(item[0])
             for _ in self._threads:
                 self._queue.put(_STOP)
             threads = list(self._threads)
+        for fut in dropped:  # outside the lock: a done callback may call submit (and be refused)
+            fut.cancel()
         if wait:
             for t in threads:
                 t.join()

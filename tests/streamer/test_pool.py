@@ -107,3 +107,30 @@ def test_control_a_live_pool_keeps_its_idle_threads():
     assert _alive("t-live")  # idle, waiting for work: not ended while the pool lives
     pool.shutdown(wait=True)
     assert _alive("t-live") == []
+
+
+def test_a_cancelled_futures_callback_may_submit_and_is_refused_not_deadlocked():
+    """Done callbacks of the futures ``shutdown`` cancels run in the caller's thread; one that
+    submits again (a loader pumping its queue) is refused, not blocked on the pool's lock."""
+    pool = DaemonPool(1, "t-cb")
+    gate = threading.Event()
+    pool.submit(gate.wait, 5)
+    refused: list[str] = []
+
+    def resubmit(_fut):
+        try:
+            pool.submit(int)
+        except RuntimeError as exc:
+            refused.append(str(exc))
+
+    pool.submit(int).add_done_callback(resubmit)
+    done = threading.Event()
+    t = threading.Thread(
+        target=lambda: (pool.shutdown(wait=False, cancel_futures=True), done.set()),
+        daemon=True,
+    )
+    t.start()
+    assert done.wait(5), "shutdown deadlocked in a cancelled future's callback"
+    assert refused and "shut down" in refused[0]
+    gate.set()
+    pool.shutdown(wait=True)
