@@ -8,18 +8,21 @@ the scene's size."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 
 from render.errors import CameraSpecError
 from streamer.camera import Camera
-from streamer.clip import MIN_NEAR, near_plane
+from streamer.clip import MIN_NEAR, ground_height, near_plane
 from streamer.clip import reach as scene_reach
 from streamer.clip import zrange as _zrange
 from streamer.errors import CameraError
 from tiler.grid import BlockGrid
 from tiler.store import TerrainStore
+
+log = logging.getLogger(__name__)
 
 #: elongation (long / short horizontal side) beyond which the overview looks along the DEM
 STRIP_RATIO = 4.0
@@ -122,6 +125,20 @@ def _camera(store, eye, target, size, fov, reach) -> Camera:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
+def warn_below_ground(store: TerrainStore, eye: tuple[float, float, float]) -> float | None:
+    """Log a warning when ``eye`` is below the terrain under it (the view then shows the
+    terrain from below); the ground height there (:func:`streamer.clip.ground_height`)."""
+    ground = ground_height(store, eye[0], eye[1])
+    if ground is not None and eye[2] < ground:
+        log.warning(
+            "the camera at z = %.1f m is %.1f m below the terrain under it (at least %.1f m at "
+            "x %.1f, y %.1f): the view shows the terrain from below; raise the camera above "
+            "the ground",
+            eye[2], ground - eye[2], ground, eye[0], eye[1],
+        )  # fmt: skip
+    return ground
+
+
 def make_camera(
     store: TerrainStore,
     size: tuple[int, int],
@@ -153,10 +170,12 @@ def make_camera(
     if look_at is not None:
         if yaw is not None or pitch is not None:
             raise CameraSpecError("give either {look_at} or {yaw}/{pitch}, not both")
-        return _camera(store, eye, parse_triple(look_at, "look_at"), size, fov, reach)
+        cam = _camera(store, eye, parse_triple(look_at, "look_at"), size, fov, reach)
+        warn_below_ground(store, eye)  # once the camera is valid
+        return cam
     near = near_plane(store, eye, _tan_half_diag(size, fov), max(0.5, reach * 1e-4))
     try:
-        return Camera(
+        cam = Camera(
             eye,
             yaw=yaw or 0.0,
             pitch=-30.0 if pitch is None else pitch,
@@ -167,3 +186,5 @@ def make_camera(
         )
     except CameraError as exc:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
+    warn_below_ground(store, eye)
+    return cam

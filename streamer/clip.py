@@ -43,6 +43,26 @@ def local_top(store: TerrainStore, x: float, y: float, radius: float) -> float:
     return float(zmax[near].max()) if near.any() else -math.inf
 
 
+def ground_height(store: TerrainStore, x: float, y: float) -> float | None:
+    """The lowest of the full-resolution samples at the corners of the cell under ``(x, y)``:
+    the terrain there is no lower (``None`` outside the DEM or where a corner is nodata).
+    Reads one block."""
+    g = store.grid
+    row, col = g.world_to_sample(x, y)
+    if not (0.0 <= row <= g.height - 1 and 0.0 <= col <= g.width - 1):
+        return None
+    r0 = min(int(math.floor(row)), g.height - 2)
+    c0 = min(int(math.floor(col)), g.width - 2)
+    br, bc = (int(v) for v in g.block_of_sample(r0, c0))
+    if not store.index.exists[br, bc]:
+        return None
+    r, c = r0 - br * g.step, c0 - bc * g.step
+    h = np.asarray(store.read_block((br, bc))[r : r + 2, c : c + 2], dtype=np.float64)
+    if store.index.has_nodata[br, bc] and not store.read_mask((br, bc))[r : r + 2, c : c + 2].all():
+        return None
+    return float(h.min()) if np.isfinite(h).all() else None
+
+
 def near_plane(
     store: TerrainStore, eye: tuple[float, float, float], tan_half_diagonal: float, cap: float
 ) -> float:

@@ -94,3 +94,43 @@ def test_a_path_that_sees_none_of_the_dem_is_an_error(store, tmp_path):
     cams = make_path(store, path_file=path, frames=3, viewport=(160, 120))
     with open_session(store, budget_mb=16, workers=1) as s:
         require_view(run_flythrough(s, cams, realtime=False), store)
+
+
+def test_ground_height_is_the_lowest_corner_of_the_cell_under_a_point(tmp_path):
+    """Known heights: each sample is ``100 * row + col``; points inside a cell, on a block's
+    shared border and at the DEM's last sample; ``None`` off the DEM and beside nodata."""
+    from streamer.clip import ground_height
+
+    data = (100.0 * np.arange(65)[:, None] + np.arange(65)[None, :]).astype(np.float32)
+    data[40:42, 50:52] = np.nan
+    src = write_dem(tmp_path / "g.tif", data, cell=10.0, nodata=float("nan"))
+    st = tile(src, tmp_path / "g.zarr", TileOptions(block_size=33, executor="threads"))
+    g = st.grid
+
+    def at(row: float, col: float) -> float | None:
+        x, y = g.sample_xy(row, col)
+        return ground_height(st, float(x), float(y))
+
+    assert at(10.5, 20.5) == 100.0 * 10 + 20  # the cell's lowest corner
+    assert at(32.0, 32.0) == 100.0 * 32 + 32  # a shared block border
+    assert at(64.0, 64.0) == 100.0 * 63 + 63  # the last sample: the last cell
+    assert at(40.5, 49.5) is None  # a corner is nodata
+    assert at(-1.0, 5.0) is None and at(5.0, 64.5) is None  # off the DEM
+
+
+def test_a_camera_below_the_terrain_is_warned_about(store, caplog):
+    """``make_camera`` with an explicit position under the ground logs a warning naming the
+    depth; the control, the same point 1 m above the ground, is quiet."""
+    from render.views import make_camera
+    from streamer.clip import ground_height
+
+    cx, cy = centre(store)
+    ground = ground_height(store, cx, cy)
+    assert ground is not None
+    with caplog.at_level("WARNING", logger="render.views"):
+        make_camera(store, (64, 48), position=f"{cx},{cy},{ground - 50}", pitch=-10.0)
+    assert "50.0 m below the terrain under it" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="render.views"):
+        make_camera(store, (64, 48), position=f"{cx},{cy},{ground + 1}", pitch=-10.0)
+    assert "below the terrain" not in caplog.text
