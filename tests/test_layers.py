@@ -31,6 +31,16 @@ def module_name(root: Path, path: Path) -> str:
     return ".".join(parts)
 
 
+def import_base(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module a ``from ... import`` names (relative imports resolved)."""
+    base = node.module or ""
+    if node.level:
+        up = package.split(".")
+        up = up[: len(up) - (node.level - 1)]
+        base = ".".join([*up, base] if base else up)
+    return base
+
+
 def imports(root: Path, path: Path) -> set[str]:
     """Absolute names a module imports (relative imports resolved), at any depth of its code."""
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
@@ -41,11 +51,7 @@ def imports(root: Path, path: Path) -> set[str]:
         if isinstance(node, ast.Import):
             out.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                up = package.split(".")
-                up = up[: len(up) - (node.level - 1)]
-                base = ".".join([*up, base] if base else up)
+            base = import_base(node, package)
             out.add(base)
             out.update(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
     return out
@@ -240,11 +246,7 @@ def private_imports(root: Path) -> list[str]:
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if not isinstance(node, ast.ImportFrom):
                 continue
-            base = node.module or ""
-            if node.level:
-                up = package.split(".")
-                up = up[: len(up) - (node.level - 1)]
-                base = ".".join([*up, base] if base else up)
+            base = import_base(node, package)
             if base.split(".")[0] not in PACKAGES or _is_private(base.rpartition(".")[2]):
                 continue
             for a in node.names:
