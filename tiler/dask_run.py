@@ -117,7 +117,10 @@ def run_blocks_dask(run: BlockRun) -> str:
         )
     import distributed
 
-    client, cluster = _connect(opts.scheduler, opts.n_workers)
+    from tiler.run import process_count  # (tiler.run imports this module lazily too)
+
+    n = process_count(opts.n_workers, len(run.todo)) if opts.scheduler == "dask" else 0
+    client, cluster = _connect(opts.scheduler, n)
     job = DaskJob(
         token=uuid.uuid4().hex,
         src=run.src,

@@ -36,3 +36,53 @@ def test_explicit_executor_wins(loc):
     assert Location("memory://x/y").can_share_with_processes is False
     mem = Location("memory://exec-test/s.zarr")
     assert run.choose_executor(opts, mem, 256, "numpy") == "threads"  # cannot share: threads
+
+
+@pytest.mark.parametrize(
+    ("asked", "todo", "want", "warned"),
+    [
+        (2, 256, 2, False),  # the control: as many as the cores
+        (16, 256, 2, True),  # 16 processes on 2 cores measured 3.5 GiB and 3x the time
+        (1000, 256, 2, True),
+        (8, 3, 2, True),  # no more than the blocks, then no more than the cores
+        (2, 1, 1, False),  # one block: one process
+        (1, 0, 1, False),
+    ],
+)
+def test_worker_processes_are_capped_at_the_cores_and_blocks(
+    monkeypatch, caplog, asked, todo, want, warned
+):
+    monkeypatch.setattr(run.os, "cpu_count", lambda: 2)
+    with caplog.at_level("WARNING", logger="tiler.tile"):
+        assert run.process_count(asked, todo) == want
+    assert ("worker processes asked for on 2 cores" in caplog.text) is warned
+
+
+def test_a_tiling_asked_for_more_processes_than_cores_starts_the_cores(
+    monkeypatch, caplog, tmp_path
+):
+    """The real run: ``workers=8`` with worker processes starts a pool of 2 on 2 cores, warns,
+    and the store is complete; the control asks for 2 and is not warned."""
+    from demtools import fractal, write_dem
+
+    from tiler.tile import tile
+
+    monkeypatch.setattr(run, "processes_unsafe", lambda: None)
+    monkeypatch.setattr(run.os, "cpu_count", lambda: 2)
+    sizes: list[int] = []
+
+    class Recording(run.ProcessPoolExecutor):
+        def __init__(self, max_workers: int, **kw) -> None:
+            sizes.append(max_workers)
+            super().__init__(max_workers=max_workers, **kw)
+
+    monkeypatch.setattr(run, "ProcessPoolExecutor", Recording)
+    src = write_dem(tmp_path / "d.tif", fractal((65, 65), 5))
+    for workers, name in ((8, "a.zarr"), (2, "b.zarr")):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="tiler.tile"):
+            st = tile(src, tmp_path / name, TileOptions(block_size=17, workers=workers,
+                                                        scheduler="processes"))  # fmt: skip
+        assert st.meta.complete and st.tile_summary.executor == "processes"
+        assert ("8 worker processes asked for" in caplog.text) is (workers == 8)
+    assert sizes == [2, 2]
