@@ -266,8 +266,14 @@ def keyframes(path: str | Path, frames: int, **camera_kw: object) -> list[Camera
     ``t,x,y,z,yaw,pitch`` (optional ``roll`` column) then one row per keyframe. ``t`` (seconds,
     any unit) must strictly increase; frames are spaced evenly from the first to the last ``t``.
     Position, pitch and roll are linear; yaw takes the shorter way (350 -> 10 passes north).
+    A bad record is a :class:`KeyframeError` naming the file.
     """
-    return keyframes_from_records(read_keyframes(path), frames, **camera_kw)
+    n = _count("frames", frames)
+    records = read_keyframes(path)
+    try:
+        return keyframes_from_records(records, n, **camera_kw)
+    except KeyframeError as exc:
+        raise KeyframeError(f"{path}: {exc}") from None
 
 
 # --- the default fly-through ------------------------------------------------------------------

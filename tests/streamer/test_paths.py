@@ -228,6 +228,20 @@ def test_keyframes_file_errors(tmp_path):
         keyframes(tmp_path / "missing.csv", 3)
 
 
+def test_a_bad_keyframe_record_names_its_file(tmp_path):
+    """A record's fault read from a file starts with the file's path (a user with several
+    path files knows which); the records API has no file to name."""
+    rows = "t,x,y,z,yaw,pitch\n1,0,0,100,0,-10\n0,0,0,100,0,-10\n"
+    f = tmp_path / "flight.csv"
+    f.write_text(rows)
+    with pytest.raises(KeyframeError, match=r"flight\.csv: keyframe times must strictly"):
+        keyframes(f, 3)
+    recs = [{"t": 1, "x": 0, "y": 0, "z": 100, "yaw": 0, "pitch": -10},
+            {"t": 0, "x": 0, "y": 0, "z": 100, "yaw": 0, "pitch": -10}]  # fmt: skip
+    with pytest.raises(KeyframeError, match="^keyframe times must strictly"):
+        keyframes_from_records(recs, 3)
+
+
 # --- the default fly-through ------------------------------------------------------------------
 
 
