@@ -43,24 +43,56 @@ def local_top(store: TerrainStore, x: float, y: float, radius: float) -> float:
     return float(zmax[near].max()) if near.any() else -math.inf
 
 
-def ground_height(store: TerrainStore, x: float, y: float) -> float | None:
+def ground_height(
+    store: TerrainStore, x: float, y: float, cache: dict | None = None
+) -> float | None:
     """The lowest of the full-resolution samples at the corners of the cell under ``(x, y)``:
     the terrain there is no lower (``None`` outside the DEM or where a corner is nodata).
-    Reads one block."""
+    Reads one block (kept in ``cache``, when given, for the next point)."""
     g = store.grid
     row, col = g.world_to_sample(x, y)
     if not (0.0 <= row <= g.height - 1 and 0.0 <= col <= g.width - 1):
         return None
     r0 = min(int(math.floor(row)), g.height - 2)
     c0 = min(int(math.floor(col)), g.width - 2)
-    br, bc = (int(v) for v in g.block_of_sample(r0, c0))
-    if not store.index.exists[br, bc]:
+    block = tuple(int(v) for v in g.block_of_sample(r0, c0))
+    if not store.index.exists[block]:
         return None
-    r, c = r0 - br * g.step, c0 - bc * g.step
-    h = np.asarray(store.read_block((br, bc))[r : r + 2, c : c + 2], dtype=np.float64)
-    if store.index.has_nodata[br, bc] and not store.read_mask((br, bc))[r : r + 2, c : c + 2].all():
+    got = cache.get(block) if cache is not None else None
+    if got is None:
+        heights = np.asarray(store.read_block(block), dtype=np.float64)
+        mask = store.read_mask(block) if store.index.has_nodata[block] else None
+        got = (heights, mask)
+        if cache is not None:
+            cache[block] = got
+    heights, mask = got
+    r, c = r0 - block[0] * g.step, c0 - block[1] * g.step
+    h = heights[r : r + 2, c : c + 2]
+    if mask is not None and not mask[r : r + 2, c : c + 2].all():
         return None
     return float(h.min()) if np.isfinite(h).all() else None
+
+
+def depth_below_ground(store: TerrainStore, eyes: np.ndarray) -> np.ndarray:
+    """Per eye ``(x, y, z)`` (rows of ``eyes``): how far below the terrain under it it is (0
+    where it is not, or where that is unknown). Only eyes under their block's highest point
+    read a block, each block once."""
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(eyes))
+    g, zmax = store.grid, np.asarray(store.index.zmax, dtype=np.float64)
+    rows, cols = g.world_to_sample(eyes[:, 0], eyes[:, 1])
+    inside = (rows >= 0) & (rows <= g.height - 1) & (cols >= 0) & (cols <= g.width - 1)
+    cache: dict = {}
+    for i in np.flatnonzero(inside):
+        r0 = min(int(math.floor(rows[i])), g.height - 2)
+        c0 = min(int(math.floor(cols[i])), g.width - 2)
+        br, bc = (int(v) for v in g.block_of_sample(r0, c0))
+        if not eyes[i, 2] < zmax[br, bc]:  # above the block's top (or no terrain): not below
+            continue
+        ground = ground_height(store, eyes[i, 0], eyes[i, 1], cache)
+        if ground is not None and eyes[i, 2] < ground:
+            out[i] = ground - eyes[i, 2]
+    return out
 
 
 def near_plane(

@@ -134,3 +134,50 @@ def test_a_camera_below_the_terrain_is_warned_about(store, caplog):
     with caplog.at_level("WARNING", logger="render.views"):
         make_camera(store, (64, 48), position=f"{cx},{cy},{ground + 1}", pitch=-10.0)
     assert "below the terrain" not in caplog.text
+
+
+def test_depth_below_ground_per_eye_reads_only_blocks_it_may_be_under(store, monkeypatch):
+    """Eyes above every block top read nothing; eyes under the ground get their depth, each
+    block read once; the control eyes 1 m above the ground get 0."""
+    from streamer.clip import depth_below_ground, ground_height
+
+    cx, cy = centre(store)
+    reads: list[tuple[int, int]] = []
+    real = type(store).read_block
+
+    def counting(self, block, *a, **kw):
+        reads.append(tuple(block))
+        return real(self, block, *a, **kw)
+
+    monkeypatch.setattr(type(store), "read_block", counting)
+    top = zrange(store)[1]
+    assert not depth_below_ground(store, [(cx, cy, top + 1), (cx + 10, cy, top + 5)]).any()
+    assert reads == []  # above every block's top: nothing read
+    g = [ground_height(store, cx + d, cy) for d in (0.0, 10.0, 20.0)]
+    reads.clear()
+    under = [(cx + d, cy, h - 25.0) for d, h in zip((0.0, 10.0, 20.0), g, strict=True)]
+    np.testing.assert_allclose(depth_below_ground(store, under), 25.0)
+    assert len(reads) == len(set(reads))  # each block once
+    over = [(cx + d, cy, h + 1.0) for d, h in zip((0.0, 10.0, 20.0), g, strict=True)]
+    assert not depth_below_ground(store, over).any()
+
+
+def test_a_flythrough_path_below_the_ground_is_warned_about(store, caplog):
+    """``render.flythrough`` warns when frames' cameras are under the terrain, naming the
+    first and the depth; the control, the same path 1 m above the ground, is quiet."""
+    from render.flythrough import warn_frames_below_ground
+    from streamer.clip import ground_height
+
+    cx, cy = centre(store)
+    ground = ground_height(store, cx, cy)
+    cams = [Camera((cx, cy, z), yaw=0.0, pitch=-10.0) for z in (ground + 500, ground - 30)]
+    with caplog.at_level("WARNING", logger="render.flythrough"):
+        depth = warn_frames_below_ground(store, cams)
+    assert depth[0] == 0 and depth[1] == pytest.approx(30.0)
+    assert "1 of the path's 2 frames have the camera below the terrain" in caplog.text
+    assert "frame 1, 30.0 m below" in caplog.text
+    caplog.clear()
+    cams = [Camera((cx, cy, ground + 1), yaw=0.0, pitch=-10.0)] * 2
+    with caplog.at_level("WARNING", logger="render.flythrough"):
+        assert not warn_frames_below_ground(store, cams).any()
+    assert "below the terrain" not in caplog.text
