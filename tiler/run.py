@@ -326,7 +326,7 @@ def process_count(asked: int, todo: int) -> int:
         log.warning(
             "%d worker processes asked for on %d cores: each holds its own interpreter and block "
             "buffers (~220 MiB), and more than the cores only add memory and start-up; using %d",
-            n, cores, cores,
+            asked, cores, cores,
         )  # fmt: skip
         n = cores
     return n

@@ -55,7 +55,7 @@ def test_worker_processes_are_capped_at_the_cores_and_blocks(
     monkeypatch.setattr(run.os, "cpu_count", lambda: 2)
     with caplog.at_level("WARNING", logger="tiler.tile"):
         assert run.process_count(asked, todo) == want
-    assert ("worker processes asked for on 2 cores" in caplog.text) is warned
+    assert (f"{asked} worker processes asked for on 2 cores" in caplog.text) is warned
 
 
 def test_a_tiling_asked_for_more_processes_than_cores_starts_the_cores(
