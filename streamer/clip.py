@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from streamer.camera import Camera
+from tiler.errors import StoreError
 from tiler.store import TerrainStore
 
 #: the smallest near plane (m): log depth resolves it together with a far plane of 1e6 km
@@ -75,8 +76,8 @@ def ground_height(
 
 def depth_below_ground(store: TerrainStore, eyes: np.ndarray) -> np.ndarray:
     """Per eye ``(x, y, z)`` (rows of ``eyes``): how far below the terrain under it it is (0
-    where it is not, or where that is unknown). Only eyes under their block's highest point
-    read a block, each block once."""
+    where it is not, or where that is unknown: a block that cannot be read). Only eyes under
+    their block's highest point read a block, each block once."""
     eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(len(eyes))
     g, zmax = store.grid, np.asarray(store.index.zmax, dtype=np.float64)
@@ -89,7 +90,10 @@ def depth_below_ground(store: TerrainStore, eyes: np.ndarray) -> np.ndarray:
         br, bc = (int(v) for v in g.block_of_sample(r0, c0))
         if not eyes[i, 2] < zmax[br, bc]:  # above the block's top (or no terrain): not below
             continue
-        ground = ground_height(store, eyes[i, 0], eyes[i, 1], cache)
+        try:
+            ground = ground_height(store, eyes[i, 0], eyes[i, 1], cache)
+        except (OSError, StoreError):  # a read that fails is the session's to report: unknown
+            continue
         if ground is not None and eyes[i, 2] < ground:
             out[i] = ground - eyes[i, 2]
     return out

@@ -181,3 +181,20 @@ def test_a_flythrough_path_below_the_ground_is_warned_about(store, caplog):
     with caplog.at_level("WARNING", logger="render.flythrough"):
         assert not warn_frames_below_ground(store, cams).any()
     assert "below the terrain" not in caplog.text
+
+
+def test_depth_below_ground_is_unknown_where_a_block_cannot_be_read(store, monkeypatch):
+    """A failing read (a server down) leaves the depth unknown (0) instead of failing the
+    flight before its session starts; the control reads and finds the eye below."""
+    from streamer.clip import depth_below_ground, ground_height
+    from tiler.errors import StoreUnavailableError
+
+    cx, cy = centre(store)
+    eye = [(cx, cy, ground_height(store, cx, cy) - 10.0)]
+    assert depth_below_ground(store, eye)[0] == pytest.approx(10.0)
+
+    def down(self, block, *a, **kw):
+        raise StoreUnavailableError("the server stopped answering")
+
+    monkeypatch.setattr(type(store), "read_block", down)
+    assert depth_below_ground(store, eye)[0] == 0.0
