@@ -15,7 +15,7 @@ import numpy as np
 
 from render.errors import CameraSpecError
 from streamer.camera import Camera
-from streamer.clip import MIN_NEAR, ground_height, near_plane
+from streamer.clip import MIN_NEAR, depth_below_ground, near_plane
 from streamer.clip import reach as scene_reach
 from streamer.clip import zrange as _zrange
 from streamer.errors import CameraError
@@ -125,18 +125,19 @@ def _camera(store, eye, target, size, fov, reach) -> Camera:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
-def warn_below_ground(store: TerrainStore, eye: tuple[float, float, float]) -> float | None:
+def warn_below_ground(store: TerrainStore, eye: tuple[float, float, float]) -> float:
     """Log a warning when ``eye`` is below the terrain under it (the view then shows the
-    terrain from below); the ground height there (:func:`streamer.clip.ground_height`)."""
-    ground = ground_height(store, eye[0], eye[1])
-    if ground is not None and eye[2] < ground:
+    terrain from below); how far below (0: not, or unknown). Reads a block only when the eye
+    is under its block's highest point (:func:`streamer.clip.depth_below_ground`)."""
+    depth = float(depth_below_ground(store, np.array([eye], dtype=np.float64))[0])
+    if depth > 0:
         log.warning(
             "the camera at z = %.1f m is %.1f m below the terrain under it (at least %.1f m at "
             "x %.1f, y %.1f): the view shows the terrain from below; raise the camera above "
             "the ground",
-            eye[2], ground - eye[2], ground, eye[0], eye[1],
+            eye[2], depth, eye[2] + depth, eye[0], eye[1],
         )  # fmt: skip
-    return ground
+    return depth
 
 
 def make_camera(
