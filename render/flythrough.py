@@ -23,7 +23,7 @@ from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step
 from render.strategies import DEFAULT, get_strategy, stream_metric
 from streamer.camera import Camera
-from streamer.clip import depth_below_ground
+from streamer.clip import warn_path_below_ground
 from streamer.run import close_for_verdict, flight_problem, out_of_view
 from streamer.session import open_session
 from tiler.store import TerrainStore
@@ -60,16 +60,7 @@ def write_rows(out: Path, rows: list[FlyRow]) -> None:
 def warn_frames_below_ground(store: TerrainStore, cameras: Sequence[Camera]) -> np.ndarray:
     """Log a warning when cameras of the path are below the terrain under them (those frames
     show it from below); each camera's depth below the ground (0: not below)."""
-    depth = depth_below_ground(store, np.array([c.position for c in cameras], dtype=np.float64))
-    below = np.flatnonzero(depth > 0)
-    if len(below):
-        log.warning(
-            "%d of the path's %d frames have the camera below the terrain under it (the first: "
-            "frame %d, %.1f m below; the deepest %.1f m): they show the terrain from below; "
-            "raise the path above the ground",
-            len(below), len(cameras), below[0], depth[below[0]], depth.max(),
-        )  # fmt: skip
-    return depth
+    return warn_path_below_ground(store, cameras, "they show the terrain from below", log)
 
 
 def flythrough(

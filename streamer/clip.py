@@ -8,13 +8,17 @@ the clearance (:func:`near_plane`), the far plane from the scene's size (:func:`
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
 from streamer.camera import Camera
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
+
+log = logging.getLogger(__name__)
 
 #: the smallest near plane (m): log depth resolves it together with a far plane of 1e6 km
 MIN_NEAR = 0.01
@@ -97,6 +101,26 @@ def depth_below_ground(store: TerrainStore, eyes: np.ndarray) -> np.ndarray:
         if ground is not None and eyes[i, 2] < ground:
             out[i] = ground - eyes[i, 2]
     return out
+
+
+def warn_path_below_ground(
+    store: TerrainStore,
+    cameras: Sequence[Camera],
+    effect: str,
+    logger: logging.Logger | None = None,
+) -> np.ndarray:
+    """Log a warning (on ``logger``, default this module's) when cameras of a path are below
+    the terrain under them, naming how many, the first, how deep, and ``effect`` (what that does
+    to the caller's output); each camera's depth below the ground (0: not below, or unknown)."""
+    depth = depth_below_ground(store, np.array([c.position for c in cameras], dtype=np.float64))
+    below = np.flatnonzero(depth > 0)
+    if len(below):
+        (logger or log).warning(
+            "%d of the path's %d frames have the camera below the terrain under it (the first: "
+            "frame %d, %.1f m below; the deepest %.1f m): %s; raise the path above the ground",
+            len(below), len(cameras), below[0], depth[below[0]], depth.max(), effect,
+        )  # fmt: skip
+    return depth
 
 
 def near_plane(

@@ -79,6 +79,7 @@ def stream(
 
     Example: terrastream stream demo.zarr --frames 600 --latency-ms 20 --plot io.png
     """
+    from streamer.clip import warn_path_below_ground
     from streamer.errors import PathOutOfViewError
     from streamer.loader import THREAD_PREFIX
     from streamer.run import (
@@ -106,6 +107,8 @@ def stream(
             path_file=path,
             viewport=viewport,
         )
+        if path is not None:  # a keyframe file may dip under the terrain: say so
+            warn_path_below_ground(s, cams, "a viewer flying it sees the terrain from below")
         cfg = dict(fps=fps, prefetch=not no_prefetch, latency_ms=latency_ms, tau=tau, metric=metric)
         cfg["raise_on_failure"] = False  # keep flying: failures are in the frames and summary
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting

@@ -26,6 +26,7 @@ with 0 LOD frames says nothing about popping). ``popping_px`` is the larger of t
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -41,7 +42,10 @@ from render.step import frame_step, stream_step
 from render.strategies import check_nodata, get_strategy, nodata_options, strategy_names
 from render.strategies.base import Strategy
 from streamer.camera import Camera
+from streamer.clip import warn_path_below_ground
 from tiler.store import TerrainStore
+
+_log = logging.getLogger(__name__)
 
 
 def shifted(camera: Camera, depth: float) -> Camera:
@@ -166,6 +170,7 @@ def compare(
     names = list(strategies or strategy_names())
     for name in names:
         check_nodata(name, o.nodata)
+    warn_path_below_ground(store, cameras, "they show the terrain from below", _log)
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
     i_mid = len(cameras) // 2
     mid = cameras[i_mid]

@@ -436,3 +436,30 @@ def test_a_flythrough_stopped_midway_keeps_its_frames_csv(store, tmp_path, monke
     assert len((tmp_path / "b" / "frames.csv").read_text().splitlines()) == 1 + 2
     stopped = json.loads((tmp_path / "b" / "summary.json").read_text())["stopped"]
     assert stopped["after_frames"] == 2 and "on purpose" in stopped["error"]
+
+
+@pytest.mark.parametrize("command", ["stream", "compare"])
+def test_a_keyframe_path_under_the_ground_is_warned_about_by_stream_and_compare(
+    command, store, tmp_path
+):
+    """``stream`` and ``compare`` with a ``--path`` file whose cameras dip under the terrain
+    say so, naming the frame and the depth (``flythrough`` and ``render --camera`` already
+    did); the control, the same path 1 m above the ground, is quiet."""
+    from streamer.clip import ground_height
+    from tiler.store import open_store
+
+    cx, cy = _centre(store)
+    ground = ground_height(open_store(store), cx, cy)
+    args = {
+        "stream": ["stream", store, "--frames", "2", "--size", "64x48", "--no-prefetch"],
+        "compare": ["compare", store, "--frames", "2", "--lods", "qiu", "--taus", "1",
+                    "--size", "64x48", "--patch-log2", "2"],
+    }[command]  # fmt: skip
+    under = [(0, cx, cy, ground + 200, 0, -30), (1, cx, cy, ground - 40, 0, -30)]
+    res = runner.invoke(app, [*args, "--path", _keyframes(tmp_path, under)])
+    assert "1 of the path's 2 frames have the camera below the terrain under it" in res.output
+    assert "(the first: frame 1, 40.0 m below" in res.output
+    above = [(0, cx, cy, ground + 200, 0, -30), (1, cx, cy, ground + 1, 0, -30)]
+    res = runner.invoke(app, [*args, "--path", _keyframes(tmp_path, above)])
+    assert res.exit_code == 0, res.output
+    assert "below the terrain" not in res.output
