@@ -317,65 +317,52 @@ def _grow1(a):
 def traverse(
     hh, dl, pyr, hoff, poff, lev, r0, c0, roots, root_inside,
     o, pext, normals, pmin, pmax, q, e,
-    basis, eye, focal, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pr,
+    basis, eye, focal, tau, x0, y0, dx, dy, k, prune, culled_collapse, nd, pm,
 ):  # fmt: skip
     """The pruned top-down + bottom-up pass of one frame: ``(tri, tslot, tlev, nodes, flags,
-    clamped, evaluated, nd, pr)`` in the numpy reference's order (see the module notes);
-    ``nd``/``pr`` the node buffers (the ones passed in, or larger), for the next frame."""
-    # nd: slot, idx, row, col, inside, parent, quad, depth; pr: pruned. Both are the caller's
-    # buffers from the last frame (grown here when short, returned), so a frame's nodes do not
-    # land in fresh memory
+    clamped, evaluated, nd, pm)`` in the numpy reference's order (see the module notes);
+    ``nd``/``pm`` the node buffers (the ones passed in, or larger), for the next frame.
+
+    A child the pruning bound collapses is decided when its parent expands (the reference
+    decides it when it visits the child, with the same operands): it is recorded as a bit of
+    its parent's ``pm`` (a collapsed quadrant, state 2) and never becomes a node, so neither
+    pass spends time on the ~70 % of nodes that are pruned."""
+    # nd: slot, idx, row, col, inside, parent, quad, depth; pm: pruned children (bit per
+    # quadrant). Both are the caller's buffers from the last frame (grown here when short,
+    # returned), so a frame's nodes do not land in fresh memory
     cap = max(64, 4 * roots.shape[0])
-    if nd.shape[0] < cap or pr.shape[0] != nd.shape[0]:
+    if nd.shape[0] < cap or pm.shape[0] != nd.shape[0]:
         nd = np.empty((cap, 8), np.int64)
-        pr = np.zeros(cap, np.bool_)
+        pm = np.zeros(cap, np.int64)
     wk = np.empty((8, 5))  # _bound's scratch
     pf = _quick_frame(basis, eye)
     nr = roots.shape[0]
     for i in range(nr):
         nd[i, 0], nd[i, 1], nd[i, 2], nd[i, 3] = roots[i], 0, 0, 0
         nd[i, 4], nd[i, 5], nd[i, 6], nd[i, 7] = root_inside[i], -1, -1, 0
-        pr[i] = False
+        pm[i] = 0
     starts = [0]
     lo, hi, d = 0, nr, 0
     while hi > lo:
         size = 1 << (k - d)
-        half = size >> 1
-        hx, hy = 0.5 * size * abs(dx), 0.5 * size * abs(dy)
+        half = size >> 1  # the children's size
+        hx, hy = 0.5 * half * abs(dx), 0.5 * half * abs(dy)
         w0, w1, w2 = _quick_extents(basis, hx, hy)
+        base = ((1 << (2 * (d + 1))) - 1) // 3  # the children's first pyramid index
         n_new = hi
         for j in range(lo, hi):
             s = nd[j, 0]
-            leaf = lev[s] - 1 == d
-            if prune and d >= 1 and (nd[j, 4] or culled_collapse):
-                ii = poff[s] + ((1 << (2 * d)) - 1) // 3 + nd[j, 1]
-                xmin = x0 + float(c0[s] + nd[j, 3] * size) * dx
-                ymax = y0 - float(r0[s] + nd[j, 2] * size) * dy
-                xmax, ymin = xmin + size * dx, ymax - size * dy
-                dm, zl, zh = pyr[ii, 0], pyr[ii, 1], pyr[ii, 2]
-                # the cheap bounds first: where they decide, _bound decides the same
-                qlo, qhi = _quick_bounds(
-                    basis, eye, focal, pf, dm, min(xmin, xmax), min(ymin, ymax),
-                    hx, hy, w0, w1, w2, zl, zh,
-                )  # fmt: skip
-                if qhi < tau:
-                    pr[j] = True
-                elif qlo >= tau:
-                    pr[j] = False
-                else:
-                    b = _bound(basis, eye, focal, dm, xmin, xmax, ymin, ymax, zl, zh, wk)
-                    pr[j] = b < tau
-            if pr[j] or leaf:
+            if lev[s] - 1 == d:  # a leaf
                 continue
             for qd in range(4):
                 row = 2 * nd[j, 2] + 1 - (qd >> 1)
                 col = 2 * nd[j, 3] + (qd & 1)
+                xmin = x0 + float(c0[s] + col * half) * dx
+                ymax = y0 - float(r0[s] + row * half) * dy
+                xmax, ymin = xmin + half * dx, ymax - half * dy
                 ins = nd[j, 4] != 0
                 hit = ins
                 if not ins:
-                    xmin = x0 + float(c0[s] + col * half) * dx
-                    ymax = y0 - float(r0[s] + row * half) * dy
-                    xmax, ymin = xmin + half * dx, ymax - half * dy
                     hit = _meets(
                         o, pext[0], pext[1], pext[2], pext[3], normals, pmin, pmax,
                         xmin, ymin, xmax, ymax,
@@ -383,13 +370,32 @@ def traverse(
                     ins = hit and _inside(o, q, e, xmin, ymin, xmax, ymax)
                 if not hit:
                     continue
+                idx = 4 * nd[j, 1] + qd
+                if prune and (ins or culled_collapse):  # (a child's depth is >= 1)
+                    ii = poff[s] + base + idx
+                    dm, zl, zh = pyr[ii, 0], pyr[ii, 1], pyr[ii, 2]
+                    # the cheap bounds first: where they decide, _bound decides the same
+                    qlo, qhi = _quick_bounds(
+                        basis, eye, focal, pf, dm, min(xmin, xmax), min(ymin, ymax),
+                        hx, hy, w0, w1, w2, zl, zh,
+                    )  # fmt: skip
+                    if qhi < tau:
+                        pruned = True
+                    elif qlo >= tau:
+                        pruned = False
+                    else:
+                        b = _bound(basis, eye, focal, dm, xmin, xmax, ymin, ymax, zl, zh, wk)
+                        pruned = b < tau
+                    if pruned:
+                        pm[j] |= 1 << qd
+                        continue
                 if n_new >= nd.shape[0]:
                     nd = _grow2(nd)
-                    pr = _grow1(pr)
-                nd[n_new, 0], nd[n_new, 1] = s, 4 * nd[j, 1] + qd
+                    pm = _grow1(pm)
+                nd[n_new, 0], nd[n_new, 1] = s, idx
                 nd[n_new, 2], nd[n_new, 3], nd[n_new, 4] = row, col, ins
                 nd[n_new, 5], nd[n_new, 6], nd[n_new, 7] = j, qd, d + 1
-                pr[n_new] = False
+                pm[n_new] = 0
                 n_new += 1
         lo, hi = hi, n_new
         if hi > lo:
@@ -398,7 +404,6 @@ def traverse(
     total = hi
     starts.append(total)
     cm = np.zeros((total, 4), np.int8)
-    state = np.zeros(total, np.int8)
     bits = np.zeros(total, np.int64)
     evaluated = 0
     clamped = 0
@@ -411,46 +416,43 @@ def traverse(
             present = 0  # bit q: quadrant q present / culled
             culled = 0
             for qd in range(4):
-                cu = (not leaf) and cm[j, qd] == 0
+                c = 2 if (pm[j] >> qd) & 1 else cm[j, qd]  # a pruned child: collapsed
+                cu = (not leaf) and c == 0
                 if cu:
                     culled |= 1 << qd
-                if leaf or cm[j, qd] == 2 or (cu and culled_collapse):
+                if leaf or c == 2 or (cu and culled_collapse):
                     present |= 1 << qd
-            if pr[j]:
-                st = 2
-            else:
-                evaluated += 1
-                # a vertex's δ_s is only computed where the decision reads it (the edge
-                # midpoint: both triangles present; the centre: every edge removed, d >= 1)
-                allrem = True
-                fl = 0
-                for ed in range(4):
-                    both = (present >> _EQ[ed, 0]) & (present >> _EQ[ed, 1]) & 1
-                    rem = both == 1 and _own_error(
-                        nd, j, 1 + ed, size, half, k, lev, hoff, r0, c0, hh, dl,
-                        basis, eye, focal, x0, y0, dx, dy,
-                    ) < tau  # fmt: skip
-                    allrem = allrem and rem
-                    if rem:
-                        fl |= 1 << (8 + ed)
-                st = 1
-                if dd_ >= 1 and allrem:
-                    e0 = _own_error(
-                        nd, j, 0, size, half, k, lev, hoff, r0, c0, hh, dl,
-                        basis, eye, focal, x0, y0, dx, dy,
-                    )  # fmt: skip
-                    if e0 < tau:
-                        st = 2
-                if st == 1:
-                    for t in range(8):
-                        qd = _FQ[t]
-                        pq, cq = (present >> qd) & 1, (culled >> qd) & 1
-                        if pq and not (fl >> (8 + _FE[t])) & 1 and not cq:
-                            fl |= 1 << t
-                    bits[j] = fl
-                    if fl != 0 and leaf and lev[s] < k:
-                        clamped += 1
-            state[j] = st
+            evaluated += 1  # (every node here: the pruned ones never became nodes)
+            # a vertex's δ_s is only computed where the decision reads it (the edge
+            # midpoint: both triangles present; the centre: every edge removed, d >= 1)
+            allrem = True
+            fl = 0
+            for ed in range(4):
+                both = (present >> _EQ[ed, 0]) & (present >> _EQ[ed, 1]) & 1
+                rem = both == 1 and _own_error(
+                    nd, j, 1 + ed, size, half, k, lev, hoff, r0, c0, hh, dl,
+                    basis, eye, focal, x0, y0, dx, dy,
+                ) < tau  # fmt: skip
+                allrem = allrem and rem
+                if rem:
+                    fl |= 1 << (8 + ed)
+            st = 1
+            if dd_ >= 1 and allrem:
+                e0 = _own_error(
+                    nd, j, 0, size, half, k, lev, hoff, r0, c0, hh, dl,
+                    basis, eye, focal, x0, y0, dx, dy,
+                )  # fmt: skip
+                if e0 < tau:
+                    st = 2
+            if st == 1:
+                for t in range(8):
+                    qd = _FQ[t]
+                    pq, cq = (present >> qd) & 1, (culled >> qd) & 1
+                    if pq and not (fl >> (8 + _FE[t])) & 1 and not cq:
+                        fl |= 1 << t
+                bits[j] = fl
+                if fl != 0 and leaf and lev[s] < k:
+                    clamped += 1
             if nd[j, 5] >= 0:
                 cm[nd[j, 5], nd[j, 6]] = st
     ntri = 0
@@ -488,4 +490,4 @@ def traverse(
                     tslot[it] = s
                     tlev[it] = dd_ + 1
                     it += 1
-    return tri, tslot, tlev, nodes, flags, clamped, evaluated, nd, pr
+    return tri, tslot, tlev, nodes, flags, clamped, evaluated, nd, pm

@@ -63,7 +63,7 @@ class JungHanSelector:
         self._forest: jh_kernels.Forest | None = None
         self._hoff = np.zeros(0, np.int64)  # the frame's trees' height offsets in the forest
         self._ws = np.zeros(0, np.int64)  # the compiled assembly's sort workspace, kept
-        self._nd = [np.zeros((0, 8), np.int64), np.zeros(0, bool)]  # the traversal's nodes
+        self._nd = [np.zeros((0, 8), np.int64), np.zeros(0, np.int64)]  # the traversal's nodes
         self._mod = None
 
     # -- per-block data ----------------------------------------------------------------------
