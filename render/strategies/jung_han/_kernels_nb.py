@@ -162,15 +162,16 @@ def _quick_bounds(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, z
     camera; ``w0..w2``: the box's half extents along the camera axes from ``hx``, ``hy``
     (``sum_j |R_ij| h_j``, j = x, y).
 
-    From the box's centre ``c`` and half extents ``w`` in camera coordinates:
+    From the box's centre ``c`` and half extents ``W = (W_x, W_y, W_z)`` in camera coordinates,
+    its nearest depth ``z = c_z - W_z`` (``_bound``'s ``z_min``: the corners' smallest depth)
+    and the gain ``g(q) = |u_xy - q u_z|`` at the centre's image ``q_c = c_xy / c_z``:
 
-    * ``hi``: every point of the box has depth ``>= z = c_z - w_z`` and ``|q| = |p_xy| / p_z <=
-      L / z``, ``L = |(|c_x| + w_x, |c_y| + w_y)|``, so its gain ``|u_xy - q u_z| <= |u_xy| +
-      |u_z| L / z`` and ``f dmax (|u_xy| + |u_z| L / z) / z`` is at least ``_bound``'s
-      ``f dmax max gain / z_min`` (its corners are points of the box).
-    * ``lo``: the box's image ``q`` is the convex hull of its corners' (a perspective map of a
-      box in front of the eye) and the gain is convex in ``q``, so the corners' largest gain is
-      at least the centre's; ``z_min <= c_z``: ``f dmax gain(c) / c_z`` is at most ``_bound``.
+    * ``lo``: the box's image is the convex hull of its corners' (a perspective map of a box in
+      front of the eye), ``q_c`` lies in it and ``g`` is convex, so the corners' largest gain is
+      at least ``g(q_c)``: ``f dmax g(q_c) / z`` is at most ``_bound``.
+    * ``hi``: a point ``p`` of the box has ``|p_xy - c_xy| <= |W_xy|`` and ``p_z >= z``, so its
+      image is within ``r = |W_xy| / z + |c_xy| W_z / (z c_z)`` of ``q_c`` and its gain at most
+      ``g(q_c) + |u_z| r``: ``f dmax (g(q_c) + |u_z| r) / z`` is at least ``_bound``.
 
     The margins (``1e-6`` relative, and absolute on ``hi``, against ``_bound``'s ``1e-9``) are
     orders of magnitude above either computation's rounding while the depth stays above
@@ -186,17 +187,20 @@ def _quick_bounds(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, z
     cx = rx * basis[0, 0] + ry * basis[0, 1] + rz * basis[0, 2]
     cy = rx * basis[1, 0] + ry * basis[1, 1] + rz * basis[1, 2]
     cz = rx * basis[2, 0] + ry * basis[2, 1] + rz * basis[2, 2]
-    z = cz - (w2 + hz * pf[5])
+    wz = w2 + hz * pf[5]
+    z = cz - wz
     scale = pf[2] + abs(xmin) + abs(ymin) + 2.0 * (hx + hy) + abs(zlo) + abs(zhi)
     if not z > 1e-6 * scale:  # (NaN too)
         return -np.inf, np.inf
-    lx = abs(cx) + w0 + hz * pf[3]
-    ly = abs(cy) + w1 + hz * pf[4]
-    hi = focal * dmax * (pf[0] + pf[1] * math.sqrt(lx * lx + ly * ly) / z) / z
+    wx = w0 + hz * pf[3]
+    wy = w1 + hz * pf[4]
     u2 = pf[6]
-    gx, gy = pf[7] - cx / cz * u2, pf[8] - cy / cz * u2
-    lo = focal * dmax * math.sqrt(gx * gx + gy * gy) / cz
-    return lo * (1.0 - 1e-6), hi * (1.0 + 1e-6) + 1e-6
+    icz, iz = 1.0 / cz, 1.0 / z  # (two divisions: rounding far inside the margins)
+    gx, gy = pf[7] - cx * icz * u2, pf[8] - cy * icz * u2
+    g = math.sqrt(gx * gx + gy * gy)
+    r = (math.sqrt(wx * wx + wy * wy) + math.sqrt(cx * cx + cy * cy) * wz * icz) * iz
+    k = focal * dmax * iz
+    return k * g * (1.0 - 1e-6), k * (g + pf[1] * r) * (1.0 + 1e-6) + 1e-6
 
 
 @_jit

@@ -120,7 +120,9 @@ def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
     an edge's sort key ``line * big + lo`` is the key of its ``lo`` end, a drawn vertex, so the
     edge the reference's ``searchsorted(key, vertex key) - 1`` picks is, in the vertices' order
     along that axis, the last edge (in edge order, as the stable sort keeps ties) starting at
-    the nearest vertex before: one sweep over the vertices, no search."""
+    the nearest vertex before: one sweep over the vertices, no search. A vertex past that edge
+    (a later line, or at or beyond its far end) means every later one is too, so the sweep
+    stops testing until the next edge starts."""
     m = tri.shape[0]
     nv = vcol.shape[0]
     rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
@@ -176,6 +178,8 @@ def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
                     ends[v, 0, other], ends[v, 1, other] = lo, hi
                     frac[v] = (pv - lo) / (hi - lo)
                     e_lo[v], e_hi[v] = (tid[t, j], tid[t, j1]) if a < b else (tid[t, j1], tid[t, j])
+                else:  # past the edge (a later line, or at or beyond its far end): so is
+                    cur = -1  # every later vertex in this order, until the next edge starts
             if best[g, r] >= 0:
                 cur = best[g, r]
     c = 0
