@@ -350,9 +350,11 @@ class FrameServices:
         *,
         clear: tuple[int, int, int] | None = None,
         lod_colour: bool = False,
+        holes: bool = False,
     ) -> float:
         """Bind and clear the framebuffer, set the camera uniforms and the index textures for
-        ``prog``; returns the frame's start time (``perf_counter``)."""
+        ``prog`` (``holes``: draw the triangles of nodata holes instead of discarding them);
+        returns the frame's start time (``perf_counter``)."""
         if tuple(camera.viewport) != tuple(self.config.size):
             raise RenderError(
                 f"camera viewport {camera.viewport} differs from the renderer's {self.config.size}"
@@ -368,6 +370,8 @@ class FrameServices:
         self.set_camera(prog, camera)
         if "lod_colour" in prog:
             prog["lod_colour"].value = int(lod_colour)
+        if "show_holes" in prog:
+            prog["show_holes"].value = int(holes)
         return t0
 
     def timed_frame(
@@ -379,10 +383,11 @@ class FrameServices:
         clear: tuple[int, int, int] | None,
         lod_colour: bool,
         what: str,
+        holes: bool = False,
     ) -> float:
         """Begin the frame for ``prog``, run ``body`` (the draw calls), wait for the GPU and
         check for GL errors; the frame's wall time in ms."""
-        t0 = self.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour)
+        t0 = self.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour, holes=holes)
         body()
         self.ctx.finish()
         ms = (time.perf_counter() - t0) * 1000.0

@@ -299,12 +299,19 @@ def is_clear(img: np.ndarray, clear_rgb: tuple[int, int, int]) -> np.ndarray:
 
 
 def crack_pixels(
-    img: np.ndarray, footprint: np.ndarray, clear_rgb: tuple[int, int, int], max_iter: int = 4096
+    img: np.ndarray,
+    footprint: np.ndarray,
+    clear_rgb: tuple[int, int, int],
+    max_iter: int = 4096,
+    holes: np.ndarray | None = None,
 ) -> int:
     """Clear-colour pixels of ``img`` inside ``footprint`` that the outside cannot reach.
 
     Pixels joined to the background (outside ``footprint`` or the image border) through clear
     pixels are outline differences of a coarser silhouette, not holes, and are not counted.
+    Nor are pixels ``holes`` marks: those the same selection covers when its nodata holes are
+    drawn, where the view sees through a hole in the data (one the reference hid behind terrain
+    that a coarser silhouette in front of it reveals), not through a crack.
     """
     clear = is_clear(img, clear_rgb)
     reach = clear & ~footprint
@@ -322,7 +329,10 @@ def crack_pixels(
         if (grow == reach).all():
             break
         reach = grow
-    return int((clear & footprint & ~reach).sum())
+    counted = clear & footprint & ~reach
+    if holes is not None:
+        counted &= ~holes
+    return int(counted.sum())
 
 
 def heights_fn(store: TerrainStore, patches: Patches) -> Callable[[int], np.ndarray]:

@@ -351,15 +351,26 @@ def drawn_cracks(
     """Crack pixels of the view's own selection ``sel``: seen from ``camera`` (inside the
     reference's ``footprint``) and from above (:func:`render.cracks.above_camera` framing the
     drawn triangles — ``triangles``, default ``strat.triangles(camera, sel)`` — inside the
-    reference selection ``ref_p`` drawn from there)."""
-    strat.draw(camera, sel, clear=CLEAR)
-    here = measure.crack_pixels(r.image(), footprint, CLEAR)
+    reference selection ``ref_p`` drawn from there). On a store with nodata, a pixel that the
+    selection covers once its nodata holes are drawn sees a hole in the data, not a crack, and
+    is not counted (:func:`render.measure.crack_pixels`' ``holes``)."""
+    nodata = bool(np.asarray(r.store.index.has_nodata).any())
+
+    def seen(cam: Camera, fp: np.ndarray) -> int:
+        strat.draw(cam, sel, clear=CLEAR)
+        img = r.image()
+        holes = None
+        if nodata and measure.is_clear(img, CLEAR)[fp].any():
+            strat.draw(cam, sel, clear=CLEAR, holes=True)
+            holes = ~measure.is_clear(r.image(), CLEAR)
+        return measure.crack_pixels(img, fp, CLEAR, holes=holes)
+
+    here = seen(camera, footprint)
     tri, h = triangles if triangles is not None else strat.triangles(camera, sel)
     above = cracks.above_camera(r.grid, camera, tri, h)
     r.draw(above, ref_p, clear=CLEAR)
     fp_above = ~measure.is_clear(r.image(), CLEAR)
-    strat.draw(above, sel, clear=CLEAR)
-    return here, measure.crack_pixels(r.image(), fp_above, CLEAR)
+    return here, seen(above, fp_above)
 
 
 TABLE_HEADER = (

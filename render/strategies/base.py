@@ -37,12 +37,15 @@ S = TypeVar("S")
 @dataclass(frozen=True)
 class DrawOptions:
     """How a selection is drawn: wireframe overlay, LOD colours, the clear colour (default:
-    the renderer's) and the selection's CPU ms to report in the stats."""
+    the renderer's), the selection's CPU ms to report in the stats, and ``holes``: the triangles
+    of nodata holes drawn instead of discarded (for the crack count, which must tell a hole in
+    the data from a crack: :func:`render.pipeline.drawn_cracks`)."""
 
     wireframe: bool = False
     lod_colour: bool = False
     clear: tuple[int, int, int] | None = None
     selection_ms: float = 0.0
+    holes: bool = False
 
     @classmethod
     def of(cls, options: DrawOptions | None = None, **kw: Any) -> DrawOptions:
@@ -162,7 +165,7 @@ class Strategy(ABC, Generic[S]):
         prog = self.wire if o.wireframe else self.prog
         ms = self.r.timed_frame(
             camera, prog, lambda: self.render(prog, sel), clear=o.clear,
-            lod_colour=o.lod_colour or o.wireframe, what=self.what,
+            lod_colour=o.lod_colour or o.wireframe, what=self.what, holes=o.holes,
         )  # fmt: skip
         return frame_stats(
             self.r, self.counts(sel), self.extra_frame_ms(sel) + ms, o, self.draw_gpu_bytes()

@@ -130,3 +130,85 @@ def test_stitched_selection_is_watertight(setup, name):
 def test_jung_han_from_above_has_no_crack_pixel(setup):
     _, (_, above) = _measure(setup, "jung-han", stitching=True)
     assert above == 0
+
+
+# -- holes in the data are not cracks ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def walled_hole(tmp_path_factory):
+    """A flat DEM with a 500 m wall one sample thick (row 63: off every coarse level's grid) in
+    front of a nodata hole, seen from 900 m above its south edge: the full-resolution reference
+    hides the hole behind the wall; a coarse selection that drops the wall shows it."""
+    ctx = make_context()
+    n = 129
+    dem = np.full((n, n), 100.0, np.float32)
+    dem[63, :] += 500.0
+    dem[41:51, 56:72] = np.nan
+    s = open_store(tile_dem(tmp_path_factory.mktemp("wall"), dem, 65, nodata=np.nan))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    x0, y0, x1, _ = r.grid.extent
+    cam = Camera(((x0 + x1) / 2, y0, 1000.0), pitch=-25.0, viewport=SIZE, near=5.0, far=1e5)
+    ref, _ = r.select(cam, 0.0, full=True)
+    r.draw(cam, ref, clear=CLEAR)
+    footprint = ~measure.is_clear(r.image(), CLEAR)
+    yield r, cam, ref, footprint
+    r.close()
+
+
+@pytest.mark.gl
+def test_a_hole_revealed_by_a_lower_silhouette_is_not_a_crack(walled_hole, monkeypatch):
+    """jung-han at τ = 32 drops the wall, so the view sees the hole the reference hid: its
+    pixels are clear, inside the reference's footprint and enclosed by terrain, yet the mesh is
+    watertight. The crack count leaves them out (the selection drawn with its holes covers
+    them); the positive control, the count without that check, reads them as cracks."""
+    r, cam, ref, footprint = walled_hole
+    st = get_strategy("jung-han", r)
+    sel, _ = st.select(cam, 32.0)
+    wt = cracks.watertight(r.grid, *st.triangles(cam, sel))
+    assert (wt.open_edges, wt.gap_edges) == (0, 0)
+    assert drawn_cracks(r, st, cam, sel, ref, footprint) == (0, 0)
+    real = measure.crack_pixels
+
+    def unchecked(img, fp, clear, max_iter=4096, holes=None):
+        return real(img, fp, clear, max_iter)
+
+    monkeypatch.setattr(measure, "crack_pixels", unchecked)
+    here, _ = drawn_cracks(r, st, cam, sel, ref, footprint)
+    assert here > 20
+
+
+@pytest.fixture(scope="module")
+def holed(tmp_path_factory):
+    """:func:`setup`'s rough DEM and view with a nodata square in sight."""
+    ctx = make_context()
+    dem = rough(257, 5, amp=20.0).astype(np.float32)
+    dem[100:140, 110:150] = np.nan
+    s = open_store(tile_dem(tmp_path_factory.mktemp("holed"), dem, 65, nodata=np.nan))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    x0, y0, x1, _ = r.grid.extent
+    cam = Camera(((x0 + x1) / 2, y0 + 1500, 3000.0), pitch=-30.0, viewport=SIZE, near=5.0, far=1e5)
+    ref, _ = r.select(cam, 0.0, full=True)
+    r.draw(cam, ref, clear=CLEAR)
+    footprint = ~measure.is_clear(r.image(), CLEAR)
+    # the hole in sight: clear pixels enclosed by terrain
+    assert measure.crack_pixels(r.image(), np.ones_like(footprint), CLEAR) > 20
+    yield r, cam, ref, footprint
+    r.close()
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("name", strategy_names())
+def test_cracks_beside_nodata_are_still_counted(holed, name):
+    """With nodata in view (so the hole check runs), stitching off still makes the crack count
+    fire for every strategy, and stitching on reads 0 from the camera."""
+    for stitching in (False, True):
+        wt, (here, above) = _measure(holed, name, stitching=stitching)
+        if stitching:
+            assert here == 0 and (wt.open_edges, wt.gap_edges) == (0, 0)
+        else:
+            assert here > 0 and wt.gap_edges > 0

@@ -70,3 +70,21 @@ def test_each_sample_is_counted_once(renderer):
 def _finite(tri, h):
     ok = np.isfinite(h).all(axis=1)
     return tri[ok], h[ok]
+
+
+def test_crack_pixels_leave_out_holes_in_the_data():
+    """An enclosed clear pixel inside the footprint is a crack, unless ``holes`` marks it (the
+    selection covers it once its nodata holes are drawn); a clear pixel joined to the
+    background never counts."""
+    clear = (255, 0, 255)
+    img = np.zeros((6, 8, 3), np.uint8)
+    img[0, :] = clear  # background along the top: reachable
+    img[3, 2] = clear  # enclosed
+    img[3, 5] = clear  # enclosed
+    footprint = np.ones((6, 8), bool)
+    assert measure.crack_pixels(img, footprint, clear) == 2
+    holes = np.zeros((6, 8), bool)
+    holes[3, 5] = True
+    assert measure.crack_pixels(img, footprint, clear, holes=holes) == 1
+    holes[0, :] = True  # marking background pixels changes nothing
+    assert measure.crack_pixels(img, footprint, clear, holes=holes) == 1
