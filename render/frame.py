@@ -441,6 +441,25 @@ class FrameServices:
         depth = np.frombuffer(self.fbo.read(attachment=-1, dtype="f4"), dtype=np.float32)
         return int(np.count_nonzero(depth[: w * h] < 1.0))
 
+    def surface_points(self, camera: Camera) -> np.ndarray:
+        """Where the last draw (from ``camera``) met terrain: per pixel, top row first, the world
+        point ``(x, y, z)`` on the pixel centre's ray at the depth written (the logarithmic
+        depth inverted), NaN where nothing was drawn."""
+        w, h = self.config.size
+        self.make_current()
+        raw = np.frombuffer(self.fbo.read(attachment=-1, dtype="f4"), dtype=np.float32)
+        d = raw[: w * h].reshape(h, w)[::-1].astype(np.float64)
+        dist = camera.near * np.exp2(d * math.log2(camera.far / camera.near))  # along forward
+        dist[d >= 1.0] = np.nan
+        u = (np.arange(w) + 0.5 - w / 2.0) / camera.focal_px
+        v = (h / 2.0 - (np.arange(h) + 0.5)) / camera.focal_px
+        ray = (
+            camera.forward[None, None, :]
+            + u[None, :, None] * camera.right[None, None, :]
+            + v[:, None, None] * camera.up[None, None, :]
+        )
+        return camera.eye[None, None, :] + dist[..., None] * ray
+
     def image(self) -> np.ndarray:
         """The framebuffer as an ``(h, w, 3)`` uint8 array, top row first."""
         w, h = self.config.size

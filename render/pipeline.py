@@ -351,9 +351,12 @@ def drawn_cracks(
     """Crack pixels of the view's own selection ``sel``: seen from ``camera`` (inside the
     reference's ``footprint``) and from above (:func:`render.cracks.above_camera` framing the
     drawn triangles — ``triangles``, default ``strat.triangles(camera, sel)`` — inside the
-    reference selection ``ref_p`` drawn from there). On a store with nodata, a pixel that the
-    selection covers once its nodata holes are drawn sees a hole in the data, not a crack, and
-    is not counted (:func:`render.measure.crack_pixels`' ``holes``)."""
+    reference selection ``ref_p`` drawn from there, where the reference's surface lies in
+    ``camera``'s view: outside it each selection culls at its own granularity, and where the
+    two culled edges pinch below a pixel the gap between them is enclosed, not a crack). On a
+    store with nodata, a pixel that the selection covers once its nodata holes are drawn sees a
+    hole in the data, not a crack, and is not counted (:func:`render.measure.crack_pixels`'
+    ``holes``)."""
     nodata = bool(np.asarray(r.store.index.has_nodata).any())
 
     def seen(cam: Camera, fp: np.ndarray) -> int:
@@ -370,7 +373,14 @@ def drawn_cracks(
     above = cracks.above_camera(r.grid, camera, tri, h)
     r.draw(above, ref_p, clear=CLEAR)
     fp_above = ~measure.is_clear(r.image(), CLEAR)
+    fp_above &= in_view(camera, r.surface_points(above))
     return here, seen(above, fp_above)
+
+
+def in_view(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """Per point of ``points`` (``(..., 3)``, NaN for none): inside ``camera``'s view frustum."""
+    flat = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return camera.in_view(flat).reshape(np.shape(points)[:-1])
 
 
 TABLE_HEADER = (

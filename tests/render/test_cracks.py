@@ -117,19 +117,24 @@ def test_unstitched_selection_cracks(setup, name):
 def test_stitched_selection_is_watertight(setup, name):
     wt, (here, above) = _measure(setup, name, stitching=True)
     assert (wt.open_edges, wt.gap_edges, wt.max_gap_m) == (0, 0, 0.0)
-    assert wt.boundary_edges > 0 and here == 0
-    if name != "jung-han":
-        assert above == 0
+    assert wt.boundary_edges > 0 and here == 0 and above == 0
 
 
 @pytest.mark.gl
-@pytest.mark.xfail(
-    strict=True,
-    reason="jung-han's closed mesh (0 open edges) drops a pixel seen from above on llvmpipe",
-)
-def test_jung_han_from_above_has_no_crack_pixel(setup):
+def test_from_above_only_the_measured_view_counts(setup, monkeypatch):
+    """jung-han's "crack pixel from above" on this view (an xfail blamed on llvmpipe until
+    2026-12-05) is no crack: the reference drawn from above covers patches beyond the measured
+    camera's frustum that jung-han culls at its coarser nodes, and where the two culled edges
+    pinch below a pixel the gap between them is enclosed. Counted only where the reference's
+    surface lies in the measured view, it reads 0; the control, the count over the whole
+    reference, reads the pinched pixel."""
+    from render import pipeline
+
     _, (_, above) = _measure(setup, "jung-han", stitching=True)
     assert above == 0
+    monkeypatch.setattr(pipeline, "in_view", lambda camera, pts: np.ones(pts.shape[:-1], bool))
+    _, (_, unrestricted) = _measure(setup, "jung-han", stitching=True)
+    assert unrestricted > 0
 
 
 # -- holes in the data are not cracks ------------------------------------------------------
