@@ -25,7 +25,14 @@ from render import cracks, measure
 from render.errors import EmptyViewError
 from render.select import Patches
 
-__all__ = ["Coverage", "EmptyViewError", "coverage", "in_view_samples", "uncovered_px"]
+__all__ = [
+    "Coverage",
+    "EmptyViewError",
+    "coverage",
+    "in_view_samples",
+    "reference_cover",
+    "uncovered_px",
+]
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
 
@@ -40,6 +47,9 @@ class Coverage:
     nodata_covered: float  # share of in-view nodata samples under it (0 when none in view)
     near_clipped: int  # terrain samples in the lateral view nearer than the near plane
     uncovered_px: float = 0.0  # undrawn terrain's screen distance to drawn terrain (px)
+    #: in-view terrain samples no full-resolution triangle can draw (each triangle holding
+    #: them has a nodata corner): left out of ``terrain_in_view`` and the shares above
+    undrawable: int = 0
 
 
 def in_view_samples(
@@ -170,6 +180,20 @@ def _near_clipped(camera: Camera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -
         return lat & (d > 0) & (d < camera.near)
 
 
+def reference_cover(
+    grid: BlockGrid, ref: Patches, heights: Callable[[int], np.ndarray]
+) -> np.ndarray:
+    """Sorted global keys of the samples the reference selection's own triangles cover: a
+    terrain sample outside them (every triangle holding it has a nodata corner) cannot be
+    drawn at any resolution."""
+    tri, h = cracks.drawn(*measure.patch_triangles(ref, grid, heights))
+    if not len(tri):
+        return np.zeros(0, np.int64)
+    rows, cols, _ = measure.rasterise(tri, h)
+    wg = grid.cols * grid.step + 1
+    return np.unique(np.asarray(rows, np.int64) * wg + np.asarray(cols, np.int64))
+
+
 def coverage(
     grid: BlockGrid,
     camera: Camera,
@@ -177,10 +201,13 @@ def coverage(
     heights: Callable[[int], np.ndarray],
     tri_cr: np.ndarray,
     tri_h: np.ndarray,
+    ref_cover: Callable[[], np.ndarray] | None = None,
 ) -> Coverage:
     """Coverage of the drawn triangles (global ``(col, row)`` corners, drawn heights) over
-    the in-view samples of the reference selection ``ref``; :class:`EmptyViewError` when the
-    view holds no terrain sample."""
+    the in-view samples of the reference selection ``ref`` that its own full-resolution
+    triangles draw (:func:`reference_cover`; ``ref_cover``, when given, returns it, e.g.
+    cached across the rows of one view; computed only when the drawn triangles miss a terrain
+    sample); :class:`EmptyViewError` when the view holds no terrain sample."""
     terrain, terrain_h, nodata, clipped = _in_view(ref, grid, camera, heights)
     if not len(terrain):
         raise EmptyViewError(
@@ -195,7 +222,14 @@ def coverage(
     wg = grid.cols * grid.step + 1
     covered = np.unique(np.asarray(rows, np.int64) * wg + np.asarray(cols, np.int64))
     hit = np.isin(terrain, covered, assume_unique=True)
+    undrawable = 0
+    if not hit.all():  # is it terrain that no triangle can draw (isolated beside nodata)?
+        ref_keys = ref_cover() if ref_cover is not None else reference_cover(grid, ref, heights)
+        drawable = np.isin(terrain, ref_keys, assume_unique=True)
+        undrawable = int((~drawable).sum())
+        if drawable.any():
+            terrain, terrain_h, hit = terrain[drawable], terrain_h[drawable], hit[drawable]
     t = float(hit.mean())
     n = float(np.isin(nodata, covered, assume_unique=True).mean()) if len(nodata) else 0.0
     gap = uncovered_px(grid, camera, terrain, terrain_h, hit)
-    return Coverage(len(terrain), len(nodata), t, n, clipped, gap)
+    return Coverage(len(terrain), len(nodata), t, n, clipped, gap, undrawable)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -210,6 +211,9 @@ class TradeoffRow:
     terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
     nodata_in_view: int = 0
     near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
+    #: in-view terrain samples no full-resolution triangle can draw (isolated beside nodata):
+    #: left out of terrain_in_view, terrain_covered and uncovered_px
+    undrawable_samples: int = 0
     #: the stream tau whose session supplied the levels (:func:`restream_taus`: a fraction of
     #: the row's when its strategy wanted levels the first session did not load)
     stream_tau: float | None = None
@@ -267,6 +271,7 @@ def tradeoff(
             "the camera at the terrain, closer"
         )
     ref_heights = measure.heights_fn(store, ref_p)
+    ref_cover = functools.cache(lambda: coverage.reference_cover(r.grid, ref_p, ref_heights))
     if "nodata" in (lod_options or {}):
         raise ValueError("pass the nodata rule as options=ViewOptions(nodata=...): it also plans "
                          "the session")  # fmt: skip
@@ -290,7 +295,7 @@ def tradeoff(
         err = measure.error_stats(strat.screen_errors(camera, patches))
         tri, tri_h = strat.triangles(camera, patches)
         seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint, (tri, tri_h))
-        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h)
+        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h, ref_cover)
         wt = cracks.watertight(r.grid, tri, tri_h)
         drawn = strat.drawn_blocks(patches)
         own = strat.own_gpu_bytes()
@@ -331,6 +336,7 @@ def tradeoff(
             terrain_in_view=cov.terrain_in_view,
             nodata_in_view=cov.nodata_in_view,
             near_clipped_samples=cov.near_clipped,
+            undrawable_samples=cov.undrawable,
             stream_tau=float(st_tau),
         )
         rows.append(row)

@@ -116,3 +116,52 @@ def test_dropped_triangles_are_far_from_the_drawn_terrain(renderer):
     tri, h = _drawn(r, cam, 0.0)
     assert _cov(r, cam, tri, h).uncovered_px == 0.0
     assert _cov(r, cam, tri[::2], h[::2]).uncovered_px >= 1.0
+
+
+@pytest.fixture(scope="module")
+def islanded(tmp_path_factory):
+    """:func:`renderer`'s DEM with one valid sample left alone inside its hole: no triangle,
+    at any resolution, can draw it (every triangle holding it has a nodata corner)."""
+    dem = np.full((65, 65), 300.0, np.float32)
+    dem += np.add.outer(np.arange(65), np.arange(65)).astype(np.float32)
+    dem[20:30, 20:30] = np.nan
+    dem[25, 25] = 350.0
+    ctx = make_context()
+    s = open_store(tile_dem(tmp_path_factory.mktemp("island"), dem, 33, nodata=np.nan))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    yield r
+    r.close()
+
+
+def test_terrain_no_triangle_can_draw_is_not_counted_as_dropped(islanded):
+    """The lone sample, in view, is not drawn even at full resolution: it is reported as
+    ``undrawable`` and left out of the shares, so the full-resolution surface covers all the
+    terrain and its undrawn distance is 0 (it read the island's distance to the hole's rim,
+    ~5 cells, before). Controls: dropping drawable triangles still lowers the share and raises
+    the distance; a DEM without the island has nothing undrawable."""
+    r = islanded
+    cam = _nadir(r)
+    g = r.grid
+    ref, _ = r.select(cam, 0.0, full=True)
+    terrain, _, _ = coverage.in_view_samples(ref, g, cam, measure.heights_fn(r.store, ref))
+    island = 25 * (g.cols * g.step + 1) + 25
+    assert island in terrain  # in view, and no full-resolution triangle draws it:
+    assert island not in coverage.reference_cover(g, ref, measure.heights_fn(r.store, ref))
+    full = _cov(r, cam, *_drawn(r, cam, 0.0))
+    assert full.undrawable == 1
+    assert full.terrain_covered == 1.0 and full.uncovered_px == 0.0
+    tri, h = _drawn(r, cam, 0.0)
+    keep = ~((tri[:, :, 0] >= 40) & (tri[:, :, 1] >= 40)).all(axis=1)  # a corner dropped
+    dropped = _cov(r, cam, tri[keep], h[keep])
+    assert dropped.undrawable == 1 and dropped.terrain_covered < 1.0
+    assert dropped.uncovered_px > 5.0
+
+
+def test_no_undrawable_terrain_without_islands(renderer):
+    r = renderer
+    cam = _nadir(r)
+    tri, h = _drawn(r, cam, 0.0)
+    c = _cov(r, cam, tri[::2], h[::2])  # drawn terrain missed: the reference cover is read
+    assert c.undrawable == 0 and c.terrain_covered < 1.0
