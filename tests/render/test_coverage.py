@@ -16,16 +16,24 @@ pytestmark = pytest.mark.gl
 SIZE = (128, 96)
 
 
-@pytest.fixture(scope="module")
-def renderer(tmp_path_factory):
+def _renderer(tmp, island: bool = False) -> TerrainRenderer:
+    """A sloping 65² DEM with a 10² nodata hole (and, with ``island``, one valid sample left
+    alone inside it), every block on the GPU at full resolution."""
     dem = np.full((65, 65), 300.0, np.float32)
     dem += np.add.outer(np.arange(65), np.arange(65)).astype(np.float32)
     dem[20:30, 20:30] = np.nan
-    ctx = make_context()
-    s = open_store(tile_dem(tmp_path_factory.mktemp("cov"), dem, 33, nodata=np.nan))
-    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
+    if island:
+        dem[25, 25] = 350.0
+    s = open_store(tile_dem(tmp, dem, 33, nodata=np.nan))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=make_context())
     for b in s.blocks():
         r.upload(b, s.read_levels(b, s.k))
+    return r
+
+
+@pytest.fixture(scope="module")
+def renderer(tmp_path_factory):
+    r = _renderer(tmp_path_factory.mktemp("cov"))
     yield r
     r.close()
 
@@ -122,15 +130,7 @@ def test_dropped_triangles_are_far_from_the_drawn_terrain(renderer):
 def islanded(tmp_path_factory):
     """:func:`renderer`'s DEM with one valid sample left alone inside its hole: no triangle,
     at any resolution, can draw it (every triangle holding it has a nodata corner)."""
-    dem = np.full((65, 65), 300.0, np.float32)
-    dem += np.add.outer(np.arange(65), np.arange(65)).astype(np.float32)
-    dem[20:30, 20:30] = np.nan
-    dem[25, 25] = 350.0
-    ctx = make_context()
-    s = open_store(tile_dem(tmp_path_factory.mktemp("island"), dem, 33, nodata=np.nan))
-    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
-    for b in s.blocks():
-        r.upload(b, s.read_levels(b, s.k))
+    r = _renderer(tmp_path_factory.mktemp("island"), island=True)
     yield r
     r.close()
 

@@ -77,20 +77,26 @@ SIZE = (128, 96)
 TAU = 8.0
 
 
-@pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    ctx = make_context()
-    s = open_store(tile_dem(tmp_path_factory.mktemp("cracks"), rough(257, 5, amp=20.0), 65))
-    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
+def _view(tmp, dem: np.ndarray, eye_dy: float, z: float, pitch: float, **kw):
+    """A renderer over ``dem`` (blocks of 65, every block on the GPU at full resolution), a
+    camera ``eye_dy`` metres north of its south edge, the full-resolution reference selection
+    for it and the reference's footprint drawn from it."""
+    s = open_store(tile_dem(tmp, dem, 65, **kw))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=make_context())
     for b in s.blocks():
         r.upload(b, s.read_levels(b, s.k))
     x0, y0, x1, _ = r.grid.extent
-    cam = Camera(((x0 + x1) / 2, y0 + 1500, 3000.0), pitch=-30.0, viewport=SIZE, near=5.0, far=1e5)
+    cam = Camera(((x0 + x1) / 2, y0 + eye_dy, z), pitch=pitch, viewport=SIZE, near=5.0, far=1e5)
     ref, _ = r.select(cam, 0.0, full=True)
     r.draw(cam, ref, clear=CLEAR)
-    footprint = ~measure.is_clear(r.image(), CLEAR)
-    yield r, cam, ref, footprint
-    r.close()
+    return r, cam, ref, ~measure.is_clear(r.image(), CLEAR)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    view = _view(tmp_path_factory.mktemp("cracks"), rough(257, 5, amp=20.0), 1500, 3000, -30)
+    yield view
+    view[0].close()
 
 
 def _measure(setup, name: str, stitching: bool):
@@ -145,22 +151,13 @@ def walled_hole(tmp_path_factory):
     """A flat DEM with a 500 m wall one sample thick (row 63: off every coarse level's grid) in
     front of a nodata hole, seen from 900 m above its south edge: the full-resolution reference
     hides the hole behind the wall; a coarse selection that drops the wall shows it."""
-    ctx = make_context()
     n = 129
     dem = np.full((n, n), 100.0, np.float32)
     dem[63, :] += 500.0
     dem[41:51, 56:72] = np.nan
-    s = open_store(tile_dem(tmp_path_factory.mktemp("wall"), dem, 65, nodata=np.nan))
-    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
-    for b in s.blocks():
-        r.upload(b, s.read_levels(b, s.k))
-    x0, y0, x1, _ = r.grid.extent
-    cam = Camera(((x0 + x1) / 2, y0, 1000.0), pitch=-25.0, viewport=SIZE, near=5.0, far=1e5)
-    ref, _ = r.select(cam, 0.0, full=True)
-    r.draw(cam, ref, clear=CLEAR)
-    footprint = ~measure.is_clear(r.image(), CLEAR)
-    yield r, cam, ref, footprint
-    r.close()
+    view = _view(tmp_path_factory.mktemp("wall"), dem, 0, 1000, -25, nodata=np.nan)
+    yield view
+    view[0].close()
 
 
 @pytest.mark.gl
@@ -188,21 +185,14 @@ def test_a_hole_revealed_by_a_lower_silhouette_is_not_a_crack(walled_hole, monke
 @pytest.fixture(scope="module")
 def holed(tmp_path_factory):
     """:func:`setup`'s rough DEM and view with a nodata square in sight."""
-    ctx = make_context()
     dem = rough(257, 5, amp=20.0).astype(np.float32)
     dem[100:140, 110:150] = np.nan
-    s = open_store(tile_dem(tmp_path_factory.mktemp("holed"), dem, 65, nodata=np.nan))
-    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=ctx)
-    for b in s.blocks():
-        r.upload(b, s.read_levels(b, s.k))
-    x0, y0, x1, _ = r.grid.extent
-    cam = Camera(((x0 + x1) / 2, y0 + 1500, 3000.0), pitch=-30.0, viewport=SIZE, near=5.0, far=1e5)
-    ref, _ = r.select(cam, 0.0, full=True)
-    r.draw(cam, ref, clear=CLEAR)
-    footprint = ~measure.is_clear(r.image(), CLEAR)
+    view = _view(tmp_path_factory.mktemp("holed"), dem, 1500, 3000, -30, nodata=np.nan)
+    r = view[0]
+    r.draw(view[1], view[2], clear=CLEAR)
     # the hole in sight: clear pixels enclosed by terrain
-    assert measure.crack_pixels(r.image(), np.ones_like(footprint), CLEAR) > 20
-    yield r, cam, ref, footprint
+    assert measure.crack_pixels(r.image(), np.ones_like(view[3]), CLEAR) > 20
+    yield view
     r.close()
 
 
