@@ -27,6 +27,7 @@ from render.strategies import (
     stream_metric,
 )
 from render.strategies.base import DrawOptions
+from render.strategies.qiu import patch_counts, select_clod
 from streamer.camera import Camera
 from streamer.session import Session, open_session
 from tiler.layout import grid_side, level_size
@@ -342,7 +343,40 @@ def tradeoff(
         rows.append(row)
         if log:
             log(format_row(row))
+    note = full_rule_note(r, camera, rows, res, o)
+    if note and log:
+        log(note)
     return rows
+
+
+def full_rule_note(
+    r: TerrainRenderer,
+    camera: Camera,
+    rows: Sequence[TradeoffRow],
+    resident: Mapping[Any, int],
+    o: ViewOptions,
+) -> str | None:
+    """A note for a sweep whose τ changed nothing because nodata pinned the mesh: ``qiu``
+    under the nodata rule ``full`` on a store with nodata, the same triangles at every τ, and
+    the ``gap`` rule's selection at the largest τ (with the levels held, so at most what a
+    ``gap`` session would draw) at least a fifth smaller; None otherwise."""
+    if o.lod != "qiu" or o.nodata != "full" or len(rows) < 2:
+        return None
+    if len({row.triangles for row in rows}) != 1:
+        return None
+    if not bool(np.asarray(r.store.index.has_nodata).any()):
+        return None
+    top = max(row.tau for row in rows)
+    gap, _ = select_clod(r, camera, top, o.metric, resident=dict(resident), nodata="gap")
+    n = patch_counts(gap).triangles
+    if n > 0.8 * rows[0].triangles:
+        return None
+    return (
+        f"note: τ changed nothing here ({rows[0].triangles:,} triangles at every τ): under "
+        "--nodata-rule full every node holding both terrain and nodata is drawn at full "
+        f"resolution; --nodata-rule gap would draw at most {n:,} at τ = {top:g} (it refines "
+        "such a node only while its cells span more than min(τ, 1) px)"
+    )
 
 
 def drawn_cracks(
