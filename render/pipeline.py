@@ -343,7 +343,7 @@ def tradeoff(
         rows.append(row)
         if log:
             log(format_row(row))
-    note = full_rule_note(r, camera, rows, res, o)
+    note = full_rule_note(r, camera, rows, res, o) if len(rows) > 1 else None
     if note and log:
         log(note)
     return rows
