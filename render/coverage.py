@@ -181,17 +181,51 @@ def _near_clipped(camera: Camera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -
 
 
 def reference_cover(
-    grid: BlockGrid, ref: Patches, heights: Callable[[int], np.ndarray]
+    grid: BlockGrid,
+    ref: Patches,
+    heights: Callable[[int], np.ndarray],
+    keys: np.ndarray | None = None,
 ) -> np.ndarray:
     """Sorted global keys of the samples the reference selection's own triangles cover: a
     terrain sample outside them (every triangle holding it has a nodata corner) cannot be
-    drawn at any resolution."""
+    drawn at full resolution. With ``keys`` (sorted), only those of ``keys``, from the
+    reference patches that hold one of them."""
+    if keys is not None:
+        ref = ref.subset(_patches_holding(ref, grid, keys))
     tri, h = cracks.drawn(*measure.patch_triangles(ref, grid, heights))
     if not len(tri):
         return np.zeros(0, np.int64)
     rows, cols, _ = measure.rasterise(tri, h)
     wg = grid.cols * grid.step + 1
-    return np.unique(np.asarray(rows, np.int64) * wg + np.asarray(cols, np.int64))
+    out = np.unique(np.asarray(rows, np.int64) * wg + np.asarray(cols, np.int64))
+    return out if keys is None else out[np.isin(out, keys, assume_unique=True)]
+
+
+def _patches_holding(ref: Patches, grid: BlockGrid, keys: np.ndarray) -> np.ndarray:
+    """Per patch of ``ref``: its closed footprint holds one of the samples ``keys`` (a summed
+    table of the samples per block, so the test is O(1) per patch)."""
+    keep = np.zeros(len(ref), bool)
+    if not len(ref) or not len(keys):
+        return keep
+    wg = grid.cols * grid.step + 1
+    step, side = grid.step, grid.step + 1
+    rows, cols = keys // wg, keys % wg
+    e = np.left_shift(np.left_shift(1, ref.cells_log2), grid.k - ref.level)
+    r0, c0 = ref.row * e, ref.col * e  # in-block sample origin of each patch
+    pb = ref.blocks[ref.block]
+    for br, bc in ref.blocks.tolist():
+        lr, lc = rows - br * step, cols - bc * step  # (a border sample is in two blocks)
+        inside = (lr >= 0) & (lr <= step) & (lc >= 0) & (lc <= step)
+        mine = (pb[:, 0] == br) & (pb[:, 1] == bc)
+        if not inside.any() or not mine.any():
+            continue
+        sat = np.zeros((side + 1, side + 1), np.int64)
+        np.add.at(sat, (lr[inside] + 1, lc[inside] + 1), 1)
+        sat = sat.cumsum(0).cumsum(1)
+        a, b = r0[mine], c0[mine]
+        a1, b1 = np.minimum(a + e[mine], step) + 1, np.minimum(b + e[mine], step) + 1
+        keep[mine] = (sat[a1, b1] - sat[a, b1] - sat[a1, b] + sat[a, b]) > 0
+    return keep
 
 
 def coverage(
@@ -201,13 +235,12 @@ def coverage(
     heights: Callable[[int], np.ndarray],
     tri_cr: np.ndarray,
     tri_h: np.ndarray,
-    ref_cover: Callable[[], np.ndarray] | None = None,
 ) -> Coverage:
     """Coverage of the drawn triangles (global ``(col, row)`` corners, drawn heights) over
-    the in-view samples of the reference selection ``ref`` that its own full-resolution
-    triangles draw (:func:`reference_cover`; ``ref_cover``, when given, returns it, e.g.
-    cached across the rows of one view; computed only when the drawn triangles miss a terrain
-    sample); :class:`EmptyViewError` when the view holds no terrain sample."""
+    the in-view samples of the reference selection ``ref`` that a triangle can draw: those the
+    drawn triangles or the reference's own full-resolution ones cover (:func:`reference_cover`,
+    read for the missed samples only); :class:`EmptyViewError` when the view holds no terrain
+    sample."""
     terrain, terrain_h, nodata, clipped = _in_view(ref, grid, camera, heights)
     if not len(terrain):
         raise EmptyViewError(
@@ -224,8 +257,8 @@ def coverage(
     hit = np.isin(terrain, covered, assume_unique=True)
     undrawable = 0
     if not hit.all():  # is it terrain that no triangle can draw (isolated beside nodata)?
-        ref_keys = ref_cover() if ref_cover is not None else reference_cover(grid, ref, heights)
-        drawable = np.isin(terrain, ref_keys, assume_unique=True)
+        missed = terrain[~hit]
+        drawable = hit | np.isin(terrain, reference_cover(grid, ref, heights, missed))
         undrawable = int((~drawable).sum())
         if drawable.any():
             terrain, terrain_h, hit = terrain[drawable], terrain_h[drawable], hit[drawable]

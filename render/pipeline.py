@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -272,7 +271,6 @@ def tradeoff(
             "the camera at the terrain, closer"
         )
     ref_heights = measure.heights_fn(store, ref_p)
-    ref_cover = functools.cache(lambda: coverage.reference_cover(r.grid, ref_p, ref_heights))
     if "nodata" in (lod_options or {}):
         raise ValueError("pass the nodata rule as options=ViewOptions(nodata=...): it also plans "
                          "the session")  # fmt: skip
@@ -296,7 +294,7 @@ def tradeoff(
         err = measure.error_stats(strat.screen_errors(camera, patches))
         tri, tri_h = strat.triangles(camera, patches)
         seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint, (tri, tri_h))
-        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h, ref_cover)
+        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h)
         wt = cracks.watertight(r.grid, tri, tri_h)
         drawn = strat.drawn_blocks(patches)
         own = strat.own_gpu_bytes()
@@ -402,11 +400,11 @@ def drawn_cracks(
     def seen(cam: Camera, fp: np.ndarray) -> int:
         strat.draw(cam, sel, clear=CLEAR)
         img = r.image()
-        holes = None
-        if nodata and measure.is_clear(img, CLEAR)[fp].any():
+        n = measure.crack_pixels(img, fp, CLEAR)
+        if n and nodata:  # holes in the data among them? (drawn only when there is a doubt)
             strat.draw(cam, sel, clear=CLEAR, holes=True)
-            holes = ~measure.is_clear(r.image(), CLEAR)
-        return measure.crack_pixels(img, fp, CLEAR, holes=holes)
+            n = measure.crack_pixels(img, fp, CLEAR, holes=~measure.is_clear(r.image(), CLEAR))
+        return n
 
     here = seen(camera, footprint)
     tri, h = triangles if triangles is not None else strat.triangles(camera, sel)

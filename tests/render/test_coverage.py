@@ -165,3 +165,31 @@ def test_no_undrawable_terrain_without_islands(renderer):
     tri, h = _drawn(r, cam, 0.0)
     c = _cov(r, cam, tri[::2], h[::2])  # drawn terrain missed: the reference cover is read
     assert c.undrawable == 0 and c.terrain_covered < 1.0
+
+
+def test_reference_cover_of_some_samples_reads_only_their_patches(islanded, monkeypatch):
+    """``reference_cover`` restricted to some samples (the missed ones, in practice) equals the
+    whole cover cut to them, block borders, the island and the hole included, and rasterises
+    only the patches that hold them."""
+    r = islanded
+    g = r.grid
+    cam = _nadir(r)
+    ref, _ = r.select(cam, 0.0, full=True)
+    heights = measure.heights_fn(r.store, ref)
+    whole = coverage.reference_cover(g, ref, heights)
+    wg = g.cols * g.step + 1
+    rng = np.random.default_rng(3)
+    picks = [(25, 25), (20, 20), (32, 32), (32, 10), (0, 0), (64, 64), (29, 30)]
+    picks += [tuple(p) for p in rng.integers(0, 65, (30, 2))]
+    keys = np.unique([rr * wg + cc for rr, cc in picks])
+    seen = []
+    real = measure.patch_triangles
+
+    def counted(patches, *a):
+        seen.append(len(patches))
+        return real(patches, *a)
+
+    monkeypatch.setattr(measure, "patch_triangles", counted)
+    part = coverage.reference_cover(g, ref, heights, keys)
+    assert np.array_equal(part, whole[np.isin(whole, keys)])
+    assert 25 * wg + 25 not in part and seen[0] < len(ref) / 2
