@@ -47,8 +47,9 @@ class Coverage:
     nodata_covered: float  # share of in-view nodata samples under it (0 when none in view)
     near_clipped: int  # terrain samples in the lateral view nearer than the near plane
     uncovered_px: float = 0.0  # undrawn terrain's screen distance to drawn terrain (px)
-    #: in-view terrain samples no full-resolution triangle can draw (each triangle holding
-    #: them has a nodata corner): left out of ``terrain_in_view`` and the shares above
+    #: in-view terrain samples neither the drawn triangles nor the reference's full-resolution
+    #: ones cover (each triangle holding them has a nodata corner): left out of
+    #: ``terrain_in_view``, the shares and ``uncovered_px``
     undrawable: int = 0
 
 

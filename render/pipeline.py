@@ -211,8 +211,8 @@ class TradeoffRow:
     terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
     nodata_in_view: int = 0
     near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
-    #: in-view terrain samples no full-resolution triangle can draw (isolated beside nodata):
-    #: left out of terrain_in_view, terrain_covered and uncovered_px
+    #: in-view terrain samples neither the drawn nor the reference's triangles cover (isolated
+    #: beside nodata): left out of terrain_in_view, terrain_covered and uncovered_px
     undrawable_samples: int = 0
     #: the stream tau whose session supplied the levels (:func:`restream_taus`: a fraction of
     #: the row's when its strategy wanted levels the first session did not load)
