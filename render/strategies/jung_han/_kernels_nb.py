@@ -187,33 +187,32 @@ def _quick_bounds(basis, eye, focal, pf, dmax, xmin, ymin, hx, hy, w0, w1, w2, z
     cx = rx * basis[0, 0] + ry * basis[0, 1] + rz * basis[0, 2]
     cy = rx * basis[1, 0] + ry * basis[1, 1] + rz * basis[1, 2]
     cz = rx * basis[2, 0] + ry * basis[2, 1] + rz * basis[2, 2]
-    wz = w2 + hz * pf[5]
+    wz = w2 + hz * pf[3]
     z = cz - wz
-    scale = pf[2] + abs(xmin) + abs(ymin) + 2.0 * (hx + hy) + abs(zlo) + abs(zhi)
+    scale = pf[0] + abs(xmin) + abs(ymin) + 2.0 * (hx + hy) + abs(zlo) + abs(zhi)
     if not z > 1e-6 * scale:  # (NaN too)
         return -np.inf, np.inf
-    wx = w0 + hz * pf[3]
-    wy = w1 + hz * pf[4]
-    u2 = pf[6]
+    wx = w0 + hz * pf[1]
+    wy = w1 + hz * pf[2]
+    u2 = pf[4]
     icz, iz = 1.0 / cz, 1.0 / z  # (two divisions: rounding far inside the margins)
-    gx, gy = pf[7] - cx * icz * u2, pf[8] - cy * icz * u2
+    gx, gy = pf[5] - cx * icz * u2, pf[6] - cy * icz * u2
     g = math.sqrt(gx * gx + gy * gy)
     r = (math.sqrt(wx * wx + wy * wy) + math.sqrt(cx * cx + cy * cy) * wz * icz) * iz
     k = focal * dmax * iz
-    return k * g * (1.0 - 1e-6), k * (g + pf[1] * r) * (1.0 + 1e-6) + 1e-6
+    return k * g * (1.0 - 1e-6), k * (g + pf[3] * r) * (1.0 + 1e-6) + 1e-6
 
 
 @_jit
 def _quick_frame(basis, eye):
-    """:func:`_quick_bounds`' per-camera values: ``|u_xy|``, ``|u_z|``, the eye's magnitude
-    ``|e_x| + |e_y| + |e_z|``, ``|R_iz|`` (i = 0, 1, 2), then ``u_z``, ``u_x``, ``u_y``; ``u`` =
-    world up in camera axes."""
+    """:func:`_quick_bounds`' per-camera values: the eye's magnitude ``|e_x| + |e_y| + |e_z|``,
+    ``|R_iz|`` (i = 0, 1, 2; ``|R_2z| = |u_z|``), then ``u_z``, ``u_x``, ``u_y``; ``u`` = world
+    up in camera axes."""
     u0, u1, u2 = basis[0, 2], basis[1, 2], basis[2, 2]
-    pf = np.empty(9)
-    pf[0], pf[1] = math.sqrt(u0 * u0 + u1 * u1), abs(u2)
-    pf[2] = abs(eye[0]) + abs(eye[1]) + abs(eye[2])
-    pf[3], pf[4], pf[5] = abs(u0), abs(u1), abs(u2)
-    pf[6], pf[7], pf[8] = u2, u0, u1
+    pf = np.empty(7)
+    pf[0] = abs(eye[0]) + abs(eye[1]) + abs(eye[2])
+    pf[1], pf[2], pf[3] = abs(u0), abs(u1), abs(u2)
+    pf[4], pf[5], pf[6] = u2, u0, u1
     return pf
 
 
