@@ -207,3 +207,47 @@ def test_cracks_beside_nodata_are_still_counted(holed, name):
             assert here == 0 and (wt.open_edges, wt.gap_edges) == (0, 0)
         else:
             assert here > 0 and wt.gap_edges > 0
+
+
+@pytest.mark.gl
+def test_surface_points_invert_the_depth_on_a_plane(tmp_path):
+    """``FrameServices.surface_points`` (what the count from above tests against the measured
+    view) puts each drawn pixel on the plane the DEM is, within a centimetre, from above and
+    obliquely; NaN where nothing is drawn. Control: read with a far plane twice as far, the
+    points leave the plane by metres."""
+    import dataclasses
+
+    n = 129
+    rr, cc = np.mgrid[0:n, 0:n]
+    dem = (100.0 + 2.0 * cc + 0.5 * rr).astype(np.float32)
+    s = open_store(tile_dem(tmp_path, dem, 65))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=make_context())
+    try:
+        for b in s.blocks():
+            r.upload(b, s.read_levels(b, s.k))
+        x0, y0, x1, y1 = r.grid.extent
+        cams = [
+            Camera(((x0 + x1) / 2, (y0 + y1) / 2, 5000.0), pitch=-90.0, viewport=SIZE,
+                   near=10.0, far=1e5),
+            Camera(((x0 + x1) / 2, y0 - 500, 800.0), pitch=-20.0, viewport=SIZE, near=1.0,
+                   far=1e6),
+        ]  # fmt: skip
+        for cam in cams:
+            ref, _ = r.select(cam, 0.0, full=True)
+            r.draw(cam, ref, clear=CLEAR)
+            drawn = ~measure.is_clear(r.image(), CLEAR)
+
+            assert _off_plane(r, cam, drawn) < 0.01
+            assert _off_plane(r, dataclasses.replace(cam, far=2 * cam.far), drawn) > 1.0
+    finally:
+        r.close()
+
+
+def _off_plane(r, cam, drawn) -> float:
+    """Largest distance in z of ``surface_points(cam)`` from the plane z = 100 + 2 col + 0.5
+    row; its finite points must be the ``drawn`` pixels."""
+    p = r.surface_points(cam)
+    ok = np.isfinite(p[..., 0])
+    assert np.array_equal(ok, drawn) and ok.sum() > 1000
+    rows, cols = r.grid.world_to_sample(p[ok][:, 0], p[ok][:, 1])
+    return float(np.abs(p[ok][:, 2] - (100.0 + 2.0 * cols + 0.5 * rows)).max())
