@@ -95,6 +95,7 @@ class Loader:
         self.fetching: dict[Block, set[int]] = {}  # levels being read (-1: errors)
         self.raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded
         self.decoding: set[Block] = set()
+        self.probes: set[Job] = set()  # reads running of blocks failed when they started
         self.demanded: set[tuple[Block, int]] = set()
         self.due: dict[tuple[Block, int], float] = {}  # level -> due time of its first frame
         self.ever_loaded: set[tuple[Block, int]] = set()  # (block, level) loaded at least once
@@ -183,7 +184,10 @@ class Loader:
 
     def next_job(self) -> Job | None:
         """Pop the most urgent ``(block, level)`` to fetch (caller holds the lock)."""
-        return self.queue.pop(time.monotonic(), self._take)
+        job = self.queue.pop(time.monotonic(), self._take, probe=not self.probes)
+        if job is not None and self.queue.is_failed(job[0]):
+            self.probes.add(job)  # a retry of a failed block: see LoadQueue.pop
+        return job
 
     def pump(self) -> None:
         """Submit jobs while workers are free. Jobs are taken under the lock (heap pops and
@@ -231,6 +235,7 @@ class Loader:
     def _unreserve(self, job: Job) -> None:
         b, level = job
         self.fetching.get(b, set()).discard(level)
+        self.probes.discard(job)
         if level >= 0:
             self.cache.release(self.level_bytes[level])
 
@@ -248,6 +253,7 @@ class Loader:
         finally:
             with self.cv:
                 self.fetching.get(b, set()).discard(level)
+                self.probes.discard(job)
                 self._requeue(b)
 
     def _fetch(self, b: Block, level: int) -> None:

@@ -9,6 +9,12 @@ frame and the summary); when ``heal`` is on it is still retried, at the capped b
 long as it is wanted, and a success clears it. With ``heal`` off a failed block is never
 retried (the behaviour before healing; kept as the positive control of the fault tests).
 
+Failed blocks wait apart, oldest failure first: while one of their retries runs, every other
+worker takes blocks that have not failed, and they have the workers only when nothing else is
+queued. A server that fails slowly (a timeout per read) once kept every worker retrying the
+same few most urgent failed blocks at the capped pace: blocks never read stayed queued until
+the wait's deadline (a warm-up's 30 s), though the frame needed them.
+
 A block is queued at most once per key: :meth:`LoadQueue.push` skips a block already queued
 with a key at least as urgent (the caller re-queues every visible block that lacks a level on
 every frame; without this the heap grew by those duplicates between rebuilds, thousands of
@@ -37,6 +43,7 @@ class LoadQueue:
         self.max_backoff_s = max(backoff_s, max_backoff_s)
         self.heal = heal
         self._heap: list[tuple[tuple, Block]] = []
+        self._failed: list[tuple[tuple, Block]] = []  # ((last failure, key), block)
         self._best: dict[Block, tuple] = {}  # most urgent key each queued block has
         self.failures: dict[Block, int] = {}  # failures in a row
         self.retry_at: dict[Block, float] = {}
@@ -44,11 +51,16 @@ class LoadQueue:
         self.cancelled = 0
 
     def __len__(self) -> int:
-        return len(self._heap)
+        return len(self._heap) + len(self._failed)
+
+    def blocks(self) -> set[Block]:
+        """Every queued block."""
+        return {b for _, b in self._heap} | {b for _, b in self._failed}
 
     def clear(self) -> None:
         """Drop every queued block."""
         self._heap.clear()
+        self._failed.clear()
         self._best.clear()
 
     def retryable(self, b: Block) -> bool:
@@ -64,46 +76,69 @@ class LoadQueue:
         already queued with a key at least as urgent)."""
         best = self._best.get(b)
         if (best is None or key < best) and self.retryable(b):
-            heapq.heappush(self._heap, (key, b))
+            self._enqueue(key, b)
             self._best[b] = key
+
+    def _enqueue(self, key: tuple, b: Block) -> None:
+        """Put ``(key, b)`` on the heap of its class: failed blocks by oldest failure."""
+        if self.is_failed(b):
+            heapq.heappush(self._failed, ((self.failed_at[b][-1], key), b))
+        else:
+            heapq.heappush(self._heap, (key, b))
 
     def rebuild(self, items: Iterable[tuple[tuple, Block]]) -> None:
         """Replace the queue; blocks no longer in it count as cancelled."""
-        before = {b for _, b in self._heap}
-        self._heap = [(k, b) for k, b in items if self.retryable(b)]
-        heapq.heapify(self._heap)
+        before = self.blocks()
+        self._heap, self._failed = [], []
         best: dict[Block, tuple] = {}
-        for k, b in self._heap:
-            if b not in best or k < best[b]:
-                best[b] = k
+        for k, b in items:
+            if self.retryable(b):
+                if self.is_failed(b):
+                    self._failed.append(((self.failed_at[b][-1], k), b))
+                else:
+                    self._heap.append((k, b))
+                if b not in best or k < best[b]:
+                    best[b] = k
+        heapq.heapify(self._heap)
+        heapq.heapify(self._failed)
         self._best = best
-        self.cancelled += len(before - {b for _, b in self._heap})
+        self.cancelled += len(before - best.keys())
 
     def backing_off(self, b: Block, now: float) -> bool:
         """Whether ``b`` waits for its next retry."""
         return self.retry_at.get(b, 0.0) > now
 
-    def pop(self, now: float, take: Callable[[Block], T | None]) -> tuple[Block, T] | None:
+    def pop(
+        self, now: float, take: Callable[[Block], T | None], probe: bool = True
+    ) -> tuple[Block, T] | None:
         """The most urgent block ``take`` accepts (``take`` returns its job or None), skipping
-        blocks in backoff (they stay queued) and dropping those ``take`` refuses."""
-        waiting = []
+        blocks in backoff (they stay queued) and dropping those ``take`` refuses. With
+        ``probe`` (no retry of a failed block runs) the failed block that failed longest ago
+        goes first; without it failed blocks go only when no other block can (module doc)."""
+        waiting: list[tuple[tuple, Block]] = []
         found = None
         best = self._best
-        while self._heap:
-            key, b = heapq.heappop(self._heap)
-            if best.get(b) == key:
-                del best[b]
-            if not self.retryable(b):
-                continue
-            if self.backing_off(b, now):
-                waiting.append((key, b))
-                continue
-            job = take(b)
-            if job is not None:
-                found = (b, job)
+        heaps = (self._failed, self._heap) if probe else (self._heap, self._failed)
+        for heap in heaps:
+            failed_heap = heap is self._failed
+            while heap:
+                entry, b = heapq.heappop(heap)
+                key = entry[1] if failed_heap else entry
+                if best.get(b) == key:
+                    del best[b]
+                if not self.retryable(b):
+                    continue
+                if self.backing_off(b, now) or (not failed_heap and self.is_failed(b)):
+                    waiting.append((key, b))  # in backoff, or failed since it was queued
+                    continue
+                job = take(b)
+                if job is not None:
+                    found = (b, job)
+                    break
+            if found is not None:
                 break
         for key, b in waiting:
-            heapq.heappush(self._heap, (key, b))
+            self._enqueue(key, b)
             if b not in best or key < best[b]:
                 best[b] = key
         return found

@@ -294,7 +294,8 @@ class Session:
         levels_kernels.warm_up(self.loader.errors)
         before = self.totals.loaded_bytes
         limit = timeout_s or self.config.wait_timeout_s
-        deadline = time.monotonic() + limit
+        start = time.monotonic()
+        deadline = start + limit
         for _ in range(3):  # errors first, then the levels they ask for, then a last check
             needed = self.planner.needed(camera)
             with self._cv:
@@ -304,7 +305,7 @@ class Session:
             if self.config.workers == 0:
                 self.loader.load_inline(None)
                 continue
-            wait_idle(self.loader, self._raise_background_error, deadline, limit)
+            wait_idle(self.loader, self._raise_background_error, deadline, limit, start)
         with self._cv:
             self.loader.frame_realtime = self.loader.frame_prefetched = 0
             self.loader.frame_io_s = 0.0

@@ -20,16 +20,20 @@ MORE_TIME = {"more_time": ", or allow more time (warm_up's timeout_s, wait_timeo
 REQUEUE_NAP_S = 0.05
 
 
-def wait_idle(ld: Loader, raise_bug: Callable[[], None], deadline: float, limit: float) -> None:
-    """Wait until ``ld`` has nothing queued or running (failed blocks in backoff aside),
-    pumping for retries; ``LoadError`` at ``deadline`` (``limit``: the seconds it allowed)."""
+def wait_idle(
+    ld: Loader, raise_bug: Callable[[], None], deadline: float, limit: float, start: float
+) -> None:
+    """Wait until ``ld`` has nothing queued or running but failed blocks in backoff and blocks
+    whose reads failed ``retries`` times since ``start`` (a server that fails slowly, e.g. by
+    timing out, keeps a retry running: it no longer holds the wait to its deadline), pumping
+    for retries; ``LoadError`` at ``deadline`` (``limit``: the seconds it allowed)."""
     while True:
         raise_bug()  # a loader bug ends the wait with its cause
         closed_meanwhile(ld)
         ld.pump()
         with ld.cv:
             now = time.monotonic()
-            pending = ld.busy() and not only_backoff(ld, now)
+            pending = ld.busy() and not only_backoff(ld, now) and not only_given_up(ld, start)
             if not pending:
                 return
             left = deadline - now
@@ -61,6 +65,15 @@ def only_backoff(ld: Loader, now: float) -> bool:
         and all(q.is_failed(b) for b in q.retry_at)
         and q.next_retry(now) is not None
     )
+
+
+def only_given_up(ld: Loader, since: float) -> bool:
+    """Every block queued, being read or decoded has failed ``retries`` reads since ``since``
+    (caller holds the lock): waiting longer only waits for more failures."""
+    q = ld.queue
+    pending = q.blocks() | ld.decoding
+    pending.update(b for b, levels in ld.fetching.items() if levels)
+    return bool(pending) and all(q.given_up(b, since) for b in pending)
 
 
 def nap(ld: Loader, left: float, now: float) -> float:

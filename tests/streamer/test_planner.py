@@ -122,6 +122,36 @@ def test_queue_without_healing_gives_up_for_good():
     assert q.given_up(b, since=1e9)
 
 
+def test_failed_blocks_wait_apart_oldest_failure_first():
+    """A failed block goes before fresh work only as the one probe (``probe=True``), and
+    failed blocks take turns by their last failure, not by urgency: a slowly failing server
+    once kept every worker on the most urgent failed blocks."""
+    q = LoadQueue(retries=1, backoff_s=0.0, max_backoff_s=0.0)
+    urgent, old, fresh = (0, 0), (0, 1), (0, 2)
+    q.failed_read(urgent, 5.0)
+    q.failed_read(old, 3.0)
+    for b, key in ((urgent, (0,)), (old, (1,)), (fresh, (2,))):
+        q.push(b, key)
+    assert q.blocks() == {urgent, old, fresh} and len(q) == 3
+    assert q.pop(10.0, lambda b: "job") == (old, "job")  # the probe: the oldest failure
+    assert q.pop(10.0, lambda b: "job", probe=False) == (fresh, "job")  # fresh work first
+    assert q.pop(10.0, lambda b: "job", probe=False) == (urgent, "job")  # then failed ones
+    assert len(q) == 0
+    # a block queued fresh that failed meanwhile moves to the failed ones when popped
+    q.push(fresh, (2,))
+    q.push((0, 3), (3,))
+    q.failed_read(fresh, 11.0)
+    assert q.pop(12.0, lambda b: "job", probe=False) == ((0, 3), "job")
+    assert q.blocks() == {fresh} and q.queued_key(fresh) == (2,)
+    # a rebuild sorts blocks into the two classes as well; cancelled counts blocks dropped
+    q.rebuild([((0,), urgent), ((5,), (0, 4)), ((1,), fresh)])
+    assert q.cancelled == 0 and len(q) == 3
+    assert q.pop(12.0, lambda b: "job", probe=False) == ((0, 4), "job")
+    assert q.pop(12.0, lambda b: "job") == (urgent, "job")  # failed at 5.0, fresh at 11.0
+    q.rebuild([])
+    assert q.cancelled == 1 and len(q) == 0
+
+
 def test_quadtree_geometry_known_answers():
     grid = BlockGrid(height=9, width=17, k=3, x0=100.0, y0=200.0, dx=2.0, dy=1.0)
     cx, cy = node_centres(grid, np.array([0]), np.array([1]), 0, np.array([0]), np.array([0]))
