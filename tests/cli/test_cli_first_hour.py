@@ -220,11 +220,12 @@ def test_stream_keeps_going_on_read_errors_and_fails_when_blocks_stay_unreadable
     assert "terrastream verify" in r.output and "MissingChunkError" not in r.output
 
 
-@pytest.mark.parametrize("fault", ["503", "stall"])
+@pytest.mark.parametrize("fault", ["503", "stall", "stall-all"])
 def test_stream_over_a_failing_server_blames_the_server_not_the_store(store, fault):
-    """A server answering 503 for block data, or not answering one block's reads: exit 1
-    naming the server (not `verify`); the same flight over the healthy server is the control
-    (exit 0)."""
+    """A server answering 503 for block data, or not answering one block's reads, or any:
+    exit 1 naming the server (not `verify`); the same flight over the healthy server is the
+    control (exit 0). With every read stalled the warm-up once ran into its 30 s deadline
+    (failed blocks kept the workers); it now ends when they have failed their retries."""
     from rangeserver import LoopbackServer
 
     srv = LoopbackServer(store.parent)
@@ -237,15 +238,17 @@ def test_stream_over_a_failing_server_blames_the_server_not_the_store(store, fau
         args += ("--storage-options", '{"timeout": 1}')
         if fault == "503":
             srv.handler.fail_status = 503
-        else:  # one block's reads hang: with every block's, the warm-up itself ran into
-            # its 30 s timeout (a clear error too, but a slow test)
-            srv.handler.fail_match = "/errors/c/0/0"
+        else:  # one block's reads hang, or every block's
+            srv.handler.fail_match = "/errors/c/0/0" if fault == "stall" else None
             srv.stall.set()
         r = run(*args)
     assert r.exit_code == 1, r.output
+    assert "warm-up did not finish" not in r.output
     assert "the server or the network failed, not the store" in r.output
     assert "verify" not in r.output.split("incomplete:")[-1]
     assert ("503" if fault == "503" else "did not answer in time") in r.output
+    if fault == "stall-all":
+        assert "frames 60" in r.stdout  # it flew and printed its summary
 
 
 def test_a_flight_stopped_midway_still_writes_its_json_and_plot(store, tmp_path, monkeypatch):
