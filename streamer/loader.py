@@ -182,9 +182,14 @@ class Loader:
             self.push(b, more)  # its next level can be fetched by another job
         return level
 
-    def next_job(self) -> Job | None:
-        """Pop the most urgent ``(block, level)`` to fetch (caller holds the lock)."""
-        job = self.queue.pop(time.monotonic(), self._take, probe=not self.probes)
+    def next_job(
+        self, probe: bool = True, take: Callable[[Block], int | None] | None = None
+    ) -> Job | None:
+        """Pop the most urgent ``(block, level)`` to fetch (caller holds the lock); a failed
+        block's retry only if ``probe`` and none runs (``LoadQueue.pop``); ``take``: instead
+        of :meth:`_take` (None drops the block from the queue)."""
+        take = take or self._take
+        job = self.queue.pop(time.monotonic(), take, probe=probe and not self.probes)
         if job is not None and self.queue.is_failed(job[0]):
             self.probes.add(job)  # a retry of a failed block: see LoadQueue.pop
         return job
@@ -456,17 +461,46 @@ class Loader:
 
     # -- inline loading (workers=0) and shutdown -------------------------------------------
 
-    def load_inline(self, allowance: int | None) -> None:
-        """``workers=0``: run jobs on the caller's thread, up to ``allowance`` bytes."""
+    def load_inline(self, allowance: int | None, deadline: float | None = None) -> bool:
+        """``workers=0``: one pass of jobs on the caller's thread, up to ``allowance`` bytes
+        and until ``deadline`` (``time.monotonic``): each ``(block, level)`` at most once and
+        one retry of a failed block (``LoadQueue.pop``'s probe) unless nothing else is queued.
+        A read that fails adds no bytes, and one slower than its retry's backoff (a server
+        that stopped answering, each read ending at its timeout) once kept this loop retrying
+        the most urgent block for ever. The pass ends when a block fails its last retry (the
+        frame reports it at once). True when work is left that could run now."""
         spent = 0
-        while allowance is None or spent < allowance:
-            with self.cv:
-                job = None if self.fatal is not None else self.next_job()
-            if job is None:
-                return
-            before = self.totals.loaded_bytes
-            self.run_job(job)
-            spent += self.totals.loaded_bytes - before
+        tried: set[Job] = set()
+        held: list[Block] = []  # blocks whose next job this pass ran already: queued after
+
+        def take(b: Block) -> int | None:
+            if (b, self.fetchable(b)) in tried:
+                held.append(b)
+                return None  # out of the queue until the pass ends
+            return self._take(b)
+
+        probed = False
+        try:
+            while allowance is None or spent < allowance:
+                if deadline is not None and time.monotonic() >= deadline:
+                    return True
+                with self.cv:
+                    job = None if self.fatal is not None else self.next_job(not probed, take)
+                    probed = probed or job in self.probes
+                if job is None:
+                    return bool(held)
+                tried.add(job)
+                before, failed = self.totals.loaded_bytes, len(self.unreported)
+                self.run_job(job)
+                spent += self.totals.loaded_bytes - before
+                if len(self.unreported) > failed:
+                    return True  # a block failed every retry: the frame reports it now
+            return True
+        finally:
+            if held:
+                with self.cv:
+                    for b in held:
+                        self._requeue(b)
 
     def busy(self) -> bool:
         """Whether jobs are queued or running (caller holds the lock)."""

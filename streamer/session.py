@@ -303,7 +303,7 @@ class Session:
                 self._request = (camera, None, set(needed))
             self._plan_prefetch()
             if self.config.workers == 0:
-                self.loader.load_inline(None)
+                self.loader.load_inline(None, deadline)
                 continue
             wait_idle(self.loader, self._raise_background_error, deadline, limit, start)
         with self._cv:

@@ -98,8 +98,9 @@ def wait_for(
     while True:
         raise_bug()  # a loader bug ends the wait with its cause
         closed_meanwhile(ld)
+        more = False  # inline: a retry is due already (the pass stopped at it)
         if cfg.workers == 0:
-            ld.load_inline(None)
+            more = ld.load_inline(None, deadline)
         else:
             ld.pump()
         with ld.cv:
@@ -107,7 +108,9 @@ def wait_for(
             missing = [(b, lv) for b, lv in ld.missing(needed) if not q.given_up(b, start)]
             if not missing:
                 return
-            if cfg.workers == 0 and not q.next_retry(now):
+            if cfg.raise_on_failure and ld.unreported:
+                return  # a block failed every retry: the frame raises, more waiting delays it
+            if cfg.workers == 0 and not more and not q.next_retry(now):
                 return  # nothing more can load inline
             left = deadline - now
             if left <= 0:
@@ -125,4 +128,5 @@ def wait_for(
                     sleep = min(sleep, REQUEUE_NAP_S)  # room may free without a notify
                 ld.cv.wait(timeout=sleep)
                 continue
-        time.sleep(sleep)
+        if not more:
+            time.sleep(sleep)
