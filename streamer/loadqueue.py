@@ -9,7 +9,8 @@ frame and the summary); when ``heal`` is on it is still retried, at the capped b
 long as it is wanted, and a success clears it. With ``heal`` off a failed block is never
 retried (the behaviour before healing; kept as the positive control of the fault tests).
 
-Failed blocks wait apart, oldest failure first: while one of their retries runs, every other
+Failed blocks wait apart, taking turns by oldest failure (visible blocks' before prefetched
+ones', by the first two fields of the loader's key): while one of their retries runs, every other
 worker takes blocks that have not failed, and they have the workers only when nothing else is
 queued. A server that fails slowly (a timeout per read) once kept every worker retrying the
 same few most urgent failed blocks at the capped pace: blocks never read stayed queued until
@@ -43,7 +44,8 @@ class LoadQueue:
         self.max_backoff_s = max(backoff_s, max_backoff_s)
         self.heal = heal
         self._heap: list[tuple[tuple, Block]] = []
-        self._failed: list[tuple[tuple, Block]] = []  # ((last failure, key), block)
+        #: ``((errors-first, pinned, last failure, key), block)``: see :meth:`_failed_entry`
+        self._failed: list[tuple[tuple, Block]] = []
         self._best: dict[Block, tuple] = {}  # most urgent key each queued block has
         self.failures: dict[Block, int] = {}  # failures in a row
         self.retry_at: dict[Block, float] = {}
@@ -79,10 +81,16 @@ class LoadQueue:
             self._enqueue(key, b)
             self._best[b] = key
 
+    def _failed_entry(self, key: tuple, b: Block) -> tuple[tuple, Block]:
+        """A failed block's place: by its key's class (its first two fields: the loader's
+        errors-first and pinned flags, so a visible block still goes before a prefetch one),
+        then by oldest failure (the turns), then by key."""
+        return (*key[:2], self.failed_at[b][-1], key), b
+
     def _enqueue(self, key: tuple, b: Block) -> None:
-        """Put ``(key, b)`` on the heap of its class: failed blocks by oldest failure."""
+        """Put ``(key, b)`` on the heap of its class: failed blocks apart (module doc)."""
         if self.is_failed(b):
-            heapq.heappush(self._failed, ((self.failed_at[b][-1], key), b))
+            heapq.heappush(self._failed, self._failed_entry(key, b))
         else:
             heapq.heappush(self._heap, (key, b))
 
@@ -94,7 +102,7 @@ class LoadQueue:
         for k, b in items:
             if self.retryable(b):
                 if self.is_failed(b):
-                    self._failed.append(((self.failed_at[b][-1], k), b))
+                    self._failed.append(self._failed_entry(k, b))
                 else:
                     self._heap.append((k, b))
                 if b not in best or k < best[b]:
@@ -113,8 +121,9 @@ class LoadQueue:
     ) -> tuple[Block, T] | None:
         """The most urgent block ``take`` accepts (``take`` returns its job or None), skipping
         blocks in backoff (they stay queued) and dropping those ``take`` refuses. With
-        ``probe`` (no retry of a failed block runs) the failed block that failed longest ago
-        goes first; without it failed blocks go only when no other block can (module doc)."""
+        ``probe`` (no retry of a failed block runs) a failed block goes first, the one that
+        failed longest ago in the most urgent class; without it failed blocks go only when no
+        other block can (module doc)."""
         waiting: list[tuple[tuple, Block]] = []
         found = None
         best = self._best
@@ -123,7 +132,7 @@ class LoadQueue:
             failed_heap = heap is self._failed
             while heap:
                 entry, b = heapq.heappop(heap)
-                key = entry[1] if failed_heap else entry
+                key = entry[-1] if failed_heap else entry
                 if best.get(b) == key:
                     del best[b]
                 if not self.retryable(b):

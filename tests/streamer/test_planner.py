@@ -130,7 +130,7 @@ def test_failed_blocks_wait_apart_oldest_failure_first():
     urgent, old, fresh = (0, 0), (0, 1), (0, 2)
     q.failed_read(urgent, 5.0)
     q.failed_read(old, 3.0)
-    for b, key in ((urgent, (0,)), (old, (1,)), (fresh, (2,))):
+    for b, key in ((urgent, (1, 0, 0)), (old, (1, 0, 1)), (fresh, (1, 0, 2))):
         q.push(b, key)
     assert q.blocks() == {urgent, old, fresh} and len(q) == 3
     assert q.pop(10.0, lambda b: "job") == (old, "job")  # the probe: the oldest failure
@@ -138,18 +138,24 @@ def test_failed_blocks_wait_apart_oldest_failure_first():
     assert q.pop(10.0, lambda b: "job", probe=False) == (urgent, "job")  # then failed ones
     assert len(q) == 0
     # a block queued fresh that failed meanwhile moves to the failed ones when popped
-    q.push(fresh, (2,))
-    q.push((0, 3), (3,))
+    q.push(fresh, (1, 0, 2))
+    q.push((0, 3), (1, 0, 3))
     q.failed_read(fresh, 11.0)
     assert q.pop(12.0, lambda b: "job", probe=False) == ((0, 3), "job")
-    assert q.blocks() == {fresh} and q.queued_key(fresh) == (2,)
+    assert q.blocks() == {fresh} and q.queued_key(fresh) == (1, 0, 2)
     # a rebuild sorts blocks into the two classes as well; cancelled counts blocks dropped
-    q.rebuild([((0,), urgent), ((5,), (0, 4)), ((1,), fresh)])
+    q.rebuild([((1, 0, 0), urgent), ((1, 0, 5), (0, 4)), ((1, 0, 1), fresh)])
     assert q.cancelled == 0 and len(q) == 3
     assert q.pop(12.0, lambda b: "job", probe=False) == ((0, 4), "job")
     assert q.pop(12.0, lambda b: "job") == (urgent, "job")  # failed at 5.0, fresh at 11.0
     q.rebuild([])
     assert q.cancelled == 1 and len(q) == 0
+    # turns within a class: a pinned (visible) failed block before a prefetched one that
+    # failed earlier; the loader's key starts (errors read, not pinned)
+    q.push(old, (1, 1, 0))  # prefetch, failed at 3.0
+    q.push(fresh, (1, 0, 9))  # pinned, failed at 11.0
+    assert q.pop(12.0, lambda b: "job") == (fresh, "job")
+    assert q.pop(12.0, lambda b: "job") == (old, "job")
 
 
 def test_quadtree_geometry_known_answers():
