@@ -341,8 +341,8 @@ def tradeoff(
         rows.append(row)
         if log:
             log(format_row(row))
-    note = full_rule_note(r, camera, rows, res, o) if len(rows) > 1 else None
-    if note and log:
+    note = full_rule_note(r, camera, rows, res, o) if log else None  # a selection: only if read
+    if note:
         log(note)
     return rows
 
