@@ -124,3 +124,76 @@ class LoopbackServer:
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=5)
+
+
+class ServerProcess:
+    """``with ServerProcess(directory) as srv:`` a :class:`LoopbackServer` (faults on every key)
+    in a child process, for clients that hold the GIL while they wait for an answer (GDAL, in
+    some of its calls: an in-process server could not answer them). ``srv.url``;
+    ``srv.send(cmd)``: ``stall`` (answer nothing), ``release`` (the stalled requests end
+    unanswered), ``status N`` / ``status -`` (answer every request with HTTP N / normally)."""
+
+    def __init__(self, directory: str | os.PathLike) -> None:
+        self.directory = str(directory)
+        self.url = ""
+
+    def __enter__(self) -> ServerProcess:
+        import subprocess
+        import sys
+
+        self._proc = subprocess.Popen(
+            [sys.executable, __file__, self.directory],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        self.url = self._proc.stdout.readline().strip()
+        if not self.url.startswith("http://"):
+            self._proc.kill()
+            raise RuntimeError(f"the test server did not start: {self.url!r}")
+        return self
+
+    def send(self, cmd: str) -> None:
+        """Apply ``cmd`` in the server (returns once it has)."""
+        self._proc.stdin.write(cmd + "\n")
+        self._proc.stdin.flush()
+        if self._proc.stdout.readline().strip() != "ok":
+            raise RuntimeError(f"the test server did not take {cmd!r}")
+
+    def __exit__(self, *exc) -> None:
+        self._proc.stdin.close()  # the server ends at the end of its input
+        try:
+            self._proc.wait(timeout=10)
+        except Exception:  # noqa: BLE001 (a server that does not end is killed)
+            self._proc.kill()
+            self._proc.wait(timeout=10)
+        self._proc.stdout.close()
+
+
+def _serve(directory: str) -> None:
+    """The child of :class:`ServerProcess`: serve ``directory``, take commands from stdin."""
+    import sys
+
+    srv = LoopbackServer(directory)
+    srv.handler.fail_scope = "all"
+    with srv as url:
+        print(url, flush=True)
+        for line in sys.stdin:
+            cmd, _, arg = line.strip().partition(" ")
+            if cmd == "stall":
+                srv.release.clear()
+                srv.stall.set()
+            elif cmd == "release":
+                srv.release.set()
+            elif cmd == "status":
+                srv.handler.fail_status = None if arg == "-" else int(arg)
+            else:
+                print(f"unknown command {line!r}", flush=True)
+                continue
+            print("ok", flush=True)
+
+
+if __name__ == "__main__":
+    import sys
+
+    _serve(sys.argv[1])

@@ -74,6 +74,11 @@ class SourceReadError(TilerError, OSError):
     """A source raster that opened but failed to read (truncated, damaged, its server failed)."""
 
 
+class SourceUnavailableError(SourceReadError):
+    """A source behind a URL whose server failed, stopped answering or refused access: fixed
+    outside the file, which says nothing about it."""
+
+
 class StoreError(TilerError, OSError):
     """A store that cannot be written or read as asked."""
 

@@ -31,9 +31,10 @@ from rasterio.transform import Affine
 from rasterio.vrt import WarpedVRT
 from rasterio.windows import Window
 
-from tiler.errors import SourceError, SourceReadError
+from tiler.errors import SourceError, SourceReadError, SourceUnavailableError
 from tiler.mosaic_plan import MosaicSpec, plan_mosaic  # noqa: F401  (re-exported)
 from tiler.source_header import SourceInfo, open_raster, read_info  # noqa: F401  (re-exported)
+from tiler.source_http import http_url, is_remote, remote_env, server_failure, slow_advice
 
 MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
 WARP_TOLERANCE = 0.01  # source pixels of transform approximation (GDAL: 0.125); see notes
@@ -50,7 +51,8 @@ def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
 
 def _read(fn: Callable[..., np.ndarray], band: int, win: Window, path: str) -> np.ndarray:
     """``fn(band, window=win)`` (a dataset's ``read`` or ``read_masks``), a GDAL read failure
-    raised as :class:`SourceReadError` naming the file and the window."""
+    raised as :class:`SourceReadError` naming the file and the window (for an ``http(s)`` URL
+    whose server fails when asked again, :class:`SourceUnavailableError`)."""
     try:
         return fn(band, window=win)
     except rasterio.errors.RasterioIOError as exc:
@@ -59,10 +61,18 @@ def _read(fn: Callable[..., np.ndarray], band: int, win: Window, path: str) -> n
             cause = cause.__cause__
         rows = f"{int(win.row_off)}..{int(win.row_off + win.height) - 1}"
         cols = f"{int(win.col_off)}..{int(win.col_off + win.width) - 1}"
+        where = f"reading {path!r} failed in rows {rows}, columns {cols} of its grid"
+        url = http_url(path)
+        failure = server_failure(url) if url else None
+        if failure is not None:
+            raise SourceUnavailableError(
+                f"{where}: its server {failure[0]} (GDAL says: {cause}); the server or the "
+                "network failed, not the file: check them and rerun the same command to "
+                f"resume{slow_advice(failure[0])}"
+            ) from exc
         raise SourceReadError(
-            f"reading {path!r} failed in rows {rows}, columns {cols} of its grid (GDAL says: "
-            f"{cause}); the file may be truncated or damaged (`gdalinfo -checksum` reads all "
-            "of it), or, for a URL, its server failed"
+            f"{where} (GDAL says: {cause}); the file may be truncated or damaged (`gdalinfo "
+            "-checksum` reads all of it), or, for a URL, its server failed"
         ) from exc
 
 
@@ -78,6 +88,7 @@ class MosaicReader:
         fp = np.array([s.footprint for s in spec.sources], dtype=np.int64).reshape(-1, 4)
         self._fp = fp
         self.dtype = np.dtype(spec.dtype)
+        self._remote = [s.path for s in spec.sources if is_remote(s.path)][:1]
         self.height, self.width = spec.height, spec.width
         # the nodata value :func:`_mosaic_nodata` chose (no source declares one), if a sample
         # could take it (not NaN): a valid sample equal to it would read as nodata
@@ -135,7 +146,12 @@ class MosaicReader:
         return np.nonzero(hit)[0].tolist()
 
     def read_window(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
-        """Samples of rows ``r0..r0+h`` and columns ``c0..c0+w`` of the target grid."""
+        """Samples of rows ``r0..r0+h`` and columns ``c0..c0+w`` of the target grid (remote
+        sources with :func:`~tiler.source_http.remote_env`'s time limits)."""
+        with remote_env(*self._remote):
+            return self._read_window(r0, c0, h, w)
+
+    def _read_window(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         spec = self.spec
         hits = self.sources_for(r0, c0, h, w)
         if len(hits) == 1 and not spec.warp and not spec.sources[hits[0]].masked:

@@ -16,7 +16,8 @@ import rasterio.errors
 from rasterio.enums import ColorInterp, MaskFlags
 
 from tiler.encoding import parse_dtype
-from tiler.errors import SourceError, SourceNotFoundError
+from tiler.errors import SourceError, SourceNotFoundError, SourceUnavailableError
+from tiler.source_http import http_url, remote_env, server_failure, slow_advice
 from tiler.store import is_url
 
 log = logging.getLogger(__name__)
@@ -45,16 +46,40 @@ class SourceInfo:
 
 
 def open_raster(path: str) -> rasterio.DatasetReader:
-    """Open a source raster with rasterio; a missing file or one GDAL cannot read is a
-    :class:`SourceError` naming the path."""
+    """Open a source raster with rasterio (a remote one with
+    :func:`~tiler.source_http.remote_env`'s time limits); a missing file or one GDAL cannot
+    read is a :class:`SourceError` naming the path, a URL whose server failed a
+    :class:`SourceUnavailableError` (:func:`_open_failed`)."""
     if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
         raise SourceNotFoundError(f"source raster {path!r} does not exist")
     try:
-        with warnings.catch_warnings():  # (no geotransform: read_info says what to do)
+        with warnings.catch_warnings(), remote_env(path):
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             return rasterio.open(path)
     except rasterio.errors.RasterioIOError as exc:
-        raise SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})") from exc
+        raise _open_failed(path, exc) from exc
+
+
+def _open_failed(path: str, exc: Exception) -> SourceError:
+    """The error for GDAL failing to open ``path``: for an ``http(s)`` URL the server is asked
+    why first (GDAL reports a server's 503 or silence as "not recognized as being in a
+    supported file format")."""
+    url = http_url(path)
+    failure = server_failure(url) if url else None
+    if failure is None:
+        return SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})")
+    what, status = failure
+    if status in (404, 410):
+        return SourceNotFoundError(f"source raster {path!r} does not exist: its server {what}")
+    if status in (401, 403):
+        todo = (
+            "access was refused, not the file damaged: check the URL's credentials or "
+            "GDAL's (GDAL_HTTP_AUTH, GDAL_HTTP_HEADERS...), and try again"
+        )
+    else:
+        todo = "the server or the network failed, not the file: check them and try again"
+        todo += slow_advice(what)
+    return SourceUnavailableError(f"cannot open source {path!r}: its server {what}; {todo}")
 
 
 def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
@@ -122,6 +147,11 @@ def _check_nodata(path: str, dtype: str, nodata: float | None) -> None:
 
 def read_info(path: str, band: int) -> SourceInfo:
     """Header of one source (opened and closed again)."""
+    with remote_env(path):  # (the header asks for side files: .msk, .aux.xml)
+        return _read_info(path, band)
+
+
+def _read_info(path: str, band: int) -> SourceInfo:
     with open_raster(path) as ds:
         if ds.count == 0:  # GDAL opened it (a zarr store, a vector file...) but as no raster
             if os.path.isfile(os.path.join(path, "zarr.json")):

@@ -1,0 +1,117 @@
+"""Source rasters behind a URL (a COG on a web server or an object store, read through GDAL's
+``/vsicurl/`` family): the HTTP settings GDAL reads them with, and what a failed open says
+about the server.
+
+GDAL's curl reads have no time limit by default, so a server that stopped answering held
+``terrastream tile`` for ever, and a server answering HTTP 503 was reported as "not recognized
+as being in a supported file format" (a usage error). :func:`remote_env` gives the opening of
+a remote source the same rule as ``http(s)://`` stores (give up after
+:data:`~tiler.transport.HTTP_TIMEOUT_S` without a byte) and a few retries of GDAL's transient
+HTTP statuses; a variable the environment sets itself (``GDAL_HTTP_LOW_SPEED_TIME``...) wins.
+Everything GDAL does on a remote source runs inside it: the open, the header's side files
+(``.msk``, ``.aux.xml``, asked for with the settings of the moment) and the reads.
+:func:`server_failure` asks the server why an open failed.
+"""
+
+from __future__ import annotations
+
+import http.client
+import math
+import os
+import urllib.error
+import urllib.request
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+
+from tiler.transport import HTTP_TIMEOUT_S
+
+#: GDAL config options for remote sources (each unless the environment sets it): give up on a
+#: connection after ``HTTP_TIMEOUT_S``, or on a transfer slower than 1 byte/s for that long;
+#: retry HTTP 429/502/503/504 twice, 1 s apart (GDAL's default delay is 30 s)
+GDAL_HTTP_DEFAULTS: dict[str, str] = {
+    "GDAL_HTTP_CONNECTTIMEOUT": f"{HTTP_TIMEOUT_S:g}",
+    "GDAL_HTTP_LOW_SPEED_TIME": f"{HTTP_TIMEOUT_S:g}",
+    "GDAL_HTTP_LOW_SPEED_LIMIT": "1",
+    "GDAL_HTTP_MAX_RETRY": "2",
+    "GDAL_HTTP_RETRY_DELAY": "1",
+}
+#: GDAL's network file systems (``/vsicurl/``, ``/vsis3/``... and the URLs rasterio maps to them)
+_NETWORK_VSI = ("curl", "s3", "gs", "az", "adls", "oss", "swift", "webhdfs", "hdfs")
+#: most seconds :func:`server_failure` waits for the server's answer (less if the environment
+#: sets a shorter ``GDAL_HTTP_LOW_SPEED_TIME``)
+PROBE_TIMEOUT_S = 10.0
+
+
+def is_remote(path: str) -> bool:
+    """True if GDAL reads ``path`` over the network (a URL or a network ``/vsi...`` path,
+    possibly inside ``/vsizip/``...)."""
+    return "://" in path or any(f"/vsi{fs}/" in path for fs in _NETWORK_VSI)
+
+
+def gdal_http_options(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """:data:`GDAL_HTTP_DEFAULTS` without the options ``environ`` (default ``os.environ``) sets."""
+    env = os.environ if environ is None else environ
+    return {k: v for k, v in GDAL_HTTP_DEFAULTS.items() if k not in env}
+
+
+@contextmanager
+def remote_env(*paths: str) -> Iterator[None]:
+    """Inside, GDAL works with :func:`gdal_http_options` if one of ``paths`` is remote (its
+    open, and the side files and reads that follow: GDAL asks for ``.msk``/``.aux.xml``
+    files with the settings of the moment)."""
+    opts = gdal_http_options() if any(is_remote(p) for p in paths) else {}
+    if not opts:
+        yield
+        return
+    import rasterio
+
+    with rasterio.Env(**opts):
+        yield
+
+
+def http_url(path: str) -> str | None:
+    """The ``http(s)://`` URL GDAL fetches for ``path`` (also behind ``/vsicurl/``), or None."""
+    p = path.removeprefix("/vsicurl/")
+    return p if p.startswith(("http://", "https://")) else None
+
+
+def probe_timeout(environ: Mapping[str, str] | None = None) -> float:
+    """Seconds :func:`server_failure` waits: :data:`PROBE_TIMEOUT_S`, or the environment's
+    ``GDAL_HTTP_LOW_SPEED_TIME`` if that is shorter (a value that is not a number is ignored)."""
+    env = os.environ if environ is None else environ
+    try:
+        own = float(env.get("GDAL_HTTP_LOW_SPEED_TIME", "nan"))
+    except ValueError:
+        own = math.nan
+    return min(own, PROBE_TIMEOUT_S) if own > 0 else PROBE_TIMEOUT_S
+
+
+def server_failure(url: str, timeout: float | None = None) -> tuple[str, int | None] | None:
+    """Why the server at ``url`` cannot serve it: ``(what it did, HTTP status or None)``, or
+    None if it serves the file's first byte (the failure was the file's, not the server's).
+    One ranged ``GET`` of a byte, waiting ``timeout`` s (default :func:`probe_timeout`)."""
+    timeout = probe_timeout() if timeout is None else timeout
+    req = urllib.request.Request(url, headers={"Range": "bytes=0-0"})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as r:
+            r.read(1)
+    except urllib.error.HTTPError as exc:
+        return f"answers HTTP {exc.code} {exc.reason}", exc.code
+    except TimeoutError:
+        return f"did not answer in {timeout:g} s", None
+    except urllib.error.URLError as exc:
+        reason = exc.reason
+        if isinstance(reason, TimeoutError):
+            return f"did not answer in {timeout:g} s", None
+        return f"cannot be reached ({reason})", None
+    except (OSError, http.client.HTTPException) as exc:  # a dropped connection, a bad reply
+        return f"failed ({type(exc).__name__}: {exc})", None
+    return None
+
+
+def slow_advice(what: str) -> str:
+    """The advice to add for :func:`server_failure`'s ``what`` when the server did not answer in
+    time ("" otherwise)."""
+    if not what.startswith("did not answer"):
+        return ""
+    return " (GDAL_HTTP_LOW_SPEED_TIME sets the seconds a read may go without a byte)"
