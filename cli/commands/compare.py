@@ -20,12 +20,14 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StorageOptionsOpt,
     StoreArg,
     TausOpt,
     check_nodata_rule,
     integer,
     parse_size,
     parse_taus,
+    store_location,
 )
 
 #: what ``--quick`` sets, unless given on the command line
@@ -66,6 +68,7 @@ def compare(
     plot: Annotated[
         Path | None, typer.Option("--plot", metavar="FILE", help="Pareto plot (PNG, SVG, PDF).")
     ] = None,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Compare every LOD strategy on the same fly-through: triangles, CPU/GPU ms, measured
     screen error, cracks, popping, bytes.
@@ -92,7 +95,7 @@ def compare(
         input_file(path, "--path")
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
-        s = open_store_arg(store, projected=True)
+        s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(s, path_kind, frames=frames, path_file=path, viewport=viewport)
         typer.echo(HEADER)
         rows = run(s, cams, values, strategies=names, log=typer.echo, options=opts)

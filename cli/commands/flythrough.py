@@ -22,6 +22,7 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     SizeOpt,
+    StorageOptionsOpt,
     StoreArg,
     TauOpt,
     check_metric,
@@ -29,6 +30,7 @@ from cli.options import (
     integer,
     number,
     parse_size,
+    store_location,
 )
 
 
@@ -58,6 +60,7 @@ def flythrough(
     every: Annotated[int, integer("--every", "Save every N-th PNG.", min=0)] = 1,
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 
@@ -75,7 +78,7 @@ def flythrough(
         opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
         input_file(path, "--path")
         output_dir(out, "--out")
-        s = open_store_arg(store, projected=True)
+        s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport)
         every_line = max(1, frames // 10)
         typer.echo(

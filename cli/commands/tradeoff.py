@@ -25,6 +25,7 @@ from cli.options import (
     PitchOpt,
     PlotOpt,
     SizeOpt,
+    StorageOptionsOpt,
     StoreArg,
     TausOpt,
     YawOpt,
@@ -33,6 +34,7 @@ from cli.options import (
     integer,
     parse_size,
     parse_taus,
+    store_location,
 )
 
 
@@ -54,6 +56,7 @@ def tradeoff(
     plot: PlotOpt = None,
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 
@@ -71,7 +74,7 @@ def tradeoff(
         opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2, nodata=rule)
         output_file(json_out, "--json")
         output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
-        s = open_store_arg(store, projected=True)
+        s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )

@@ -10,6 +10,7 @@ import typer
 
 from cli.checks import input_file, is_local, not_a_store, open_store_arg
 from cli.common import EXIT_RUNTIME, fail_on_errors
+from cli.options import StorageOptionsOpt, store_location
 
 MAX_LISTED = 20  # problems printed one per line; the rest are counted (all are in --json)
 
@@ -25,6 +26,7 @@ def verify(
         ),
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Check every chunk's checksum, the index and the metadata; exit 1 if anything is wrong.
 
@@ -40,7 +42,7 @@ def verify(
         not_a_store(store)
         for path in source or []:
             input_file(path, "--source")
-        rep = verify_store(store, source=source or None)
+        rep = verify_store(store_location(store, storage_options), source=source or None)
         if as_json:
             typer.echo(json.dumps(rep.to_json(), indent=2))
         else:

@@ -23,6 +23,7 @@ from cli.options import (
     PatchOpt,
     PitchOpt,
     SizeOpt,
+    StorageOptionsOpt,
     StoreArg,
     TauOpt,
     YawOpt,
@@ -30,6 +31,7 @@ from cli.options import (
     check_nodata_rule,
     integer,
     parse_size,
+    store_location,
 )
 
 
@@ -60,6 +62,7 @@ def view(
     ] = None,
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
+    storage_options: StorageOptionsOpt = None,
 ) -> None:
     """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
     +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).
@@ -81,7 +84,7 @@ def view(
         if screenshot is not None and frames is None:
             raise UsageError("--screenshot needs --frames N")
         output_file(screenshot, "--screenshot", suffixes=image_suffixes() if screenshot else None)
-        s = open_store_arg(store, projected=True)
+        s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
