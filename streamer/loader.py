@@ -147,7 +147,7 @@ class Loader:
                 items.append((self.key(b), b))
             yield
         self.prio = prio
-        self.queue.rebuild(items)
+        self.queue.rebuild(items, time.monotonic())
         self.totals.cancelled = self.queue.cancelled
 
     # -- taking jobs -----------------------------------------------------------------------

@@ -101,7 +101,9 @@ def test_positive_control_without_the_given_up_check_the_warm_up_runs_to_its_dea
 
 
 def key_order_pop(self, now, take, probe=True):
-    """The queue before failed blocks waited apart: one heap, in key order."""
+    """The queue before failed blocks waited apart: one heap, in key order (and no sleeping
+    heap: blocks in backoff stay in it)."""
+    self._wake(float("inf"))
     self._heap.extend((entry[-1], b) for entry, b in self._failed)
     self._failed.clear()
     heapq.heapify(self._heap)
