@@ -50,11 +50,13 @@ def served(tmp_path_factory):
 
 @pytest.fixture
 def quick(monkeypatch):
-    """GDAL's and the probe's limits at :data:`QUICK_S`, none set by the environment."""
+    """GDAL's and the probe's limits at :data:`QUICK_S` and its retries 0.1 s apart, none set
+    by the environment."""
     for k in GDAL_HTTP_DEFAULTS:
         monkeypatch.delenv(k, raising=False)
     monkeypatch.setitem(GDAL_HTTP_DEFAULTS, "GDAL_HTTP_LOW_SPEED_TIME", str(QUICK_S))
     monkeypatch.setitem(GDAL_HTTP_DEFAULTS, "GDAL_HTTP_CONNECTTIMEOUT", str(QUICK_S))
+    monkeypatch.setitem(GDAL_HTTP_DEFAULTS, "GDAL_HTTP_RETRY_DELAY", "0.1")  # (still 2 retries)
     monkeypatch.setattr(source_http, "PROBE_TIMEOUT_S", float(QUICK_S))
 
 
