@@ -64,6 +64,7 @@ from tiler.source import (
     source_meta,
 )
 from tiler.store import TerrainStore
+from tiler.transport import server_errors
 from tiler.vertical import MAX_HEIGHT_M, height_range_message
 
 __all__ = [
@@ -369,10 +370,14 @@ def _tile(
     job = job_identity(fingerprint, opts, meta)
     meta = replace(meta, extra={**meta.extra, "generation": uuid.uuid4().hex, "job": job})
     summary.block_size = meta.block_size
-    bad_parent = loc.parent_writable()
-    if bad_parent is not None and not loc.exists():
-        raise StoreError(f"cannot write {loc.url!r}: {bad_parent!r} is not a writable directory")
-    kind, old, why = inspect_destination(loc)
+    # the destination's first contact: a dead endpoint is the server's failure, said so
+    with server_errors("what is at the destination", loc.url):
+        bad_parent = loc.parent_writable()
+        if bad_parent is not None and not loc.exists():
+            raise StoreError(
+                f"cannot write {loc.url!r}: {bad_parent!r} is not a writable directory"
+            )
+        kind, old, why = inspect_destination(loc)
     unfinished = kind == "store" and old.extra.get("state") in TILING_STATES
     if opts.repair and not unfinished:
         from tiler.assemble import repair_store

@@ -160,6 +160,29 @@ def test_storage_options_json(tmp_path, bucket, s3_server, monkeypatch):
     assert r.exit_code == 2 and "apply to URLs" in r.output
 
 
+@pytest.mark.parametrize("wrapped", [True, False], ids=["named", "control"])
+def test_tile_to_a_dead_endpoint_blames_the_server(tmp_path, monkeypatch, wrapped):
+    """Nothing listens at the endpoint: `tile` exits 1 saying the server or the network
+    failed (its first contact with the destination is classified). The control, without the
+    classification, gives the client's bare error."""
+    import contextlib
+
+    for k in ENV_KEYS:
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("AWS_DEFAULT_REGION", "us-east-1")
+    if not wrapped:
+        monkeypatch.setattr(tile_mod, "server_errors", lambda *a: contextlib.nullcontext())
+    s3fs.S3FileSystem.clear_instance_cache()
+    dead = {"endpoint_url": "http://127.0.0.1:9", "key": "testing", "secret": "x",
+            "config_kwargs": {"retries": {"max_attempts": 1}}}  # fmt: skip
+    r = _cli("tile", _dem(tmp_path, nodata=False), "s3://b/dead.zarr", "--storage-options",
+             json.dumps(dead))  # fmt: skip
+    assert r.exit_code == 1, r.output
+    assert "Could not connect to the endpoint URL" in r.output
+    blamed = "the server or the network failed, not the store" in r.output
+    assert blamed == wrapped, r.output
+
+
 def test_parse_storage_options():
     assert parse_storage_options(None) is None and parse_storage_options("  ") is None
     assert parse_storage_options('{"anon": true}') == {"anon": True}
