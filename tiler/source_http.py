@@ -7,7 +7,8 @@ GDAL's curl reads have no time limit by default, so a server that stopped answer
 as being in a supported file format" (a usage error). :func:`remote_env` gives the opening of
 a remote source the same rule as ``http(s)://`` stores (give up after
 :data:`~tiler.transport.HTTP_TIMEOUT_S` without a byte) and a few retries of GDAL's transient
-HTTP statuses; a variable the environment sets itself (``GDAL_HTTP_LOW_SPEED_TIME``...) wins.
+HTTP statuses; a variable the environment sets itself (``GDAL_HTTP_LOW_SPEED_TIME``...), or
+the caller's ``rasterio.Env``, wins.
 Everything GDAL does on a remote source runs inside it: the open, the header's side files
 (``.msk``, ``.aux.xml``, asked for with the settings of the moment) and the reads.
 :func:`server_failure` asks the server why an open failed.
@@ -48,23 +49,32 @@ def is_remote(path: str) -> bool:
     return "://" in path or any(f"/vsi{fs}/" in path for fs in _NETWORK_VSI)
 
 
-def gdal_http_options(environ: Mapping[str, str] | None = None) -> dict[str, str]:
-    """:data:`GDAL_HTTP_DEFAULTS` without the options ``environ`` (default ``os.environ``) sets."""
+def gdal_http_options(
+    environ: Mapping[str, str] | None = None, current: Mapping[str, object] | None = None
+) -> dict[str, str]:
+    """:data:`GDAL_HTTP_DEFAULTS` without the options ``environ`` (default ``os.environ``) or
+    ``current`` (the caller's ``rasterio.Env`` options) sets."""
     env = os.environ if environ is None else environ
-    return {k: v for k, v in GDAL_HTTP_DEFAULTS.items() if k not in env}
+    cur = current or {}
+    return {k: v for k, v in GDAL_HTTP_DEFAULTS.items() if k not in env and k not in cur}
 
 
 @contextmanager
 def remote_env(*paths: str) -> Iterator[None]:
     """Inside, GDAL works with :func:`gdal_http_options` if one of ``paths`` is remote (its
     open, and the side files and reads that follow: GDAL asks for ``.msk``/``.aux.xml``
-    files with the settings of the moment)."""
-    opts = gdal_http_options() if any(is_remote(p) for p in paths) else {}
-    if not opts:
+    files with the settings of the moment); the options of a ``rasterio.Env`` the caller
+    entered win too."""
+    if not any(is_remote(p) for p in paths):
         yield
         return
     import rasterio
+    import rasterio.env
 
+    opts = gdal_http_options(current=rasterio.env.getenv() if rasterio.env.hasenv() else None)
+    if not opts:
+        yield
+        return
     with rasterio.Env(**opts):
         yield
 

@@ -30,6 +30,7 @@ from tiler.source_http import (
     http_url,
     is_remote,
     probe_timeout,
+    remote_env,
     server_failure,
 )
 from tiler.store import open_store
@@ -238,3 +239,17 @@ def test_tile_from_a_served_url(served, quick, tmp_path):
     assert r.exit_code == 0, r.output
     block = open_store(tmp_path / "s.zarr").read_block((1, 2))
     np.testing.assert_array_equal(block, data[256:513, 512:769])
+
+
+def test_the_callers_own_gdal_settings_win():
+    import rasterio
+    import rasterio.env
+
+    with remote_env("https://h/d.tif"):  # the control: the defaults apply
+        assert rasterio.env.getenv()["GDAL_HTTP_LOW_SPEED_TIME"] == "30"
+    with rasterio.Env(GDAL_HTTP_LOW_SPEED_TIME="120"), remote_env("https://h/d.tif"):
+        opts = rasterio.env.getenv()
+        assert opts["GDAL_HTTP_LOW_SPEED_TIME"] == "120"  # the caller's
+        assert opts["GDAL_HTTP_CONNECTTIMEOUT"] == "30"  # the rest still set
+    with remote_env("dem.tif"):  # a local file: nothing set
+        assert not rasterio.env.hasenv() or "GDAL_HTTP_LOW_SPEED_TIME" not in rasterio.env.getenv()
