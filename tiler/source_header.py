@@ -71,7 +71,8 @@ def _open_failed(path: str, exc: Exception) -> SourceError:
     what, status = failure
     if status in (404, 410):
         return SourceNotFoundError(f"source raster {path!r} does not exist: its server {what}")
-    if status in (401, 403):
+    if status in (401, 403):  # (asked without GDAL's credentials, if it has any)
+        what += " to a request without credentials"
         todo = (
             "access was refused, not the file damaged: check the URL's credentials or "
             "GDAL's (GDAL_HTTP_AUTH, GDAL_HTTP_HEADERS...), and try again"

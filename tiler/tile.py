@@ -17,6 +17,7 @@ import math
 import os
 import uuid
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -371,7 +372,7 @@ def _tile(
     meta = replace(meta, extra={**meta.extra, "generation": uuid.uuid4().hex, "job": job})
     summary.block_size = meta.block_size
     # the destination's first contact: a dead endpoint is the server's failure, said so
-    with server_errors("what is at the destination", loc.url):
+    with nullcontext() if loc.is_local else server_errors("what is at the destination", loc.url):
         bad_parent = loc.parent_writable()
         if bad_parent is not None and not loc.exists():
             raise StoreError(
