@@ -19,9 +19,9 @@ the wait's deadline (a warm-up's 30 s), though the frame needed them.
 Blocks in backoff sleep apart too, on a heap by retry time (:meth:`LoadQueue.pop` moves
 them there when it meets them, :meth:`LoadQueue.rebuild` puts them there, a due time or a
 success of the block wakes them). They once stayed in the urgency heaps, and every pop took
-each of them out and put it back: during an outage a pop cost 12–20 ms with 5,000 queued
-blocks (73–94 ms with 20,000; ``bench/outage_queue.py``), under the lock the caller waits on,
-on every frame and every finished read.
+each of them out and put it back: during an outage a pop cost 12 ms with 5,000 queued
+blocks (73 ms with 20,000; ``bench/outage_queue.py``), under the lock the caller waits on, on
+every frame and every finished read.
 
 A block is queued at most once per key: :meth:`LoadQueue.push` skips a block already queued
 with a key at least as urgent (the caller re-queues every visible block that lacks a level on
