@@ -32,6 +32,7 @@ from render.strategies import warm_up_kernels
 from render.strategies.base import DrawOptions
 from render.views import near_plane
 from streamer.camera import Camera
+from streamer.gcfreeze import freeze_heap
 from streamer.session import LoadError, open_session
 from tiler.store import TerrainStore
 
@@ -322,6 +323,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     held = lambda *keys: any(glfw.get_key(win, k) == glfw.PRESS for k in keys)  # noqa: E731
     mouse = glfw.get_cursor_pos(win)
     n, frame_s, last, shot, mb, tick = 0, 0.0, None, None, 0.0, 0.0
+    frozen = False  # the collector's heap frozen once the kernels have loaded
     try:
         session = open_session(
             store,
@@ -393,6 +395,8 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
                 _save(ctx, size, shot)
             glfw.swap_buffers(win)
             n += 1
+            if not frozen and not warm.is_alive():  # start-up done: see streamer.gcfreeze
+                frozen = freeze_heap() >= 0
     finally:
         session.close()
         warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds

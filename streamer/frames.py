@@ -63,6 +63,8 @@ class SessionConfig:
     scheme: str = "ours"  # loading scheme, see SCHEMES ("qiu": Qiu et al. as published)
     nodata: str = "full"  # the nodata rule levels are planned with (streamer.nodata.NODATA_RULES:
     # the renderer's rule, so the session streams what it draws)
+    freeze_gc: bool = False  # warm_up() ends with streamer.gcfreeze.freeze_heap(): no full
+    # garbage collection walks the start-up's objects again (process-wide, see that module)
 
     def __post_init__(self) -> None:
         checks = [

@@ -43,6 +43,7 @@ from streamer.cache import Block
 from streamer.camera import Camera
 from streamer.errors import BudgetError, LoadError, LodError, SessionClosedError, StreamerError
 from streamer.frames import Frame, FrameStats, SessionConfig
+from streamer.gcfreeze import freeze_heap
 from streamer.loader import READ_ERRORS, Loader
 from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
@@ -287,7 +288,8 @@ class Session:
         Without it the first second of a flight stalls while the prefetch ring fills; Qiu et
         al. likewise count the first frame's load apart (Table 3). It also loads the compiled
         needed-level kernel (``TERRASTREAM_KERNELS=auto``: numba's import, a compilation the
-        first time ever), which ``update`` uses only once loaded.
+        first time ever), which ``update`` uses only once loaded. With ``freeze_gc`` it ends
+        with :func:`streamer.gcfreeze.freeze_heap`.
         """
         self._check_open()
         t0 = time.perf_counter()
@@ -309,6 +311,8 @@ class Session:
         with self._cv:
             self.loader.frame_realtime = self.loader.frame_prefetched = 0
             self.loader.frame_io_s = 0.0
+        if self.config.freeze_gc:
+            freeze_heap()  # one collection now rather than tens of ms in some later frame
         out = {
             "ms": (time.perf_counter() - t0) * 1000.0,
             "bytes": float(self.totals.loaded_bytes - before),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -18,6 +19,15 @@ def dem_factory(tmp_path):
         return write_dem(tmp_path / name, data, **kw)
 
     return make
+
+
+@pytest.fixture(autouse=True)
+def _unfreeze_gc():
+    """A test that froze the collector's heap (``freeze_gc``, the ``stream`` command) gives
+    it back, so the rest of the run collects as it would have."""
+    yield
+    if gc.get_freeze_count():
+        gc.unfreeze()
 
 
 @pytest.fixture(scope="session")

@@ -111,6 +111,7 @@ def stream(
             warn_path_below_ground(s, cams, "a viewer flying it sees the terrain from below")
         cfg = dict(fps=fps, prefetch=not no_prefetch, latency_ms=latency_ms, tau=tau, metric=metric)
         cfg["raise_on_failure"] = False  # keep flying: failures are in the frames and summary
+        cfg["freeze_gc"] = True  # the command owns its process: no full collection mid-flight
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting
         every = every or max(1, frames // 20)
         header = (

@@ -310,3 +310,12 @@ def test_a_store_change_seen_at_close_is_the_verdict_not_a_lost_report(
     problem = json.loads(js.read_text())["summary"]["at_close"]["problem"]
     assert problem.startswith("the store was replaced or rewritten while it was streamed")
     assert "replaced or rewritten while it was streamed" in r.output
+
+
+def test_stream_freezes_the_collectors_heap_after_its_warm_up(store):
+    import gc
+
+    assert gc.get_freeze_count() == 0
+    r = run("stream", store, "--frames", "3", "--fps", "200", "--size", "64x48")
+    assert r.exit_code == 0, r.output
+    assert gc.get_freeze_count() > 10_000  # streamer.gcfreeze: no full pass walks them again
