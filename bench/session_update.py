@@ -10,7 +10,10 @@ decodes or planning found under the lock (0 expected). ``TERRASTREAM_KERNELS=num
 planning's numpy reference instead of its compiled kernels. Prints a table and writes
 ``bench/results/session_update.json``.
 
-Usage: python bench/session_update.py [--frames 10000] [--workers 4] [--locks]
+``--block-size 33`` flies the same DEM tiled in blocks of 33² (64×64 blocks, ~550 in view
+against ~40 at 129²: the caller's per-block work) and writes ``session_update_b33.json``.
+
+Usage: python bench/session_update.py [--frames 10000] [--workers 4] [--locks] [--block-size 129]
 """
 
 from __future__ import annotations
@@ -38,27 +41,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=10_000)
     ap.add_argument("--workers", type=int, default=4)
     ap.add_argument("--locks", action="store_true", help="also fly with the lock probed")
+    ap.add_argument("--block-size", type=int, default=129, help="the store's block edge")
     a = ap.parse_args(argv)
     root = WORK / "session_update"
     root.mkdir(parents=True, exist_ok=True)
-    src, dst = root / "dem.tif", root / "s.zarr"
+    b = a.block_size
+    src, dst = root / "dem.tif", root / ("s.zarr" if b == 129 else f"s_b{b}.zarr")
     if not src.exists():
         synth_dem(src, 2049, seed=3)
     if not (dst / "zarr.json").exists():
-        tile(src, dst, TileOptions(block_size=129, workers=2, executor="threads"))
+        tile(src, dst, TileOptions(block_size=b, workers=2, executor="threads"))
     store = open_store(dst)
     cams = make_path(store, "default", frames=a.frames, fps=60)
     wall, cpu = np.zeros(a.frames), np.zeros(a.frames)
+    visible = np.zeros(a.frames, np.int64)
     load0 = os.getloadavg()[0]
     with open_session(store, budget_mb=128, workers=a.workers) as s:
         s.warm_up(cams[0])
         for i, cam in enumerate(cams):
             t0, c0 = time.perf_counter(), time.thread_time()
-            s.update(cam, 1 / 60)
+            f = s.update(cam, 1 / 60)
             wall[i], cpu[i] = time.perf_counter() - t0, time.thread_time() - c0
+            visible[i] = f.stats.visible_blocks
         summary = s.summary()
     rows = {}
-    print(f"# {a.frames} frames, {a.workers} loaders, 2049² store of 129² blocks, unpaced")
+    print(
+        f"# {a.frames} frames, {a.workers} loaders, 2049² store of {b}² blocks, unpaced, "
+        f"{int(np.median(visible))} blocks in view (median)"
+    )
     print(f"{'':6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
     for name, arr in (("wall", wall), ("cpu", cpu)):
         ms = arr * 1e3
@@ -70,13 +80,15 @@ def main(argv: list[str] | None = None) -> int:
         r = rows[name]
         print(f"{name:6} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['max_ms']:8.3f}")
     locks = _lock_holds(store, cams, a.workers) if a.locks else None
-    out = RESULTS / "session_update.json"
+    out = RESULTS / ("session_update.json" if b == 129 else f"session_update_b{b}.json")
     RESULTS.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
             {
                 "frames": a.frames,
                 "workers": a.workers,
+                "block_size": b,
+                "visible_blocks_p50": float(np.median(visible)),
                 "update": rows,
                 "stall_frames": summary["stall_frames"],
                 "loaded_bytes": summary["loaded_bytes"],

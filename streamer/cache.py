@@ -10,8 +10,9 @@ levels (lowest priority first); pinned levels are never evicted.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 
@@ -27,7 +28,7 @@ class _Entry:
     want: int = -1  # level wanted by the current frame, prefetch included (-1: none)
     pin: int = -1  # level the current frame needs to draw the block (-1: not visible)
     priority: float = 0.0  # larger = more important among prefetched blocks
-    last_wanted: int = 0  # frame number when last wanted
+    last_wanted: int = 0  # frame number when last wanted (a pinned block: now, see _wanted_at)
 
 
 def _mib(n: int) -> str:
@@ -48,14 +49,22 @@ class LevelCache:
         self.frame = 0
         self.evicted_bytes = 0
         self.reserved = 0  # bytes of levels being fetched (counted in nbytes)
-        self._pinned: set[Block] = set()
+        self._pins: dict[Block, int] = {}  # the current frame's pins (set_pins' argument)
+        self._top: dict[Block, int] = {}  # finest resident level of blocks holding any
         self._cum: list[int] = []
         self._cum_key: list[int] | None = None
 
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
-        e = self._entries.get(block)
-        return len(e.levels) - 1 if e else -1
+        return self._top.get(block, -1)
+
+    def levels_of(self, blocks: Iterable[Block]) -> list[int]:
+        """:meth:`level` of each block (one C-level pass: for the per-frame loops)."""
+        return list(map(self._top.get, blocks, repeat(-1)))
+
+    def levels_array(self, blocks: Sequence[Block]) -> np.ndarray:
+        """:meth:`levels_of` as an int64 array."""
+        return np.fromiter(map(self._top.get, blocks, repeat(-1)), np.int64, count=len(blocks))
 
     def levels(self, block: Block) -> list[np.ndarray]:
         """The block's resident levels (a new list; arrays are shared, read-only)."""
@@ -82,14 +91,19 @@ class LevelCache:
         self.set_pins({b: pin for b, (_, pin, _) in wants.items() if pin >= 0}, level_bytes)
         self.set_prefetch({b: (lv, prio) for b, (lv, _, prio) in wants.items()})
 
-    def set_pins(self, pins: dict[Block, int], level_bytes: list[int]) -> None:
-        """Replace the pinned levels (what this frame draws); other wants stay.
+    def set_pins(
+        self, pins: dict[Block, int], level_bytes: list[int], need: int | None = None
+    ) -> None:
+        """Replace the pinned levels (what this frame draws); other wants stay. ``need``: the
+        bytes of the pinned levels, if the caller has summed them.
 
-        Raises ``BudgetError`` (changing nothing) if the pins alone exceed the budget. Costs
-        O(pins + previous pins), not O(cached blocks): it runs on the caller's thread.
+        Raises ``BudgetError`` (changing nothing) if the pins alone exceed the budget. Touches
+        only the blocks whose pin changed since the previous call (a pinned block counts as
+        wanted now without a write, see :meth:`_wanted_at`): it runs on the caller's thread.
         """
-        cum = self._cumulative(level_bytes)
-        need = sum(cum[pin] for pin in pins.values() if pin >= 0)
+        if need is None:
+            cum = self._cumulative(level_bytes)
+            need = sum(cum[pin] for pin in pins.values() if pin >= 0)
         if need > self.budget:
             raise BudgetError(
                 "the visible blocks need {need} at their levels but the budget is {budget}; "
@@ -99,15 +113,19 @@ class LevelCache:
                 budget=_mib(self.budget),
             )
         self.frame += 1
-        entries = self._entries
-        for b in self._pinned:
-            if b not in pins:
-                e = entries.get(b)
-                if e is not None:
-                    e.pin = -1
-                    if not e.levels and e.want < 0:
-                        del entries[b]
-        for b, pin in pins.items():
+        entries, prev = self._entries, self._pins
+        for b in prev.keys() - pins.keys():
+            e = entries.get(b)
+            if e is not None:
+                e.pin = -1
+                # pinned up to the previous frame (a prefetch may have said later since)
+                e.last_wanted = max(e.last_wanted, self.frame - 1)
+                if not e.levels and e.want < 0:
+                    del entries[b]
+        # a block pinned at the same level as before keeps its entry as it is: its want is
+        # still >= its pin (every writer of a want keeps that) and a pinned entry with a
+        # level >= 0 is never deleted; a pin < 0 is rewritten like a new one
+        for b, pin in pins.items() - prev.items() if prev else pins.items():
             e = entries.get(b)
             if e is None:
                 e = entries[b] = _Entry()
@@ -115,7 +133,15 @@ class LevelCache:
             if pin > e.want:
                 e.want = pin
             e.last_wanted = self.frame
-        self._pinned = set(pins)
+        if prev and min(prev.values()) < 0:  # (the session never pins below 0)
+            for b, pin in prev.items():
+                if pin < 0 and pins.get(b) == pin and b not in entries:
+                    entries[b] = _Entry(pin=pin, last_wanted=self.frame)
+        self._pins = dict(pins)
+
+    def _wanted_at(self, block: Block, e: _Entry) -> int:
+        """The frame in which ``block`` was last wanted: the current one while it is pinned."""
+        return self.frame if block in self._pins else e.last_wanted
 
     def _cumulative(self, level_bytes: list[int]) -> list[int]:
         """``cum[L]`` = bytes of levels ``0..L`` (cached per ``level_bytes`` list)."""
@@ -190,10 +216,10 @@ class LevelCache:
                 continue
             top = len(e.levels) - 1
             if top > e.want:  # above what anyone wants: first to go, stalest first
-                out.append(((0, e.last_wanted, -top), b))
+                out.append(((0, self._wanted_at(b, e), -top), b))
             elif top > e.pin:  # wanted ahead of time, not needed to draw this frame
                 out.append(((1, e.priority, -top), b))
-        out.sort(key=lambda t: t[0])
+        out.sort()  # ties by block id: the order does not hang on how entries were made
         return out
 
     def make_room(self, nbytes: int, for_block: Block | None = None) -> bool:
@@ -266,6 +292,7 @@ class LevelCache:
         values = np.asarray(values)
         values.setflags(write=False)
         e.levels.append(values)
+        self._top[block] = level
         e.nbytes += n
         self.nbytes += n
         self.peak_nbytes = max(self.peak_nbytes, self.nbytes - self.reserved)
@@ -276,6 +303,10 @@ class LevelCache:
         """Unload a block's finest level."""
         e = self._entries[block]
         a = e.levels.pop()
+        if e.levels:
+            self._top[block] = len(e.levels) - 1
+        else:
+            del self._top[block]
         e.nbytes -= a.nbytes
         self.nbytes -= a.nbytes
         self.evicted_bytes += a.nbytes
@@ -293,7 +324,7 @@ class LevelCache:
             while (
                 e is not None
                 and len(e.levels) - 1 > max(e.want, -1)
-                and self.frame - e.last_wanted > linger_frames
+                and self.frame - self._wanted_at(b, e) > linger_frames
             ):
                 self.drop_level(b)
                 e = self._entries.get(b)

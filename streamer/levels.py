@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 from collections.abc import KeysView, Sequence
 from functools import cache, lru_cache
+from itertools import repeat
 from types import ModuleType
 
 import numpy as np
@@ -171,18 +172,23 @@ class PatchErrorTable:
 
     def slots(self, blocks: Sequence[Block] | np.ndarray) -> np.ndarray:
         """Slot of each block (``LodError`` for a block whose errors were never added)."""
-        get = self._slot.get
         if isinstance(blocks, np.ndarray):
-            keys = [tuple(b) for b in blocks.reshape(-1, 2).tolist()]
-        elif all(type(b) is tuple for b in blocks):  # the planner's: no conversion needed
-            keys = blocks  # (a tuple of numpy ints hashes and compares as the ints do)
-        else:
-            keys = [(int(b[0]), int(b[1])) for b in blocks]
-        arr = np.array([get(b, -1) for b in keys], dtype=np.int64)
+            blocks = [tuple(b) for b in blocks.reshape(-1, 2).tolist()]
+        arr = self.lookup(blocks)
         if (arr < 0).any():
-            b = keys[int(np.argmin(arr))]
+            b = blocks[int(np.argmin(arr))]
             raise LodError(f"block {tuple(b)} has no errors in the patch table")
         return arr
+
+    def lookup(self, blocks: Sequence[Block]) -> np.ndarray:
+        """Slot of each block, -1 where its errors are not in the table (one pass in C for
+        tuples, which may hold numpy ints: they hash and compare as the ints do)."""
+        get, m = self._slot.get, len(blocks)
+        try:
+            return np.fromiter(map(get, blocks, repeat(-1)), np.int64, count=m)
+        except TypeError:  # unhashable blocks (lists, array rows): as tuples of ints
+            keys = [(int(b[0]), int(b[1])) for b in blocks]
+            return np.fromiter(map(get, keys, repeat(-1)), np.int64, count=m)
 
     def delta(
         self, slots: np.ndarray, depth: int, rows: np.ndarray, cols: np.ndarray
@@ -229,10 +235,12 @@ class PatchErrorTable:
         *,
         with_rho: bool = True,
         ids: np.ndarray | None = None,
+        slots: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Needed level of each block (all must be in the table) and its largest screen error
         (zeros when ``with_rho`` is False: a caller that only needs levels skips that work);
-        ``ids``, if given, is ``blocks`` as an ``(m, 2)`` int64 array. In a table with gap
+        ``ids``, if given, is ``blocks`` as an ``(m, 2)`` int64 array, and ``slots`` their
+        :meth:`slots` (every one >= 0). In a table with gap
         widths a node also splits while its widest mixed cell can project to more than
         ``min(tau, 1)`` px (:func:`streamer.lod.horizontal_px` of its sphere: the selection's
         rule, ``render.select.select_patches`` with ``gaps``); those blocks take the numpy walk."""
@@ -244,7 +252,7 @@ class PatchErrorTable:
         if m == 0 or self.depths == 0:
             return levels, rho_max
         blk = np.asarray(blocks, dtype=np.int64).reshape(-1, 2) if ids is None else ids
-        slots = self.slots(blocks)
+        slots = self.slots(blocks) if slots is None else slots
         arrays = self._arrays  # after the slots: it holds every slot published before them
         gap_arrays, has_gap = self._gap_arrays, self._has_gap  # (likewise)
         zr = np.asarray(zranges, dtype=np.float64).reshape(m, 2)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Collection
 from dataclasses import dataclass, replace
+from itertools import chain
 
 import numpy as np
 
@@ -105,10 +106,6 @@ class Planner:
         self.errors = errors
         self.config = config
 
-    def _zr_of(self, blocks: list[Block]) -> np.ndarray:
-        b = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
-        return self.zr[b[:, 0], b[:, 1]]
-
     def _existing_ids(self, polygon: np.ndarray) -> np.ndarray:
         nb = plan_kernels()
         if nb is not None:  # the compiled test: the same blocks (tested)
@@ -181,10 +178,35 @@ class Planner:
         self, camera: Camera, tau: float | None = None, culling: str | None = None
     ) -> dict[Block, int]:
         """The visible blocks and the level each needs to be drawn at ``tau``."""
+        blocks, levels = self.needed_arrays(camera, tau, culling)
+        return dict(zip(blocks, levels.tolist(), strict=True))
+
+    def needed_arrays(
+        self, camera: Camera, tau: float | None = None, culling: str | None = None
+    ) -> tuple[list[Block], np.ndarray]:
+        """:meth:`needed` as the visible blocks (row-major) and their levels (int64), for a
+        caller that works on arrays."""
         t = self.config.tau if tau is None else tau
         ids = self._visible_ids(camera, culling)
         blocks = list(map(tuple, ids.tolist()))
-        return self.levels(camera, blocks, t, with_rho=False, ids=ids)[0]
+        m = len(blocks)
+        slots = self.errors.lookup(blocks)
+        known = slots >= 0
+        every = bool(known.all())
+        levels = np.full(m, min(self.config.patch_log2, self.k), dtype=np.int64)
+        if m == 0 or not (every or known.any()):
+            return blocks, levels  # (no errors yet: the patch level, as levels() says)
+        idx = None if every else np.flatnonzero(known)
+        have = blocks if idx is None else [blocks[i] for i in idx.tolist()]
+        sub = ids if idx is None else ids[idx]
+        lv, _ = self.errors.needed_levels(
+            self.grid, have, camera, t, self.config.metric, self.zr[sub[:, 0], sub[:, 1]],
+            with_rho=False, ids=sub, slots=slots if idx is None else slots[idx],
+        )  # fmt: skip
+        if idx is None:
+            return blocks, self._restrict(ids, lv)
+        levels[idx] = lv
+        return blocks, (self._restrict(ids, levels) if m >= 2 else levels)
 
     def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
         """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity`` (only
@@ -208,27 +230,57 @@ class Planner:
         ``tau * lookahead`` from either pose (see module doc)."""
         cfg = self.config
         t = cfg.tau if tau is None else tau
-        n = set(visible)
         poses = self.poses(camera, velocity)
+        parts = [_ids_of(visible)]
         if cfg.prefetch:
             v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
             edge = block_edge(self.grid) if cfg.extension_L is None else cfg.extension_L
             for cam in poses:
-                n.update(self._existing(extension_triangle(cam, edge, velocity=v, fps=cfg.fps)))
-        blocks = sorted(n)
-        wants: dict[Block, tuple[int, float]] = dict.fromkeys(blocks, (0, 0.0))
-        have = self.errors.known(blocks)
-        if have:
-            t_ahead = t * (cfg.plan_lookahead if cfg.prefetch else 1.0)
-            levels = np.zeros(len(have), dtype=np.int64)
-            rho = np.zeros(len(have))
-            zr = self._zr_of(have)
-            for cam in poses:
-                lv, r = self.errors.needed_levels(self.grid, have, cam, t_ahead, cfg.metric, zr)
-                np.maximum(levels, lv, out=levels)
-                np.maximum(rho, r, out=rho)
-            for b, lv, r in zip(have, levels.tolist(), rho.tolist(), strict=True):
-                wants[b] = (lv, r)
-            joined = self._joinable({b: w[0] for b, w in wants.items()})
-            wants = {b: (joined[b], w[1]) for b, w in wants.items()}
-        return PrefetchPlan(wants=wants, ring=len(n) - len(visible))
+                poly = extension_triangle(cam, edge, velocity=v, fps=cfg.fps)
+                parts.append(self._existing_ids(poly))
+        ids = _union_sorted(np.concatenate(parts), self.grid.cols)  # sorted(set(N)), as rows
+        blocks = list(map(tuple, ids.tolist()))
+        m = len(blocks)
+        slots = self.errors.lookup(blocks)
+        known = slots >= 0
+        if not known.any():
+            wants = dict.fromkeys(blocks, (0, 0.0))
+            return PrefetchPlan(wants=wants, ring=m - len(visible))
+        idx = None if known.all() else np.flatnonzero(known)
+        have = blocks if idx is None else [blocks[i] for i in idx.tolist()]
+        sub = ids if idx is None else ids[idx]
+        sub_slots = slots if idx is None else slots[idx]
+        t_ahead = t * (cfg.plan_lookahead if cfg.prefetch else 1.0)
+        zr = self.zr[sub[:, 0], sub[:, 1]]
+        lv = np.zeros(len(have), dtype=np.int64)
+        rh = np.zeros(len(have))
+        for cam in poses:
+            a, r = self.errors.needed_levels(
+                self.grid, have, cam, t_ahead, cfg.metric, zr, ids=sub, slots=sub_slots
+            )
+            np.maximum(lv, a, out=lv)
+            np.maximum(rh, r, out=rh)
+        levels, rho = (lv, rh) if idx is None else (np.zeros(m, np.int64), np.zeros(m))
+        if idx is not None:  # blocks without errors: level 0, no priority
+            levels[idx], rho[idx] = lv, rh
+        if m >= 2:  # raised where a neighbour is too fine for stitching to join
+            levels = self._restrict(ids, levels)
+        wants = dict(zip(blocks, zip(levels.tolist(), rho.tolist(), strict=True), strict=True))
+        return PrefetchPlan(wants=wants, ring=m - len(visible))
+
+
+def _ids_of(blocks: Collection[Block]) -> np.ndarray:
+    """Blocks as an ``(m, 2)`` int64 array (one pass in C over the tuples)."""
+    m = len(blocks)
+    return np.fromiter(chain.from_iterable(blocks), np.int64, count=2 * m).reshape(m, 2)
+
+
+def _union_sorted(ids: np.ndarray, cols: int) -> np.ndarray:
+    """The distinct rows of ``ids``, in the order ``sorted`` gives their tuples."""
+    if len(ids) == 0:
+        return ids.reshape(0, 2)
+    r, c = ids[:, 0], ids[:, 1]
+    if c.min() >= 0 and c.max() < cols and r.min() >= 0:  # row-major numbers sort alike
+        flat = np.unique(r * cols + c)
+        return np.stack([flat // cols, flat % cols], axis=1)
+    return np.unique(ids, axis=0)

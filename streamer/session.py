@@ -82,6 +82,7 @@ class Session:
         itemsize = np.dtype(height_dtype(self.store.meta)).itemsize
         self.level_bytes = [level_size(i) * itemsize for i in range(self.store.k + 1)]
         self._cum_bytes = [sum(self.level_bytes[: i + 1]) for i in range(self.store.k + 1)]
+        self._cum_array = np.array(self._cum_bytes, dtype=np.int64)  # (indexed by level arrays)
         field_name = FIELD_FOR_METRIC.get(self.config.metric, "qiu")
         self.loader = Loader(self.store, self.config, self.level_bytes, field_name, read_hook)
         self.cache = self.loader.cache
@@ -184,27 +185,33 @@ class Session:
         if self._closed:
             raise SessionClosedError("this session is closed")
 
-    def _to_queue(self, needed: dict[Block, int]) -> list[Block]:
+    def _to_queue(self, needed: dict[Block, int], levels: np.ndarray | None = None) -> list[Block]:
         """The visible blocks that lack a level and are not queued as visible yet (no lock
-        needed: single dict reads; a block loaded meanwhile is re-checked when taken)."""
-        known, level = self.loader.errors.keys(), self.cache.level
+        needed: single dict reads; a block loaded meanwhile is re-checked when taken).
+        ``levels``: ``needed``'s values as an array, if the caller has it."""
+        blocks = list(needed)
+        lv = _values(needed) if levels is None else levels
+        unknown = self.loader.errors.lookup(blocks) < 0
+        short = np.flatnonzero(unknown | (self.cache.levels_array(blocks) < lv))
         queued = self.loader.queue.queued_key
         out = []
-        for b, lv in needed.items():
-            unknown = b not in known
-            if unknown or level(b) < lv:
-                # a visible block's key starts (0 if its errors are unknown else 1, 0): one
-                # already queued at least that urgently is not pushed again (no key computed)
-                best = queued(b)
-                if best is not None and best[1] == 0 and best[0] <= (0 if unknown else 1):
-                    continue
-                out.append(b)
+        for i in short.tolist():
+            b = blocks[i]
+            # a visible block's key starts (0 if its errors are unknown else 1, 0): one
+            # already queued at least that urgently is not pushed again (no key computed)
+            best = queued(b)
+            if best is not None and best[1] == 0 and best[0] <= (0 if unknown[i] else 1):
+                continue
+            out.append(b)
         return out
 
-    def _pin_and_queue(self, needed: dict[Block, int], todo: list[Block] | None = None) -> int:
+    def _pin_and_queue(
+        self, needed: dict[Block, int], todo: list[Block] | None = None, need: int | None = None
+    ) -> int:
         """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
-        answer, found before taking the lock; caller holds the lock)."""
-        self.cache.set_pins(needed, self.level_bytes)
+        answer, found before taking the lock; ``need``: the pinned bytes, if summed; caller
+        holds the lock)."""
+        self.cache.set_pins(needed, self.level_bytes, need)
         if todo is None:
             todo = self._to_queue(needed)
         push = self.loader.push
@@ -343,10 +350,13 @@ class Session:
             camera.velocity_from(self._prev, dt) if self._prev is not None and dt > 0 else None
         )
         self._prev = camera
-        needed = self.planner.needed(camera)  # no lock: the error table is read lock-free
-        todo = self._to_queue(needed)
+        # no lock: the error table is read lock-free
+        blocks, levels = self.planner.needed_arrays(camera)
+        needed = dict(zip(blocks, levels.tolist(), strict=True))
+        todo = self._to_queue(needed, levels)
+        need = int(self._cum_array[levels].sum())
         with self._cv:
-            self._pin_and_queue(needed, todo)
+            self._pin_and_queue(needed, todo, need)
         self._request_plan(camera, velocity, needed.keys())
         self.loader.pump()
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0
@@ -362,43 +372,46 @@ class Session:
                 # the errors arrived while waiting: wait for what they say is needed
                 with self._cv:
                     self._pin_and_queue(fresh)
-                needed = fresh
+                needed, levels, need = fresh, _values(fresh), None
                 wait_for(self.loader, cfg, self._raise_background_error, needed, self._due)
         t2, c2 = time.perf_counter(), time.thread_time()
-        return self._finish_frame(camera, needed, t2, c2, update_s, update_cpu, t2 - t1)
+        return self._finish_frame(
+            camera, needed, levels, need, t2, c2, update_s, update_cpu, t2 - t1
+        )
 
     def _finish_frame(
         self,
         camera: Camera,
         needed: dict[Block, int],
+        levels: np.ndarray,
+        need: int | None,
         t2: float,
         c2: float,
         update_s: float,
         update_cpu: float,
         wait_s: float,
     ) -> Frame:
-        """What this frame may draw, its I/O figures and the caller's timings."""
-        ld = self.loader
-        level, errors_table, due = self.cache.level, ld.errors.keys(), self._due
+        """What this frame may draw, its I/O figures and the caller's timings (``levels``:
+        ``needed``'s values as an array; ``need``: their bytes, if summed)."""
+        ld, cache = self.loader, self.cache
+        level, errors_table, due = cache.level, ld.errors.keys(), self._due
+        keys = list(needed)
         hull = None
         if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")
-        with self._cv:  # one pass over the visible blocks; dict work only
+        with self._cv:  # one pass over the visible blocks, in C where it can be
             if hull is not None:
                 hull = any(level(b) < lv or b not in errors_table for b, lv in hull.items())
-            blocks = {b: (level(b), lv) for b, lv in needed.items()}
+            have_list = cache.levels_of(keys)
+            unknown = ld.errors.lookup(keys) < 0
+            blocks = dict(zip(keys, zip(have_list, needed.values(), strict=True), strict=True))
             shown, self._shown = self._shown, blocks
-            missing = []
             used = self.totals.used
-            for b, st in blocks.items():
-                have, lv = st
-                if have < lv or b not in errors_table:
-                    missing.append((b, lv))
-                if shown.get(b) == st:
-                    # as on the previous frame: its missing levels are marked demanded (with
-                    # that frame's due time, the first) and its use counted; a level it lacks
-                    # cannot have come and gone since (pinned levels are never evicted)
-                    continue
+            # only the blocks whose (resident, needed) changed since the previous frame: for
+            # the others the missing levels are marked demanded (with that frame's due time,
+            # the first) and the use counted; a level a block lacks cannot have come and gone
+            # since (pinned levels are never evicted)
+            for b, (have, lv) in blocks.items() - shown.items():
                 for lvl in range(have + 1, lv + 1):
                     ld.demanded.add((b, lvl))
                     ld.due.setdefault((b, lvl), due)
@@ -407,27 +420,30 @@ class Session:
                     used[b] = top
             realtime, prefetched, io_s, late, news = ld.take_frame_counts()
             failed = frozenset(b for b in ld.queue.failed_blocks() if b in needed)
-            resident = self.cache.nbytes
+            resident = cache.nbytes
             errors = self.totals.io_errors
-        holes = sum(1 for have, _ in blocks.values() if have < 0)
-        short = max((lv - have for have, lv in blocks.values()), default=0)
+        have = np.array(have_list, dtype=np.int64)
+        missing = unknown | (have < levels)
+        short = int((levels - have).max()) if len(keys) else 0
+        if need is None:
+            need = int(self._cum_array[levels].sum())
         t3, c3 = time.perf_counter(), time.thread_time()
         stats = FrameStats(
             frame=self.totals.frames,
             visible_blocks=len(needed),
             prefetch_blocks=self._prefetch_blocks,
-            needed_bytes=sum(self._cum_bytes[lv] for lv in needed.values()),
+            needed_bytes=need,
             realtime_bytes=realtime,
             prefetched_bytes=prefetched,
             io_ms=io_s * 1000.0,
             update_ms=(update_s + t3 - t2) * 1e3,
             update_cpu_ms=(update_cpu + c3 - c2) * 1e3,
             wait_ms=wait_s * 1e3,
-            stalled=bool(missing),
-            missing_levels=sum(lv - max(blocks[b][0], -1) for b, lv in missing),
+            stalled=bool(missing.any()),
+            missing_levels=int((levels[missing] - have[missing]).sum()),
             resident_bytes=resident,
             io_errors=errors,
-            holes=holes,
+            holes=int((have < 0).sum()),
             failed_blocks=len(failed),
             stall_set=self.stall_set,
             late_bytes=late,
@@ -494,3 +510,8 @@ __all__ = [
     "SessionConfig",
     "open_session",
 ]
+
+
+def _values(needed: dict[Block, int]) -> np.ndarray:
+    """A needed mapping's levels as an int64 array (in its order)."""
+    return np.fromiter(needed.values(), dtype=np.int64, count=len(needed))

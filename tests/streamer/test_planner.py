@@ -58,6 +58,40 @@ def test_blocks_without_errors_need_the_patch_level():
     assert set(needed.values()) == {P}
 
 
+@pytest.mark.parametrize("known", [1.0, 0.7, 0.2, 0.0])
+@pytest.mark.parametrize("tau", [0.5, 4.0, 40.0])
+def test_needed_arrays_equal_the_per_block_levels(known, tau):
+    """``needed`` / ``needed_arrays`` (one lookup of every block's slot) give what
+    ``levels`` gives block by block, with all, some or none of the errors known."""
+    pl, table = planner(SessionConfig(patch_log2=P, tau=tau))
+    rng = np.random.default_rng(int(known * 10))
+    for b in [(r, c) for r in range(8) for c in range(8)]:
+        if rng.random() >= known:
+            table.remove(b)
+    for cam in CAMERAS:
+        blocks, lv = pl.needed_arrays(cam)
+        assert blocks == pl.visible(cam) and lv.dtype == np.int64
+        ref = pl.levels(cam, blocks, tau, with_rho=False)[0]
+        assert dict(zip(blocks, lv.tolist(), strict=True)) == ref == pl.needed(cam)
+        assert list(ref) == blocks
+
+
+def test_needed_arrays_control_sees_slots_out_of_order(monkeypatch):
+    """The control: with each block's slot lookup answered for another block, the
+    comparison above fails."""
+    pl, _ = planner(SessionConfig(patch_log2=P, tau=4.0))
+    lookup = PatchErrorTable.lookup
+    differ = []
+    for cam in CAMERAS:
+        blocks, _ = pl.needed_arrays(cam)
+        ref = pl.levels(cam, blocks, 4.0, with_rho=False)[0]
+        with monkeypatch.context() as m:
+            m.setattr(PatchErrorTable, "lookup", lambda self, b: lookup(self, b)[::-1].copy())
+            blocks, lv = pl.needed_arrays(cam)
+        differ.append(dict(zip(blocks, lv.tolist(), strict=True)) != ref)
+    assert any(differ)
+
+
 @pytest.mark.parametrize("prefetch", [True, False])
 def test_prefetch_plan_holds_the_visible_set_and_a_ring(prefetch):
     cfg = SessionConfig(patch_log2=P, prefetch=prefetch)
@@ -255,3 +289,81 @@ def test_planning_kernels_keep_the_gil():
 
     for disp in (_plan_nb.qiu_levels, _plan_nb.blocks_meeting):
         assert disp.targetoptions.get("nogil") is False, disp.__name__
+
+
+def _prefetch_reference(pl: Planner, camera, velocity, visible, tau=None):
+    """The prefetch plan as it was computed block by block (sets, dicts, sorted tuples)."""
+    from streamer.frustum import block_edge, extension_triangle
+
+    cfg = pl.config
+    t = cfg.tau if tau is None else tau
+    n = set(visible)
+    poses = pl.poses(camera, velocity)
+    if cfg.prefetch:
+        v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
+        edge = block_edge(pl.grid) if cfg.extension_L is None else cfg.extension_L
+        for cam in poses:
+            n.update(pl._existing(extension_triangle(cam, edge, velocity=v, fps=cfg.fps)))
+    blocks = sorted(n)
+    wants = dict.fromkeys(blocks, (0, 0.0))
+    have = pl.errors.known(blocks)
+    if have:
+        t_ahead = t * (cfg.plan_lookahead if cfg.prefetch else 1.0)
+        levels, rho = np.zeros(len(have), dtype=np.int64), np.zeros(len(have))
+        ids = np.asarray(have, dtype=np.int64).reshape(-1, 2)
+        zr = pl.zr[ids[:, 0], ids[:, 1]]
+        for cam in poses:
+            lv, r = pl.errors.needed_levels(pl.grid, have, cam, t_ahead, cfg.metric, zr)
+            np.maximum(levels, lv, out=levels)
+            np.maximum(rho, r, out=rho)
+        for b, lv, r in zip(have, levels.tolist(), rho.tolist(), strict=True):
+            wants[b] = (lv, r)
+        joined = pl._joinable({b: w[0] for b, w in wants.items()})
+        wants = {b: (joined[b], w[1]) for b, w in wants.items()}
+    return wants, len(n) - len(visible)
+
+
+@pytest.mark.parametrize("known", [1.0, 0.6, 0.0])
+@pytest.mark.parametrize("scheme", ["ours", "qiu"])
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_prefetch_on_arrays_equals_the_block_by_block_plan(known, scheme, prefetch):
+    pl, table = planner(SessionConfig(patch_log2=P, tau=2.0, scheme=scheme, prefetch=prefetch))
+    rng = np.random.default_rng(int(known * 10))
+    for b in [(r, c) for r in range(8) for c in range(8)]:
+        if rng.random() >= known:
+            table.remove(b)
+    for cam in CAMERAS:
+        for velocity in (None, np.array([40.0, -10.0, 0.0])):
+            visible = pl.needed(cam).keys()
+            plan = pl.prefetch(cam, velocity, visible)
+            wants, ring = _prefetch_reference(pl, cam, velocity, visible)
+            assert plan.wants == wants and list(plan.wants) == list(wants)
+            assert plan.ring == ring
+            assert pl.prefetch(cam, velocity, set()).wants == _prefetch_reference(
+                pl, cam, velocity, set()
+            )[0]
+
+
+def test_prefetch_comparison_control_a_plan_without_the_pose_ahead_differs():
+    """The control: a planner that forgets the pose ahead plans other blocks or levels."""
+    pl, _ = planner(SessionConfig(patch_log2=P, tau=2.0))
+    differ = 0
+    for cam in CAMERAS:
+        v = np.array([400.0, -100.0, 0.0])
+        visible = pl.needed(cam).keys()
+        wants, _ = _prefetch_reference(pl, cam, v, visible)
+        differ += pl.prefetch(cam, None, visible).wants != wants
+    assert differ >= 1
+
+
+@pytest.mark.parametrize(("lo", "hi"), [(0, 8), (-3, 12)])
+def test_union_sorted_is_sorted_set_of_the_tuples(lo, hi):
+    from streamer.planner import _ids_of, _union_sorted
+
+    rng = np.random.default_rng(abs(lo))
+    for n in (0, 1, 5, 200):
+        ids = rng.integers(lo, hi, size=(n, 2))
+        got = _union_sorted(ids, 8)
+        want = sorted(set(map(tuple, ids.tolist())))
+        assert list(map(tuple, got.tolist())) == want
+        assert _ids_of(want).tolist() == [list(b) for b in want]
