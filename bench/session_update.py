@@ -10,6 +10,9 @@ decodes or planning found under the lock (0 expected). ``TERRASTREAM_KERNELS=num
 planning's numpy reference instead of its compiled kernels. Prints a table and writes
 ``bench/results/session_update.json``.
 
+The third row, ``plan``, is ``FrameStats.update_cpu_ms``: the caller's CPU without the reads
+that ``--workers 0`` makes it do inline, so ``--workers 0`` measures the caller's own planning
+with no loader or planning thread beside it (the figure that does not depend on contention).
 ``--block-size 33`` flies the same DEM tiled in blocks of 33² (64×64 blocks, ~550 in view
 against ~40 at 129²: the caller's per-block work) and writes ``session_update_b33.json``.
 
@@ -55,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     cams = make_path(store, "default", frames=a.frames, fps=60)
     wall, cpu = np.zeros(a.frames), np.zeros(a.frames)
     visible = np.zeros(a.frames, np.int64)
+    plan = np.zeros(a.frames)
     load0 = os.getloadavg()[0]
     with open_session(store, budget_mb=128, workers=a.workers) as s:
         s.warm_up(cams[0])
@@ -63,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             f = s.update(cam, 1 / 60)
             wall[i], cpu[i] = time.perf_counter() - t0, time.thread_time() - c0
             visible[i] = f.stats.visible_blocks
+            plan[i] = f.stats.update_cpu_ms / 1e3
         summary = s.summary()
     rows = {}
     print(
@@ -70,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{int(np.median(visible))} blocks in view (median)"
     )
     print(f"{'':6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
-    for name, arr in (("wall", wall), ("cpu", cpu)):
+    for name, arr in (("wall", wall), ("cpu", cpu), ("plan", plan)):
         ms = arr * 1e3
         rows[name] = {
             "p50_ms": float(np.percentile(ms, 50)),

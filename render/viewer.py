@@ -396,7 +396,8 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             glfw.swap_buffers(win)
             n += 1
             if not frozen and not warm.is_alive():  # start-up done: see streamer.gcfreeze
-                frozen = freeze_heap() >= 0
+                freeze_heap()
+                frozen = True
     finally:
         session.close()
         warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds
