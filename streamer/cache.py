@@ -125,7 +125,10 @@ class LevelCache:
         # a block pinned at the same level as before keeps its entry as it is: its want is
         # still >= its pin (every writer of a want keeps that) and a pinned entry with a
         # level >= 0 is never deleted; a pin < 0 is rewritten like a new one
-        for b, pin in pins.items() - prev.items() if prev else pins.items():
+        prev_pin = prev.get
+        for b, pin in pins.items():
+            if prev_pin(b, -2) == pin:
+                continue  # (a loop, not a set difference: no tuple made per block)
             e = entries.get(b)
             if e is None:
                 e = entries[b] = _Entry()

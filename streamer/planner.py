@@ -114,7 +114,7 @@ class Planner:
         return ids[self.exists[ids[:, 0], ids[:, 1]]]
 
     def _existing(self, polygon: np.ndarray) -> list[Block]:
-        return list(map(tuple, self._existing_ids(polygon).tolist()))
+        return _tuples(self._existing_ids(polygon))
 
     def _visible_ids(self, camera: Camera, culling: str | None) -> np.ndarray:
         if (culling or self.config.culling) == "qiu":
@@ -124,7 +124,7 @@ class Planner:
     def visible(self, camera: Camera, culling: str | None = None) -> list[Block]:
         """Blocks meeting the projected frustum: Qiu's triangle (``culling="qiu"``) or Jung &
         Han's hull (``"hull"``); default the session's culling."""
-        return list(map(tuple, self._visible_ids(camera, culling).tolist()))
+        return _tuples(self._visible_ids(camera, culling))
 
     def levels(
         self,
@@ -188,7 +188,7 @@ class Planner:
         caller that works on arrays."""
         t = self.config.tau if tau is None else tau
         ids = self._visible_ids(camera, culling)
-        blocks = list(map(tuple, ids.tolist()))
+        blocks = _tuples(ids)
         m = len(blocks)
         slots = self.errors.lookup(blocks)
         known = slots >= 0
@@ -239,7 +239,7 @@ class Planner:
                 poly = extension_triangle(cam, edge, velocity=v, fps=cfg.fps)
                 parts.append(self._existing_ids(poly))
         ids = _union_sorted(np.concatenate(parts), self.grid.cols)  # sorted(set(N)), as rows
-        blocks = list(map(tuple, ids.tolist()))
+        blocks = _tuples(ids)
         m = len(blocks)
         slots = self.errors.lookup(blocks)
         known = slots >= 0
@@ -267,6 +267,12 @@ class Planner:
             levels = self._restrict(ids, levels)
         wants = dict(zip(blocks, zip(levels.tolist(), rho.tolist(), strict=True), strict=True))
         return PrefetchPlan(wants=wants, ring=m - len(visible))
+
+
+def _tuples(ids: np.ndarray) -> list[Block]:
+    """``(m, 2)`` block rows as tuples of ints (no list per row: fewer objects for the
+    collector to count)."""
+    return list(zip(ids[:, 0].tolist(), ids[:, 1].tolist(), strict=True))
 
 
 def _ids_of(blocks: Collection[Block]) -> np.ndarray:

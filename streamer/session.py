@@ -411,7 +411,11 @@ class Session:
             # the others the missing levels are marked demanded (with that frame's due time,
             # the first) and the use counted; a level a block lacks cannot have come and gone
             # since (pinned levels are never evicted)
-            for b, (have, lv) in blocks.items() - shown.items():
+            before = shown.get
+            for b, st in blocks.items():
+                if before(b) == st:
+                    continue
+                have, lv = st
                 for lvl in range(have + 1, lv + 1):
                     ld.demanded.add((b, lvl))
                     ld.due.setdefault((b, lvl), due)

@@ -339,9 +339,10 @@ def test_prefetch_on_arrays_equals_the_block_by_block_plan(known, scheme, prefet
             wants, ring = _prefetch_reference(pl, cam, velocity, visible)
             assert plan.wants == wants and list(plan.wants) == list(wants)
             assert plan.ring == ring
-            assert pl.prefetch(cam, velocity, set()).wants == _prefetch_reference(
-                pl, cam, velocity, set()
-            )[0]
+            assert (
+                pl.prefetch(cam, velocity, set()).wants
+                == _prefetch_reference(pl, cam, velocity, set())[0]
+            )
 
 
 def test_prefetch_comparison_control_a_plan_without_the_pose_ahead_differs():

@@ -100,7 +100,7 @@ def _threaded_flight(store, liar=False):
         frames = []
         for i, cam in enumerate(cams(store, 150)):
             if liar:  # every block claims the previous frame's state: nothing is marked
-                s._shown = _SameAsAnything(s)
+                s._shown = _SameAsAnything()
             frames.append(s.update(cam, 1 / 60, wait=i == 0))
             if i == 0:
                 waited = set(s.loader.demanded)
@@ -108,15 +108,15 @@ def _threaded_flight(store, liar=False):
 
 
 class _SameAsAnything(dict):
-    """A previous frame that held every block as this frame holds it: its items are those
-    of the frame being finished (by then the session's ``_shown``)."""
+    def get(self, key, default=None):
+        return _Equal()
 
-    def __init__(self, session) -> None:
-        super().__init__()
-        self.session = session
 
-    def items(self):
-        return self.session._shown.items()
+class _Equal:
+    def __eq__(self, other: object) -> bool:
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
 
 
 def test_skipping_unchanged_blocks_records_what_marking_all_of_them_does(store):
