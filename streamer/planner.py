@@ -139,40 +139,41 @@ class Planner:
         for blocks whose errors are not known yet; without ``with_rho`` the errors are not
         computed and the second mapping is empty). ``ids``: ``blocks`` as an ``(m, 2)`` array,
         if the caller has it (saves converting them back)."""
-        floor = min(self.config.patch_log2, self.k)
-        needed = dict.fromkeys(blocks, floor)
-        rho = dict.fromkeys(blocks, 0.0) if with_rho else {}
-        have = self.errors.known(blocks)
-        if have:
-            if ids is None or len(have) != len(blocks):
-                ids = np.asarray(have, dtype=np.int64).reshape(-1, 2)
-            zr = self.zr[ids[:, 0], ids[:, 1]]
-            lv, r = self.errors.needed_levels(
-                self.grid, have, camera, tau, self.config.metric, zr, with_rho=with_rho, ids=ids
-            )
-            if len(have) == len(blocks):  # the common case: no dict round trip
-                needed = dict(zip(have, self._restrict(ids, lv).tolist(), strict=True))
-            else:
-                needed.update(zip(have, lv.tolist(), strict=True))
-                needed = self._joinable(needed)
-            if with_rho:
-                rho.update(zip(have, r.tolist(), strict=True))
-        return needed, rho
+        if ids is None:
+            ids = np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+        lv, r = self._level_arrays(camera, blocks, ids, tau, with_rho)
+        needed = dict(zip(blocks, lv.tolist(), strict=True))
+        return needed, (dict(zip(blocks, r.tolist(), strict=True)) if with_rho else {})
 
     def _restrict(self, ids: np.ndarray, levels: np.ndarray) -> np.ndarray:
         """:func:`streamer.restriction.restrict_levels` at the session's patch size (compiled
         when the planning kernels are)."""
         return restrict_levels(ids, levels, self.config.patch_log2, plan_kernels())
 
-    def _joinable(self, levels: dict[Block, int]) -> dict[Block, int]:
-        """``levels`` raised where a neighbour is too fine for stitching to join
-        (:mod:`streamer.restriction`)."""
-        if len(levels) < 2:
-            return levels
-        blocks = list(levels)
-        lv = np.fromiter(levels.values(), dtype=np.int64, count=len(blocks))
-        out = self._restrict(np.asarray(blocks, dtype=np.int64), lv)
-        return dict(zip(blocks, out.tolist(), strict=True))
+    def _level_arrays(
+        self, camera: Camera, blocks: list[Block], ids: np.ndarray, tau: float, with_rho: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`levels` as arrays in the order of ``blocks`` (``ids``: the same as rows):
+        one lookup of every block's slot, the compiled walk over the known ones, the
+        neighbour restriction over all of them."""
+        m = len(blocks)
+        slots = self.errors.lookup(blocks)
+        known = slots >= 0
+        levels = np.full(m, min(self.config.patch_log2, self.k), dtype=np.int64)
+        rho = np.zeros(m)
+        if m == 0 or not known.any():
+            return levels, rho  # no errors yet: the patch level
+        idx = None if known.all() else np.flatnonzero(known)
+        have = blocks if idx is None else [blocks[i] for i in idx.tolist()]
+        sub = ids if idx is None else ids[idx]
+        lv, r = self.errors.needed_levels(
+            self.grid, have, camera, tau, self.config.metric, self.zr[sub[:, 0], sub[:, 1]],
+            with_rho=with_rho, ids=sub, slots=slots if idx is None else slots[idx],
+        )  # fmt: skip
+        if idx is None:
+            return self._restrict(ids, lv), r
+        levels[idx], rho[idx] = lv, r
+        return (self._restrict(ids, levels) if m >= 2 else levels), rho
 
     def needed(
         self, camera: Camera, tau: float | None = None, culling: str | None = None
@@ -189,24 +190,7 @@ class Planner:
         t = self.config.tau if tau is None else tau
         ids = self._visible_ids(camera, culling)
         blocks = _tuples(ids)
-        m = len(blocks)
-        slots = self.errors.lookup(blocks)
-        known = slots >= 0
-        every = bool(known.all())
-        levels = np.full(m, min(self.config.patch_log2, self.k), dtype=np.int64)
-        if m == 0 or not (every or known.any()):
-            return blocks, levels  # (no errors yet: the patch level, as levels() says)
-        idx = None if every else np.flatnonzero(known)
-        have = blocks if idx is None else [blocks[i] for i in idx.tolist()]
-        sub = ids if idx is None else ids[idx]
-        lv, _ = self.errors.needed_levels(
-            self.grid, have, camera, t, self.config.metric, self.zr[sub[:, 0], sub[:, 1]],
-            with_rho=False, ids=sub, slots=slots if idx is None else slots[idx],
-        )  # fmt: skip
-        if idx is None:
-            return blocks, self._restrict(ids, lv)
-        levels[idx] = lv
-        return blocks, (self._restrict(ids, levels) if m >= 2 else levels)
+        return blocks, self._level_arrays(camera, blocks, ids, t, False)[0]
 
     def poses(self, camera: Camera, velocity: np.ndarray | None) -> list[Camera]:
         """This pose and, when moving, the pose ``horizon_s`` ahead along ``velocity`` (only

@@ -45,7 +45,6 @@ def test_blocks_are_planned_joinable_and_the_mesh_is_watertight(store, monkeypat
     ]
     assert all(r.max_screen_error_px <= r.tau for r in rows)
     monkeypatch.setattr(planner_mod.Planner, "_restrict", lambda self, ids, levels: levels)
-    monkeypatch.setattr(planner_mod.Planner, "_joinable", lambda self, levels: levels)
     control = _rows(store)
     assert sum(r.open_edges for r in control) > 0, "the views need no restriction: shows nothing"
     assert sum(r.gap_edges for r in control) > 0

@@ -58,11 +58,44 @@ def test_blocks_without_errors_need_the_patch_level():
     assert set(needed.values()) == {P}
 
 
+def _join(pl: Planner, levels: dict) -> dict:
+    """``levels`` raised where a neighbour is too fine to join, as a dict (the reference)."""
+    if len(levels) < 2:
+        return levels
+    blocks = list(levels)
+    lv = np.fromiter(levels.values(), dtype=np.int64, count=len(blocks))
+    out = pl._restrict(np.asarray(blocks, dtype=np.int64), lv)
+    return dict(zip(blocks, out.tolist(), strict=True))
+
+
+def _levels_reference(pl: Planner, camera, blocks, tau, with_rho=True):
+    """``Planner.levels`` as it was computed block by block (known blocks listed, dicts)."""
+    floor = min(pl.config.patch_log2, pl.k)
+    needed = dict.fromkeys(blocks, floor)
+    rho = dict.fromkeys(blocks, 0.0) if with_rho else {}
+    have = pl.errors.known(blocks)
+    if have:
+        ids = np.asarray(have, dtype=np.int64).reshape(-1, 2)
+        zr = pl.zr[ids[:, 0], ids[:, 1]]
+        lv, r = pl.errors.needed_levels(
+            pl.grid, have, camera, tau, pl.config.metric, zr, with_rho=with_rho
+        )
+        needed.update(zip(have, lv.tolist(), strict=True))
+        needed = (
+            dict(zip(have, pl._restrict(ids, lv).tolist(), strict=True))
+            if len(have) == len(blocks)
+            else _join(pl, needed)
+        )
+        if with_rho:
+            rho.update(zip(have, r.tolist(), strict=True))
+    return needed, rho
+
+
 @pytest.mark.parametrize("known", [1.0, 0.7, 0.2, 0.0])
 @pytest.mark.parametrize("tau", [0.5, 4.0, 40.0])
 def test_needed_arrays_equal_the_per_block_levels(known, tau):
-    """``needed`` / ``needed_arrays`` (one lookup of every block's slot) give what
-    ``levels`` gives block by block, with all, some or none of the errors known."""
+    """``needed`` / ``needed_arrays`` / ``levels`` (one lookup of every block's slot) give
+    what the block-by-block reference gives, with all, some or none of the errors known."""
     pl, table = planner(SessionConfig(patch_log2=P, tau=tau))
     rng = np.random.default_rng(int(known * 10))
     for b in [(r, c) for r in range(8) for c in range(8)]:
@@ -71,9 +104,11 @@ def test_needed_arrays_equal_the_per_block_levels(known, tau):
     for cam in CAMERAS:
         blocks, lv = pl.needed_arrays(cam)
         assert blocks == pl.visible(cam) and lv.dtype == np.int64
-        ref = pl.levels(cam, blocks, tau, with_rho=False)[0]
+        ref = _levels_reference(pl, cam, blocks, tau, with_rho=False)[0]
         assert dict(zip(blocks, lv.tolist(), strict=True)) == ref == pl.needed(cam)
         assert list(ref) == blocks
+        assert pl.levels(cam, blocks, tau, with_rho=False) == (ref, {})
+        assert pl.levels(cam, blocks, tau) == _levels_reference(pl, cam, blocks, tau)
 
 
 def test_needed_arrays_control_sees_slots_out_of_order(monkeypatch):
@@ -84,7 +119,7 @@ def test_needed_arrays_control_sees_slots_out_of_order(monkeypatch):
     differ = []
     for cam in CAMERAS:
         blocks, _ = pl.needed_arrays(cam)
-        ref = pl.levels(cam, blocks, 4.0, with_rho=False)[0]
+        ref = _levels_reference(pl, cam, blocks, 4.0, with_rho=False)[0]
         with monkeypatch.context() as m:
             m.setattr(PatchErrorTable, "lookup", lambda self, b: lookup(self, b)[::-1].copy())
             blocks, lv = pl.needed_arrays(cam)
@@ -318,7 +353,7 @@ def _prefetch_reference(pl: Planner, camera, velocity, visible, tau=None):
             np.maximum(rho, r, out=rho)
         for b, lv, r in zip(have, levels.tolist(), rho.tolist(), strict=True):
             wants[b] = (lv, r)
-        joined = pl._joinable({b: w[0] for b, w in wants.items()})
+        joined = _join(pl, {b: w[0] for b, w in wants.items()})
         wants = {b: (joined[b], w[1]) for b, w in wants.items()}
     return wants, len(n) - len(visible)
 
