@@ -1,9 +1,10 @@
 """Keep Python's full garbage collections out of the frames (no I/O, no threads).
 
 A full (generation-2) collection walks every object the collector tracks. After the imports
-(numba, zarr, numpy: ~150,000 objects) and a warm-up, one such pass takes 10–100 ms on a loaded
-2-core machine, and it runs on whichever thread allocates when it triggers: a loader's pass
-holds the GIL the caller's ``update`` waits for, and the frame stalls. :func:`freeze_heap`
+(numba, zarr, numpy: ~150,000 objects) and a warm-up, one such pass took 76–96 ms on the 2-core
+flight of ``bench/gc_freeze.py``, and it runs on whichever thread allocates when it triggers: a
+pass on a loader or the planning thread holds the GIL the caller's ``update`` waits for, and
+the frame stalls. :func:`freeze_heap`
 collects once and then moves everything alive to the collector's permanent generation
 (:func:`gc.freeze`), so later full passes walk only what was allocated since. The objects stay
 alive as before (reference counting still frees them); only a reference cycle among them that
