@@ -186,3 +186,70 @@ def test_viewer_without_display_says_so(viewer_store):
     res = _view(viewer_store, None, "--frames", "1")
     assert res.returncode == 2, res.stderr
     assert "needs a display" in res.stderr and "Traceback" not in res.stderr
+
+
+# The viewer freezes the collector's heap (streamer.gcfreeze) once its kernel-loading thread has
+# ended: run in a child with the kernels already loaded (the thread ends at once) and, as the
+# control, with a kernel load that lasts until the session closes (nothing may be frozen then).
+_FREEZE_DRIVER = """
+import gc, json, sys, threading
+import render.viewer as V
+from render.strategies import warm_up_kernels
+from render.views import make_camera
+from tiler.store import open_store
+
+store, mode = open_store(sys.argv[1]), sys.argv[2]
+counts = []
+real_step = V.frame_step
+
+def step(*a, **k):
+    counts.append(gc.get_freeze_count())
+    return real_step(*a, **k)
+
+V.frame_step = step
+if mode == "loaded":
+    warm_up_kernels()  # the viewer's own load then ends at once
+else:
+    release = threading.Event()
+    V.warm_up_kernels = lambda: release.wait(30)
+    real_open = V.open_session
+
+    def opened(*a, **k):
+        s = real_open(*a, **k)
+        close = s.close
+
+        def closing():
+            release.set()
+            close()
+
+        s.close = closing
+        return s
+
+    V.open_session = opened
+res = V.run_viewer(store, make_camera(store, (160, 120)), frames=5, workers=2)
+print(json.dumps({"frames": res.frames, "counts": counts, "after": gc.get_freeze_count()}))
+"""
+
+
+def _freeze_run(store: Path, display: str, mode: str) -> dict:
+    import json
+
+    cmd = [sys.executable, "-c", _FREEZE_DRIVER, str(store), mode]
+    res = subprocess.run(
+        cmd, cwd=ROOT, env=_env(display), capture_output=True, text=True, timeout=240
+    )
+    if res.returncode != 0 and "OpenGL" in res.stderr:
+        pytest.skip(f"no OpenGL 4.5 window here: {res.stderr.strip()[-300:]}")
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.gl
+def test_viewer_freezes_the_heap_once_its_kernels_have_loaded(viewer_store, display):
+    got = _freeze_run(viewer_store, display, "loaded")
+    assert got["frames"] == 5 and len(got["counts"]) == 5
+    assert got["counts"][0] == 0, "frozen before the first frame"
+    assert got["counts"][-1] > 10_000, f"not frozen after the kernels loaded: {got['counts']}"
+    # control: while the kernels are still loading, nothing is frozen
+    ctl = _freeze_run(viewer_store, display, "loading")
+    assert ctl["frames"] == 5 and ctl["counts"] == [0] * 5 and ctl["after"] == 0, ctl
