@@ -10,9 +10,11 @@ levels (lowest priority first); pinned levels are never evicted.
 
 from __future__ import annotations
 
+import heapq
+from bisect import bisect_left
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from itertools import repeat
+from itertools import accumulate, repeat
 
 import numpy as np
 
@@ -29,6 +31,11 @@ class _Entry:
     pin: int = -1  # level the current frame needs to draw the block (-1: not visible)
     priority: float = 0.0  # larger = more important among prefetched blocks
     last_wanted: int = 0  # frame number when last wanted (a pinned block: now, see _wanted_at)
+
+
+def _above(e: _Entry, keep: int) -> int:
+    """Bytes of ``e``'s levels above ``keep``."""
+    return sum(a.nbytes for a in e.levels[keep + 1 :])
 
 
 def _mib(n: int) -> str:
@@ -53,6 +60,11 @@ class LevelCache:
         self._top: dict[Block, int] = {}  # finest resident level of blocks holding any
         self._cum: list[int] = []
         self._cum_key: list[int] | None = None
+        # what evictions could free, rebuilt when an entry's levels, want, pin or priority
+        # changed (``_gen`` counts those changes): see _freeable
+        self._gen = 0
+        self._free_gen = -1
+        self._free: tuple[int, list[float], list[int]] = (0, [], [0])
 
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
@@ -114,9 +126,11 @@ class LevelCache:
             )
         self.frame += 1
         entries, prev = self._entries, self._pins
+        gen = self._gen
         for b in prev.keys() - pins.keys():
             e = entries.get(b)
             if e is not None:
+                self._gen = gen + 1
                 e.pin = -1
                 # pinned up to the previous frame (a prefetch may have said later since)
                 e.last_wanted = max(e.last_wanted, self.frame - 1)
@@ -129,6 +143,7 @@ class LevelCache:
         for b, pin in pins.items():
             if prev_pin(b, -2) == pin:
                 continue  # (a loop, not a set difference: no tuple made per block)
+            self._gen = gen + 1
             e = entries.get(b)
             if e is None:
                 e = entries[b] = _Entry()
@@ -167,6 +182,7 @@ class LevelCache:
         entries = self._entries
         keys = list(entries)
         for i in range(0, len(keys), chunk):
+            self._gen += 1
             for b in keys[i : i + chunk]:
                 e = entries.get(b)
                 if e is not None and b not in wants:
@@ -176,6 +192,7 @@ class LevelCache:
             yield
         items = list(wants.items())
         for i in range(0, len(items), chunk):
+            self._gen += 1
             for b, (lv, prio) in items[i : i + chunk]:
                 e = entries.get(b)
                 if e is None:
@@ -211,27 +228,47 @@ class LevelCache:
         e = self._entries.get(block)
         return (e.want, e.pin) if e else (-1, -1)
 
+    def _victim_key(self, block: Block, e: _Entry) -> tuple | None:
+        """``block``'s eviction key (smaller goes first), None if nothing of it may go."""
+        if not e.levels:
+            return None
+        top = len(e.levels) - 1
+        if top > e.want:  # above what anyone wants: first to go, stalest first
+            return (0, self._wanted_at(block, e), -top)
+        if top > e.pin:  # wanted ahead of time, not needed to draw this frame
+            return (1, e.priority, -top)
+        return None
+
     def _victims(self) -> list[tuple[tuple, Block]]:
         """Evictable (block, finest level) candidates, best victim first."""
-        out = []
-        for b, e in self._entries.items():
-            if not e.levels:
-                continue
-            top = len(e.levels) - 1
-            if top > e.want:  # above what anyone wants: first to go, stalest first
-                out.append(((0, self._wanted_at(b, e), -top), b))
-            elif top > e.pin:  # wanted ahead of time, not needed to draw this frame
-                out.append(((1, e.priority, -top), b))
+        key = self._victim_key
+        out = [(k, b) for b, e in self._entries.items() if (k := key(b, e)) is not None]
         out.sort()  # ties by block id: the order does not hang on how entries were made
         return out
 
     def make_room(self, nbytes: int, for_block: Block | None = None) -> bool:
-        """Evict (finest levels first) until ``nbytes`` more fit; False if pins prevent it."""
+        """Evict (finest levels first) until ``nbytes`` more fit; False if pins prevent it.
+
+        The victims go on a heap once; a drop changes only its own block's key, which goes
+        back on it: the order of re-sorting every victim after each drop, in O(log n)."""
+        if self.nbytes + nbytes <= self.budget:
+            return True
+        key = self._victim_key
+        heap = [
+            (k, b)
+            for b, e in self._entries.items()
+            if b != for_block and (k := key(b, e)) is not None
+        ]
+        heapq.heapify(heap)
         while self.nbytes + nbytes > self.budget:
-            victims = [v for v in self._victims() if v[1] != for_block]
-            if not victims:
+            if not heap:
                 return False
-            self.drop_level(victims[0][1])
+            b = heapq.heappop(heap)[1]
+            self.drop_level(b)
+            e = self._entries.get(b)
+            k = None if e is None else key(b, e)
+            if k is not None:
+                heapq.heappush(heap, (k, b))
         return True
 
     def may_add(self, block: Block, level: int, nbytes: int) -> bool:
@@ -247,17 +284,61 @@ class LevelCache:
         return self.nbytes + nbytes <= self.budget or self._room_possible(block, nbytes)
 
     def _room_possible(self, block: Block, nbytes: int) -> bool:
-        freeable = 0
+        """Whether evicting what may go for ``block`` frees enough: every level above its
+        block's want, and the levels wanted ahead (above their pins) of blocks less important
+        than ``block`` when its level is itself ahead of time, of any block otherwise; never
+        ``block``'s own.
+
+        A walk that stops once enough is found; one that finds too little leaves an index of
+        what it saw (:meth:`_freeable`), which answers the next questions in O(log n) until
+        an entry changes: a loader's refused take, repeated down the queue, once walked and
+        sorted every entry under the lock each time."""
         e_new = self._entries[block]
-        for key, b in self._victims():
-            if b == block:
-                continue
-            if key[0] == 1 and key[1] >= e_new.priority and e_new.pin < len(e_new.levels):
-                continue  # never evict a more important prefetch for a less important one
-            e = self._entries[b]
-            keep = e.want if key[0] == 0 else e.pin
-            freeable += sum(a.nbytes for a in e.levels[keep + 1 :])
-        return self.nbytes + nbytes - freeable <= self.budget
+        ahead = e_new.pin < len(e_new.levels)  # the level to load is above the block's pin
+        short = self.nbytes + nbytes - self.budget  # bytes to free
+        if self._free_gen != self._gen:
+            free, p_new = 0, e_new.priority
+            for b, e in self._entries.items():
+                lv = e.levels
+                if not lv or b == block:
+                    continue
+                top = len(lv) - 1
+                if top > e.want:
+                    free += _above(e, e.want)
+                elif top > e.pin and not (ahead and e.priority >= p_new):
+                    free += _above(e, e.pin)
+                else:
+                    continue
+                if free >= short:
+                    return True
+        stale, prio, cum = self._freeable()
+        free = stale + (cum[bisect_left(prio, e_new.priority)] if ahead else cum[-1])
+        own = self._victim_key(block, e_new)
+        if own is not None and own[0] == 0:
+            free -= _above(e_new, e_new.want)
+        elif own is not None and not ahead:  # (ahead: its own priority is not below itself)
+            free -= _above(e_new, e_new.pin)
+        return free >= short
+
+    def _freeable(self) -> tuple[int, list[float], list[int]]:
+        """``(bytes above their blocks' wants, the priorities of the blocks holding levels
+        wanted ahead (sorted), the running sums of those levels' bytes in that order)``, kept
+        until an entry's levels, want, pin or priority change."""
+        if self._free_gen != self._gen:
+            stale, ahead = 0, []
+            for e in self._entries.values():
+                if not e.levels:
+                    continue
+                top = len(e.levels) - 1
+                if top > e.want:
+                    stale += _above(e, e.want)
+                elif top > e.pin:
+                    ahead.append((e.priority, _above(e, e.pin)))
+            ahead.sort()
+            prio = [p for p, _ in ahead]
+            self._free = (stale, prio, list(accumulate((n for _, n in ahead), initial=0)))
+            self._free_gen = self._gen
+        return self._free
 
     def reserve(self, block: Block, nbytes: int) -> bool:
         """Count ``nbytes`` of a level being fetched for ``block`` (evicting if needed)."""
@@ -294,6 +375,7 @@ class LevelCache:
             return False
         values = np.asarray(values)
         values.setflags(write=False)
+        self._gen += 1
         e.levels.append(values)
         self._top[block] = level
         e.nbytes += n
@@ -305,6 +387,7 @@ class LevelCache:
     def drop_level(self, block: Block) -> None:
         """Unload a block's finest level."""
         e = self._entries[block]
+        self._gen += 1
         a = e.levels.pop()
         if e.levels:
             self._top[block] = len(e.levels) - 1
