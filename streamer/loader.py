@@ -147,7 +147,7 @@ class Loader:
                 items.append((self.key(b), b))
             yield
         self.prio = prio
-        self.queue.rebuild(items, time.monotonic())
+        yield from self.queue.rebuild_steps(items, time.monotonic(), chunk)
         self.totals.cancelled = self.queue.cancelled
 
     # -- taking jobs -----------------------------------------------------------------------
@@ -200,22 +200,25 @@ class Loader:
         is released, so a callback can never run while this thread holds the lock."""
         if self._pool is None:
             return
-        with self.cv:
-            jobs = []
-            # after a bug no new job starts (the failing block would only be retried); the
-            # session re-raises the bug and clears it, and pumping resumes. After a store
-            # change nothing starts again.
-            while (
-                not self.closed
-                and self.bug is None
-                and self.fatal is None
-                and self._in_flight < self.config.workers
-            ):
+        jobs = []
+        # after a bug no new job starts (the failing block would only be retried); the
+        # session re-raises the bug and clears it, and pumping resumes. After a store change
+        # nothing starts again. One job per hold of the lock: a take that must evict walks
+        # the cache, and four in a row held the lock the caller waits on for ~1 ms.
+        while True:
+            with self.cv:
+                if (
+                    self.closed
+                    or self.bug is not None
+                    or self.fatal is not None
+                    or self._in_flight >= self.config.workers
+                ):
+                    break
                 job = self.next_job()
                 if job is None:
                     break
                 self._in_flight += 1
-                jobs.append(job)
+            jobs.append(job)
         for k, job in enumerate(jobs):
             try:
                 fut = self._pool.submit(self.run_job, job)

@@ -32,7 +32,7 @@ tuples that the caller's garbage collections had to walk).
 from __future__ import annotations
 
 import heapq
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
 from streamer.cache import Block
@@ -147,22 +147,45 @@ class LoadQueue:
     def rebuild(self, items: Iterable[tuple[tuple, Block]], now: float | None = None) -> None:
         """Replace the queue; blocks no longer in it count as cancelled. Given ``now``, the
         blocks then in backoff go straight to sleep (else the next pop puts them there)."""
-        before = self.blocks()
-        self._heap, self._failed = [], []
-        self._drop_sleepers()
+        for _ in self.rebuild_steps(list(items), now):
+            pass
+
+    def rebuild_steps(
+        self, items: list[tuple[tuple, Block]], now: float | None = None, chunk: int = 64
+    ) -> Iterator[None]:
+        """:meth:`rebuild` in steps: the new heaps are built apart, ``chunk`` items a step,
+        then put in place in one short last step (the owner holds the lock during each step
+        and may release it between them). A block that fails, recovers or is taken between
+        the steps sits where it was sorted until a pop meets it, which re-checks it (as for a
+        block whose state changes after any rebuild)."""
+        heap: list[tuple[tuple, Block]] = []
+        failed: list[tuple[tuple, Block]] = []
+        asleep: dict[Block, list[tuple]] = {}
         best: dict[Block, tuple] = {}
-        for k, b in items:
-            if self.retryable(b):
-                if now is not None and self.backing_off(b, now):
+        for i in range(0, len(items), chunk):
+            for k, b in items[i : i + chunk]:
+                if self.retryable(b):
+                    if now is not None and self.backing_off(b, now):
+                        asleep.setdefault(b, []).append(k)
+                    elif self.is_failed(b):
+                        failed.append(self._failed_entry(k, b))
+                    else:
+                        heap.append((k, b))
+                    if b not in best or k < best[b]:
+                        best[b] = k
+            yield
+        heapq.heapify(heap)
+        heapq.heapify(failed)
+        yield
+        before = self.blocks()
+        self._heap, self._failed = heap, failed
+        self._drop_sleepers()
+        for b, keys in asleep.items():
+            for k in keys:
+                if b in self.retry_at:
                     self._sleep(k, b)
-                elif self.is_failed(b):
-                    self._failed.append(self._failed_entry(k, b))
-                else:
-                    self._heap.append((k, b))
-                if b not in best or k < best[b]:
-                    best[b] = k
-        heapq.heapify(self._heap)
-        heapq.heapify(self._failed)
+                else:  # a read of it worked since it was sorted
+                    heapq.heappush(self._heap, (k, b))
         self._best = best
         self.cancelled += len(before - best.keys())
 

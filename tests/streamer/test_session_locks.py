@@ -61,3 +61,67 @@ def test_positive_control_a_loader_reading_under_the_lock_is_caught(store):
     assert probe.violations and {w for _, w in probe.violations} == {"read_level_raw"}
     assert all(name.startswith("terrastream-load") for name, _ in probe.violations)
     assert max(wall for wall, _ in roles["loader"]) >= 0.002  # the sleep is inside a hold
+
+
+def _one_hold_pump(self) -> None:
+    """The pump before (0fda539): every job of a call taken in one hold of the lock."""
+    if self._pool is None:
+        return
+    with self.cv:
+        jobs = []
+        while (
+            not self.closed
+            and self.bug is None
+            and self.fatal is None
+            and (self._in_flight < self.config.workers)
+        ):
+            job = self.next_job()
+            if job is None:
+                break
+            self._in_flight += 1
+            jobs.append(job)
+    for job in jobs:
+        self._pool.submit(self.run_job, job).add_done_callback(self._done)
+
+
+def _takes_per_hold(store, pump=None) -> list[list[int]]:
+    """For each ``pump`` call that took two jobs or more: the lock holds released before each
+    take (equal numbers: taken in one hold)."""
+    import threading
+    import types
+
+    with open_session(store, budget_mb=4, workers=3) as s:
+        probe = install(s)
+        ld, local, calls = s.loader, threading.local(), []
+        if pump is not None:
+            ld.pump = types.MethodType(pump, ld)
+        real_pump, real_next = ld.pump, ld.next_job
+
+        def pumping():  # (a pump may run inside another: a job done before its callback)
+            outer, local.seen = getattr(local, "seen", None), []
+            try:
+                real_pump()
+            finally:
+                calls.append(local.seen)
+                local.seen = outer
+
+        def next_job(*a, **k):
+            job = real_next(*a, **k)
+            if job is not None and getattr(local, "seen", None) is not None:
+                local.seen.append(len(probe.holds))
+            return job
+
+        ld.pump, ld.next_job = pumping, next_job
+        _fly(s, store, probe, frames=40)
+    return [c for c in calls if len(c) >= 2]
+
+
+def test_a_pump_takes_each_job_in_its_own_hold(store):
+    many = _takes_per_hold(store)
+    assert many  # pumps that took several jobs happened
+    assert all(a < b for c in many for a, b in zip(c, c[1:], strict=False)), many
+
+
+def test_positive_control_a_pump_taking_its_jobs_in_one_hold_is_caught(store):
+    many = _takes_per_hold(store, _one_hold_pump)
+    assert many and all(len(set(c)) == 1 for c in many), many
