@@ -31,6 +31,8 @@ class _Entry:
     pin: int = -1  # level the current frame needs to draw the block (-1: not visible)
     priority: float = 0.0  # larger = more important among prefetched blocks
     last_wanted: int = 0  # frame number when last wanted (a pinned block: now, see _wanted_at)
+    ikey: tuple | None = None  # its item in the eviction heaps (None: nothing may go)
+    ver: int = 0  # the version its live heap item carries (LevelCache._index)
 
 
 def _above(e: _Entry, keep: int) -> int:
@@ -65,6 +67,11 @@ class LevelCache:
         self._gen = 0
         self._free_gen = -1
         self._free: tuple[int, list[float], list[int]] = (0, [], [0])
+        # the eviction heaps (see _index): levels above the want of unpinned blocks, of pinned
+        # blocks, and levels wanted ahead above the pin; items whose version is not their
+        # entry's any more are stale and skipped
+        self._heaps: tuple[list, list, list] = ([], [], [])
+        self._ver = 0
 
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
@@ -127,10 +134,12 @@ class LevelCache:
         self.frame += 1
         entries, prev = self._entries, self._pins
         gen = self._gen
+        changed = []
         for b in prev.keys() - pins.keys():
             e = entries.get(b)
             if e is not None:
                 self._gen = gen + 1
+                changed.append(b)
                 e.pin = -1
                 # pinned up to the previous frame (a prefetch may have said later since)
                 e.last_wanted = max(e.last_wanted, self.frame - 1)
@@ -144,6 +153,7 @@ class LevelCache:
             if prev_pin(b, -2) == pin:
                 continue  # (a loop, not a set difference: no tuple made per block)
             self._gen = gen + 1
+            changed.append(b)
             e = entries.get(b)
             if e is None:
                 e = entries[b] = _Entry()
@@ -156,6 +166,10 @@ class LevelCache:
                 if pin < 0 and pins.get(b) == pin and b not in entries:
                     entries[b] = _Entry(pin=pin, last_wanted=self.frame)
         self._pins = dict(pins)
+        for b in changed:  # (after the new pins: whether a block is pinned orders it)
+            e = entries.get(b)
+            if e is not None:
+                self._index(b, e)
 
     def _wanted_at(self, block: Block, e: _Entry) -> int:
         """The frame in which ``block`` was last wanted: the current one while it is pinned."""
@@ -189,6 +203,8 @@ class LevelCache:
                     e.want, e.priority = e.pin, 0.0
                     if not e.levels and e.want < 0:
                         del entries[b]
+                    else:
+                        self._index(b, e)
             yield
         items = list(wants.items())
         for i in range(0, len(items), chunk):
@@ -202,6 +218,8 @@ class LevelCache:
                     e.last_wanted = self.frame
                 elif not e.levels and e.want < 0:
                     del entries[b]
+                    continue
+                self._index(b, e)
             yield
 
     def wanted_steps(self, chunk: int = 64) -> Iterator[list[tuple[Block, int, int, float]]]:
@@ -246,30 +264,77 @@ class LevelCache:
         out.sort()  # ties by block id: the order does not hang on how entries were made
         return out
 
+    def _index(self, block: Block, e: _Entry) -> None:
+        """Put ``block``'s eviction key on its heap after a change of its levels, want, pin,
+        priority or last want (its older item goes stale). Its key is the one
+        :meth:`_victims` sorts by, split three ways so that no item has to change when only
+        the frame does: a pinned block's levels above its want are "wanted now" (the
+        current frame, compared when popped)."""
+        k: tuple | None = None
+        if e.levels:
+            top = len(e.levels) - 1
+            if top > e.want:
+                k = (1, -top, block) if block in self._pins else (0, e.last_wanted, -top, block)
+            elif top > e.pin:
+                k = (2, e.priority, -top, block)
+        if k == e.ikey:
+            return
+        e.ikey = k
+        if k is None:
+            return
+        self._ver += 1
+        e.ver = self._ver
+        heap = self._heaps[k[0]]
+        heapq.heappush(heap, (*k[1:], e.ver))
+        if len(heap) > 4 * len(self._entries) + 64:  # mostly stale items: rebuild
+            self._reheap(k[0])
+
+    def _reheap(self, which: int) -> None:
+        """Heap ``which`` from the live items only."""
+        heap = [
+            (*e.ikey[1:], e.ver)
+            for e in self._entries.values()
+            if e.ikey is not None and e.ikey[0] == which
+        ]
+        heapq.heapify(heap)
+        self._heaps[which][:] = heap
+
+    def _live_top(self, which: int, skip: Block | None, aside: list) -> tuple | None:
+        """The smallest live item of heap ``which`` (stale ones dropped; ``skip``'s item set
+        ``aside``), as the key :meth:`_victims` sorts by, followed by the block."""
+        heap, entries = self._heaps[which], self._entries
+        while heap:
+            item = heap[0]
+            b = item[-2]
+            e = entries.get(b)
+            if e is None or e.ver != item[-1] or e.ikey is None or e.ikey[0] != which:
+                heapq.heappop(heap)
+            elif b == skip:
+                aside.append((which, heapq.heappop(heap)))
+            elif which == 0:
+                return (0, item[0], item[1], b)
+            elif which == 1:
+                return (0, self.frame, item[0], b)
+            else:
+                return (1, item[0], item[1], b)
+        return None
+
     def make_room(self, nbytes: int, for_block: Block | None = None) -> bool:
         """Evict (finest levels first) until ``nbytes`` more fit; False if pins prevent it.
 
-        The victims go on a heap once; a drop changes only its own block's key, which goes
-        back on it: the order of re-sorting every victim after each drop, in O(log n)."""
-        if self.nbytes + nbytes <= self.budget:
+        Victims in :meth:`_victims`' order, from the heaps :meth:`_index` keeps: a take that
+        must evict once walked and sorted every entry under the lock."""
+        aside: list = []
+        try:
+            while self.nbytes + nbytes > self.budget:
+                tops = [t for w in (0, 1, 2) if (t := self._live_top(w, for_block, aside))]
+                if not tops:
+                    return False
+                self.drop_level(min(tops)[-1])
             return True
-        key = self._victim_key
-        heap = [
-            (k, b)
-            for b, e in self._entries.items()
-            if b != for_block and (k := key(b, e)) is not None
-        ]
-        heapq.heapify(heap)
-        while self.nbytes + nbytes > self.budget:
-            if not heap:
-                return False
-            b = heapq.heappop(heap)[1]
-            self.drop_level(b)
-            e = self._entries.get(b)
-            k = None if e is None else key(b, e)
-            if k is not None:
-                heapq.heappush(heap, (k, b))
-        return True
+        finally:
+            for which, item in aside:
+                heapq.heappush(self._heaps[which], item)
 
     def may_add(self, block: Block, level: int, nbytes: int) -> bool:
         """Whether loading ``level`` of ``block`` now is worth it and can fit."""
@@ -380,6 +445,7 @@ class LevelCache:
         self._top[block] = level
         e.nbytes += n
         self.nbytes += n
+        self._index(block, e)
         self.peak_nbytes = max(self.peak_nbytes, self.nbytes - self.reserved)
         self.peak_held = max(self.peak_held, self.nbytes)
         return True
@@ -398,6 +464,8 @@ class LevelCache:
         self.evicted_bytes += a.nbytes
         if not e.levels and e.want < 0:
             del self._entries[block]
+        else:
+            self._index(block, e)
 
     def trim(self, linger_frames: int = 0) -> int:
         """Unload levels above their block's want once unwanted for more than ``linger_frames``.

@@ -14,8 +14,37 @@ LEVEL_BYTES = [8 * (4**i) for i in range(5)]
 BLOCKS = [(r, c) for r in range(4) for c in range(4)]
 
 
+def sorting_make_room(self, nbytes, for_block=None):
+    """The eviction before its heaps (926f81a): every drop walks and sorts all entries."""
+    while self.nbytes + nbytes > self.budget:
+        victims = [v for v in self._victims() if v[1] != for_block]
+        if not victims:
+            return False
+        self.drop_level(victims[0][1])
+    return True
+
+
+def sorting_room_possible(self, block, nbytes):
+    """``_room_possible`` before its index (926f81a): a walk and a sort per question."""
+    freeable = 0
+    e_new = self._entries[block]
+    for key, b in self._victims():
+        if b == block:
+            continue
+        if key[0] == 1 and key[1] >= e_new.priority and e_new.pin < len(e_new.levels):
+            continue
+        e = self._entries[b]
+        keep = e.want if key[0] == 0 else e.pin
+        freeable += sum(a.nbytes for a in e.levels[keep + 1 :])
+    return self.nbytes + nbytes - freeable <= self.budget
+
+
 class EagerCache(LevelCache):
-    """The cache as it was: every pin and ``last_wanted`` rewritten on every call."""
+    """The cache as it was: every pin and ``last_wanted`` rewritten on every call, and the
+    eviction that sorts every entry (it does not keep the eviction heaps)."""
+
+    make_room = sorting_make_room
+    _room_possible = sorting_room_possible
 
     def level(self, block):
         e = self._entries.get(block)
