@@ -16,7 +16,12 @@ with no loader or planning thread beside it (the figure that does not depend on 
 ``--block-size 33`` flies the same DEM tiled in blocks of 33² (64×64 blocks, ~550 in view
 against ~40 at 129²: the caller's per-block work) and writes ``session_update_b33.json``.
 
+``--budget-mb`` (default 128: nothing is evicted) flies under a budget smaller than the flight,
+where loads must evict and some are refused (the evicted bytes are printed); ``--out`` names
+the JSON (for runs of other code in a worktree).
+
 Usage: python bench/session_update.py [--frames 10000] [--workers 4] [--locks] [--block-size 129]
+       [--budget-mb 128] [--out FILE]
 """
 
 from __future__ import annotations
@@ -45,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=4)
     ap.add_argument("--locks", action="store_true", help="also fly with the lock probed")
     ap.add_argument("--block-size", type=int, default=129, help="the store's block edge")
+    ap.add_argument("--budget-mb", type=float, default=128.0, help="the session's budget")
+    ap.add_argument("--out", type=Path, default=None, help="the JSON to write")
     a = ap.parse_args(argv)
     root = WORK / "session_update"
     root.mkdir(parents=True, exist_ok=True)
@@ -60,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     visible = np.zeros(a.frames, np.int64)
     plan = np.zeros(a.frames)
     load0 = os.getloadavg()[0]
-    with open_session(store, budget_mb=128, workers=a.workers) as s:
+    with open_session(store, budget_mb=a.budget_mb, workers=a.workers) as s:
         s.warm_up(cams[0])
         for i, cam in enumerate(cams):
             t0, c0 = time.perf_counter(), time.thread_time()
@@ -69,10 +76,12 @@ def main(argv: list[str] | None = None) -> int:
             visible[i] = f.stats.visible_blocks
             plan[i] = f.stats.update_cpu_ms / 1e3
         summary = s.summary()
+        evicted = s.cache.evicted_bytes
     rows = {}
     print(
         f"# {a.frames} frames, {a.workers} loaders, 2049² store of {b}² blocks, unpaced, "
-        f"{int(np.median(visible))} blocks in view (median)"
+        f"{int(np.median(visible))} blocks in view (median); budget {a.budget_mb:g} MiB, "
+        f"{evicted:,} bytes evicted"
     )
     print(f"{'':6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
     for name, arr in (("wall", wall), ("cpu", cpu), ("plan", plan)):
@@ -84,15 +93,18 @@ def main(argv: list[str] | None = None) -> int:
         }
         r = rows[name]
         print(f"{name:6} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['max_ms']:8.3f}")
-    locks = _lock_holds(store, cams, a.workers) if a.locks else None
-    out = RESULTS / ("session_update.json" if b == 129 else f"session_update_b{b}.json")
+    locks = _lock_holds(store, cams, a.workers, a.budget_mb) if a.locks else None
+    out = a.out or RESULTS / ("session_update.json" if b == 129 else f"session_update_b{b}.json")
     RESULTS.mkdir(parents=True, exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
             {
                 "frames": a.frames,
                 "workers": a.workers,
                 "block_size": b,
+                "budget_mb": a.budget_mb,
+                "evicted_bytes": evicted,
                 "visible_blocks_p50": float(np.median(visible)),
                 "update": rows,
                 "stall_frames": summary["stall_frames"],
@@ -109,11 +121,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _lock_holds(store, cams, workers: int) -> dict:
+def _lock_holds(store, cams, workers: int, budget_mb: float) -> dict:
     """The flight again with the lock probed: per role p50/p99/max hold µs (wall, CPU)."""
     from streamer.lockprobe import install
 
-    with open_session(store, budget_mb=128, workers=workers) as s:
+    with open_session(store, budget_mb=budget_mb, workers=workers) as s:
         probe = install(s)
         s.warm_up(cams[0])
         probe.holds.clear()
