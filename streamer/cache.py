@@ -69,9 +69,11 @@ class LevelCache:
         self._free: tuple[int, list[float], list[int]] = (0, [], [0])
         # the eviction heaps (see _index): levels above the want of unpinned blocks, of pinned
         # blocks, and levels wanted ahead above the pin; items whose version is not their
-        # entry's any more are stale and skipped
+        # entry's any more are stale and skipped. Kept only while the budget is under pressure
+        # (``_indexed``: from the first eviction until a plan finds the cache half empty)
         self._heaps: tuple[list, list, list] = ([], [], [])
         self._ver = 0
+        self._indexed = False
 
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
@@ -166,10 +168,11 @@ class LevelCache:
                 if pin < 0 and pins.get(b) == pin and b not in entries:
                     entries[b] = _Entry(pin=pin, last_wanted=self.frame)
         self._pins = dict(pins)
-        for b in changed:  # (after the new pins: whether a block is pinned orders it)
-            e = entries.get(b)
-            if e is not None:
-                self._index(b, e)
+        if self._indexed:  # (after the new pins: whether a block is pinned orders it)
+            for b in changed:
+                e = entries.get(b)
+                if e is not None:
+                    self._index(b, e)
 
     def _wanted_at(self, block: Block, e: _Entry) -> int:
         """The frame in which ``block`` was last wanted: the current one while it is pinned."""
@@ -194,16 +197,20 @@ class LevelCache:
         during each step and may release it between steps (a reader between steps sees some
         wants old and some new, never a broken entry)."""
         entries = self._entries
+        if self._indexed and self.nbytes <= self.budget // 2:
+            self._drop_index()  # no pressure now: the heaps are not worth their upkeep
         keys = list(entries)
         for i in range(0, len(keys), chunk):
             self._gen += 1
             for b in keys[i : i + chunk]:
                 e = entries.get(b)
                 if e is not None and b not in wants:
-                    e.want, e.priority = e.pin, 0.0
+                    reset = e.want != e.pin or e.priority  # (most were reset by the last plan)
+                    if reset:
+                        e.want, e.priority = e.pin, 0.0
                     if not e.levels and e.want < 0:
                         del entries[b]
-                    else:
+                    elif reset and self._indexed:
                         self._index(b, e)
             yield
         items = list(wants.items())
@@ -219,7 +226,8 @@ class LevelCache:
                 elif not e.levels and e.want < 0:
                     del entries[b]
                     continue
-                self._index(b, e)
+                if self._indexed:
+                    self._index(b, e)
             yield
 
     def wanted_steps(self, chunk: int = 64) -> Iterator[list[tuple[Block, int, int, float]]]:
@@ -270,13 +278,9 @@ class LevelCache:
         :meth:`_victims` sorts by, split three ways so that no item has to change when only
         the frame does: a pinned block's levels above its want are "wanted now" (the
         current frame, compared when popped)."""
-        k: tuple | None = None
-        if e.levels:
-            top = len(e.levels) - 1
-            if top > e.want:
-                k = (1, -top, block) if block in self._pins else (0, e.last_wanted, -top, block)
-            elif top > e.pin:
-                k = (2, e.priority, -top, block)
+        if not self._indexed:
+            return
+        k = self._heap_key(block, e)
         if k == e.ikey:
             return
         e.ikey = k
@@ -289,6 +293,17 @@ class LevelCache:
         if len(heap) > 4 * len(self._entries) + 64:  # mostly stale items: rebuild
             self._reheap(k[0])
 
+    def _heap_key(self, block: Block, e: _Entry) -> tuple | None:
+        """``(heap, *item)`` of ``block``'s eviction key (None: nothing of it may go)."""
+        if not e.levels:
+            return None
+        top = len(e.levels) - 1
+        if top > e.want:
+            return (1, -top, block) if block in self._pins else (0, e.last_wanted, -top, block)
+        if top > e.pin:
+            return (2, e.priority, -top, block)
+        return None
+
     def _reheap(self, which: int) -> None:
         """Heap ``which`` from the live items only."""
         heap = [
@@ -298,6 +313,22 @@ class LevelCache:
         ]
         heapq.heapify(heap)
         self._heaps[which][:] = heap
+
+    def _build_index(self) -> None:
+        """Start keeping the eviction heaps: every entry's key, heaped at once."""
+        self._indexed = True
+        for b, e in self._entries.items():
+            e.ikey = self._heap_key(b, e)
+            self._ver += 1
+            e.ver = self._ver
+        for which in (0, 1, 2):
+            self._reheap(which)
+
+    def _drop_index(self) -> None:
+        """Stop keeping the eviction heaps (their items all go stale)."""
+        self._indexed = False
+        for heap in self._heaps:
+            heap.clear()
 
     def _live_top(self, which: int, skip: Block | None, aside: list) -> tuple | None:
         """The smallest live item of heap ``which`` (stale ones dropped; ``skip``'s item set
@@ -324,6 +355,10 @@ class LevelCache:
 
         Victims in :meth:`_victims`' order, from the heaps :meth:`_index` keeps: a take that
         must evict once walked and sorted every entry under the lock."""
+        if self.nbytes + nbytes <= self.budget:
+            return True
+        if not self._indexed:
+            self._build_index()  # the first eviction since the cache was half empty
         aside: list = []
         try:
             while self.nbytes + nbytes > self.budget:

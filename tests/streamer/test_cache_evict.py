@@ -13,6 +13,7 @@ import pytest
 from test_cache_pins import (
     BLOCKS,
     LEVEL_BYTES,
+    eager_prefetch_steps,
     observe,
     sorting_make_room,
     sorting_room_possible,
@@ -23,10 +24,18 @@ from streamer.errors import BudgetError
 
 
 class SortingCache(LevelCache):
-    """The eviction as it was: every call walks and sorts all entries."""
+    """The eviction as it was: every call walks and sorts all entries (``evictions``: the
+    calls that evicted something)."""
 
-    make_room = sorting_make_room
+    evictions = 0
     _room_possible = sorting_room_possible
+    prefetch_steps = eager_prefetch_steps
+
+    def make_room(self, nbytes, for_block=None):
+        before = self.evicted_bytes
+        ok = sorting_make_room(self, nbytes, for_block)
+        self.evictions += self.evicted_bytes > before
+        return ok
 
 
 _END = object()
@@ -40,8 +49,8 @@ def _raises(fn, *args) -> str | None:
     return None
 
 
-OPS = ["pins", "pins", "prefetch", "prefetch", "take", "take", "take", "room", "room", "room",
-       "add", "arrive", "drop", "trim"]  # fmt: skip
+OPS = ["pins", "prefetch", "prefetch", "take", "take", "take", "room", "room", "add", "add", "add",
+       "arrive", "drop", "trim", "shed"]  # fmt: skip
 
 
 def step(rng: random.Random, caches: list[LevelCache], reserved: list[int]) -> list:
@@ -57,11 +66,15 @@ def step(rng: random.Random, caches: list[LevelCache], reserved: list[int]) -> l
         while _END not in [next(g, _END) for g in steps]:
             assert rooms(caches[0]) == rooms(caches[-1])
         return []
-    b = rng.choice(BLOCKS)
+    wanted = [x for x in BLOCKS if caches[0].want(x)[0] >= 0]
+    if op in ("take", "room", "add", "arrive"):  # the loader loads only wanted blocks
+        if not wanted:
+            return []
+        b = rng.choice(wanted)
+    else:
+        b = rng.choice(BLOCKS)
     lv = caches[0].level(b) + 1
     n = LEVEL_BYTES[min(lv, 4)]
-    if op in ("take", "room") and caches[0].want(b)[0] < 0:
-        return []  # the loader asks only for wanted blocks
     if op == "take":  # the loader's _take: room for the next level, then reserve it
         out = [c.room_for(b, n) and c.reserve(b, n) for c in caches]
         if out[0]:
@@ -78,6 +91,12 @@ def step(rng: random.Random, caches: list[LevelCache], reserved: list[int]) -> l
         return [c.add_level(b, lv, np.zeros(LEVEL_BYTES[lv] // 8)) for c in caches]
     if op == "drop":
         return [] if lv == 0 else [c.drop_level(b) for c in caches]
+    if op == "shed":  # every level of a few blocks goes: the cache empties now and then, and
+        for x in rng.sample(BLOCKS, 6):  # the eviction heaps are dropped and built again
+            for _ in range(caches[0].level(x) + 1):
+                for c in caches:
+                    c.drop_level(x)
+        return []
     linger = rng.randint(0, 3)
     return [c.trim(linger) for c in caches]
 
@@ -94,17 +113,15 @@ def _compare(seed: int, budget: int) -> tuple[int, int]:
     rng = random.Random(seed)
     caches = [LevelCache(budget), SortingCache(budget)]
     reserved: list[int] = []
-    refused = evicted = 0
+    refused = 0
     for _ in range(500):
-        before = caches[1].evicted_bytes
         out = step(rng, caches, reserved)
         assert out == out[:1] * len(out)
         assert observe(caches[0]) == observe(caches[1])
         assert caches[0].evicted_bytes == caches[1].evicted_bytes
         assert rooms(caches[0]) == rooms(caches[1])
         refused += out[:1] == [False]
-        evicted += caches[1].evicted_bytes > before
-    return refused, evicted
+    return refused, caches[1].evictions
 
 
 @pytest.mark.parametrize("budget", [600, 1500, 4000])
@@ -113,12 +130,23 @@ def test_eviction_decides_as_the_sorting_reference(seed, budget):
     _compare(seed, budget)
 
 
-def test_the_sequences_evict_and_refuse():
+def test_the_sequences_evict_refuse_and_keep_then_drop_the_heaps(monkeypatch):
     """The scene the comparison needs: budgets smaller than what the sequences ask for, so
-    that loads are refused and levels evicted many times."""
+    that loads are refused and ``make_room`` evicts many times, and caches that empty now and
+    then, so that the heaps are dropped and built again."""
+    calls = {"build": 0, "drop": 0}
+    for name in calls:
+        real = getattr(LevelCache, f"_{name}_index")
+
+        def counted(self, _real=real, _name=name):
+            calls[_name] += 1
+            _real(self)
+
+        monkeypatch.setattr(LevelCache, f"_{name}_index", counted)
     got = [_compare(seed, 600) for seed in range(20)]
     refused, evicted = sum(r for r, _ in got), sum(e for _, e in got)
-    assert refused > 600 and evicted > 150, (refused, evicted)
+    assert refused > 1000 and evicted > 300, (refused, evicted)
+    assert calls["build"] >= 10 and calls["drop"] >= 3, calls
 
 
 def test_the_comparison_sees_a_room_answer_off_by_one_priority():

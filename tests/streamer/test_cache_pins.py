@@ -39,12 +39,43 @@ def sorting_room_possible(self, block, nbytes):
     return self.nbytes + nbytes - freeable <= self.budget
 
 
+def eager_prefetch_steps(self, wants, chunk=64):
+    """``prefetch_steps`` before the eviction heaps (926f81a): every entry outside ``wants``
+    rewritten, wanted or not already."""
+    entries = self._entries
+    keys = list(entries)
+    for i in range(0, len(keys), chunk):
+        self._gen += 1
+        for b in keys[i : i + chunk]:
+            e = entries.get(b)
+            if e is not None and b not in wants:
+                e.want, e.priority = e.pin, 0.0
+                if not e.levels and e.want < 0:
+                    del entries[b]
+        yield
+    items = list(wants.items())
+    for i in range(0, len(items), chunk):
+        self._gen += 1
+        for b, (lv, prio) in items[i : i + chunk]:
+            e = entries.get(b)
+            if e is None:
+                e = entries[b] = _Entry()
+            e.want, e.priority = max(lv, e.pin), prio
+            if lv >= 0:
+                e.last_wanted = self.frame
+            elif not e.levels and e.want < 0:
+                del entries[b]
+        yield
+
+
 class EagerCache(LevelCache):
-    """The cache as it was: every pin and ``last_wanted`` rewritten on every call, and the
-    eviction that sorts every entry (it does not keep the eviction heaps)."""
+    """The cache as it was: every pin and ``last_wanted`` rewritten on every call, every
+    unwanted entry's want on every plan, and the eviction that sorts every entry (it does not
+    keep the eviction heaps)."""
 
     make_room = sorting_make_room
     _room_possible = sorting_room_possible
+    prefetch_steps = eager_prefetch_steps
 
     def level(self, block):
         e = self._entries.get(block)
