@@ -27,7 +27,6 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from typing import Any
 
 import numpy as np
 import zarr.errors
@@ -42,7 +41,6 @@ from tiler.errors import (
     StoreChangedError,
     StoreCorruptError,
     StoreError,
-    StoreUnavailableError,
 )
 from tiler.store import TerrainStore
 
@@ -416,51 +414,6 @@ class Loader:
                 self.push(b)
                 n += 1
         return n
-
-    def describe_missing(self, missing: list[tuple[Block, int]], now: float, most: int = 3) -> str:
-        """The first ``most`` missing block levels and where each stands (caller holds the
-        lock): resident level, errors read, queued, fetching, failures in a row, next retry,
-        and the budget's bytes in use and reserved."""
-        q, cache = self.queue, self.cache
-        parts = []
-        for b, lv in missing[:most]:
-            retry = q.retry_at.get(b, 0.0) - now
-            parts.append(
-                f"block {b} level {lv}: resident {cache.level(b)}, errors "
-                f"{'read' if b in self.errors else 'not read'}, "
-                f"{'queued' if q.queued_key(b) is not None else 'not queued'}, fetching "
-                f"{sorted(self.fetching.get(b, ()))}, {q.failures.get(b, 0)} failure(s) in a row"
-                + (f", retry in {retry:.2f} s" if retry > 0 else "")
-            )
-        more = f"; {len(missing) - most} more" if len(missing) > most else ""
-        budget = (
-            f"; budget {cache.nbytes:,} of {cache.budget:,} bytes ({cache.reserved:,} reserved)"
-        )
-        return "; ".join(parts) + more + budget
-
-    def stuck(self) -> str:
-        """Where the loads stand, for a wait that timed out (caller holds the lock)."""
-        reading = sum(len(v) for v in self.fetching.values())
-        text = f"{len(self.queue)} load(s) queued, {reading} read(s) running"
-        if self.last_error:
-            text += f", {len(self.last_error)} block(s) failing; latest: {self.latest_error}"
-        return text
-
-    def failing(self) -> dict[str, Any]:
-        """The blocks whose latest read failed: how many, how many a frame needed, how many
-        for the server's fault (:class:`StoreUnavailableError`), the latest error, and the
-        store's change if one ended the loading (caller holds the lock)."""
-        needed = {b for b, _ in self.demanded}
-        errs = self.last_error
-        return {
-            "failing_blocks": len(errs),
-            "failing_blocks_needed": sum(1 for b in errs if b in needed),
-            "failing_blocks_unreachable": sum(
-                1 for e in errs.values() if isinstance(e, StoreUnavailableError)
-            ),
-            "last_read_error": None if self.latest_error is None else str(self.latest_error),
-            "store_changed": None if self.fatal is None else str(self.fatal),
-        }
 
     # -- inline loading (workers=0) and shutdown -------------------------------------------
 

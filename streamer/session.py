@@ -31,8 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Collection, Iterator
-from concurrent.futures import Future
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -45,9 +44,10 @@ from streamer.errors import BudgetError, LoadError, LodError, SessionClosedError
 from streamer.frames import Frame, FrameStats, SessionConfig
 from streamer.gcfreeze import freeze_heap
 from streamer.loader import READ_ERRORS, Loader
+from streamer.loadreport import failing as loader_failing
 from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
-from streamer.pool import DaemonPool
+from streamer.planthread import PlanThread
 from streamer.waits import wait_for, wait_idle
 from tiler.crs import require_projected
 from tiler.errors import StoreChangedError
@@ -56,11 +56,6 @@ from tiler.store import TerrainStore, open_store
 from tiler.vertical import height_dtype
 
 log = logging.getLogger(__name__)
-_DONE = object()
-#: blocks per locked step of the planning thread (prefetch wants, queue rebuild): a step of 64
-#: held the lock 27 / 158 µs CPU (p50 / p99, bench/session_update.py --locks); 16 keeps the
-#: loaders' and the caller's waits for it to a few tens of µs
-PLAN_STEP_BLOCKS = 16
 
 
 class Session:
@@ -95,15 +90,11 @@ class Session:
         self._prev: Camera | None = None
         self._clock0: float | None = None  # when frame 0 was shown (its update returned)
         self._due = 0.0  # due time of the frame being made
-        self._request: tuple | None = None
-        self._planning = False
-        self._plan_error: BaseException | None = None
-        self._prefetch_blocks = 0
         self._shown: dict[Block, tuple[int, int]] = {}  # the last frame's blocks
         self._closed = False
         self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
-        self._plan_pool = DaemonPool(1, "terrastream-plan") if self.config.workers else None
+        self._plans = PlanThread(self.planner, self.loader, self.config.workers)
 
     @property
     def config(self) -> SessionConfig:
@@ -150,13 +141,14 @@ class Session:
         with self._cv:
             if self._closed:
                 return []
-            self._closed = True
+            self._closed = self._plans.closed = True
         t0 = time.monotonic()
-        if self._plan_pool is not None:  # told first: it ends while the loader's reads are awaited
-            self._plan_pool.shutdown(wait=False, cancel_futures=True)
+        pool = self._plans.pool
+        if pool is not None:  # told first: it ends while the loader's reads are awaited
+            pool.shutdown(wait=False, cancel_futures=True)
         alive = self.loader.close(timeout_s)
-        if self._plan_pool is not None:
-            for t in self._plan_pool.threads:
+        if pool is not None:
+            for t in pool.threads:
                 t.join(timeout=max(0.0, timeout_s - (time.monotonic() - t0)))
                 if t.is_alive():
                     alive.append(t.name)
@@ -167,7 +159,7 @@ class Session:
             self._raise_background_error(fatal=not self._fatal_raised)
         else:
             with self._cv:
-                left = self._plan_error or self.loader.bug
+                left = self._plans.error or self.loader.bug
             if left is not None:
                 log.error("a session thread failed: %r", left)
         return alive
@@ -219,60 +211,11 @@ class Session:
             push(b)
         return len(todo)
 
-    def _plan_prefetch(self) -> None:
-        """Prefetch planning for the latest request, then the work queue is rebuilt."""
-        with self._cv:
-            req, self._request = self._request, None
-        if req is None:
-            return
-        camera, velocity, visible = req
-        plan = self.planner.prefetch(camera, velocity, visible)  # no lock held
-        cfg = self.config
-        # applied in short steps: the lock is released between them so that update() and
-        # the loaders never wait long for it
-        self._stepwise(self.cache.prefetch_steps(plan.wants, PLAN_STEP_BLOCKS))
-        with self._cv:
-            if cfg.linger_s is not None:
-                self.cache.trim(int(cfg.linger_s * cfg.fps))
-            self._prefetch_blocks = plan.ring
-        self._stepwise(self.loader.reschedule_steps(PLAN_STEP_BLOCKS))
-        self.loader.pump()
-
-    def _stepwise(self, steps: Iterator[None]) -> None:
-        """Run a generator's steps, each under the lock."""
-        while True:
-            with self._cv:
-                if next(steps, _DONE) is _DONE:
-                    return
-
-    def _request_plan(self, camera: Camera, velocity: Any, visible: Collection[Block]) -> None:
-        with self._cv:
-            self._request = (camera, velocity, visible)
-            if self._plan_pool is None or self._planning:
-                return
-            self._planning = True
-        self._plan_pool.submit(self._plan_loop).add_done_callback(self._plan_done)
-
-    def _plan_loop(self) -> None:
-        while True:
-            self._plan_prefetch()
-            with self._cv:
-                if self._request is None or self._closed:
-                    self._planning = False
-                    return
-
-    def _plan_done(self, fut: Future) -> None:
-        exc = None if fut.cancelled() else fut.exception()
-        if exc is not None:
-            with self._cv:
-                self._planning = False
-                self._plan_error = exc
-
     def _raise_background_error(self, *, fatal: bool = True) -> None:
         """Re-raise a planning failure or a loader bug on the caller's thread, and (``fatal``)
         a change of the store under the session, which every later call raises again."""
         with self._cv:
-            plan_exc, self._plan_error = self._plan_error, None
+            plan_exc, self._plans.error = self._plans.error, None
             bug, self.loader.bug = self.loader.bug, None
             changed = self.loader.fatal if fatal else None
         if plan_exc is not None:
@@ -309,8 +252,8 @@ class Session:
             needed = self.planner.needed(camera)
             with self._cv:
                 self._pin_and_queue(needed)
-                self._request = (camera, None, set(needed))
-            self._plan_prefetch()
+                self._plans.pending = (camera, None, set(needed))
+            self._plans.plan()
             if self.config.workers == 0:
                 self.loader.load_inline(None, deadline)
                 continue
@@ -357,11 +300,11 @@ class Session:
         need = int(self._cum_array[levels].sum())
         with self._cv:
             self._pin_and_queue(needed, todo, need)
-        self._request_plan(camera, velocity, needed.keys())
+        self._plans.request(camera, velocity, needed.keys())
         self.loader.pump()
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0
         if cfg.workers == 0:
-            self._plan_prefetch()
+            self._plans.plan()
             self.loader.mark_demand(needed, self._due)
             self.loader.load_inline(cfg.inline_bytes_per_frame)
         t1 = time.perf_counter()
@@ -435,7 +378,7 @@ class Session:
         stats = FrameStats(
             frame=self.totals.frames,
             visible_blocks=len(needed),
-            prefetch_blocks=self._prefetch_blocks,
+            prefetch_blocks=self._plans.ring,
             needed_bytes=need,
             realtime_bytes=realtime,
             prefetched_bytes=prefetched,
@@ -480,7 +423,7 @@ class Session:
         with self._cv:
             used_bytes = sum(self._cum_bytes[top] for top in t.used.values() if top >= 0)
             failed_now = sorted(self.loader.queue.failed_blocks())
-            failing = self.loader.failing()
+            failing = loader_failing(self.loader)
         return t.summary(
             failing=failing,
             used_bytes=used_bytes,

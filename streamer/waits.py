@@ -12,6 +12,7 @@ from streamer.cache import Block
 from streamer.errors import LoadError, SessionClosedError
 from streamer.frames import SessionConfig
 from streamer.loader import Loader
+from streamer.loadreport import describe_missing, stuck
 
 #: what a wait that timed out suggests besides the server (the CLI has no such option: "")
 MORE_TIME = {"more_time": ", or allow more time (warm_up's timeout_s, wait_timeout_s)"}
@@ -43,7 +44,7 @@ def wait_idle(
                     "store's server{more_time}",
                     params=MORE_TIME,
                     limit=limit,
-                    state=ld.stuck(),
+                    state=stuck(ld),
                 )
             ld.cv.wait(timeout=nap(ld, left, now))
 
@@ -120,7 +121,7 @@ def wait_for(
                     params=MORE_TIME,
                     n=len(missing),
                     limit=cfg.wait_timeout_s,
-                    state=ld.describe_missing(missing, now),
+                    state=describe_missing(ld, missing, now),
                 )
             sleep = nap(ld, left, now)
             if cfg.workers:

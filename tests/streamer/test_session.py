@@ -151,7 +151,7 @@ def _drop_queue(s) -> threading.Thread:
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
             with s._cv:
-                if not s._planning and s._request is None and s.totals.loaded_bytes:
+                if not s._plans.running and s._plans.pending is None and s.totals.loaded_bytes:
                     s.loader.queue.rebuild([])
                     s._cv.notify_all()
                     return
