@@ -274,10 +274,10 @@ class LevelCache:
 
     def _index(self, block: Block, e: _Entry) -> None:
         """Put ``block``'s eviction key on its heap after a change of its levels, want, pin,
-        priority or last want (its older item goes stale). Its key is the one
-        :meth:`_victims` sorts by, split three ways so that no item has to change when only
-        the frame does: a pinned block's levels above its want are "wanted now" (the
-        current frame, compared when popped)."""
+        priority or last want, while the heaps are kept (its older item goes stale). Its key
+        is the one :meth:`_victims` sorts by, split three ways so that no item has to change
+        when only the frame does: a pinned block's levels above its want are "wanted now"
+        (the current frame, compared when popped)."""
         if not self._indexed:
             return
         k = self._heap_key(block, e)
