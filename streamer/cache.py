@@ -255,15 +255,15 @@ class LevelCache:
         return (e.want, e.pin) if e else (-1, -1)
 
     def _victim_key(self, block: Block, e: _Entry) -> tuple | None:
-        """``block``'s eviction key (smaller goes first), None if nothing of it may go."""
-        if not e.levels:
+        """``block``'s eviction key (smaller goes first), None if nothing of it may go: levels
+        above what anyone wants first, stalest first; then levels wanted ahead of time (not
+        needed to draw this frame), least important first (:meth:`_heap_key`'s classes)."""
+        k = self._heap_key(block, e)
+        if k is None:
             return None
-        top = len(e.levels) - 1
-        if top > e.want:  # above what anyone wants: first to go, stalest first
-            return (0, self._wanted_at(block, e), -top)
-        if top > e.pin:  # wanted ahead of time, not needed to draw this frame
-            return (1, e.priority, -top)
-        return None
+        if k[0] == 2:
+            return (1, k[1], k[2])
+        return (0, self._wanted_at(block, e), k[-2])
 
     def _victims(self) -> list[tuple[tuple, Block]]:
         """Evictable (block, finest level) candidates, best victim first."""
@@ -426,14 +426,14 @@ class LevelCache:
         until an entry's levels, want, pin or priority change."""
         if self._free_gen != self._gen:
             stale, ahead = 0, []
-            for e in self._entries.values():
-                if not e.levels:
+            for b, e in self._entries.items():
+                k = self._heap_key(b, e)
+                if k is None:
                     continue
-                top = len(e.levels) - 1
-                if top > e.want:
-                    stale += _above(e, e.want)
-                elif top > e.pin:
+                if k[0] == 2:
                     ahead.append((e.priority, _above(e, e.pin)))
+                else:
+                    stale += _above(e, e.want)
             ahead.sort()
             prio = [p for p, _ in ahead]
             self._free = (stale, prio, list(accumulate((n for _, n in ahead), initial=0)))
