@@ -17,11 +17,15 @@ with no loader or planning thread beside it (the figure that does not depend on 
 against ~40 at 129²: the caller's per-block work) and writes ``session_update_b33.json``.
 
 ``--budget-mb`` (default 128: nothing is evicted) flies under a budget smaller than the flight,
-where loads must evict and some are refused (the evicted bytes are printed); ``--out`` names
-the JSON (for runs of other code in a worktree).
+where loads must evict and some are refused (the evicted bytes are printed); ``--linger-s``
+sets ``SessionConfig.linger_s`` (levels unwanted that long are unloaded by the planning thread);
+``--freeze-gc`` sets ``freeze_gc`` (no full collection walks the start-up's objects: the
+maxima without the 60–90 ms collections);
+``--out`` names the JSON (for runs of other code in a worktree).
 
 Usage: python bench/session_update.py [--frames 10000] [--workers 4] [--locks] [--block-size 129]
-       [--budget-mb 128] [--out FILE]
+       [--budget-mb 128] [--linger-s S] [--freeze-gc]
+       [--out FILE]
 """
 
 from __future__ import annotations
@@ -51,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--locks", action="store_true", help="also fly with the lock probed")
     ap.add_argument("--block-size", type=int, default=129, help="the store's block edge")
     ap.add_argument("--budget-mb", type=float, default=128.0, help="the session's budget")
+    ap.add_argument("--linger-s", type=float, default=None, help="SessionConfig.linger_s")
+    ap.add_argument("--freeze-gc", action="store_true", help="SessionConfig.freeze_gc")
     ap.add_argument("--out", type=Path, default=None, help="the JSON to write")
     a = ap.parse_args(argv)
     root = WORK / "session_update"
@@ -67,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     visible = np.zeros(a.frames, np.int64)
     plan = np.zeros(a.frames)
     load0 = os.getloadavg()[0]
-    with open_session(store, budget_mb=a.budget_mb, workers=a.workers) as s:
+    opts = {"linger_s": a.linger_s, "freeze_gc": a.freeze_gc}
+    with open_session(store, budget_mb=a.budget_mb, workers=a.workers, **opts) as s:
         s.warm_up(cams[0])
         for i, cam in enumerate(cams):
             t0, c0 = time.perf_counter(), time.thread_time()
@@ -93,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         r = rows[name]
         print(f"{name:6} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['max_ms']:8.3f}")
-    locks = _lock_holds(store, cams, a.workers, a.budget_mb) if a.locks else None
+    locks = _lock_holds(store, cams, a.workers, a.budget_mb, opts) if a.locks else None
     out = a.out or RESULTS / ("session_update.json" if b == 129 else f"session_update_b{b}.json")
     RESULTS.mkdir(parents=True, exist_ok=True)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -104,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
                 "workers": a.workers,
                 "block_size": b,
                 "budget_mb": a.budget_mb,
+                "linger_s": a.linger_s,
+                "freeze_gc": a.freeze_gc,
                 "evicted_bytes": evicted,
                 "visible_blocks_p50": float(np.median(visible)),
                 "update": rows,
@@ -121,11 +130,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _lock_holds(store, cams, workers: int, budget_mb: float) -> dict:
+def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict:
     """The flight again with the lock probed: per role p50/p99/max hold µs (wall, CPU)."""
     from streamer.lockprobe import install
 
-    with open_session(store, budget_mb=budget_mb, workers=workers) as s:
+    with open_session(store, budget_mb=budget_mb, workers=workers, **opts) as s:
         probe = install(s)
         s.warm_up(cams[0])
         probe.holds.clear()

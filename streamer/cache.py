@@ -507,14 +507,23 @@ class LevelCache:
 
         Returns the bytes unloaded.
         """
-        before = self.nbytes
-        for b in list(self._entries):
-            e = self._entries.get(b)
-            while (
-                e is not None
-                and len(e.levels) - 1 > max(e.want, -1)
-                and self.frame - self._wanted_at(b, e) > linger_frames
-            ):
-                self.drop_level(b)
-                e = self._entries.get(b)
-        return before - self.nbytes
+        return sum(self.trim_steps(linger_frames, len(self._entries) or 1))
+
+    def trim_steps(self, linger_frames: int = 0, chunk: int = 64) -> Iterator[int]:
+        """:meth:`trim` in steps of at most ``chunk`` blocks, each yielding the bytes it
+        unloaded (see :meth:`prefetch_steps`: the owner may release its lock between steps;
+        in one hold, a plan's trim walked every entry and dropped every stale level)."""
+        entries = self._entries
+        keys = list(entries)
+        for i in range(0, len(keys), chunk):
+            before = self.nbytes
+            for b in keys[i : i + chunk]:
+                e = entries.get(b)
+                while (
+                    e is not None
+                    and len(e.levels) - 1 > max(e.want, -1)
+                    and self.frame - self._wanted_at(b, e) > linger_frames
+                ):
+                    self.drop_level(b)
+                    e = entries.get(b)
+            yield before - self.nbytes

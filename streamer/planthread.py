@@ -3,9 +3,10 @@ and the load queue in short locked steps.
 
 The caller posts each frame's pose (:meth:`PlanThread.request`); one thread of a
 ``terrastream-plan`` pool plans the latest one posted (older ones are skipped), with no lock
-held while it plans, then writes the plan's wants into the cache and rebuilds the load queue
-``PLAN_STEP_BLOCKS`` blocks at a time, releasing the loader's lock between the steps so that
-``update()`` and the loaders never wait long for it. Without workers there is no thread: the
+held while it plans, then writes the plan's wants into the cache, unloads what lingered too
+long (``linger_s``) and rebuilds the load queue, ``PLAN_STEP_BLOCKS`` blocks at a time,
+releasing the loader's lock between the steps so that ``update()`` and the loaders never wait
+long for it. Without workers there is no thread: the
 session calls :meth:`PlanThread.plan` itself. A planning failure is kept in :attr:`error` for
 the session to raise on the caller's thread.
 """
@@ -54,9 +55,9 @@ class PlanThread:
         plan = self.planner.prefetch(camera, velocity, visible)  # no lock held
         cfg = ld.config
         self.stepwise(ld.cache.prefetch_steps(plan.wants, PLAN_STEP_BLOCKS))
+        if cfg.linger_s is not None:
+            self.stepwise(ld.cache.trim_steps(int(cfg.linger_s * cfg.fps), PLAN_STEP_BLOCKS))
         with ld.cv:
-            if cfg.linger_s is not None:
-                ld.cache.trim(int(cfg.linger_s * cfg.fps))
             self.ring = plan.ring
         self.stepwise(ld.reschedule_steps(PLAN_STEP_BLOCKS))
         ld.pump()

@@ -2,7 +2,7 @@
 index kept between changes, and ``make_room`` takes its victims from heaps kept as entries
 change. Both must decide and evict exactly as the versions that walked and sorted every entry
 on each call (kept in ``test_cache_pins.py`` as the reference), over random sequences of pins,
-prefetch wants, loads, reservations and drops."""
+prefetch wants, loads, reservations, drops and trims (in steps, against the one-call trim)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from test_cache_pins import (
     LEVEL_BYTES,
     eager_prefetch_steps,
     observe,
+    one_hold_trim,
     sorting_make_room,
     sorting_room_possible,
 )
@@ -30,6 +31,7 @@ class SortingCache(LevelCache):
     evictions = 0
     _room_possible = sorting_room_possible
     prefetch_steps = eager_prefetch_steps
+    trim = one_hold_trim
 
     def make_room(self, nbytes, for_block=None):
         before = self.evicted_bytes
@@ -97,8 +99,8 @@ def step(rng: random.Random, caches: list[LevelCache], reserved: list[int]) -> l
                 for c in caches:
                     c.drop_level(x)
         return []
-    linger = rng.randint(0, 3)
-    return [c.trim(linger) for c in caches]
+    linger = rng.randint(0, 3)  # in steps of 2 blocks, as the session's planning thread trims
+    return [sum(caches[0].trim_steps(linger, 2)), *(c.trim(linger) for c in caches[1:])]
 
 
 def rooms(c: LevelCache) -> list[bool]:
@@ -210,3 +212,46 @@ def test_the_heaps_stay_bounded():
     for _ in range(5000):
         step(rng, [c], [])
         assert sum(map(len, c._heaps)) <= 3 * (4 * len(c._entries) + 65)
+
+
+def _skipping_trim_steps(self, linger_frames=0, chunk=64):
+    """A faulty ``trim_steps``: each step leaves its last block unvisited."""
+    entries = self._entries
+    keys = list(entries)
+    for i in range(0, len(keys), chunk):
+        before = self.nbytes
+        for b in keys[i : i + chunk - 1]:
+            e = entries.get(b)
+            while (
+                e is not None
+                and len(e.levels) - 1 > max(e.want, -1)
+                and self.frame - self._wanted_at(b, e) > linger_frames
+            ):
+                self.drop_level(b)
+                e = entries.get(b)
+        yield before - self.nbytes
+
+
+def test_trims_in_steps_unload_and_a_step_skipping_a_block_is_caught(monkeypatch):
+    """The sequences' trims in steps unload levels (a trim that never did would compare equal),
+    and the control: a step that skips its last block is caught by the comparison."""
+    trimmed: list[int] = []
+    real = LevelCache.trim_steps
+
+    def counting(self, linger_frames=0, chunk=64):
+        for n in real(self, linger_frames, chunk):
+            trimmed.append(n)
+            yield n
+
+    monkeypatch.setattr(LevelCache, "trim_steps", counting)
+    for seed in range(20):
+        _compare(seed, 1500)
+    assert sum(n > 0 for n in trimmed) >= 20, trimmed
+    monkeypatch.setattr(LevelCache, "trim_steps", _skipping_trim_steps)
+    caught = 0
+    for seed in range(20):
+        try:
+            _compare(seed, 1500)
+        except AssertionError:
+            caught += 1
+    assert caught >= 5, caught

@@ -68,6 +68,21 @@ def eager_prefetch_steps(self, wants, chunk=64):
         yield
 
 
+def one_hold_trim(self, linger_frames=0):
+    """``trim`` before its steps (07bf328): every entry walked in one call."""
+    before = self.nbytes
+    for b in list(self._entries):
+        e = self._entries.get(b)
+        while (
+            e is not None
+            and len(e.levels) - 1 > max(e.want, -1)
+            and self.frame - self._wanted_at(b, e) > linger_frames
+        ):
+            self.drop_level(b)
+            e = self._entries.get(b)
+    return before - self.nbytes
+
+
 class EagerCache(LevelCache):
     """The cache as it was: every pin and ``last_wanted`` rewritten on every call, every
     unwanted entry's want on every plan, and the eviction that sorts every entry (it does not
