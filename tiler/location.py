@@ -32,7 +32,7 @@ from zarr.buffer import default_buffer_prototype
 from tiler.atomic import partial_name, write_atomic
 from tiler.errors import StorageOptionsError, StoreError
 from tiler.s3_reader import S3_READER_ENV, open_s3_reader
-from tiler.transport import http_options
+from tiler.transport import http_options, s3fs_options
 
 T = TypeVar("T")
 
@@ -116,7 +116,7 @@ class Location:
                 f"storage options apply to URLs (s3://, gs://, http://...), not to {self.url!r}; "
                 "drop them for a local path or a zarr Store object"
             )
-        self._fsspec_options()  # a bad `timeout` is refused here, before anything runs
+        self.fsspec_options()  # a bad `timeout` is refused here, before anything runs
 
     # ---- identity ------------------------------------------------------------------------
     @property
@@ -171,14 +171,17 @@ class Location:
         return self.is_local
 
     # ---- whole-store operations ----------------------------------------------------------
-    def _fsspec_options(self) -> dict[str, Any]:
-        """The options fsspec gets: ``http(s)://`` adds read timeouts (:mod:`tiler.transport`)."""
+    def fsspec_options(self) -> dict[str, Any]:
+        """The options fsspec gets: ``http(s)://`` adds read timeouts, ``s3://`` bounds
+        botocore's retries (:mod:`tiler.transport`)."""
         if isinstance(self.target, str) and self.target.startswith(("http://", "https://")):
             return http_options(self.storage_options)
+        if isinstance(self.target, str) and self.target.startswith("s3://"):
+            return s3fs_options(self.storage_options)
         return dict(self.storage_options or {})
 
     def _zarr_kwargs(self) -> dict[str, Any]:
-        so = self._fsspec_options()
+        so = self.fsspec_options()
         return {"storage_options": so} if so else {}
 
     def open_group(self, mode: str = "r", **kwargs: Any) -> zarr.Group:
@@ -205,7 +208,7 @@ class Location:
     def _fs(self) -> tuple[Any, str]:
         import fsspec
 
-        return fsspec.core.url_to_fs(self.target, **self._fsspec_options())
+        return fsspec.core.url_to_fs(self.target, **self.fsspec_options())
 
     def exists(self) -> bool:
         """True if anything is stored at this location."""

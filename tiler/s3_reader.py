@@ -6,12 +6,23 @@ through fsspec (s3fs). ``TERRASTREAM_S3_READER=fsspec`` forces s3fs."""
 from __future__ import annotations
 
 import os
+from datetime import timedelta
 from typing import Any
 
 from zarr.abc.store import Store
 
 #: ``obstore`` (default where installed) or ``fsspec``: the zarr store used to read s3:// stores
 S3_READER_ENV = "TERRASTREAM_S3_READER"
+#: obstore's retries of a failed read (``retry_config``): 2 retries 0.1–0.2 s apart, at most
+#: 10 s in all. Its default (10 retries, backoff to 15 s, 180 s in all) spent 20 s and 11
+#: connections on one read from a server that drops them (2.8 s on a refused one) before the
+#: session's own retries (``retries``, ``backoff_s``) could count one failure.
+S3_READ_RETRY: dict[str, Any] = {
+    "max_retries": 2,
+    "backoff": {"init_backoff": timedelta(seconds=0.1), "max_backoff": timedelta(seconds=1),
+                "base": 2},
+    "retry_timeout": timedelta(seconds=10),
+}  # fmt: skip
 _OBSTORE_KEYS = {
     "key": "access_key_id",
     "secret": "secret_access_key",
@@ -61,5 +72,5 @@ def open_s3_reader(url: str, storage_options: dict[str, Any] | None = None) -> S
         client_options = {}
     bucket, _, prefix = url[len("s3://") :].partition("/")
     store = S3Store(bucket, prefix=prefix.strip("/") or None, client_options=client_options,
-                    **config)  # fmt: skip
+                    retry_config=S3_READ_RETRY, **config)  # fmt: skip
     return ObjectStore(store, read_only=True)

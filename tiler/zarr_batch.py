@@ -38,7 +38,8 @@ async def _open(
 
 
 def _loc_args(loc: Location) -> tuple[Any, dict[str, Any]]:
-    return loc.target, {"storage_options": loc.storage_options} if loc.storage_options else {}
+    so = loc.fsspec_options()
+    return loc.target, {"storage_options": so} if so else {}
 
 
 def open_arrays(loc: Location, names: Sequence[str], mode: str = "r+") -> list[zarr.Array]:

@@ -1,0 +1,133 @@
+"""How often an ``s3://`` request is tried before its failure reaches terrastream.
+
+botocore's default retries (legacy, 5 attempts) under s3fs's own 5 made a server that drops
+connections cost 25 connections per request (an ``open_store`` took 47 s) and obstore's default
+(10 retries, up to 180 s) 11 connections and 20 s per read, before a session's own retries
+could count one failure. The counts are measured against a loopback server that accepts each
+connection and closes it without an answer; the controls set other retries and see the counts
+follow them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import threading
+
+import pytest
+
+from tiler.location import Location
+from tiler.transport import S3FS_RETRIES, s3fs_options
+
+s3fs = pytest.importorskip("s3fs")
+
+# s3fs caches filesystems whose aiohttp sessions are closed by the garbage collector
+pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+
+
+@pytest.fixture
+def dropping(monkeypatch):
+    """``(endpoint, connections)``: a loopback server that reads each request and closes the
+    connection without an answer; ``connections[0]`` counts them. The environment has test
+    credentials and no AWS retry settings."""
+    for k in ("AWS_ENDPOINT_URL", "AWS_SESSION_TOKEN", "AWS_MAX_ATTEMPTS", "AWS_RETRY_MODE"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("AWS_DEFAULT_REGION", "us-east-1")
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(64)
+    srv.settimeout(0.1)
+    count, stop = [0], threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = srv.accept()
+            except TimeoutError:
+                continue
+            count[0] += 1
+            conn.settimeout(5)
+            with contextlib.suppress(OSError):
+                conn.recv(65536)
+            conn.close()
+
+    t = threading.Thread(target=serve, name="test-dropping-s3", daemon=True)
+    t.start()
+    yield f"http://127.0.0.1:{srv.getsockname()[1]}", count
+    stop.set()
+    t.join(timeout=10)
+    srv.close()
+    assert not t.is_alive()
+
+
+def test_s3fs_options_bound_botocores_retries_unless_set(monkeypatch):
+    monkeypatch.delenv("AWS_MAX_ATTEMPTS", raising=False)
+    monkeypatch.delenv("AWS_RETRY_MODE", raising=False)
+    given = {"anon": True, "config_kwargs": {"connect_timeout": 5}}
+    so = s3fs_options(given)
+    assert so["config_kwargs"] == {"connect_timeout": 5, "retries": S3FS_RETRIES}
+    assert given == {"anon": True, "config_kwargs": {"connect_timeout": 5}}  # not mutated
+    assert s3fs_options(None) == {"config_kwargs": {"retries": S3FS_RETRIES}}
+    own = {"config_kwargs": {"retries": {"mode": "adaptive"}}}
+    assert s3fs_options(own) == own  # the user's retries win
+    assert Location("s3://b/x.zarr").fsspec_options() == {
+        "config_kwargs": {"retries": S3FS_RETRIES}
+    }
+    assert "config_kwargs" not in Location("https://h/x.zarr").fsspec_options()
+    for var, value in (("AWS_MAX_ATTEMPTS", "7"), ("AWS_RETRY_MODE", "legacy")):
+        with monkeypatch.context() as m:
+            m.setenv(var, value)  # the environment's retries win too
+            assert s3fs_options({"anon": True}) == {"anon": True}
+
+
+def _cat(endpoint: str, so: dict) -> None:
+    """One GET of a key through s3fs with the options a Location gives it."""
+    import fsspec
+
+    s3fs.S3FileSystem.clear_instance_cache()
+    opts = Location("s3://b/x.zarr", {"endpoint_url": endpoint, **so}).fsspec_options()
+    fs = fsspec.filesystem("s3", skip_instance_cache=True, **opts)
+    with pytest.raises(Exception, match="Connection was closed"):
+        fs.cat_file("b/x.zarr/zarr.json")
+
+
+def test_a_dropping_server_gets_two_botocore_attempts_per_s3fs_try(dropping):
+    """Default: 2 botocore attempts for each of s3fs's tries. The control: the user's one
+    attempt gives half the connections (the count follows botocore's setting; botocore's own
+    default made it 5 per try)."""
+    endpoint, count = dropping
+    _cat(endpoint, {})
+    ours = count[0]
+    count[0] = 0
+    _cat(endpoint, {"config_kwargs": {"retries": {"mode": "standard", "total_max_attempts": 1}}})
+    one = count[0]
+    assert one >= 1 and ours == S3FS_RETRIES["total_max_attempts"] * one, (ours, one)
+
+
+def _obstore_get(endpoint: str) -> None:
+    from zarr.core.buffer import default_buffer_prototype
+
+    from tiler.s3_reader import open_s3_reader
+
+    store = open_s3_reader("s3://b/x.zarr", {"endpoint_url": endpoint})
+    assert store is not None
+    with pytest.raises(Exception, match="retries"):
+        asyncio.run(store.get("zarr.json", default_buffer_prototype()))
+
+
+def test_obstore_reads_retry_twice(dropping, monkeypatch):
+    """One read: 1 + 2 retries (obstore's default: 1 + 10, 20 s). The control: 4 retries set
+    in the same constant give 5 connections."""
+    pytest.importorskip("obstore")
+    import tiler.s3_reader as s3r
+
+    endpoint, count = dropping
+    _obstore_get(endpoint)
+    assert count[0] == 1 + s3r.S3_READ_RETRY["max_retries"] == 3
+    count[0] = 0
+    monkeypatch.setitem(s3r.S3_READ_RETRY, "max_retries", 4)
+    _obstore_get(endpoint)
+    assert count[0] == 5
