@@ -50,6 +50,9 @@ class LoadQueue:
         self.backoff_s = backoff_s
         self.max_backoff_s = max(backoff_s, max_backoff_s)
         self.heal = heal
+        #: while the caller waits (set by the wait, None otherwise): the start of its wait;
+        #: blocks that gave up since then (:meth:`given_up`) are not retried until it ends
+        self.waiting_since: float | None = None
         self._heap: list[tuple[tuple, Block]] = []
         #: ``((errors-first, pinned, last failure, key), block)``: see :meth:`_failed_entry`
         self._failed: list[tuple[tuple, Block]] = []
@@ -200,11 +203,14 @@ class LoadQueue:
         blocks in backoff (they stay queued) and dropping those ``take`` refuses. With
         ``probe`` (no retry of a failed block runs) a failed block goes first, the one that
         failed longest ago in the most urgent class; without it failed blocks go only when no
-        other block can (module doc)."""
+        other block can (module doc). While a waiter waits (:attr:`waiting_since`), failed
+        blocks that gave up since it began stay queued untried: retrying them only kept a
+        worker from the blocks it still waited for (a warm-up over a failing server read each
+        block up to 13 times instead of ``retries``), and healing resumes once it ends."""
         self._wake(now)
         waiting: list[tuple[tuple, Block]] = []
         found = None
-        best = self._best
+        best, since = self._best, self.waiting_since
         heaps = (self._failed, self._heap) if probe else (self._heap, self._failed)
         for heap in heaps:
             failed_heap = heap is self._failed
@@ -221,6 +227,9 @@ class LoadQueue:
                     continue
                 if not failed_heap and self.is_failed(b):
                     waiting.append((key, b))  # failed since it was queued: to its heap
+                    continue
+                if failed_heap and since is not None and self.given_up(b, since):
+                    waiting.append((key, b))  # the waiter no longer waits for it
                     continue
                 job = take(b)
                 if job is not None:

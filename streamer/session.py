@@ -48,7 +48,7 @@ from streamer.loadreport import failing as loader_failing
 from streamer.lod import FIELD_FOR_METRIC
 from streamer.planner import Planner
 from streamer.planthread import PlanThread
-from streamer.waits import wait_for, wait_idle
+from streamer.waits import wait_for, wait_idle, waiting
 from tiler.crs import require_projected
 from tiler.errors import StoreChangedError
 from tiler.layout import level_size
@@ -248,16 +248,17 @@ class Session:
         limit = timeout_s or self.config.wait_timeout_s
         start = time.monotonic()
         deadline = start + limit
-        for _ in range(3):  # errors first, then the levels they ask for, then a last check
-            needed = self.planner.needed(camera)
-            with self._cv:
-                self._pin_and_queue(needed)
-                self._plans.pending = (camera, None, set(needed))
-            self._plans.plan()
-            if self.config.workers == 0:
-                self.loader.load_inline(None, deadline)
-                continue
-            wait_idle(self.loader, self._raise_background_error, deadline, limit, start)
+        with waiting(self.loader, start):  # blocks that gave up are not retried meanwhile
+            for _ in range(3):  # errors first, then the levels they ask for, then a last check
+                needed = self.planner.needed(camera)
+                with self._cv:
+                    self._pin_and_queue(needed)
+                    self._plans.pending = (camera, None, set(needed))
+                self._plans.plan()
+                if self.config.workers == 0:
+                    self.loader.load_inline(None, deadline)
+                    continue
+                wait_idle(self.loader, self._raise_background_error, deadline, limit, start)
         with self._cv:
             self.loader.frame_realtime = self.loader.frame_prefetched = 0
             self.loader.frame_io_s = 0.0

@@ -6,7 +6,8 @@ bug, both sleeping until the next retry is due or a load finishes (the loader's 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from streamer.cache import Block
 from streamer.errors import LoadError, SessionClosedError
@@ -27,7 +28,8 @@ def wait_idle(
     """Wait until ``ld`` has nothing queued or running but failed blocks in backoff and blocks
     whose reads failed ``retries`` times since ``start`` (a server that fails slowly, e.g. by
     timing out, keeps a retry running: it no longer holds the wait to its deadline), pumping
-    for retries; ``LoadError`` at ``deadline`` (``limit``: the seconds it allowed)."""
+    for retries; ``LoadError`` at ``deadline`` (``limit``: the seconds it allowed). The
+    warm-up calls it inside :func:`waiting` for its whole span (between its passes too)."""
     while True:
         raise_bug()  # a loader bug ends the wait with its cause
         closed_meanwhile(ld)
@@ -47,6 +49,20 @@ def wait_idle(
                     state=stuck(ld),
                 )
             ld.cv.wait(timeout=nap(ld, left, now))
+
+
+@contextmanager
+def waiting(ld: Loader, since: float) -> Iterator[None]:
+    """Inside, the load queue leaves untried the failed blocks that gave up since ``since``
+    (``LoadQueue.waiting_since``): the wait no longer waits for them, and retrying them kept
+    a worker from the blocks it did wait for; they are retried again (healing) after it."""
+    with ld.cv:
+        ld.queue.waiting_since = since
+    try:
+        yield
+    finally:
+        with ld.cv:
+            ld.queue.waiting_since = None
 
 
 def closed_meanwhile(ld: Loader) -> None:
@@ -91,43 +107,45 @@ def wait_for(
     due: float,
 ) -> None:
     """Wait until every block of ``needed`` is loaded or failed (``Session.update``'s
-    ``wait=True``; ``due``: the frame's due time, for the late-bytes count)."""
+    ``wait=True``; ``due``: the frame's due time, for the late-bytes count). Blocks that gave
+    up since the wait began are not retried meanwhile (:func:`waiting`)."""
     ld.mark_demand(needed, due)
     start = time.monotonic()
     deadline = start + cfg.wait_timeout_s
     q = ld.queue
-    while True:
-        raise_bug()  # a loader bug ends the wait with its cause
-        closed_meanwhile(ld)
-        more = False  # inline: a retry is due already (the pass stopped at it)
-        if cfg.workers == 0:
-            more = ld.load_inline(None, deadline)
-        else:
-            ld.pump()
-        with ld.cv:
-            now = time.monotonic()
-            missing = [(b, lv) for b, lv in ld.missing(needed) if not q.given_up(b, start)]
-            if not missing:
-                return
-            if cfg.raise_on_failure and ld.unreported:
-                return  # a block failed every retry: the frame raises, more waiting delays it
-            if cfg.workers == 0 and not more and not q.next_retry(now):
-                return  # nothing more can load inline
-            left = deadline - now
-            if left <= 0:
-                raise LoadError(
-                    "{n} visible block level(s) did not load within {limit:.1f} s "
-                    "({state}): check the store's server{more_time}",
-                    params=MORE_TIME,
-                    n=len(missing),
-                    limit=cfg.wait_timeout_s,
-                    state=describe_missing(ld, missing, now),
-                )
-            sleep = nap(ld, left, now)
-            if cfg.workers:
-                if ld.requeue_idle(missing):
-                    sleep = min(sleep, REQUEUE_NAP_S)  # room may free without a notify
-                ld.cv.wait(timeout=sleep)
-                continue
-        if not more:
-            time.sleep(sleep)
+    with waiting(ld, start):
+        while True:
+            raise_bug()  # a loader bug ends the wait with its cause
+            closed_meanwhile(ld)
+            more = False  # inline: a retry is due already (the pass stopped at it)
+            if cfg.workers == 0:
+                more = ld.load_inline(None, deadline)
+            else:
+                ld.pump()
+            with ld.cv:
+                now = time.monotonic()
+                missing = [(b, lv) for b, lv in ld.missing(needed) if not q.given_up(b, start)]
+                if not missing:
+                    return
+                if cfg.raise_on_failure and ld.unreported:
+                    return  # a block failed every retry: the frame raises, more waiting delays it
+                if cfg.workers == 0 and not more and not q.next_retry(now):
+                    return  # nothing more can load inline
+                left = deadline - now
+                if left <= 0:
+                    raise LoadError(
+                        "{n} visible block level(s) did not load within {limit:.1f} s "
+                        "({state}): check the store's server{more_time}",
+                        params=MORE_TIME,
+                        n=len(missing),
+                        limit=cfg.wait_timeout_s,
+                        state=describe_missing(ld, missing, now),
+                    )
+                sleep = nap(ld, left, now)
+                if cfg.workers:
+                    if ld.requeue_idle(missing):
+                        sleep = min(sleep, REQUEUE_NAP_S)  # room may free without a notify
+                    ld.cv.wait(timeout=sleep)
+                    continue
+            if not more:
+                time.sleep(sleep)

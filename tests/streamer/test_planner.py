@@ -403,3 +403,23 @@ def test_union_sorted_is_sorted_set_of_the_tuples(lo, hi):
         want = sorted(set(map(tuple, ids.tolist())))
         assert list(map(tuple, got.tolist())) == want
         assert _ids_of(want).tolist() == [list(b) for b in want]
+
+
+def test_a_waiter_leaves_blocks_that_gave_up_since_it_began_untried():
+    """While ``waiting_since`` is set, a failed block that failed ``retries`` times since then
+    stays queued untried (the probe goes to one that has not), and is retried once the wait
+    ends; the control: a block that gave up only before the wait began is still retried."""
+    q = LoadQueue(retries=2, backoff_s=0.0, max_backoff_s=0.0)
+    gone, before, fresh = (0, 0), (0, 1), (0, 2)
+    for t in (5.0, 6.0):
+        q.failed_read(gone, t)  # gave up within the wait (it began at 4.0)
+    for t in (1.0, 2.0):
+        q.failed_read(before, t)  # gave up before it: a fresh round is due
+    for b, key in ((gone, (1, 0, 0)), (before, (1, 0, 1)), (fresh, (1, 0, 2))):
+        q.push(b, key)
+    q.waiting_since = 4.0
+    assert q.pop(10.0, lambda b: "job") == (before, "job")  # the probe skips `gone`
+    assert q.pop(10.0, lambda b: "job") == (fresh, "job")
+    assert q.pop(10.0, lambda b: "job") is None and q.blocks() == {gone}  # kept, untried
+    q.waiting_since = None
+    assert q.pop(10.0, lambda b: "job") == (gone, "job")  # healing resumes after the wait

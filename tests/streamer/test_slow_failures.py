@@ -91,13 +91,55 @@ def test_a_slowly_failing_server_ends_the_waits_long_before_their_deadlines(stor
     assert "wait_error" not in out and out["failed"] == out["visible"], out
 
 
+def _no_pause(monkeypatch) -> None:
+    """The waits as before their pause: blocks that gave up are retried during the wait."""
+    import contextlib
+
+    import streamer.session
+
+    def retrying(ld, since):
+        return contextlib.nullcontext()
+
+    monkeypatch.setattr(streamer.waits, "waiting", retrying)
+    monkeypatch.setattr(streamer.session, "waiting", retrying)
+
+
 def test_positive_control_without_the_given_up_check_the_warm_up_runs_to_its_deadline(
     store, monkeypatch
 ):
     monkeypatch.setattr(streamer.waits, "only_given_up", lambda ld, since: False)
+    _no_pause(monkeypatch)  # (else the paused retries let the loader go idle: the wait ends)
     out = fly(store)
     assert out["warm_s"] >= DEADLINE_S, out
     assert "warm-up did not finish within 4.0 s" in out["warm_error"]
+
+
+def _warm_up_reads(store) -> collections.Counter:
+    """Reads per block during a warm-up over a server that fails every read slowly."""
+    z0, z1 = store.meta.extra["value_range"]
+    cam = default_flythrough(store.grid, z0, z1, 1, 60.0, viewport=(160, 120))[0]
+    hook = SlowFailures()
+    with open_session(store, **OPTIONS) as s:
+        s._read_hook = hook
+        s.warm_up(cam)
+        with hook.lock:
+            reads = collections.Counter(hook.reads)
+        s.close()
+    return reads
+
+
+def test_a_warm_up_over_a_failing_server_reads_each_block_retries_times(store):
+    """Once a block has failed its retries since the warm-up began, it is not retried until
+    the warm-up ends: each block is read exactly ``retries`` times (a worker retrying blocks
+    that gave up read some 11 times, and the warm-up took ~1.6x as long)."""
+    reads = _warm_up_reads(store)
+    assert len(reads) > 10 and set(reads.values()) == {3}, reads
+
+
+def test_positive_control_without_the_pause_blocks_that_gave_up_are_read_again(store, monkeypatch):
+    _no_pause(monkeypatch)
+    reads = _warm_up_reads(store)
+    assert max(reads.values()) > 3 + 1, reads
 
 
 def key_order_pop(self, now, take, probe=True):
