@@ -435,6 +435,14 @@ def as_location(
     return Location(target, storage_options)
 
 
+def for_writing(loc: Location) -> Location:
+    """``loc`` with the client retries of a store being written (``s3://``: botocore's
+    :data:`~tiler.transport.S3FS_WRITE_RETRIES` unless set; others as they are)."""
+    if not (isinstance(loc.target, str) and loc.target.startswith("s3://")):
+        return loc
+    return Location(loc.target, s3fs_options(loc.storage_options, write=True))
+
+
 def _link_if_absent(path: str, data: bytes) -> bool:
     """Create the file ``path`` holding ``data`` unless it exists; True if this call made it.
 

@@ -44,7 +44,7 @@ from tiler.errors import (
 )
 from tiler.layout import grid_side, parse_block_size
 from tiler.lease import DEFAULT_TIMEOUT_S, WriterLease
-from tiler.location import Location, as_location
+from tiler.location import Location, as_location, for_writing
 from tiler.mosaic import MosaicReader, MosaicSpec
 from tiler.resume import (
     TILING_STATES,
@@ -321,7 +321,7 @@ def tile(
     """
     opts = options or TileOptions()
     label = str(src) if isinstance(src, str | os.PathLike) else "the mosaic"
-    loc = as_location(dst)
+    loc = for_writing(as_location(dst))  # (its workers get the same client retries)
     # GDAL sizes its block cache once, on first use: this caps it for a fresh process (the
     # CLI's run, the worker processes); the option is restored afterwards.
     previous = rasterio.env.get_gdal_config("GDAL_CACHEMAX")

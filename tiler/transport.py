@@ -34,6 +34,10 @@ TIMEOUT_OPTION = "timeout"
 #: dropped connections); s3fs still retries dropped connections and throttling 5 times over
 #: ~2 s; sessions retry failed reads themselves.
 S3FS_RETRIES: dict[str, Any] = {"mode": "standard", "total_max_attempts": 2}
+#: the same for a store being written (``tile``'s destination, its workers'): botocore's 5
+#: attempts, in standard mode. A tiling run has no retries of its own around a chunk write
+#: (a failure stops it, to be rerun), so a transient 500 there is worth 4 more tries.
+S3FS_WRITE_RETRIES: dict[str, Any] = {"mode": "standard", "total_max_attempts": 5}
 
 
 def is_transport_error(exc: BaseException) -> bool:
@@ -126,15 +130,15 @@ def http_options(options: dict[str, Any] | None) -> dict[str, Any]:
     return so
 
 
-def s3fs_options(options: dict[str, Any] | None) -> dict[str, Any]:
-    """fsspec options for an ``s3://`` store: botocore's retries :data:`S3FS_RETRIES` unless
-    ``config_kwargs`` sets ``retries`` or the environment sets ``AWS_MAX_ATTEMPTS`` or
-    ``AWS_RETRY_MODE``."""
+def s3fs_options(options: dict[str, Any] | None, *, write: bool = False) -> dict[str, Any]:
+    """fsspec options for an ``s3://`` store: botocore's retries :data:`S3FS_RETRIES`
+    (:data:`S3FS_WRITE_RETRIES` with ``write``) unless ``config_kwargs`` sets ``retries`` or
+    the environment sets ``AWS_MAX_ATTEMPTS`` or ``AWS_RETRY_MODE``."""
     so = dict(options or {})
     if os.environ.get("AWS_MAX_ATTEMPTS") or os.environ.get("AWS_RETRY_MODE"):
         return so
     config = dict(so.get("config_kwargs") or {})
     if "retries" not in config:
-        config["retries"] = dict(S3FS_RETRIES)
+        config["retries"] = dict(S3FS_WRITE_RETRIES if write else S3FS_RETRIES)
         so["config_kwargs"] = config
     return so

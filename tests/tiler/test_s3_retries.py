@@ -131,3 +131,36 @@ def test_obstore_reads_retry_twice(dropping, monkeypatch):
     monkeypatch.setitem(s3r.S3_READ_RETRY, "max_retries", 4)
     _obstore_get(endpoint)
     assert count[0] == 5
+
+
+def test_a_store_being_written_keeps_five_attempts(monkeypatch, tmp_path):
+    """``tile`` has no retries of its own around a chunk write, so its destination (and its
+    workers, which get its options) keeps botocore's 5 attempts, in standard mode; a user's
+    retries win there too, and other locations are left as they are."""
+    import tiler.tile as tile_mod
+    from tiler.location import for_writing
+    from tiler.transport import S3FS_WRITE_RETRIES
+
+    monkeypatch.delenv("AWS_MAX_ATTEMPTS", raising=False)
+    monkeypatch.delenv("AWS_RETRY_MODE", raising=False)
+    assert S3FS_WRITE_RETRIES["total_max_attempts"] == 5
+    w = for_writing(Location("s3://b/x.zarr", {"anon": True}))
+    assert w.fsspec_options()["config_kwargs"]["retries"] == S3FS_WRITE_RETRIES
+    assert w.for_workers().fsspec_options() == w.fsspec_options()
+    own = {"config_kwargs": {"retries": {"total_max_attempts": 9}}}
+    assert for_writing(Location("s3://b/x.zarr", own)).storage_options == own
+    local = Location(str(tmp_path / "x.zarr"))
+    assert for_writing(local) is local
+    seen = []
+
+    def capture(plan, loc, opts, progress):
+        seen.append(loc)
+        raise RuntimeError("captured")
+
+    monkeypatch.setattr(tile_mod, "_tile", capture)
+    monkeypatch.setattr(tile_mod, "plan_source", lambda src, opts: None)
+    with pytest.raises(RuntimeError, match="captured"):
+        tile_mod.tile("dem.tif", "s3://b/x.zarr")
+    assert seen[0].fsspec_options()["config_kwargs"]["retries"] == S3FS_WRITE_RETRIES
+    # the control: a store opened to read gets the reader's 2 attempts
+    assert Location("s3://b/x.zarr").fsspec_options()["config_kwargs"]["retries"] == S3FS_RETRIES
