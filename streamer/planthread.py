@@ -6,9 +6,9 @@ The caller posts each frame's pose (:meth:`PlanThread.request`); one thread of a
 held while it plans, then writes the plan's wants into the cache, unloads what lingered too
 long (``linger_s``) and rebuilds the load queue, ``PLAN_STEP_BLOCKS`` blocks at a time,
 releasing the loader's lock between the steps so that ``update()`` and the loaders never wait
-long for it. Without workers there is no thread: the
-session calls :meth:`PlanThread.plan` itself. A planning failure is kept in :attr:`error` for
-the session to raise on the caller's thread.
+long for it. Without workers there is no thread: the session calls :meth:`PlanThread.plan`
+itself. A planning failure is kept in :attr:`error` for the session to raise on the caller's
+thread.
 """
 
 from __future__ import annotations
