@@ -25,15 +25,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import RESULTS, machine_info  # noqa: E402
+from bench.session_update import bench_store  # noqa: E402
 from streamer.cache import LevelCache  # noqa: E402
 from streamer.loader import Loader  # noqa: E402
 from streamer.planner import Planner  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from streamer.session import open_session  # noqa: E402
-from tiler.store import open_store  # noqa: E402
-from tiler.synth import synth_dem  # noqa: E402
-from tiler.tile import TileOptions, tile  # noqa: E402
 
 
 def _timed(spent: dict[str, list[float]], name: str, fn):
@@ -73,15 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-mb", type=float, default=128.0)
     ap.add_argument("--out", type=Path, default=RESULTS / "plan_steps.json")
     a = ap.parse_args(argv)
-    root = WORK / "session_update"
-    root.mkdir(parents=True, exist_ok=True)
     b = a.block_size
-    src, dst = root / "dem.tif", root / ("s.zarr" if b == 129 else f"s_b{b}.zarr")
-    if not src.exists():
-        synth_dem(src, 2049, seed=3)
-    if not (dst / "zarr.json").exists():
-        tile(src, dst, TileOptions(block_size=b, workers=2, executor="threads"))
-    store = open_store(dst)
+    store = bench_store(b)
     cams = make_path(store, "default", frames=a.frames, fps=60)
     spent: dict[str, list[float]] = defaultdict(list)
     from streamer.session import Session

@@ -48,6 +48,20 @@ from tiler.synth import synth_dem  # noqa: E402
 from tiler.tile import TileOptions, tile  # noqa: E402
 
 
+def bench_store(block_size: int):
+    """The 2049² synthetic store of this benchmark in blocks of ``block_size``² (built in
+    ``bench/work/session_update`` once; ``bench/plan_steps.py`` flies it too)."""
+    root = WORK / "session_update"
+    root.mkdir(parents=True, exist_ok=True)
+    name = "s.zarr" if block_size == 129 else f"s_b{block_size}.zarr"
+    src, dst = root / "dem.tif", root / name
+    if not src.exists():
+        synth_dem(src, 2049, seed=3)
+    if not (dst / "zarr.json").exists():
+        tile(src, dst, TileOptions(block_size=block_size, workers=2, executor="threads"))
+    return open_store(dst)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=10_000)
@@ -59,15 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--freeze-gc", action="store_true", help="SessionConfig.freeze_gc")
     ap.add_argument("--out", type=Path, default=None, help="the JSON to write")
     a = ap.parse_args(argv)
-    root = WORK / "session_update"
-    root.mkdir(parents=True, exist_ok=True)
     b = a.block_size
-    src, dst = root / "dem.tif", root / ("s.zarr" if b == 129 else f"s_b{b}.zarr")
-    if not src.exists():
-        synth_dem(src, 2049, seed=3)
-    if not (dst / "zarr.json").exists():
-        tile(src, dst, TileOptions(block_size=b, workers=2, executor="threads"))
-    store = open_store(dst)
+    store = bench_store(b)
     cams = make_path(store, "default", frames=a.frames, fps=60)
     wall, cpu = np.zeros(a.frames), np.zeros(a.frames)
     visible = np.zeros(a.frames, np.int64)
