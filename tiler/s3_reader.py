@@ -14,8 +14,8 @@ from zarr.abc.store import Store
 #: ``obstore`` (default where installed) or ``fsspec``: the zarr store used to read s3:// stores
 S3_READER_ENV = "TERRASTREAM_S3_READER"
 #: obstore's retries of a failed read (``retry_config``): 2 retries 0.1–0.2 s apart, at most
-#: 10 s in all. Its default (10 retries, backoff to 15 s, 180 s in all) spent 20 s and 11
-#: connections on one read from a server that drops them (2.8 s on a refused one) before the
+#: 10 s in all. Its default (10 retries, backoff to 15 s, 180 s in all) spent 1.4–20 s and 11
+#: connections on one read from a server that drops them (2–7 s on a refused one) before the
 #: session's own retries (``retries``, ``backoff_s``) could count one failure.
 S3_READ_RETRY: dict[str, Any] = {
     "max_retries": 2,

@@ -29,8 +29,8 @@ TIMEOUT_OPTION = "timeout"
 #: botocore's retries for ``s3://`` through s3fs (``config_kwargs``) unless the storage options
 #: or ``AWS_MAX_ATTEMPTS``/``AWS_RETRY_MODE`` set them: 2 attempts per request. botocore's
 #: default (legacy, 5 attempts) under s3fs's own 5 made a server that drops connections cost
-#: 25 connections per request (an ``open_store``: 50 connections, 47 s; now 20, ~4 s) and a
-#: refused one 6–10 s. Standard mode retries the same transient errors (throttling, 5xx,
+#: 25 connections per request (an ``open_store``: 50 connections, 34–47 s; now 20, 4–5 s) and a
+#: refused one 5–10 s. Standard mode retries the same transient errors (throttling, 5xx,
 #: dropped connections); s3fs still retries dropped connections and throttling 5 times over
 #: ~2 s; sessions retry failed reads themselves.
 S3FS_RETRIES: dict[str, Any] = {"mode": "standard", "total_max_attempts": 2}
