@@ -97,10 +97,15 @@ class Location:
         self,
         target: str | os.PathLike | Store | Location,
         storage_options: dict[str, Any] | None = None,
+        *,
+        writing: bool = False,
     ) -> None:
         if isinstance(target, Location):
             storage_options = storage_options or target.storage_options
+            writing = writing or target.writing
             target = target.target
+        #: a store being written (:func:`for_writing`): ``s3://`` clients keep more tries
+        self.writing = writing
         self.storage_options: dict[str, Any] | None = dict(storage_options or {}) or None
         self.target: str | Store
         if isinstance(target, Store):
@@ -152,7 +157,7 @@ class Location:
     def for_workers(self) -> Location:
         """A copy worker processes or dask workers can unpickle and reopen (URL + options)."""
         self.picklable()
-        return Location(self.target, self.storage_options)
+        return Location(self.target, self.storage_options, writing=self.writing)
 
     def picklable(self) -> str:
         """A form worker processes can reopen (a path or URL); raises for memory and objects."""
@@ -180,9 +185,25 @@ class Location:
             return s3fs_options(self.storage_options)
         return dict(self.storage_options or {})
 
-    def _zarr_kwargs(self) -> dict[str, Any]:
+    @property
+    def is_s3(self) -> bool:
+        """True for an ``s3://`` URL (opened through s3fs, with :mod:`tiler._s3fs`'s tries)."""
+        return isinstance(self.target, str) and self.target.startswith("s3://")
+
+    def zarr_args(self, mode: str = "r") -> tuple[Any, dict[str, Any]]:
+        """``(store, kwargs)`` for zarr's ``open_*`` functions: the target with its fsspec
+        options, or for ``s3://`` an ``FsspecStore`` over :func:`tiler._s3fs.s3fs_filesystem`
+        (the tries of a writer when this location is :attr:`writing` or ``mode`` writes)."""
         so = self.fsspec_options()
-        return {"storage_options": so} if so else {}
+        if self.is_s3:
+            from zarr.storage import FsspecStore
+
+            from tiler._s3fs import s3fs_filesystem
+
+            fs = s3fs_filesystem(so, write=self.writing or mode != "r", asynchronous=True)
+            path = fs._strip_protocol(self.target)
+            return FsspecStore(fs, path=path, read_only=mode == "r"), {}
+        return self.target, {"storage_options": so} if so else {}
 
     def open_group(self, mode: str = "r", **kwargs: Any) -> zarr.Group:
         """Open the root zarr group (``kwargs`` go to ``zarr.open_group``).
@@ -199,13 +220,20 @@ class Location:
             reader = open_s3_reader(self.target, self.storage_options)
             if reader is not None:
                 return zarr.open_group(reader, mode="r", **kwargs)
-        return zarr.open_group(self.target, mode=mode, **self._zarr_kwargs(), **kwargs)  # type: ignore[arg-type]
+        store, kw = self.zarr_args(mode)
+        return zarr.open_group(store, mode=mode, **kw, **kwargs)
 
     def open_array(self, path: str, mode: str = "r") -> zarr.Array:
         """Open the array at ``path`` inside the store."""
-        return zarr.open_array(self.target, path=path, mode=mode, **self._zarr_kwargs())  # type: ignore[arg-type]
+        store, kw = self.zarr_args(mode)
+        return zarr.open_array(store, path=path, mode=mode, **kw)
 
     def _fs(self) -> tuple[Any, str]:
+        if self.is_s3:
+            from tiler._s3fs import s3fs_filesystem
+
+            fs = s3fs_filesystem(self.fsspec_options(), write=self.writing)
+            return fs, fs._strip_protocol(self.target)
         import fsspec
 
         return fsspec.core.url_to_fs(self.target, **self.fsspec_options())
@@ -438,9 +466,9 @@ def as_location(
 def for_writing(loc: Location) -> Location:
     """``loc`` with the client retries of a store being written (``s3://``: botocore's
     :data:`~tiler.transport.S3FS_WRITE_RETRIES` unless set; others as they are)."""
-    if not (isinstance(loc.target, str) and loc.target.startswith("s3://")):
+    if not loc.is_s3:
         return loc
-    return Location(loc.target, s3fs_options(loc.storage_options, write=True))
+    return Location(loc.target, s3fs_options(loc.storage_options, write=True), writing=True)
 
 
 def _link_if_absent(path: str, data: bytes) -> bool:

@@ -38,6 +38,13 @@ S3FS_RETRIES: dict[str, Any] = {"mode": "standard", "total_max_attempts": 2}
 #: attempts, in standard mode. A tiling run has no retries of its own around a chunk write
 #: (a failure stops it, to be rerun), so a transient 500 there is worth 4 more tries.
 S3FS_WRITE_RETRIES: dict[str, Any] = {"mode": "standard", "total_max_attempts": 5}
+#: s3fs's own tries of a request (its ``retries``, a class attribute, not a storage option)
+#: around botocore's attempts, for a store being read: 2. s3fs's 5 tries sleep 1.9 s in all
+#: between them, so a server that dropped connections cost an ``open_store`` 20 connections and
+#: 4–5 s even with :data:`S3FS_RETRIES`; sessions retry a failed block read themselves.
+S3FS_TRIES = 2
+#: the same for a store being written: s3fs's own default, 5 (see :data:`S3FS_WRITE_RETRIES`).
+S3FS_WRITE_TRIES = 5
 
 
 def is_transport_error(exc: BaseException) -> bool:

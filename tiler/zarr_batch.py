@@ -37,15 +37,10 @@ async def _open(
     return [a if isinstance(a, BaseException) else a.with_config(WRITE_CONFIG) for a in found]
 
 
-def _loc_args(loc: Location) -> tuple[Any, dict[str, Any]]:
-    so = loc.fsspec_options()
-    return loc.target, {"storage_options": so} if so else {}
-
-
 def open_arrays(loc: Location, names: Sequence[str], mode: str = "r+") -> list[zarr.Array]:
     """The arrays ``names`` of the store at ``loc``, opened concurrently (for writing, every
     chunk written: ``WRITE_CONFIG``, as :func:`tiler.run.open_for_write`)."""
-    store, kw = _loc_args(loc)
+    store, kw = loc.zarr_args(mode)
     return [zarr.Array(a) for a in sync(_open(store, names, mode, kw))]
 
 
@@ -70,7 +65,7 @@ def write_all(writes: Sequence[tuple[zarr.Array, Any, np.ndarray]]) -> None:
 def read_all(loc: Location, names: Sequence[str]) -> list[np.ndarray]:
     """The whole of each array ``names`` at ``loc``, opened and read concurrently."""
 
-    store, kw = _loc_args(loc)
+    store, kw = loc.zarr_args("r")
 
     async def go() -> list[np.ndarray]:
         arrays = await _open(store, names, "r", kw)

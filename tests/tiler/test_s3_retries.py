@@ -164,3 +164,67 @@ def test_a_store_being_written_keeps_five_attempts(monkeypatch, tmp_path):
     assert seen[0].fsspec_options()["config_kwargs"]["retries"] == S3FS_WRITE_RETRIES
     # the control: a store opened to read gets the reader's 2 attempts
     assert Location("s3://b/x.zarr").fsspec_options()["config_kwargs"]["retries"] == S3FS_RETRIES
+
+
+def _get(endpoint: str, **kw) -> None:
+    """One ``get_bytes`` of a key through a Location (its s3fs filesystem and tries)."""
+    s3fs.S3FileSystem.clear_instance_cache()
+    with pytest.raises(Exception, match="Connection was closed"):
+        Location("s3://b/x.zarr", {"endpoint_url": endpoint}, **kw).get_bytes("zarr.json")
+
+
+def test_a_location_tries_each_request_s3fs_tries_times(dropping, monkeypatch):
+    """A Location's s3fs filesystem tries each request ``S3FS_TRIES`` (2) times, each with
+    botocore's 2 attempts. A failing ``get_bytes`` makes two s3fs requests here, so one try of
+    each is 4 connections and ours 8; s3fs's own 5 tries made 20 and slept 1.9 s between
+    them per request. The controls: 1 and 3 tries in the same constant give 4 and
+    12."""
+    import tiler.transport as tr
+
+    endpoint, count = dropping
+    seen = {}
+    for tries in (tr.S3FS_TRIES, 1, 3):
+        monkeypatch.setattr(tr, "S3FS_TRIES", tries)
+        count[0] = 0
+        _get(endpoint)
+        seen[tries] = count[0]
+    assert seen[1] == 2 * S3FS_RETRIES["total_max_attempts"]
+    assert seen == {1: seen[1], 2: 2 * seen[1], 3: 3 * seen[1]}, seen
+
+
+def test_readers_and_writers_get_their_own_filesystems(monkeypatch):
+    """A store being written keeps s3fs's 5 tries and a reader gets 2, through every way a
+    Location opens s3fs (raw keys, zarr), in filesystems fsspec caches apart; they pickle (a
+    dask worker may receive one) with their tries."""
+    import pickle
+
+    from zarr.storage import FsspecStore
+
+    from tiler._s3fs import ReadS3FileSystem, WriteS3FileSystem
+    from tiler.location import for_writing
+    from tiler.transport import S3FS_TRIES, S3FS_WRITE_TRIES
+
+    monkeypatch.setenv("AWS_DEFAULT_REGION", "us-east-1")
+    assert (S3FS_TRIES, S3FS_WRITE_TRIES) == (2, 5)
+    read = Location("s3://b/x.zarr", {"anon": True})
+    write = for_writing(read)
+    assert write.writing and not read.writing and write.for_workers().writing
+    assert Location(write).writing  # a copy keeps it
+    rfs, path = read._fs()
+    wfs, _ = write._fs()
+    assert (type(rfs), rfs.retries, path) == (ReadS3FileSystem, 2, "b/x.zarr")
+    assert (type(wfs), wfs.retries) == (WriteS3FileSystem, 5)
+    assert read._fs()[0] is rfs  # fsspec's instance cache still serves it
+    s3fs.S3FileSystem.clear_instance_cache()  # clears them too (a new endpoint in the env)
+    assert read._fs()[0] is not rfs
+    store, kw = read.zarr_args("r")
+    assert isinstance(store, FsspecStore) and kw == {} and store.read_only
+    assert store.fs.retries == 2 and store.path == "b/x.zarr"
+    assert read.zarr_args("r+")[0].fs.retries == 5  # a zarr open that writes: a writer's
+    assert write.zarr_args("r")[0].fs.retries == 5
+    back = pickle.loads(pickle.dumps(rfs))
+    assert type(back) is ReadS3FileSystem and back.retries == 2
+    # the control: a plain s3fs filesystem keeps its class's 5
+    assert s3fs.S3FileSystem(anon=True).retries == 5
+    # other URLs are handed to zarr as before
+    assert Location("https://h/x.zarr").zarr_args("r")[0] == "https://h/x.zarr"
