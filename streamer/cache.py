@@ -389,28 +389,37 @@ class LevelCache:
         than ``block`` when its level is itself ahead of time, of any block otherwise; never
         ``block``'s own.
 
-        A walk that stops once enough is found; one that finds too little leaves an index of
-        what it saw (:meth:`_freeable`), which answers the next questions in O(log n) until
-        an entry changes: a loader's refused take, repeated down the queue, once walked and
-        sorted every entry under the lock each time."""
+        A walk that stops once enough is found; one that finds too little has seen every
+        entry and keeps what it saw (:meth:`_freeable`'s index), which answers the next
+        questions in O(log n) until an entry changes: a loader's refused take, repeated down
+        the queue, once walked and sorted every entry under the lock each time (and a
+        refusal walked the entries twice: the search, then the index)."""
         e_new = self._entries[block]
         ahead = e_new.pin < len(e_new.levels)  # the level to load is above the block's pin
         short = self.nbytes + nbytes - self.budget  # bytes to free
         if self._free_gen != self._gen:
-            free, p_new = 0, e_new.priority
+            free, p_new, stale, held = 0, e_new.priority, 0, []
             for b, e in self._entries.items():
                 lv = e.levels
-                if not lv or b == block:
+                if not lv:
                     continue
                 top = len(lv) - 1
-                if top > e.want:
-                    free += _above(e, e.want)
-                elif top > e.pin and not (ahead and e.priority >= p_new):
-                    free += _above(e, e.pin)
+                if top > e.want:  # (the index's classes: _heap_key's)
+                    n = _above(e, e.want)
+                    stale += n
+                elif top > e.pin:
+                    n = _above(e, e.pin)
+                    held.append((e.priority, n))
+                    if ahead and e.priority >= p_new:
+                        continue
                 else:
                     continue
-                if free >= short:
-                    return True
+                if b != block:
+                    free += n
+                    if free >= short:
+                        return True
+            self._keep_free(stale, held)
+            return free >= short  # (what the index answers below: short may be <= 0)
         stale, prio, cum = self._freeable()
         free = stale + (cum[bisect_left(prio, e_new.priority)] if ahead else cum[-1])
         own = self._victim_key(block, e_new)
@@ -425,20 +434,25 @@ class LevelCache:
         wanted ahead (sorted), the running sums of those levels' bytes in that order)``, kept
         until an entry's levels, want, pin or priority change."""
         if self._free_gen != self._gen:
-            stale, ahead = 0, []
+            stale, held = 0, []
             for b, e in self._entries.items():
                 k = self._heap_key(b, e)
                 if k is None:
                     continue
                 if k[0] == 2:
-                    ahead.append((e.priority, _above(e, e.pin)))
+                    held.append((e.priority, _above(e, e.pin)))
                 else:
                     stale += _above(e, e.want)
-            ahead.sort()
-            prio = [p for p, _ in ahead]
-            self._free = (stale, prio, list(accumulate((n for _, n in ahead), initial=0)))
-            self._free_gen = self._gen
+            self._keep_free(stale, held)
         return self._free
+
+    def _keep_free(self, stale: int, held: list[tuple[float, int]]) -> None:
+        """Keep :meth:`_freeable`'s index of the current entries: ``stale`` bytes above their
+        wants, ``held`` ``(priority, bytes)`` of the levels wanted ahead."""
+        held.sort()
+        prio = [p for p, _ in held]
+        self._free = (stale, prio, list(accumulate((n for _, n in held), initial=0)))
+        self._free_gen = self._gen
 
     def reserve(self, block: Block, nbytes: int) -> bool:
         """Count ``nbytes`` of a level being fetched for ``block`` (evicting if needed)."""

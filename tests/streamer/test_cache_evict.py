@@ -255,3 +255,37 @@ def test_trims_in_steps_unload_and_a_step_skipping_a_block_is_caught(monkeypatch
         except AssertionError:
             caught += 1
     assert caught >= 5, caught
+
+
+class _CountingDict(dict):
+    """A dict whose ``items()`` walks are counted."""
+
+    walks = 0
+
+    def items(self):
+        type(self).walks += 1
+        return super().items()
+
+
+def test_a_refusal_walks_the_entries_once_and_keeps_the_index():
+    """A refused ``room_for`` walks the entries once, keeping what it saw: the refusals down
+    the queue after it, and ``_freeable``, walk none until an entry changes (it walked them
+    twice: the search, then the index). The control: after a change, the next refusal walks
+    again, once, so the count sees the walks."""
+    c = LevelCache(1000)
+    blocks = [(0, j) for j in range(6)]
+    c.set_pins({b: 0 for b in blocks}, LEVEL_BYTES)
+    c.set_prefetch({b: (2, 1.0) for b in blocks})
+    for b in blocks:
+        c.add_level(b, 0, np.zeros(LEVEL_BYTES[0] // 8))
+    c._entries = _CountingDict(c._entries)
+    _CountingDict.walks = 0
+    big = c.budget  # more than anything could free: every level held is pinned
+    assert not c.room_for(blocks[0], big)
+    assert _CountingDict.walks == 1
+    assert not any(c.room_for(b, big) for b in blocks)
+    c._freeable()
+    assert _CountingDict.walks == 1
+    c.add_level(blocks[0], 1, np.zeros(LEVEL_BYTES[1] // 8))  # a change: the index is stale
+    assert not c.room_for(blocks[1], big)
+    assert _CountingDict.walks == 2
