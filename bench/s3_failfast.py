@@ -2,11 +2,11 @@
 
 Two loopback endpoints: one that refuses connections (a closed port) and one that accepts each
 connection, reads the request and closes it without an answer. Against each, ``open_store``
-through s3fs and through obstore (its first contact goes through s3fs either way), and one
-obstore read of a key (what a session's loader does per block attempt), each with
-terrastream's client retries (``tiler.transport.S3FS_RETRIES``,
+through s3fs and through obstore (its first contact goes through s3fs either way), and one read
+of a key through each reader (what a session's loader does per block attempt), each with
+terrastream's client retries (``tiler.transport.S3FS_RETRIES`` and ``S3FS_TRIES``,
 ``tiler.s3_reader.S3_READ_RETRY``) and with the clients' defaults (botocore's legacy retries,
-obstore's default retry config), in this process. Prints a table and writes
+s3fs's 5 tries, obstore's default retry config), in this process. Prints a table and writes
 ``bench/results/s3_failfast.json``.
 
 Usage: python bench/s3_failfast.py [--out FILE]
@@ -72,27 +72,59 @@ def _refused_url() -> str:
     return f"http://127.0.0.1:{port}"
 
 
-def _open(url: str, reader: str, defaults: bool) -> str:
+@contextlib.contextmanager
+def _clients(defaults: bool):
+    """The options of a Location in this run: with ``defaults``, the clients' own retries
+    (which S3FS_RETRIES, S3FS_TRIES and S3_READ_RETRY replace)."""
     import s3fs
 
     import tiler.s3_reader as s3r
+    import tiler.transport as tr
+
+    s3fs.S3FileSystem.clear_instance_cache()
+    saved = s3r.S3_READ_RETRY, getattr(tr, "S3FS_TRIES", None)
+    so: dict = {}
+    if defaults:
+        so["config_kwargs"] = {"retries": {"mode": "legacy"}}
+        s3r.S3_READ_RETRY = None
+        tr.S3FS_TRIES = s3fs.S3FileSystem.retries  # (code without S3FS_TRIES ignores it)
+    try:
+        yield so
+    finally:
+        s3r.S3_READ_RETRY, tr.S3FS_TRIES = saved
+
+
+def _open(url: str, reader: str, defaults: bool) -> str:
     from tiler.location import Location
     from tiler.store import open_store
 
     os.environ["TERRASTREAM_S3_READER"] = reader
-    s3fs.S3FileSystem.clear_instance_cache()
-    so: dict = {"endpoint_url": url}
-    saved = s3r.S3_READ_RETRY
-    if defaults:  # the clients' own defaults, which S3FS_RETRIES and S3_READ_RETRY replace
-        so["config_kwargs"] = {"retries": {"mode": "legacy"}}
-        s3r.S3_READ_RETRY = None
-    try:
-        open_store(Location("s3://b/x.zarr", so))
-    except Exception as exc:  # noqa: BLE001 - the failure is the measurement
-        return type(exc).__name__
-    finally:
-        s3r.S3_READ_RETRY = saved
+    with _clients(defaults) as so:
+        try:
+            open_store(Location("s3://b/x.zarr", {"endpoint_url": url, **so}))
+        except Exception as exc:  # noqa: BLE001 - the failure is the measurement
+            return type(exc).__name__
     return "opened"
+
+
+def _read_fsspec(url: str, defaults: bool) -> str:
+    """One read of a key through the store a Location gives zarr for ``s3://`` (s3fs)."""
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.storage import FsspecStore
+
+    from tiler.location import Location
+
+    with _clients(defaults) as so:
+        loc = Location("s3://b/x.zarr", {"endpoint_url": url, **so})
+        try:
+            if hasattr(loc, "zarr_args"):
+                store = loc.zarr_args("r")[0]
+            else:  # the code before Location.zarr_args (an A/B run): what zarr made of it
+                store = FsspecStore.from_url(loc.target, loc.fsspec_options(), read_only=True)
+            asyncio.run(store.get("zarr.json", default_buffer_prototype()))
+        except Exception as exc:  # noqa: BLE001
+            return type(exc).__name__
+    return "read"
 
 
 def _read(url: str, defaults: bool) -> str:
@@ -123,13 +155,20 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(f"{'server':9} {'what':22} {'retries':9} {'result':24} {'conns':>5} {'s':>7}")
     for server in ("refuses", "drops"):
-        for what in ("open_store (s3fs)", "open_store (obstore)", "one read (obstore)"):
+        for what in (
+            "open_store (s3fs)",
+            "open_store (obstore)",
+            "one read (s3fs)",
+            "one read (obstore)",
+        ):
             for defaults in (True, False):
                 drop = Dropping() if server == "drops" else None
                 url = drop.url if drop else _refused_url()
                 t0 = time.perf_counter()
                 if what.startswith("open_store"):
                     result = _open(url, "obstore" if "obstore" in what else "fsspec", defaults)
+                elif what == "one read (s3fs)":
+                    result = _read_fsspec(url, defaults)
                 else:
                     result = _read(url, defaults)
                 seconds = time.perf_counter() - t0
