@@ -10,7 +10,7 @@ workers the planning thread shares the 2 cores with the loaders and costs more).
 table and writes ``bench/results/plan_steps.json`` (``--out`` for runs of other code).
 
 Usage: python bench/plan_steps.py [--block-size 33] [--frames 2000] [--workers 0]
-       [--budget-mb 128] [--out FILE]
+       [--budget-mb 128] [--plan-step N] [--out FILE]
 """
 
 from __future__ import annotations
@@ -69,8 +69,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=2000)
     ap.add_argument("--workers", type=int, default=0)
     ap.add_argument("--budget-mb", type=float, default=128.0)
+    ap.add_argument("--plan-step", type=int, default=None, help="blocks per locked step")
     ap.add_argument("--out", type=Path, default=RESULTS / "plan_steps.json")
     a = ap.parse_args(argv)
+    if a.plan_step is not None:
+        import streamer.planthread as planthread
+
+        planthread.PLAN_STEP_BLOCKS = a.plan_step  # (read at each plan)
     b = a.block_size
     store = bench_store(b)
     cams = make_path(store, "default", frames=a.frames, fps=60)
@@ -122,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         "workers": a.workers,
         "block_size": b,
         "budget_mb": a.budget_mb,
+        "plan_step_blocks": a.plan_step,
         "cache_entries": entries,
         "parts": rows,
         "machine": machine_info(),

@@ -20,11 +20,12 @@ against ~40 at 129²: the caller's per-block work) and writes ``session_update_b
 where loads must evict and some are refused (the evicted bytes are printed); ``--linger-s``
 sets ``SessionConfig.linger_s`` (levels unwanted that long are unloaded by the planning thread);
 ``--freeze-gc`` sets ``freeze_gc`` (no full collection walks the start-up's objects: the
-maxima without the 60–90 ms collections);
+maxima without the 60–90 ms collections); ``--plan-step N`` sets the planning thread's blocks
+per locked step (``streamer.planthread.PLAN_STEP_BLOCKS``);
 ``--out`` names the JSON (for runs of other code in a worktree).
 
 Usage: python bench/session_update.py [--frames 10000] [--workers 4] [--locks] [--block-size 129]
-       [--budget-mb 128] [--linger-s S] [--freeze-gc]
+       [--budget-mb 128] [--linger-s S] [--freeze-gc] [--plan-step N]
        [--out FILE]
 """
 
@@ -71,9 +72,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-mb", type=float, default=128.0, help="the session's budget")
     ap.add_argument("--linger-s", type=float, default=None, help="SessionConfig.linger_s")
     ap.add_argument("--freeze-gc", action="store_true", help="SessionConfig.freeze_gc")
+    ap.add_argument(
+        "--plan-step", type=int, default=None, help="blocks per locked step of the planning thread"
+    )
     ap.add_argument("--out", type=Path, default=None, help="the JSON to write")
     a = ap.parse_args(argv)
     b = a.block_size
+    if a.plan_step is not None:
+        import streamer.planthread as planthread
+
+        planthread.PLAN_STEP_BLOCKS = a.plan_step  # (read at each plan)
     store = bench_store(b)
     cams = make_path(store, "default", frames=a.frames, fps=60)
     wall, cpu = np.zeros(a.frames), np.zeros(a.frames)
@@ -120,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
                 "budget_mb": a.budget_mb,
                 "linger_s": a.linger_s,
                 "freeze_gc": a.freeze_gc,
+                "plan_step_blocks": a.plan_step,
                 "evicted_bytes": evicted,
                 "visible_blocks_p50": float(np.median(visible)),
                 "update": rows,
