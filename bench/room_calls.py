@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         "total_ms": float(us.sum() / 1e3),
     }
     print(f"# room questions, thread-CPU µs, budget {a.budget_mb:g} MiB, {a.frames} frames")
-    print(" ".join(f"{k}={v:.1f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
+    print(" ".join(f"{k:>18}" for k in row))
+    print(" ".join(f"{v:18.1f}" if isinstance(v, float) else f"{v:18d}" for v in row.values()))
     flown = json.loads(flight.read_text())
     flight.unlink()
     out = {"budget_mb": a.budget_mb, "frames": a.frames, "room": row,

@@ -408,17 +408,17 @@ class LevelCache:
                     n = _above(e, e.want)
                     stale += n
                 elif top > e.pin:
-                    n = _above(e, e.pin)
-                    held.append((e.priority, n))
+                    held.append(e)  # (only the entry: most walks stop early)
                     if ahead and e.priority >= p_new:
                         continue
+                    n = _above(e, e.pin)
                 else:
                     continue
                 if b != block:
                     free += n
                     if free >= short:
                         return True
-            self._keep_free(stale, held)
+            self._keep_free(stale, [(e.priority, _above(e, e.pin)) for e in held])
             return free >= short  # (what the index answers below: short may be <= 0)
         stale, prio, cum = self._freeable()
         free = stale + (cum[bisect_left(prio, e_new.priority)] if ahead else cum[-1])
