@@ -5,7 +5,9 @@ unpaced (``update()`` back to back while 4 loader threads fill behind it) and re
 of the wall time around each call and of the caller's CPU time (``time.thread_time``), which is
 the figure that does not depend on what else the machine runs. ``--locks`` flies the path
 once more with the session's lock probed (:mod:`streamer.lockprobe`, which slows every hold a
-little) and reports each thread role's lock holds (µs, wall and thread CPU) and the reads,
+little) and reports each thread role's lock holds (µs, wall and thread CPU; how many held the
+CPU for 20, 50 and 100 µs or more, and the CPU held in all, since a percentile moves with the
+number of short holds) and the reads,
 decodes or planning found under the lock (0 expected). ``TERRASTREAM_KERNELS=numpy`` runs the
 planning's numpy reference instead of its compiled kernels. Prints a table and writes
 ``bench/results/session_update.json``.
@@ -163,7 +165,7 @@ def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict
     )
     print(
         f"{'role':8} {'holds':>8} {'wall p50':>9} {'p99':>8} {'max':>9} {'cpu p50':>8} "
-        f"{'p99':>8} {'max':>8}"
+        f"{'p99':>8} {'max':>8} {'>=20':>7} {'>=50':>6} {'>=100':>6} {'sum ms':>8}"
     )
     for role, holds in sorted(probe.by_role().items()):
         us = np.array(holds) * 1e6
@@ -172,11 +174,17 @@ def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict
             for q in (50, 99):
                 row[f"{kind}_p{q}"] = float(np.percentile(us[:, j], q))
             row[f"{kind}_max"] = float(us[:, j].max())
+        # a percentile hangs on how many short holds there are: the long ones counted, and
+        # the CPU held in all
+        for t in (20, 50, 100):
+            row[f"cpu_ge_{t}"] = int((us[:, 1] >= t).sum())
+        row["cpu_sum_ms"] = float(us[:, 1].sum() / 1e3)
         out[role] = row
         print(
             f"{role:8} {row['holds']:8d} {row['wall_p50']:9.1f} {row['wall_p99']:8.1f} "
             f"{row['wall_max']:9.1f} {row['cpu_p50']:8.1f} {row['cpu_p99']:8.1f} "
-            f"{row['cpu_max']:8.1f}"
+            f"{row['cpu_max']:8.1f} {row['cpu_ge_20']:7d} {row['cpu_ge_50']:6d} "
+            f"{row['cpu_ge_100']:6d} {row['cpu_sum_ms']:8.1f}"
         )
     return out
 

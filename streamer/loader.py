@@ -98,7 +98,6 @@ class Loader:
         self.due: dict[tuple[Block, int], float] = {}  # level -> due time of its first frame
         self.ever_loaded: set[tuple[Block, int]] = set()  # (block, level) loaded at least once
         self.frame_late = 0
-        self.prio: dict[Block, float] = {}
         self.unreported: list[tuple[Block, BaseException]] = []
         self.last_error: dict[Block, BaseException] = {}  # blocks whose latest read failed
         self.latest_error: BaseException | None = None  # the latest read error of any block
@@ -116,10 +115,9 @@ class Loader:
     def key(self, b: Block, level: int | None = None) -> tuple:
         """Queue order: errors first, then pinned levels, coarse before fine, by screen error
         (caller holds the lock)."""
-        _want, pin = self.cache.want(b)
+        _want, pin, prio = self.cache.want_priority(b)
         nxt = self.cache.level(b) + 1 if level is None else level
-        prio = -self.prio.get(b, 0.0)
-        return (0 if b not in self.errors else 1, 0 if nxt <= pin else 1, nxt, prio, b)
+        return (0 if b not in self.errors else 1, 0 if nxt <= pin else 1, nxt, -prio, b)
 
     def push(self, b: Block, level: int | None = None) -> None:
         """Queue ``b`` for its next load (caller holds the lock)."""
@@ -133,18 +131,15 @@ class Loader:
     def reschedule_steps(self, chunk: int = 64) -> Iterator[None]:
         """:meth:`reschedule` in steps of at most ``chunk`` blocks; the caller holds the lock
         during each step and may release it between them. Keys computed in an earlier step
-        may be slightly stale by the swap; a job is re-checked when it is taken."""
-        prio: dict[Block, float] = {}
+        may be slightly stale by the swap; a job is re-checked when it is taken. The queue
+        holds the blocks that want a level they do not hold (``LevelCache.short_steps``): a
+        block's errors come before any of its levels (:meth:`fetchable`), so a block without
+        them is one of those."""
         items = []
-        for part in self.cache.wanted_steps(chunk):
-            for b, want, _pin, p in part:
-                prio[b] = p
-                self.prio[b] = p
-                if self.cache.level(b) >= want and b in self.errors:
-                    continue
+        for part in self.cache.short_steps(chunk):
+            for b, _want, _pin, _p in part:
                 items.append((self.key(b), b))
             yield
-        self.prio = prio
         yield from self.queue.rebuild_steps(items, time.monotonic(), chunk)
         self.totals.cancelled = self.queue.cancelled
 

@@ -63,10 +63,13 @@ def step(rng: random.Random, caches: list[LevelCache], reserved: list[int]) -> l
     if op == "prefetch":  # priorities from a few values: ties between blocks happen
         wants = {b: (rng.randint(-1, 4), rng.choice([0.1, 0.5, 0.5, 2.0, rng.random()]))
                  for b in rng.sample(BLOCKS, rng.randint(3, 10))}  # fmt: skip
-        # in steps of 2 blocks, as the session applies a plan, compared between the steps
+        # in steps of 2 blocks, as the session applies a plan. Between the steps the index
+        # must answer as a walk of the same state (the steps themselves differ: the reference
+        # rewrites every entry, the cache only those a plan may have to reset); the states
+        # after the last step are compared by the caller
         steps = [c.prefetch_steps(dict(wants), 2) for c in caches]
-        while _END not in [next(g, _END) for g in steps]:
-            assert rooms(caches[0]) == rooms(caches[-1])
+        while [next(g, _END) for g in steps] != [_END] * len(steps):
+            assert rooms(caches[0]) == walked_rooms(caches[0])
         return []
     wanted = [x for x in BLOCKS if caches[0].want(x)[0] >= 0]
     if op in ("take", "room", "add", "arrive"):  # the loader loads only wanted blocks
@@ -109,11 +112,29 @@ def rooms(c: LevelCache) -> list[bool]:
     return [c._room_possible(b, n) for b in BLOCKS if c.want(b)[0] >= 0 for n in LEVEL_BYTES]
 
 
-def _compare(seed: int, budget: int) -> tuple[int, int]:
-    """Run a sequence on both caches, asserting equal answers and states at every step;
-    return how many steps refused a load and how many evicted."""
+def walked_rooms(c: LevelCache) -> list[bool]:
+    """:func:`rooms` answered by the reference's walk over ``c``'s entries."""
+    return [
+        sorting_room_possible(c, b, n) for b in BLOCKS if c.want(b)[0] >= 0 for n in LEVEL_BYTES
+    ]
+
+
+def short_blocks(c: LevelCache) -> list:
+    """The blocks :meth:`LevelCache.short_steps` gives (what the load queue is built from)."""
+    return sorted(b for part in c.short_steps(3) for b, *_ in part)
+
+
+def walked_short(c: LevelCache) -> list:
+    """The blocks that want a level they do not hold, found by walking every entry."""
+    return sorted(b for b, e in c._entries.items() if e.want >= len(e.levels))
+
+
+def _compare(seed: int, budget: int, cls: type[LevelCache] = LevelCache) -> tuple[int, int]:
+    """Run a sequence on both caches, asserting equal answers and states at every step (and
+    that ``cls``'s short set is what a walk finds); return how many steps refused a load and
+    how many evicted."""
     rng = random.Random(seed)
-    caches = [LevelCache(budget), SortingCache(budget)]
+    caches = [cls(budget), SortingCache(budget)]
     reserved: list[int] = []
     refused = 0
     for _ in range(500):
@@ -122,8 +143,41 @@ def _compare(seed: int, budget: int) -> tuple[int, int]:
         assert observe(caches[0]) == observe(caches[1])
         assert caches[0].evicted_bytes == caches[1].evicted_bytes
         assert rooms(caches[0]) == rooms(caches[1])
+        assert short_blocks(caches[0]) == walked_short(caches[0])
         refused += out[:1] == [False]
     return refused, caches[1].evictions
+
+
+class _NoShortSet(LevelCache):
+    """A short set that a level's departure (a drop, an eviction, a trim) does not update."""
+
+    def drop_level(self, block):
+        short = set(self._short)
+        super().drop_level(block)
+        self._short = short
+
+
+class _PinBlind(LevelCache):
+    """A plan that does not reset the blocks whose pin changed since the previous plan."""
+
+    def set_pins(self, pins, level_bytes, need=None):
+        repinned = set(self._repinned)
+        super().set_pins(pins, level_bytes, need)
+        self._repinned = repinned
+
+
+@pytest.mark.parametrize("cls", [_NoShortSet, _PinBlind])
+def test_the_comparison_sees_a_stale_short_set_or_an_unreset_want(cls):
+    """The controls of the short set and of the plan's resets (which no longer walk every
+    entry): a short set not updated when a level leaves, or a plan that does not reset a
+    block unpinned since the previous plan, fails the comparison in most sequences."""
+    failed = 0
+    for seed in range(10):
+        try:
+            _compare(seed, 1500, cls)
+        except AssertionError:
+            failed += 1
+    assert failed >= 5, failed
 
 
 @pytest.mark.parametrize("budget", [600, 1500, 4000])
