@@ -35,6 +35,19 @@ class _Entry:
     ver: int = 0  # the version its live heap item carries (LevelCache._index)
 
 
+@dataclass(frozen=True)
+class PinChanges:
+    """What :meth:`LevelCache.set_pins` would change, found by :meth:`LevelCache.pin_changes`
+    before the owner's lock is taken."""
+
+    of: dict[Block, int]  # the pins it was found for
+    prev: dict[Block, int]  # the pins it was found against
+    gone: set[Block]  # pinned before, not now
+    moved: list[tuple[Block, int]]  # pinned now at another level than before, or new
+    pins: dict[Block, int]  # the new pins (a copy)
+    prev_negative: bool  # a previous pin is below 0 (the session never pins below 0)
+
+
 def _above(e: _Entry, keep: int) -> int:
     """Bytes of ``e``'s levels above ``keep``."""
     return sum(a.nbytes for a in e.levels[keep + 1 :])
@@ -120,11 +133,27 @@ class LevelCache:
         self.set_pins({b: pin for b, (_, pin, _) in wants.items() if pin >= 0}, level_bytes)
         self.set_prefetch({b: (lv, prio) for b, (lv, _, prio) in wants.items()})
 
+    def pin_changes(self, pins: dict[Block, int]) -> PinChanges:
+        """The blocks whose pin :meth:`set_pins` would change. Reads only the current pins,
+        which only :meth:`set_pins` replaces: the thread that sets the pins may call this
+        without the owner's lock, and hand the answer to :meth:`set_pins` under it."""
+        prev = self._pins
+        prev_pin = prev.get
+        moved = [(b, pin) for b, pin in pins.items() if prev_pin(b, -2) != pin]
+        negative = bool(prev) and min(prev.values()) < 0
+        return PinChanges(pins, prev, prev.keys() - pins.keys(), moved, dict(pins), negative)
+
     def set_pins(
-        self, pins: dict[Block, int], level_bytes: list[int], need: int | None = None
+        self,
+        pins: dict[Block, int],
+        level_bytes: list[int],
+        need: int | None = None,
+        changes: PinChanges | None = None,
     ) -> None:
         """Replace the pinned levels (what this frame draws); other wants stay. ``need``: the
-        bytes of the pinned levels, if the caller has summed them.
+        bytes of the pinned levels, if the caller has summed them; ``changes``: what
+        :meth:`pin_changes` found for ``pins`` (found again if the pins changed since; do not
+        change ``pins`` in between).
 
         Raises ``BudgetError`` (changing nothing) if the pins alone exceed the budget. Touches
         only the blocks whose pin changed since the previous call (a pinned block counts as
@@ -141,11 +170,13 @@ class LevelCache:
                 need=_mib(need),
                 budget=_mib(self.budget),
             )
+        if changes is None or changes.of is not pins or changes.prev is not self._pins:
+            changes = self.pin_changes(pins)
         self.frame += 1
         entries, prev = self._entries, self._pins
         gen = self._gen
         changed = []
-        for b in prev.keys() - pins.keys():
+        for b in changes.gone:
             e = entries.get(b)
             if e is not None:
                 self._gen = gen + 1
@@ -159,10 +190,7 @@ class LevelCache:
         # a block pinned at the same level as before keeps its entry as it is: its want is
         # still >= its pin (every writer of a want keeps that) and a pinned entry with a
         # level >= 0 is never deleted; a pin < 0 is rewritten like a new one
-        prev_pin = prev.get
-        for b, pin in pins.items():
-            if prev_pin(b, -2) == pin:
-                continue  # (a loop, not a set difference: no tuple made per block)
+        for b, pin in changes.moved:
             self._gen = gen + 1
             changed.append(b)
             e = entries.get(b)
@@ -173,13 +201,13 @@ class LevelCache:
                 e.want = pin
                 self._mark_short(b, e)
             e.last_wanted = self.frame
-        if prev and min(prev.values()) < 0:  # (the session never pins below 0)
+        if changes.prev_negative:
             for b, pin in prev.items():
                 if pin < 0 and pins.get(b) == pin and b not in entries:
                     entries[b] = _Entry(pin=pin, last_wanted=self.frame)
                     changed.append(b)
         self._repinned.update(changed)
-        self._pins = dict(pins)
+        self._pins = changes.pins
         if self._indexed:  # (after the new pins: whether a block is pinned orders it)
             for b in changed:
                 e = entries.get(b)

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from streamer import levels as levels_kernels
-from streamer.cache import Block
+from streamer.cache import Block, PinChanges
 from streamer.camera import Camera
 from streamer.errors import BudgetError, LoadError, LodError, SessionClosedError, StreamerError
 from streamer.frames import Frame, FrameStats, SessionConfig
@@ -198,12 +198,16 @@ class Session:
         return out
 
     def _pin_and_queue(
-        self, needed: dict[Block, int], todo: list[Block] | None = None, need: int | None = None
+        self,
+        needed: dict[Block, int],
+        todo: list[Block] | None = None,
+        need: int | None = None,
+        changes: PinChanges | None = None,
     ) -> int:
         """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
-        answer, found before taking the lock; ``need``: the pinned bytes, if summed; caller
-        holds the lock)."""
-        self.cache.set_pins(needed, self.level_bytes, need)
+        answer, ``changes``: ``LevelCache.pin_changes``', both found before taking the lock;
+        ``need``: the pinned bytes, if summed; caller holds the lock)."""
+        self.cache.set_pins(needed, self.level_bytes, need, changes)
         if todo is None:
             todo = self._to_queue(needed)
         push = self.loader.push
@@ -299,8 +303,9 @@ class Session:
         needed = dict(zip(blocks, levels.tolist(), strict=True))
         todo = self._to_queue(needed, levels)
         need = int(self._cum_array[levels].sum())
+        changes = self.cache.pin_changes(needed)  # (only this thread sets the pins)
         with self._cv:
-            self._pin_and_queue(needed, todo, need)
+            self._pin_and_queue(needed, todo, need, changes)
         self._plans.request(camera, velocity, needed.keys())
         self.loader.pump()
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0
@@ -343,33 +348,42 @@ class Session:
         hull = None
         if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")
-        with self._cv:  # one pass over the visible blocks, in C where it can be
+        unknown = ld.errors.lookup(keys) < 0  # (the error table is read lock-free)
+        with self._cv:  # the resident levels, in C; the rest of the pass without the lock
             if hull is not None:
                 hull = any(level(b) < lv or b not in errors_table for b, lv in hull.items())
             have_list = cache.levels_of(keys)
-            unknown = ld.errors.lookup(keys) < 0
-            blocks = dict(zip(keys, zip(have_list, needed.values(), strict=True), strict=True))
-            shown, self._shown = self._shown, blocks
-            used = self.totals.used
-            # only the blocks whose (resident, needed) changed since the previous frame: for
-            # the others the missing levels are marked demanded (with that frame's due time,
-            # the first) and the use counted; a level a block lacks cannot have come and gone
-            # since (pinned levels are never evicted)
-            before = shown.get
-            for b, st in blocks.items():
-                if before(b) == st:
+        blocks = dict(zip(keys, zip(have_list, needed.values(), strict=True), strict=True))
+        shown, self._shown = self._shown, blocks
+        # only the blocks whose (resident, needed) changed since the previous frame: for the
+        # others the missing levels are marked demanded (with that frame's due time, the
+        # first) and the use counted; a level a block lacks cannot have come and gone since
+        # (pinned levels are never evicted). Found without the lock, marked under it.
+        before = shown.get
+        changed = [i for i, (b, st) in enumerate(blocks.items()) if before(b) != st]
+        with self._cv:
+            for i in changed:
+                b = keys[i]
+                have, lv = blocks[b]
+                if lv <= have:
                     continue
-                have, lv = st
+                now = level(b)
+                if now > have:  # arrived since the read above: this frame shows it
+                    have = have_list[i] = now
+                    blocks[b] = (now, lv)
                 for lvl in range(have + 1, lv + 1):
                     ld.demanded.add((b, lvl))
                     ld.due.setdefault((b, lvl), due)
-                top = lv if lv < have else have
-                if top > used.get(b, -1):
-                    used[b] = top
             realtime, prefetched, io_s, late, news = ld.take_frame_counts()
             failed = frozenset(b for b in ld.queue.failed_blocks() if b in needed)
             resident = cache.nbytes
             errors = self.totals.io_errors
+        used = self.totals.used  # (the caller's own: no lock)
+        for i in changed:
+            have, lv = blocks[keys[i]]
+            top = lv if lv < have else have
+            if top > used.get(keys[i], -1):
+                used[keys[i]] = top
         have = np.array(have_list, dtype=np.int64)
         missing = unknown | (have < levels)
         short = int((levels - have).max()) if len(keys) else 0

@@ -343,3 +343,43 @@ def test_a_refusal_walks_the_entries_once_and_keeps_the_index():
     c.add_level(blocks[0], 1, np.zeros(LEVEL_BYTES[1] // 8))  # a change: the index is stale
     assert not c.room_for(blocks[1], big)
     assert _CountingDict.walks == 2
+
+
+def _pin_runs(forge: bool) -> int:
+    """Random pins set with ``pin_changes`` found beforehand (as the session does, without the
+    lock), and once with changes found before the pins moved on; returns how many runs ended
+    in a state other than setting the pins plainly (``forge``: the stale changes dressed up as
+    current, which the guard would refuse)."""
+    from dataclasses import replace
+
+    rng = random.Random(7)
+    differ = 0
+    for _ in range(60):
+        a, ref = LevelCache(4000), LevelCache(4000)
+        draw = [{b: rng.randint(0, 2) for b in rng.sample(BLOCKS, rng.randint(0, 6))}
+                for _ in range(4)]  # fmt: skip
+        for pins in draw[:2]:
+            a.set_pins(pins, LEVEL_BYTES, changes=a.pin_changes(pins))
+            ref.set_pins(pins, LEVEL_BYTES)
+            assert observe(a) == observe(ref)
+        q, r = draw[2], draw[3]
+        stale = a.pin_changes(q)  # then the pins move on before it is used
+        a.set_pins(r, LEVEL_BYTES)
+        ref.set_pins(r, LEVEL_BYTES)
+        if forge:
+            stale = replace(stale, prev=a._pins)
+        a.set_pins(q, LEVEL_BYTES, changes=stale)
+        ref.set_pins(q, LEVEL_BYTES)
+        differ += observe(a) != observe(ref)
+    return differ
+
+
+def test_pin_changes_found_beforehand_set_what_set_pins_does():
+    """``LevelCache.pin_changes`` (the session finds them before taking the lock) gives the
+    same state as ``set_pins`` finding them itself, and changes found before the pins moved on
+    are found again, not used."""
+    assert _pin_runs(forge=False) == 0
+
+
+def test_positive_control_stale_pin_changes_used_as_found_differ():
+    assert _pin_runs(forge=True) > 10

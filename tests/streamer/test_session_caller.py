@@ -4,6 +4,8 @@ again, with the same demanded/due/used records as marking every block every fram
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 from demtools import fractal, write_dem
 
@@ -133,3 +135,51 @@ def test_positive_control_skipping_every_block_loses_the_marks(store):
     ref_demanded, ref_used = _marks(frames)
     assert demanded == waited and ref_demanded - waited  # the later frames' marks are lost
     assert ref_used and not used
+
+
+def _stale_reads(s, *, also_level: bool) -> None:
+    """Make the frame's first read of the resident levels one level behind the cache, as when
+    a level arrives between the frame's two holds of the lock (``also_level``: the frame's
+    re-read in the second hold too, the positive control; the loader's reads stay true)."""
+    real_levels_of, real_level = s.cache.levels_of, s.cache.level
+    s.cache.levels_of = lambda blocks: [max(-1, h - 1) for h in real_levels_of(blocks)]
+    if also_level:
+
+        def level(b):
+            stale = sys._getframe(1).f_code.co_name == "_finish_frame"
+            return max(-1, real_level(b) - 1) if stale else real_level(b)
+
+        s.cache.level = level
+
+
+def _late_marks(store, also_level: bool) -> tuple[int, int, int]:
+    """Fly loading a few levels inline per frame (no thread: the same every run), the first
+    reads stale from frame 5; count the blocks the frames show lacking a level the cache holds
+    and the demanded levels that were resident when marked (due entries of resident levels)."""
+    behind = stale_due = marked = 0
+    with open_session(store, budget_mb=16, workers=0, inline_bytes_per_frame=20_000) as s:
+        level = s.cache.level
+        for i, cam in enumerate(cams(store, 40)):
+            if i == 5:
+                _stale_reads(s, also_level=also_level)
+            before = set(s.loader.due)
+            f = s.update(cam, 1 / 60)
+            behind += sum(have < min(lv, level(b)) for b, (have, lv) in f.blocks.items())
+            new = set(s.loader.due) - before
+            marked += len(new)
+            stale_due += sum(lvl <= level(b) for b, lvl in new)
+    return behind, stale_due, marked
+
+
+def test_a_level_that_arrives_between_the_frame_holds_is_shown_not_marked(store):
+    """The frame reads the resident levels in one short hold, finds the blocks that changed
+    without the lock, and marks their missing levels in a second hold, where a level that
+    arrived in between is shown, not marked as demanded."""
+    behind, stale_due, marked = _late_marks(store, also_level=False)
+    assert marked > 0  # levels were missing and marked in the flight
+    assert behind == 0 and stale_due == 0
+
+
+def test_positive_control_marks_from_the_first_read_alone_are_stale(store):
+    behind, stale_due, _ = _late_marks(store, also_level=True)
+    assert behind > 0 and stale_due > 0
