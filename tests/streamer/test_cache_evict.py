@@ -210,7 +210,7 @@ def test_the_comparison_sees_a_room_answer_off_by_one_priority():
     one (``<=`` where the reference has ``<``) is caught by the comparison."""
     from bisect import bisect_right
 
-    import streamer.cache as cache_mod
+    import streamer.evict as evict_mod
 
     class Loose(LevelCache):
         def _room_possible(self, block, nbytes):
@@ -220,9 +220,9 @@ def test_the_comparison_sees_a_room_answer_off_by_one_priority():
             free = stale + (cum[bisect_right(prio, e_new.priority)] if ahead else cum[-1])
             own = self._victim_key(block, e_new)
             if own is not None and own[0] == 0:
-                free -= cache_mod._above(e_new, e_new.want)
+                free -= evict_mod.bytes_above(e_new, e_new.want)
             elif own is not None:
-                free -= cache_mod._above(e_new, e_new.pin)
+                free -= evict_mod.bytes_above(e_new, e_new.pin)
             return self.nbytes + nbytes - free <= self.budget
 
     differ = 0

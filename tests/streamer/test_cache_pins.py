@@ -8,7 +8,8 @@ import random
 import numpy as np
 import pytest
 
-from streamer.cache import LevelCache, _Entry
+from streamer.cache import LevelCache
+from streamer.evict import Entry
 
 LEVEL_BYTES = [8 * (4**i) for i in range(5)]
 BLOCKS = [(r, c) for r in range(4) for c in range(4)]
@@ -59,7 +60,7 @@ def eager_prefetch_steps(self, wants, chunk=64):
         for b, (lv, prio) in items[i : i + chunk]:
             e = entries.get(b)
             if e is None:
-                e = entries[b] = _Entry()
+                e = entries[b] = Entry()
             e.want, e.priority = max(lv, e.pin), prio
             if lv >= 0:
                 e.last_wanted = self.frame
@@ -113,7 +114,7 @@ class EagerCache(LevelCache):
         for b, pin in pins.items():
             e = entries.get(b)
             if e is None:
-                e = entries[b] = _Entry()
+                e = entries[b] = Entry()
             e.pin = pin
             if pin > e.want:
                 e.want = pin
