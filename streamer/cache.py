@@ -56,6 +56,8 @@ class LevelCache(EvictionIndex):
         self.reserved = 0  # bytes of levels being fetched (counted in nbytes)
         self._pins: dict[Block, int] = {}  # the current frame's pins (set_pins' argument)
         self._top: dict[Block, int] = {}  # finest resident level of blocks holding any
+        self._moved: set[Block] = set()  # blocks whose finest level changed since the
+        # previous take_level_changes
         self._cum: list[int] = []
         self._cum_key: list[int] | None = None
         # what evictions could free, rebuilt when an entry's levels, want, pin or priority
@@ -90,6 +92,14 @@ class LevelCache(EvictionIndex):
     def levels_array(self, blocks: Sequence[Block]) -> np.ndarray:
         """:meth:`levels_of` as an int64 array."""
         return np.fromiter(map(self._top.get, blocks, repeat(-1)), np.int64, count=len(blocks))
+
+    def take_level_changes(self) -> dict[Block, int]:
+        """The finest resident level (-1: none) of each block whose level changed since the
+        previous call (the owner holds its lock): a copy of :meth:`level` kept up to date from
+        these answers stays equal to it, and can be read without the lock."""
+        moved, self._moved = self._moved, set()
+        get = self._top.get
+        return {b: get(b, -1) for b in moved}
 
     def levels(self, block: Block) -> list[np.ndarray]:
         """The block's resident levels (a new list; arrays are shared, read-only)."""
@@ -352,6 +362,7 @@ class LevelCache(EvictionIndex):
         self._gen += 1
         e.levels.append(values)
         self._top[block] = level
+        self._moved.add(block)
         e.nbytes += n
         self.nbytes += n
         self._mark_short(block, e)
@@ -365,6 +376,7 @@ class LevelCache(EvictionIndex):
         e = self._entries[block]
         self._gen += 1
         a = e.levels.pop()
+        self._moved.add(block)
         if e.levels:
             self._top[block] = len(e.levels) - 1
         else:

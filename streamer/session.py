@@ -33,6 +33,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -91,6 +92,9 @@ class Session:
         self._clock0: float | None = None  # when frame 0 was shown (its update returned)
         self._due = 0.0  # due time of the frame being made
         self._shown: dict[Block, tuple[int, int]] = {}  # the last frame's blocks
+        # the cache's finest resident levels as of the latest frame (blocks holding any),
+        # kept from LevelCache.take_level_changes: the caller's copy, read without the lock
+        self._resident: dict[Block, int] = {}
         self._closed = False
         self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
@@ -349,10 +353,18 @@ class Session:
         if self.config.account_hull and self.stall_set == "triangle":
             hull = self.planner.needed(camera, culling="hull")
         unknown = ld.errors.lookup(keys) < 0  # (the error table is read lock-free)
-        with self._cv:  # the resident levels, in C; the rest of the pass without the lock
-            if hull is not None:
-                hull = any(level(b) < lv or b not in errors_table for b, lv in hull.items())
-            have_list = cache.levels_of(keys)
+        with self._cv:  # what changed since the last frame; the pass runs without the lock
+            moved = cache.take_level_changes()
+        mirror = self._resident
+        for b, top in moved.items():
+            if top < 0:
+                mirror.pop(b, None)
+            else:
+                mirror[b] = top
+        seen = mirror.get
+        if hull is not None:
+            hull = any(seen(b, -1) < lv or b not in errors_table for b, lv in hull.items())
+        have_list = list(map(seen, keys, repeat(-1)))
         blocks = dict(zip(keys, zip(have_list, needed.values(), strict=True), strict=True))
         shown, self._shown = self._shown, blocks
         # only the blocks whose (resident, needed) changed since the previous frame: for the

@@ -138,18 +138,27 @@ def test_positive_control_skipping_every_block_loses_the_marks(store):
 
 
 def _stale_reads(s, *, also_level: bool) -> None:
-    """Make the frame's first read of the resident levels one level behind the cache, as when
-    a level arrives between the frame's two holds of the lock (``also_level``: the frame's
-    re-read in the second hold too, the positive control; the loader's reads stay true)."""
-    real_levels_of, real_level = s.cache.levels_of, s.cache.level
-    s.cache.levels_of = lambda blocks: [max(-1, h - 1) for h in real_levels_of(blocks)]
+    """Make the frame's first read of the resident levels one level behind the cache for the
+    blocks whose level changed, as when their newest level arrives between the frame's two
+    holds of the lock (then it counts as a change for the next frame too). ``also_level``:
+    the frame's re-read in the second hold too, the positive control; the loader's reads
+    stay true."""
+    cache = s.cache
+    real_take, real_level = cache.take_level_changes, cache.level
+
+    def take():
+        moved = real_take()
+        cache._moved.update(b for b, top in moved.items() if top >= 0)  # (seen again next)
+        return {b: top - 1 if top >= 0 else top for b, top in moved.items()}
+
+    cache.take_level_changes = take
     if also_level:
 
         def level(b):
             stale = sys._getframe(1).f_code.co_name == "_finish_frame"
             return max(-1, real_level(b) - 1) if stale else real_level(b)
 
-        s.cache.level = level
+        cache.level = level
 
 
 def _late_marks(store, also_level: bool) -> tuple[int, int, int]:
@@ -183,3 +192,37 @@ def test_a_level_that_arrives_between_the_frame_holds_is_shown_not_marked(store)
 def test_positive_control_marks_from_the_first_read_alone_are_stale(store):
     behind, stale_due, _ = _late_marks(store, also_level=True)
     assert behind > 0 and stale_due > 0
+
+
+def _mirror_misses(store, forget_drops: bool) -> tuple[int, int]:
+    """Fly under a budget that evicts, loading inline (nothing changes after ``update``
+    returns); count the frames whose copy of the resident levels differs from the cache's
+    and the levels evicted (``forget_drops``: a drop not recorded as a change, the control)."""
+    misses = 0
+    with open_session(store, budget_mb=0.065, workers=0, inline_bytes_per_frame=40_000) as s:
+        if forget_drops:
+            real_drop = s.cache.drop_level
+
+            def drop(block):
+                moved = set(s.cache._moved)
+                real_drop(block)
+                s.cache._moved = moved
+
+            s.cache.drop_level = drop
+        for cam in cams(store, 60):
+            s.update(cam, 1 / 60)
+            misses += s._resident != dict(s.cache._top)
+        return misses, s.cache.evicted_bytes
+
+
+def test_the_callers_copy_of_the_resident_levels_is_the_caches(store):
+    """The frame reads the resident levels from its own copy, kept from the changes since
+    the previous frame (``LevelCache.take_level_changes``): after every frame of a flight
+    that loads and evicts, the copy is the cache's."""
+    misses, evicted = _mirror_misses(store, forget_drops=False)
+    assert evicted > 0 and misses == 0
+
+
+def test_positive_control_a_drop_not_recorded_leaves_the_copy_stale(store):
+    misses, evicted = _mirror_misses(store, forget_drops=True)
+    assert evicted > 0 and misses > 0
