@@ -318,11 +318,6 @@ class LevelCache(EvictionIndex):
                     out.append((b, e.want, e.pin, e.priority))
             yield out
 
-    def _forget_empty(self) -> None:
-        for b in [b for b, e in self._entries.items() if not e.levels and e.want < 0]:
-            del self._entries[b]
-            self._short.discard(b)
-
     def wanted(self) -> list[tuple[Block, int, int, float]]:
         """``(block, want, pin, priority)`` of every block that wants something."""
         return [(b, e.want, e.pin, e.priority) for b, e in self._entries.items() if e.want >= 0]
