@@ -317,6 +317,78 @@ def test_mesh_kernels_with_vertex_ids_equal_the_reference(stores, numba_kernels,
     assert not np.array_equal(np.stack([vcol[b2[1]], vrow[b2[1]]], -1), b2[0])
 
 
+def _soup(rng, m, side):
+    """``m`` random triangles on a ``side``² lattice (overlapping, some degenerate, many
+    axis-aligned edges) with their vertex ids: ``(tri, tid, vcol, vrow)``."""
+    tri = rng.integers(0, side, (m, 3, 2), dtype=np.int64)
+    flat = rng.random(m) < 0.5  # make an edge axis-aligned in half of them
+    tri[flat, 1, 1] = tri[flat, 0, 1]
+    tall = rng.random(m) < 0.3
+    tri[tall, 2, 0] = tri[tall, 1, 0]
+    key = tri[..., 1] * (side + 2) + tri[..., 0]
+    uk, inv = np.unique(key.ravel(), return_inverse=True)
+    vcol, vrow = uk % (side + 2), uk // (side + 2)
+    return tri, np.ascontiguousarray(inv.reshape(m, 3)), vcol, vrow
+
+
+def test_t_junctions_and_picks_on_triangle_soups(numba_kernels):
+    """The T-junction search walks only from the starts of edges with a vertex inside; on
+    triangle soups (overlapping edges on one side, degenerate triangles, edges that start
+    inside others) it equals the reference's per-group searches, and the split's first-round
+    choices it finds in the same pass equal the split's own."""
+    from render.strategies.jung_han import pure
+
+    rng = np.random.default_rng(21)
+    found = picked = 0
+    for trial in range(300):
+        m, side = int(rng.integers(1, 60)), int(rng.integers(3, 24))
+        tri, tid, vcol, vrow = _soup(rng, m, side)
+        ids, ends, frac = pure.t_junctions(tri, vcol, vrow)
+        got = numba_kernels.t_junctions(tri, tid, vcol, vrow)
+        for x, y in zip((ids, ends, frac), got[:3], strict=True):
+            assert np.array_equal(x, y), trial
+        p1, d1, p2, d2 = numba_kernels.t_junction_picks(tri, tid, vcol, vrow)
+        assert np.array_equal(p1, p2) and np.array_equal(d1[p1 >= 0], d2[p2 >= 0]), trial
+        found += len(ids)
+        picked += int((p1 >= 0).sum())
+    assert found > 300 and picked > 300  # not vacuous
+
+
+def _any_covering_edge(tri, vcol, vrow):
+    """The T-junction ids by a different rule: a vertex strictly inside *any* axis-aligned edge
+    of a non-degenerate triangle (the reference takes, per group, only the last edge starting
+    at the nearest vertex before)."""
+    p = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
+    q = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
+    o = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]])
+    hit = np.zeros(len(vcol), bool)
+    for axis in (1, 0):
+        other = 1 - axis
+        line_v, pos_v = (vrow, vcol) if axis == 1 else (vcol, vrow)
+        on = (p[:, axis] == q[:, axis]) & (np.abs(p[:, other] - q[:, other]) >= 2)
+        on &= o[:, axis] != p[:, axis]
+        lo = np.minimum(p[on, other], q[on, other])
+        hi = np.maximum(p[on, other], q[on, other])
+        inside = (p[on, axis][:, None] == line_v) & (lo[:, None] < pos_v) & (pos_v < hi[:, None])
+        hit |= inside.any(0)
+    return np.flatnonzero(hit)
+
+
+def test_t_junction_soups_tell_the_rules_apart(numba_kernels):
+    """Positive control for the soup test: on its soups a walk that took any covering edge
+    (ignoring which edge starts nearest, so ignoring the takeover by a later start) would
+    differ from the reference's rule, which the compiled walk matches (so the soups exercise
+    that rule, which real meshes, with no overlapping edges, do not)."""
+    rng = np.random.default_rng(21)
+    differ = 0
+    for _ in range(300):
+        m, side = int(rng.integers(1, 60)), int(rng.integers(3, 24))
+        tri, tid, vcol, vrow = _soup(rng, m, side)
+        got = numba_kernels.t_junctions(tri, tid, vcol, vrow)[0]
+        differ += not np.array_equal(_any_covering_edge(tri, vcol, vrow), got)
+    assert differ > 10
+
+
 def test_block_hull_tests_equal_the_reference(stores, numba_kernels):
     from render.strategies.jung_han import corners_inside
     from streamer.frustum import frustum_hull, polygon_meets_rects

@@ -17,10 +17,10 @@ import numpy as np
 from render.strategies.jung_han._mesh_nb import (
     _COUNTS,
     _argsort_ws,
-    _conform_ranked,
+    _conform_picked,
     _jit,
     _ranks_sorted,
-    _t_junctions_ranked,
+    _t_junctions_picked,
     _unique_corner_pairs,
     _unique_index,
 )
@@ -81,7 +81,9 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
     # the vertices are the sorted unique keys, so in row-major order: ranked once, for the
     # T-junction search and the split
     ranks = _ranks_sorted(vcol, vrow, ws)
-    ids, ends, frac, ia, ib = _t_junctions_ranked(t1, tid, vcol, vrow, ranks)
+    # the T-junctions, and in the same pass over the edges the split's first round
+    split = stitching and m > 0
+    ids, ends, frac, ia, ib, pick, pid = _t_junctions_picked(t1, tid, vcol, vrow, ranks, split)
     na = ids.shape[0] if stitching else 0  # the positive control: no adjustment, no split
     if na:
         vlev = np.empty(na, np.int64)
@@ -104,8 +106,8 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
     for a in range(na):
         adjusted[a, 0], adjusted[a, 1] = vcol[ids[a]], vrow[ids[a]]
     ok = True
-    if stitching and m:
-        t1, tid, s1, l1, ok = _conform_ranked(t1, tid, s1, l1, vcol, vrow, ranks)
+    if split:
+        t1, tid, s1, l1, ok = _conform_picked(t1, tid, s1, l1, vcol, vrow, ranks, pick, pid)
     m2 = t1.shape[0]
     tri_h = np.empty((m2, 3))
     grp = np.empty(m2, np.int64)

@@ -32,6 +32,7 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     conform,
     ranks,
     ranks_sorted,
+    t_junction_picks,
     t_junctions,
     unique_corner_pairs,
     unique_index,

@@ -114,15 +114,27 @@ def _t_junctions(tri, tid, vcol, vrow, ws):
 
 @_jit
 def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
+    """:func:`_t_junctions_picked` without the split's picks."""
+    ids, ends, frac, ia, ib, _, _ = _t_junctions_picked(tri, tid, vcol, vrow, ranks, False)
+    return ids, ends, frac, ia, ib
+
+
+@_jit
+def _t_junctions_picked(tri, tid, vcol, vrow, ranks, picks):
     """``pure.t_junctions`` with the corners' vertex ids ``tid`` (m, 3) (indices into
     ``vcol``/``vrow``, the drawn vertices, all distinct): ``(ids, ends (a, 2, 2), frac, ia,
-    ib)`` in the reference's order, ``ia``/``ib`` the ids of the ends. Per group (axis, side)
-    an edge's sort key ``line * big + lo`` is the key of its ``lo`` end, a drawn vertex, so the
-    edge the reference's ``searchsorted(key, vertex key) - 1`` picks is, in the vertices' order
-    along that axis, the last edge (in edge order, as the stable sort keeps ties) starting at
-    the nearest vertex before: one sweep over the vertices, no search. A vertex past that edge
-    (a later line, or at or beyond its far end) means every later one is too, so the sweep
-    stops testing until the next edge starts."""
+    ib, pick, pid)`` in the reference's order, ``ia``/``ib`` the ids of the ends; with
+    ``picks``, ``pick``/``pid`` are the conforming split's first round (:func:`_picks` of
+    ``tri``, found in the same pass over the edges), else empty.
+
+    Per group (axis, side) an edge's sort key ``line * big + lo`` is the key of its ``lo``
+    end, a drawn vertex, so the edge the reference's ``searchsorted(key, vertex key) - 1``
+    picks is, in the vertices' order along that axis, the last edge (in edge order, as the
+    stable sort keeps ties) starting at the nearest vertex before. So only the vertices after
+    an edge's start are tested against it, in that order, until one lies past it (a later
+    line, or at or beyond its far end: so does every later one) or another edge of the group
+    starts there (it takes over after that vertex). An edge whose ends are adjacent in that
+    order has no vertex inside and finds nothing: only the starts of the others are walked."""
     m = tri.shape[0]
     nv = vcol.shape[0]
     rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
@@ -133,55 +145,71 @@ def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
     e_hi = np.zeros(nv, np.int64)
     # best[g, r]: the last edge (3 t + j) of group g (0/1 horizontal, opposite vertex above/
     # below; 2/3 vertical) starting at the vertex of rank r along the group's axis, in the
-    # reference's edge order (j major, then t): one pass
+    # reference's edge order (j major, then t); walk: the starts of edges with a vertex inside
     best = np.full((4, nv), -1, np.int64)
-    has = np.zeros(4, np.bool_)
+    walk = np.empty((4, nv), np.int64)
+    nwalk = np.zeros(4, np.int64)
+    inwalk = np.zeros((4, nv), np.bool_)
+    mp = m if picks else 0
+    pick = np.full(mp, -1, np.int64)
+    pid = np.zeros(mp, np.int64)
     for j in range(3):  # edges in the reference's order (j major, then t)
         j1 = j + 1 if j < 2 else 0
         j2 = j1 + 1 if j1 < 2 else 0
         for t in range(m):
             pc, pr_ = tri[t, j, 0], tri[t, j, 1]
             qc, qr = tri[t, j1, 0], tri[t, j1, 1]
-            oc, orr = tri[t, j2, 0], tri[t, j2, 1]
-            # both tests without short-circuits (fewer mispredicted branches), then one store
-            hz = (pr_ == qr) & (abs(pc - qc) >= 2) & (orr != pr_)
-            vt = (not hz) & (pc == qc) & (abs(pr_ - qr) >= 2) & (oc != pc)
+            # both tests without short-circuits (fewer mispredicted branches)
+            hz = (pr_ == qr) & (abs(pc - qc) >= 2)
+            vt = (not hz) & (pc == qc) & (abs(pr_ - qr) >= 2)
             if hz | vt:
+                rank = rank_h if hz else rank_v
+                ra, rb = rank[tid[t, j]], rank[tid[t, j1]]
+                lo, hi = min(ra, rb), max(ra, rb)
+                if picks and hi - lo > 1 and pick[t] < 0:  # the split's first edge: j order
+                    perm = perm_h if hz else perm_v
+                    pick[t], pid[t] = j, perm[(lo + 1 + hi) // 2]
+                oc, orr = tri[t, j2, 0], tri[t, j2, 1]
                 if hz:
+                    if orr == pr_:  # a degenerate triangle: no side
+                        continue
                     g = 0 if orr < pr_ else 1
-                    r = rank_h[tid[t, j] if pc < qc else tid[t, j1]]
                 else:
+                    if oc == pc:
+                        continue
                     g = 2 if oc < pc else 3
-                    r = rank_v[tid[t, j] if pr_ < qr else tid[t, j1]]
-                best[g, r] = 3 * t + j
-                has[g] = True
+                best[g, lo] = 3 * t + j
+                if hi - lo > 1 and not inwalk[g, lo]:
+                    inwalk[g, lo] = True
+                    walk[g, nwalk[g]] = lo
+                    nwalk[g] += 1
     for g in range(4):
-        if not has[g]:
-            continue
         axis = 1 if g < 2 else 0
         other = 1 - axis
         perm = perm_h if axis == 1 else perm_v
-        cur = -1
-        for r in range(nv):
-            v = perm[r]
-            if cur >= 0 and found[v] < 0:
-                t = cur // 3  # a division by a constant: cheap
-                j = cur - 3 * t
-                j1 = j + 1 if j < 2 else 0
-                a, b = tri[t, j, other], tri[t, j1, other]
-                lo, hi = min(a, b), max(a, b)
-                lv = vrow[v] if axis == 1 else vcol[v]
-                pv = vcol[v] if axis == 1 else vrow[v]
-                if tri[t, j, axis] == lv and hi > pv:
+        for i in range(nwalk[g]):
+            s = walk[g, i]
+            e = best[g, s]  # the last edge starting there (it may have no vertex inside)
+            t = e // 3  # a division by a constant: cheap
+            j = e - 3 * t
+            j1 = j + 1 if j < 2 else 0
+            a, b = tri[t, j, other], tri[t, j1, other]
+            lo, hi = min(a, b), max(a, b)
+            ln = tri[t, j, axis]
+            for r in range(s + 1, nv):
+                v = perm[r]
+                if found[v] < 0:
+                    lv = vrow[v] if axis == 1 else vcol[v]
+                    pv = vcol[v] if axis == 1 else vrow[v]
+                    if not (ln == lv and hi > pv):
+                        break  # past the edge: so is every later vertex in this order
                     found[v] = 1
                     ends[v, 0, axis], ends[v, 1, axis] = lv, lv
                     ends[v, 0, other], ends[v, 1, other] = lo, hi
                     frac[v] = (pv - lo) / (hi - lo)
                     e_lo[v], e_hi[v] = (tid[t, j], tid[t, j1]) if a < b else (tid[t, j1], tid[t, j])
-                else:  # past the edge (a later line, or at or beyond its far end): so is
-                    cur = -1  # every later vertex in this order, until the next edge starts
-            if best[g, r] >= 0:
-                cur = best[g, r]
+                if best[g, r] >= 0:
+                    break  # the edge starting here takes over from the next vertex
     c = 0
     for v in range(nv):
         c += found[v] >= 0
@@ -191,13 +219,44 @@ def _t_junctions_ranked(tri, tid, vcol, vrow, ranks):
         if found[v] >= 0:
             ids[c] = v
             c += 1
-    return ids, ends[ids], frac[ids], e_lo[ids], e_hi[ids]
+    return ids, ends[ids], frac[ids], e_lo[ids], e_hi[ids], pick, pid
 
 
 @_jit
 def _conform(tri, tid, slot, level, vcol, vrow, ws):
     """:func:`_conform_ranked` with the vertices' :func:`_ranks`."""
     return _conform_ranked(tri, tid, slot, level, vcol, vrow, _ranks(vcol, vrow, ws))
+
+
+@_jit
+def _picks(tri, tid, ranks):
+    """One round of the conforming split's choices: per triangle the first edge (``j``
+    order) with a drawn vertex inside, -1 for none, and the vertex half-way between its ends
+    in the order along the edge's line (``(pick, pid)``; see :func:`_conform_ranked`)."""
+    rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
+    m = tri.shape[0]
+    pick = np.full(m, -1, np.int64)
+    pid = np.zeros(m, np.int64)
+    for t in range(m):  # the first edge (j, then axis 1 before 0) with a vertex inside
+        for j in range(3):
+            j1 = j + 1 if j < 2 else 0
+            for axis in range(1, -1, -1):
+                other = 1 - axis
+                if tri[t, j, axis] != tri[t, j1, axis]:
+                    continue
+                if abs(tri[t, j, other] - tri[t, j1, other]) < 2:
+                    continue
+                rank = rank_h if axis == 1 else rank_v
+                ra, rb = rank[tid[t, j]], rank[tid[t, j1]]
+                lo, hi = min(ra, rb), max(ra, rb)
+                if hi - lo > 1:
+                    perm = perm_h if axis == 1 else perm_v
+                    pid[t] = perm[(lo + 1 + hi) // 2]
+                    pick[t] = j
+                    break
+            if pick[t] >= 0:
+                break
+    return pick, pid
 
 
 @_jit
@@ -209,7 +268,14 @@ def _conform_ranked(tri, tid, slot, level, vcol, vrow, ranks):
     ``searchsorted`` calls over the vertices sorted along the edge's line are the ends' ranks
     in that order: some vertex lies inside iff they are more than 1 apart, and the split point
     is the vertex half-way between."""
-    rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
+    pick, pid = _picks(tri, tid, ranks)
+    return _conform_picked(tri, tid, slot, level, vcol, vrow, ranks, pick, pid)
+
+
+@_jit
+def _conform_picked(tri, tid, slot, level, vcol, vrow, ranks, pick, pid):
+    """:func:`_conform_ranked` with its first round's :func:`_picks` of ``tri`` given (the
+    T-junction search finds them in its pass over the edges)."""
     n_out = 0
     cap = tri.shape[0] + tri.shape[0] // 4 + 64  # room for the usual splits: rarely grown
     out_t = np.empty((cap, 3, 2), np.int64)
@@ -217,32 +283,13 @@ def _conform_ranked(tri, tid, slot, level, vcol, vrow, ranks):
     out_l = np.empty(cap, np.int64)
     out_i = np.empty((cap, 3), np.int64)
     ok = False
-    for _ in range(64):
+    for rnd in range(64):
         m = tri.shape[0]
         if m == 0:
             ok = True
             break
-        pick = np.full(m, -1, np.int64)
-        pid = np.zeros(m, np.int64)
-        for t in range(m):  # the first edge (j, then axis 1 before 0) with a vertex inside
-            for j in range(3):
-                j1 = j + 1 if j < 2 else 0
-                for axis in range(1, -1, -1):
-                    other = 1 - axis
-                    if tri[t, j, axis] != tri[t, j1, axis]:
-                        continue
-                    if abs(tri[t, j, other] - tri[t, j1, other]) < 2:
-                        continue
-                    rank = rank_h if axis == 1 else rank_v
-                    ra, rb = rank[tid[t, j]], rank[tid[t, j1]]
-                    lo, hi = min(ra, rb), max(ra, rb)
-                    if hi - lo > 1:
-                        perm = perm_h if axis == 1 else perm_v
-                        pid[t] = perm[(lo + 1 + hi) // 2]
-                        pick[t] = j
-                        break
-                if pick[t] >= 0:
-                    break
+        if rnd:
+            pick, pid = _picks(tri, tid, ranks)
         nk = 0
         for t in range(m):
             nk += pick[t] < 0
@@ -412,3 +459,13 @@ def ranks_sorted(vcol, vrow):
 def unique_corner_pairs(grp, tid, nv):
     """:func:`_unique_corner_pairs`."""
     return _unique_corner_pairs(grp, tid, nv, np.empty(0, np.int64))
+
+
+@_jit
+def t_junction_picks(tri, tid, vcol, vrow):
+    """The conforming split's first-round choices as :func:`_t_junctions_picked` finds them
+    beside the T-junctions, and as :func:`_picks` finds them alone: ``(pick, pid, pick, pid)``."""
+    rk = _ranks(vcol, vrow, np.empty(0, np.int64))
+    out = _t_junctions_picked(tri, tid, vcol, vrow, rk, True)
+    pick, pid = _picks(tri, tid, rk)
+    return out[5], out[6], pick, pid
