@@ -184,23 +184,30 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
                 assert np.array_equal(x, y)
 
 
-def test_unique_corner_pairs_equal_numpy(numba_kernels):
-    """The GPU vertices' unique (group, vertex) pairs found along per-vertex chains equal
-    ``np.unique`` of the corner keys: sorted keys, first occurrences, inverse."""
+def test_first_corner_pairs_equal_numpy(numba_kernels):
+    """The GPU vertices' distinct (group, vertex) pairs found along per-vertex chains equal
+    ``np.unique`` of the corner keys put in the order of their first corners: first corners,
+    inverse."""
     rng = np.random.default_rng(11)
     cases = [(0, 1, 1), (1, 1, 1), (40, 3, 7), (5000, 40, 900), (3000, 2000, 50)]
     for m, groups, nv in cases:
         grp = rng.integers(0, groups, m, dtype=np.int64) * 16 + rng.integers(0, 16, m)
         tid = rng.integers(0, nv, (m, 3), dtype=np.int64)
         key = (grp[:, None] * max(nv, 1) + tid).ravel()
-        want = np.unique(key, return_index=True, return_inverse=True)
-        got = numba_kernels.unique_corner_pairs(grp, tid, nv)
+        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        order = np.argsort(first)
+        want = (first[order], np.argsort(order)[inv.ravel()])
+        got = numba_kernels.first_corner_pairs(grp, tid, nv)
         for x, y in zip(want, got, strict=True):
-            assert np.array_equal(x.ravel(), y)
-    # positive control: a corner moved to another vertex changes the pairs found
-    tid2 = tid.copy()
-    tid2[0, 0] = (tid2[0, 0] + 1) % nv
-    assert not np.array_equal(numba_kernels.unique_corner_pairs(grp, tid2, nv)[0], got[0])
+            assert np.array_equal(x, y)
+        if m > 1:  # each pair's corners share its key, and distinct pairs differ
+            assert np.array_equal(key[got[0]][got[1]], key)
+            assert len(np.unique(key[got[0]])) == len(got[0])
+    # positive control: the first triangle made a copy of the second shares its pairs
+    tid2, grp2 = tid.copy(), grp.copy()
+    tid2[0], grp2[0] = tid[1], grp[1]
+    moved = numba_kernels.first_corner_pairs(grp2, tid2, nv)[1]
+    assert np.array_equal(moved[:3], moved[3:6]) and not np.array_equal(moved, got[1])
 
 
 def test_quick_bounds_bracket_the_exact_one(numba_kernels):

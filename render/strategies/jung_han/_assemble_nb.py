@@ -18,10 +18,10 @@ from render.strategies.jung_han._mesh_nb import (
     _COUNTS,
     _argsort_ws,
     _conform_picked,
+    _first_corner_pairs,
     _jit,
     _ranks_sorted,
     _t_junctions_picked,
-    _unique_corner_pairs,
     _unique_index,
 )
 
@@ -115,10 +115,9 @@ def assemble(tri, slot, tl, hh, hoff, lev, r0, c0, wg, k, step, stitching, ws):
         for v in range(3):
             tri_h[t, v] = hv[tid[t, v]]
         grp[t] = s1[t] * 16 + l1[t]
-    # GPU vertices, one per (slot, drawn level, vertex): np.unique of the corners' keys
-    # (s1 * 16 + l1) * max(nv, 1) + tid, by pairs
-    guk, gfirst, ginv = _unique_corner_pairs(grp, tid, nv, ws)
-    ng = guk.shape[0]
+    # GPU vertices, one per (slot, drawn level, vertex), in the order of their first corners
+    gfirst, ginv = _first_corner_pairs(grp, tid, nv, ws)
+    ng = gfirst.shape[0]
     v_slot = np.empty(ng, np.int64)
     v_level = np.empty(ng, np.int64)
     v_cr = np.empty((ng, 2), np.int64)

@@ -30,11 +30,11 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     _jit,
     argsort_stable,
     conform,
+    first_corner_pairs,
     ranks,
     ranks_sorted,
     t_junction_picks,
     t_junctions,
-    unique_corner_pairs,
     unique_index,
 )
 from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE

@@ -364,26 +364,26 @@ def _unique_index(keys, ws):
 
 
 @_jit
-def _unique_corner_pairs(grp, tid, nv, ws):
-    """``np.unique(key, return_index=True, return_inverse=True)`` of the corner keys
-    ``key[3 t + v] = grp[t] * max(nv, 1) + tid[t, v]`` (``grp >= 0``, ``0 <= tid < nv``),
-    without sorting every key: a vertex lies in few groups, so each corner finds its pair
-    along its vertex's chain of distinct pairs, and only those are sorted. Its buffers are
-    carved from the int64 workspace ``ws`` (the chains from its end, the sort from its start;
-    a fresh one if shorter than ``nv + 7 * 3 m + _COUNTS``)."""
+def _first_corner_pairs(grp, tid, nv, ws):
+    """The distinct (group, vertex) pairs of the corners ``(grp[t], tid[t, v])`` (``grp >=
+    0``, ``0 <= tid < nv``) in the order of their first corners: ``(first, inv)``, the first
+    corner ``3 t + v`` of each pair and each corner's pair. A vertex lies in few groups, so
+    each corner finds its pair along its vertex's chain of pairs (no sort). The chains are
+    carved from the end of the int64 workspace ``ws`` (a fresh one if shorter than ``nv + 2 *
+    3 m``)."""
     m = tid.shape[0]
     n = 3 * m
     nvx = max(nv, 1)
-    if ws.shape[0] < nv + 7 * n + _COUNTS:
-        ws = np.empty(nv + 7 * n + _COUNTS, np.int64)
+    if ws.shape[0] < nv + 2 * n:
+        ws = np.empty(nv + 2 * n, np.int64)
     top = ws.shape[0]
     head = ws[top - nv : top]  # per vertex: its latest pair, -1 for none
-    ekey = ws[top - nv - n : top - nv]  # per pair: key, first corner, next pair of the vertex
-    efirst = ws[top - nv - 2 * n : top - nv - n]
-    enext = ws[top - nv - 3 * n : top - nv - 2 * n]
+    ekey = ws[top - nv - n : top - nv]  # per pair: its key, the vertex's previous pair
+    enext = ws[top - nv - 2 * n : top - nv - n]
     for v in range(nv):
         head[v] = -1
     inv = np.empty(n, np.int64)
+    first = np.empty(n, np.int64)
     ne = 0
     for t in range(m):
         gk = grp[t] * nvx
@@ -393,23 +393,13 @@ def _unique_corner_pairs(grp, tid, nv, ws):
             e = head[v]
             while e >= 0 and ekey[e] != key:
                 e = enext[e]
-            if e < 0:  # a new pair: its first corner is this one (np.unique's first index)
+            if e < 0:  # a new pair: this is its first corner
                 e = ne
-                ekey[e], efirst[e], enext[e] = key, 3 * t + c, head[v]
+                ekey[e], enext[e], first[e] = key, head[v], 3 * t + c
                 head[v] = e
                 ne += 1
             inv[3 * t + c] = e
-    order = _argsort_ws(ekey[:ne], ws)  # the start of ws: below the chains (4 ne + counts)
-    rank = enext[:ne]  # the chains are done with
-    uk = np.empty(ne, np.int64)
-    first = np.empty(ne, np.int64)
-    for j in range(ne):
-        o = order[j]
-        rank[o] = j
-        uk[j], first[j] = ekey[o], efirst[o]
-    for i in range(n):
-        inv[i] = rank[inv[i]]
-    return uk, first, inv
+    return first[:ne], inv
 
 
 # The entry points called from Python: thin wrappers, so that a kernel compiled (and cached) as
@@ -456,9 +446,10 @@ def ranks_sorted(vcol, vrow):
 
 
 @_jit
-def unique_corner_pairs(grp, tid, nv):
-    """:func:`_unique_corner_pairs`."""
-    return _unique_corner_pairs(grp, tid, nv, np.empty(0, np.int64))
+def first_corner_pairs(grp, tid, nv):
+    """:func:`_first_corner_pairs` (copies)."""
+    first, inv = _first_corner_pairs(grp, tid, nv, np.empty(0, np.int64))
+    return first.copy(), inv
 
 
 @_jit

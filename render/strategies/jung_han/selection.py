@@ -414,10 +414,13 @@ class JungHanSelector:
         inv = np.searchsorted(uk, tkey.ravel())
         tri_h = hv[inv].reshape(-1, 3)
         s3 = np.repeat(slot, 3)
-        # GPU vertices: one per (slot, drawn level, sample)
+        # GPU vertices: one per (slot, drawn level, sample), in the order of their first corners
         nv = len(uk)
         gk = (s3 * 16 + np.repeat(tl, 3)) * max(nv, 1) + inv
-        guk, gfirst, ginv = self._unique(gk)
+        _, gfirst, ginv = self._unique(gk)
+        order = np.argsort(gfirst)
+        gfirst = gfirst[order]
+        ginv = np.argsort(order)[ginv]
         vid = inv[gfirst]
         return JHSelection(
             blocks=blocks,
