@@ -6,7 +6,8 @@ snapped-edge check) on the ``bench/bound_fov.py`` views.
 Usage::
 
     python bench/select_cpu.py [STORE ...] [--taus 0.5,1,2,4] [--sizes 320x240,1024x768]
-                               [--frames 8] [--reps 3] [--no-compile] [--out PATH]
+                               [--frames 8] [--reps 3] [--no-compile] [--tune-malloc]
+                               [--out PATH]
     python bench/select_cpu.py --metric conservative-view [STORE ...] [--taus 0.5,1,2]
                                [--fovs 5,45,120,170] [--patch-log2 1,4] [--nodata gap]
                                [--sizes 320x240] [--reps 5] [--out PATH]
@@ -30,6 +31,11 @@ The compile time (``--no-compile`` skips it) is measured in fresh
 processes: the first numba selection minus a warm one, with an empty numba cache (cold: compiles)
 and again with that cache filled (warm: loads). Default stores: ``bench/work/s4097.zarr`` and the
 N44W072 metre store of ``bench/prefetch.py`` (missing ones are skipped with a message).
+
+Each row also gives the selecting thread's minor page faults (median per frame): after the
+numpy backend's large temporaries are freed, glibc may hand the next selection fresh pages to
+zero-fill. ``--tune-malloc`` fixes the allocator's thresholds first (``tiler.malloc``), as a
+long-running process whose allocations had settled would see them.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -69,15 +76,22 @@ def _frames(store, size: tuple[int, int], frames: int):
     return r, out
 
 
-def _timed(strategy, cam, tau, res) -> tuple[float, float, int]:
+def _faults() -> int:
+    """Minor page faults of the calling thread so far (fresh memory the kernel zero-fills)."""
+    return resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+
+
+def _timed(strategy, cam, tau, res) -> tuple[float, float, int, int]:
+    f0 = _faults()
     t0 = time.thread_time()
     sel, ms = strategy.select(cam, tau, resident=res)
-    return ms, (time.thread_time() - t0) * 1000.0, len(sel)
+    return ms, (time.thread_time() - t0) * 1000.0, len(sel), _faults() - f0
 
 
 def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, reps: int):
-    """Rows ``{store, size, strategy, backend, tau, wall_ms, cpu_ms, selected}`` (``selected``:
-    ``len`` of the selection, jung-han's drawn triangles, seamless-patches' leaf patches)."""
+    """Rows ``{store, size, strategy, backend, tau, wall_ms, cpu_ms, selected, minor_faults}``
+    (``selected``: ``len`` of the selection, jung-han's drawn triangles, seamless-patches' leaf
+    patches; ``minor_faults``: the selecting thread's minor page faults, median per frame)."""
     from render.strategies import get_strategy
     from tiler.store import open_store
 
@@ -93,16 +107,17 @@ def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, re
             st.select(cam, 1.0, resident=res)
     rows = []
     for tau in taus:
-        acc = {(n, b): [[[], [], 0] for _ in views] for n, b, _ in runs}
+        acc = {(n, b): [[[], [], 0, []] for _ in views] for n, b, _ in runs}
         for rep in range(reps):
             order = runs if rep % 2 == 0 else runs[::-1]
             for i, (cam, res) in enumerate(views):
                 for n, b, st in order:
-                    wall, cpu, tris = _timed(st, cam, tau, res)
+                    wall, cpu, tris, faults = _timed(st, cam, tau, res)
                     a = acc[(n, b)][i]
                     a[0].append(wall)
                     a[1].append(cpu)
                     a[2] = tris
+                    a[3].append(faults)
         for (n, b), per in acc.items():
             rows.append(
                 {
@@ -115,6 +130,7 @@ def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, re
                     "cpu_ms": statistics.mean(statistics.median(p[1]) for p in per),
                     "wall_ms_max": max(statistics.median(p[0]) for p in per),
                     "selected": statistics.mean(p[2] for p in per),
+                    "minor_faults": statistics.mean(statistics.median(p[3]) for p in per),
                     "loadavg": os.getloadavg()[0],
                 }
             )
@@ -277,6 +293,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--reps", type=int, default=None, help="default 3 (--metric: 5)")
     ap.add_argument("--no-compile", action="store_true")
+    ap.add_argument(
+        "--tune-malloc",
+        action="store_true",
+        help="fix glibc's mmap/trim thresholds first (tiler.malloc), so the numpy backend's "
+        "large frees do not leave the numba selections zero-filling fresh pages",
+    )
     ap.add_argument("--out", default=None, help="default bench/results/select_cpu[_METRIC].json")
     ap.add_argument("--metric", default=None, help="time qiu's selection with this metric")
     ap.add_argument("--patch-log2", default="1,4", help="--metric: patch sizes (log2 cells)")
@@ -288,14 +310,20 @@ def main() -> None:
         main_metric(a)
         return
     a.stores = a.stores or DEFAULT_STORES
+    if a.tune_malloc:
+        from tiler.malloc import tune_allocator
+
+        if not tune_allocator():
+            sys.exit("--tune-malloc: glibc's mallopt is not available here")
     a.taus, a.sizes = a.taus or "0.5,1,2,4", a.sizes or "320x240,1024x768"
     a.reps = 3 if a.reps is None else a.reps
     a.out = a.out or str(RESULTS / "select_cpu.json")
     taus = [float(t) for t in a.taus.split(",")]
     sizes = [tuple(int(v) for v in s.split("x")) for s in a.sizes.split(",")]
     info = machine_info()
+    info["tune_malloc"] = bool(a.tune_malloc)
     rows, compile_s = [], {}
-    print("store size strategy backend tau wall_ms cpu_ms selected load1")
+    print("store size strategy backend tau wall_ms cpu_ms selected faults load1")
     for path in a.stores:
         if not Path(path).exists():
             print(f"# skipped {path}: missing (bench/tiling.py / bench/prefetch.py make it)")
@@ -309,7 +337,7 @@ def main() -> None:
                 print(
                     f"{row['store']} {row['size']} {row['strategy']} {row['backend']} "
                     f"{row['tau']:g} {row['wall_ms']:.2f} {row['cpu_ms']:.2f} "
-                    f"{row['selected']:.0f} {row['loadavg']:.2f}",
+                    f"{row['selected']:.0f} {row['minor_faults']:.0f} {row['loadavg']:.2f}",
                     flush=True,
                 )
     info["loadavg_at_end"] = os.getloadavg()
