@@ -153,7 +153,7 @@ def test_positive_control_a_perturbed_delta_changes_the_output(stores, numba_ker
     lv = int(b.levels[0])
     half = 1 << (k - 1)
     flat = half >> (k - lv)  # vertex T of the first root: row 0, col half
-    f.delta[f.hoff[f.index[b.blocks[0]]] + flat] = 1e30  # its δ_s is huge: the edge is kept
+    f.delta[f.offsets([b.blocks[0]])[0][0] + flat] = 1e30  # its δ_s is huge: the edge is kept
     c, _ = fast.select(cam, 1e6)
     assert "flags" in differences(a, c) and "tri" in differences(a, c)
 
@@ -266,20 +266,74 @@ def test_row_major_ranks_equal_the_sorted_ones(numba_kernels):
     )
 
 
-def test_forest_is_packed_once_while_the_frames_blocks_move(stores, numba_kernels):
+def test_forest_copies_only_the_trees_that_change(stores, numba_kernels):
     ref, fast = _pair(stores["rough"])
     cam = _cameras(ref.r)["oblique"]
     k = ref.r.k
     blocks = sorted(ref.r.store.blocks())
     fast.select(cam, 1.0)
     forest = fast._forest
+    copies = forest.copies
     for part in (blocks[: len(blocks) // 2], blocks[1::2], blocks):
         res = {b: k for b in part}
         a, _ = ref.select(cam, 1.0, resident=res)
         b, _ = fast.select(cam, 1.0, resident=res)
         assert differences(a, b) == [] and fast._forest is forest
-    fast.select(cam, 1.0, resident={b: k - 1 for b in blocks})  # trees rebuilt: packed again
-    assert fast._forest is not forest
+    assert forest.copies == copies  # the frame's blocks moved, no tree changed: nothing copied
+    one = {b: k for b in blocks} | {blocks[0]: k - 1}
+    a, _ = ref.select(cam, 1.0, resident=one)
+    b, _ = fast.select(cam, 1.0, resident=one)
+    assert differences(a, b) == [] and forest.copies == copies + 1  # one tree rebuilt
+
+
+def test_forest_reuses_and_compacts_its_regions(stores, numba_kernels, monkeypatch):
+    """Random sequences of resident levels (trees built, rebuilt at other levels and dropped):
+    every frame's selection equals the numpy reference's while the forest reuses freed regions,
+    grows and compacts (a small threshold forces compactions). Control: a forest that reuses a
+    region without copying the new tree into it differs from the reference."""
+    from render.strategies.jung_han.kernels import Forest
+
+    monkeypatch.setattr(Forest, "MIN_COMPACT", 0)
+    ref, fast = _pair(stores["rough"])
+    cam = _cameras(ref.r)["oblique"]
+    k = ref.r.k
+    blocks = sorted(ref.r.store.blocks())
+    rng = np.random.default_rng(4)
+
+    def frames(sel):
+        out = []
+        for _ in range(30):
+            res = {b: int(rng.integers(max(k - 3, 0), k + 1)) for b in blocks if rng.random() < 0.7}
+            sel._trees = {b: t for b, t in sel._trees.items() if b in res}  # dropped trees
+            out.append((res, sel.select(cam, 1.0, resident=res)[0]))
+        return out
+
+    for res, b in frames(fast):
+        a, _ = ref.select(cam, 1.0, resident=res)
+        assert differences(a, b) == []
+    f = fast._forest
+    assert f.copies > 30 and f.compactions > 0
+    hmax = sum(t.heights.size for t in fast._trees.values())
+    assert f._hend <= 2 * max(hmax, 1) + max(t.heights.size for t in fast._trees.values())
+    # the control: regions reused without the new tree's data
+    rng = np.random.default_rng(4)
+    _, fast2 = _pair(stores["rough"])
+    real = Forest._copy
+    seen = []
+
+    def lazy(self, t, h, p, size):
+        if h < self._hend - size[0] and seen:  # a reused region: left as it was
+            self.copies += 1
+            return
+        seen.append(1)
+        real(self, t, h, p, size)
+
+    monkeypatch.setattr(Forest, "_copy", lazy)
+    bad = 0
+    for res, b in frames(fast2):
+        a, _ = ref.select(cam, 1.0, resident=res)
+        bad += differences(a, b) != []
+    assert bad > 0
 
 
 def _unsplit_mesh(stores):

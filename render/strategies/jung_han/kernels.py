@@ -4,18 +4,18 @@ installed (the ``fast`` extra), the numpy reference otherwise. ``TERRASTREAM_KER
 numba only after :func:`warm_up` (a one-shot command never waits for it; importing this module
 costs nothing).
 
-:class:`Forest` packs the cached trees' heights, δ and pyramids into flat arrays, again only
-when a tree is built, rebuilt or dropped (each frame then picks its blocks' offsets)."""
+:class:`Forest` holds the cached trees' heights, δ and pyramids in flat arrays, copying in only
+the trees built or rebuilt since the last frame (each frame then picks its blocks' offsets)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import cache, cached_property
+from dataclasses import dataclass
+from functools import cache
 from types import ModuleType
 
 import numpy as np
 
-from render.strategies.jung_han.pure import BlockTree
+from render.strategies.jung_han.pure import Block, BlockTree
 from tiler.kernels import pick_warm, warm
 
 
@@ -45,52 +45,120 @@ def warm_up() -> bool:
 
 
 @dataclass
+class _Placed:
+    """Where one cached tree lies in the forest's arrays."""
+
+    tree: BlockTree
+    hoff: int
+    poff: int
+
+
 class Forest:
-    """The selector's cached trees, flat: tree ``i``'s heights/δ at ``hoff[i]``, its
-    depth-packed pyramids (depth ``d`` at ``poff[i] + (4**d - 1) // 3``) at ``poff[i]``."""
+    """The selector's cached trees in flat arrays the compiled kernels read: a tree's heights
+    and δ at its ``hoff``, its depth-packed pyramid (depth ``d`` at ``poff + (4**d - 1) //
+    3``) at its ``poff``. A tree built or rebuilt is copied into a free region of its size (or
+    appended; the arrays grow by doubling); a dropped one frees its regions; the arrays are
+    compacted when more than half of their used length is free. So a frame whose blocks
+    change level copies those trees only, not the whole forest."""
 
-    key: tuple
-    heights: np.ndarray
-    delta: np.ndarray
-    dmax: np.ndarray
-    zlo: np.ndarray
-    zhi: np.ndarray
-    hoff: np.ndarray
-    poff: np.ndarray
-    #: the packed trees themselves: while the forest lives their ``id`` (in ``key``) is unique
-    trees: list = field(repr=False, default_factory=list)
+    #: compaction only past this many free heights (small forests keep their holes)
+    MIN_COMPACT = 1 << 18
 
-    @cached_property
-    def pyramid(self) -> np.ndarray:
-        """``(dmax, zlo, zhi)`` per packed node as one ``(n, 3)`` float64 array (``dmax``
-        widened exactly): the traversal's bound reads one cache line per node, not three."""
-        return np.ascontiguousarray(np.stack([self.dmax.astype(np.float64), self.zlo, self.zhi], 1))
+    def __init__(self) -> None:
+        self.heights = np.zeros(0)  # float64
+        self.delta = np.zeros(0, np.float32)
+        #: ``(dmax, zlo, zhi)`` per packed node, ``(n, 3)`` float64 (``dmax`` widened exactly
+        #: from float32): the traversal's bound reads one cache line per node, not three
+        self.pyramid = np.zeros((0, 3))
+        self._placed: dict[Block, _Placed] = {}
+        self._free: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        self._hend = self._pend = 0  # used lengths (placed trees and free regions)
+        self._hfree = 0  # heights in free regions
+        #: trees copied in, and compactions, since creation (tests, benchmarks)
+        self.copies = 0
+        self.compactions = 0
 
-    @cached_property
-    def index(self) -> dict:
-        """Block -> position of its tree in the packed arrays (``key`` lists ``(block, ...)``)."""
-        return {k[0]: i for i, k in enumerate(self.key)}
+    @staticmethod
+    def _sizes(t: BlockTree) -> tuple[int, int]:
+        return int(t.heights.size), int(sum(len(a) for a in t.dmax))
 
-    @classmethod
-    def pack(cls, key: tuple, trees: list[BlockTree]) -> Forest:
-        """Concatenate the trees' arrays (in ``key``'s order)."""
-        hs = [t.heights.ravel() for t in trees]
-        hoff = np.cumsum([0] + [len(h) for h in hs])[:-1].astype(np.int64)
-        pyr = [(t.dmax, t.zlo, t.zhi) for t in trees]
-        plen = [sum(len(a) for a in p[0]) for p in pyr]
-        poff = np.cumsum([0, *plen])[:-1].astype(np.int64)
+    def sync(self, trees: dict[Block, BlockTree]) -> int:
+        """Make the arrays hold exactly ``trees`` (the selector's cache, by block): free the
+        regions of dropped or replaced trees, copy in the new ones; returns how many were
+        copied."""
+        for b in [b for b, p in self._placed.items() if trees.get(b) is not p.tree]:
+            p = self._placed.pop(b)
+            size = self._sizes(p.tree)
+            self._free.setdefault(size, []).append((p.hoff, p.poff))
+            self._hfree += size[0]
+        new = [(b, t) for b, t in trees.items() if b not in self._placed]
+        for b, t in new:
+            self._place(b, t)
+        if self._hfree > max(self._hend // 2, self.MIN_COMPACT):
+            self._compact()
+        return len(new)
 
-        def cat(arrays, dtype):
-            return np.concatenate([np.asarray(a, dtype) for a in arrays] or [np.zeros(0, dtype)])
+    def offsets(self, blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
+        """``(hoff, poff)`` of the trees of ``blocks`` (each placed), as int64 arrays."""
+        pl = self._placed
+        hoff = np.array([pl[b].hoff for b in blocks], dtype=np.int64)
+        poff = np.array([pl[b].poff for b in blocks], dtype=np.int64)
+        return hoff, poff
 
-        return cls(
-            key,
-            cat(hs, np.float64),
-            cat([t.delta.ravel() for t in trees], np.float32),
-            cat([a for p in pyr for a in p[0]], np.float32),
-            cat([a for p in pyr for a in p[1]], np.float64),
-            cat([a for p in pyr for a in p[2]], np.float64),
-            hoff,
-            poff,
-            list(trees),
-        )
+    def _place(self, b: Block, t: BlockTree) -> None:
+        size = self._sizes(t)
+        spare = self._free.get(size)
+        if spare:
+            h, p = spare.pop()
+            self._hfree -= size[0]
+        else:
+            h, p = self._hend, self._pend
+            self._reserve(h + size[0], p + size[1])
+            self._hend, self._pend = h + size[0], p + size[1]
+        self._copy(t, h, p, size)
+        self._placed[b] = _Placed(t, h, p)
+
+    def _copy(self, t: BlockTree, h: int, p: int, size: tuple[int, int]) -> None:
+        nh, npy = size
+        self.heights[h : h + nh] = t.heights.ravel()
+        self.delta[h : h + nh] = t.delta.ravel()
+        for col, arrays in enumerate((t.dmax, t.zlo, t.zhi)):
+            at = p
+            for a in arrays:
+                self.pyramid[at : at + len(a), col] = a
+                at += len(a)
+        self.copies += 1
+
+    def _reserve(self, nh: int, npy: int) -> None:
+        """Grow the arrays (doubling, keeping their used part) to hold ``nh`` heights and
+        ``npy`` pyramid nodes."""
+        if nh > len(self.heights):
+            cap = max(nh, 2 * len(self.heights))
+            for name, dt in (("heights", np.float64), ("delta", np.float32)):
+                old, arr = getattr(self, name), np.empty(cap, dt)
+                arr[: self._hend] = old[: self._hend]
+                setattr(self, name, arr)
+        if npy > len(self.pyramid):
+            arr = np.empty((max(npy, 2 * len(self.pyramid)), 3))
+            arr[: self._pend] = self.pyramid[: self._pend]
+            self.pyramid = arr
+
+    def _compact(self) -> None:
+        """Copy the placed trees into new arrays of their used size, free regions gone."""
+        placed = list(self._placed.items())
+        nh = sum(self._sizes(p.tree)[0] for _, p in placed)
+        npy = sum(self._sizes(p.tree)[1] for _, p in placed)
+        old = (self.heights, self.delta, self.pyramid)
+        self.heights, self.delta = np.empty(nh), np.empty(nh, np.float32)
+        self.pyramid = np.empty((npy, 3))
+        h = p = 0
+        for b, pl in placed:
+            sh, sp = self._sizes(pl.tree)
+            self.heights[h : h + sh] = old[0][pl.hoff : pl.hoff + sh]
+            self.delta[h : h + sh] = old[1][pl.hoff : pl.hoff + sh]
+            self.pyramid[p : p + sp] = old[2][pl.poff : pl.poff + sp]
+            self._placed[b] = _Placed(pl.tree, h, p)
+            h, p = h + sh, p + sp
+        self._hend, self._pend, self._hfree = h, p, 0
+        self._free.clear()
+        self.compactions += 1

@@ -304,14 +304,13 @@ class JungHanSelector:
     def _traverse_nb(self, mod, camera, tau, pa, pairs, lev, r0, c0, meets, inside):
         """``_traverse`` by the compiled kernel (same outputs, see ``_kernels_nb``); ``pa``:
         :meth:`_poly_args` of the hull."""
-        # every cached tree, packed again only when a tree is built, rebuilt or dropped (which
-        # costs more than the copy), not when the frame's set of blocks moves
-        key = tuple((b, t.level, id(t)) for b, t in self._trees.items())
-        if self._forest is None or self._forest.key != key:
-            self._forest = jh_kernels.Forest.pack(key, list(self._trees.values()))
+        # every cached tree in the forest's flat arrays: only the trees built, rebuilt or
+        # dropped since the last frame are copied in or freed
+        if self._forest is None:
+            self._forest = jh_kernels.Forest()
         f = self._forest
-        at = np.array([f.index[b] for b, _ in pairs], dtype=np.int64)
-        hoff, poff = f.hoff[at], f.poff[at]
+        f.sync(self._trees)
+        hoff, poff = f.offsets([b for b, _ in pairs])
         self._hoff = hoff  # for the compiled assembly
         g = self.r.grid
         roots = np.flatnonzero(meets & (lev >= 1)).astype(np.int64)
