@@ -266,6 +266,55 @@ def test_row_major_ranks_equal_the_sorted_ones(numba_kernels):
     )
 
 
+def _trees_equal(a, b) -> bool:
+    """Every array of two ``BlockTree``s equal (values and dtypes; NaN equal to NaN)."""
+    if a.level != b.level or any(len(getattr(a, f)) != a.level for f in ("dmax", "zlo", "zhi")):
+        return False
+    same = True
+    for x, y in [(a.heights, b.heights), (a.delta, b.delta)] + [
+        (p, q)
+        for f in ("dmax", "zlo", "zhi")
+        for p, q in zip(getattr(a, f), getattr(b, f), strict=True)
+    ]:
+        same &= x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True)
+    return bool(same)
+
+
+def test_tree_build_equals_the_reference(numba_kernels):
+    """The compiled per-block tree equals ``BlockTree.build`` on level grids at the extremes:
+    levels 0-7, flat, constant, heights from -11 km to +9 km and near 1e7, masked samples
+    (scattered, whole rows, all), infinities from partly masked neighbours."""
+    from render.strategies.jung_han.kernels import build_tree
+    from render.strategies.jung_han.pure import BlockTree
+
+    rng = np.random.default_rng(8)
+    grids = []
+    for rr in range(0, 8):
+        n = (1 << rr) + 1
+        grids += [
+            rng.uniform(-11000, 9000, (n, n)),
+            np.full((n, n), 8848.0),
+            np.zeros((n, n)),
+            1e7 + rng.normal(0, 0.01, (n, n)),
+            np.round(rng.normal(0, 50, (n, n))),
+        ]
+        g = rng.uniform(0, 100, (n, n))
+        g[rng.random((n, n)) < 0.2] = np.nan
+        grids.append(g)
+        g = rng.uniform(0, 100, (n, n))
+        g[: n // 2] = np.nan
+        grids += [g, np.full((n, n), np.nan)]
+    for g in grids:
+        assert _trees_equal(BlockTree.build(g), build_tree(numba_kernels, g))
+    with pytest.raises(ValueError, match="2\\*\\*R\\+1"):
+        build_tree(numba_kernels, np.zeros((6, 6)))
+    # positive control: one height moved changes the compiled tree against the reference's
+    g = rng.uniform(0, 100, (65, 65))
+    moved = g.copy()
+    moved[32, 17] += 1e-3
+    assert not _trees_equal(BlockTree.build(g), build_tree(numba_kernels, moved))
+
+
 def test_forest_copies_only_the_trees_that_change(stores, numba_kernels):
     ref, fast = _pair(stores["rough"])
     cam = _cameras(ref.r)["oblique"]

@@ -87,8 +87,9 @@ bottom-up on the CPU with an exact projected vertex error, cracks removed by hei
   discarded by the shared fragment shader; the normals ignore height adjustments. The paper
   resets the flags after each frame; here each ``select`` starts from scratch.
 * **Compiled kernels** (:mod:`render.strategies.jung_han.kernels`): with numba, the traversal
-  runs compiled over the trees packed flat
-  (:class:`~render.strategies.jung_han.kernels.Forest`) and the whole mesh assembly (vertex
+  runs compiled over the trees held flat
+  (:class:`~render.strategies.jung_han.kernels.Forest`, which copies in only the trees built or
+  rebuilt since the last frame; each tree is built compiled too) and the whole mesh assembly (vertex
   keys, heights, T-junction search, height adjustment, conforming split, GPU arrays) in one
   more kernel call, which finds vertices by their rank along a row or column instead of
   searching sorted keys; the traversal tries two cheap bounds from the box's centre and half

@@ -37,6 +37,7 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     t_junctions,
     unique_index,
 )
+from render.strategies.jung_han._tree_nb import build_tree  # noqa: F401  (re-exported)
 from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE
 
 _OWN = OWN.astype(np.int64)

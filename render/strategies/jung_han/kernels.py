@@ -15,7 +15,7 @@ from types import ModuleType
 
 import numpy as np
 
-from render.strategies.jung_han.pure import Block, BlockTree
+from render.strategies.jung_han.pure import Block, BlockTree, _perm
 from tiler.kernels import pick_warm, warm
 
 
@@ -42,6 +42,29 @@ def warm_up() -> bool:
     them (they load from numba's cache, or compile, on their first call); whether they are
     available."""
     return warm(_load_numba, _READY)
+
+
+@cache
+def _perms(rr: int) -> np.ndarray:
+    """``pure._perm`` of depths ``0 .. rr - 1`` concatenated, depth ``d`` at ``(4**d-1) // 3``."""
+    return np.concatenate([_perm(d) for d in range(rr)] or [np.zeros(0)]).astype(np.int64)
+
+
+def build_tree(mod: ModuleType, heights: np.ndarray) -> BlockTree:
+    """``BlockTree.build(heights)`` by the compiled kernel of ``mod`` (the same values)."""
+    h = np.ascontiguousarray(heights, dtype=np.float64)
+    n = h.shape[0]
+    big = n - 1
+    if h.shape != (n, n) or big < 1 or big & (big - 1):
+        raise ValueError(f"expected a (2**R+1)² grid, got shape {h.shape}")
+    rr = big.bit_length() - 1
+    delta, dmax, zlo, zhi = mod.build_tree(h, _perms(rr))
+    at = [((1 << (2 * d)) - 1) // 3 for d in range(rr + 1)]
+
+    def split(a: np.ndarray) -> list[np.ndarray]:
+        return [a[at[d] : at[d + 1]] for d in range(rr)]
+
+    return BlockTree(rr, h, delta, split(dmax), split(zlo), split(zhi))
 
 
 @dataclass

@@ -77,7 +77,9 @@ class JungHanSelector:
             if mask is not None:
                 s = 1 << (self.r.k - level)
                 h[~mask[::s, ::s]] = np.nan
-            t = self._trees[block] = BlockTree.build(h)
+            mod = jh_kernels.resolve(self.kernels)
+            tree = BlockTree.build(h) if mod is None else jh_kernels.build_tree(mod, h)
+            t = self._trees[block] = tree
         return t
 
     def _resident(self, resident: dict[Block, int] | None) -> list[tuple[Block, int]]:
