@@ -44,7 +44,8 @@ def build_tree(h, perm):
     """``(delta, dmax, zlo, zhi)`` of the ``(2**R+1)²`` float64 level grid ``h`` (NaN =
     masked): δ as float32 on the grid, and the pyramids of depths ``0 .. R-1`` concatenated,
     depth ``d`` at ``(4**d - 1) // 3`` in Jung & Han's index order (``perm``: per depth,
-    likewise concatenated, the row-major grid position of each index, ``pure._perm``)."""
+    likewise concatenated, the row-major grid position of each index,
+    ``pure.index_positions``)."""
     n = h.shape[0]
     rr = 0
     while (1 << (rr + 1)) <= n - 1:

@@ -15,7 +15,7 @@ from types import ModuleType
 
 import numpy as np
 
-from render.strategies.jung_han.pure import Block, BlockTree, _perm
+from render.strategies.jung_han.pure import Block, BlockTree, index_positions
 from tiler.kernels import pick_warm, warm
 
 
@@ -46,8 +46,9 @@ def warm_up() -> bool:
 
 @cache
 def _perms(rr: int) -> np.ndarray:
-    """``pure._perm`` of depths ``0 .. rr - 1`` concatenated, depth ``d`` at ``(4**d-1) // 3``."""
-    return np.concatenate([_perm(d) for d in range(rr)] or [np.zeros(0)]).astype(np.int64)
+    """``pure.index_positions`` of depths ``0 .. rr - 1`` concatenated (depth ``d`` at
+    ``(4**d - 1) // 3``)."""
+    return np.concatenate([index_positions(d) for d in range(rr)] or [np.zeros(0)]).astype(np.int64)
 
 
 def build_tree(mod: ModuleType, heights: np.ndarray) -> BlockTree:

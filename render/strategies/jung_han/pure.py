@@ -74,7 +74,7 @@ def parent_index(index: np.ndarray) -> np.ndarray:
 
 
 @cache
-def _perm(depth: int) -> np.ndarray:
+def index_positions(depth: int) -> np.ndarray:
     """Row-major grid position of every index of a depth (index order -> grid order)."""
     r, c = node_position(np.arange(1 << (2 * depth), dtype=np.int64), depth)
     return r * (1 << depth) + c
@@ -140,11 +140,11 @@ class BlockTree:
             half = step >> 1
             c, e0, e1 = slice(half, n, step), slice(0, n - 1, step), slice(step, n, step)
             own = np.maximum.reduce([ad[c, c], ad[e0, c], ad[e1, c], ad[c, e0], ad[c, e1]])
-            own = own.ravel()[_perm(d)]
+            own = own.ravel()[index_positions(d)]
             if d == rr - 1:
                 wins = [h[i : n - 2 + i : 2, j : n - 2 + j : 2] for i in range(3) for j in range(3)]
-                tree.zlo[d] = np.fmin.reduce(wins).ravel()[_perm(d)]
-                tree.zhi[d] = np.fmax.reduce(wins).ravel()[_perm(d)]
+                tree.zlo[d] = np.fmin.reduce(wins).ravel()[index_positions(d)]
+                tree.zhi[d] = np.fmax.reduce(wins).ravel()[index_positions(d)]
                 tree.dmax[d] = own
             else:
                 tree.zlo[d] = np.fmin.reduce(tree.zlo[d + 1].reshape(-1, 4), axis=1)
