@@ -15,7 +15,7 @@ from types import ModuleType
 
 import numpy as np
 
-from render.strategies.jung_han.pure import Block, BlockTree, index_positions
+from render.strategies.jung_han.pure import Block, BlockTree, grid_level, index_positions
 from tiler.kernels import pick_warm, warm
 
 
@@ -54,11 +54,7 @@ def _perms(rr: int) -> np.ndarray:
 def build_tree(mod: ModuleType, heights: np.ndarray) -> BlockTree:
     """``BlockTree.build(heights)`` by the compiled kernel of ``mod`` (the same values)."""
     h = np.ascontiguousarray(heights, dtype=np.float64)
-    n = h.shape[0]
-    big = n - 1
-    if h.shape != (n, n) or big < 1 or big & (big - 1):
-        raise ValueError(f"expected a (2**R+1)² grid, got shape {h.shape}")
-    rr = big.bit_length() - 1
+    rr = grid_level(h.shape)
     delta, dmax, zlo, zhi = mod.build_tree(h, _perms(rr))
     at = [((1 << (2 * d)) - 1) // 3 for d in range(rr + 1)]
 

@@ -80,15 +80,21 @@ def index_positions(depth: int) -> np.ndarray:
     return r * (1 << depth) + c
 
 
+def grid_level(shape: tuple[int, ...]) -> int:
+    """``R`` of a ``(2**R+1)²`` level grid's ``shape`` (a ValueError naming it otherwise)."""
+    n = shape[0] if len(shape) else 0
+    big = n - 1
+    if tuple(shape) != (n, n) or big < 1 or big & (big - 1):
+        raise ValueError(f"expected a (2**R+1)² grid, got shape {tuple(shape)}")
+    return big.bit_length() - 1
+
+
 def vertex_deltas(heights: np.ndarray) -> np.ndarray:
     """Per-vertex δ of a ``(2**R+1)²`` level grid (NaN = masked): mean of the two vertices its
     removal interpolates between minus its height (0 at the corners; see the module notes)."""
     g = np.asarray(heights, dtype=np.float64)
     n = g.shape[0]
-    big = n - 1
-    if g.shape != (n, n) or big < 1 or big & (big - 1):
-        raise ValueError(f"expected a (2**R+1)² grid, got shape {g.shape}")
-    rr = big.bit_length() - 1
+    rr = grid_level(g.shape)
     valid = np.isfinite(g)
     out = np.zeros(g.shape)
 
