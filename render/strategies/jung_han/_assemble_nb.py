@@ -30,9 +30,11 @@ _BIG = np.finfo(np.float64).max
 
 def ws_size_assemble(m: int) -> int:
     """Length of the int64 workspace :func:`assemble` needs for ``m`` triangles (with the
-    usual splits; a frame that splits more allocates its own)."""
+    usual splits; a frame that splits more allocates its own): the largest of its users, the
+    vertex keys' sort (``4 * 3 m + _COUNTS``) and the GPU vertices' chains (``nv + 2 * 3 m'``
+    over the ``m'`` split triangles)."""
     n = 3 * (m + m // 4 + 64)
-    return 7 * n + 3 * m + _COUNTS
+    return 4 * n + _COUNTS
 
 
 @_jit
