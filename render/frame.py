@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -47,7 +48,7 @@ from render.views import CAMERA_CELL_LIMIT
 from streamer.camera import Camera
 from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
 from tiler.crs import require_projected
-from tiler.layout import level_index, order_index
+from tiler.layout import level_index, order_index, reconstruct
 from tiler.store import TerrainStore
 
 if TYPE_CHECKING:
@@ -98,6 +99,7 @@ class FrameServices:
         self._masks: dict[Block, np.ndarray | None] = {}
         self._seen: dict[Block, int] = {}
         self._frame = 0
+        self._session: weakref.ref[Session] | None = None  # the last synced (block_grid)
         idx = store.index
         self._zr = np.stack([idx.zmin, idx.zmax], axis=-1)
         vr = store.meta.extra.get("value_range")
@@ -134,9 +136,21 @@ class FrameServices:
         self.make_current()
         return self.pool.upload(block, levels, mask)
 
+    def block_grid(self, block: Block, level: int) -> np.ndarray:
+        """The block's level-``level`` grid in the source dtype (``TerrainStore.read_block``'s
+        values): gathered from the last synced session's decoded levels while it holds them
+        (no read, no decode; nothing kept), else read from the store."""
+        session = self._session() if self._session is not None else None
+        if session is not None:
+            levels = session.levels(block)
+            if len(levels) > level >= 0:
+                return reconstruct(levels, level)
+        return self.store.read_block(block, max_level=level)
+
     def sync(self, frame_blocks: dict[Block, tuple[int, int]], session: Session) -> None:
         """Upload what a streaming frame holds (``Frame.blocks``) and drop long-gone blocks."""
         self._frame += 1
+        self._session = weakref.ref(session)
         for b, (res, _need) in frame_blocks.items():
             self._seen[b] = self._frame
             if res > self.pool.level(b):
@@ -202,9 +216,9 @@ class FrameServices:
     ) -> NodeBoxes:
         """The renderer's per-node boxes (:mod:`render.node_boxes`) for nodes of
         ``2**patch_log2`` cells (default: the renderer's patch size), holding every
-        ``(block, level)`` of ``pairs``: a block is (re)built from its level-``level`` grid read
-        from the store when that level changed (nothing finer than the level is read); blocks
-        leaving the GPU leave it. The boxes' ranges take the rule ``full``'s bound (a mixed
+        ``(block, level)`` of ``pairs``: a block is (re)built from its level-``level`` grid
+        (:meth:`block_grid`) when that level changed (nothing finer is read); blocks leaving
+        the GPU leave it. The boxes' ranges take the rule ``full``'s bound (a mixed
         node's box is its block's height range); the snapped-edge check's cell bounds take the
         nodata rule ``nodata``'s, the errors the selection itself uses."""
         size = self.p if patch_log2 is None else patch_log2
@@ -215,7 +229,7 @@ class FrameServices:
             boxes = self._tables[key] = NodeBoxes(self.k, size)
         for b, lv in pairs:
             if boxes.level(b) != lv:
-                grid = self.store.read_block(b, max_level=lv)
+                grid = self.block_grid(b, lv)
                 zr = self.block_zranges(np.array([b]))[0]
                 mask = self.mask(b)
                 step = 1 << (self.k - lv)

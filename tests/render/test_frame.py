@@ -111,3 +111,49 @@ def test_view_options_equal_keywords(store_path):
     np.testing.assert_array_equal(a_img, b_img)
     with pytest.raises(Exception, match="unknown LOD strategy 'nope'"):
         ViewOptions(lod="nope")
+
+
+@pytest.mark.parametrize("kind", ["int16", "float32-nodata"])
+def test_block_grid_gathers_the_synced_sessions_levels(tmp_path, kind):
+    """A synced session's decoded levels give ``read_block``'s grid (same values and dtype)
+    without a store read; a level the session lacks, or no session, is read from the store.
+    Control: perturbed session levels change the grid (it is the session's, not a read)."""
+    data = rough(65, 7)
+    kw = {}
+    if kind != "int16":
+        data = data.astype(np.float32) + np.float32(0.25)
+        data[20:40, 10:30] = -9999.0
+        kw = {"nodata": -9999.0}
+    s = open_store(tile_dem(tmp_path, data, 33, **kw))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    reads = []
+    read_block = s.read_block
+    s.read_block = lambda b, max_level=None, **k: (
+        reads.append((b, max_level)) or read_block(b, max_level, **k)
+    )
+    try:
+        assert r.block_grid((0, 0), 2).dtype == data.dtype and len(reads) == 1  # no session
+        with open_render_session(s, 1.0, "qiu", r.p) as session:
+            frame, res = stream_step(session, r, _camera())
+            assert res
+            reads.clear()
+            for b, lv in res.items():
+                for level in range(lv + 1):
+                    g = r.block_grid(b, level)
+                    want = read_block(b, level)
+                    assert g.dtype == want.dtype
+                    np.testing.assert_array_equal(g, want)
+            assert reads == []  # every grid came from the session
+            b, lv = max(res.items(), key=lambda kv: kv[1])
+            levels = session.levels(b)
+            session.levels = lambda _b: levels[:lv]  # the level evicted meanwhile: read
+            np.testing.assert_array_equal(r.block_grid(b, lv), read_block(b, lv))
+            assert reads == [(b, lv)]
+            session.levels = lambda _b: [v + 1 for v in levels]  # the control
+            assert not np.array_equal(r.block_grid(b, lv), read_block(b, lv))
+        del session, frame
+        reads.clear()
+        np.testing.assert_array_equal(r.block_grid(b, lv), read_block(b, lv))
+        assert reads == [(b, lv)]  # the closed session holds nothing: read
+    finally:
+        r.close()

@@ -42,6 +42,10 @@ class Services:
         """Every block is resident at level k."""
         return self.k
 
+    def block_grid(self, block, level):
+        """The block's level grid (``FrameServices.block_grid`` without a session)."""
+        return self.store.read_block(block, max_level=level)
+
     def drawable(self, resident=None):
         """``(block, level)`` sorted, as ``FrameServices.drawable``."""
         levels = resident if resident is not None else {b: self.k for b in self.store.blocks()}

@@ -131,7 +131,7 @@ class GeometrySplitting(Strategy[Selection]):
         lv = self.r.gpu_level(b) if level is None else int(level)
         if self._tree_level.get(b) != lv or b not in self.trees:
             store = self.r.store
-            grid = store.read_block(b, max_level=max(lv, 0))
+            grid = self.r.block_grid(b, max(lv, 0))
             exact = None
             deep = range(store.meta.error_cap + 1, self.k)
             if lv == self.k and len(deep):  # full resolution resident: exact δ where tiled

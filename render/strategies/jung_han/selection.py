@@ -72,7 +72,7 @@ class JungHanSelector:
         """The block's quadtree data at resident level ``level`` (cached; rebuilt on change)."""
         t = self._trees.get(block)
         if t is None or t.level != level:
-            h = self.r.store.read_block(block, level).astype(np.float64)
+            h = self.r.block_grid(block, level).astype(np.float64)
             mask = self.r.mask(block)
             if mask is not None:
                 s = 1 << (self.r.k - level)
