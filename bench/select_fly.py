@@ -4,7 +4,7 @@ user runs it, the selection's ms of every frame from its ``frames.csv``.
 Usage::
 
     python bench/select_fly.py [STORE] [--lods jung-han] [--frames 300] [--runs 2]
-                               [--skip 10] [--tau 1] [--out PATH]
+                               [--skip 10] [--tau 1] [--latency-ms 0] [--out PATH]
 
 Unlike ``bench/select_cpu.py`` (fixed views, every block streamed beforehand, each selection
 repeated), the frames here stream as they fly: blocks arrive and change level, so the
@@ -14,13 +14,16 @@ process from this checkout (``TERRASTREAM_KERNELS=numba``: compiled selections, 
 numba's cache); the first ``--skip`` frames (the first data's arrival, the kernels' first
 calls) are left out. Reported per strategy and run: median, mean, p95, p99 and max of the
 selection's wall ms (what ``select`` reports), and the frames' mean triangles. Default STORE:
-the N44W072 metre store of ``bench/prefetch.py``. Prints a table and writes
+the N44W072 metre store of ``bench/prefetch.py``. ``--latency-ms``: fly over the store served by
+a loopback HTTP server answering each request after that delay (what a remote store costs a
+selection that reads on the render thread). Prints a table and writes
 ``bench/results/select_fly.json``. Run it in a checkout of each commit to compare versions.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -74,6 +77,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--skip", type=int, default=10)
     ap.add_argument("--tau", type=float, default=1.0)
+    ap.add_argument("--latency-ms", type=float, default=0.0, help="serve the store over HTTP")
     ap.add_argument("--out", default=str(RESULTS / "select_fly.json"))
     a = ap.parse_args()
     if not Path(a.store).exists():
@@ -82,18 +86,26 @@ def main() -> None:
         sys.exit(f"--frames {a.frames} must exceed --skip {a.skip}")
     rows = []
     print("lod run frames median_ms mean_ms p95_ms p99_ms max_ms mean_triangles load1")
-    for run in range(1, a.runs + 1):
-        for lod in a.lods.split(","):
-            w = fly(a.store, lod, a.frames, a.tau, a.skip) | {"run": run}
-            rows.append(w)
-            print(
-                f"{lod} {run} {w['frames']} {w['median_ms']:.2f} {w['mean_ms']:.2f} "
-                f"{w['p95_ms']:.2f} {w['p99_ms']:.2f} {w['max_ms']:.2f} "
-                f"{w['mean_triangles']:.0f} {w['loadavg']:.2f}",
-                flush=True,
-            )
+    with contextlib.ExitStack() as stack:
+        store = a.store
+        if a.latency_ms > 0:
+            from bench.prefetch_stores import http_server
+
+            root = Path(a.store).resolve()
+            url = stack.enter_context(http_server(root.parent, a.latency_ms / 1000.0))
+            store = f"{url}/{root.name}"
+        for run in range(1, a.runs + 1):
+            for lod in a.lods.split(","):
+                w = fly(store, lod, a.frames, a.tau, a.skip) | {"run": run}
+                rows.append(w)
+                print(
+                    f"{lod} {run} {w['frames']} {w['median_ms']:.2f} {w['mean_ms']:.2f} "
+                    f"{w['p95_ms']:.2f} {w['p99_ms']:.2f} {w['max_ms']:.2f} "
+                    f"{w['mean_triangles']:.0f} {w['loadavg']:.2f}",
+                    flush=True,
+                )
     out = Path(a.out)
-    info = machine_info() | {"store": Path(a.store).name, "tau": a.tau}
+    info = machine_info() | {"store": Path(a.store).name, "tau": a.tau, "latency_ms": a.latency_ms}
     out.write_text(json.dumps(portable({"machine": info, "rows": rows}), indent=1))
     print(f"# wrote {out.relative_to(REPO) if out.is_relative_to(REPO) else out}")
 

@@ -12,6 +12,9 @@ interface; no strategy reaches into it otherwise:
   camera cell, fraction, MVP, spacing, sun, z range, viewport, and the level/order textures);
 * **triangle read-back** (:meth:`~FrameServices.read_triangles`, transform feedback into an SSBO
   with the rasteriser off);
+* **block data** (:meth:`~FrameServices.block_grid`, :meth:`~FrameServices.stored_errors`,
+  :meth:`~FrameServices.mask`): from the synced session while it holds them, else the store
+  (:mod:`render.block_source`);
 * **patch tables** (:meth:`~FrameServices.patch_table`, :meth:`~FrameServices.fill_table`:
   pooled stored errors per node size, dropped with their blocks), **patch instances**
   (:meth:`~FrameServices.instances`: the instance layout of ``render/glsl/fetch.glsl``) and a
@@ -26,13 +29,13 @@ from __future__ import annotations
 
 import math
 import time
-import weakref
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import moderngl
 import numpy as np
 
+from render.block_source import BlockSource
 from render.errors import RenderError
 from render.frame_types import (  # noqa: F401  (CLEAR, RenderStats: re-exported)
     CLEAR,
@@ -48,7 +51,7 @@ from render.views import CAMERA_CELL_LIMIT
 from streamer.camera import Camera
 from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
 from tiler.crs import require_projected
-from tiler.layout import level_index, order_index, reconstruct
+from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
 
 if TYPE_CHECKING:
@@ -96,10 +99,9 @@ class FrameServices:
             t.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._tables: dict[str, PatchTable | NodeBoxes] = {}
         self._shared: dict[str, Any] = {}
-        self._masks: dict[Block, np.ndarray | None] = {}
+        self.source = BlockSource(store)  # grids, errors, masks: the session's, else the store's
         self._seen: dict[Block, int] = {}
         self._frame = 0
-        self._session: weakref.ref[Session] | None = None  # the last synced (block_grid)
         idx = store.index
         self._zr = np.stack([idx.zmin, idx.zmax], axis=-1)
         vr = store.meta.extra.get("value_range")
@@ -123,11 +125,14 @@ class FrameServices:
     # -- height pool ---------------------------------------------------------------------------
 
     def mask(self, block: Block) -> np.ndarray | None:
-        """The block's validity mask (None when it has no nodata or padding)."""
-        if block not in self._masks:
-            has = bool(self.store.index.has_nodata[block])
-            self._masks[block] = self.store.read_mask(block) if has else None
-        return self._masks[block]
+        """The block's validity mask, None without nodata or padding
+        (:mod:`render.block_source`)."""
+        return self.source.mask(block)
+
+    def stored_errors(self, block: Block) -> dict[str, list[np.ndarray]]:
+        """The block's stored error fields (``TerrainStore.read_errors``; from the synced
+        session when its loaders kept them: :mod:`render.block_source`)."""
+        return self.source.errors(block)
 
     def upload(self, block: Block, levels: list[np.ndarray]) -> int:
         """Put a block's decoded levels on the GPU (only the new ones); return its GPU level."""
@@ -138,19 +143,14 @@ class FrameServices:
 
     def block_grid(self, block: Block, level: int) -> np.ndarray:
         """The block's level-``level`` grid in the source dtype (``TerrainStore.read_block``'s
-        values): gathered from the last synced session's decoded levels while it holds them
-        (no read, no decode; nothing kept), else read from the store."""
-        session = self._session() if self._session is not None else None
-        if session is not None:
-            levels = session.levels(block)
-            if len(levels) > level >= 0:
-                return reconstruct(levels, level)
-        return self.store.read_block(block, max_level=level)
+        values; from the synced session's levels while it holds them:
+        :mod:`render.block_source`)."""
+        return self.source.grid(block, level)
 
     def sync(self, frame_blocks: dict[Block, tuple[int, int]], session: Session) -> None:
         """Upload what a streaming frame holds (``Frame.blocks``) and drop long-gone blocks."""
         self._frame += 1
-        self._session = weakref.ref(session)
+        self.source.attach(session)
         for b, (res, _need) in frame_blocks.items():
             self._seen[b] = self._frame
             if res > self.pool.level(b):
@@ -265,7 +265,7 @@ class FrameServices:
         refined to full resolution at every τ, so terrain beside nodata is drawn from its valid
         samples and no hole is bridged. With ``"gap"`` the stored fields (the selection then
         refines mixed cells by :meth:`gap_field`)."""
-        errors = self.store.read_errors(block)
+        errors = self.stored_errors(block)
         mask = self.mask(block)
         if check_rule(nodata) == "gap" or mask is None or mask.all() or not mask.any():
             return errors

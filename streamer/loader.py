@@ -31,11 +31,12 @@ from concurrent.futures import Future
 import numpy as np
 import zarr.errors
 
+from streamer.blockside import BlockSide, side_bytes
 from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
-from streamer.nodata import rule_errors
+from streamer.nodata import read_side, rule_errors_of
 from streamer.pool import DaemonPool
 from tiler.errors import (
     StoreChangedError,
@@ -81,6 +82,8 @@ class Loader:
         self.field_name = field_name
         self.read_hook = read_hook
         self.cache = LevelCache(int(config.budget_mb * 2**20))
+        #: the error fields and masks the loaders read, for the session's renderer
+        self.side = BlockSide(side_bytes(int(config.budget_mb * 2**20)))
         self.errors = PatchErrorTable(store.k, config.patch_log2, gaps=config.nodata == "gap")
         self.queue = LoadQueue(
             retries=config.retries,
@@ -305,14 +308,13 @@ class Loader:
 
     def _read_errors(self, b: Block) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
         """The block's error field and gap widths under the session's nodata rule
-        (:func:`streamer.nodata.rule_errors`). A chunk that zarr or its codecs cannot decode raises
+        (:func:`streamer.nodata.rule_errors`); the fields and mask read are kept in
+        :attr:`side`. A chunk that zarr or its codecs cannot decode raises
         ``ValueError``/``RuntimeError`` there; like ``TerrainStore.read_level_raw`` does for
-        levels, that becomes a ``StoreCorruptError`` (a read error), here at the store call
+        levels, that becomes a ``StoreCorruptError`` (a read error), here at the store calls
         only, so the same types raised anywhere else still surface as bugs."""
         try:
-            # "full": mask boundaries raised so nodata is refined at every tau; "gap": the
-            # stored errors and the mixed cells' widths (streamer.nodata)
-            return rule_errors(self.store, b, self.field_name, self.config.nodata)
+            errors, mask = read_side(self.store, b)
         except (ValueError, RuntimeError) as exc:
             if isinstance(exc, READ_ERRORS):
                 raise
@@ -320,6 +322,12 @@ class Loader:
                 f"cannot read the {self.field_name!r} errors of block {b} from "
                 f"{self.store.url!r}: {exc}"
             ) from exc
+        self.side.put(b, errors, mask)
+        # "full": mask boundaries raised so nodata is refined at every tau; "gap": the
+        # stored errors and the mixed cells' widths (streamer.nodata)
+        g = self.store.grid
+        field = errors[self.field_name]
+        return rule_errors_of(field, mask, self.store.k, g.dx, g.dy, self.config.nodata)
 
     def _decode_ready(self, b: Block) -> None:
         """Decode ``b``'s fetched levels that follow its resident ones, in order (no lock held

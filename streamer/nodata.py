@@ -81,13 +81,29 @@ def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.nda
 def boundary_errors(store: TerrainStore, block: tuple[int, int], field: str) -> list[np.ndarray]:
     """The block's stored error ``field`` with its mask boundaries raised (:func:`raise_mixed`);
     the stored field itself when the block has no nodata or padding."""
-    errors = store.read_errors(block)[field]
-    if not bool(store.index.has_nodata[block]):
-        return errors
-    mask = store.read_mask(block)
-    if mask.all() or not mask.any():
-        return errors
-    return raise_mixed(errors, mixed_nodes(mask, store.k))
+    return rule_errors(store, block, field, "full")[0]
+
+
+def read_side(
+    store: TerrainStore, block: tuple[int, int]
+) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None]:
+    """The block's stored error fields and its validity mask (None for a block without nodata
+    or padding): the reads of :func:`rule_errors`."""
+    errors = store.read_errors(block)
+    return errors, store.read_mask(block) if bool(store.index.has_nodata[block]) else None
+
+
+def rule_errors_of(
+    field: list[np.ndarray], mask: np.ndarray | None, k: int, dx: float, dy: float, rule: str
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """:func:`rule_errors` from a block's stored error ``field`` and ``mask``
+    (:func:`read_side`) in a store of ``2**k+1`` blocks of ``dx`` × ``dy`` samples."""
+    full = check_rule(rule) == "full"
+    if mask is None or mask.all() or not mask.any():
+        return field, None
+    if full:
+        return raise_mixed(field, mixed_nodes(mask, k)), None
+    return field, gap_widths(mask, k, dx, dy)
 
 
 def rule_errors(
@@ -96,12 +112,6 @@ def rule_errors(
     """What a session plans the block with under the nodata ``rule``: ``"full"`` its
     :func:`boundary_errors` and no gap widths; ``"gap"`` the stored field and its
     :func:`gap_widths` (``None`` when the block has no mask boundary)."""
-    if check_rule(rule) == "full":
-        return boundary_errors(store, block, field), None
-    errors = store.read_errors(block)[field]
-    if not bool(store.index.has_nodata[block]):
-        return errors, None
-    mask = store.read_mask(block)
-    if mask.all() or not mask.any():
-        return errors, None
-    return errors, gap_widths(mask, store.k, store.grid.dx, store.grid.dy)
+    check_rule(rule)
+    errors, mask = read_side(store, block)
+    return rule_errors_of(errors[field], mask, store.k, store.grid.dx, store.grid.dy, rule)

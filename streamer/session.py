@@ -444,6 +444,12 @@ class Session:
         with self._cv:
             return self.cache.levels(block)
 
+    def block_side(self, block: Block) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None]:
+        """``(error fields, mask)`` of a block as the loaders read them (``read_errors``,
+        ``read_mask`` or None without nodata; read-only arrays), or None when not kept
+        (:mod:`streamer.blockside`): for renderers, which then read the store."""
+        return self.loader.side.get(block)
+
     def summary(self) -> dict[str, Any]:
         """Totals over every frame so far (the ``summary`` object of ``--json``)."""
         t = self.totals

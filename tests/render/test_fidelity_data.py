@@ -224,9 +224,9 @@ def test_the_session_streams_what_the_gap_rule_draws(checkerboard, tau, altitude
     gap = _streamed(path, "gap", tau, altitude)
     assert full[2] == 0 and gap[2] == 0, (full, gap)
     assert gap[0] < full[0] and gap[1] < full[1], (full, gap)
-    true = streamer.loader.rule_errors
+    true = streamer.loader.rule_errors_of
     monkeypatch.setattr(
-        streamer.loader, "rule_errors", lambda *a: (true(*a)[0], None)
+        streamer.loader, "rule_errors_of", lambda *a: (true(*a)[0], None)
     )  # the stored errors alone
     assert _streamed(path, "gap", tau, altitude)[2] > 0
 

@@ -157,3 +157,55 @@ def test_block_grid_gathers_the_synced_sessions_levels(tmp_path, kind):
         assert reads == [(b, lv)]  # the closed session holds nothing: read
     finally:
         r.close()
+
+
+@pytest.fixture(scope="module")
+def nodata_path(tmp_path_factory):
+    data = rough(65, 5)
+    data[10:30, 40:60] = -32768
+    return tile_dem(tmp_path_factory.mktemp("frame_nodata"), data, 33, nodata=-32768)
+
+
+@pytest.mark.parametrize("dem", ["rough", "nodata"])
+@pytest.mark.parametrize(
+    ("lod", "metric"),
+    [
+        ("qiu", "qiu"),
+        ("jung-han", "qiu"),
+        ("geometry-splitting", "qiu"),
+        ("seamless-patches", "qiu"),
+        ("qiu", "conservative-view"),
+    ],
+)
+def test_streamed_frames_read_nothing_again(store_path, nodata_path, dem, lod, metric):
+    """What the strategies build per block from a level's grid, the stored errors or the mask
+    (trees, patch tables, node boxes) comes from the streaming session, not from a second
+    store read on the render thread. Control: the same selection on a renderer given the
+    levels without a session reads them."""
+    s = open_store(nodata_path if dem == "nodata" else store_path)
+    reads = []
+    for name in ("read_block", "read_errors", "read_mask"):
+        fn = getattr(s, name)
+        setattr(s, name, lambda b, *a, _n=name, _f=fn, **k: reads.append(_n) or _f(b, *a, **k))
+    cam = _camera()
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    try:
+        with open_render_session(s, 1.0, metric, r.p) as session:
+            frame, res = stream_step(session, r, cam)  # (the session reads)
+            reads.clear()
+            st = get_strategy(lod, r)
+            stats = st.draw(cam, st.select(cam, 1.0, metric, resident=res)[0])
+            assert stats.triangles > 0 and reads == []
+    finally:
+        r.close()
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    try:
+        reads.clear()
+        for b, lv in res.items():
+            r.upload(b, s.read_levels(b, lv))  # (a block with nodata: its mask)
+        get_strategy(lod, r).select(cam, 1.0, metric, resident=res)
+        assert reads  # the control
+        if dem == "nodata" and lod != "jung-han":  # (jung-han reads no errors)
+            assert {"read_errors", "read_mask"} <= set(reads)
+    finally:
+        r.close()

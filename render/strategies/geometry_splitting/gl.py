@@ -135,9 +135,8 @@ class GeometrySplitting(Strategy[Selection]):
             exact = None
             deep = range(store.meta.error_cap + 1, self.k)
             if lv == self.k and len(deep):  # full resolution resident: exact δ where tiled
-                valid = store.read_mask(b) if store.index.has_nodata[b] else None
-                exact = quad_errors(grid, valid, deep)
-            self.trees[b] = stored_tree(store.read_errors(b)["bound"], grid, exact)
+                exact = quad_errors(grid, self.r.mask(b), deep)
+            self.trees[b] = stored_tree(self.r.stored_errors(b)["bound"], grid, exact)
             mask = self.r.mask(b)
             if mask is not None and mask.any() and not mask.all():  # refine mask boundaries
                 mixed = mixed_nodes(mask, self.k)

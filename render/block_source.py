@@ -1,0 +1,67 @@
+"""Where a renderer reads what it builds per block — a level's grid, the stored error fields,
+the validity mask: from the streaming session it last synced with while that holds them (no
+store read, no decode on the render thread; over a remote store a round trip per new block),
+else from the store. The values are the same either way (tested)."""
+
+from __future__ import annotations
+
+import weakref
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from tiler.layout import reconstruct
+from tiler.store import TerrainStore
+
+if TYPE_CHECKING:
+    from streamer.session import Session
+
+Block = tuple[int, int]
+
+
+class BlockSource:
+    """A block's grid, errors and mask for one store's renderer (masks kept per block)."""
+
+    def __init__(self, store: TerrainStore) -> None:
+        self.store = store
+        self._session: weakref.ref[Session] | None = None  # the last synced (not kept alive)
+        self._masks: dict[Block, np.ndarray | None] = {}
+
+    def attach(self, session: Session) -> None:
+        """Take from ``session`` from now on (a weak reference: a closed, dropped session is
+        not kept alive, and then the store is read)."""
+        self._session = weakref.ref(session)
+
+    def _live(self) -> Session | None:
+        return self._session() if self._session is not None else None
+
+    def grid(self, block: Block, level: int) -> np.ndarray:
+        """The level-``level`` grid in the source dtype (``TerrainStore.read_block``'s values):
+        gathered from the session's decoded levels while it holds them (nothing kept)."""
+        session = self._live()
+        if session is not None:
+            levels = session.levels(block)
+            if len(levels) > level >= 0:
+                return reconstruct(levels, level)
+        return self.store.read_block(block, max_level=level)
+
+    def errors(self, block: Block) -> dict[str, list[np.ndarray]]:
+        """The stored error fields (``TerrainStore.read_errors``; the session's are
+        read-only)."""
+        side = self._side(block)
+        return self.store.read_errors(block) if side is None else side[0]
+
+    def mask(self, block: Block) -> np.ndarray | None:
+        """The validity mask, None without nodata or padding (kept; the session's is
+        read-only)."""
+        if block not in self._masks:
+            mask = None
+            if bool(self.store.index.has_nodata[block]):
+                side = self._side(block)
+                mask = self.store.read_mask(block) if side is None else side[1]
+            self._masks[block] = mask
+        return self._masks[block]
+
+    def _side(self, block: Block) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None] | None:
+        session = self._live()
+        return None if session is None else session.block_side(block)
