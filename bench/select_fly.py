@@ -13,7 +13,8 @@ flat forest), and the GPU draws between selections. Per run, the command runs in
 process from this checkout (``TERRASTREAM_KERNELS=numba``: compiled selections, loaded from
 numba's cache); the first ``--skip`` frames (the first data's arrival, the kernels' first
 calls) are left out. Reported per strategy and run: median, mean, p95, p99 and max of the
-selection's wall ms (what ``select`` reports), and the frames' mean triangles. Default STORE:
+selection's wall ms (what ``select`` reports), the frames whose selection took at least
+``--latency-ms`` (20 ms without it), and the frames' mean triangles. Default STORE:
 the N44W072 metre store of ``bench/prefetch.py``. ``--latency-ms``: fly over the store served by
 a loopback HTTP server answering each request after that delay (what a remote store costs a
 selection that reads on the render thread). Prints a table and writes
@@ -39,7 +40,7 @@ import numpy as np  # noqa: E402
 from bench.common import N44W072_EQC, REPO, RESULTS, machine_info, portable  # noqa: E402
 
 
-def fly(store: str, lod: str, frames: int, tau: float, skip: int) -> dict:
+def fly(store: str, lod: str, frames: int, tau: float, skip: int, slow_ms: float) -> dict:
     """One ``terrastream flythrough`` in a fresh process: the selection ms statistics."""
     env = dict(os.environ, TERRASTREAM_KERNELS="numba")
     with tempfile.TemporaryDirectory() as out:
@@ -63,6 +64,8 @@ def fly(store: str, lod: str, frames: int, tau: float, skip: int) -> dict:
         "p95_ms": float(np.percentile(ms, 95)),
         "p99_ms": float(np.percentile(ms, 99)),
         "max_ms": float(ms.max()),
+        "slow_ms": slow_ms,
+        "slow_frames": int((ms >= slow_ms).sum()),
         "mean_triangles": statistics.mean(tris),
         "loadavg": os.getloadavg()[0],
     }
@@ -85,7 +88,11 @@ def main() -> None:
     if a.frames <= a.skip:
         sys.exit(f"--frames {a.frames} must exceed --skip {a.skip}")
     rows = []
-    print("lod run frames median_ms mean_ms p95_ms p99_ms max_ms mean_triangles load1")
+    slow = a.latency_ms if a.latency_ms > 0 else 20.0
+    print(
+        f"lod run frames median_ms mean_ms p95_ms p99_ms max_ms frames>={slow:g}ms "
+        "mean_triangles load1"
+    )
     with contextlib.ExitStack() as stack:
         store = a.store
         if a.latency_ms > 0:
@@ -96,11 +103,11 @@ def main() -> None:
             store = f"{url}/{root.name}"
         for run in range(1, a.runs + 1):
             for lod in a.lods.split(","):
-                w = fly(store, lod, a.frames, a.tau, a.skip) | {"run": run}
+                w = fly(store, lod, a.frames, a.tau, a.skip, slow) | {"run": run}
                 rows.append(w)
                 print(
                     f"{lod} {run} {w['frames']} {w['median_ms']:.2f} {w['mean_ms']:.2f} "
-                    f"{w['p95_ms']:.2f} {w['p99_ms']:.2f} {w['max_ms']:.2f} "
+                    f"{w['p95_ms']:.2f} {w['p99_ms']:.2f} {w['max_ms']:.2f} {w['slow_frames']} "
                     f"{w['mean_triangles']:.0f} {w['loadavg']:.2f}",
                     flush=True,
                 )
