@@ -444,7 +444,9 @@ class Session:
         with self._cv:
             return self.cache.levels(block)
 
-    def block_side(self, block: Block) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None]:
+    def block_side(
+        self, block: Block
+    ) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None] | None:
         """``(error fields, mask)`` of a block as the loaders read them (``read_errors``,
         ``read_mask`` or None without nodata; read-only arrays), or None when not kept
         (:mod:`streamer.blockside`): for renderers, which then read the store."""

@@ -113,18 +113,27 @@ def test_view_options_equal_keywords(store_path):
         ViewOptions(lod="nope")
 
 
-@pytest.mark.parametrize("kind", ["int16", "float32-nodata"])
+@pytest.mark.parametrize("kind", ["int16", "float32-nodata", "precision"])
 def test_block_grid_gathers_the_synced_sessions_levels(tmp_path, kind):
     """A synced session's decoded levels give ``read_block``'s grid (same values and dtype)
     without a store read; a level the session lacks, or no session, is read from the store.
     Control: perturbed session levels change the grid (it is the session's, not a read)."""
+    from demtools import write_dem
+
+    from tiler.tile import TileOptions, tile
+
     data = rough(65, 7)
     kw = {}
     if kind != "int16":
         data = data.astype(np.float32) + np.float32(0.25)
         data[20:40, 10:30] = -9999.0
         kw = {"nodata": -9999.0}
-    s = open_store(tile_dem(tmp_path, data, 33, **kw))
+    if kind == "precision":  # quantised: the session decodes from integers again
+        src = write_dem(tmp_path / "dem.tif", data * np.float32(1.37), **kw)
+        s = tile(src, tmp_path / "q.zarr", TileOptions(block_size=33, precision=0.1, workers=1))
+        data = s.read_block((0, 0))
+    else:
+        s = open_store(tile_dem(tmp_path, data, 33, **kw))
     r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
     reads = []
     read_block = s.read_block
