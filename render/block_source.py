@@ -20,7 +20,8 @@ Block = tuple[int, int]
 
 
 class BlockSource:
-    """A block's grid, errors and mask for one store's renderer (masks kept per block)."""
+    """A block's grid, errors and mask for one store's renderer (masks kept per block until
+    :meth:`forget`)."""
 
     def __init__(self, store: TerrainStore) -> None:
         self.store = store
@@ -61,6 +62,14 @@ class BlockSource:
                 mask = self.store.read_mask(block) if side is None else side[1]
             self._masks[block] = mask
         return self._masks[block]
+
+    def forget(self, block: Block) -> None:
+        """Drop what is kept of ``block`` (it left the GPU; read again if it comes back)."""
+        self._masks.pop(block, None)
+
+    def masks_held(self) -> int:
+        """Blocks whose mask is kept."""
+        return len(self._masks)
 
     def _side(self, block: Block) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None] | None:
         session = self._live()

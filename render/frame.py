@@ -159,6 +159,7 @@ class FrameServices:
             if self._frame - self._seen.get(b, -(10**9)) > self.config.linger_frames:
                 self.pool.release(b)
                 self._seen.pop(b, None)
+                self.source.forget(b)  # (its mask: kept only while on the GPU)
                 for t in self._tables.values():
                     t.remove(b)
 

@@ -218,3 +218,27 @@ def test_streamed_frames_read_nothing_again(store_path, nodata_path, dem, lod, m
             assert {"read_errors", "read_mask"} <= set(reads)
     finally:
         r.close()
+
+
+def test_masks_leave_with_their_blocks(nodata_path):
+    """A block's mask is kept while the block is on the GPU and dropped when it leaves (a long
+    flight over a DEM with nodata everywhere does not accumulate every mask it ever saw); a
+    block that comes back gets it again and is drawn."""
+    s = open_store(nodata_path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2, linger_frames=2), ctx=CTX)
+    st = get_strategy("qiu", r)
+    cam = _camera()
+    try:
+        with open_render_session(s, 1.0, "qiu", r.p) as session:
+            _, res = stream_step(session, r, cam)
+            st.select(cam, 1.0, resident=res)
+            masked = {b for b in res if s.index.has_nodata[b]}
+            assert masked and r.source.masks_held() == len(res)  # (None: no nodata)
+            for _ in range(4):  # nothing in view: every block leaves the GPU
+                r.sync({}, session)
+            assert not r.pool.slots and r.source.masks_held() == 0
+            step = frame_step(session, st, cam, 1.0)
+            assert step.stats.triangles > 0 and r.source.masks_held() == len(step.resident)
+            assert {b for b in step.resident if r.mask(b) is not None} == masked
+    finally:
+        r.close()
