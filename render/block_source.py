@@ -1,7 +1,8 @@
-"""Where a renderer reads what it builds per block — a level's grid, the stored error fields,
-the validity mask: from the streaming session it last synced with while that holds them (no
-store read, no decode on the render thread; over a remote store a round trip per new block),
-else from the store. The values are the same either way (tested)."""
+"""Where a renderer reads what it builds per block — a level's grid, the stored error fields
+(also with mask boundaries raised: the nodata rule "full"), the validity mask: from the
+streaming session it last synced with while that holds them (no store read, no decode, no
+derivation on the render thread; over a remote store a round trip per new block), else from
+the store. The values are the same either way (tested)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from tiler.layout import reconstruct
 from tiler.store import TerrainStore
 
 if TYPE_CHECKING:
+    from streamer.blockside import Side
     from streamer.session import Session
 
 Block = tuple[int, int]
@@ -50,7 +52,13 @@ class BlockSource:
         """The stored error fields (``TerrainStore.read_errors``; the session's are
         read-only)."""
         side = self._side(block)
-        return self.store.read_errors(block) if side is None else side[0]
+        return self.store.read_errors(block) if side is None else side.errors
+
+    def full_errors(self, block: Block) -> dict[str, list[np.ndarray]] | None:
+        """The stored fields with the mask boundaries raised (the nodata rule "full"), as the
+        session's loaders derived them; None when the session does not hold them."""
+        side = self._side(block)
+        return None if side is None else side.full
 
     def mask(self, block: Block) -> np.ndarray | None:
         """The validity mask, None without nodata or padding (kept; the session's is
@@ -59,7 +67,7 @@ class BlockSource:
             mask = None
             if bool(self.store.index.has_nodata[block]):
                 side = self._side(block)
-                mask = self.store.read_mask(block) if side is None else side[1]
+                mask = self.store.read_mask(block) if side is None else side.mask
             self._masks[block] = mask
         return self._masks[block]
 
@@ -71,6 +79,6 @@ class BlockSource:
         """Blocks whose mask is kept."""
         return len(self._masks)
 
-    def _side(self, block: Block) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None] | None:
+    def _side(self, block: Block) -> Side | None:
         session = self._live()
         return None if session is None else session.block_side(block)

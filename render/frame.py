@@ -266,9 +266,13 @@ class FrameServices:
         refined to full resolution at every τ, so terrain beside nodata is drawn from its valid
         samples and no hole is bridged. With ``"gap"`` the stored fields (the selection then
         refines mixed cells by :meth:`gap_field`)."""
+        if check_rule(nodata) == "full":
+            full = self.source.full_errors(block)  # (the session's loaders derived them)
+            if full is not None:
+                return full
         errors = self.stored_errors(block)
         mask = self.mask(block)
-        if check_rule(nodata) == "gap" or mask is None or mask.all() or not mask.any():
+        if nodata == "gap" or mask is None or mask.all() or not mask.any():
             return errors
         mixed = mixed_nodes(mask, self.k)
         return {name: raise_mixed(field, mixed) for name, field in errors.items()}

@@ -1,7 +1,8 @@
 """What a session's loaders read of a block besides its levels — its stored error fields and
-its validity mask — kept in a byte-bounded LRU (no threads; its own short lock), so a renderer
-drawing the session's blocks takes them from memory instead of reading the store again on its
-own thread (over a remote store, a round trip per new block in the frame's selection).
+its validity mask, with the fields under the nodata rule "full" derived from them once — kept
+in a byte-bounded LRU (no threads; its own short lock), so a renderer drawing the session's
+blocks takes them from memory instead of reading the store again, or deriving them again, on
+its own thread (over a remote store, a round trip per new block in the frame's selection).
 
 Entries are read-only arrays (a consumer that wrote into one would change every later
 reader's copy: it raises instead). A miss is not an error: the caller reads the store.
@@ -11,13 +12,24 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from typing import NamedTuple
 
 import numpy as np
 
 Block = tuple[int, int]
 Errors = dict[str, list[np.ndarray]]
 
-__all__ = ["BlockSide", "side_bytes"]
+__all__ = ["BlockSide", "Side", "side_bytes"]
+
+
+class Side(NamedTuple):
+    """What the loaders read of a block, and what they derived from it once."""
+
+    errors: Errors  #: the stored error fields (``TerrainStore.read_errors``)
+    mask: np.ndarray | None  #: the validity mask (``read_mask``), None without nodata
+    #: the fields under the nodata rule "full" (mask boundaries raised,
+    #: :func:`streamer.nodata.raise_mixed`): ``errors`` itself without a mask boundary
+    full: Errors
 
 
 def side_bytes(budget_bytes: int) -> int:
@@ -33,7 +45,7 @@ class BlockSide:
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = int(max_bytes)
         self._lock = threading.Lock()
-        self._entries: OrderedDict[Block, tuple[Errors, np.ndarray | None, int]] = OrderedDict()
+        self._entries: OrderedDict[Block, tuple[Side, int]] = OrderedDict()
         self._bytes = 0
         self.hits = 0
         self.misses = 0
@@ -43,30 +55,32 @@ class BlockSide:
         """Bytes held."""
         return self._bytes
 
-    def put(self, block: Block, errors: Errors, mask: np.ndarray | None) -> None:
-        """Keep ``block``'s stored error fields (``TerrainStore.read_errors``) and its mask
-        (``TerrainStore.read_mask``, None for a block without nodata); both made read-only."""
-        for arrays in errors.values():
-            for a in arrays:
-                a.setflags(write=False)
-        if mask is not None:
-            mask.setflags(write=False)
-        n = sum(a.nbytes for arrays in errors.values() for a in arrays)
-        n += 0 if mask is None else mask.nbytes
+    def put(self, block: Block, side: Side) -> None:
+        """Keep ``block``'s :class:`Side` (its arrays made read-only)."""
+        arrays = [a for f in (side.errors, side.full) for v in f.values() for a in v]
+        if side.mask is not None:
+            arrays.append(side.mask)
+        seen: set[int] = set()
+        n = 0
+        for a in arrays:
+            a.setflags(write=False)
+            if id(a) not in seen:  # (full shares errors' arrays where nothing is raised)
+                seen.add(id(a))
+                n += a.nbytes
         with self._lock:
             old = self._entries.pop(block, None)
             if old is not None:
-                self._bytes -= old[2]
+                self._bytes -= old[1]
             if n > self.max_bytes:
                 return
-            self._entries[block] = (errors, mask, n)
+            self._entries[block] = (side, n)
             self._bytes += n
             while self._bytes > self.max_bytes:
-                _, (_, _, m) = self._entries.popitem(last=False)
+                _, (_, m) = self._entries.popitem(last=False)
                 self._bytes -= m
 
-    def get(self, block: Block) -> tuple[Errors, np.ndarray | None] | None:
-        """``(errors, mask)`` of ``block`` if kept (now the most recently used), else None."""
+    def get(self, block: Block) -> Side | None:
+        """``block``'s :class:`Side` if kept (now the most recently used), else None."""
         with self._lock:
             e = self._entries.get(block)
             if e is None:
@@ -74,4 +88,4 @@ class BlockSide:
                 return None
             self._entries.move_to_end(block)
             self.hits += 1
-            return e[0], e[1]
+            return e[0]

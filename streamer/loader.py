@@ -31,12 +31,12 @@ from concurrent.futures import Future
 import numpy as np
 import zarr.errors
 
-from streamer.blockside import BlockSide, side_bytes
+from streamer.blockside import BlockSide, Side, side_bytes
 from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
-from streamer.nodata import read_side, rule_errors_of
+from streamer.nodata import has_boundary, mixed_nodes, raise_mixed, read_side, rule_errors_of
 from streamer.pool import DaemonPool
 from tiler.errors import (
     StoreChangedError,
@@ -322,12 +322,14 @@ class Loader:
                 f"cannot read the {self.field_name!r} errors of block {b} from "
                 f"{self.store.url!r}: {exc}"
             ) from exc
-        self.side.put(b, errors, mask)
+        k, g = self.store.k, self.store.grid
+        mixed = mixed_nodes(mask, k) if has_boundary(mask) else None
+        full = errors if mixed is None else {n: raise_mixed(f, mixed) for n, f in errors.items()}
+        self.side.put(b, Side(errors, mask, full))  # (for the renderer)
         # "full": mask boundaries raised so nodata is refined at every tau; "gap": the
         # stored errors and the mixed cells' widths (streamer.nodata)
-        g = self.store.grid
         field = errors[self.field_name]
-        return rule_errors_of(field, mask, self.store.k, g.dx, g.dy, self.config.nodata)
+        return rule_errors_of(field, mask, k, g.dx, g.dy, self.config.nodata, mixed)
 
     def _decode_ready(self, b: Block) -> None:
         """Decode ``b``'s fetched levels that follow its resident ones, in order (no lock held

@@ -53,13 +53,16 @@ def check_rule(rule: str) -> str:
     return rule
 
 
-def gap_widths(valid: np.ndarray, k: int, dx: float, dy: float) -> list[np.ndarray]:
+def gap_widths(
+    valid: np.ndarray, k: int, dx: float, dy: float, mixed: list[np.ndarray] | None = None
+) -> list[np.ndarray]:
     """Per depth ``0..k-1``, ``(2**d, 2**d)`` float32: the diagonal in metres of a level-``d``
     cell (``2**(k-d)`` samples of ``dx`` × ``dy``) where the cell is mixed
-    (:func:`mixed_nodes`), 0 elsewhere. Drawn at level ``d``, a mixed cell can drop valid
-    samples or bridge masked ones only inside itself, so this is the widest horizontal gap it
-    can leave; level ``k`` (full resolution) leaves none."""
-    mixed = mixed_nodes(valid, k)
+    (:func:`mixed_nodes`, or ``mixed`` if given), 0 elsewhere. Drawn at level ``d``, a mixed
+    cell can drop valid samples or bridge masked ones only inside itself, so this is the widest
+    horizontal gap it can leave; level ``k`` (full resolution) leaves none."""
+    if mixed is None:
+        mixed = mixed_nodes(valid, k)
     return [
         np.where(mixed[d], np.float32((1 << (k - d)) * np.hypot(dx, dy)), np.float32(0.0))
         for d in range(k)
@@ -94,16 +97,30 @@ def read_side(
 
 
 def rule_errors_of(
-    field: list[np.ndarray], mask: np.ndarray | None, k: int, dx: float, dy: float, rule: str
+    field: list[np.ndarray],
+    mask: np.ndarray | None,
+    k: int,
+    dx: float,
+    dy: float,
+    rule: str,
+    mixed: list[np.ndarray] | None = None,
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
     """:func:`rule_errors` from a block's stored error ``field`` and ``mask``
-    (:func:`read_side`) in a store of ``2**k+1`` blocks of ``dx`` × ``dy`` samples."""
+    (:func:`read_side`) in a store of ``2**k+1`` blocks of ``dx`` × ``dy`` samples
+    (``mixed``: the mask's :func:`mixed_nodes`, if already known)."""
     full = check_rule(rule) == "full"
-    if mask is None or mask.all() or not mask.any():
+    if not has_boundary(mask):
         return field, None
+    if mixed is None:
+        mixed = mixed_nodes(mask, k)
     if full:
-        return raise_mixed(field, mixed_nodes(mask, k)), None
-    return field, gap_widths(mask, k, dx, dy)
+        return raise_mixed(field, mixed), None
+    return field, gap_widths(mask, k, dx, dy, mixed)
+
+
+def has_boundary(mask: np.ndarray | None) -> bool:
+    """Whether a block's ``mask`` (None: no nodata) holds both terrain and nodata."""
+    return mask is not None and bool(mask.any()) and not bool(mask.all())
 
 
 def rule_errors(

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from streamer import levels as levels_kernels
+from streamer.blockside import Side
 from streamer.cache import Block, PinChanges
 from streamer.camera import Camera
 from streamer.errors import BudgetError, LoadError, LodError, SessionClosedError, StreamerError
@@ -444,11 +445,9 @@ class Session:
         with self._cv:
             return self.cache.levels(block)
 
-    def block_side(
-        self, block: Block
-    ) -> tuple[dict[str, list[np.ndarray]], np.ndarray | None] | None:
-        """``(error fields, mask)`` of a block as the loaders read them (``read_errors``,
-        ``read_mask`` or None without nodata; read-only arrays), or None when not kept
+    def block_side(self, block: Block) -> Side | None:
+        """A block's error fields and mask as the loaders read them, and the fields under the
+        nodata rule "full" (read-only arrays), or None when not kept
         (:mod:`streamer.blockside`): for renderers, which then read the store."""
         return self.loader.side.get(block)
 

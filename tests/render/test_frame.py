@@ -242,3 +242,34 @@ def test_masks_leave_with_their_blocks(nodata_path):
             assert {b for b in step.resident if r.mask(b) is not None} == masked
     finally:
         r.close()
+
+
+def test_full_rule_errors_come_derived_from_the_session(nodata_path, monkeypatch):
+    """The stored errors with mask boundaries raised (nodata rule "full") are the session
+    loaders' (equal to what the renderer derives itself) and the render thread derives no
+    mixed nodes for them. Control: without a session it does, and gets the same errors."""
+    import render.frame
+
+    true, calls = render.frame.mixed_nodes, []
+    monkeypatch.setattr(render.frame, "mixed_nodes", lambda *a: calls.append(1) or true(*a))
+    s = open_store(nodata_path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    bare = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    try:
+        with open_render_session(s, 1.0, "qiu", r.p) as session:
+            _, res = stream_step(session, r, _camera())
+            calls.clear()
+            got = {b: r.read_errors(b, "full") for b in res}
+            assert calls == []
+        boundary = [b for b in res if r.mask(b) is not None and not r.mask(b).all()]
+        assert boundary  # the scene has mask boundaries
+        for b, errors in got.items():
+            want = bare.read_errors(b, "full")
+            assert errors.keys() == want.keys()
+            for name in want:
+                for x, y in zip(errors[name], want[name], strict=True):
+                    np.testing.assert_array_equal(x, y)
+        assert len(calls) == len(boundary)  # the control
+    finally:
+        r.close()
+        bare.close()

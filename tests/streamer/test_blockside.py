@@ -7,41 +7,42 @@ import numpy as np
 import pytest
 from demtools import fractal, write_dem
 
-from streamer.blockside import BlockSide, side_bytes
+from streamer.blockside import BlockSide, Side, side_bytes
 from streamer.nodata import rule_errors
 from streamer.paths import default_flythrough
 from streamer.session import open_session
 from tiler.tile import TileOptions, tile
 
 
-def _entry(n: int) -> dict[str, list[np.ndarray]]:
-    return {"bound": [np.zeros(n, np.uint8)]}
+def _entry(n: int, mask: np.ndarray | None = None) -> Side:
+    errors = {"bound": [np.zeros(n, np.uint8)]}
+    return Side(errors, mask, errors)  # (full shares the arrays: counted once)
 
 
 def test_least_recently_used_leave_first_and_bytes_stay_bounded():
     side = BlockSide(250)
-    side.put((0, 0), _entry(100), None)
-    side.put((0, 1), _entry(100), None)
+    side.put((0, 0), _entry(100))
+    side.put((0, 1), _entry(100))
     assert side.get((0, 0)) is not None  # now the most recent
-    side.put((0, 2), _entry(40), np.ones(20, bool))  # 260 bytes: the oldest leaves
+    side.put((0, 2), _entry(40, np.ones(20, bool)))  # 260 bytes: the oldest leaves
     assert side.get((0, 1)) is None and side.nbytes == 160
-    assert side.get((0, 0)) is not None and side.get((0, 2))[1].shape == (20,)
-    side.put((0, 0), _entry(10), None)  # replaced: its old bytes released
+    assert side.get((0, 0)) is not None and side.get((0, 2)).mask.shape == (20,)
+    side.put((0, 0), _entry(10))  # replaced: its old bytes released
     assert side.nbytes == 70
-    side.put((9, 9), _entry(251), None)  # larger than the bound: not kept, nothing dropped
+    side.put((9, 9), _entry(251))  # larger than the bound: not kept, nothing dropped
     assert side.get((9, 9)) is None and side.nbytes == 70
     assert (side.hits, side.misses) == (3, 2)
 
 
 def test_kept_arrays_are_read_only():
     side = BlockSide(1 << 20)
-    errors, mask = _entry(4), np.ones((3, 3), bool)
-    side.put((1, 2), errors, mask)
-    got, m = side.get((1, 2))
-    with pytest.raises(ValueError, match="read-only"):
-        got["bound"][0][0] = 1
-    with pytest.raises(ValueError, match="read-only"):
-        m[0, 0] = False
+    full = {"bound": [np.ones(4, np.float32)]}
+    side.put((1, 2), Side({"bound": [np.zeros(4, np.float32)]}, np.ones((3, 3), bool), full))
+    got = side.get((1, 2))
+    assert side.nbytes == 16 + 16 + 9
+    for a in (got.errors["bound"][0], got.full["bound"][0], got.mask):
+        with pytest.raises(ValueError, match="read-only"):
+            a[0] = 0
 
 
 def test_side_bytes():
@@ -61,7 +62,8 @@ def nodata_store(tmp_path_factory):
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_session_keeps_what_its_loaders_read(nodata_store, workers):
     """Every block whose errors a flight read has the store's stored fields and mask as its side
-    data (not the nodata rule's raised errors, which differ on this store: the control)."""
+    data, and the fields under the rule "full" (which differ from the stored ones on this
+    store's mask boundaries: the control)."""
     s = nodata_store
     z0, z1 = s.meta.extra["value_range"]
     cams = default_flythrough(s.grid, z0, z1, 40, 30.0, viewport=(320, 240))
@@ -71,17 +73,19 @@ def test_a_session_keeps_what_its_loaders_read(nodata_store, workers):
         known = sess.loader.errors.known(list(s.blocks()))
         raised = 0
         for b in known:
-            errors, mask = sess.block_side(b)
+            side = sess.block_side(b)
             stored = s.read_errors(b)
-            assert errors.keys() == stored.keys()
+            assert side.errors.keys() == stored.keys() == side.full.keys()
             for name in stored:
-                for a, w in zip(errors[name], stored[name], strict=True):
+                full = rule_errors(s, b, name, "full")[0]
+                four = (side.errors[name], side.full[name], stored[name], full)
+                for a, f, w, x in zip(*four, strict=True):
                     np.testing.assert_array_equal(a, w)
+                    np.testing.assert_array_equal(f, x)
+                    raised += not np.array_equal(f, w)
             if s.index.has_nodata[b]:
-                np.testing.assert_array_equal(mask, s.read_mask(b))
-                full = zip(rule_errors(s, b, "qiu", "full")[0], stored["qiu"], strict=True)
-                raised += any(not np.array_equal(f, w) for f, w in full)
+                np.testing.assert_array_equal(side.mask, s.read_mask(b))
             else:
-                assert mask is None
+                assert side.mask is None
         assert len(known) >= 4 and raised >= 1
         assert sess.block_side((99, 99)) is None
