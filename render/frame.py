@@ -49,7 +49,7 @@ from render.node_boxes import NodeBoxes
 from render.select import Patches, PatchTable, check_drawable
 from render.views import CAMERA_CELL_LIMIT
 from streamer.camera import Camera
-from streamer.nodata import check_rule, gap_widths, mixed_nodes, raise_mixed
+from streamer.nodata import check_rule, gap_widths, raise_all
 from tiler.crs import require_projected
 from tiler.layout import level_index, order_index
 from tiler.store import TerrainStore
@@ -271,11 +271,7 @@ class FrameServices:
             if full is not None:
                 return full
         errors = self.stored_errors(block)
-        mask = self.mask(block)
-        if nodata == "gap" or mask is None or mask.all() or not mask.any():
-            return errors
-        mixed = mixed_nodes(mask, self.k)
-        return {name: raise_mixed(field, mixed) for name, field in errors.items()}
+        return errors if nodata == "gap" else raise_all(errors, self.mask(block), self.k)
 
     def shared(self, key: str, make: Callable[[FrameServices], T]) -> T:
         """The object (programs, meshes) cached under ``key`` on this renderer, built by

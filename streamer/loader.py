@@ -36,7 +36,7 @@ from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
-from streamer.nodata import has_boundary, mixed_nodes, raise_mixed, read_side, rule_errors_of
+from streamer.nodata import has_boundary, mixed_nodes, raise_all, read_side, rule_errors_of
 from streamer.pool import DaemonPool
 from tiler.errors import (
     StoreChangedError,
@@ -324,8 +324,7 @@ class Loader:
             ) from exc
         k, g = self.store.k, self.store.grid
         mixed = mixed_nodes(mask, k) if has_boundary(mask) else None
-        full = errors if mixed is None else {n: raise_mixed(f, mixed) for n, f in errors.items()}
-        self.side.put(b, Side(errors, mask, full))  # (for the renderer)
+        self.side.put(b, Side(errors, mask, raise_all(errors, mask, k, mixed)))  # (the renderer's)
         # "full": mask boundaries raised so nodata is refined at every tau; "gap": the
         # stored errors and the mixed cells' widths (streamer.nodata)
         field = errors[self.field_name]

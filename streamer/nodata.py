@@ -81,6 +81,21 @@ def raise_mixed(field: list[np.ndarray], mixed: list[np.ndarray]) -> list[np.nda
     return out
 
 
+def raise_all(
+    errors: dict[str, list[np.ndarray]],
+    mask: np.ndarray | None,
+    k: int,
+    mixed: list[np.ndarray] | None = None,
+) -> dict[str, list[np.ndarray]]:
+    """Every field of ``errors`` under the rule "full" (:func:`raise_mixed` at the ``mask``'s
+    :func:`mixed_nodes`, or ``mixed`` if known); ``errors`` itself without a mask boundary."""
+    if not has_boundary(mask):
+        return errors
+    if mixed is None:
+        mixed = mixed_nodes(mask, k)
+    return {name: raise_mixed(field, mixed) for name, field in errors.items()}
+
+
 def boundary_errors(store: TerrainStore, block: tuple[int, int], field: str) -> list[np.ndarray]:
     """The block's stored error ``field`` with its mask boundaries raised (:func:`raise_mixed`);
     the stored field itself when the block has no nodata or padding."""

@@ -248,10 +248,10 @@ def test_full_rule_errors_come_derived_from_the_session(nodata_path, monkeypatch
     """The stored errors with mask boundaries raised (nodata rule "full") are the session
     loaders' (equal to what the renderer derives itself) and the render thread derives no
     mixed nodes for them. Control: without a session it does, and gets the same errors."""
-    import render.frame
+    import streamer.nodata
 
-    true, calls = render.frame.mixed_nodes, []
-    monkeypatch.setattr(render.frame, "mixed_nodes", lambda *a: calls.append(1) or true(*a))
+    true, calls = streamer.nodata.mixed_nodes, []
+    monkeypatch.setattr(streamer.nodata, "mixed_nodes", lambda *a: calls.append(1) or true(*a))
     s = open_store(nodata_path)
     r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
     bare = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)

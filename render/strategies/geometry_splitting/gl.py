@@ -14,7 +14,7 @@ import moderngl
 import numpy as np
 
 from render import measure, shaders
-from render.frame import FrameServices, mixed_nodes
+from render.frame import FrameServices
 from render.gpu import MASKED_BELOW, check_gl
 from render.select import check_tau
 from render.strategies.base import (
@@ -28,6 +28,7 @@ from render.strategies.feedback import block_neighbours, feedback_pass
 from render.strategies.geometry_splitting.pure import BlockTree, quad_errors, stored_tree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 from streamer.camera import Camera
+from streamer.nodata import mixed_nodes
 
 NO_CAP = 99  # border cap meaning "no restriction"
 HERE = Path(__file__).parent
