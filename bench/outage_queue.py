@@ -10,7 +10,9 @@ Two parts, both run on the code of the checkout with the old pop patched in for 
   raising ``ConnectionError``: a server gone; no warm-up can finish, so only its compiled
   planner is loaded); the lock probed (:mod:`streamer.lockprobe`).
   Reported: the caller's CPU per ``update`` and the lock holds of each thread role, p50 /
-  p99 / max (µs), and the queue's length at the end.
+  p99 / max (µs), the caller's waits for the lock (how often it found the lock held, and
+  for how long: a contended acquisition waits for the GIL too) and the queue's length at
+  the end.
 
 The session part alternates before and after ``--reps`` times (timings are noisy; compare
 within a run). The largest ``update`` (tens of ms, both ways) is the collector's: its cost
@@ -147,8 +149,11 @@ def session_row(dst, frames: int) -> dict:
         queued = len(s.loader.queue)
         failed = len(s.loader.queue.failed_blocks())
     roles = {r: _pct([h[0] * 1e6 for h in hs]) for r, hs in probe.by_role().items()}
+    waits = np.array(probe.waits_by_role().get("caller", [0.0])) * 1e6
+    caller = {**_pct(waits), "acquires": len(waits), "contended": int((waits > 0).sum()),
+              "sum_ms": float(waits.sum() / 1e3)}  # fmt: skip
     return {"update_cpu_us": _pct(cpu), "lock_hold_wall_us": roles, "queued_at_end": queued,
-            "failed_at_end": failed}  # fmt: skip
+            "failed_at_end": failed, "caller_waits_us": caller}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -184,8 +189,12 @@ def main(argv: list[str] | None = None) -> int:
             row = out["session"][name][rep]
             lines = [("update CPU", row["update_cpu_us"])]
             lines += [(f"lock hold {r}", v) for r, v in sorted(row["lock_hold_wall_us"].items())]
+            lines += [("caller's waits", row["caller_waits_us"])]
             for what, v in lines:
                 print(f"{name:7} {what:22} {v['p50']:9.1f} {v['p99']:9.1f} {v['max']:10.1f}")
+            w = row["caller_waits_us"]
+            print(f"{name:7} caller found the lock held {w['contended']} of {w['acquires']} "
+                  f"times, waited {w['sum_ms']:.1f} ms in all")  # fmt: skip
             print(f"{name:7} queued at the end {row['queued_at_end']}, "
                   f"failed {row['failed_at_end']}")  # fmt: skip
     path = Path(a.out)

@@ -155,7 +155,7 @@ def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict
     with open_session(store, budget_mb=budget_mb, workers=workers, **opts) as s:
         probe = install(s)
         s.warm_up(cams[0])
-        probe.holds.clear()
+        probe.clear()
         for cam in cams:
             s.update(cam, 1 / 60)
     out: dict = {"violations": len(probe.violations)}
@@ -186,7 +186,64 @@ def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict
             f"{row['cpu_max']:8.1f} {row['cpu_ge_20']:7d} {row['cpu_ge_50']:6d} "
             f"{row['cpu_ge_100']:6d} {row['cpu_sum_ms']:8.1f}"
         )
+    out["waits"] = _waits(probe)
+    out["sites"] = _sites(probe)
     return out
+
+
+def _waits(probe) -> dict:
+    """Per thread role: the acquisitions that found the lock held (``contended``) and how
+    long each acquisition waited for it (wall µs; 0 for a free lock). A contended one also
+    waits for the GIL once the lock is released: its wait is not the holder's hold."""
+    rows = {}
+    print("# waits for the lock (wall µs from asking to holding; 0: found free), by thread role")
+    print(
+        f"{'role':8} {'acquires':>9} {'contended':>10} {'p99':>7} {'max':>8} {'>=20':>6} "
+        f"{'>=100':>6} {'sum ms':>7}"
+    )
+    for role, waits in sorted(probe.waits_by_role().items()):
+        us = np.array(waits) * 1e6
+        rows[role] = r = {
+            "acquires": len(us),
+            "contended": int((us > 0).sum()),
+            "p50": float(np.percentile(us, 50)),
+            "p99": float(np.percentile(us, 99)),
+            "max": float(us.max()),
+            "ge_20": int((us >= 20).sum()),
+            "ge_100": int((us >= 100).sum()),
+            "sum_ms": float(us.sum() / 1e3),
+        }
+        print(
+            f"{role:8} {r['acquires']:9d} {r['contended']:10d} {r['p99']:7.1f} {r['max']:8.1f} "
+            f"{r['ge_20']:6d} {r['ge_100']:6d} {r['sum_ms']:7.1f}"
+        )
+    return rows
+
+
+def _sites(probe) -> dict:
+    """Per function that took the lock: holds, thread-CPU p50/p99/max µs and the CPU held in
+    all, the sites with the most CPU held first (printed: those with a hold ≥ 20 µs)."""
+    rows = {}
+    for site, holds in probe.by_site().items():
+        cpu = np.array(holds)[:, 1] * 1e6
+        rows[site] = {
+            "holds": len(cpu),
+            "cpu_p50": float(np.percentile(cpu, 50)),
+            "cpu_p99": float(np.percentile(cpu, 99)),
+            "cpu_max": float(cpu.max()),
+            "cpu_ge_20": int((cpu >= 20).sum()),
+            "cpu_sum_ms": float(cpu.sum() / 1e3),
+        }
+    rows = dict(sorted(rows.items(), key=lambda kv: -kv[1]["cpu_sum_ms"]))
+    print("# lock holds (thread-CPU µs) by the function that took the lock")
+    print(f"{'site':40} {'holds':>7} {'p50':>7} {'p99':>7} {'max':>8} {'>=20':>6} {'sum ms':>7}")
+    for site, r in rows.items():
+        if r["cpu_max"] >= 20:
+            print(
+                f"{site:40} {r['holds']:7d} {r['cpu_p50']:7.1f} {r['cpu_p99']:7.1f} "
+                f"{r['cpu_max']:8.1f} {r['cpu_ge_20']:6d} {r['cpu_sum_ms']:7.1f}"
+            )
+    return rows
 
 
 if __name__ == "__main__":
