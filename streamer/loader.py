@@ -201,20 +201,32 @@ class Loader:
         # session re-raises the bug and clears it, and pumping resumes. After a store change
         # nothing starts again. One job per hold of the lock: a take that must evict walks
         # the cache, and four in a row held the lock the caller waits on for ~1 ms.
-        while True:
-            with self.cv:
-                if (
-                    self.closed
-                    or self.bug is not None
-                    or self.fatal is not None
-                    or self._in_flight >= self.config.workers
-                ):
-                    break
-                job = self.next_job()
-                if job is None:
-                    break
-                self._in_flight += 1
+        while self._in_flight < self.config.workers:  # (read without the lock: a worker
+            with self.cv:  # that frees up pumps itself, see _done)
+                job = self._take_job()
+            if job is None:
+                break
             jobs.append(job)
+        self._submit(jobs)
+
+    def _take_job(self) -> Job | None:
+        """The next job if a worker is free and jobs may start, counted in flight (caller
+        holds the lock)."""
+        if (
+            self.closed
+            or self.bug is not None
+            or self.fatal is not None
+            or self._in_flight >= self.config.workers
+        ):
+            return None
+        job = self.next_job()
+        if job is not None:
+            self._in_flight += 1
+        return job
+
+    def _submit(self, jobs: list[Job]) -> None:
+        """Run ``jobs`` (taken by :meth:`_take_job`) on the pool (no lock held)."""
+        assert self._pool is not None
         for k, job in enumerate(jobs):
             try:
                 fut = self._pool.submit(self.run_job, job)
@@ -228,12 +240,14 @@ class Loader:
 
     def _done(self, fut: Future) -> None:
         exc = None if fut.cancelled() else fut.exception()
-        with self.cv:
+        with self.cv:  # the worker's next job taken in the same hold
             self._in_flight -= 1
             if exc is not None and self.bug is None:
                 self.bug = exc  # not a read error: re-raised by the next update
             self.cv.notify_all()
-        if exc is None:
+            job = self._take_job() if exc is None else None
+        if job is not None:
+            self._submit([job])
             self.pump()
 
     def _unreserve(self, job: Job) -> None:

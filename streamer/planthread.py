@@ -72,10 +72,22 @@ class PlanThread:
     def request(self, camera: Camera, velocity: Any, visible: Collection[Block]) -> None:
         """Post a pose; the thread plans it (or a later one) soon (no thread: see :meth:`plan`)."""
         with self.loader.cv:
-            self.pending = (camera, velocity, visible)
-            if self.pool is None or self.running:
-                return
-            self.running = True
+            start = self.post(camera, velocity, visible)
+        if start:
+            self.start()
+
+    def post(self, camera: Camera, velocity: Any, visible: Collection[Block]) -> bool:
+        """:meth:`request`'s part under the loader's lock (the caller holds it, e.g. in the
+        hold that pins its frame); True when :meth:`start` must be called after it."""
+        self.pending = (camera, velocity, visible)
+        if self.pool is None or self.running:
+            return False
+        self.running = True
+        return True
+
+    def start(self) -> None:
+        """Start the planning loop (after :meth:`post` said so; no lock held)."""
+        assert self.pool is not None
         self.pool.submit(self._loop).add_done_callback(self._done)
 
     def _loop(self) -> None:

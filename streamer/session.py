@@ -223,10 +223,13 @@ class Session:
     def _raise_background_error(self, *, fatal: bool = True) -> None:
         """Re-raise a planning failure or a loader bug on the caller's thread, and (``fatal``)
         a change of the store under the session, which every later call raises again."""
+        ld, plans = self.loader, self._plans
+        if plans.error is None and ld.bug is None and (not fatal or ld.fatal is None):
+            return  # (read without the lock: one set meanwhile is raised by the next call)
         with self._cv:
-            plan_exc, self._plans.error = self._plans.error, None
-            bug, self.loader.bug = self.loader.bug, None
-            changed = self.loader.fatal if fatal else None
+            plan_exc, plans.error = plans.error, None
+            bug, ld.bug = ld.bug, None
+            changed = ld.fatal if fatal else None
         if plan_exc is not None:
             raise StreamerError(f"prefetch planning failed: {plan_exc}") from plan_exc
         if bug is not None:
@@ -309,9 +312,11 @@ class Session:
         todo = self._to_queue(needed, levels)
         need = int(self._cum_array[levels].sum())
         changes = self.cache.pin_changes(needed)  # (only this thread sets the pins)
-        with self._cv:
+        with self._cv:  # (one hold: a contended one costs the caller a GIL hand-off too)
             self._pin_and_queue(needed, todo, need, changes)
-        self._plans.request(camera, velocity, needed.keys())
+            start = self._plans.post(camera, velocity, needed.keys())
+        if start:
+            self._plans.start()
         self.loader.pump()
         update_s, update_cpu = time.perf_counter() - t0, time.thread_time() - c0
         if cfg.workers == 0:

@@ -119,7 +119,16 @@ def _takes_per_hold(store, pump=None) -> list[list[int]]:
                 local.seen.append(len(probe.holds))
             return job
 
-        ld.pump, ld.next_job = pumping, next_job
+        real_done = ld._done
+
+        def done(fut):  # (its own take, when a job ends before its callback is attached,
+            outer, local.seen = getattr(local, "seen", None), None  # is not the pump's)
+            try:
+                real_done(fut)
+            finally:
+                local.seen = outer
+
+        ld.pump, ld.next_job, ld._done = pumping, next_job, done
         _fly(s, store, probe, frames=40)
     return [c for c in calls if len(c) >= 2]
 
@@ -201,3 +210,51 @@ def test_the_planning_thread_trims_in_short_holds(store33):
 def test_positive_control_a_trim_in_one_hold_is_caught(store33):
     many, _, trimmed = _trim_steps_per_hold(store33, _one_hold_trim_plan)
     assert trimmed > 0 and many and all(len(set(t)) == 1 for t in many), many
+
+
+def _caller_holds_per_frame(store, extra_hold: bool = False) -> tuple[int, int]:
+    """Fly 60 frames with 2 loaders: the caller's holds of the lock in ``update`` and the
+    frames. ``extra_hold``: the background errors looked for under the lock and the pose
+    posted in a hold of its own (as before)."""
+    with open_session(store, budget_mb=4, workers=2) as s:
+        probe = install(s)
+        if extra_hold:
+            real_raise, real_post = s._raise_background_error, s._plans.post
+
+            def raise_bug(**kw):
+                with s._cv:
+                    pass
+                real_raise(**kw)
+
+            def post(*a):
+                s._cv.release()  # (called under the update's hold: released and re-taken)
+                try:
+                    with s._cv:
+                        pass
+                finally:
+                    s._cv.acquire()
+                return real_post(*a)
+
+            s._raise_background_error, s._plans.post = raise_bug, post
+        z0, z1 = store.meta.extra["value_range"]
+        cams = default_flythrough(store.grid, z0, z1, 60, 60.0, viewport=(320, 240))
+        s.warm_up(cams[0])
+        probe.clear()
+        for cam in cams:
+            s.update(cam, 1 / 60)
+        roles = probe.by_role()
+    return len(roles["caller"]), len(cams)
+
+
+def test_update_takes_the_lock_at_most_four_times_a_frame(store33):
+    """A hold that finds the lock taken costs its thread a GIL hand-off too (~0.1–1 ms), so
+    ``update`` takes it few times: its pins with the pose for the planning thread, at most
+    one job take (none while every loader is busy), two for the frame's report; the
+    background errors are looked for without it (six holds a frame before)."""
+    caller_holds, frames = _caller_holds_per_frame(store33)
+    assert caller_holds <= 4 * frames, (caller_holds, frames)
+
+
+def test_positive_control_two_more_holds_a_frame_are_caught(store33):
+    caller_holds, frames = _caller_holds_per_frame(store33, True)
+    assert caller_holds > 4 * frames, (caller_holds, frames)
