@@ -139,9 +139,12 @@ class Loader:
         block's errors come before any of its levels (:meth:`fetchable`), so a block without
         them is one of those."""
         items = []
+        errors, level = self.errors, self.cache.level
         for part in self.cache.short_steps(chunk):
-            for b, _want, _pin, _p in part:
-                items.append((self.key(b), b))
+            for b, _want, pin, prio in part:  # (:meth:`key`, from the entry's values read)
+                nxt = level(b) + 1
+                key = (0 if b not in errors else 1, 0 if nxt <= pin else 1, nxt, -prio, b)
+                items.append((key, b))
             yield
         yield from self.queue.rebuild_steps(items, time.monotonic(), chunk)
         self.totals.cancelled = self.queue.cancelled

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import heapq
 from collections.abc import Callable, Iterable, Iterator
+from functools import partial
+from itertools import islice
 from typing import TypeVar
 
 from streamer.cache import Block
@@ -62,6 +64,9 @@ class LoadQueue:
         self._asleep: dict[Block, list[tuple]] = {}
         self._n_asleep = 0
         self._seq = 0
+        #: while a rebuild sorts: the blocks read successfully since it began (see
+        #: :meth:`rebuild_steps`), else None
+        self._recovered: set[Block] | None = None
         self._best: dict[Block, tuple] = {}  # most urgent key each queued block has
         self.failures: dict[Block, int] = {}  # failures in a row
         self.retry_at: dict[Block, float] = {}
@@ -83,8 +88,8 @@ class LoadQueue:
         self._best.clear()
 
     def _drop_sleepers(self) -> None:
-        self._sleeping.clear()
-        self._asleep.clear()
+        self._sleeping = []
+        self._asleep = {}  # (new: a rebuild still reads the old one)
         self._n_asleep = 0
 
     def _sleep(self, key: tuple, b: Block) -> None:
@@ -157,40 +162,84 @@ class LoadQueue:
         self, items: list[tuple[tuple, Block]], now: float | None = None, chunk: int = 64
     ) -> Iterator[None]:
         """:meth:`rebuild` in steps: the new heaps are built apart, ``chunk`` items a step,
-        then put in place in one short last step (the owner holds the lock during each step
-        and may release it between them). A block that fails, recovers or is taken between
-        the steps sits where it was sorted until a pop meets it, which re-checks it (as for a
-        block whose state changes after any rebuild)."""
+        then put in place in one short step (the owner holds the lock during each step and
+        may release it between them). A block that fails, recovers or is taken between the
+        steps sits where it was sorted until a pop meets it, which re-checks it (as for a
+        block whose state changes after any rebuild). No step walks a large queue: the blocks
+        in backoff (most of it in an outage) go on a new sleeping heap as they are sorted
+        (the swap put each to sleep again, one by one), a large queue's heaps grow by pushes
+        (a small one's are heapified in a step of their own), and a large old queue, no
+        longer shared once swapped, is compared with the new one ``4 * chunk`` entries a step
+        to count the cancelled loads."""
         heap: list[tuple[tuple, Block]] = []
         failed: list[tuple[tuple, Block]] = []
-        asleep: dict[Block, list[tuple]] = {}
+        asleep: dict[Block, list[tuple]] = {}  # the new sleepers, on their own heap
+        sleeping: list[tuple[float, int, Block]] = []
+        n_asleep = 0
         best: dict[Block, tuple] = {}
-        for i in range(0, len(items), chunk):
-            for k, b in items[i : i + chunk]:
-                if self.retryable(b):
-                    if now is not None and self.backing_off(b, now):
-                        asleep.setdefault(b, []).append(k)
-                    elif self.is_failed(b):
-                        failed.append(self._failed_entry(k, b))
-                    else:
-                        heap.append((k, b))
-                    if b not in best or k < best[b]:
-                        best[b] = k
+        step = 4 * chunk
+        large = len(items) > step
+        if large:
+            put, put_failed = partial(heapq.heappush, heap), partial(heapq.heappush, failed)
+        else:  # (heapified in a step of their own)
+            put, put_failed = heap.append, failed.append
+        kept: set[Block] = set()  # best's blocks as sorted, if large (pops change best)
+        outer = self._recovered  # (a rebuild inside another's steps shares its set)
+        self._recovered = recovered = set() if outer is None else outer
+        try:
+            for i in range(0, len(items), chunk):
+                for k, b in items[i : i + chunk]:
+                    if self.retryable(b):
+                        if now is not None and self.backing_off(b, now):
+                            keys = asleep.get(b)
+                            if keys is None:
+                                keys = asleep[b] = []
+                                self._seq += 1
+                                heapq.heappush(sleeping, (self.retry_at[b], self._seq, b))
+                            keys.append(k)
+                            n_asleep += 1
+                        elif self.is_failed(b):
+                            put_failed(self._failed_entry(k, b))
+                        else:
+                            put((k, b))
+                        if b not in best:
+                            best[b] = k
+                            if large:
+                                kept.add(b)
+                        elif k < best[b]:
+                            best[b] = k
+                yield
+        finally:
+            self._recovered = outer
+        if not large:
+            heapq.heapify(heap)
+            heapq.heapify(failed)
             yield
-        heapq.heapify(heap)
-        heapq.heapify(failed)
-        yield
-        before = self.blocks()
+        old_heap, old_failed, old_asleep = self._heap, self._failed, self._asleep
+        n_old = len(old_heap) + len(old_failed) + len(old_asleep)
         self._heap, self._failed = heap, failed
-        self._drop_sleepers()
-        for b, keys in asleep.items():
-            for k in keys:
-                if b in self.retry_at:
-                    self._sleep(k, b)
-                else:  # a read of it worked since it was sorted
-                    heapq.heappush(self._heap, (k, b))
+        self._sleeping, self._asleep, self._n_asleep = sleeping, asleep, n_asleep
+        for b in recovered:  # (their sleeping entries are stale: see _wake)
+            if b in asleep and b not in self.retry_at:
+                self._wake_block(b)
+        # the cancelled loads: the blocks of the old queue not in the new one
+        gone: set[Block] = set()
+        if n_old <= step:  # small: in this step, before a pop changes best
+            gone.update(b for _, b in old_heap)
+            gone.update(b for _, b in old_failed)
+            gone.update(old_asleep)
+            self._best = best
+            self.cancelled += len(gone - best.keys())
+            return
         self._best = best
-        self.cancelled += len(before - best.keys())
+        if not large:
+            kept = set(best)
+        parts = [(b for _, b in old_heap), (b for _, b in old_failed), iter(old_asleep)]
+        for n, blocks in zip((len(old_heap), len(old_failed), len(old_asleep)), parts, strict=True):
+            for _ in range(0, n, step):
+                yield
+                gone.update(b for b in islice(blocks, step) if b not in kept)
+        self.cancelled += len(gone)
 
     def backing_off(self, b: Block, now: float) -> bool:
         """Whether ``b`` waits for its next retry."""
@@ -262,6 +311,8 @@ class LoadQueue:
         self.failed_at.pop(b, None)
         if b in self._asleep:
             self._wake_block(b)
+        if self._recovered is not None:
+            self._recovered.add(b)
 
     def is_failed(self, b: Block) -> bool:
         """``b`` failed ``retries`` times in a row (and has not been read since)."""

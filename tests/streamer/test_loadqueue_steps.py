@@ -124,3 +124,106 @@ def test_a_block_that_recovers_between_the_steps_is_queued():
         pass
     assert q.queued_key(b) == (0, 0, 0.5) and len(q) == 1
     assert q.pop(10.5, _take) == (b, ("job", b))  # at once, not at its old retry time
+
+
+class _Watched(list):
+    """An old heap that counts the entries read from it."""
+
+    def __init__(self, items, seen):
+        super().__init__(items)
+        self.seen = seen
+
+    def __iter__(self):
+        for x in list.__iter__(self):
+            self.seen[0] += 1
+            yield x
+
+    def __getitem__(self, i):
+        out = list.__getitem__(self, i)
+        self.seen[0] += len(out) if isinstance(i, slice) else 1
+        return out
+
+
+def _watched_rebuild(q: LoadQueue, chunk: int) -> list[int]:
+    """Rebuild a queue of 400 blocks with 100 of them, ``chunk`` per step; the entries of
+    the old heap each step read."""
+    blocks = [(r, c) for r in range(20) for c in range(20)]
+    for i, b in enumerate(blocks):
+        q.push(b, (1, 1, i))
+    seen = [0]
+    q._heap = _Watched(q._heap, seen)
+    per_step = []
+    for _ in q.rebuild_steps([((0, 0, i), b) for i, b in enumerate(blocks[::4])], 0.0, chunk):
+        per_step.append(seen[0])
+        seen[0] = 0
+    per_step.append(seen[0])
+    assert q.cancelled == 300 and len(q) == 100
+    return per_step
+
+
+def test_no_step_of_a_rebuild_walks_the_old_queue():
+    """The cancelled loads are counted in steps after the swap, ``4 * chunk`` old entries
+    each; the swap itself reads none (it walked the whole old queue: a step of O(queue))."""
+    per_step = _watched_rebuild(LoadQueue(retries=2, backoff_s=0.1, max_backoff_s=1.0), 8)
+    assert max(per_step) == 32 and sum(per_step) == 400, per_step
+
+
+class _OneHoldSteps(OneHold):
+    def rebuild_steps(self, items, now=None, chunk=64):
+        self.rebuild(items, now)
+        yield
+
+
+def test_positive_control_the_one_hold_rebuild_walks_it():
+    per_step = _watched_rebuild(_OneHoldSteps(retries=2, backoff_s=0.1, max_backoff_s=1.0), 8)
+    assert max(per_step) == 400, per_step
+
+
+def _sleeps_per_step(q: LoadQueue) -> list[int]:
+    """Rebuild a queue with 300 blocks in backoff, 16 a step: the blocks put to sleep by
+    ``_sleep`` in each step (the sort builds its own sleeping heap)."""
+    blocks = [(r, c) for r in range(20) for c in range(15)]
+    for b in blocks:
+        q.failed_read(b, 10.0)  # in backoff until 11.0
+    calls = [0]
+    real = q._sleep
+
+    def sleep(key, b):
+        calls[0] += 1
+        real(key, b)
+
+    q._sleep = sleep
+    per_step = []
+    for _ in q.rebuild_steps([((0, 0, i), b) for i, b in enumerate(blocks)], 10.5, 16):
+        per_step.append(calls[0])
+        calls[0] = 0
+    per_step.append(calls[0])
+    assert len(q) == 300 and q.pop(10.5, _take) is None  # all asleep
+    return per_step
+
+
+def test_the_swap_does_not_put_every_sleeper_to_sleep_again():
+    """During an outage most of the queue sleeps; the swap re-slept every sleeper in one
+    step (a hold of hundreds of µs)."""
+    assert sum(_sleeps_per_step(LoadQueue(retries=3, backoff_s=1.0, max_backoff_s=4.0))) == 0
+
+
+def test_positive_control_the_one_hold_rebuild_sleeps_them_in_one_step():
+    per_step = _sleeps_per_step(_OneHoldSteps(retries=3, backoff_s=1.0, max_backoff_s=4.0))
+    assert max(per_step) == 300, per_step
+
+
+def test_a_block_that_recovers_and_fails_again_between_the_steps_sleeps():
+    """As the one-hold rebuild decided at its swap: a block back in backoff sleeps."""
+    q = LoadQueue(retries=2, backoff_s=1.0, max_backoff_s=4.0)
+    b = (1, 1)
+    q.failed_read(b, 10.0)
+    gen = q.rebuild_steps([((0, 0, 0.5), b)], 10.5, 64)
+    next(gen)
+    q.succeeded(b)
+    q.failed_read(b, 10.6)  # in backoff again until 11.6
+    for _ in gen:
+        pass
+    assert q.queued_key(b) == (0, 0, 0.5) and len(q) == 1
+    assert q.pop(11.0, _take) is None  # asleep
+    assert q.pop(11.7, _take) == (b, ("job", b))

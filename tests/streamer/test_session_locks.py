@@ -212,6 +212,47 @@ def test_positive_control_a_trim_in_one_hold_is_caught(store33):
     assert trimmed > 0 and many and all(len(set(t)) == 1 for t in many), many
 
 
+def _rescheduled_keys(store, reschedule=None) -> tuple[int, int]:
+    """Fly with ``workers=0`` loading a little a frame (the cache holds a plan's wants, pins
+    and priorities; many blocks short of them), stop mid-flight, rebuild the queue
+    (``reschedule(loader)``, else ``Loader.reschedule``); how many queued blocks have the
+    key :meth:`Loader.key` gives them, of how many."""
+    with open_session(store, budget_mb=4, workers=0, inline_bytes_per_frame=1) as s:
+        z0, z1 = store.meta.extra["value_range"]
+        cams = default_flythrough(store.grid, z0, z1, 40, 60.0, viewport=(320, 240))
+        for cam in cams:
+            s.update(cam, 1 / 60)
+        ld = s.loader
+        with ld.cv:
+            if reschedule is None:
+                ld.reschedule()
+            else:
+                reschedule(ld)
+            queued = ld.queue.blocks()
+            same = sum(ld.queue.queued_key(b) == ld.key(b) for b in queued)
+    return same, len(queued)
+
+
+def test_the_rebuild_keys_the_blocks_as_the_loader_does(store33):
+    """The queue's rebuild keys each short block from the values the cache's walk read
+    (no second look-up per block): the keys are :meth:`Loader.key`'s."""
+    same, n = _rescheduled_keys(store33)
+    assert n > 10 and same == n
+
+
+def test_positive_control_a_rebuild_with_other_keys_is_caught(store33):
+    """A rebuild that keys by the priority without its sign (far blocks first) and ignores
+    the pins is told apart by the same comparison."""
+
+    def wrong(ld) -> None:
+        items = [((0 if b not in ld.errors else 1, 0, ld.cache.level(b) + 1, p, b), b)
+                 for part in ld.cache.short_steps() for b, _w, _pin, p in part]  # fmt: skip
+        ld.queue.rebuild(items, time.monotonic())
+
+    same, n = _rescheduled_keys(store33, wrong)
+    assert n > 10 and same < n
+
+
 def _caller_holds_per_frame(store, extra_hold: bool = False) -> tuple[int, int]:
     """Fly 60 frames with 2 loaders: the caller's holds of the lock in ``update`` and the
     frames. ``extra_hold``: the background errors looked for under the lock and the pose
