@@ -1,5 +1,6 @@
 """Where a renderer reads what it builds per block — a level's grid, the stored error fields
-(also with mask boundaries raised: the nodata rule "full"), the validity mask: from the
+(also with mask boundaries raised: the nodata rule "full"), the validity mask and its mixed
+nodes: from the
 streaming session it last synced with while that holds them (no store read, no decode, no
 derivation on the render thread; over a remote store a round trip per new block), else from
 the store. The values are the same either way (tested)."""
@@ -11,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from streamer.nodata import has_boundary, mixed_nodes, unpack_mixed
 from tiler.layout import reconstruct
 from tiler.store import TerrainStore
 
@@ -70,6 +72,16 @@ class BlockSource:
                 mask = self.store.read_mask(block) if side is None else side.mask
             self._masks[block] = mask
         return self._masks[block]
+
+    def mixed(self, block: Block) -> list[np.ndarray] | None:
+        """Per depth ``0..k-1`` the nodes whose footprint holds both terrain and nodata
+        (:func:`streamer.nodata.mixed_nodes`), None without a mask boundary: the session
+        loaders' (unpacked, ~0.1 ms at 1025²) if held, else derived from the mask (~3 ms)."""
+        side = self._side(block)
+        if side is not None:
+            return None if side.mixed is None else unpack_mixed(side.mixed)
+        mask = self.mask(block)
+        return mixed_nodes(mask, self.store.k)[: self.store.k] if has_boundary(mask) else None
 
     def forget(self, block: Block) -> None:
         """Drop what is kept of ``block`` (it left the GPU; read again if it comes back)."""

@@ -129,6 +129,11 @@ class FrameServices:
         (:mod:`render.block_source`)."""
         return self.source.mask(block)
 
+    def mixed_nodes(self, block: Block) -> list[np.ndarray] | None:
+        """Per depth ``0..k-1`` the block's nodes holding both terrain and nodata, None
+        without a mask boundary (:mod:`render.block_source`)."""
+        return self.source.mixed(block)
+
     def stored_errors(self, block: Block) -> dict[str, list[np.ndarray]]:
         """The block's stored error fields (``TerrainStore.read_errors``; from the synced
         session when its loaders kept them: :mod:`render.block_source`)."""
@@ -253,11 +258,11 @@ class FrameServices:
     def gap_field(self, block: Block) -> list[np.ndarray]:
         """Per depth ``0..k-1`` the diagonal in metres of each mixed cell, 0 elsewhere
         (:func:`streamer.nodata.gap_widths`; all 0 without a mask boundary)."""
-        mask = self.mask(block)
         k = self.k
-        if mask is None or mask.all() or not mask.any():
+        mixed = self.mixed_nodes(block)
+        if mixed is None:
             return [np.zeros((1 << d, 1 << d), np.float32) for d in range(k)]
-        return gap_widths(mask, k, self.grid.dx, self.grid.dy)
+        return gap_widths(self.mask(block), k, self.grid.dx, self.grid.dy, mixed)
 
     def read_errors(self, block: Block, nodata: str = "full") -> dict[str, list[np.ndarray]]:
         """The block's stored error fields; with the nodata rule ``"full"`` every node

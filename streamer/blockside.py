@@ -1,5 +1,6 @@
 """What a session's loaders read of a block besides its levels — its stored error fields and
-its validity mask, with the fields under the nodata rule "full" derived from them once — kept
+its validity mask, with the fields under the nodata rule "full" and the mask's mixed nodes
+derived from them once — kept
 in a byte-bounded LRU (no threads; its own short lock), so a renderer drawing the session's
 blocks takes them from memory instead of reading the store again, or deriving them again, on
 its own thread (over a remote store, a round trip per new block in the frame's selection).
@@ -30,6 +31,9 @@ class Side(NamedTuple):
     #: the fields under the nodata rule "full" (mask boundaries raised,
     #: :func:`streamer.nodata.raise_mixed`): ``errors`` itself without a mask boundary
     full: Errors
+    #: the mask's mixed nodes at depths ``0..k-1``, bit-packed
+    #: (:func:`streamer.nodata.pack_mixed`); None without a mask boundary
+    mixed: list[np.ndarray] | None
 
 
 def side_bytes(budget_bytes: int) -> int:
@@ -60,6 +64,7 @@ class BlockSide:
         arrays = [a for f in (side.errors, side.full) for v in f.values() for a in v]
         if side.mask is not None:
             arrays.append(side.mask)
+        arrays += side.mixed or []
         seen: set[int] = set()
         n = 0
         for a in arrays:

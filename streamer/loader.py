@@ -36,7 +36,14 @@ from streamer.cache import Block, LevelCache
 from streamer.frames import SessionConfig, Totals
 from streamer.levels import PatchErrorTable
 from streamer.loadqueue import LoadQueue
-from streamer.nodata import has_boundary, mixed_nodes, raise_all, read_side, rule_errors_of
+from streamer.nodata import (
+    has_boundary,
+    mixed_nodes,
+    pack_mixed,
+    raise_all,
+    read_side,
+    rule_errors_of,
+)
 from streamer.pool import DaemonPool
 from tiler.errors import (
     StoreChangedError,
@@ -341,7 +348,8 @@ class Loader:
             ) from exc
         k, g = self.store.k, self.store.grid
         mixed = mixed_nodes(mask, k) if has_boundary(mask) else None
-        self.side.put(b, Side(errors, mask, raise_all(errors, mask, k, mixed)))  # (the renderer's)
+        packed = None if mixed is None else pack_mixed(mixed, k)
+        self.side.put(b, Side(errors, mask, raise_all(errors, mask, k, mixed), packed))
         # "full": mask boundaries raised so nodata is refined at every tau; "gap": the
         # stored errors and the mixed cells' widths (streamer.nodata)
         field = errors[self.field_name]

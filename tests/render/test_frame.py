@@ -273,3 +273,41 @@ def test_full_rule_errors_come_derived_from_the_session(nodata_path, monkeypatch
     finally:
         r.close()
         bare.close()
+
+
+def test_geometry_splitting_takes_the_mixed_nodes_from_the_session(nodata_path, monkeypatch):
+    """`geometry-splitting`'s trees raise σ at the mask's mixed nodes; with a session those
+    come from its loaders (derived once, kept bit-packed) and the render thread derives none:
+    the trees equal a bare renderer's. Control: the bare renderer derives them, once per
+    block with a mask boundary."""
+    import streamer.nodata
+
+    true, calls = streamer.nodata.mixed_nodes, []
+    monkeypatch.setattr(streamer.nodata, "mixed_nodes", lambda *a: calls.append(1) or true(*a))
+    import render.block_source
+
+    monkeypatch.setattr(render.block_source, "mixed_nodes", streamer.nodata.mixed_nodes)
+    s = open_store(nodata_path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    bare = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    try:
+        st = get_strategy("geometry-splitting", r)
+        st_bare = get_strategy("geometry-splitting", bare)
+        with open_render_session(s, 1.0, "qiu", r.p) as session:
+            _, res = stream_step(session, r, _camera())
+            calls.clear()
+            got = {b: st.tree(b, lv) for b, lv in res.items() if lv >= 0}
+            assert calls == []
+        boundary = [b for b in got if r.mask(b) is not None and not r.mask(b).all()]
+        assert boundary  # the scene has mask boundaries
+        raised = 0
+        for b, tree in got.items():
+            want = st_bare.tree(b, res[b])
+            for x, y in zip(tree.sigma, want.sigma, strict=True):
+                np.testing.assert_array_equal(x, y)
+                raised += b in boundary and bool(np.isinf(x).any())
+        assert raised >= len(boundary)  # (σ raised where the mask has a boundary)
+        assert len(calls) == len(boundary)  # the control
+    finally:
+        r.close()
+        bare.close()

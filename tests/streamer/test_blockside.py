@@ -8,7 +8,7 @@ import pytest
 from demtools import fractal, write_dem
 
 from streamer.blockside import BlockSide, Side, side_bytes
-from streamer.nodata import rule_errors
+from streamer.nodata import has_boundary, mixed_nodes, pack_mixed, rule_errors, unpack_mixed
 from streamer.paths import default_flythrough
 from streamer.session import open_session
 from tiler.tile import TileOptions, tile
@@ -16,7 +16,7 @@ from tiler.tile import TileOptions, tile
 
 def _entry(n: int, mask: np.ndarray | None = None) -> Side:
     errors = {"bound": [np.zeros(n, np.uint8)]}
-    return Side(errors, mask, errors)  # (full shares the arrays: counted once)
+    return Side(errors, mask, errors, None)  # (full shares the arrays: counted once)
 
 
 def test_least_recently_used_leave_first_and_bytes_stay_bounded():
@@ -37,10 +37,11 @@ def test_least_recently_used_leave_first_and_bytes_stay_bounded():
 def test_kept_arrays_are_read_only():
     side = BlockSide(1 << 20)
     full = {"bound": [np.ones(4, np.float32)]}
-    side.put((1, 2), Side({"bound": [np.zeros(4, np.float32)]}, np.ones((3, 3), bool), full))
+    mixed = [np.zeros((1, 1), np.uint8), np.zeros((2, 1), np.uint8)]
+    side.put((1, 2), Side({"bound": [np.zeros(4, np.float32)]}, np.ones((3, 3), bool), full, mixed))
     got = side.get((1, 2))
-    assert side.nbytes == 16 + 16 + 9
-    for a in (got.errors["bound"][0], got.full["bound"][0], got.mask):
+    assert side.nbytes == 16 + 16 + 9 + 3
+    for a in (got.errors["bound"][0], got.full["bound"][0], got.mask, got.mixed[1]):
         with pytest.raises(ValueError, match="read-only"):
             a[0] = 0
 
@@ -71,7 +72,7 @@ def test_a_session_keeps_what_its_loaders_read(nodata_store, workers):
         for cam in cams:
             sess.update(cam, wait=True)
         known = sess.loader.errors.known(list(s.blocks()))
-        raised = 0
+        raised = boundaries = 0
         for b in known:
             side = sess.block_side(b)
             stored = s.read_errors(b)
@@ -87,5 +88,27 @@ def test_a_session_keeps_what_its_loaders_read(nodata_store, workers):
                 np.testing.assert_array_equal(side.mask, s.read_mask(b))
             else:
                 assert side.mask is None
-        assert len(known) >= 4 and raised >= 1
+            if has_boundary(side.mask):
+                mixed = mixed_nodes(side.mask, s.k)[: s.k]
+                for a, w in zip(unpack_mixed(side.mixed), mixed, strict=True):
+                    np.testing.assert_array_equal(a, w)
+                boundaries += 1
+            else:
+                assert side.mixed is None
+        assert len(known) >= 4 and raised >= 1 and boundaries >= 1
         assert sess.block_side((99, 99)) is None
+
+
+def test_mixed_nodes_packed_and_unpacked():
+    """A session keeps the mixed nodes bit-packed: the round trip gives them back at every
+    depth, widths under a byte included; a packed row is an eighth of its booleans."""
+    rng = np.random.default_rng(5)
+    for k in (1, 3, 6):
+        valid = rng.random(((1 << k) + 1, (1 << k) + 1)) < 0.7
+        mixed = mixed_nodes(valid, k)
+        packed = pack_mixed(mixed, k)
+        n = 1 << (k - 1)  # (rows are packed: a byte at least per row)
+        assert len(packed) == k and packed[-1].nbytes == n * max(1, n // 8)
+        for a, w in zip(unpack_mixed(packed), mixed[:k], strict=True):
+            assert a.dtype == bool
+            np.testing.assert_array_equal(a, w)

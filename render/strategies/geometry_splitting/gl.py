@@ -28,7 +28,6 @@ from render.strategies.feedback import block_neighbours, feedback_pass
 from render.strategies.geometry_splitting.pure import BlockTree, quad_errors, stored_tree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 from streamer.camera import Camera
-from streamer.nodata import mixed_nodes
 
 NO_CAP = 99  # border cap meaning "no restriction"
 HERE = Path(__file__).parent
@@ -138,9 +137,8 @@ class GeometrySplitting(Strategy[Selection]):
             if lv == self.k and len(deep):  # full resolution resident: exact δ where tiled
                 exact = quad_errors(grid, self.r.mask(b), deep)
             self.trees[b] = stored_tree(self.r.stored_errors(b)["bound"], grid, exact)
-            mask = self.r.mask(b)
-            if mask is not None and mask.any() and not mask.all():  # refine mask boundaries
-                mixed = mixed_nodes(mask, self.k)
+            mixed = self.r.mixed_nodes(b)  # (the session's loaders derived them)
+            if mixed is not None:  # refine mask boundaries
                 for d, sig in enumerate(self.trees[b].sigma):
                     sig[mixed[d]] = np.inf
             self._tree_level[b] = lv
