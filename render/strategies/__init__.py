@@ -47,6 +47,7 @@ def warm_up_kernels() -> dict[str, bool]:
     Each kernel loads from numba's cache on its first call (or compiles, the first time ever on
     a machine). Returns which are available, by name."""
     from render import select_kernels
+    from render.strategies.geometry_splitting import kernels as gs_kernels
     from render.strategies.jung_han import kernels as jh_kernels
     from render.strategies.seamless import kernels as sp_kernels
 
@@ -54,6 +55,7 @@ def warm_up_kernels() -> dict[str, bool]:
         "qiu/chunk-tessellation walk": select_kernels.warm_up(),
         "jung-han": jh_kernels.warm_up(),
         "seamless-patches": sp_kernels.warm_up(),
+        "geometry-splitting trees": gs_kernels.warm_up(),
     }
 
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from render.errors import RenderError
 from streamer.camera import Camera
+from tiler.quadtree import _per_node, max_pool
 
 # --- the quadtree texture (CPU, once per block) -----------------------------------------------
 
@@ -18,9 +19,7 @@ def roughness(deltas: list[np.ndarray]) -> list[np.ndarray]:
     """Lee & Shin's Eq. 3, recursively: ``σ_l = max(δ_l, 2 max σ_(l+1))`` (``σ_k = 0``)."""
     sig = [np.asarray(x, dtype=np.float64) for x in deltas]
     for d in range(len(sig) - 2, -1, -1):
-        m = 1 << d
-        child = sig[d + 1].reshape(m, 2, m, 2).max(axis=(1, 3))
-        sig[d] = np.maximum(sig[d], 2.0 * child)
+        sig[d] = np.maximum(sig[d], 2.0 * max_pool(sig[d + 1], 2))
     return sig
 
 
@@ -94,13 +93,6 @@ def quad_errors(
     return out
 
 
-def _per_node(arr: np.ndarray, d: int) -> np.ndarray:
-    """A stored per-depth field ``(2**min(d, cap))²`` at every depth-``d`` node ``(2**d)²``
-    (beyond the store's cap one value covers a tile of nodes)."""
-    rep = (1 << d) // arr.shape[0]
-    return np.repeat(np.repeat(np.asarray(arr, dtype=np.float64), rep, 0), rep, 1)
-
-
 def stored_tree(
     bound: list[np.ndarray], grid: np.ndarray, exact: dict[int, np.ndarray] | None = None
 ) -> BlockTree:
@@ -122,19 +114,20 @@ def stored_tree(
         deltas[d] = np.minimum(deltas[d], e)  # both bound the quad's error; keep the tighter
     sig = roughness(deltas)
     zmin, zmax = [], []
+    ranges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for d in range(k):
         a = min(d, rr, k - 1)  # the depth whose corners bound this node
-        c = g[:: 1 << (rr - a), :: 1 << (rr - a)] if a <= rr else g
-        quad = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
-        lo, hi = quad.min(axis=0) - deltas[a], quad.max(axis=0) + deltas[a]
+        if a not in ranges:  # (rounded before the repeat: the same values, fewer of them)
+            c = g[:: 1 << (rr - a), :: 1 << (rr - a)] if a <= rr else g
+            c00, c01, c10, c11 = c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]
+            lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11)) - deltas[a]
+            hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11)) + deltas[a]
+            ranges[a] = (_half(lo, False), _half(hi, True))
+        lo, hi = ranges[a]
         rep = 1 << (d - a)
-        zmin.append(np.repeat(np.repeat(lo, rep, 0), rep, 1))
-        zmax.append(np.repeat(np.repeat(hi, rep, 0), rep, 1))
-    return BlockTree(
-        sigma=[_round_up32(x) for x in sig],
-        zmin=[_half(z, False) for z in zmin],
-        zmax=[_half(z, True) for z in zmax],
-    )
+        zmin.append(np.repeat(np.repeat(lo, rep, 0), rep, 1) if rep > 1 else lo)
+        zmax.append(np.repeat(np.repeat(hi, rep, 0), rep, 1) if rep > 1 else hi)
+    return BlockTree(sigma=[_round_up32(x) for x in sig], zmin=zmin, zmax=zmax)
 
 
 def projected_error(

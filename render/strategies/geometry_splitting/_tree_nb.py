@@ -1,0 +1,102 @@
+"""Numba kernel for ``geometry-splitting``'s exact deepest-depth errors (imported lazily by
+:mod:`render.strategies.geometry_splitting.kernels`): :func:`quad_errors_depth` repeats
+:func:`render.strategies.geometry_splitting.pure.quad_errors`' float64 arithmetic operation by
+operation, in the same order (no fastmath: no contraction into fused multiply-adds), so its
+values are the reference's bit for bit (tested)."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["quad_errors_depth"]
+
+
+@numba.njit(cache=True, nogil=True)
+def quad_errors_depth(h, ok, d, out):
+    """``quad_errors(h, ok, [d])[d]`` into ``out`` (float64 ``(2**d, 2**d)``): per node the
+    largest vertical distance of a valid sample (its own last row and column included) from
+    its quad cut along the a-d diagonal. ``h`` float64 and ``ok`` bool, ``(2**k+1)²``."""
+    n = h.shape[0] - 1
+    m = 1 << d
+    s = n >> d
+    ba = np.empty(m)
+    ca = np.empty(m)
+    aa = np.empty(m)
+    qq = np.empty(m)
+    top = np.zeros((m, m))  # per node: the max over its first sample row
+    left = np.zeros((m, m))  # per node: the max over its first sample column
+    node = np.zeros((m, m))
+    for i in range(m):
+        r0 = i * s
+        for j in range(m):
+            a = h[r0, j * s]
+            b = h[r0, j * s + s]
+            c = h[r0 + s, j * s]
+            dd = h[r0 + s, j * s + s]
+            aa[j] = a
+            ba[j] = b - a
+            ca[j] = c - a
+            qq[j] = b + c - a - dd
+        for iv in range(s):
+            r = r0 + iv
+            v = iv / s
+            for j in range(m):
+                a = aa[j]
+                bj = ba[j]
+                cj = ca[j]
+                qj = qq[j]
+                mx = node[i, j]
+                lf = left[i, j]
+                tp = 0.0
+                for iu in range(s):
+                    col = j * s + iu
+                    if ok[r, col]:
+                        u = iu / s
+                        e = h[r, col] - a
+                        e = e - u * bj
+                        e = e - v * cj
+                        e = e + (u if u < v else v) * qj
+                        e = abs(e)
+                    else:
+                        e = 0.0
+                    if e > mx:
+                        mx = e
+                    if iu == 0 and e > lf:
+                        lf = e
+                    if e > tp:
+                        tp = e
+                node[i, j] = mx
+                left[i, j] = lf
+                if iv == 0:
+                    top[i, j] = tp
+    for i in range(m):
+        for j in range(m):
+            if i < m - 1:
+                south = top[i + 1, j]
+            else:  # the block's last row: along the bottom edge c-d
+                south = 0.0
+                c = h[n, j * s]
+                dd = h[n, j * s + s]
+                for q in range(s + 1):
+                    col = j * s + q
+                    if ok[n, col]:
+                        t = q / s
+                        e = abs(h[n, col] - (c * (1 - t) + dd * t))
+                        if e > south:
+                            south = e
+            if j < m - 1:
+                east = left[i, j + 1]
+            else:  # the block's last column: along the right edge b-d
+                east = 0.0
+                b = h[i * s, n]
+                dd = h[i * s + s, n]
+                for q in range(s + 1):
+                    row = i * s + q
+                    if ok[row, n]:
+                        t = q / s
+                        e = abs(h[row, n] - (b * (1 - t) + dd * t))
+                        if e > east:
+                            east = e
+            se = south if south > east else east
+            out[i, j] = node[i, j] if node[i, j] > se else se

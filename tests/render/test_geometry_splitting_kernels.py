@@ -1,0 +1,149 @@
+"""``geometry-splitting``'s tree build on the render thread (issue 14): the compiled exact
+errors (:mod:`render.strategies.geometry_splitting._tree_nb`) equal the numpy reference bit for
+bit, and the quadtree texture built with fewer passes equals the one built before (kept here as
+the reference, 705d042). No GL."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from render.errors import RenderError
+from render.strategies.geometry_splitting import kernels
+from render.strategies.geometry_splitting.pure import (
+    BlockTree,
+    _half,
+    _round_up32,
+    quad_errors,
+    stored_tree,
+)
+
+
+def _scenes():
+    """Grids of 2**k+1 with heights from -11 km to +9 km, flat and rough, with and without
+    masks (holes, a masked border, all masked but a corner)."""
+    rng = np.random.default_rng(7)
+    for k in (1, 2, 4, 6):
+        n = (1 << k) + 1
+        rough = rng.normal(0.0, 300.0, (n, n)).cumsum(0).cumsum(1) / n - 11_000.0 * rng.random()
+        spikes = np.where(rng.random((n, n)) < 0.02, 9_000.0, 0.0) + rng.random((n, n))
+        for h in (rough, spikes, np.full((n, n), 8_848.0)):
+            holes = rng.random((n, n)) > 0.3
+            border = np.ones((n, n), bool)
+            border[:, -1] = border[-1, :] = False
+            corner = np.zeros((n, n), bool)
+            corner[0, 0] = True
+            for valid in (None, holes, border, corner):
+                yield k, h, valid
+
+
+numba = pytest.importorskip("numba", reason="the compiled kernels need numba (the fast extra)")
+
+
+def test_the_compiled_exact_errors_are_the_references_bit_for_bit():
+    scenes = 0
+    for k, h, valid in _scenes():
+        ref = quad_errors(h, valid, range(k))
+        got = kernels.quad_errors(h, valid, range(k), kernels="numba")
+        assert got.keys() == ref.keys()
+        for d in ref:
+            assert got[d].dtype == np.float64 and got[d].shape == ref[d].shape
+            np.testing.assert_array_equal(got[d], ref[d])
+        scenes += 1
+    assert scenes == 48
+
+
+def test_positive_control_the_comparison_sees_one_sample_moved():
+    """The same comparison tells apart the errors of a grid (k >= 4) with every other sample
+    of every other row raised by 1 mm."""
+    told = 0
+    for k, h, valid in _scenes():
+        if k < 4 or valid is not None:
+            continue
+        moved = h.copy()
+        moved[1::2, 1::2] += 1e-3
+        ref = quad_errors(h, valid, range(k))
+        got = kernels.quad_errors(moved, valid, range(k), kernels="numba")
+        told += any(not np.array_equal(got[d], ref[d]) for d in ref)
+    assert told == 6
+
+
+def _stored_tree_before(bound, grid, exact=None) -> BlockTree:
+    """``stored_tree`` as it was (705d042): per-node fields by two repeats, the corners
+    stacked, every depth's ranges rounded after their repeat."""
+    k = len(bound)
+    g = np.asarray(grid, dtype=np.float64)
+    rr = (g.shape[0] - 1).bit_length() - 1
+    if g.shape != ((1 << rr) + 1,) * 2 or not 0 <= rr <= k:
+        raise RenderError("bad grid")
+
+    def per_node(arr, d):
+        rep = (1 << d) // arr.shape[0]
+        return np.repeat(np.repeat(np.asarray(arr, dtype=np.float64), rep, 0), rep, 1)
+
+    deltas = [per_node(bound[d], d) for d in range(k)]
+    for d, e in (exact or {}).items():
+        deltas[d] = np.minimum(deltas[d], e)
+    sig = [np.asarray(x, dtype=np.float64) for x in deltas]
+    for d in range(len(sig) - 2, -1, -1):
+        m = 1 << d
+        sig[d] = np.maximum(sig[d], 2.0 * sig[d + 1].reshape(m, 2, m, 2).max(axis=(1, 3)))
+    zmin, zmax = [], []
+    for d in range(k):
+        a = min(d, rr, k - 1)
+        c = g[:: 1 << (rr - a), :: 1 << (rr - a)] if a <= rr else g
+        quad = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+        lo, hi = quad.min(axis=0) - deltas[a], quad.max(axis=0) + deltas[a]
+        rep = 1 << (d - a)
+        zmin.append(np.repeat(np.repeat(lo, rep, 0), rep, 1))
+        zmax.append(np.repeat(np.repeat(hi, rep, 0), rep, 1))
+    return BlockTree(
+        sigma=[_round_up32(x) for x in sig],
+        zmin=[_half(z, False) for z in zmin],
+        zmax=[_half(z, True) for z in zmax],
+    )
+
+
+def _trees_equal(a: BlockTree, b: BlockTree) -> bool:
+    return all(
+        x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
+        for f in ("sigma", "zmin", "zmax")
+        for x, y in zip(getattr(a, f), getattr(b, f), strict=True)
+    )
+
+
+def _tree_cases():
+    rng = np.random.default_rng(11)
+    for k, h, valid in _scenes():
+        if k < 2 or valid is not None and not valid.any():
+            continue
+        cap = max(0, k - 2)  # the store keeps one value per tile below its cap depth
+        bound = [
+            np.abs(rng.normal(0, 50.0, (1 << min(d, cap),) * 2)).astype(np.float16)
+            for d in range(k)
+        ]
+        exact = quad_errors(h, valid, range(cap + 1, k))
+        for rr in (k, k - 1, 0):
+            step = 1 << (k - rr)
+            yield bound, h[::step, ::step], exact if rr == k else None
+
+
+def test_the_tree_is_the_one_built_before():
+    cases = 0
+    for bound, grid, exact in _tree_cases():
+        assert _trees_equal(
+            stored_tree(bound, grid, exact), _stored_tree_before(bound, grid, exact)
+        )
+        cases += 1
+    assert cases >= 60
+
+
+def test_positive_control_the_comparison_sees_a_range_an_ulp_off():
+    told = cases = 0
+    for bound, grid, exact in _tree_cases():
+        ref = _stored_tree_before(bound, grid, exact)
+        tree = stored_tree(bound, grid, exact)
+        tree.zmin[-1] = np.nextafter(tree.zmin[-1], np.float16(np.inf))  # one half-ulp up
+        told += not _trees_equal(tree, ref)
+        cases += 1
+    assert told == cases >= 60
