@@ -10,7 +10,7 @@ import numpy as np
 
 from render.errors import RenderError
 from streamer.camera import Camera
-from tiler.quadtree import _per_node, max_pool
+from tiler.quadtree import max_pool
 
 # --- the quadtree texture (CPU, once per block) -----------------------------------------------
 
@@ -91,6 +91,14 @@ def quad_errors(
         east[:, -1] = np.where(ok[:, n][along], last, 0.0).max(axis=1)
         out[d] = np.maximum(node, np.maximum(south, east))
     return out
+
+
+def _per_node(arr: np.ndarray, d: int) -> np.ndarray:
+    """A stored per-depth field ``(2**min(d, cap))²`` at every depth-``d`` node ``(2**d)²``
+    (beyond the store's cap one value covers a tile of nodes), float64."""
+    a = np.asarray(arr, dtype=np.float64)
+    rep = (1 << d) // a.shape[0]
+    return np.repeat(np.repeat(a, rep, 0), rep, 1) if rep > 1 else a
 
 
 def stored_tree(
