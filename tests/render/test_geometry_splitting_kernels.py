@@ -147,3 +147,29 @@ def test_positive_control_the_comparison_sees_a_range_an_ulp_off():
         told += not _trees_equal(tree, ref)
         cases += 1
     assert told == cases >= 60
+
+
+def test_warm_up_loads_the_kernel_off_the_render_thread():
+    """``warm_up`` (the viewer runs it on a background thread) calls the kernel once, so its
+    machine code is loaded there and not at the first tree the render thread builds; in a
+    fresh process the kernel has no compiled signature before it (the control)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
+    code = (
+        "from render.strategies.geometry_splitting import _tree_nb, kernels\n"
+        "before = len(_tree_nb.quad_errors_depth.signatures)\n"
+        "ok = kernels.warm_up()\n"
+        "print(before, len(_tree_nb.quad_errors_depth.signatures), ok)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+        env=env,
+    )
+    assert out.stdout.split() == ["0", "1", "True"], out.stdout + out.stderr

@@ -33,9 +33,14 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
 
 
 def warm_up() -> bool:
-    """Import numba and the kernel now, after which ``auto`` uses it; whether it is
-    available."""
-    return warm(_load_numba, _READY)
+    """Import numba and the kernel now and call it once on a 3² grid, which loads it from
+    numba's cache (or compiles it) here rather than on the render thread at the first tree
+    it builds (~80 ms); after it ``auto`` uses it. Whether it is available."""
+    ok = warm(_load_numba, _READY)
+    mod = _load_numba() if ok else None
+    if mod is not None:
+        mod.quad_errors_depth(np.zeros((3, 3)), np.ones((3, 3), bool), 0, np.empty((1, 1)))
+    return ok
 
 
 def quad_errors(
