@@ -24,15 +24,21 @@ def roughness(deltas: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def _round_up32(x: np.ndarray) -> np.ndarray:
+    """``x`` (float64) as float32, rounded up where the nearest float32 lies below it."""
     f = x.astype(np.float32)
-    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+    low = f < x  # (compared in float64: exact)
+    if low.any():  # (only those moved: most values are exact or rounded up already)
+        f[low] = np.nextafter(f[low], np.float32(np.inf))
+    return f
 
 
 def _half(x: np.ndarray, up: bool) -> np.ndarray:
+    """``x`` (float64) as float16, rounded up (``up``) or down where the nearest is not."""
     f = x.astype(np.float16)
-    if up:
-        return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float16(np.inf)), f)
-    return np.where(f.astype(np.float64) > x, np.nextafter(f, np.float16(-np.inf)), f)
+    off = f < x if up else f > x  # (compared in float64: exact)
+    if off.any():
+        f[off] = np.nextafter(f[off], np.float16(np.inf if up else -np.inf))
+    return f
 
 
 @dataclass
