@@ -37,9 +37,16 @@ def _scenes():
                 yield k, h, valid
 
 
-numba = pytest.importorskip("numba", reason="the compiled kernels need numba (the fast extra)")
+try:
+    import numba  # noqa: F401
+except ImportError:
+    numba = None
+needs_numba = pytest.mark.skipif(
+    numba is None, reason="the compiled kernels need numba (the fast extra)"
+)
 
 
+@needs_numba
 def test_the_compiled_exact_errors_are_the_references_bit_for_bit():
     scenes = 0
     for k, h, valid in _scenes():
@@ -53,6 +60,7 @@ def test_the_compiled_exact_errors_are_the_references_bit_for_bit():
     assert scenes == 48
 
 
+@needs_numba
 def test_positive_control_the_comparison_sees_one_sample_moved():
     """The same comparison tells apart the errors of a grid (k >= 4) with every other sample
     of every other row raised by 1 mm."""
@@ -149,6 +157,7 @@ def test_positive_control_the_comparison_sees_a_range_an_ulp_off():
     assert told == cases >= 60
 
 
+@needs_numba
 def test_warm_up_loads_the_kernel_off_the_render_thread():
     """``warm_up`` (the viewer runs it on a background thread) calls the kernel once, so its
     machine code is loaded there and not at the first tree the render thread builds; in a
