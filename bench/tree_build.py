@@ -1,6 +1,7 @@
 """What ``geometry-splitting`` spends building a block's quadtree texture on the render thread
 (issue 14): the exact deepest-depth errors (``quad_errors``: numpy and the numba kernel, checked
-equal), the texture itself (``stored_tree``) and the mask's mixed nodes (derived, or unpacked
+equal), the texture itself (``stored_tree``: numpy, and with its corner ranges compiled) and
+the mask's mixed nodes (derived, or unpacked
 from what a session's loaders kept), per block and resident level.
 
 Usage::
@@ -107,6 +108,10 @@ def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
                         _ms(reps, kern.quad_errors, grid, mask, deep, "numba")
                     )
             parts.setdefault("stored_tree", []).append(_ms(reps, stored_tree, bound, grid, exact))
+            if kern is not None and hasattr(kern, "stored_tree"):
+                parts.setdefault("stored_tree numba", []).append(
+                    _ms(reps, kern.stored_tree, bound, grid, exact, "numba")
+                )
             if has_boundary(mask):
                 parts.setdefault("mixed nodes derived", []).append(_ms(reps, mixed_nodes, mask, k))
                 unpack = _unpacked(mixed_nodes(mask, k), k)
@@ -134,8 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for path in stores:
         rows += measure(path, a.levels.split(","), a.reps)
-    cols = ["quad_errors numpy", "quad_errors numba", "stored_tree", "mixed nodes derived",
-            "mixed nodes unpacked"]  # fmt: skip
+    cols = ["quad_errors numpy", "quad_errors numba", "stored_tree", "stored_tree numba",
+            "mixed nodes derived", "mixed nodes unpacked"]  # fmt: skip
     print(f"{'store':28} {'level':>5} " + " ".join(f"{c:>21}" for c in cols))
     for r in rows:
         vals = " ".join(f"{r[c]:21.2f}" if c in r else f"{'—':>21}" for c in cols)

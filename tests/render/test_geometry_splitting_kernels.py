@@ -182,3 +182,47 @@ def test_warm_up_loads_the_kernel_off_the_render_thread():
         env=env,
     )
     assert out.stdout.split() == ["0", "1", "True"], out.stdout + out.stderr
+
+
+def _bits(a: BlockTree) -> list[bytes]:
+    return [x.tobytes() for f in ("sigma", "zmin", "zmax") for x in getattr(a, f)]
+
+
+def _signed_zero_cases():
+    """Flat ground at 0 m with -0.0 among the heights and δ = 0: the ranges' min and max
+    meet equal values of opposite signs."""
+    rng = np.random.default_rng(3)
+    for k in (2, 4, 5):
+        n = (1 << k) + 1
+        g = np.where(rng.random((n, n)) < 0.5, -0.0, 0.0)
+        bound = [np.zeros((1 << d, 1 << d), np.float16) for d in range(k)]
+        for rr in (k, 1):
+            yield bound, g[:: 1 << (k - rr), :: 1 << (k - rr)], None
+
+
+@needs_numba
+def test_the_compiled_tree_is_the_numpy_ones_bit_for_bit():
+    """With the corner ranges by the kernel, every array of the tree has the numpy
+    reference's bytes (signed zeros included: ``np.minimum`` keeps the second of two equal
+    values)."""
+    cases = 0
+    for bound, grid, exact in [*_tree_cases(), *_signed_zero_cases()]:
+        ref = stored_tree(bound, grid, exact)
+        got = kernels.stored_tree(bound, grid, exact, kernels="numba")
+        assert _bits(got) == _bits(ref)
+        cases += 1
+    assert cases >= 66
+
+
+def test_positive_control_the_bitwise_comparison_sees_a_signed_zero():
+    """The comparison is of bytes: a tree with its -0.0 ranges made +0.0 (equal values)
+    differs."""
+    told = negative = 0
+    for bound, grid, exact in _signed_zero_cases():
+        ref = stored_tree(bound, grid, exact)
+        flipped = stored_tree(bound, grid, exact)
+        flipped.zmin = [z + np.float16(0.0) for z in flipped.zmin]  # -0.0 + 0.0 = +0.0
+        assert _trees_equal(flipped, ref)
+        told += _bits(flipped) != _bits(ref)
+        negative += any(np.signbit(z).any() for z in ref.zmin)
+    assert told == negative >= 4

@@ -1,15 +1,16 @@
-"""Numba kernel for ``geometry-splitting``'s exact deepest-depth errors (imported lazily by
+"""Numba kernels for ``geometry-splitting``'s per-block tree (imported lazily by
 :mod:`render.strategies.geometry_splitting.kernels`): :func:`quad_errors_depth` repeats
 :func:`render.strategies.geometry_splitting.pure.quad_errors`' float64 arithmetic operation by
-operation, in the same order (no fastmath: no contraction into fused multiply-adds), so its
-values are the reference's bit for bit (tested)."""
+operation, in the same order (no fastmath: no contraction into fused multiply-adds), and
+:func:`corner_ranges` ``stored_tree``'s corner ranges, so their values are the reference's bit
+for bit (tested)."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-__all__ = ["quad_errors_depth"]
+__all__ = ["corner_ranges", "quad_errors_depth"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -100,3 +101,29 @@ def quad_errors_depth(h, ok, d, out):
                             east = e
             se = south if south > east else east
             out[i, j] = node[i, j] if node[i, j] > se else se
+
+
+@numba.njit(cache=True, nogil=True)
+def corner_ranges(g, step, delta, lo, hi):
+    """``stored_tree``'s height ranges at one depth before rounding, into ``lo`` and ``hi``
+    (float64 ``(m, m)``): per node the min (max) of its 4 corners in ``g`` (float64, corners
+    ``step`` samples apart) minus (plus) ``delta``. ``np.minimum``/``np.maximum``'s choice
+    among equal values (the second: -0.0 against 0.0) is kept, so the values are bit for bit
+    the numpy reference's."""
+    m = lo.shape[0]
+    for i in range(m):
+        r0 = i * step
+        r1 = r0 + step
+        for j in range(m):
+            c0 = j * step
+            c1 = c0 + step
+            c00 = g[r0, c0]
+            c01 = g[r0, c1]
+            c10 = g[r1, c0]
+            c11 = g[r1, c1]
+            a = c00 if c00 < c01 else c01
+            b = c10 if c10 < c11 else c11
+            lo[i, j] = (a if a < b else b) - delta[i, j]
+            a = c00 if c00 > c01 else c01
+            b = c10 if c10 > c11 else c11
+            hi[i, j] = (a if a > b else b) + delta[i, j]

@@ -25,8 +25,8 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.feedback import block_neighbours, feedback_pass
-from render.strategies.geometry_splitting.kernels import quad_errors
-from render.strategies.geometry_splitting.pure import BlockTree, stored_tree
+from render.strategies.geometry_splitting.kernels import quad_errors, stored_tree
+from render.strategies.geometry_splitting.pure import BlockTree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 from streamer.camera import Camera
 

@@ -3,7 +3,7 @@ exact deepest-depth errors, height ranges; :func:`stored_tree`) and Eq. 1's proj
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,8 +107,23 @@ def _per_node(arr: np.ndarray, d: int) -> np.ndarray:
     return np.repeat(np.repeat(a, rep, 0), rep, 1) if rep > 1 else a
 
 
+def corner_ranges(g: np.ndarray, step: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per node of the depth whose corners lie ``step`` samples apart in ``g``: the min and the
+    max of its 4 corners, minus and plus ``delta`` (float64, before rounding)."""
+    c = g[::step, ::step]
+    c00, c01, c10, c11 = c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]
+    lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11)) - delta
+    hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11)) + delta
+    return lo, hi
+
+
 def stored_tree(
-    bound: list[np.ndarray], grid: np.ndarray, exact: dict[int, np.ndarray] | None = None
+    bound: list[np.ndarray],
+    grid: np.ndarray,
+    exact: dict[int, np.ndarray] | None = None,
+    corners: Callable[[np.ndarray, int, np.ndarray], tuple[np.ndarray, np.ndarray]] = (
+        corner_ranges
+    ),
 ) -> BlockTree:
     """One block's quadtree texture from what the store already holds: ``bound`` (the tiler's
     per-node error field, depths ``0..k-1``: the largest vertical distance of any valid
@@ -117,7 +132,8 @@ def stored_tree(
     depth ``d <= R`` spans ``[min, max]`` of its 4 corners ``∓ δ`` (every sample lies within
     ``δ`` of the quad, which lies between its corners); deeper nodes take their depth-``R``
     ancestor's range (they cannot split there). ``exact`` replaces ``δ`` at some depths (the
-    store keeps one value per tile of nodes below its cap depth, see :func:`quad_errors`)."""
+    store keeps one value per tile of nodes below its cap depth, see :func:`quad_errors`).
+    ``corners``: :func:`corner_ranges` or a function giving the same values (a kernel)."""
     k = len(bound)
     g = np.asarray(grid, dtype=np.float64)
     rr = (g.shape[0] - 1).bit_length() - 1
@@ -132,10 +148,7 @@ def stored_tree(
     for d in range(k):
         a = min(d, rr, k - 1)  # the depth whose corners bound this node
         if a not in ranges:  # (rounded before the repeat: the same values, fewer of them)
-            c = g[:: 1 << (rr - a), :: 1 << (rr - a)] if a <= rr else g
-            c00, c01, c10, c11 = c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]
-            lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11)) - deltas[a]
-            hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11)) + deltas[a]
+            lo, hi = corners(g, 1 << (rr - a), deltas[a])
             ranges[a] = (_half(lo, False), _half(hi, True))
         lo, hi = ranges[a]
         rep = 1 << (d - a)
