@@ -226,3 +226,31 @@ def test_positive_control_the_bitwise_comparison_sees_a_signed_zero():
         told += _bits(flipped) != _bits(ref)
         negative += any(np.signbit(z).any() for z in ref.zmin)
     assert told == negative >= 4
+
+
+@needs_numba
+def test_a_read_only_mask_uses_the_warmed_kernel():
+    """A session's masks are read-only; the kernel is called with a writable copy, so it
+    runs the signature ``warm_up`` loaded instead of loading (or compiling) another on the
+    render thread. Control: the kernel called with the read-only mask itself adds one."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
+    code = (
+        "import numpy as np\n"
+        "from render.strategies.geometry_splitting import _tree_nb, kernels\n"
+        "kernels.warm_up()\n"
+        "n = lambda: len(_tree_nb.quad_errors_depth.signatures)\n"
+        "h = np.random.default_rng(0).random((17, 17))\n"
+        "ok = np.ones((17, 17), bool); ok[3:9, 2:5] = False; ok.setflags(write=False)\n"
+        "a = n(); kernels.quad_errors(h, ok, range(4)); b = n()\n"
+        "_tree_nb.quad_errors_depth(h, ok, 2, np.empty((4, 4))); c = n()\n"
+        "print(a, b, c)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300,
+        env=env,
+    )  # fmt: skip
+    assert out.stdout.split() == ["1", "1", "2"], out.stdout + out.stderr

@@ -56,7 +56,8 @@ def quad_errors(
     if mod is None:
         return quad_errors_numpy(h, valid, depths)
     g = np.ascontiguousarray(h, dtype=np.float64)
-    ok = np.ones(g.shape, bool) if valid is None else np.ascontiguousarray(valid, dtype=bool)
+    # writable, as warm_up's: a session's read-only mask would be another signature to load
+    ok = np.ones(g.shape, bool) if valid is None else np.require(valid, bool, ["C", "W"])
     out = {}
     for d in depths:
         out[d] = np.empty((1 << d, 1 << d))
