@@ -209,12 +209,12 @@ class LoadQueue:
                         elif k < best[b]:
                             best[b] = k
                 yield
-        finally:
+            if not large:
+                heapq.heapify(heap)
+                heapq.heapify(failed)
+                yield
+        finally:  # (recoveries are recorded until the swap)
             self._recovered = outer
-        if not large:
-            heapq.heapify(heap)
-            heapq.heapify(failed)
-            yield
         old_heap, old_failed, old_asleep = self._heap, self._failed, self._asleep
         n_old = len(old_heap) + len(old_failed) + len(old_asleep)
         self._heap, self._failed = heap, failed

@@ -227,3 +227,25 @@ def test_a_block_that_recovers_and_fails_again_between_the_steps_sleeps():
     assert q.queued_key(b) == (0, 0, 0.5) and len(q) == 1
     assert q.pop(11.0, _take) is None  # asleep
     assert q.pop(11.7, _take) == (b, ("job", b))
+
+
+@pytest.mark.parametrize("large", [False, True])
+def test_a_block_that_recovers_just_before_the_swap_is_queued(large):
+    """A recovery in the last pause before the swap (after a small queue's heapify step, or
+    after a large queue's last sort step) wakes the block at the swap, as the one-hold
+    rebuild's check of every sleeper did."""
+    q = LoadQueue(retries=2, backoff_s=1.0, max_backoff_s=4.0)
+    b = (1, 1)
+    q.failed_read(b, 10.0)  # in backoff until 11.0
+    others = [((1, 1, float(i)), (5, i)) for i in range(300 if large else 3)]
+    items = [((0, 0, 0.5), b), *others]
+    gen = q.rebuild_steps(items, 10.5, 64)
+    sorting = -(-len(items) // 64) + (0 if large else 1)  # the steps before the swap
+    for _ in range(sorting):
+        next(gen)
+    assert q.queued_key(b) is None  # not swapped in yet
+    q.succeeded(b)
+    for _ in gen:
+        pass
+    assert q.queued_key(b) == (0, 0, 0.5)
+    assert q.pop(10.5, _take) == (b, ("job", b))  # at once, not at its old retry time
