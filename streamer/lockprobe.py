@@ -113,10 +113,12 @@ class ProbeLock:
         return out
 
     def clear(self) -> None:
-        """Forget the holds and waits recorded so far (e.g. a warm-up's)."""
-        self.holds.clear()
-        self.sites.clear()
-        self.waits.clear()
+        """Forget the holds and waits recorded so far (e.g. a warm-up's); the lock is taken
+        meanwhile (unrecorded), so a release cannot record a hold between the lists."""
+        with self._lock:
+            self.holds.clear()
+            self.sites.clear()
+            self.waits.clear()
 
 
 _SKIP = (threading.__file__, __file__)
