@@ -11,9 +11,9 @@ Usage::
 Default stores: N44W072 reprojected to UTM in 1025² blocks (``terrastream tile N44W072.hgt …
 --dst-crs auto --block-size 1025``, made in ``bench/work`` if the real DEM is there; nodata at
 its edges) and the 4097² synthetic store of 1025² blocks. Reported: the median ms over the
-blocks of each part's median of ``--reps`` calls. The numba kernel is loaded (and its outputs
-compared with numpy's) before timing. Run it in a checkout of each commit to compare code
-versions; prints a table and writes ``bench/results/tree_build.json``.
+blocks of each part's median of ``--reps`` calls. The numba kernels are loaded (and their
+outputs compared with numpy's, the tree's bytes too) before timing. Run it in a checkout of
+each commit to compare code versions; prints a table and writes ``bench/results/tree_build.json``.
 """
 
 from __future__ import annotations
@@ -82,6 +82,10 @@ def _unpacked(mixed, k):
     return lambda: unpack_mixed(packed)
 
 
+def _bytes(tree) -> list[bytes]:
+    return [x.tobytes() for f in ("sigma", "zmin", "zmax") for x in getattr(tree, f)]
+
+
 def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
     """Per resident level: the median over the blocks of each part's median ms."""
     s = open_store(path)
@@ -109,6 +113,9 @@ def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
                     )
             parts.setdefault("stored_tree", []).append(_ms(reps, stored_tree, bound, grid, exact))
             if kern is not None and hasattr(kern, "stored_tree"):
+                ref = stored_tree(bound, grid, exact)
+                got = kern.stored_tree(bound, grid, exact, "numba")
+                assert _bytes(got) == _bytes(ref), f"block {b}: the compiled tree differs"
                 parts.setdefault("stored_tree numba", []).append(
                     _ms(reps, kern.stored_tree, bound, grid, exact, "numba")
                 )

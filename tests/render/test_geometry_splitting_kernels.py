@@ -162,26 +162,13 @@ def test_warm_up_loads_the_kernel_off_the_render_thread():
     """``warm_up`` (the viewer runs it on a background thread) calls the kernel once, so its
     machine code is loaded there and not at the first tree the render thread builds; in a
     fresh process the kernel has no compiled signature before it (the control)."""
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
-    code = (
+    words = _fresh_process(
         "from render.strategies.geometry_splitting import _tree_nb, kernels\n"
         "before = len(_tree_nb.quad_errors_depth.signatures)\n"
         "ok = kernels.warm_up()\n"
         "print(before, len(_tree_nb.quad_errors_depth.signatures), ok)\n"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=120,
-        env=env,
-    )
-    assert out.stdout.split() == ["0", "1", "True"], out.stdout + out.stderr
+    assert words == ["0", "1", "True"], words
 
 
 def _bits(a: BlockTree) -> list[bytes]:
@@ -233,12 +220,7 @@ def test_a_read_only_mask_uses_the_warmed_kernel():
     """A session's masks are read-only; the kernel is called with a writable copy, so it
     runs the signature ``warm_up`` loaded instead of loading (or compiling) another on the
     render thread. Control: the kernel called with the read-only mask itself adds one."""
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
-    code = (
+    words = _fresh_process(
         "import numpy as np\n"
         "from render.strategies.geometry_splitting import _tree_nb, kernels\n"
         "kernels.warm_up()\n"
@@ -249,8 +231,19 @@ def test_a_read_only_mask_uses_the_warmed_kernel():
         "_tree_nb.quad_errors_depth(h, ok, 2, np.empty((4, 4))); c = n()\n"
         "print(a, b, c)\n"
     )
+    assert words == ["1", "1", "2"], words
+
+
+def _fresh_process(code: str) -> list[str]:
+    """The words ``code`` prints, run in a fresh Python (no kernel loaded yet; the backend
+    left to ``auto``)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300,
         env=env,
     )  # fmt: skip
-    assert out.stdout.split() == ["1", "1", "2"], out.stdout + out.stderr
+    return out.stdout.split()

@@ -14,6 +14,20 @@ __all__ = ["corner_ranges", "quad_errors_depth"]
 
 
 @numba.njit(cache=True, nogil=True)
+def _edge_max(vals, ok, start, end, s):
+    """The largest distance of the valid ``vals`` (``s + 1`` samples along a block edge) from
+    the segment ``start``-``end``."""
+    out = 0.0
+    for q in range(s + 1):
+        if ok[q]:
+            t = q / s
+            e = abs(vals[q] - (start * (1 - t) + end * t))
+            if e > out:
+                out = e
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def quad_errors_depth(h, ok, d, out):
     """``quad_errors(h, ok, [d])[d]`` into ``out`` (float64 ``(2**d, 2**d)``): per node the
     largest vertical distance of a valid sample (its own last row and column included) from
@@ -76,29 +90,13 @@ def quad_errors_depth(h, ok, d, out):
             if i < m - 1:
                 south = top[i + 1, j]
             else:  # the block's last row: along the bottom edge c-d
-                south = 0.0
-                c = h[n, j * s]
-                dd = h[n, j * s + s]
-                for q in range(s + 1):
-                    col = j * s + q
-                    if ok[n, col]:
-                        t = q / s
-                        e = abs(h[n, col] - (c * (1 - t) + dd * t))
-                        if e > south:
-                            south = e
+                row = h[n, j * s : j * s + s + 1]
+                south = _edge_max(row, ok[n, j * s : j * s + s + 1], row[0], row[s], s)
             if j < m - 1:
                 east = left[i, j + 1]
             else:  # the block's last column: along the right edge b-d
-                east = 0.0
-                b = h[i * s, n]
-                dd = h[i * s + s, n]
-                for q in range(s + 1):
-                    row = i * s + q
-                    if ok[row, n]:
-                        t = q / s
-                        e = abs(h[row, n] - (b * (1 - t) + dd * t))
-                        if e > east:
-                            east = e
+                col = h[i * s : i * s + s + 1, n]
+                east = _edge_max(col, ok[i * s : i * s + s + 1, n], col[0], col[s], s)
             se = south if south > east else east
             out[i, j] = node[i, j] if node[i, j] > se else se
 
