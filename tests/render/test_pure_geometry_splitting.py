@@ -127,3 +127,27 @@ def test_projected_error_is_the_five_point_projection():
         np.array([[0.0, 0.0, 0.0]]) + [0, -4000.0, -1500.0], 1.0, 8, cam, 30, 30
     )
     assert np.isinf(behind[0])
+
+
+def _packed_by_stacking(t) -> np.ndarray:
+    """The texture's layout as the GLSL reads it, by concatenation (the former ``packed``)."""
+    s = np.concatenate([x.ravel() for x in t.sigma]).astype(np.float32).view(np.uint32)
+    lo = np.concatenate([x.ravel() for x in t.zmin]).view(np.uint16).astype(np.uint32)
+    hi = np.concatenate([x.ravel() for x in t.zmax]).view(np.uint16).astype(np.uint32)
+    return np.stack([s, lo | (hi << 16)], 1)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_packed_texture_is_sigma_bits_then_packhalf2x16(seed):
+    rng = np.random.default_rng(seed)
+    h = rng.normal(0, 50, (33, 33)).cumsum(0)
+    h[rng.random(h.shape) < 0.01] = -0.0  # (signed zeros and infinities keep their bits)
+    t = stored_tree(bound_errors(h, np.ones_like(h, bool), 5), h)
+    t.sigma[2][1, 1] = np.inf
+    got = t.packed()
+    assert got.dtype == np.uint32 and got.shape == (sum(4**d for d in range(5)), 2)
+    np.testing.assert_array_equal(got, _packed_by_stacking(t))
+    lo = (got[:, 1] & 0xFFFF).astype(np.uint16).view(np.float16)  # unpackHalf2x16(q.y).x
+    np.testing.assert_array_equal(lo, np.concatenate([x.ravel() for x in t.zmin]))
+    t.zmax[3][0, 0] = np.float16(-1.0)  # control: one changed value is seen
+    assert not np.array_equal(t.packed(), got)

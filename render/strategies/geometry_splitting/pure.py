@@ -3,6 +3,7 @@ exact deepest-depth errors, height ranges; :func:`stored_tree`) and Eq. 1's proj
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -51,6 +52,18 @@ class BlockTree:
 
     def packed(self) -> np.ndarray:
         """``(nodes, 2)`` uint32 in depth order: σ bits, ``packHalf2x16(zmin, zmax)``."""
+        if sys.byteorder == "little":  # written in place: zmin the low half (0.4 vs 1.1 ms)
+            n = sum(x.size for x in self.sigma)
+            out = np.empty((n, 2), np.uint32)
+            half = out.view(np.uint16).reshape(n, 4)
+            o = 0
+            for sig, lo, hi in zip(self.sigma, self.zmin, self.zmax, strict=True):
+                m = sig.size
+                out[o : o + m, 0] = np.asarray(sig, np.float32).ravel().view(np.uint32)
+                half[o : o + m, 2] = np.asarray(lo, np.float16).ravel().view(np.uint16)
+                half[o : o + m, 3] = np.asarray(hi, np.float16).ravel().view(np.uint16)
+                o += m
+            return out
         s = np.concatenate([x.ravel() for x in self.sigma]).astype(np.float32).view(np.uint32)
         lo = np.concatenate([x.ravel() for x in self.zmin]).view(np.uint16).astype(np.uint32)
         hi = np.concatenate([x.ravel() for x in self.zmax]).view(np.uint16).astype(np.uint32)
