@@ -8,6 +8,8 @@ the store. The values are the same either way (tested)."""
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -49,6 +51,16 @@ class BlockSource:
             if len(levels) > level >= 0:
                 return reconstruct(levels, level)
         return self.store.read_block(block, max_level=level)
+
+    def grid_later(self, block: Block, level: int) -> Callable[[], np.ndarray]:
+        """:meth:`grid` as a function to call later, on any thread: the session's decoded
+        levels are taken now (it may drop them meanwhile), the store is read when called."""
+        session = self._live()
+        if session is not None:
+            levels = session.levels(block)
+            if len(levels) > level >= 0:
+                return partial(reconstruct, levels, level)
+        return partial(self.store.read_block, block, max_level=level)
 
     def errors(self, block: Block) -> dict[str, list[np.ndarray]]:
         """The stored error fields (``TerrainStore.read_errors``; the session's are

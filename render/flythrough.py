@@ -39,6 +39,7 @@ class FlyRow:
     triangles: int
     patches: int
     selection_ms: float
+    build_ms: float  # per-block data built on the render thread (geometry-splitting's trees)
     gpu_ms: float
     loaded_mb: float
     resident_mb: float
@@ -78,13 +79,17 @@ def flythrough(
     on_frame: Callable[[FlyRow], None] | None = None,
     lod: str = DEFAULT,
     options: ViewOptions | None = None,
+    background_builds: bool = True,
 ) -> tuple[list[FlyRow], dict[str, Any]]:
     """Stream and render each camera with strategy ``lod``; write PNG frames and
     ``frames.csv`` into ``out_dir`` (``options``, when given, supplies ``lod``, ``tau``,
     ``metric`` and ``patch_log2``, and how frames are drawn). A path none of whose frames
     draws terrain raises :class:`streamer.errors.PathOutOfViewError` (its PNGs removed); an
     error that stops the flight is raised after ``frames.csv`` of the frames flown is written
-    (their count: ``exc.frames_flown``)."""
+    (their count: ``exc.frames_flown``). ``background_builds``: per-block data a level change
+    needs is built on a worker thread, the frames meanwhile drawing with what it replaces
+    (:meth:`render.strategies.base.Strategy.build_in_background`; False: every frame builds
+    what it draws first, as a one-shot render)."""
     o = options or ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
     lod, tau, metric = o.lod, o.tau, o.metric
     from PIL import Image
@@ -96,6 +101,8 @@ def flythrough(
     out.mkdir(parents=True, exist_ok=True)
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
     strat = get_strategy(lod, r, **o.strategy_options())
+    if background_builds:
+        strat.build_in_background()
     draw = o.draw_options()
     rows: list[FlyRow] = []
     try:
@@ -126,6 +133,7 @@ def flythrough(
                     triangles=st.triangles,
                     patches=st.patches,
                     selection_ms=ms,
+                    build_ms=strat.build_ms,
                     gpu_ms=st.frame_ms,
                     loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
                     resident_mb=fs.resident_bytes / 2**20,
@@ -145,6 +153,7 @@ def flythrough(
             exc.frames_flown = len(rows)  # type: ignore[attr-defined]
         raise
     finally:
+        strat.close()
         r.close()
     problem = flight_problem(summary, unfinished, str(getattr(store, "url", store)))
     empty = [x.frame for x in rows if x.drawn_px == 0]
@@ -173,6 +182,8 @@ def flythrough(
         "max_triangles": int(tri.max()),
         "mean_selection_ms": float(np.mean([x.selection_ms for x in rows])),
         "max_selection_ms": float(np.max([x.selection_ms for x in rows])),
+        "mean_build_ms": float(np.mean([x.build_ms for x in rows])),
+        "max_build_ms": float(np.max([x.build_ms for x in rows])),
         "mean_gpu_ms": float(np.mean([x.gpu_ms for x in rows])),
         "stall_frames": int(sum(x.stalled for x in rows)),
         "clamped_frames": int(sum(x.clamped > 0 for x in rows)),

@@ -152,6 +152,11 @@ class FrameServices:
         :mod:`render.block_source`)."""
         return self.source.grid(block, level)
 
+    def block_grid_later(self, block: Block, level: int) -> Callable[[], np.ndarray]:
+        """:meth:`block_grid` as a function to call later, on any thread (the session's levels
+        taken now: :meth:`render.block_source.BlockSource.grid_later`)."""
+        return self.source.grid_later(block, level)
+
     def sync(self, frame_blocks: dict[Block, tuple[int, int]], session: Session) -> None:
         """Upload what a streaming frame holds (``Frame.blocks``) and drop long-gone blocks."""
         self._frame += 1

@@ -289,6 +289,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     size = (int(fb[0]), int(fb[1])) if fb[0] > 0 else size
     r = TerrainRenderer(store, RenderConfig(size=size, patch_log2=o.patch_log2), ctx=ctx)
     strat = get_strategy(lod, r, **o.strategy_options())
+    strat.build_in_background()  # a level change's texture off the render thread
     overlay = _Overlay(ctx, size)
     zlo = float(np.nanmin(store.index.zmin))
     pose, fov = Pose.of(start), start.fov_y
@@ -401,6 +402,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     finally:
         session.close()
         warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds
+        strat.close()
         r.close()
     return ViewResult(n, last, state["tau"], mb, shot)
 

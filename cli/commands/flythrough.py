@@ -61,6 +61,15 @@ def flythrough(
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     storage_options: StorageOptionsOpt = None,
+    render_thread_builds: Annotated[
+        bool,
+        typer.Option(
+            "--render-thread-builds",
+            help="Build each block's per-level data (geometry-splitting's quadtree texture) "
+            "in the frame that needs it, as a one-shot render does; by default a level "
+            "change's is built on a worker thread and frames use the previous one meanwhile.",
+        ),
+    ] = False,
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 
@@ -103,6 +112,7 @@ def flythrough(
                 save_every=every,
                 on_frame=on_frame,
                 options=opts,
+                background_builds=not render_thread_builds,
             )
         except PathOutOfViewError as exc:
             raise UsageError(str(exc), hint="--path") from None
@@ -119,7 +129,8 @@ def flythrough(
         typer.echo(
             f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
             f"selection {summary['mean_selection_ms']:.2f} ms (max "
-            f"{summary['max_selection_ms']:.2f}), GPU {summary['mean_gpu_ms']:.1f} ms, "
+            f"{summary['max_selection_ms']:.2f}; builds max {summary['max_build_ms']:.2f}), "
+            f"GPU {summary['mean_gpu_ms']:.1f} ms, "
             f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MiB; "
             f"wrote {out}/frames.csv"
         )

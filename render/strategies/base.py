@@ -124,6 +124,19 @@ class Strategy(ABC, Generic[S]):
 
     def __init__(self, renderer: FrameServices) -> None:
         self.r = renderer
+        #: ms the last :meth:`select` spent on the render thread building per-block data
+        #: (quadtree textures, ε tables) outside its selection ms
+        self.build_ms = 0.0
+
+    def build_in_background(self) -> bool:
+        """Build per-block data that can wait (a level change's) on a worker thread from now
+        on, drawing with the data it replaces until it is ready; whether the strategy does
+        (default: it has none). Call :meth:`close` when done."""
+        return False
+
+    def close(self) -> None:
+        """Stop what :meth:`build_in_background` started (the GL objects stay the
+        renderer's)."""
 
     @abstractmethod
     def select(

@@ -92,6 +92,27 @@ def test_flythrough_writes_frames_and_csv(store, tmp_path):
     assert len(list((tmp_path / "f").glob("frame_*.png"))) == 3
 
 
+@pytest.mark.parametrize("flag", [[], ["--render-thread-builds"]])
+def test_a_geometry_splitting_flythrough_reports_its_texture_builds(store, tmp_path, flag):
+    import csv
+    import json
+    import threading
+
+    out = tmp_path / "f"
+    args = ["flythrough", store, "--size", "64x48", "--frames", "3", "--lod",
+            "geometry-splitting", "--every", "0", "--out", str(out), *flag]  # fmt: skip
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    with (out / "frames.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert float(rows[0]["build_ms"]) > 0.0  # the first frame's blocks are new: built there
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["max_build_ms"] == max(float(r["build_ms"]) for r in rows)
+    assert "builds max" in res.output
+    left = [t.name for t in threading.enumerate() if t.name.startswith("terrastream-block")]
+    assert left == []  # the worker stopped with the flight
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

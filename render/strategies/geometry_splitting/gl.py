@@ -7,13 +7,16 @@ from __future__ import annotations
 
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import moderngl
 import numpy as np
 
 from render import measure, shaders
+from render.builds import BackgroundBuilds
 from render.frame import FrameServices
 from render.gpu import MASKED_BELOW, check_gl
 from render.select import check_tau
@@ -25,12 +28,17 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.feedback import block_neighbours, feedback_pass
-from render.strategies.geometry_splitting.kernels import quad_errors, stored_tree
+from render.strategies.geometry_splitting.kernels import quad_errors, stored_tree, warm_up
 from render.strategies.geometry_splitting.pure import BlockTree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 from streamer.camera import Camera
 
 NO_CAP = 99  # border cap meaning "no restriction"
+_WARM_UP = ("kernels",)  # the background builds' first job
+#: with background builds, a new block's first texture is built at once from this level's
+#: grid (~2 ms at 1025²: its ranges from 65² corners, no exact errors), the texture of its
+#: resident level on the worker thread
+PROVISIONAL_LEVEL = 6
 HERE = Path(__file__).parent
 
 
@@ -72,6 +80,30 @@ class Selection:
 
     def __len__(self) -> int:
         return self.leaves
+
+
+def build_tree(
+    grid_of: Callable[[], np.ndarray],
+    bound: list[np.ndarray],
+    mask: np.ndarray | None,
+    deep: range,
+    mixed: list[np.ndarray] | None,
+) -> BlockTree:
+    """One block's quadtree texture (:func:`stored_tree`) from its level grid (``grid_of()``),
+    stored ``bound`` errors, the exact errors at ``deep`` depths (full resolution, ``mask``'s
+    samples) and σ = ∞ at the ``mixed`` nodes (mask boundaries: refined). No GL: any thread."""
+    grid = grid_of()
+    exact = quad_errors(grid, mask, deep) if len(deep) else None
+    tree = stored_tree(bound, grid, exact)
+    if mixed is not None:
+        for d, sig in enumerate(tree.sigma):
+            sig[mixed[d]] = np.inf
+    return tree
+
+
+def _packed(job: Callable[[], BlockTree]) -> tuple[BlockTree, bytes]:
+    tree = job()
+    return tree, tree.packed().tobytes()
 
 
 def _release(*bufs) -> None:
@@ -117,6 +149,7 @@ class GeometrySplitting(Strategy[Selection]):
         self._qt_buf: moderngl.Buffer | None = None
         self._qt_used = 0
         self.heights = GlobalHeights(renderer.store)
+        self._builds: BackgroundBuilds[tuple[BlockTree, bytes]] | None = None
         check_gl(ctx, "creating the geometry-splitting programs")
 
     def own_gpu_bytes(self) -> int:
@@ -127,51 +160,112 @@ class GeometrySplitting(Strategy[Selection]):
 
     def tree(self, b: Block, level: int | None = None) -> BlockTree:
         """The block's quadtree texture for its resident ``level`` (default: the GPU's), from
-        the stored errors and that level's grid (:func:`stored_tree`; rebuilt when the level
+        the stored errors and that level's grid (:func:`build_tree`; rebuilt when the level
         changes)."""
         lv = self.r.gpu_level(b) if level is None else int(level)
         if self._tree_level.get(b) != lv or b not in self.trees:
-            store = self.r.store
-            grid = self.r.block_grid(b, max(lv, 0))
-            exact = None
-            deep = range(store.meta.error_cap + 1, self.k)
-            if lv == self.k and len(deep):  # full resolution resident: exact δ where tiled
-                exact = quad_errors(grid, self.r.mask(b), deep)
-            self.trees[b] = stored_tree(self.r.stored_errors(b)["bound"], grid, exact)
-            mixed = self.r.mixed_nodes(b)  # (the session's loaders derived them)
-            if mixed is not None:  # refine mask boundaries
-                for d, sig in enumerate(self.trees[b].sigma):
-                    sig[mixed[d]] = np.inf
+            self.trees[b] = self._tree_job(b, lv)()
             self._tree_level[b] = lv
         return self.trees[b]
 
+    def gpu_tree(self, b: Block, level: int) -> BlockTree:
+        """The tree of the texture the GPU holds for ``b`` (drawn at ``level``): built for
+        ``level``, or for the level before while its rebuild runs in the background."""
+        return self.tree(b, self._qt_level.get(b, level) if self._builds else level)
+
+    def _tree_job(self, b: Block, lv: int) -> Callable[[], BlockTree]:
+        """Building ``b``'s tree for level ``lv``: its inputs gathered now, on the render
+        thread (the session's arrays), the work left to the function (any thread)."""
+        deep = range(self.r.store.meta.error_cap + 1, self.k) if lv == self.k else range(0)
+        return partial(
+            build_tree,
+            self.r.block_grid_later(b, max(lv, 0)),
+            self.r.stored_errors(b)["bound"],
+            self.r.mask(b) if len(deep) else None,
+            deep,
+            self.r.mixed_nodes(b),  # (the session's loaders derived them)
+        )
+
+    def build_in_background(self) -> bool:
+        """A block whose level changes keeps its texture until a worker thread has built the
+        new one; a new block finer than :data:`PROVISIONAL_LEVEL` is drawn with the texture
+        of that level (built at once) until then. Either texture bounds the block's terrain
+        (σ from the stored errors, ranges around every sample) but Lee & Shin's projected
+        error is evaluated at a range's mid-height, so the selection differs meanwhile."""
+        if self._builds is None:
+            self._builds = BackgroundBuilds("a geometry-splitting quadtree texture")
+            # the compiled kernels loaded by the worker, before its first build (not the
+            # render thread: ``auto`` then uses them in both)
+            self._builds.want(_WARM_UP, 0, warm_up)
+        return True
+
+    def close(self) -> None:
+        if self._builds is not None:
+            self._builds.close()
+            self._builds = None
+
+    def interim_blocks(self, resident: dict[Block, int] | None = None) -> list[Block]:
+        """The drawn blocks whose texture is not yet their drawn level's (its build runs in
+        the background)."""
+        return [b for b, lv in self.r.drawable(resident) if self._qt_level.get(b, lv) != lv]
+
+    def settle(self, timeout: float = 30.0) -> None:
+        """Wait for the background builds asked for so far (:meth:`build_in_background`);
+        the next :meth:`select` uploads them."""
+        if self._builds is not None:
+            self._builds.wait(timeout)
+
+    def _take_built(self, level: dict[Block, int]) -> None:
+        """Upload the background builds that finished, where the block still has its texture
+        and the level they were built for."""
+        for b, lv, built in self._builds.done() if self._builds else ():
+            if b == _WARM_UP:
+                continue
+            tree, data = built
+            if b in self._qt_offset and level.get(b, self.r.gpu_level(b)) == lv:
+                self._qt_buf.write(data, offset=self._qt_offset[b] * 8)
+                self.trees[b], self._tree_level[b], self._qt_level[b] = tree, lv, lv
+
     def _upload_trees(self, pairs: list[tuple[Block, int]]) -> None:
         blocks = [b for b, _ in pairs]
+        level = dict(pairs)
         per = ((1 << (2 * self.k)) - 1) // 3
+        self._take_built(level)
         for b, lv in pairs:  # resident level changed: rewrite the block's texture in place
             if b in self._qt_offset and self._qt_level.get(b) != lv:
+                if self._builds is not None:  # later: the texture it has meanwhile
+                    self._builds.want(b, lv, partial(_packed, self._tree_job(b, lv)))
+                    continue
                 data = self.tree(b, lv).packed().tobytes()
                 self._qt_buf.write(data, offset=self._qt_offset[b] * 8)
                 self._qt_level[b] = lv
         new = [b for b in blocks if b not in self._qt_offset]
         if not new:
             return
-        level = dict(pairs)
         cap = 0 if self._qt_buf is None else self._qt_buf.size // 8
-        if self._qt_used + per * len(new) > cap:
+        if self._qt_used + per * len(new) > cap:  # a larger buffer, the kept textures copied
             keep = [b for b in self._qt_offset if self.r.gpu_level(b) >= 0 or b in blocks]
-            keep += [b for b in new if b not in keep]
-            size = max(2 * cap, per * len(keep), per)
-            if self._qt_buf is not None:
-                self._qt_buf.release()
+            size = max(2 * cap, per * (len(keep) + len(new)), per)
+            old, old_offset = self._qt_buf, self._qt_offset
             self._qt_buf = self.r.ctx.buffer(reserve=size * 8)
             self._qt_offset, self._qt_used = {}, 0
-            self.trees = {b: t for b, t in self.trees.items() if b in keep}
-            self._tree_level = {b: v for b, v in self._tree_level.items() if b in keep}
+            for b in keep:  # (GPU to GPU: their trees as they were, nothing rebuilt)
+                self.r.ctx.copy_buffer(
+                    self._qt_buf, old, per * 8, read_offset=old_offset[b] * 8,
+                    write_offset=self._qt_used * 8,
+                )  # fmt: skip
+                self._qt_offset[b] = self._qt_used
+                self._qt_used += per
+            if old is not None:
+                old.release()
+            self.trees = {b: t for b, t in self.trees.items() if b in keep or b in new}
+            self._tree_level = {b: v for b, v in self._tree_level.items() if b in self.trees}
             self._qt_level = {b: v for b, v in self._qt_level.items() if b in keep}
-            new = keep
         for b in new:
-            lv = level.get(b, self._qt_level.get(b, self.r.gpu_level(b)))
+            lv = level.get(b, self.r.gpu_level(b))
+            if self._builds is not None and lv > PROVISIONAL_LEVEL:  # the rest later
+                self._builds.want(b, lv, partial(_packed, self._tree_job(b, lv)))
+                lv = PROVISIONAL_LEVEL
             self._qt_buf.write(self.tree(b, lv).packed().tobytes(), offset=self._qt_used * 8)
             self._qt_level[b] = lv
             self._qt_offset[b] = self._qt_used
@@ -226,7 +320,7 @@ class GeometrySplitting(Strategy[Selection]):
         self.r.make_current()  # the passes make and use GL objects of the renderer's context
         tb = time.perf_counter()
         self._upload_trees(self.r.drawable(resident))
-        build_ms = (time.perf_counter() - tb) * 1000.0
+        build_ms = self.build_ms = (time.perf_counter() - tb) * 1000.0
         blocks, table = self.block_table(resident)
         block_buf = ctx.buffer(np.ascontiguousarray(table).tobytes() or bytes(64))
         stats = ctx.buffer(np.array([0, -1, 1 << 30, 0], np.int32).tobytes())

@@ -28,7 +28,7 @@ def expand_reference(
     nodes that split, both ``(block index, depth, row, col)`` sorted."""
     blocks, t = st.block_table(resident)
     k, g = st.k, st.r.grid
-    trees = [st.tree(b, int(t[i, 3])) for i, b in enumerate(blocks)]
+    trees = [st.gpu_tree(b, int(t[i, 3])) for i, b in enumerate(blocks)]
     mvp = camera.projection_matrix() @ camera.view_matrix()
     planes = []
     for i in range(3):

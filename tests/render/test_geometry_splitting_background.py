@@ -1,0 +1,188 @@
+"""``geometry-splitting``'s quadtree textures built on a worker thread
+(``build_in_background``): what the render thread builds, the interim textures, the final ones
+equal to those built at once, errors surfaced, the buffer's growth; on headless EGL."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from gltools import make_context, rough, tile_dem
+
+import render.strategies.geometry_splitting.gl as gs_gl
+from render.builds import BuildError
+from render.renderer import RenderConfig, TerrainRenderer
+from render.strategies import get_strategy
+from streamer.camera import Camera
+from tiler.store import open_store
+
+pytestmark = pytest.mark.gl
+CTX = make_context()
+SIZE = (128, 96)
+X0, Y0 = 500015.0, 5000000.0 - 15
+CAM = Camera.look_at(
+    (X0 + 600, Y0 - 4200, 1600.0), (X0 + 2400, 4997600, 700.0), viewport=SIZE, near=5.0
+)
+
+
+@pytest.fixture(scope="module")
+def store_k7(tmp_path_factory):
+    """257² rough terrain in four 129² blocks (k = 7: above the provisional level 6)."""
+    return tile_dem(tmp_path_factory.mktemp("k7"), rough(257, 5), 129)
+
+
+@pytest.fixture
+def threads_of_builds(monkeypatch):
+    """The names of the threads ``build_tree`` ran on, with the level of its grid."""
+    seen: list[tuple[str, int]] = []
+    real = gs_gl.build_tree
+
+    def spy(grid_of, *args):
+        grid = grid_of()
+        seen.append((threading.current_thread().name, (grid.shape[0] - 1).bit_length() - 1))
+        return real(lambda: grid, *args)
+
+    monkeypatch.setattr(gs_gl, "build_tree", spy)
+    return seen
+
+
+def _renderer(path, level: int) -> TerrainRenderer:
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, level))
+    return r
+
+
+def _raise(r: TerrainRenderer, level: int) -> None:
+    for b in r.store.blocks():
+        r.upload(b, r.store.read_levels(b, level))
+
+
+def _texture(st, b) -> bytes:
+    per = ((1 << (2 * st.k)) - 1) // 3
+    return st._qt_buf.read(per * 8, offset=st._qt_offset[b] * 8)
+
+
+def _want(path, b, level: int) -> bytes:
+    """The texture a strategy that builds at once uploads for ``b`` at ``level``."""
+    r = _renderer(path, level)
+    try:
+        return get_strategy("geometry-splitting", r).tree(b, level).packed().tobytes()
+    finally:
+        r.close()
+
+
+def test_a_level_change_is_built_off_the_render_thread(store_k7, threads_of_builds):
+    r = _renderer(store_k7, 3)
+    st = get_strategy("geometry-splitting", r)
+    try:
+        assert st.build_in_background()
+        st.select(CAM, 1.0)  # new blocks at level 3 (<= 6): built at once, here
+        assert {lv for _, lv in threads_of_builds} == {3}
+        assert {name for name, _ in threads_of_builds} == {threading.current_thread().name}
+        threads_of_builds.clear()
+        _raise(r, 7)
+        sel, _ = st.select(CAM, 1.0)
+        blocks = list(r.store.blocks())
+        assert sorted(st.interim_blocks()) == sorted(blocks)  # drawn with level 3's meanwhile
+        assert st.leaf_nodes(sel)[:, 1].max() > 3  # (the heights' level is the cap)
+        here = [lv for name, lv in threads_of_builds if name == threading.current_thread().name]
+        assert here == []  # nothing built in the frame
+        st.settle()
+        st.select(CAM, 1.0)  # uploads what the worker built
+        assert st.interim_blocks() == []
+        assert all(name.startswith("terrastream-block-build") for name, _ in threads_of_builds)
+        assert sorted(lv for _, lv in threads_of_builds) == [7] * len(blocks)
+        for b in blocks:  # the same texture as one built in the frame
+            assert _texture(st, b) == _want(store_k7, b, 7)
+    finally:
+        st.close()
+        r.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("terrastream-block-build")]
+
+
+def test_control_without_background_builds_the_frame_builds_them(store_k7, threads_of_builds):
+    r = _renderer(store_k7, 3)
+    st = get_strategy("geometry-splitting", r)
+    try:
+        st.select(CAM, 1.0)
+        threads_of_builds.clear()
+        _raise(r, 7)
+        st.select(CAM, 1.0)
+        assert st.interim_blocks() == []
+        me = threading.current_thread().name
+        assert threads_of_builds == [(me, 7)] * len(list(r.store.blocks()))
+        assert st.build_ms > 0.0
+    finally:
+        r.close()
+
+
+def test_a_new_fine_block_is_drawn_with_a_provisional_texture(store_k7, threads_of_builds):
+    r = _renderer(store_k7, 7)
+    st = get_strategy("geometry-splitting", r)
+    try:
+        st.build_in_background()
+        sel, _ = st.select(CAM, 1.0)
+        me = threading.current_thread().name
+        assert {lv for name, lv in threads_of_builds if name == me} == {gs_gl.PROVISIONAL_LEVEL}
+        assert sel.triangles > 0  # drawn in its first frame
+        b = (0, 0)
+        assert _texture(st, b) == _want(store_k7, b, gs_gl.PROVISIONAL_LEVEL)
+        st.settle()
+        st.select(CAM, 1.0)
+        assert st.interim_blocks() == []
+        assert _texture(st, b) == _want(store_k7, b, 7)
+        # the selection is then the one built at once gives
+        ref = get_strategy("geometry-splitting", r)
+        want, _ = ref.select(CAM, 1.0)
+        got, _ = st.select(CAM, 1.0)
+        np.testing.assert_array_equal(st.leaf_nodes(got), ref.leaf_nodes(want))
+    finally:
+        st.close()
+        r.close()
+
+
+def test_a_failed_background_build_is_raised_on_the_render_thread(store_k7, monkeypatch):
+    r = _renderer(store_k7, 3)
+    st = get_strategy("geometry-splitting", r)
+    try:
+        st.build_in_background()
+        st.select(CAM, 1.0)
+
+        def broken(*_a):
+            raise MemoryError("no room for the tree")
+
+        monkeypatch.setattr(gs_gl, "build_tree", broken)
+        _raise(r, 7)
+        st.select(CAM, 1.0)
+        st.settle()  # (waits: a failed build is done too)
+        with pytest.raises(BuildError, match="geometry-splitting quadtree texture"):
+            st.select(CAM, 1.0)
+    finally:
+        st.close()
+        r.close()
+
+
+def test_growing_the_buffer_keeps_every_texture(tmp_path):
+    path = tile_dem(tmp_path, rough(257, 9), 33)  # 64 blocks of 33²
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    try:
+        st = get_strategy("geometry-splitting", r)
+        blocks = list(s.blocks())
+        first, rest = blocks[:3], blocks[3:]
+        for b in first:
+            r.upload(b, s.read_levels(b, 3))
+        st.select(CAM, 1.0)
+        size0 = st._qt_buf.size
+        for b in rest:
+            r.upload(b, s.read_levels(b, 5))
+        st.select(CAM, 1.0)
+        assert st._qt_buf.size > size0  # (grown: the first blocks' textures copied)
+        for b in blocks:
+            lv = 3 if b in first else 5
+            assert _texture(st, b) == st.tree(b, lv).packed().tobytes()
+    finally:
+        r.close()
