@@ -32,20 +32,24 @@ class BackgroundBuilds(Generic[T]):
     def __init__(self, what: str = "a block's data") -> None:
         self.what = what
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_PREFIX)
-        self._pending: dict[Hashable, tuple[Hashable, Future[T]]] = {}
+        self._pending: dict[Hashable, tuple[Hashable, Future[T], str]] = {}
         self._lock = threading.Lock()  # (want/done run on one thread; close may not)
         self._closer = weakref.finalize(self, self._pool.shutdown, False, cancel_futures=True)
 
-    def want(self, key: Hashable, version: Hashable, build: Callable[[], T]) -> bool:
+    def want(
+        self, key: Hashable, version: Hashable, build: Callable[[], T], what: str = ""
+    ) -> bool:
         """Build ``key`` at ``version`` unless that build is already pending; whether one was
-        submitted."""
+        submitted (``what``: the build in an error message, default: the builds' own ``what``
+        for ``key``)."""
         with self._lock:
             old = self._pending.get(key)
             if old is not None and old[0] == version:
                 return False
             if old is not None:
                 old[1].cancel()  # (a running one finishes; done() drops its stale result)
-            self._pending[key] = (version, self._pool.submit(build))
+            label = what or f"building {self.what} for {key} (version {version})"
+            self._pending[key] = (version, self._pool.submit(build), label)
             return True
 
     def pending(self, key: Hashable) -> Hashable | None:
@@ -59,28 +63,27 @@ class BackgroundBuilds(Generic[T]):
 
     def done(self) -> list[tuple[Hashable, Hashable, T]]:
         """The finished builds ``(key, version, result)``, each handed back once; a failed
-        build raises :class:`BuildError` naming the key (the others stay pending)."""
+        build raises :class:`BuildError` naming it (the other finished ones are handed back by
+        the next call)."""
         with self._lock:
-            finished = [(k, v, f) for k, (v, f) in self._pending.items() if f.done()]
-            for k, _, _ in finished:
+            finished = [(k, *item) for k, item in self._pending.items() if item[1].done()]
+            for k, *_ in finished:
                 del self._pending[k]
-        out = []
-        for k, v, f in finished:
-            if f.cancelled():
-                continue
+        done = [x for x in finished if not x[2].cancelled()]
+        for i, (_, _, f, label) in enumerate(done):
             exc = f.exception()
             if exc is not None:
-                raise BuildError(
-                    f"building {self.what} for {k} (version {v}) failed: {exc}"
-                ) from exc
-            out.append((k, v, f.result()))
-        return out
+                with self._lock:  # (not lost: a later want of the same key replaces them)
+                    for k, v, g, lab in done[:i] + done[i + 1 :]:
+                        self._pending.setdefault(k, (v, g, lab))
+                raise BuildError(f"{label} failed: {exc}") from exc
+        return [(k, v, f.result()) for k, v, f, _ in done]
 
     def wait(self, timeout: float = 30.0) -> None:
         """Wait until every pending build has finished (``timeout`` s at most: then
         :class:`BuildError`)."""
         with self._lock:
-            futures = [f for _, f in self._pending.values()]
+            futures = [item[1] for item in self._pending.values()]
         _, left = wait_futures(futures, timeout=timeout)
         if left:
             raise BuildError(
@@ -91,7 +94,7 @@ class BackgroundBuilds(Generic[T]):
         """Cancel what has not started, wait for a running build (``timeout`` s at most) and
         stop the worker thread."""
         with self._lock:
-            futures = [f for _, f in self._pending.values()]
+            futures = [item[1] for item in self._pending.values()]
             self._pending.clear()
         for f in futures:
             f.cancel()

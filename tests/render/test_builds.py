@@ -75,6 +75,22 @@ def test_a_failed_build_is_raised_where_results_are_taken():
         b.close()
 
 
+def test_the_builds_finished_beside_a_failed_one_are_not_lost():
+    b = BackgroundBuilds()
+
+    def fail():
+        raise OSError("disk gone")
+
+    try:
+        b.want("ok", 1, lambda: "built")
+        b.want("bad", 1, fail, "loading the kernels")
+        with pytest.raises(BuildError, match="^loading the kernels failed: disk gone"):
+            _done(b)
+        assert b.done() == [("ok", 1, "built")]
+    finally:
+        b.close()
+
+
 def test_waits_are_bounded():
     gate = threading.Event()
     b = BackgroundBuilds()

@@ -196,7 +196,7 @@ class GeometrySplitting(Strategy[Selection]):
             self._builds = BackgroundBuilds("a geometry-splitting quadtree texture")
             # the compiled kernels loaded by the worker, before its first build (not the
             # render thread: ``auto`` then uses them in both)
-            self._builds.want(_WARM_UP, 0, warm_up)
+            self._builds.want(_WARM_UP, 0, warm_up, "loading the compiled tree kernels (numba)")
         return True
 
     def close(self) -> None:
