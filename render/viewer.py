@@ -244,11 +244,17 @@ class ViewResult:
     screenshot: Path | None
 
 
-def status_line(fps: float, st: RenderStats, tau: float, metric: str, mb: float, wire: bool) -> str:
-    """The on-screen line (also the window title)."""
+def status_line(
+    fps: float, st: RenderStats, tau: float, metric: str, mb: float, wire: bool,
+    build_ms: float = 0.0,
+) -> str:  # fmt: skip
+    """The on-screen line (also the window title); ``build_ms``: the frame's per-block builds
+    on the render thread (shown when at least 0.05 ms)."""
+    build = f" + build {build_ms:.1f} ms" if build_ms >= 0.05 else ""
     return (
         f"{fps:5.1f} fps | {st.triangles:,} triangles | tau {tau:.3g} px ({metric}) | "
-        f"resident {mb:.1f} MB | sel {st.selection_ms:.1f} ms" + (" | wireframe" if wire else "")
+        f"resident {mb:.1f} MB | sel {st.selection_ms:.1f} ms{build}"
+        + (" | wireframe" if wire else "")
     )
 
 
@@ -387,7 +393,9 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             if now - tick > 0.25 or last_frame:
                 tick = now
                 label = metric if strat.uses_metric else strat.name  # whose error tau bounds
-                text = status_line(fps, last, state["tau"], label, mb, state["wire"])
+                text = status_line(
+                    fps, last, state["tau"], label, mb, state["wire"], strat.build_ms
+                )
                 overlay.set(text)
                 glfw.set_window_title(win, f"terrastream view | {text}")
             overlay.draw()

@@ -88,6 +88,9 @@ def test_status_line():
         " 59.9 fps | 123,456 triangles | tau 1.41 px (qiu) | resident 12.3 MB | sel 1.2 ms"
         " | wireframe"
     )
+    line = status_line(59.94, st, 1.0, "geometry-splitting", 1.0, False, build_ms=2.04)
+    assert line.endswith("| sel 1.2 ms + build 2.0 ms")
+    assert "build" not in status_line(59.94, st, 1.0, "qiu", 1.0, False, build_ms=0.01)
 
 
 def test_screenshot_needs_frames(tmp_path):
