@@ -171,6 +171,28 @@ def test_warm_up_loads_the_kernel_off_the_render_thread():
     assert words == ["0", "1", "True"], words
 
 
+@needs_numba
+def test_auto_uses_the_kernels_only_once_warm_up_has_loaded_them():
+    """A render thread that picked the kernels while the warm-up thread was still loading
+    them would wait for numba's compiler lock (a 40-150 ms first tree on a flight): ``auto``
+    switches only after both kernels have run (control: before ``warm_up``, numpy)."""
+    words = _fresh_process(
+        "import os\n"
+        "os.environ.pop('TERRASTREAM_KERNELS', None)\n"
+        "from render.strategies.geometry_splitting import _tree_nb, kernels\n"
+        "seen = []\n"
+        "real = _tree_nb.corner_ranges\n"
+        "def spy(*a):\n"
+        "    seen.append(kernels.resolve() is not None)\n"
+        "    return real(*a)\n"
+        "_tree_nb.corner_ranges = spy\n"
+        "before = kernels.resolve() is None\n"
+        "kernels.warm_up()\n"
+        "print(before, seen, kernels.resolve() is not None)\n"
+    )
+    assert words == ["True", "[False]", "True"], words
+
+
 def _bits(a: BlockTree) -> list[bytes]:
     return [x.tobytes() for f in ("sigma", "zmin", "zmax") for x in getattr(a, f)]
 

@@ -14,7 +14,7 @@ import numpy as np
 from render.strategies.geometry_splitting import pure
 from render.strategies.geometry_splitting.pure import BlockTree
 from render.strategies.geometry_splitting.pure import quad_errors as quad_errors_numpy
-from tiler.kernels import pick_warm, warm
+from tiler.kernels import pick_warm, requested, warm
 
 _READY: list[bool] = []  # filled by warm_up(): ``auto`` may use the compiled kernel
 
@@ -37,14 +37,14 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
 def warm_up() -> bool:
     """Import numba and the kernels now and call each once on a 3² grid, which loads them from
     numba's cache (or compiles them) here rather than on the render thread at the first tree
-    it builds (~80 ms); after it ``auto`` uses them. Whether they are available."""
-    ok = warm(_load_numba, _READY)
-    mod = _load_numba() if ok else None
+    it builds (~80 ms); only then does ``auto`` use them (a thread that called them while this
+    one loads them would wait for numba's compiler lock). Whether they are available."""
+    mod = None if requested() == "numpy" else _load_numba()
     if mod is not None:
         g = np.zeros((3, 3))
         mod.quad_errors_depth(g, np.ones((3, 3), bool), 0, np.empty((1, 1)))
         mod.corner_ranges(g, 2, np.zeros((1, 1)), np.empty((1, 1)), np.empty((1, 1)))
-    return ok
+    return warm(_load_numba, _READY)
 
 
 def quad_errors(
