@@ -95,6 +95,17 @@ class BlockSource:
         mask = self.mask(block)
         return mixed_nodes(mask, self.store.k)[: self.store.k] if has_boundary(mask) else None
 
+    def mixed_later(self, block: Block) -> Callable[[], list[np.ndarray] | None]:
+        """:meth:`mixed` as a function to call later, on any thread (what the session holds
+        taken now, unpacked or derived when called)."""
+        side = self._side(block)
+        if side is not None:
+            return (lambda: None) if side.mixed is None else partial(unpack_mixed, side.mixed)
+        mask, k = self.mask(block), self.store.k
+        if mask is None or not has_boundary(mask):
+            return lambda: None
+        return lambda: mixed_nodes(mask, k)[:k]
+
     def forget(self, block: Block) -> None:
         """Drop what is kept of ``block`` (it left the GPU; read again if it comes back)."""
         self._masks.pop(block, None)

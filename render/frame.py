@@ -134,6 +134,11 @@ class FrameServices:
         without a mask boundary (:mod:`render.block_source`)."""
         return self.source.mixed(block)
 
+    def mixed_nodes_later(self, block: Block) -> Callable[[], list[np.ndarray] | None]:
+        """:meth:`mixed_nodes` as a function to call later, on any thread
+        (:meth:`render.block_source.BlockSource.mixed_later`)."""
+        return self.source.mixed_later(block)
+
     def stored_errors(self, block: Block) -> dict[str, list[np.ndarray]]:
         """The block's stored error fields (``TerrainStore.read_errors``; from the synced
         session when its loaders kept them: :mod:`render.block_source`)."""

@@ -87,14 +87,16 @@ def build_tree(
     bound: list[np.ndarray],
     mask: np.ndarray | None,
     deep: range,
-    mixed: list[np.ndarray] | None,
+    mixed_of: Callable[[], list[np.ndarray] | None],
 ) -> BlockTree:
     """One block's quadtree texture (:func:`stored_tree`) from its level grid (``grid_of()``),
     stored ``bound`` errors, the exact errors at ``deep`` depths (full resolution, ``mask``'s
-    samples) and σ = ∞ at the ``mixed`` nodes (mask boundaries: refined). No GL: any thread."""
+    samples) and σ = ∞ at the ``mixed_of()`` nodes (mask boundaries: refined). No GL: any
+    thread."""
     grid = grid_of()
     exact = quad_errors(grid, mask, deep) if len(deep) else None
     tree = stored_tree(bound, grid, exact)
+    mixed = mixed_of()
     if mixed is not None:
         for d, sig in enumerate(tree.sigma):
             sig[mixed[d]] = np.inf
@@ -183,7 +185,7 @@ class GeometrySplitting(Strategy[Selection]):
             self.r.stored_errors(b)["bound"],
             self.r.mask(b) if len(deep) else None,
             deep,
-            self.r.mixed_nodes(b),  # (the session's loaders derived them)
+            self.r.mixed_nodes_later(b),  # (the session's loaders derived them)
         )
 
     def build_in_background(self) -> bool:
