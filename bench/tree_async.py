@@ -5,12 +5,13 @@ block is drawn with a level-6 texture first), and what the interim textures do t
 
 Usage::
 
-    python bench/tree_async.py [STORE] [--frames 120] [--pairs 2] [--tau 1] [--out PATH]
+    python bench/tree_async.py [STORE] [--frames 120] [--pairs 3] [--tau 1] [--configs ...]
+                               [--no-interim] [--out PATH]
 
 **Timing**: ``terrastream flythrough STORE --lod geometry-splitting`` as a user runs it, in
-fresh processes, three configurations per round, the order rotated every round: ``render
-thread`` (``--render-thread-builds``, the kernels as ``auto`` picks them in a one-shot command:
-numpy), ``render thread, numba`` (the same with ``TERRASTREAM_KERNELS=numba``: what compiled
+fresh processes, three configurations per round, the order rotated every round: ``render-thread``
+(``--render-thread-builds``, the kernels as ``auto`` picks them in a one-shot command:
+numpy), ``render-thread-numba`` (the same with ``TERRASTREAM_KERNELS=numba``: what compiled
 kernels alone give) and ``background`` (the default: the worker loads the compiled kernels
 before its first build). Per run, from ``frames.csv``'s ``build_ms`` (the render thread's ms
 building textures in each frame): frames over 2 ms, median of the frames that built, p95, max,
@@ -41,8 +42,8 @@ from bench.common import REPO, RESULTS, machine_info, portable  # noqa: E402
 from bench.tree_build import _utm_store  # noqa: E402
 
 CONFIGS = {
-    "render thread": (["--render-thread-builds"], {}),
-    "render thread, numba": (["--render-thread-builds"], {"TERRASTREAM_KERNELS": "numba"}),
+    "render-thread": (["--render-thread-builds"], {}),
+    "render-thread-numba": (["--render-thread-builds"], {"TERRASTREAM_KERNELS": "numba"}),
     "background": ([], {}),
 }
 
@@ -76,6 +77,8 @@ def fly(store: str, config: str, frames: int, tau: float) -> dict:
         "sum_ms": float(b.sum()),
         "mean_triangles": float(np.mean([int(r["triangles"]) for r in rows])),
         "mean_gpu_ms": float(np.mean([float(r["gpu_ms"]) for r in rows])),
+        "build_ms": [round(x, 3) for x in b.tolist()],
+        "triangles": [int(r["triangles"]) for r in rows],
     }
 
 
@@ -125,18 +128,24 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("store", nargs="?", type=Path)
     ap.add_argument("--frames", type=int, default=120)
-    ap.add_argument("--pairs", type=int, default=2, help="rounds of the three configurations")
+    ap.add_argument("--pairs", type=int, default=3, help="rounds of the configurations")
     ap.add_argument("--tau", type=float, default=1.0)
+    ap.add_argument(
+        "--configs", default=",".join(CONFIGS), help="comma-separated, of: " + ", ".join(CONFIGS)
+    )
+    ap.add_argument("--no-interim", action="store_true", help="skip the interim-texture flight")
     ap.add_argument("--out", type=Path, default=RESULTS / "tree_async.json")
     a = ap.parse_args(argv)
     store = a.store or _utm_store()
     if store is None:
         print("# the real DEM is not here and no STORE was given: nothing to fly over")
         return 1
-    names = list(CONFIGS)
+    names = [c.strip() for c in a.configs.split(",")]
+    if bad := [c for c in names if c not in CONFIGS]:
+        ap.error(f"unknown configuration(s) {bad}; choose from {list(CONFIGS)}")
     runs = []
     for rnd in range(a.pairs):
-        order = names[rnd % 3 :] + names[: rnd % 3]
+        order = names[rnd % len(names) :] + names[: rnd % len(names)]
         for c in order:
             runs.append(fly(str(store), c, a.frames, a.tau) | {"round": rnd})
     cols = ["frames_over_2ms", "median_building_ms", "p95_ms", "first_frame_ms",
@@ -144,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'config':22} {'round':>5} " + " ".join(f"{c:>18}" for c in cols))
     for r in sorted(runs, key=lambda r: (names.index(r["config"]), r["round"])):
         print(f"{r['config']:22} {r['round']:5d} " + " ".join(f"{r[c]:18.2f}" for c in cols))
-    rows = interim(str(store), a.frames, a.tau)
+    rows = [] if a.no_interim else interim(str(store), a.frames, a.tau)
     print(f"\ninterim textures: {len(rows)} frame(s)")
     print(f"{'frame':>5} {'interim':>7} {'drawn':>5} {'triangles':>10} {'at once':>10} "
           f"{'max px':>7} {'at once':>7}")  # fmt: skip
