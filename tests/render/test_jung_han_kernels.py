@@ -389,6 +389,28 @@ def test_forest_reuses_and_compacts_its_regions(stores, numba_kernels, monkeypat
     assert bad > 0
 
 
+def test_a_forest_grows_once_for_the_trees_it_receives_together(stores, numba_kernels, monkeypatch):
+    """The first compiled selection places every resident tree at once: one growth to their
+    total size (growing by doubling per tree copied the used part ~log2(n) times and touched
+    twice the memory: the viewer's switch to the compiled path, 47 -> 17 ms)."""
+    from render.strategies.jung_han.kernels import Forest
+
+    grew: list[bool] = []
+    real = Forest._reserve
+
+    def spy(self, nh, npy):
+        n0 = len(self.heights)
+        real(self, nh, npy)
+        grew.append(len(self.heights) != n0)
+
+    monkeypatch.setattr(Forest, "_reserve", spy)
+    _, fast = _pair(stores["rough"])
+    fast.select(_cameras(fast.r)["oblique"], 1.0)
+    assert len(fast._trees) >= 4
+    assert sum(grew) == 1
+    assert fast._forest._hend == sum(t.heights.size for t in fast._trees.values())
+
+
 def _unsplit_mesh(stores):
     """A mixed-level frame's triangles before the conforming split, with T-junctions."""
     ref = JungHanSelector(Services(stores["rough"]), kernels="numpy")
@@ -527,3 +549,51 @@ def test_block_hull_tests_equal_the_reference(stores, numba_kernels):
         moved_differs.append(not np.array_equal(moved[0], want[0]))
     assert any(moved_differs)
     assert seen >= {(False, False), (True, False), (True, True)}  # every outcome occurs
+
+
+_FIRST_USE = """
+import sys
+import numba
+sys.path.insert(0, {here!r})
+from test_jung_han_kernels import Services, _cameras
+from render.strategies.jung_han import JungHanSelector
+from render.strategies.jung_han import _assemble_nb, _kernels_nb, _mesh_nb, _tree_nb
+from render.strategies.jung_han import kernels as jh_kernels
+from render.strategies.jung_han.warm import warm_up_selection
+mods = (_assemble_nb, _kernels_nb, _mesh_nb, _tree_nb)
+def loaded():
+    return sum(len(getattr(m, n).signatures) for m in mods for n in dir(m)
+               if isinstance(getattr(m, n), numba.core.registry.CPUDispatcher))
+warm = {warm}
+if warm:
+    jh_kernels.warm_up(warm_up_selection)
+before = loaded()
+svc = Services({path!r})
+sel = JungHanSelector(svc, kernels="numba")
+sel.select(_cameras(svc)["oblique"], 1.0)
+print(warm, before, loaded())
+"""
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_warm_up_loads_every_kernel_a_real_selection_calls(stores, numba_kernels, warm):
+    """The viewer's warm-up runs a compiled selection of a synthetic scene
+    (``jung_han.warm``) so that the render thread's first compiled selection loads no kernel
+    (it spent ~80 ms doing so); in a fresh process, a real selection after it adds no
+    signature. Control (``warm=False``): the same selection loads its kernels itself."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = _FIRST_USE.format(here=str(Path(__file__).parent), warm=warm, path=str(stores["nodata"]))
+    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    flag, before, after = out.stdout.split()
+    if warm:
+        assert int(before) >= 4 and after == before
+    else:
+        assert before == "0" and int(after) >= 4

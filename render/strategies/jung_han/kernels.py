@@ -9,6 +9,7 @@ the trees built or rebuilt since the last frame (each frame then picks its block
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from types import ModuleType
@@ -16,7 +17,7 @@ from types import ModuleType
 import numpy as np
 
 from render.strategies.jung_han.pure import Block, BlockTree, grid_level, index_positions
-from tiler.kernels import pick_warm, warm
+from tiler.kernels import pick_warm, requested, warm
 
 
 @cache
@@ -37,10 +38,13 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
     return pick_warm(kernels, _load_numba, _READY)
 
 
-def warm_up() -> bool:
-    """Import numba and jung-han's kernels now, after which ``auto`` uses
-    them (they load from numba's cache, or compile, on their first call); whether they are
-    available."""
+def warm_up(run: Callable[[], object] | None = None) -> bool:
+    """Import numba and jung-han's kernels now, after which ``auto`` uses them; ``run``
+    (:func:`render.strategies.jung_han.warm.warm_up_selection`) calls them once first, so
+    they load from numba's cache (or compile) here and not in the render thread's first
+    compiled selection (~80 ms). Whether they are available."""
+    if run is not None and requested() != "numpy" and _load_numba() is not None:
+        run()
     return warm(_load_numba, _READY)
 
 
@@ -112,6 +116,11 @@ class Forest:
             self._free.setdefault(size, []).append((p.hoff, p.poff))
             self._hfree += size[0]
         new = [(b, t) for b, t in trees.items() if b not in self._placed]
+        if len(new) > 1:  # one growth for them all (not one per doubling)
+            sizes = [self._sizes(t) for _, t in new]
+            self._reserve(
+                self._hend + sum(h for h, _ in sizes), self._pend + sum(p for _, p in sizes)
+            )
         for b, t in new:
             self._place(b, t)
         if self._hfree > max(self._hend // 2, self.MIN_COMPACT):
