@@ -33,6 +33,7 @@ class BackgroundBuilds(Generic[T]):
         self.what = what
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_PREFIX)
         self._pending: dict[Hashable, tuple[Hashable, Future[T], str]] = {}
+        self._unfinished: set[Future[T]] = set()  # replaced ones too (close waits for them)
         self._lock = threading.Lock()  # (want/done run on one thread; close may not)
         self._closer = weakref.finalize(self, self._pool.shutdown, False, cancel_futures=True)
 
@@ -49,7 +50,10 @@ class BackgroundBuilds(Generic[T]):
             if old is not None:
                 old[1].cancel()  # (a running one finishes; done() drops its stale result)
             label = what or f"building {self.what} for {key} (version {version})"
-            self._pending[key] = (version, self._pool.submit(build), label)
+            fut = self._pool.submit(build)
+            self._unfinished.add(fut)
+            fut.add_done_callback(self._unfinished.discard)
+            self._pending[key] = (version, fut, label)
             return True
 
     def pending(self, key: Hashable) -> Hashable | None:
@@ -94,7 +98,7 @@ class BackgroundBuilds(Generic[T]):
         """Cancel what has not started, wait for a running build (``timeout`` s at most) and
         stop the worker thread."""
         with self._lock:
-            futures = [item[1] for item in self._pending.values()]
+            futures = list(self._unfinished)
             self._pending.clear()
         for f in futures:
             f.cancel()

@@ -343,6 +343,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             nodata=o.nodata,
         )
     except BaseException:
+        strat.close()
         r.close()
         raise
     # the strategies' compiled kernels, loaded beside the first frames (which use numpy's)

@@ -110,6 +110,21 @@ def test_waits_are_bounded():
     assert _workers() == []
 
 
+def test_close_waits_for_a_replaced_build_still_running_bounded():
+    gate = threading.Event()
+    b = BackgroundBuilds()
+    try:
+        b.want("blk", 1, lambda: gate.wait(10))  # running, then replaced
+        time.sleep(0.05)
+        b.want("blk", 2, lambda: "two")
+        t0 = time.monotonic()
+        with pytest.raises(BuildError, match="still ran 0.2 s after close"):
+            b.close(timeout=0.2)
+        assert time.monotonic() - t0 < 5.0
+    finally:
+        gate.set()
+
+
 def test_close_cancels_what_has_not_started():
     gate = threading.Event()
     ran: list[str] = []
