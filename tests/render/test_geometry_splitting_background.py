@@ -34,7 +34,8 @@ def store_k7(tmp_path_factory):
 
 @pytest.fixture
 def threads_of_builds(monkeypatch):
-    """The names of the threads ``build_tree`` ran on, with the level of its grid."""
+    """The names of the threads ``build_tree`` and ``packed_tree`` ran on, with the level of
+    their grid."""
     seen: list[tuple[str, int]] = []
     real = gs_gl.build_tree
 
@@ -43,7 +44,13 @@ def threads_of_builds(monkeypatch):
         seen.append((threading.current_thread().name, (grid.shape[0] - 1).bit_length() - 1))
         return real(lambda: grid, *args)
 
+    def spy_packed(bound, grid, mixed):
+        seen.append((threading.current_thread().name, (grid.shape[0] - 1).bit_length() - 1))
+        return real_packed(bound, grid, mixed)
+
+    real_packed = gs_gl.packed_tree
     monkeypatch.setattr(gs_gl, "build_tree", spy)
+    monkeypatch.setattr(gs_gl, "packed_tree", spy_packed)  # (textures below full resolution)
     return seen
 
 

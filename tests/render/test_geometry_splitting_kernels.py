@@ -14,6 +14,7 @@ from render.strategies.geometry_splitting.pure import (
     BlockTree,
     _half,
     _round_up32,
+    packed_tree,
     quad_errors,
     stored_tree,
 )
@@ -191,6 +192,21 @@ def test_auto_uses_the_kernels_only_once_warm_up_has_loaded_them():
         "print(before, seen, kernels.resolve() is not None)\n"
     )
     assert words == ["True", "[False]", "True"], words
+
+
+@needs_numba
+def test_the_compiled_packed_texture_is_the_numpy_ones_byte_for_byte():
+    """``kernels.packed_tree`` with the compiled corner ranges: the numpy reference's bytes
+    below full resolution (signed zeros among the heights, mixed nodes or not)."""
+    from test_pure_geometry_splitting import _capped_cases
+
+    cases = 0
+    for bound, grid, mixed in _capped_cases():
+        want = packed_tree(bound, grid, mixed)
+        got = kernels.packed_tree(bound, grid, mixed, kernels="numba")
+        assert got.tobytes() == want.tobytes()
+        cases += 1
+    assert cases == 50
 
 
 def _bits(a: BlockTree) -> list[bytes]:

@@ -7,6 +7,7 @@ import pytest
 
 from render.errors import RenderError
 from render.strategies.geometry_splitting import (
+    packed_tree,
     projected_error,
     quad_errors,
     roughness,
@@ -151,3 +152,41 @@ def test_packed_texture_is_sigma_bits_then_packhalf2x16(seed):
     np.testing.assert_array_equal(lo, np.concatenate([x.ravel() for x in t.zmin]))
     t.zmax[3][0, 0] = np.float16(-1.0)  # control: one changed value is seen
     assert not np.array_equal(t.packed(), got)
+
+
+def _capped_cases():
+    """Stored bounds as a store keeps them (one value per tile below the cap depth), grids at
+    every level below full resolution (signed zeros among the heights), with and without
+    mixed nodes."""
+    rng = np.random.default_rng(11)
+    for k, cap in ((3, 1), (5, 2), (5, 4), (6, 3), (6, 5)):
+        bound = [(rng.random((1 << min(d, cap),) * 2) * 40).astype(np.float16) for d in range(k)]
+        n = (1 << k) + 1
+        full = rng.normal(0, 30, (n, n)).cumsum(0)
+        full[rng.random(full.shape) < 0.05] = -0.0
+        for rr in range(k):
+            grid = full[:: 1 << (k - rr), :: 1 << (k - rr)]
+            for mixed in (None, [rng.random((1 << d,) * 2) < 0.1 for d in range(k)]):
+                yield bound, grid, mixed
+
+
+def test_packed_tree_is_the_stored_trees_texture_byte_for_byte():
+    """Below full resolution the texture is packed without the per-node arrays (σ and δ per
+    tile below the cap, ranges per ancestor): the same bytes as ``stored_tree`` with σ = ∞
+    at the mixed nodes, then ``packed``. Control: one σ changed is seen."""
+    cases = 0
+    for bound, grid, mixed in _capped_cases():
+        tree = stored_tree(bound, grid)
+        for d, sig in enumerate(tree.sigma):
+            if mixed is not None:
+                sig[mixed[d]] = np.inf
+        want = tree.packed()
+        got = packed_tree(bound, grid, mixed)
+        assert got.dtype == np.uint32 and got.tobytes() == want.tobytes()
+        lo = tree.zmin[-1]
+        lo[0, 0] = np.nextafter(lo[0, 0], np.float16(-np.inf))  # the control: a half-ulp
+        assert tree.packed().tobytes() != got.tobytes()
+        if mixed is not None:  # and the mixed nodes are written
+            assert packed_tree(bound, grid, None).tobytes() != got.tobytes()
+        cases += 1
+    assert cases == 2 * (3 + 5 + 5 + 6 + 6)  # every level below full resolution

@@ -77,6 +77,7 @@ Choices where the paper is open, and GL 4.5 / moderngl in place of DirectX 10:
 from render.strategies.geometry_splitting.gl import NO_CAP, GeometrySplitting, Selection
 from render.strategies.geometry_splitting.pure import (
     BlockTree,
+    packed_tree,
     projected_error,
     quad_errors,
     roughness,
@@ -91,6 +92,7 @@ __all__ = [
     "GeometrySplitting",
     "Selection",
     "expand_reference",
+    "packed_tree",
     "projected_error",
     "quad_errors",
     "roughness",

@@ -28,7 +28,12 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.feedback import block_neighbours, feedback_pass
-from render.strategies.geometry_splitting.kernels import quad_errors, stored_tree, warm_up
+from render.strategies.geometry_splitting.kernels import (
+    packed_tree,
+    quad_errors,
+    stored_tree,
+    warm_up,
+)
 from render.strategies.geometry_splitting.pure import BlockTree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 from streamer.camera import Camera
@@ -188,6 +193,16 @@ class GeometrySplitting(Strategy[Selection]):
             self.r.mixed_nodes_later(b),  # (the session's loaders derived them)
         )
 
+    def _texture(self, b: Block, lv: int) -> bytes:
+        """The packed texture of ``b`` for level ``lv``, built now: below full resolution
+        without the per-node arrays (:func:`packed_tree`, the same bytes; :meth:`tree` builds
+        them if asked), at full resolution from :meth:`tree` (its exact errors)."""
+        if lv >= self.k or self._tree_level.get(b) == lv:
+            return self.tree(b, lv).packed().tobytes()
+        grid = self.r.block_grid_later(b, max(lv, 0))()
+        mixed = self.r.mixed_nodes_later(b)()
+        return packed_tree(self.r.stored_errors(b)["bound"], grid, mixed).tobytes()
+
     def build_in_background(self) -> bool:
         """A block whose level changes keeps its texture until a worker thread has built the
         new one; a new block finer than :data:`PROVISIONAL_LEVEL` is drawn with the texture
@@ -238,8 +253,7 @@ class GeometrySplitting(Strategy[Selection]):
                 if self._builds is not None:  # later: the texture it has meanwhile
                     self._builds.want(b, lv, partial(_packed, self._tree_job(b, lv)))
                     continue
-                data = self.tree(b, lv).packed().tobytes()
-                self._qt_buf.write(data, offset=self._qt_offset[b] * 8)
+                self._qt_buf.write(self._texture(b, lv), offset=self._qt_offset[b] * 8)
                 self._qt_level[b] = lv
         new = [b for b in blocks if b not in self._qt_offset]
         if not new:
@@ -268,7 +282,7 @@ class GeometrySplitting(Strategy[Selection]):
             if self._builds is not None and lv > PROVISIONAL_LEVEL:  # the rest later
                 self._builds.want(b, lv, partial(_packed, self._tree_job(b, lv)))
                 lv = PROVISIONAL_LEVEL
-            self._qt_buf.write(self.tree(b, lv).packed().tobytes(), offset=self._qt_used * 8)
+            self._qt_buf.write(self._texture(b, lv), offset=self._qt_used * 8)
             self._qt_level[b] = lv
             self._qt_offset[b] = self._qt_used
             self._qt_used += per

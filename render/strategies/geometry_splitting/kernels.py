@@ -65,6 +65,30 @@ def quad_errors(
     return out
 
 
+def _corners(mod: ModuleType):
+    def corners(g: np.ndarray, step: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m = delta.shape[0]
+        lo, hi = np.empty((m, m)), np.empty((m, m))
+        mod.corner_ranges(np.ascontiguousarray(g), step, np.ascontiguousarray(delta), lo, hi)
+        return lo, hi
+
+    return corners
+
+
+def packed_tree(
+    bound: list[np.ndarray],
+    grid: np.ndarray,
+    mixed: list[np.ndarray] | None = None,
+    kernels: str | None = None,
+) -> np.ndarray:
+    """:func:`render.strategies.geometry_splitting.pure.packed_tree` (the same bytes), its
+    corner ranges by the compiled kernel when the backend ``kernels`` picks is numba."""
+    mod = resolve(kernels)
+    if mod is None:
+        return pure.packed_tree(bound, grid, mixed)
+    return pure.packed_tree(bound, grid, mixed, _corners(mod))
+
+
 def stored_tree(
     bound: list[np.ndarray],
     grid: np.ndarray,
@@ -77,11 +101,4 @@ def stored_tree(
     mod = resolve(kernels)
     if mod is None:
         return pure.stored_tree(bound, grid, exact)
-
-    def corners(g: np.ndarray, step: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        m = delta.shape[0]
-        lo, hi = np.empty((m, m)), np.empty((m, m))
-        mod.corner_ranges(np.ascontiguousarray(g), step, np.ascontiguousarray(delta), lo, hi)
-        return lo, hi
-
-    return pure.stored_tree(bound, grid, exact, corners)
+    return pure.stored_tree(bound, grid, exact, _corners(mod))

@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from render.errors import RenderError
 from streamer.camera import Camera
@@ -168,6 +169,70 @@ def stored_tree(
         zmin.append(np.repeat(np.repeat(lo, rep, 0), rep, 1) if rep > 1 else lo)
         zmax.append(np.repeat(np.repeat(hi, rep, 0), rep, 1) if rep > 1 else hi)
     return BlockTree(sigma=[_round_up32(x) for x in sig], zmin=zmin, zmax=zmax)
+
+
+def _spread(dst: np.ndarray, small: np.ndarray) -> None:
+    """Write the ``(m, m)`` per-tile values ``small`` into the flat per-node ``dst`` of
+    ``(m * rep)²`` nodes (row-major), each tile's value to its ``rep × rep`` nodes."""
+    m = small.shape[0]
+    rep = int(round((dst.size // (m * m)) ** 0.5))
+    if rep == 1:
+        dst[:] = small.ravel()
+        return
+    st = dst.strides[0]  # (a view of dst: written in place, no temporary)
+    view = as_strided(dst, (m, rep, m, rep), (rep * m * rep * st, m * rep * st, rep * st, st))
+    view[...] = small[:, None, :, None]
+
+
+def packed_tree(
+    bound: list[np.ndarray],
+    grid: np.ndarray,
+    mixed: list[np.ndarray] | None = None,
+    corners: Callable[[np.ndarray, int, np.ndarray], tuple[np.ndarray, np.ndarray]] = (
+        corner_ranges
+    ),
+) -> np.ndarray:
+    """``stored_tree(bound, grid)`` with σ = ∞ at the ``mixed`` nodes, as
+    :meth:`BlockTree.packed` gives it (the same bytes), without the per-node arrays: below
+    the store's cap depth σ and δ are one value per tile and the ranges below the grid's
+    level its ancestors', so each is computed per tile and only spread when packed (a
+    texture below full resolution, no exact errors: ~1 ms instead of ~2.5 at 1025²)."""
+    k = len(bound)
+    g = np.asarray(grid, dtype=np.float64)
+    rr = (g.shape[0] - 1).bit_length() - 1
+    if g.shape != ((1 << rr) + 1,) * 2 or not 0 <= rr <= k:
+        raise RenderError(f"expected a (2**R+1)² grid with R <= {k}, got {g.shape}")
+    deltas = [np.asarray(x, dtype=np.float64) for x in bound]  # one value per tile
+    sig = list(deltas)
+    for d in range(k - 2, -1, -1):
+        child = sig[d + 1]
+        pooled = max_pool(child, 2) if child.shape[0] > sig[d].shape[0] else child
+        sig[d] = np.maximum(sig[d], 2.0 * pooled)
+    n = ((1 << (2 * k)) - 1) // 3
+    out = np.empty((n, 2), np.uint32)
+    half = out.view(np.uint16).reshape(n, 4)
+    big = sys.byteorder != "little"
+    ranges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    off = 0
+    for d in range(k):
+        m = 1 << (2 * d)
+        _spread(out[off : off + m, 0], _round_up32(sig[d]).view(np.uint32))
+        a = min(d, rr, k - 1)
+        if a not in ranges:
+            delta = _per_node(deltas[a], a)
+            lo, hi = corners(g, 1 << (rr - a), delta)
+            ranges[a] = (_half(lo, False).view(np.uint16), _half(hi, True).view(np.uint16))
+        lo, hi = ranges[a]
+        if big:  # (packHalf2x16: zmin in the low 16 bits of the word)
+            col = lo.astype(np.uint32) | (hi.astype(np.uint32) << 16)
+            _spread(out[off : off + m, 1], col)
+        else:
+            _spread(half[off : off + m, 2], lo)
+            _spread(half[off : off + m, 3], hi)
+        if mixed is not None:
+            out[off : off + m, 0][np.asarray(mixed[d]).ravel()] = np.float32(np.inf).view(np.uint32)
+        off += m
+    return out
 
 
 def projected_error(
