@@ -153,8 +153,10 @@ def flythrough(
             exc.frames_flown = len(rows)  # type: ignore[attr-defined]
         raise
     finally:
-        strat.close()
-        r.close()
+        try:
+            strat.close()  # (its worker stopped: bounded, an error if a build hangs)
+        finally:
+            r.close()
     problem = flight_problem(summary, unfinished, str(getattr(store, "url", store)))
     empty = [x.frame for x in rows if x.drawn_px == 0]
     if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind

@@ -411,8 +411,10 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     finally:
         session.close()
         warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds
-        strat.close()
-        r.close()
+        try:
+            strat.close()
+        finally:
+            r.close()
     return ViewResult(n, last, state["tau"], mb, shot)
 
 
