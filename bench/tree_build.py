@@ -2,7 +2,9 @@
 (issue 14): the exact deepest-depth errors (``quad_errors``: numpy and the numba kernel, checked
 equal), the texture itself (``stored_tree``: numpy, and with its corner ranges compiled) and
 the mask's mixed nodes (derived, or unpacked
-from what a session's loaders kept), per block and resident level.
+from what a session's loaders kept), per block and resident level; below full resolution also
+the packed texture the former way (``stored_tree``, σ = ∞ at the mixed nodes, ``packed``)
+against ``packed_tree`` (the same bytes, checked).
 
 Usage::
 
@@ -24,6 +26,7 @@ import statistics
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -39,6 +42,7 @@ from bench.common import (  # noqa: E402
     machine_info,
     portable,
 )
+from render.strategies.geometry_splitting import pure  # noqa: E402
 from render.strategies.geometry_splitting.pure import quad_errors, stored_tree  # noqa: E402
 from streamer.nodata import has_boundary, mixed_nodes  # noqa: E402
 from tiler.store import open_store  # noqa: E402
@@ -86,6 +90,15 @@ def _bytes(tree) -> list[bytes]:
     return [x.tobytes() for f in ("sigma", "zmin", "zmax") for x in getattr(tree, f)]
 
 
+def _texture_via_tree(bound, grid, mixed) -> np.ndarray:
+    """The packed texture the former way: the per-node tree, σ = ∞ at the mixed nodes."""
+    tree = stored_tree(bound, grid)
+    for d, sig in enumerate(tree.sigma):
+        if mixed is not None:
+            sig[mixed[d]] = np.inf
+    return tree.packed()
+
+
 def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
     """Per resident level: the median over the blocks of each part's median ms."""
     s = open_store(path)
@@ -119,6 +132,14 @@ def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
                 parts.setdefault("stored_tree numba", []).append(
                     _ms(reps, kern.stored_tree, bound, grid, exact, "numba")
                 )
+            if lv < k and hasattr(pure, "packed_tree"):  # the texture below full resolution
+                mixed = mixed_nodes(mask, k)[:k] if has_boundary(mask) else None
+                via = partial(_texture_via_tree, bound, grid, mixed)
+                assert pure.packed_tree(bound, grid, mixed).tobytes() == via().tobytes()
+                parts.setdefault("texture via stored_tree", []).append(_ms(reps, via))
+                parts.setdefault("texture packed_tree", []).append(
+                    _ms(reps, pure.packed_tree, bound, grid, mixed)
+                )
             if has_boundary(mask):
                 parts.setdefault("mixed nodes derived", []).append(_ms(reps, mixed_nodes, mask, k))
                 unpack = _unpacked(mixed_nodes(mask, k), k)
@@ -147,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in stores:
         rows += measure(path, a.levels.split(","), a.reps)
     cols = ["quad_errors numpy", "quad_errors numba", "stored_tree", "stored_tree numba",
-            "mixed nodes derived", "mixed nodes unpacked"]  # fmt: skip
+            "texture via stored_tree", "texture packed_tree", "mixed nodes derived",
+            "mixed nodes unpacked"]  # fmt: skip
     print(f"{'store':28} {'level':>5} " + " ".join(f"{c:>21}" for c in cols))
     for r in rows:
         vals = " ".join(f"{r[c]:21.2f}" if c in r else f"{'—':>21}" for c in cols)
