@@ -43,6 +43,7 @@ class FlyRow:
     gpu_ms: float
     loaded_mb: float
     resident_mb: float
+    strategy_gpu_mb: float  # the strategy's own GPU buffers (meshes, quadtree textures)
     stalled: bool
     clamped: int
     visible_blocks: int  # blocks in the view (0: the camera sees none of the DEM)
@@ -137,6 +138,7 @@ def flythrough(
                     gpu_ms=st.frame_ms,
                     loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
                     resident_mb=fs.resident_bytes / 2**20,
+                    strategy_gpu_mb=strat.own_gpu_bytes() / 2**20,
                     stalled=fs.stalled,
                     clamped=st.clamped,
                     visible_blocks=fs.visible_blocks,
@@ -187,6 +189,7 @@ def flythrough(
         "mean_build_ms": float(np.mean([x.build_ms for x in rows])),
         "max_build_ms": float(np.max([x.build_ms for x in rows])),
         "mean_gpu_ms": float(np.mean([x.gpu_ms for x in rows])),
+        "max_strategy_gpu_mb": float(np.max([x.strategy_gpu_mb for x in rows])),
         "stall_frames": int(sum(x.stalled for x in rows)),
         "clamped_frames": int(sum(x.clamped > 0 for x in rows)),
         "empty_frames": len(empty),

@@ -108,6 +108,8 @@ def test_a_geometry_splitting_flythrough_reports_its_texture_builds(store, tmp_p
     assert float(rows[0]["build_ms"]) > 0.0  # the first frame's blocks are new: built there
     summary = json.loads((out / "summary.json").read_text())
     assert summary["max_build_ms"] == max(float(r["build_ms"]) for r in rows)
+    gpu_mb = [float(r["strategy_gpu_mb"]) for r in rows]  # its texture buffer
+    assert min(gpu_mb) > 0.0 and summary["max_strategy_gpu_mb"] == max(gpu_mb)
     assert "builds max" in res.output
     left = [t.name for t in threading.enumerate() if t.name.startswith("terrastream-block")]
     assert left == []  # the worker stopped with the flight

@@ -14,6 +14,7 @@ import render.strategies.geometry_splitting.gl as gs_gl
 from render.builds import BuildError
 from render.renderer import RenderConfig, TerrainRenderer
 from render.strategies import get_strategy
+from render.strategies.geometry_splitting import texture_nodes
 from streamer.camera import Camera
 from tiler.store import open_store
 
@@ -44,9 +45,9 @@ def threads_of_builds(monkeypatch):
         seen.append((threading.current_thread().name, (grid.shape[0] - 1).bit_length() - 1))
         return real(lambda: grid, *args)
 
-    def spy_packed(bound, grid, mixed):
+    def spy_packed(bound, grid, mixed, depth=None):
         seen.append((threading.current_thread().name, (grid.shape[0] - 1).bit_length() - 1))
-        return real_packed(bound, grid, mixed)
+        return real_packed(bound, grid, mixed, depth=depth)
 
     real_packed = gs_gl.packed_tree
     monkeypatch.setattr(gs_gl, "build_tree", spy)
@@ -68,15 +69,16 @@ def _raise(r: TerrainRenderer, level: int) -> None:
 
 
 def _texture(st, b) -> bytes:
-    per = ((1 << (2 * st.k)) - 1) // 3
-    return st._qt_buf.read(per * 8, offset=st._qt_offset[b] * 8)
+    """The texture the GPU holds for ``b`` (as deep as it is stored node by node)."""
+    return st._tex.read(b)
 
 
 def _want(path, b, level: int) -> bytes:
     """The texture a strategy that builds at once uploads for ``b`` at ``level``."""
     r = _renderer(path, level)
     try:
-        return get_strategy("geometry-splitting", r).tree(b, level).packed().tobytes()
+        st = get_strategy("geometry-splitting", r)
+        return st.tree(b, level).packed(st._depth(b, level)).tobytes()
     finally:
         r.close()
 
@@ -97,6 +99,15 @@ def test_a_level_change_is_built_off_the_render_thread(store_k7, threads_of_buil
         assert st.leaf_nodes(sel)[:, 1].max() > 3  # (the heights' level is the cap)
         here = [lv for name, lv in threads_of_builds if name == threading.current_thread().name]
         assert here == []  # nothing built in the frame
+        # level 3's textures are compact (depths past 3 one entry per depth-3 node: the store's
+        # error cap is 3); read past it, they give what the CPU twin gets from their trees
+        assert {st._tex.depth[b] for b in r.store.blocks()} == {3}
+        counts, leaves, _ = st.expand_reference(CAM, 1.0)
+        got = st.leaf_nodes(sel)
+        assert sel.pass_counts == counts
+        np.testing.assert_array_equal(got[np.lexsort(got.T[::-1])], leaves)
+        me = threading.current_thread().name  # (the twin's level-3 trees, built here)
+        threads_of_builds[:] = [x for x in threads_of_builds if x != (me, 3)]
         st.settle()
         st.select(CAM, 1.0)  # uploads what the worker built
         assert st.interim_blocks() == []
@@ -172,7 +183,8 @@ def test_a_failed_background_build_is_raised_on_the_render_thread(store_k7, monk
         r.close()
 
 
-def test_growing_the_buffer_keeps_every_texture(tmp_path):
+def test_growing_the_buffer_keeps_every_texture(tmp_path, monkeypatch):
+    monkeypatch.setattr(gs_gl, "TEXTURE_MIN_BYTES", 0)  # (else room for the 64 blocks at once)
     path = tile_dem(tmp_path, rough(257, 9), 33)  # 64 blocks of 33²
     s = open_store(path)
     r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
@@ -183,13 +195,106 @@ def test_growing_the_buffer_keeps_every_texture(tmp_path):
         for b in first:
             r.upload(b, s.read_levels(b, 3))
         st.select(CAM, 1.0)
-        size0 = st._qt_buf.size
+        size0 = st._tex.nbytes
         for b in rest:
             r.upload(b, s.read_levels(b, 5))
         st.select(CAM, 1.0)
-        assert st._qt_buf.size > size0  # (grown: the first blocks' textures copied)
+        assert st._tex.nbytes > size0  # (grown: the first blocks' textures copied)
         for b in blocks:
             lv = 3 if b in first else 5
-            assert _texture(st, b) == st.tree(b, lv).packed().tobytes()
+            assert _texture(st, b) == st.tree(b, lv).packed(st._depth(b, lv)).tobytes()
     finally:
         r.close()
+
+
+def _churn(path, steps: int) -> list[int]:
+    """Four blocks on the GPU at a time, the window sliding one block a frame (as along a
+    flight); the texture buffer's bytes after each frame, every drawn texture checked."""
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    sizes = []
+    try:
+        st = get_strategy("geometry-splitting", r)
+        blocks = list(s.blocks())
+        for i in range(steps):
+            window = blocks[i : i + 4]
+            for b in list(r.pool.slots):
+                if b not in window:
+                    r.pool.release(b)
+            for b in window:
+                if r.gpu_level(b) < 0:
+                    r.upload(b, s.read_levels(b, 3 + i % 3))
+            st.select(CAM, 1.0)
+            sizes.append(st.own_gpu_bytes())
+            for b in window:  # a reused slot holds its new block's texture, the others theirs
+                lv = r.gpu_level(b)
+                assert _texture(st, b) == st.tree(b, lv).packed(st._depth(b, lv)).tobytes()
+        return sizes
+    finally:
+        r.close()
+
+
+@pytest.mark.parametrize("cache_textures", [0, 6])
+def test_released_blocks_free_their_texture_slots(tmp_path, monkeypatch, cache_textures):
+    path = tile_dem(tmp_path, rough(257, 9), 33)  # 64 blocks of 33², k = 5
+    per_bytes = texture_nodes(5, 4) * 8  # the largest texture (levels 3-5: depth 3 or 4)
+    monkeypatch.setattr(gs_gl, "TEXTURE_CACHE_BYTES", cache_textures * per_bytes)
+    monkeypatch.setattr(gs_gl, "TEXTURE_MIN_BYTES", 0)  # (else the whole store's 64 blocks)
+    sizes = _churn(path, 40)
+    # twice the live blocks' largest textures, or the cache of departed blocks', all along
+    assert max(sizes) <= max(2 * 4, cache_textures) * per_bytes
+    assert sizes[-1] == max(sizes)
+
+
+def test_control_without_releases_the_buffer_grows_with_the_blocks_seen(tmp_path, monkeypatch):
+    from render.strategies.geometry_splitting.slots import SlotTable
+
+    monkeypatch.setattr(SlotTable, "release_all_but", lambda self, live: [])
+    path = tile_dem(tmp_path, rough(257, 9), 33)
+    monkeypatch.setattr(gs_gl, "TEXTURE_CACHE_BYTES", 0)
+    monkeypatch.setattr(gs_gl, "TEXTURE_MIN_BYTES", 0)
+    assert max(_churn(path, 40)) >= 40 * texture_nodes(5, 3) * 8  # (the smallest texture)
+
+
+def _leave_and_return(path, monkeypatch) -> list[int]:
+    """Blocks 0-3 drawn, block 0 dropped while 4 arrives, then 0 back (4 dropped); how many
+    textures the render thread built in each of the three frames (each texture checked)."""
+    s = open_store(path)
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    built: list[list[int]] = []
+    real = gs_gl.GeometrySplitting._texture
+
+    def spy(self, b, lv):
+        built[-1].append(b)
+        return real(self, b, lv)
+
+    monkeypatch.setattr(gs_gl.GeometrySplitting, "_texture", spy)
+    try:
+        st = get_strategy("geometry-splitting", r)
+        blocks = list(s.blocks())
+        for i, (gone, come) in enumerate([((), blocks[:4]), (blocks[:1], blocks[4:5]),
+                                          (blocks[4:5], blocks[:1])]):  # fmt: skip
+            built.append([])
+            for b in gone:
+                r.pool.release(b)
+            for b in come:
+                r.upload(b, s.read_levels(b, 4))
+            st.select(CAM, 1.0)
+            for b in r.pool.slots:
+                assert _texture(st, b) == st.tree(b, 4).packed(st._depth(b, 4)).tobytes(), (i, b)
+        return [len(x) for x in built]
+    finally:
+        r.close()
+
+
+def test_a_block_back_before_its_slot_is_taken_keeps_its_texture(tmp_path, monkeypatch):
+    path = tile_dem(tmp_path, rough(257, 9), 33)
+    assert _leave_and_return(path, monkeypatch) == [4, 1, 0]
+
+
+def test_control_without_revival_the_returning_block_is_rebuilt(tmp_path, monkeypatch):
+    from render.strategies.geometry_splitting.slots import SlotTable
+
+    monkeypatch.setattr(SlotTable, "revive", lambda self, key: False)
+    path = tile_dem(tmp_path, rough(257, 9), 33)
+    assert _leave_and_return(path, monkeypatch) == [4, 1, 1]

@@ -12,6 +12,8 @@ from render.strategies.geometry_splitting import (
     quad_errors,
     roughness,
     stored_tree,
+    texture_depth,
+    texture_nodes,
 )
 from streamer.camera import Camera
 from tiler.static_error import bound_errors
@@ -190,3 +192,67 @@ def test_packed_tree_is_the_stored_trees_texture_byte_for_byte():
             assert packed_tree(bound, grid, None).tobytes() != got.tobytes()
         cases += 1
     assert cases == 2 * (3 + 5 + 5 + 6 + 6)  # every level below full resolution
+
+
+def _expand(compact: np.ndarray, k: int, top: int) -> np.ndarray:
+    """A compact texture (:func:`texture_nodes`) in the full layout: each node of a depth
+    past ``top`` reads its depth-``top`` ancestor's entry, as the shader indexes it."""
+    rows, off = [], 0
+    for d in range(k):
+        a = min(d, top)
+        m = 1 << a
+        block = compact[off : off + m * m].reshape(m, m, 2)
+        rep = 1 << (d - a)
+        rows.append(block.repeat(rep, 0).repeat(rep, 1).reshape(-1, 2))
+        off += m * m
+    assert off == len(compact) == texture_nodes(k, top)
+    return np.concatenate(rows)
+
+
+def test_texture_nodes_and_depth():
+    for k in range(1, 12):
+        assert texture_nodes(k, k - 1) == ((1 << (2 * k)) - 1) // 3  # all depths
+        assert all(texture_nodes(k, d) < texture_nodes(k, d + 1) for d in range(k - 1))
+    assert texture_nodes(10, 6) == 17_749  # a level-6 texture at 1025²: 142 KB, not 2.8 MB
+    assert texture_depth(10, 4, 6, False) == 6 and texture_depth(10, 8, 6, False) == 8
+    assert texture_depth(10, 10, 6, False) == 9  # full resolution: exact errors per node
+    assert texture_depth(10, 4, 6, True) == 9  # nodata: σ = ∞ per mixed node
+    assert texture_depth(10, 4, 12, False) == 9 and texture_depth(3, 0, 0, False) == 0
+
+
+def test_a_compact_texture_reads_as_the_full_one():
+    """Below full resolution without nodata, past ``texture_depth`` every depth's values are
+    one per node of that depth (σ per cap tile, ranges per grid node), so the compact texture
+    read as the shader reads it is the full one; ``packed_tree`` gives the same bytes as
+    ``BlockTree.packed``. Control: with mixed nodes (σ = ∞ per node) it is not."""
+    cases = 0
+    for bound, grid, mixed in _capped_cases():
+        k = len(bound)
+        rr = (grid.shape[0] - 1).bit_length() - 1
+        cap = next((d for d in range(k) if bound[d].shape[0] < 1 << d), k) - 1
+        tree = stored_tree(bound, grid)
+        if mixed is None:
+            top = texture_depth(k, rr, cap, False)
+            got = packed_tree(bound, grid, None, depth=top)
+            assert got.tobytes() == tree.packed(top).tobytes()
+            assert np.array_equal(_expand(got, k, top), tree.packed())
+            cases += top < k - 1
+        else:
+            for d, sig in enumerate(tree.sigma):
+                sig[mixed[d]] = np.inf
+            top = max(rr, cap)
+            if top < k - 1:  # the control: compacted anyway, the per-node ∞ are lost
+                assert not np.array_equal(_expand(tree.packed(top), k, top), tree.packed())
+                with pytest.raises(RenderError, match="needs no mixed nodes"):
+                    packed_tree(bound, grid, mixed, depth=top)
+    assert cases == 11  # (k, cap) (3, 1): rr 0, 1; (5, 2): 0-3; (6, 3): 0-4; (5, 4), (6, 5): none
+
+
+def test_a_texture_shallower_than_the_level_or_cap_is_refused():
+    rng = np.random.default_rng(2)
+    bound = [rng.random((1 << min(d, 2),) * 2).astype(np.float16) for d in range(5)]
+    grid = rng.normal(0, 5, (9, 9))  # level 3
+    with pytest.raises(RenderError, match="grid's level 3 and the error cap 2"):
+        packed_tree(bound, grid, None, depth=2)
+    with pytest.raises(RenderError, match="texture depth 7"):
+        stored_tree(bound, grid).packed(7)

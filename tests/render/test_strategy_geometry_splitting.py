@@ -71,7 +71,7 @@ def test_the_texture_follows_the_resident_level(rough_store):
     for bb in store.blocks():  # the finer levels arrive: the texture is rebuilt for level 5
         st.r.upload(bb, store.read_levels(bb, 5))
     sel5, _ = st.select(OBLIQUE, 0.5)
-    assert st._qt_level[b] == 5 and st.leaf_nodes(sel5)[:, 1].max() > 3
+    assert st._tex.level[b] == 5 and st.leaf_nodes(sel5)[:, 1].max() > 3
     full = store.read_block(b)
     want = stored_tree(store.read_errors(b)["bound"], full, quad_errors(full, None, range(2, 5)))
     np.testing.assert_array_equal(st.tree(b).sigma[4], want.sigma[4])

@@ -82,6 +82,8 @@ from render.strategies.geometry_splitting.pure import (
     quad_errors,
     roughness,
     stored_tree,
+    texture_depth,
+    texture_nodes,
 )
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
 
@@ -97,4 +99,6 @@ __all__ = [
     "quad_errors",
     "roughness",
     "stored_tree",
+    "texture_depth",
+    "texture_nodes",
 ]

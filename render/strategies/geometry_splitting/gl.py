@@ -34,8 +34,9 @@ from render.strategies.geometry_splitting.kernels import (
     stored_tree,
     warm_up,
 )
-from render.strategies.geometry_splitting.pure import BlockTree
+from render.strategies.geometry_splitting.pure import BlockTree, texture_depth
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
+from render.strategies.geometry_splitting.textures import TextureStore, Write
 from streamer.camera import Camera
 
 NO_CAP = 99  # border cap meaning "no restriction"
@@ -44,6 +45,13 @@ _WARM_UP = ("kernels",)  # the background builds' first job
 #: grid (~2 ms at 1025²: its ranges from 65² corners, no exact errors), the texture of its
 #: resident level on the worker thread
 PROVISIONAL_LEVEL = 6
+#: the texture buffer grows up to this size (or the store's blocks) to keep the textures of
+#: blocks that left the GPU, for when they come back; past it the oldest gives way (a buffer
+#: with more live blocks than this grows for them: ``slots.SlotTable``)
+TEXTURE_CACHE_BYTES = 64 << 20
+#: the first texture buffer's size, at least (or every block's full texture, if less): each
+#: growth is a new buffer (zero-filled: ~0.45 ms a MiB on llvmpipe) and a copy
+TEXTURE_MIN_BYTES = 16 << 20
 HERE = Path(__file__).parent
 
 
@@ -108,9 +116,9 @@ def build_tree(
     return tree
 
 
-def _packed(job: Callable[[], BlockTree]) -> tuple[BlockTree, bytes]:
+def _packed(job: Callable[[], BlockTree], depth: int) -> tuple[BlockTree, bytes, int]:
     tree = job()
-    return tree, tree.packed().tobytes()
+    return tree, tree.packed(depth).tobytes(), depth
 
 
 def _release(*bufs) -> None:
@@ -151,17 +159,17 @@ class GeometrySplitting(Strategy[Selection]):
         self.probe_prog = ctx.program(vertex_shader=_src("probe.vert"), varyings=["t_out"])
         self.trees: dict[Block, BlockTree] = {}
         self._tree_level: dict[Block, int] = {}  # the resident level each tree was built for
-        self._qt_level: dict[Block, int] = {}  # ... and each uploaded texture
-        self._qt_offset: dict[Block, int] = {}
-        self._qt_buf: moderngl.Buffer | None = None
-        self._qt_used = 0
+        g = renderer.grid  # the textures on the GPU (their levels and depths)
+        self._tex = TextureStore(
+            ctx, self.k, g.rows * g.cols, TEXTURE_CACHE_BYTES, TEXTURE_MIN_BYTES
+        )
         self.heights = GlobalHeights(renderer.store)
         self._builds: BackgroundBuilds[tuple[BlockTree, bytes]] | None = None
         check_gl(ctx, "creating the geometry-splitting programs")
 
     def own_gpu_bytes(self) -> int:
         """The quadtree texture buffer (σ and height ranges of every resident block)."""
-        return self._qt_buf.size if self._qt_buf is not None else 0
+        return self._tex.nbytes
 
     # -- quadtree texture --------------------------------------------------------------------
 
@@ -178,7 +186,7 @@ class GeometrySplitting(Strategy[Selection]):
     def gpu_tree(self, b: Block, level: int) -> BlockTree:
         """The tree of the texture the GPU holds for ``b`` (drawn at ``level``): built for
         ``level``, or for the level before while its rebuild runs in the background."""
-        return self.tree(b, self._qt_level.get(b, level) if self._builds else level)
+        return self.tree(b, self._tex.level.get(b, level) if self._builds else level)
 
     def _tree_job(self, b: Block, lv: int) -> Callable[[], BlockTree]:
         """Building ``b``'s tree for level ``lv``: its inputs gathered now, on the render
@@ -193,15 +201,24 @@ class GeometrySplitting(Strategy[Selection]):
             self.r.mixed_nodes_later(b),  # (the session's loaders derived them)
         )
 
-    def _texture(self, b: Block, lv: int) -> bytes:
-        """The packed texture of ``b`` for level ``lv``, built now: below full resolution
-        without the per-node arrays (:func:`packed_tree`, the same bytes; :meth:`tree` builds
-        them if asked), at full resolution from :meth:`tree` (its exact errors)."""
+    def _depth(self, b: Block, lv: int) -> int:
+        """The depth ``b``'s texture for level ``lv`` stores node by node
+        (:func:`~render.strategies.geometry_splitting.pure.texture_depth`)."""
+        cap = self.r.store.meta.error_cap
+        return texture_depth(self.k, max(lv, 0), cap, self.r.mask(b) is not None)
+
+    def _texture(self, b: Block, lv: int) -> tuple[bytes, int]:
+        """The packed texture of ``b`` for level ``lv``, built now, and its depth: below full
+        resolution without the per-node arrays (:func:`packed_tree`, the same bytes;
+        :meth:`tree` builds them if asked), at full resolution from :meth:`tree` (its exact
+        errors)."""
+        depth = self._depth(b, lv)
         if lv >= self.k or self._tree_level.get(b) == lv:
-            return self.tree(b, lv).packed().tobytes()
+            return self.tree(b, lv).packed(depth).tobytes(), depth
         grid = self.r.block_grid_later(b, max(lv, 0))()
         mixed = self.r.mixed_nodes_later(b)()
-        return packed_tree(self.r.stored_errors(b)["bound"], grid, mixed).tobytes()
+        bound = self.r.stored_errors(b)["bound"]
+        return packed_tree(bound, grid, mixed, depth=depth).tobytes(), depth
 
     def build_in_background(self) -> bool:
         """A block whose level changes keeps its texture until a worker thread has built the
@@ -224,7 +241,7 @@ class GeometrySplitting(Strategy[Selection]):
     def interim_blocks(self, resident: dict[Block, int] | None = None) -> list[Block]:
         """The drawn blocks whose texture is not yet their drawn level's (its build runs in
         the background)."""
-        return [b for b, lv in self.r.drawable(resident) if self._qt_level.get(b, lv) != lv]
+        return [b for b, lv in self.r.drawable(resident) if self._tex.level.get(b, lv) != lv]
 
     def settle(self, timeout: float = 30.0) -> None:
         """Wait for the background builds asked for so far (:meth:`build_in_background`);
@@ -232,16 +249,18 @@ class GeometrySplitting(Strategy[Selection]):
         if self._builds is not None:
             self._builds.wait(timeout)
 
-    def _take_built(self, level: dict[Block, int]) -> None:
-        """Upload the background builds that finished, where the block still has its texture
-        and the level they were built for."""
+    def _take_built(self, level: dict[Block, int]) -> list[Write]:
+        """The background builds that finished, where the block still has its texture and the
+        level they were built for: to write."""
+        out = []
         for b, lv, built in self._builds.done() if self._builds else ():
             if b == _WARM_UP:
                 continue
-            tree, data = built
-            if b in self._qt_offset and level.get(b, self.r.gpu_level(b)) == lv:
-                self._qt_buf.write(data, offset=self._qt_offset[b] * 8)
-                self.trees[b], self._tree_level[b], self._qt_level[b] = tree, lv, lv
+            tree, data, depth = built
+            if b in self._tex.offset and level.get(b, self.r.gpu_level(b)) == lv:
+                out.append((b, lv, data, depth))
+                self.trees[b], self._tree_level[b] = tree, lv
+        return out
 
     def _upload_trees(self, pairs: list[tuple[Block, int]]) -> None:
         later: list[tuple[Block, int]] = []  # background builds, asked for after the frame's
@@ -249,53 +268,40 @@ class GeometrySplitting(Strategy[Selection]):
             self._place_textures(pairs, later)
         finally:
             for b, lv in later:
-                self._builds.want(b, lv, partial(_packed, self._tree_job(b, lv)))
+                job = partial(_packed, self._tree_job(b, lv), self._depth(b, lv))
+                self._builds.want(b, lv, job)
 
     def _place_textures(self, pairs: list[tuple[Block, int]], later: list) -> None:
         """Write the textures ``pairs`` need now; append those left to the worker to
         ``later``."""
-        blocks = [b for b, _ in pairs]
         level = dict(pairs)
-        per = ((1 << (2 * self.k)) - 1) // 3
-        self._take_built(level)
-        for b, lv in pairs:  # resident level changed: rewrite the block's texture in place
-            if b in self._qt_offset and self._qt_level.get(b) != lv:
-                if self._builds is not None:  # later: the texture it has meanwhile
-                    later.append((b, lv))
-                    continue
-                self._qt_buf.write(self._texture(b, lv), offset=self._qt_offset[b] * 8)
-                self._qt_level[b] = lv
-        new = [b for b in blocks if b not in self._qt_offset]
-        if not new:
-            return
-        cap = 0 if self._qt_buf is None else self._qt_buf.size // 8
-        if self._qt_used + per * len(new) > cap:  # a larger buffer, the kept textures copied
-            keep = [b for b in self._qt_offset if self.r.gpu_level(b) >= 0 or b in blocks]
-            size = max(2 * cap, per * (len(keep) + len(new)), per)
-            old, old_offset = self._qt_buf, self._qt_offset
-            self._qt_buf = self.r.ctx.buffer(reserve=size * 8)
-            self._qt_offset, self._qt_used = {}, 0
-            for b in keep:  # (GPU to GPU: their trees as they were, nothing rebuilt)
-                self.r.ctx.copy_buffer(
-                    self._qt_buf, old, per * 8, read_offset=old_offset[b] * 8,
-                    write_offset=self._qt_used * 8,
-                )  # fmt: skip
-                self._qt_offset[b] = self._qt_used
-                self._qt_used += per
-            if old is not None:
-                old.release()
-            self.trees = {b: t for b, t in self.trees.items() if b in keep or b in new}
-            self._tree_level = {b: v for b, v in self._tree_level.items() if b in self.trees}
-            self._qt_level = {b: v for b, v in self._qt_level.items() if b in keep}
-        for b in new:
-            lv = level.get(b, self.r.gpu_level(b))
-            if self._builds is not None and lv > PROVISIONAL_LEVEL:  # the rest later
+        tex = self._tex
+        tex.keep([b for b in tex.offset if b in level or self.r.gpu_level(b) >= 0])
+        for b in [b for b in self.trees if not tex.holds(b)]:  # (no texture, no heights)
+            if b not in level and self.r.gpu_level(b) < 0:
+                self._forget(b)
+        for b, _ in pairs:  # back on the GPU before its slot was taken: its texture is there
+            if b not in tex.offset:
+                tex.revive(b)
+        writes = self._take_built(level)
+        fresh = {b for b, *_ in writes}
+        for b, lv in pairs:
+            if b in fresh or tex.level.get(b, lv) == lv and b in tex.offset:
+                continue
+            if b in tex.offset and self._builds is not None:  # later: it keeps its texture
                 later.append((b, lv))
+                continue
+            if b not in tex.offset and self._builds is not None and lv > PROVISIONAL_LEVEL:
+                later.append((b, lv))  # a new block: the rest later
                 lv = PROVISIONAL_LEVEL
-            self._qt_buf.write(self._texture(b, lv), offset=self._qt_used * 8)
-            self._qt_level[b] = lv
-            self._qt_offset[b] = self._qt_used
-            self._qt_used += per
+            writes.append((b, lv, *self._texture(b, lv)))
+        for b in tex.write(writes):
+            self._forget(b)
+
+    def _forget(self, b: Block) -> None:
+        """Drop ``b``'s tree (its texture has gone, or it never had one)."""
+        self.trees.pop(b, None)
+        self._tree_level.pop(b, None)
 
     def block_table(
         self, resident: dict[Block, int] | None = None
@@ -309,7 +315,7 @@ class GeometrySplitting(Strategy[Selection]):
         for i, (b, lv) in enumerate(pairs):
             s = self.r.slot(b)
             t[i, 0:4] = (b[1] << k, b[0] << k, s.offset, lv)
-            t[i, 4:6] = (self._qt_offset.get(b, 0), s.page)
+            t[i, 4:7] = (self._tex.offset.get(b, 0), s.page, self._tex.depth.get(b, k - 1))
             t[i, 8:12] = nb[i]
             for dr, j in enumerate(nb[i].tolist()):
                 cross = j >= 0 and self.r.slot(blocks[j]).page != s.page
@@ -326,8 +332,7 @@ class GeometrySplitting(Strategy[Selection]):
         if "slab" in prog:
             prog["slab"].value = self.r.terrain_zrange
         block_buf.bind_to_storage_buffer(4)
-        if self._qt_buf is not None:
-            self._qt_buf.bind_to_storage_buffer(5)
+        self._tex.bind(5)
 
     def _pass(self, prog, src, fmt, names, n, out_per, rec_bytes) -> tuple[moderngl.Buffer, int]:
         return feedback_pass(self.r.ctx, prog, src, fmt, names, n, out_per, rec_bytes)
@@ -424,7 +429,7 @@ class GeometrySplitting(Strategy[Selection]):
         return sel.gpu_ms
 
     def draw_gpu_bytes(self) -> int:
-        return self._qt_buf.size if self._qt_buf else 0
+        return self._tex.nbytes
 
     # -- read-backs --------------------------------------------------------------------------
 

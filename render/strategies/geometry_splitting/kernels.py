@@ -80,13 +80,14 @@ def packed_tree(
     grid: np.ndarray,
     mixed: list[np.ndarray] | None = None,
     kernels: str | None = None,
+    depth: int | None = None,
 ) -> np.ndarray:
     """:func:`render.strategies.geometry_splitting.pure.packed_tree` (the same bytes), its
     corner ranges by the compiled kernel when the backend ``kernels`` picks is numba."""
     mod = resolve(kernels)
     if mod is None:
-        return pure.packed_tree(bound, grid, mixed)
-    return pure.packed_tree(bound, grid, mixed, _corners(mod))
+        return pure.packed_tree(bound, grid, mixed, depth=depth)
+    return pure.packed_tree(bound, grid, mixed, _corners(mod), depth=depth)
 
 
 def stored_tree(

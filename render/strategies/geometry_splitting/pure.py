@@ -51,24 +51,60 @@ class BlockTree:
     zmin: list[np.ndarray]  # float16, rounded down
     zmax: list[np.ndarray]  # float16, rounded up
 
-    def packed(self) -> np.ndarray:
-        """``(nodes, 2)`` uint32 in depth order: σ bits, ``packHalf2x16(zmin, zmax)``."""
+    def packed(self, depth: int | None = None) -> np.ndarray:
+        """``(nodes, 2)`` uint32 in depth order: σ bits, ``packHalf2x16(zmin, zmax)``; with
+        ``depth`` (:func:`texture_depth`) the compact layout of :func:`texture_nodes` (each
+        deeper depth's values taken at the first of its nodes in each depth-``depth`` node)."""
+        k = len(self.sigma)
+        top = k - 1 if depth is None else int(depth)
+        if not 0 <= top <= k - 1:
+            raise RenderError(f"texture depth {depth} is not in 0..{k - 1}")
+        parts = [
+            tuple(_coarse(a, d, top) for a in arrays)
+            for d, arrays in enumerate(zip(self.sigma, self.zmin, self.zmax, strict=True))
+        ]
         if sys.byteorder == "little":  # written in place: zmin the low half (0.4 vs 1.1 ms)
-            n = sum(x.size for x in self.sigma)
+            n = sum(sig.size for sig, _, _ in parts)
             out = np.empty((n, 2), np.uint32)
             half = out.view(np.uint16).reshape(n, 4)
             o = 0
-            for sig, lo, hi in zip(self.sigma, self.zmin, self.zmax, strict=True):
+            for sig, lo, hi in parts:
                 m = sig.size
                 out[o : o + m, 0] = np.asarray(sig, np.float32).ravel().view(np.uint32)
                 half[o : o + m, 2] = np.asarray(lo, np.float16).ravel().view(np.uint16)
                 half[o : o + m, 3] = np.asarray(hi, np.float16).ravel().view(np.uint16)
                 o += m
             return out
-        s = np.concatenate([x.ravel() for x in self.sigma]).astype(np.float32).view(np.uint32)
-        lo = np.concatenate([x.ravel() for x in self.zmin]).view(np.uint16).astype(np.uint32)
-        hi = np.concatenate([x.ravel() for x in self.zmax]).view(np.uint16).astype(np.uint32)
+        s = np.concatenate([x[0].ravel() for x in parts]).astype(np.float32).view(np.uint32)
+        lo = np.concatenate([x[1].ravel() for x in parts]).view(np.uint16).astype(np.uint32)
+        hi = np.concatenate([x[2].ravel() for x in parts]).view(np.uint16).astype(np.uint32)
         return np.stack([s, lo | (hi << 16)], 1)
+
+
+def _coarse(a: np.ndarray, d: int, top: int) -> np.ndarray:
+    """Depth ``d``'s per-node array at one value per depth-``top`` node (``d > top``)."""
+    if d <= top:
+        return a
+    s = 1 << (d - top)
+    return np.asarray(a)[::s, ::s]
+
+
+def texture_depth(k: int, level: int, cap: int, masked: bool) -> int:
+    """The deepest depth a block's texture stores node by node. Below the store's error cap
+    σ is one value per cap tile and below the grid's ``level`` the ranges are its nodes', so
+    past ``max(level, cap)`` one entry per node of that depth serves each deeper depth
+    (:func:`texture_nodes`). All depths (``k − 1``) at full resolution (exact errors per node)
+    and for a block with nodata (σ = ∞ per node that mixes it with terrain)."""
+    if masked or level >= k:
+        return k - 1
+    return min(k - 1, max(level, cap, 0))
+
+
+def texture_nodes(k: int, depth: int) -> int:
+    """Entries of a texture that stores depths ``0..depth`` node by node (row-major per
+    depth, as the GPU indexes them) and each depth ``depth+1..k-1`` as one entry per
+    depth-``depth`` node: ``(4**(depth+1) − 1) / 3 + (k − 1 − depth) · 4**depth``."""
+    return ((1 << (2 * (depth + 1))) - 1) // 3 + (k - 1 - depth) * (1 << (2 * depth))
 
 
 def quad_errors(
@@ -191,31 +227,39 @@ def packed_tree(
     corners: Callable[[np.ndarray, int, np.ndarray], tuple[np.ndarray, np.ndarray]] = (
         corner_ranges
     ),
+    depth: int | None = None,
 ) -> np.ndarray:
     """``stored_tree(bound, grid)`` with σ = ∞ at the ``mixed`` nodes, as
-    :meth:`BlockTree.packed` gives it (the same bytes), without the per-node arrays: below
-    the store's cap depth σ and δ are one value per tile and the ranges below the grid's
-    level its ancestors', so each is computed per tile and only spread when packed (a
-    texture below full resolution, no exact errors: ~1 ms instead of ~2.5 at 1025²)."""
+    :meth:`BlockTree.packed` gives it (the same bytes, ``depth`` too), without the per-node
+    arrays: below the store's cap depth σ and δ are one value per tile and the ranges below
+    the grid's level its ancestors', so each is computed per tile and only spread when packed
+    (a texture below full resolution, no exact errors: ~1 ms instead of ~2.5 at 1025²)."""
     k = len(bound)
     g = np.asarray(grid, dtype=np.float64)
     rr = (g.shape[0] - 1).bit_length() - 1
     if g.shape != ((1 << rr) + 1,) * 2 or not 0 <= rr <= k:
         raise RenderError(f"expected a (2**R+1)² grid with R <= {k}, got {g.shape}")
+    top = k - 1 if depth is None else int(depth)
+    cap = next((d for d in range(k) if bound[d].shape[0] < 1 << d), k) - 1
+    if top < k - 1 and (mixed is not None or top < max(rr, cap)):
+        raise RenderError(
+            f"a texture stored node by node to depth {top} needs no mixed nodes and a depth of "
+            f"at least the grid's level {rr} and the error cap {cap}: use texture_depth"
+        )
     deltas = [np.asarray(x, dtype=np.float64) for x in bound]  # one value per tile
     sig = list(deltas)
     for d in range(k - 2, -1, -1):
         child = sig[d + 1]
         pooled = max_pool(child, 2) if child.shape[0] > sig[d].shape[0] else child
         sig[d] = np.maximum(sig[d], 2.0 * pooled)
-    n = ((1 << (2 * k)) - 1) // 3
+    n = texture_nodes(k, top)
     out = np.empty((n, 2), np.uint32)
     half = out.view(np.uint16).reshape(n, 4)
     big = sys.byteorder != "little"
     ranges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     off = 0
     for d in range(k):
-        m = 1 << (2 * d)
+        m = 1 << (2 * min(d, top))
         _spread(out[off : off + m, 0], _round_up32(sig[d]).view(np.uint32))
         a = min(d, rr, k - 1)
         if a not in ranges:

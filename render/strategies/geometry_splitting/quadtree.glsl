@@ -6,7 +6,8 @@ layout(std430, binding = 5) readonly buffer Quadtree { uvec2 qt[]; };
 uniform float tau;
 uniform vec2 viewport;
 uniform vec2 slab;  // the terrain's (zmin, zmax)
-// blk[4b] = (origin col, origin row, pool base, cap); blk[4b+1] = (quadtree offset, page, 0, 0);
+// blk[4b] = (origin col, origin row, pool base, cap);
+// blk[4b+1] = (quadtree offset, page, depth stored node by node, 0);
 // blk[4b+2] = neighbour block N, E, S, W (-1 none); blk[4b+3] = border caps N, E, S, W.
 
 struct Sphere { vec3 c; float r; float sigma; };
@@ -14,8 +15,12 @@ struct Sphere { vec3 c; float r; float sigma; };
 Sphere node_sphere(ivec4 n) {
     int d = n.y;
     int dd = min(d, k - 1);
-    int i = blk[4 * n.x + 1].x + ((1 << (2 * dd)) - 1) / 3 + ((n.z >> (d - dd)) << dd)
-            + (n.w >> (d - dd));
+    // depths 0..top node by node, each deeper one as one entry per depth-top node
+    // (geometry_splitting.pure.texture_nodes)
+    int top = blk[4 * n.x + 1].z;
+    int a = min(dd, top);
+    int i = blk[4 * n.x + 1].x + ((1 << (2 * (a + 1))) - 1) / 3 - (1 << (2 * a))
+            + max(dd - top, 0) * (1 << (2 * top)) + ((n.z >> (d - a)) << a) + (n.w >> (d - a));
     uvec2 q = qt[i];
     vec2 z = unpackHalf2x16(q.y);
     int s = 1 << (k - d);
