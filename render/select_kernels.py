@@ -13,6 +13,7 @@ bit for bit (tests/render/test_select_kernels.py). The stitch's rounds go with t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -24,7 +25,7 @@ from streamer.camera import Camera
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, horizontal_px, qiu_eq7
 from tiler.grid import BlockGrid
-from tiler.kernels import pick_warm, warm
+from tiler.kernels import pick_warm, requested, warm
 from tiler.quadtree import half_diagonal, node_span
 
 if TYPE_CHECKING:
@@ -68,17 +69,21 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
     return pick_warm(kernels, _load_numba, _READY)
 
 
-def warm_up() -> bool:
-    """Import numba and the compiled walk now, after which ``auto`` uses it (its kernels load
-    from numba's cache, or compile, on their first call; the stitch's kernels are loaded here,
-    :func:`render.stitch_fast.warm_up`); whether it is available."""
-    ok = warm(_load_numba, _READY)
-    kn = stitch_kernels(_load_numba()) if ok else None
-    if kn is not None:
-        from render import stitch_fast
+def warm_up(run: Callable[[], object] | None = None) -> bool:
+    """Import numba and the compiled walk now, after which ``auto`` uses it; first the
+    stitch's kernels are loaded (:func:`render.stitch_fast.warm_up`) and ``run``
+    (:func:`render.select_warm.warm_up_walk`) calls the walk's, so they load from numba's cache
+    (or compile) here and not in the render thread's first compiled selection (~12 ms), nor
+    while it waits for numba's lock. Whether it is available."""
+    if requested() != "numpy" and _load_numba() is not None:
+        kn = stitch_kernels(_load_numba())
+        if kn is not None:
+            from render import stitch_fast
 
-        stitch_fast.warm_up(kn)
-    return ok
+            stitch_fast.warm_up(kn)
+        if run is not None:
+            run()
+    return warm(_load_numba, _READY)
 
 
 def walk(

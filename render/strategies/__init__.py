@@ -47,13 +47,14 @@ def warm_up_kernels() -> dict[str, bool]:
     Each kernel loads from numba's cache on its first call (or compiles, the first time ever on
     a machine). Returns which are available, by name."""
     from render import select_kernels
+    from render.select_warm import warm_up_walk
     from render.strategies.geometry_splitting import kernels as gs_kernels
     from render.strategies.jung_han import kernels as jh_kernels
     from render.strategies.jung_han.warm import warm_up_selection
     from render.strategies.seamless import kernels as sp_kernels
 
     return {
-        "qiu/chunk-tessellation walk": select_kernels.warm_up(),
+        "qiu/chunk-tessellation walk": select_kernels.warm_up(warm_up_walk),
         "jung-han": jh_kernels.warm_up(warm_up_selection),
         "seamless-patches": sp_kernels.warm_up(),
         "geometry-splitting trees": gs_kernels.warm_up(),
