@@ -1,7 +1,8 @@
 """What the render thread pays when ``auto`` switches a CPU strategy to its compiled kernels
 (issue 14): the viewer draws its first frames with the numpy reference while a background
-thread runs ``warm_up_kernels()``; the first compiled selection after it may still load
-kernels from numba's cache or build compiled-only state (jung-han's flat forest).
+thread runs ``warm_up_kernels(**strategy.warm_up_args())``; the first compiled selection
+after it may still load kernels from numba's cache or build compiled-only state (jung-han's
+flat forest).
 
 Usage::
 
@@ -10,7 +11,7 @@ Usage::
 
 Per strategy and run, in a fresh process (the numba cache already filled): every block of
 STORE uploaded at full resolution, the overview camera at 1024×768, τ = 1; one numpy
-selection, then ``warm_up_kernels()`` (timed), then three selections: the first compiled one
+selection, then the viewer's warm-up (timed), then three selections: the first compiled one
 and the third (steady state). Reported: the first compiled selection's ms and its excess
 over the third. Default STORE: the N44W072 metre store of ``bench/prefetch.py``. Prints a
 table and writes ``bench/results/kernel_switch.json``.
@@ -44,7 +45,8 @@ cam = overview_camera(s, (1024, 768))
 def ms():
     t = time.perf_counter(); st.select(cam, 1.0); return (time.perf_counter() - t) * 1e3
 numpy_ms = ms()
-t = time.perf_counter(); warm_up_kernels(); warm_ms = (time.perf_counter() - t) * 1e3
+kw = getattr(st, "warm_up_args", dict)()  # as the viewer passes them (older code: none)
+t = time.perf_counter(); warm_up_kernels(**kw); warm_ms = (time.perf_counter() - t) * 1e3
 after = [ms() for _ in range(3)]
 r.close()
 print(json.dumps({"numpy_ms": numpy_ms, "warm_up_ms": warm_ms, "compiled_ms": after}))

@@ -347,7 +347,9 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
         r.close()
         raise
     # the strategies' compiled kernels, loaded beside the first frames (which use numpy's)
-    warm = threading.Thread(target=warm_up_kernels, name="terrastream-warm-kernels")
+    warm = threading.Thread(
+        target=warm_up_kernels, kwargs=strat.warm_up_args(), name="terrastream-warm-kernels"
+    )
     warm.start()
     t_prev = time.perf_counter()
     try:

@@ -18,6 +18,7 @@ Strategy packages are imported on first use (each compiles its own shaders).
 
 from __future__ import annotations
 
+from functools import partial
 from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
@@ -40,23 +41,29 @@ STRATEGIES: dict[str, str] = {
 }
 
 
-def warm_up_kernels() -> dict[str, bool]:
+def warm_up_kernels(seamless_shape: tuple[int, int] | None = None) -> dict[str, bool]:
     """Import numba and every strategy's compiled CPU kernels now, after which
     ``TERRASTREAM_KERNELS=auto`` uses them (until then ``auto`` is the numpy reference, so a
-    one-shot command never waits ~1 s for numba); the viewer runs it on a background thread.
-    Each kernel loads from numba's cache on its first call (or compiles, the first time ever on
-    a machine). Returns which are available, by name."""
+    one-shot command never waits ~1 s for numba); the viewer runs it on a background thread
+    (with :meth:`Strategy.warm_up_args` of its strategy). Kernels load from numba's cache (or
+    compile, the first time ever on a machine) when first called: here, on small synthetic
+    scenes, for the CLOD walk, jung-han and, given ``seamless_shape`` (the store's block and
+    tile log2 sizes ``(k, c)``, on which its kernel's signature depends), seamless-patches.
+    Returns which are available, by name."""
     from render import select_kernels
     from render.select_warm import warm_up_walk
     from render.strategies.geometry_splitting import kernels as gs_kernels
     from render.strategies.jung_han import kernels as jh_kernels
     from render.strategies.jung_han.warm import warm_up_selection
     from render.strategies.seamless import kernels as sp_kernels
+    from render.strategies.seamless.warm import warm_up_selection as sp_selection
 
     return {
         "qiu/chunk-tessellation walk": select_kernels.warm_up(warm_up_walk),
         "jung-han": jh_kernels.warm_up(warm_up_selection),
-        "seamless-patches": sp_kernels.warm_up(),
+        "seamless-patches": sp_kernels.warm_up(
+            None if seamless_shape is None else partial(sp_selection, *seamless_shape)
+        ),
         "geometry-splitting trees": gs_kernels.warm_up(),
     }
 

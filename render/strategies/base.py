@@ -138,6 +138,11 @@ class Strategy(ABC, Generic[S]):
         """Stop what :meth:`build_in_background` started (the GL objects stay the
         renderer's)."""
 
+    def warm_up_args(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`render.strategies.warm_up_kernels` for this strategy's
+        kernels on this store (default: none needed)."""
+        return {}
+
     @abstractmethod
     def select(
         self,

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Any
 
 import moderngl
 import numpy as np
@@ -103,6 +104,10 @@ class SeamlessPatches(Strategy[PatchLayout]):
         check_gl(ctx, "creating the seamless-patches programs")
 
     # selection
+
+    def warm_up_args(self) -> dict[str, Any]:
+        """Its compiled kernel's signature depends on the block and tile sizes."""
+        return {"seamless_shape": (self.r.k, self.c)}
 
     def own_gpu_bytes(self) -> int:
         """The cached tile and strip meshes (one vertex buffer)."""

@@ -6,10 +6,11 @@ module costs nothing)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 from types import ModuleType
 
-from tiler.kernels import pick_warm, warm
+from tiler.kernels import pick_warm, requested, warm
 
 
 @cache
@@ -30,8 +31,11 @@ def resolve(kernels: str | None = None) -> ModuleType | None:
     return pick_warm(kernels, _load_numba, _READY)
 
 
-def warm_up() -> bool:
-    """Import numba and seamless-patches' kernels now, after which ``auto`` uses
-    them (they load from numba's cache, or compile, on their first call); whether they are
-    available."""
+def warm_up(run: Callable[[], object] | None = None) -> bool:
+    """Import numba and seamless-patches' kernels now, after which ``auto`` uses them; ``run``
+    (:func:`render.strategies.seamless.warm.warm_up_selection` for the store's shape) calls
+    them once first, so they load from numba's cache (or compile) here and not in the render
+    thread's first compiled selection (~28 ms). Whether they are available."""
+    if run is not None and requested() != "numpy" and _load_numba() is not None:
+        run()
     return warm(_load_numba, _READY)

@@ -1,7 +1,9 @@
-"""The viewer's warm-up loads the compiled CLOD walk's kernels (``render.select_warm``) so the
-render thread's first compiled ``qiu`` or ``chunk-tessellation`` selection loads none (it spent
-~12 ms doing so): in a fresh process, real selections after it add no kernel signature.
-Control: with the warm-up that only imports the walk (the former one), they load them."""
+"""The viewer's warm-up loads the compiled CLOD walk's kernels (``render.select_warm``) and
+``seamless-patches``' (``seamless.warm``, for the store's shape) so the render thread's first
+compiled ``qiu``, ``chunk-tessellation`` or ``seamless-patches`` selection loads none (it spent
+~12 and ~28 ms doing so): in a fresh process, real selections after it add no kernel
+signature. Controls: with the warm-ups that only import the kernels (the former ones), they
+load them. (jung-han's: tests/render/test_jung_han_kernels.py.)"""
 
 from __future__ import annotations
 
@@ -66,3 +68,45 @@ def test_warm_up_loads_every_kernel_a_real_selection_calls(store, warm):
         assert before >= 4 and after == before  # visit, split, qiu_rho, kim_rho
     else:
         assert before == 0 and after >= 4
+
+
+_SEAMLESS = """
+import numba
+from render.renderer import RenderConfig, TerrainRenderer
+from render.strategies import get_strategy, warm_up_kernels
+from render.strategies.seamless import _resolve_nb
+from render.views import overview_camera
+from tiler.store import open_store
+
+def loaded():
+    return sum(len(getattr(_resolve_nb, n).signatures) for n in dir(_resolve_nb)
+               if isinstance(getattr(_resolve_nb, n), numba.core.registry.CPUDispatcher))
+
+s = open_store({path!r})
+r = TerrainRenderer(s, RenderConfig(size=(96, 64)))
+for b in s.blocks():
+    r.upload(b, s.read_levels(b, s.k - (b[0] + b[1]) % 2))
+st = get_strategy("seamless-patches", r, res_log2=3)
+assert st.warm_up_args() == {{"seamless_shape": (s.k, 3)}}
+warm_up_kernels(**(st.warm_up_args() if {warm} else {{}}))
+before = loaded()
+sel, _ = st.select(overview_camera(s, (96, 64)), 1.0)
+assert len(sel.depth) > 0
+r.close()
+print(before, loaded())
+"""
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_the_seamless_warm_up_loads_the_kernel_a_real_selection_calls(store, warm):
+    code = _SEAMLESS.format(warm=warm, path=str(store))
+    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    before, after = (int(v) for v in out.stdout.split()[-2:])
+    if warm:
+        assert before >= 1 and after == before
+    else:
+        assert before == 0 and after >= 1
