@@ -194,3 +194,15 @@ def test_control_without_releases_the_buffer_follows_the_keys_ever_seen():
     for step in range(50):
         _put(t, [f"{step}a", f"{step}b"])
     assert len(t) == 100 and t.capacity >= 100  # vs 2 live at a time with releases
+
+
+def test_a_batch_with_an_idle_key_is_refused_until_it_is_revived():
+    """Placing ``x`` could evict idle ``y`` of the same batch, which would then find no slot:
+    ``grow_to`` refuses such a batch (``TextureStore.write`` revives them first)."""
+    t = SlotTable(headroom=1.0)
+    _put(t, [("y", 2), ("z", 2)])
+    t.release("y")
+    with pytest.raises(ValueError, match=r"revive the idle keys \['y'\]"):
+        t.grow_to([("x", 2), ("y", 2)])
+    assert t.revive("y")
+    assert _put(t, [("x", 2), ("y", 2)]) == [] and sorted(t.offset) == ["x", "y", "z"]

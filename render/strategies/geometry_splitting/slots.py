@@ -91,11 +91,6 @@ class SlotTable:
                 continue
             if key in self.size_of:  # its old slot is freed first
                 old = self.size_of[key]
-                if key in self._idle and old == size:
-                    idle[old] -= 1
-                    continue
-                if key in self._idle:
-                    idle[old] -= 1
                 free[old] = free.get(old, 0) + 1
             if free.get(size, 0):
                 free[size] -= 1
@@ -115,6 +110,9 @@ class SlotTable:
         it is under :attr:`cache`; past that the oldest idle slot of the size gives way. At
         least :attr:`minimum`, never past :attr:`limit`, never below the live and wanted
         textures."""
+        idle = [key for key, _ in wants if key in self._idle]
+        if idle:  # (placing one could evict another of the same batch)
+            raise ValueError(f"revive the idle keys {idle} before reserving them")
         ok, taken = self._fits(wants)
         if ok and not taken:
             return None
@@ -165,7 +163,8 @@ class SlotTable:
         """A slot of ``size`` elements for ``key`` (its own if live or idle with that size;
         else its old one is freed): a free slot of the size first, then unused space, then the
         oldest idle slot of the size (that key is forgotten). Its offset and the key evicted
-        (``None``). Grow first when :meth:`grow_to` says so."""
+        (``None``). Grow first when :meth:`grow_to` says so (for a batch without idle keys:
+        :meth:`revive` them first, else one could evict another)."""
         if size < 1:
             raise ValueError(f"a slot of {size} elements")
         if self.size_of.get(key) == size and (key in self.offset or self.revive(key)):

@@ -60,6 +60,9 @@ class TextureStore:
         fit); the blocks whose idle textures gave way."""
         if not writes:
             return []
+        for b, *_ in writes:  # (a batch must not evict one of its own blocks: none idle)
+            if b not in self.offset:
+                self.slots.revive(b)
         wants = [(b, len(data) // 8) for b, _, data, _ in writes]
         cap = self.slots.grow_to(wants)
         gone: list[Block] = []
