@@ -293,8 +293,8 @@ def test_a_block_back_before_its_slot_is_taken_keeps_its_texture(tmp_path, monke
 
 
 def test_control_without_revival_the_returning_block_is_rebuilt(tmp_path, monkeypatch):
-    from render.strategies.geometry_splitting.slots import SlotTable
+    from render.strategies.geometry_splitting.textures import TextureStore
 
-    monkeypatch.setattr(SlotTable, "revive", lambda self, key: False)
+    monkeypatch.setattr(TextureStore, "revive", lambda self, b: False)
     path = tile_dem(tmp_path, rough(257, 9), 33)
     assert _leave_and_return(path, monkeypatch) == [4, 1, 1]
