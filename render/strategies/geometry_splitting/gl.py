@@ -164,7 +164,7 @@ class GeometrySplitting(Strategy[Selection]):
             ctx, self.k, g.rows * g.cols, TEXTURE_CACHE_BYTES, TEXTURE_MIN_BYTES
         )
         self.heights = GlobalHeights(renderer.store)
-        self._builds: BackgroundBuilds[tuple[BlockTree, bytes]] | None = None
+        self._builds: BackgroundBuilds[tuple[BlockTree, bytes, int]] | None = None
         check_gl(ctx, "creating the geometry-splitting programs")
 
     def own_gpu_bytes(self) -> int:
@@ -286,7 +286,7 @@ class GeometrySplitting(Strategy[Selection]):
         writes = self._take_built(level)
         fresh = {b for b, *_ in writes}
         for b, lv in pairs:
-            if b in fresh or tex.level.get(b, lv) == lv and b in tex.offset:
+            if b in fresh or (b in tex.offset and tex.level[b] == lv):  # (its texture is there)
                 continue
             if b in tex.offset and self._builds is not None:  # later: it keeps its texture
                 later.append((b, lv))
