@@ -298,3 +298,64 @@ def test_control_without_revival_the_returning_block_is_rebuilt(tmp_path, monkey
     monkeypatch.setattr(TextureStore, "revive", lambda self, b: False)
     path = tile_dem(tmp_path, rough(257, 9), 33)
     assert _leave_and_return(path, monkeypatch) == [4, 1, 1]
+
+
+@pytest.fixture(scope="module")
+def store_k7_nodata(tmp_path_factory):
+    """``store_k7``'s terrain with a nodata hole across all four blocks' meeting corner."""
+    dem = rough(257, 5).astype(np.float32)
+    dem[100:160, 90:170] = np.nan
+    return tile_dem(tmp_path_factory.mktemp("k7nd"), dem, 129)
+
+
+@pytest.mark.parametrize("bits", [True, False])
+def test_an_interim_texture_of_a_block_with_nodata_reads_its_mixed_nodes(
+    store_k7_nodata, monkeypatch, bits
+):
+    """A block with nodata drawn finer than its (compact) texture reads σ = ∞ at its mixed
+    nodes past the texture's depth from the bitmask: the selection is the CPU twin's (from the
+    texture's tree, σ = ∞ per mixed node). At τ = 64 only those nodes split past depth 3.
+    Control: the bitmask flag left out of the block table, the selection is not the twin's."""
+    if not bits:
+        monkeypatch.setattr(gs_gl.TextureStore, "bits", lambda self, b: False)
+    r = _renderer(store_k7_nodata, 3)
+    st = get_strategy("geometry-splitting", r)
+    try:
+        st.build_in_background()
+        st.select(CAM, 64.0)  # level 3 textures: compact (cap 3), a bitmask where nodata
+        assert all(st._tex.depth[b] == 3 for b in r.store.blocks())
+        assert any(len(st._tex.read(b)) > texture_nodes(7, 3) * 8 for b in r.store.blocks())
+        _raise(r, 7)
+        sel, _ = st.select(CAM, 64.0)  # drawn at 7 with level 3's textures meanwhile
+        assert sorted(st.interim_blocks()) == sorted(r.store.blocks())
+        counts, leaves, _ = st.expand_reference(CAM, 64.0)
+        got = st.leaf_nodes(sel)
+        assert leaves[:, 1].max() > 3  # mixed nodes split past the textures' depth
+        same = sel.pass_counts == counts and np.array_equal(got[np.lexsort(got.T[::-1])], leaves)
+        assert same is bits
+    finally:
+        st.close()
+        r.close()
+
+
+@pytest.mark.parametrize("min_bytes", [16 << 20, 0])
+def test_a_store_that_fits_the_first_buffer_never_moves_a_texture(
+    store_k7_nodata, monkeypatch, min_bytes
+):
+    """Four 129² blocks' full textures fit the 16 MiB first buffer: every slot is a full
+    texture's, so compact textures growing to full ones at a level change move nothing (the
+    buffer is never replaced). Control: with no first-buffer minimum the slots are the
+    textures' sizes and the change reallocates."""
+    monkeypatch.setattr(gs_gl, "TEXTURE_MIN_BYTES", min_bytes)
+    r = _renderer(store_k7_nodata, 3)
+    st = get_strategy("geometry-splitting", r)
+    try:
+        st.select(CAM, 1.0)  # compact level-3 textures
+        buf = st._tex.buf
+        _raise(r, 7)
+        st.select(CAM, 1.0)  # full ones (no background: built in the frame)
+        for b in r.store.blocks():
+            assert st._tex.read(b) == st.tree(b, 7).packed(st._depth(b, 7)).tobytes()
+        assert (st._tex.buf is buf) is (min_bytes > 0)
+    finally:
+        r.close()

@@ -206,12 +206,12 @@ def test_the_compiled_packed_texture_is_the_numpy_ones_byte_for_byte():
         want = packed_tree(bound, grid, mixed)
         got = kernels.packed_tree(bound, grid, mixed, kernels="numba")
         assert got.tobytes() == want.tobytes()
-        if mixed is None:  # and the compact layout (pure.texture_depth)
-            k, rr = len(bound), (grid.shape[0] - 1).bit_length() - 1
-            cap = next((d for d in range(k) if bound[d].shape[0] < 1 << d), k) - 1
-            top = texture_depth(k, rr, cap, False)
-            got = kernels.packed_tree(bound, grid, None, kernels="numba", depth=top)
-            assert got.tobytes() == packed_tree(bound, grid, None, depth=top).tobytes()
+        # and the compact layout (pure.texture_depth), with the bitmask where mixed
+        k, rr = len(bound), (grid.shape[0] - 1).bit_length() - 1
+        cap = next((d for d in range(k) if bound[d].shape[0] < 1 << d), k) - 1
+        top = texture_depth(k, rr, cap)
+        got = kernels.packed_tree(bound, grid, mixed, kernels="numba", depth=top)
+        assert got.tobytes() == packed_tree(bound, grid, mixed, depth=top).tobytes()
         cases += 1
     assert cases == 50
 

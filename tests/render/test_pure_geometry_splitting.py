@@ -194,58 +194,68 @@ def test_packed_tree_is_the_stored_trees_texture_byte_for_byte():
     assert cases == 2 * (3 + 5 + 5 + 6 + 6)  # every level below full resolution
 
 
-def _expand(compact: np.ndarray, k: int, top: int) -> np.ndarray:
-    """A compact texture (:func:`texture_nodes`) in the full layout: each node of a depth
-    past ``top`` reads its depth-``top`` ancestor's entry, as the shader indexes it."""
-    rows, off = [], 0
+def _expand(compact: np.ndarray, k: int, top: int, bits: bool = True) -> np.ndarray:
+    """A compact texture (:func:`texture_nodes`) in the full layout, read as the shader reads
+    it: each node of a depth past ``top`` reads its depth-``top`` ancestor's entry, and its σ
+    is ∞ where its bit is set in the bitmask after the entries (``bits=False``: ignored)."""
+    rows, off, bit = [], 0, 0
+    n = texture_nodes(k, top)
+    words = compact[n:].ravel()  # uint32, bit i in word i // 32
     for d in range(k):
         a = min(d, top)
         m = 1 << a
         block = compact[off : off + m * m].reshape(m, m, 2)
         rep = 1 << (d - a)
-        rows.append(block.repeat(rep, 0).repeat(rep, 1).reshape(-1, 2))
+        full = block.repeat(rep, 0).repeat(rep, 1).reshape(-1, 2).copy()
+        if d > top and bits and len(words):
+            i = bit + np.arange(full.shape[0])
+            on = (words[i >> 5] >> (i & 31).astype(np.uint32)) & 1
+            full[on.astype(bool), 0] = np.float32(np.inf).view(np.uint32)
+            bit += full.shape[0]
+        rows.append(full)
         off += m * m
-    assert off == len(compact) == texture_nodes(k, top)
+    assert off == n and len(compact) == texture_nodes(k, top, len(compact) > n)
     return np.concatenate(rows)
 
 
 def test_texture_nodes_and_depth():
     for k in range(1, 12):
         assert texture_nodes(k, k - 1) == ((1 << (2 * k)) - 1) // 3  # all depths
+        assert texture_nodes(k, k - 1, True) == texture_nodes(k, k - 1)  # nothing deeper
         assert all(texture_nodes(k, d) < texture_nodes(k, d + 1) for d in range(k - 1))
     assert texture_nodes(10, 6) == 17_749  # a level-6 texture at 1025²: 142 KB, not 2.8 MB
-    assert texture_depth(10, 4, 6, False) == 6 and texture_depth(10, 8, 6, False) == 8
-    assert texture_depth(10, 10, 6, False) == 9  # full resolution: exact errors per node
-    assert texture_depth(10, 4, 6, True) == 9  # nodata: σ = ∞ per mixed node
-    assert texture_depth(10, 4, 12, False) == 9 and texture_depth(3, 0, 0, False) == 0
+    assert texture_nodes(10, 6, True) == 17_749 + 5_376  # + 344,064 bits (43 KB)
+    assert texture_depth(10, 4, 6) == 6 and texture_depth(10, 8, 6) == 8
+    assert texture_depth(10, 10, 6) == 9  # full resolution: exact errors per node
+    assert texture_depth(10, 4, 12) == 9 and texture_depth(3, 0, 0) == 0
 
 
 def test_a_compact_texture_reads_as_the_full_one():
-    """Below full resolution without nodata, past ``texture_depth`` every depth's values are
-    one per node of that depth (σ per cap tile, ranges per grid node), so the compact texture
-    read as the shader reads it is the full one; ``packed_tree`` gives the same bytes as
-    ``BlockTree.packed``. Control: with mixed nodes (σ = ∞ per node) it is not."""
-    cases = 0
+    """Below full resolution, past ``texture_depth`` every depth's values are one per node of
+    that depth (σ per cap tile, ranges per grid node) but for the mixed nodes' σ = ∞, which
+    the bitmask after the entries carries: read as the shader reads it, the compact texture is
+    the full one; ``packed_tree`` gives the same bytes as ``BlockTree.packed``. Control: the
+    bitmask ignored, a texture with mixed nodes is not."""
+    cases = with_bits = 0
     for bound, grid, mixed in _capped_cases():
         k = len(bound)
         rr = (grid.shape[0] - 1).bit_length() - 1
         cap = next((d for d in range(k) if bound[d].shape[0] < 1 << d), k) - 1
         tree = stored_tree(bound, grid)
-        if mixed is None:
-            top = texture_depth(k, rr, cap, False)
-            got = packed_tree(bound, grid, None, depth=top)
-            assert got.tobytes() == tree.packed(top).tobytes()
-            assert np.array_equal(_expand(got, k, top), tree.packed())
-            cases += top < k - 1
-        else:
+        if mixed is not None:
             for d, sig in enumerate(tree.sigma):
                 sig[mixed[d]] = np.inf
-            top = max(rr, cap)
-            if top < k - 1:  # the control: compacted anyway, the per-node ∞ are lost
-                assert not np.array_equal(_expand(tree.packed(top), k, top), tree.packed())
-                with pytest.raises(RenderError, match="needs no mixed nodes"):
-                    packed_tree(bound, grid, mixed, depth=top)
-    assert cases == 11  # (k, cap) (3, 1): rr 0, 1; (5, 2): 0-3; (6, 3): 0-4; (5, 4), (6, 5): none
+        top = texture_depth(k, rr, cap)
+        got = packed_tree(bound, grid, mixed, depth=top)
+        assert got.tobytes() == tree.packed(top).tobytes()
+        assert np.array_equal(_expand(got, k, top), tree.packed())
+        if top < k - 1:
+            cases += 1
+            if len(got) > texture_nodes(k, top):
+                with_bits += 1
+                assert mixed is not None
+                assert not np.array_equal(_expand(got, k, top, bits=False), tree.packed())
+    assert cases == 22 and with_bits == 11  # (k, cap) (3, 1): rr 0, 1; (5, 2): 0-3; (6, 3): 0-4
 
 
 def test_a_texture_shallower_than_the_level_or_cap_is_refused():

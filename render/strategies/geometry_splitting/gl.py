@@ -203,9 +203,9 @@ class GeometrySplitting(Strategy[Selection]):
 
     def _depth(self, b: Block, lv: int) -> int:
         """The depth ``b``'s texture for level ``lv`` stores node by node
-        (:func:`~render.strategies.geometry_splitting.pure.texture_depth`)."""
-        cap = self.r.store.meta.error_cap
-        return texture_depth(self.k, max(lv, 0), cap, self.r.mask(b) is not None)
+        (:func:`~render.strategies.geometry_splitting.pure.texture_depth`; a block with nodata
+        adds the bitmask of its deeper nodes whose σ is ∞)."""
+        return texture_depth(self.k, max(lv, 0), self.r.store.meta.error_cap)
 
     def _texture(self, b: Block, lv: int) -> tuple[bytes, int]:
         """The packed texture of ``b`` for level ``lv``, built now, and its depth: below full
@@ -315,7 +315,8 @@ class GeometrySplitting(Strategy[Selection]):
         for i, (b, lv) in enumerate(pairs):
             s = self.r.slot(b)
             t[i, 0:4] = (b[1] << k, b[0] << k, s.offset, lv)
-            t[i, 4:7] = (self._tex.offset.get(b, 0), s.page, self._tex.depth.get(b, k - 1))
+            tex = self._tex
+            t[i, 4:8] = (tex.offset.get(b, 0), s.page, tex.depth.get(b, k - 1), tex.bits(b))
             t[i, 8:12] = nb[i]
             for dr, j in enumerate(nb[i].tolist()):
                 cross = j >= 0 and self.r.slot(blocks[j]).page != s.page

@@ -54,15 +54,23 @@ class BlockTree:
     def packed(self, depth: int | None = None) -> np.ndarray:
         """``(nodes, 2)`` uint32 in depth order: σ bits, ``packHalf2x16(zmin, zmax)``; with
         ``depth`` (:func:`texture_depth`) the compact layout of :func:`texture_nodes` (each
-        deeper depth's values taken at the first of its nodes in each depth-``depth`` node)."""
+        deeper depth's σ the least of its nodes' in each depth-``depth`` node, its ranges the
+        first's), followed, where a node of those depths has σ = ∞, by the bitmask of them."""
         k = len(self.sigma)
         top = k - 1 if depth is None else int(depth)
         if not 0 <= top <= k - 1:
             raise RenderError(f"texture depth {depth} is not in 0..{k - 1}")
         parts = [
-            tuple(_coarse(a, d, top) for a in arrays)
-            for d, arrays in enumerate(zip(self.sigma, self.zmin, self.zmax, strict=True))
+            (_least(sig, d, top), _coarse(lo, d, top), _coarse(hi, d, top))
+            for d, (sig, lo, hi) in enumerate(zip(self.sigma, self.zmin, self.zmax, strict=True))
         ]
+        inf = [np.isinf(self.sigma[d]) for d in range(top + 1, k)]
+        if any(x.any() for x in inf):
+            return np.concatenate([self._pack(parts), infinite_bits(inf)])
+        return self._pack(parts)
+
+    @staticmethod
+    def _pack(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
         if sys.byteorder == "little":  # written in place: zmin the low half (0.4 vs 1.1 ms)
             n = sum(sig.size for sig, _, _ in parts)
             out = np.empty((n, 2), np.uint32)
@@ -81,6 +89,15 @@ class BlockTree:
         return np.stack([s, lo | (hi << 16)], 1)
 
 
+def _least(a: np.ndarray, d: int, top: int) -> np.ndarray:
+    """Depth ``d``'s σ at one value per depth-``top`` node: the least of its nodes' (the tile's
+    own where some node there is not ∞; ``d > top``)."""
+    if d <= top:
+        return a
+    m = 1 << top
+    return np.asarray(a).reshape(m, a.shape[0] // m, m, a.shape[1] // m).min(axis=(1, 3))
+
+
 def _coarse(a: np.ndarray, d: int, top: int) -> np.ndarray:
     """Depth ``d``'s per-node array at one value per depth-``top`` node (``d > top``)."""
     if d <= top:
@@ -89,22 +106,37 @@ def _coarse(a: np.ndarray, d: int, top: int) -> np.ndarray:
     return np.asarray(a)[::s, ::s]
 
 
-def texture_depth(k: int, level: int, cap: int, masked: bool) -> int:
+def texture_depth(k: int, level: int, cap: int) -> int:
     """The deepest depth a block's texture stores node by node. Below the store's error cap
     σ is one value per cap tile and below the grid's ``level`` the ranges are its nodes', so
     past ``max(level, cap)`` one entry per node of that depth serves each deeper depth
-    (:func:`texture_nodes`). All depths (``k − 1``) at full resolution (exact errors per node)
-    and for a block with nodata (σ = ∞ per node that mixes it with terrain)."""
-    if masked or level >= k:
+    (:func:`texture_nodes`; a block with nodata adds a bitmask of the nodes there whose σ is
+    ∞). All depths (``k − 1``) at full resolution (exact errors per node)."""
+    if level >= k:
         return k - 1
     return min(k - 1, max(level, cap, 0))
 
 
-def texture_nodes(k: int, depth: int) -> int:
-    """Entries of a texture that stores depths ``0..depth`` node by node (row-major per
-    depth, as the GPU indexes them) and each depth ``depth+1..k-1`` as one entry per
-    depth-``depth`` node: ``(4**(depth+1) − 1) / 3 + (k − 1 − depth) · 4**depth``."""
-    return ((1 << (2 * (depth + 1))) - 1) // 3 + (k - 1 - depth) * (1 << (2 * depth))
+def texture_nodes(k: int, depth: int, bits: bool = False) -> int:
+    """Entries (8 bytes) of a texture that stores depths ``0..depth`` node by node (row-major
+    per depth, as the GPU indexes them) and each depth ``depth+1..k-1`` as one entry per
+    depth-``depth`` node: ``(4**(depth+1) − 1) / 3 + (k − 1 − depth) · 4**depth``; with
+    ``bits``, then one bit per node of those deeper depths, set where its σ is ∞ (nodes mixing
+    terrain and nodata), 64 to an entry (:func:`infinite_bits`)."""
+    n = ((1 << (2 * (depth + 1))) - 1) // 3 + (k - 1 - depth) * (1 << (2 * depth))
+    if bits and depth < k - 1:
+        n += (((1 << (2 * k)) - (1 << (2 * (depth + 1)))) // 3 + 63) // 64
+    return n
+
+
+def infinite_bits(inf: list[np.ndarray]) -> np.ndarray:
+    """The bitmask of :func:`texture_nodes` from per-depth ``(2**d, 2**d)`` booleans (the
+    depths past the compact one, in order): bit ``i`` of the row-major stream in uint32 word
+    ``i // 32`` at bit ``i % 32``, as ``(entries, 2)`` uint32."""
+    flat = np.concatenate([np.asarray(a, bool).ravel() for a in inf])
+    words = np.packbits(flat, bitorder="little")
+    words = np.concatenate([words, np.zeros(-len(words) % 8, np.uint8)])
+    return words.view("<u4").astype(np.uint32).reshape(-1, 2)
 
 
 def quad_errors(
@@ -230,10 +262,11 @@ def packed_tree(
     depth: int | None = None,
 ) -> np.ndarray:
     """``stored_tree(bound, grid)`` with σ = ∞ at the ``mixed`` nodes, as
-    :meth:`BlockTree.packed` gives it (the same bytes, ``depth`` too), without the per-node
-    arrays: below the store's cap depth σ and δ are one value per tile and the ranges below
-    the grid's level its ancestors', so each is computed per tile and only spread when packed
-    (a texture below full resolution, no exact errors: ~1 ms instead of ~2.5 at 1025²)."""
+    :meth:`BlockTree.packed` gives it (the same bytes; with ``depth``, with ``bits`` where
+    ``mixed`` is given), without the per-node arrays: below the store's cap depth σ and δ are
+    one value per tile and the ranges below the grid's level its ancestors', so each is
+    computed per tile and only spread when packed (a texture below full resolution, no exact
+    errors: ~1 ms instead of ~2.5 at 1025²)."""
     k = len(bound)
     g = np.asarray(grid, dtype=np.float64)
     rr = (g.shape[0] - 1).bit_length() - 1
@@ -241,10 +274,10 @@ def packed_tree(
         raise RenderError(f"expected a (2**R+1)² grid with R <= {k}, got {g.shape}")
     top = k - 1 if depth is None else int(depth)
     cap = next((d for d in range(k) if bound[d].shape[0] < 1 << d), k) - 1
-    if top < k - 1 and (mixed is not None or top < max(rr, cap)):
+    if top < max(min(rr, k - 1), min(cap, k - 1)):
         raise RenderError(
-            f"a texture stored node by node to depth {top} needs no mixed nodes and a depth of "
-            f"at least the grid's level {rr} and the error cap {cap}: use texture_depth"
+            f"a texture stored node by node to depth {top} needs a depth of at least the "
+            f"grid's level {rr} and the error cap {cap}: use texture_depth"
         )
     deltas = [np.asarray(x, dtype=np.float64) for x in bound]  # one value per tile
     sig = list(deltas)
@@ -253,6 +286,7 @@ def packed_tree(
         pooled = max_pool(child, 2) if child.shape[0] > sig[d].shape[0] else child
         sig[d] = np.maximum(sig[d], 2.0 * pooled)
     n = texture_nodes(k, top)
+    inf: list[np.ndarray] = []  # per depth past top, the nodes whose σ is ∞
     out = np.empty((n, 2), np.uint32)
     half = out.view(np.uint16).reshape(n, 4)
     big = sys.byteorder != "little"
@@ -260,7 +294,21 @@ def packed_tree(
     off = 0
     for d in range(k):
         m = 1 << (2 * min(d, top))
-        _spread(out[off : off + m, 0], _round_up32(sig[d]).view(np.uint32))
+        tile = _round_up32(sig[d])
+        if d > top:  # the nodes whose σ is ∞ (the tree's isinf per node), for the bitmask
+            rd = (1 << d) // tile.shape[0]
+            spread = None
+            if np.isinf(tile).any():
+                spread = np.repeat(np.repeat(np.isinf(tile), rd, axis=0), rd, axis=1)
+            if mixed is not None:  # and ∞ where every node of a depth-top node mixes
+                every = np.asarray(mixed[d], bool)
+                spread = every if spread is None else every | spread
+                t = 1 << top
+                every = every.reshape(t, every.shape[0] // t, t, -1).all(axis=(1, 3))
+                r = t // tile.shape[0]
+                tile = np.where(every, np.float32(np.inf), np.repeat(np.repeat(tile, r, 0), r, 1))
+            inf.append(np.zeros((1 << d,) * 2, bool) if spread is None else spread)
+        _spread(out[off : off + m, 0], tile.view(np.uint32))
         a = min(d, rr, k - 1)
         if a not in ranges:
             delta = _per_node(deltas[a], a)
@@ -273,9 +321,11 @@ def packed_tree(
         else:
             _spread(half[off : off + m, 2], lo)
             _spread(half[off : off + m, 3], hi)
-        if mixed is not None:
+        if mixed is not None and d <= top:
             out[off : off + m, 0][np.asarray(mixed[d]).ravel()] = np.float32(np.inf).view(np.uint32)
         off += m
+    if any(x.any() for x in inf):
+        return np.concatenate([out, infinite_bits(inf)])
     return out
 
 

@@ -7,7 +7,7 @@ uniform float tau;
 uniform vec2 viewport;
 uniform vec2 slab;  // the terrain's (zmin, zmax)
 // blk[4b] = (origin col, origin row, pool base, cap);
-// blk[4b+1] = (quadtree offset, page, depth stored node by node, 0);
+// blk[4b+1] = (quadtree offset, page, depth stored node by node, 1: a bitmask of infinite sigma follows);
 // blk[4b+2] = neighbour block N, E, S, W (-1 none); blk[4b+3] = border caps N, E, S, W.
 
 struct Sphere { vec3 c; float r; float sigma; };
@@ -31,6 +31,16 @@ Sphere node_sphere(ivec4 n) {
                0.5 * (z.x + z.y) - cam_frac.z);
     o.r = 0.5 * float(s) * length(spacing) + 0.5 * (z.y - z.x);
     o.sigma = d < k ? uintBitsToFloat(q.x) : 0.0;
+    if (d < k && dd > top && blk[4 * n.x + 1].w != 0) {
+        // past `top` a block with nodata marks its nodes whose sigma is infinite in a bitmask after the
+        // entries (geometry_splitting.pure.infinite_bits)
+        int bit = ((1 << (2 * dd)) - (1 << (2 * (top + 1)))) / 3 + ((n.z >> (d - dd)) << dd)
+                  + (n.w >> (d - dd));
+        int entries = ((1 << (2 * (top + 1))) - 1) / 3 + (k - 1 - top) * (1 << (2 * top));
+        uvec2 w = qt[blk[4 * n.x + 1].x + entries + (bit >> 6)];
+        uint word = ((bit >> 5) & 1) == 0 ? w.x : w.y;
+        if (((word >> uint(bit & 31)) & 1u) != 0u) o.sigma = uintBitsToFloat(0x7f800000u);
+    }
     return o;
 }
 

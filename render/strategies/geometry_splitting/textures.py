@@ -28,9 +28,13 @@ class TextureStore:
         self.k = k
         full = texture_nodes(k, k - 1)
         self.slots = SlotTable(limit=blocks * full, cache=cache_bytes // 8, minimum=min_bytes // 8)
+        #: every slot a full texture's when the first buffer holds the whole store's anyway
+        #: (a texture changing size then never moves, nothing fragments)
+        self.slot_size = full if blocks * full * 8 <= min_bytes else None
         self.buf: moderngl.Buffer | None = None
         self.level: dict[Block, int] = {}
         self.depth: dict[Block, int] = {}
+        self._length: dict[Block, int] = {}  # each texture's nodes
 
     @property
     def offset(self) -> dict[Block, int]:
@@ -63,7 +67,7 @@ class TextureStore:
         for b, *_ in writes:  # (a batch must not evict one of its own blocks: none idle)
             if b not in self.offset:
                 self.slots.revive(b)
-        wants = [(b, len(data) // 8) for b, _, data, _ in writes]
+        wants = [(b, self.slot_size or len(data) // 8) for b, _, data, _ in writes]
         cap = self.slots.grow_to(wants)
         gone: list[Block] = []
         if cap is not None:  # a new buffer, the kept textures copied GPU to GPU
@@ -75,21 +79,27 @@ class TextureStore:
                 self.ctx.copy_buffer(self.buf, old, n, read_offset=src * 8, write_offset=dst * 8)
             if old is not None:
                 old.release()
-        for b, lv, data, depth in writes:
-            off, evicted = self.slots.reserve(b, len(data) // 8)
+        for (b, lv, data, depth), (_, size) in zip(writes, wants, strict=True):
+            off, evicted = self.slots.reserve(b, size)
             if evicted is not None:
                 gone.append(evicted)
             self.buf.write(data, offset=off * 8)
-            self.level[b], self.depth[b] = lv, depth
+            self.level[b], self.depth[b], self._length[b] = lv, depth, len(data) // 8
         for b in gone:
             self.level.pop(b, None)
             self.depth.pop(b, None)
+            self._length.pop(b, None)
         return gone
+
+    def bits(self, b: Block) -> bool:
+        """Whether ``b``'s texture ends with the bitmask of its deeper nodes whose σ is ∞
+        (``pure.texture_nodes``; False for a block without a texture)."""
+        n = self._length.get(b)
+        return n is not None and n > texture_nodes(self.k, self.depth[b])
 
     def read(self, b: Block) -> bytes:
         """The texture the GPU holds for live block ``b``."""
-        n = texture_nodes(self.k, self.depth[b])
-        return self.buf.read(n * 8, offset=self.offset[b] * 8)
+        return self.buf.read(self._length[b] * 8, offset=self.offset[b] * 8)
 
     def bind(self, binding: int) -> None:
         """Bind the buffer as shader storage ``binding`` (nothing before the first write)."""
