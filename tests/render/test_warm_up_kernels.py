@@ -55,15 +55,21 @@ def store(tmp_path_factory):
     return tile_dem(tmp_path_factory.mktemp("warm"), dem, 65)
 
 
-@pytest.mark.parametrize("warm", [True, False])
-def test_warm_up_loads_every_kernel_a_real_selection_calls(store, warm):
-    code = _FIRST_USE.format(warm=warm, path=str(store))
+def _signatures(code: str) -> tuple[int, int]:
+    """Run ``code`` in a fresh process (``auto`` kernels); the kernel signatures it prints
+    before and after the real selection."""
     env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env
     )
     assert out.returncode == 0, out.stderr[-3000:]
     before, after = (int(v) for v in out.stdout.split()[-2:])
+    return before, after
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_warm_up_loads_every_kernel_a_real_selection_calls(store, warm):
+    before, after = _signatures(_FIRST_USE.format(warm=warm, path=str(store)))
     if warm:
         assert before >= 4 and after == before  # visit, split, qiu_rho, kim_rho
     else:
@@ -99,13 +105,7 @@ print(before, loaded())
 
 @pytest.mark.parametrize("warm", [True, False])
 def test_the_seamless_warm_up_loads_the_kernel_a_real_selection_calls(store, warm):
-    code = _SEAMLESS.format(warm=warm, path=str(store))
-    env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env
-    )
-    assert out.returncode == 0, out.stderr[-3000:]
-    before, after = (int(v) for v in out.stdout.split()[-2:])
+    before, after = _signatures(_SEAMLESS.format(warm=warm, path=str(store)))
     if warm:
         assert before >= 1 and after == before
     else:
