@@ -262,11 +262,11 @@ def packed_tree(
     depth: int | None = None,
 ) -> np.ndarray:
     """``stored_tree(bound, grid)`` with σ = ∞ at the ``mixed`` nodes, as
-    :meth:`BlockTree.packed` gives it (the same bytes; with ``depth``, with ``bits`` where
-    ``mixed`` is given), without the per-node arrays: below the store's cap depth σ and δ are
-    one value per tile and the ranges below the grid's level its ancestors', so each is
-    computed per tile and only spread when packed (a texture below full resolution, no exact
-    errors: ~1 ms instead of ~2.5 at 1025²)."""
+    :meth:`BlockTree.packed` gives it (the same bytes, with ``depth`` too, the bitmask of the
+    ∞ σ nodes past it included), without the per-node arrays: below the store's cap depth σ
+    and δ are one value per tile and the ranges below the grid's level its ancestors', so each
+    is computed per tile and only spread when packed (a texture below full resolution, no
+    exact errors: ~1 ms instead of ~2.5 at 1025²)."""
     k = len(bound)
     g = np.asarray(grid, dtype=np.float64)
     rr = (g.shape[0] - 1).bit_length() - 1
@@ -286,7 +286,7 @@ def packed_tree(
         pooled = max_pool(child, 2) if child.shape[0] > sig[d].shape[0] else child
         sig[d] = np.maximum(sig[d], 2.0 * pooled)
     n = texture_nodes(k, top)
-    inf: list[np.ndarray] = []  # per depth past top, the nodes whose σ is ∞
+    inf: list[np.ndarray | None] = []  # per depth past top, the nodes whose σ is ∞ (None: none)
     out = np.empty((n, 2), np.uint32)
     half = out.view(np.uint16).reshape(n, 4)
     big = sys.byteorder != "little"
@@ -307,7 +307,7 @@ def packed_tree(
                 every = every.reshape(t, every.shape[0] // t, t, -1).all(axis=(1, 3))
                 r = t // tile.shape[0]
                 tile = np.where(every, np.float32(np.inf), np.repeat(np.repeat(tile, r, 0), r, 1))
-            inf.append(np.zeros((1 << d,) * 2, bool) if spread is None else spread)
+            inf.append(spread)
         _spread(out[off : off + m, 0], tile.view(np.uint32))
         a = min(d, rr, k - 1)
         if a not in ranges:
@@ -324,8 +324,10 @@ def packed_tree(
         if mixed is not None and d <= top:
             out[off : off + m, 0][np.asarray(mixed[d]).ravel()] = np.float32(np.inf).view(np.uint32)
         off += m
-    if any(x.any() for x in inf):
-        return np.concatenate([out, infinite_bits(inf)])
+    if any(x is not None and x.any() for x in inf):
+        full = [np.zeros((1 << (top + 1 + i),) * 2, bool) if x is None else x
+                for i, x in enumerate(inf)]  # fmt: skip
+        return np.concatenate([out, infinite_bits(full)])
     return out
 
 
