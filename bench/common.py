@@ -127,3 +127,25 @@ def ensure_store(path: str | Path) -> bool:
             return False
         subprocess.run([exe, "tile", str(src), str(path), "--block-size", "257"], check=True)
     return (path / "zarr.json").exists()
+
+
+def flythrough_rows(
+    store: str, lod: str, frames: int, tau: float, env: dict[str, str], *flags: str
+) -> list[dict[str, str]]:
+    """``terrastream flythrough STORE --lod LOD`` as a user runs it, in a fresh process with
+    ``env`` (no PNGs); its ``frames.csv`` rows. A failed flight raises with its stderr."""
+    import csv
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as out:
+        cmd = [
+            sys.executable, "-c", "from cli.main import main; main()", "flythrough", store,
+            "--lod", lod, "--frames", str(frames), "--tau", str(tau), "--every", "0",
+            "--out", out, *flags,
+        ]  # fmt: skip
+        res = subprocess.run(cmd, cwd=str(REPO), env=env, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"flythrough failed (exit {res.returncode}):\n{res.stderr[-3000:]}")
+        with open(Path(out) / "frames.csv", newline="") as f:
+            return list(csv.DictReader(f))

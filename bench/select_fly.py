@@ -25,35 +25,22 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import json
 import os
 import statistics
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
-from bench.common import N44W072_EQC, REPO, RESULTS, machine_info, portable  # noqa: E402
+from bench.common import N44W072_EQC, REPO, RESULTS, flythrough_rows, machine_info, portable  # noqa: E402
 
 
 def fly(store: str, lod: str, frames: int, tau: float, skip: int, slow_ms: float) -> dict:
     """One ``terrastream flythrough`` in a fresh process: the selection ms statistics."""
     env = dict(os.environ, TERRASTREAM_KERNELS="numba")
-    with tempfile.TemporaryDirectory() as out:
-        cmd = [
-            sys.executable, "-c", "from cli.main import main; main()", "flythrough", store,
-            "--lod", lod, "--frames", str(frames), "--tau", str(tau), "--every", "0",
-            "--out", out,
-        ]  # fmt: skip
-        res = subprocess.run(cmd, cwd=str(REPO), env=env, capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"flythrough failed (exit {res.returncode}):\n{res.stderr[-3000:]}")
-        with open(Path(out) / "frames.csv", newline="") as f:
-            rows = list(csv.DictReader(f))
+    rows = flythrough_rows(store, lod, frames, tau, env)
     ms = np.array([float(r["selection_ms"]) for r in rows[skip:]])
     tris = [int(r["triangles"]) for r in rows[skip:]]
     return {

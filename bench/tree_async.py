@@ -26,19 +26,16 @@ Prints tables and writes ``bench/results/tree_async.json``.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import statistics
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
-from bench.common import REPO, RESULTS, machine_info, portable  # noqa: E402
+from bench.common import REPO, RESULTS, flythrough_rows, machine_info, portable  # noqa: E402
 from bench.tree_build import _utm_store  # noqa: E402
 
 CONFIGS = {
@@ -52,17 +49,7 @@ def fly(store: str, config: str, frames: int, tau: float) -> dict:
     """One ``terrastream flythrough`` in a fresh process: the per-frame build ms statistics."""
     flags, env_add = CONFIGS[config]
     env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"} | env_add
-    with tempfile.TemporaryDirectory() as out:
-        cmd = [
-            sys.executable, "-c", "from cli.main import main; main()", "flythrough", store,
-            "--lod", "geometry-splitting", "--frames", str(frames), "--tau", str(tau),
-            "--every", "0", "--out", out, *flags,
-        ]  # fmt: skip
-        res = subprocess.run(cmd, cwd=str(REPO), env=env, capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"flythrough failed (exit {res.returncode}):\n{res.stderr[-3000:]}")
-        with open(Path(out) / "frames.csv", newline="") as f:
-            rows = list(csv.DictReader(f))
+    rows = flythrough_rows(store, "geometry-splitting", frames, tau, env, *flags)
     b = np.array([float(r["build_ms"]) for r in rows])
     built = b[b > 0.05]
     return {
