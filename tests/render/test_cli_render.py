@@ -11,6 +11,7 @@ from gltools import make_context, rough, tile_dem
 from typer.testing import CliRunner
 
 from cli.main import app
+from render.strategies import strategy_names
 
 pytestmark = pytest.mark.gl
 make_context()
@@ -90,6 +91,22 @@ def test_flythrough_writes_frames_and_csv(store, tmp_path):
     assert res.exit_code == 0, res.output
     assert (tmp_path / "f" / "frames.csv").read_text().count("\n") == 4
     assert len(list((tmp_path / "f").glob("frame_*.png"))) == 3
+
+
+@pytest.mark.parametrize("lod", strategy_names())
+def test_every_strategy_flies(store, tmp_path, lod):
+    """``flythrough`` (and so ``view``, which shares its per-frame figures) with every
+    strategy: each reports its render-thread builds and its own GPU buffers. (jung-han, whose
+    constructor is its selector's, had no ``build_ms``: the flight failed.)"""
+    out = tmp_path / "f"
+    args = ["flythrough", store, "--size", "64x48", "--frames", "2", "--lod", lod,
+            "--every", "0", "--out", str(out)]  # fmt: skip
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    with (out / "frames.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 and all(float(r["build_ms"]) >= 0.0 for r in rows)
+    assert all(float(r["strategy_gpu_mb"]) >= 0.0 and int(r["drawn_px"]) > 0 for r in rows)
 
 
 @pytest.mark.parametrize("flag", [[], ["--render-thread-builds"]])

@@ -41,6 +41,7 @@ class JungHan(JungHanSelector, Strategy[JHSelection]):
         culled_collapse: bool = True,
         kernels: str | None = None,
     ) -> None:
+        Strategy.__init__(self, renderer)  # (the base's state: build_ms)
         JungHanSelector.__init__(self, renderer, prune, culled_collapse, kernels)
         ctx = renderer.ctx
         vs = shaders.source(Path(__file__).with_name("jung_han.vert"))
