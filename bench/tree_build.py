@@ -4,7 +4,8 @@ equal), the texture itself (``stored_tree``: numpy, and with its corner ranges c
 the mask's mixed nodes (derived, or unpacked
 from what a session's loaders kept), per block and resident level; below full resolution also
 the packed texture the former way (``stored_tree``, σ = ∞ at the mixed nodes, ``packed``)
-against ``packed_tree`` (the same bytes, checked).
+against ``packed_tree`` (the same bytes, checked) and its compact layout, as deep as the
+level needs (``depth=texture_depth``: what the GPU holds now).
 
 Usage::
 
@@ -90,13 +91,14 @@ def _bytes(tree) -> list[bytes]:
     return [x.tobytes() for f in ("sigma", "zmin", "zmax") for x in getattr(tree, f)]
 
 
-def _texture_via_tree(bound, grid, mixed) -> np.ndarray:
-    """The packed texture the former way: the per-node tree, σ = ∞ at the mixed nodes."""
+def _texture_via_tree(bound, grid, mixed, depth=None) -> np.ndarray:
+    """The packed texture the former way: the per-node tree, σ = ∞ at the mixed nodes
+    (``depth``: its compact layout)."""
     tree = stored_tree(bound, grid)
     for d, sig in enumerate(tree.sigma):
         if mixed is not None:
             sig[mixed[d]] = np.inf
-    return tree.packed()
+    return tree.packed() if depth is None else tree.packed(depth)
 
 
 def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
@@ -140,6 +142,12 @@ def measure(path: Path, levels: list[str], reps: int) -> list[dict]:
                 parts.setdefault("texture packed_tree", []).append(
                     _ms(reps, pure.packed_tree, bound, grid, mixed)
                 )
+                if hasattr(pure, "texture_depth"):  # as deep as the level needs (the GPU's)
+                    top = pure.texture_depth(k, lv, cap)
+                    compact = partial(pure.packed_tree, bound, grid, mixed, depth=top)
+                    want = _texture_via_tree(bound, grid, mixed, top).tobytes()
+                    assert compact().tobytes() == want, f"block {b}: the compact texture differs"
+                    parts.setdefault("texture compact", []).append(_ms(reps, compact))
             if has_boundary(mask):
                 parts.setdefault("mixed nodes derived", []).append(_ms(reps, mixed_nodes, mask, k))
                 unpack = _unpacked(mixed_nodes(mask, k), k)
@@ -168,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in stores:
         rows += measure(path, a.levels.split(","), a.reps)
     cols = ["quad_errors numpy", "quad_errors numba", "stored_tree", "stored_tree numba",
-            "texture via stored_tree", "texture packed_tree", "mixed nodes derived",
+            "texture via stored_tree", "texture packed_tree", "texture compact",
+            "mixed nodes derived",
             "mixed nodes unpacked"]  # fmt: skip
     print(f"{'store':28} {'level':>5} " + " ".join(f"{c:>21}" for c in cols))
     for r in rows:
