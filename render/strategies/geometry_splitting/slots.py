@@ -145,7 +145,8 @@ class SlotTable:
                 kept.append(key)
                 room -= self.size_of[key]
         kept.reverse()
-        dropped = [key for key in self._idle if key not in set(kept)]
+        keep = set(kept)
+        dropped = [key for key in self._idle if key not in keep]
         moves, end = [], 0
         for key, off in [*self.offset.items(), *((k, self._idle[k]) for k in kept)]:
             moves.append((key, off, end))
