@@ -172,10 +172,37 @@ def choose_crs(dst_crs: str, src_crs: CRS | None, bounds: tuple[float, ...]) -> 
         raise SourceError(
             "the source has no CRS, so it cannot be reprojected; tile it without a target CRS"
         )
+    if is_local(src_crs):
+        raise SourceError(
+            "the source's CRS is a local engineering one ({name!r}: x/y on no datum), so it "
+            "cannot be placed on the Earth or reprojected; tile it without {dst_crs}",
+            params={"dst_crs": "dst_crs"},
+            name=src_crs.to_wkt().split('"')[1] if '"' in src_crs.to_wkt() else "unnamed",
+        )
     if dst_crs != AUTO:
         return CRS.from_wkt(dst_crs)
-    lonlat = bounds if src_crs.is_geographic else transform_bounds(src_crs, "EPSG:4326", *bounds)
+    if src_crs.is_geographic:
+        return auto_crs(tuple(bounds))
+    try:
+        lonlat = transform_bounds(src_crs, "EPSG:4326", *bounds)
+    except Exception as exc:  # (GDAL/PROJ: no operation between the two)
+        raise SourceError(
+            "the source's CRS ({name}) has no transformation to longitude/latitude ({exc}), "
+            "so {dst_crs_auto} cannot pick a projection: name one with {dst_crs}, or tile "
+            "without it",
+            params={"dst_crs_auto": "dst_crs='auto'", "dst_crs": "dst_crs"},
+            name=crs_name(src_crs.to_wkt()),
+            exc=str(exc).split("\n")[0][:200],
+        ) from exc
     return auto_crs(tuple(lonlat))
+
+
+def is_local(crs: CRS | None) -> bool:
+    """True for a local engineering CRS (WKT ``LOCAL_CS`` / ``ENGCRS``: x/y on no datum)."""
+    if crs is None:
+        return False
+    wkt = crs.to_wkt().lstrip().upper()
+    return wkt.startswith(("LOCAL_CS", "ENGCRS", "ENGINEERINGCRS"))
 
 
 def crs_name(wkt: str | None) -> str:

@@ -309,3 +309,34 @@ def test_a_resolution_in_the_wrong_units_is_refused_before_anything_is_written(t
     assert tile(src, dst, TileOptions(dst_crs="auto", resolution=100.0)).grid.width > 300
     coarse = tile(src, tmp_path / "c.zarr", TileOptions(dst_crs="auto", resolution=1500.0))
     assert coarse.grid.width >= 2
+
+
+LOCAL_CS = 'LOCAL_CS["unnamed",UNIT["unknown",1],AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
+
+
+@pytest.mark.parametrize("dst_crs", ["auto", "EPSG:32633"])
+def test_a_local_engineering_crs_is_refused_for_reprojection_with_one_message(tmp_path, dst_crs):
+    """whitebox_DEM.tif's kind of CRS (x/y on no datum): `--dst-crs auto` printed PROJ's
+    JSON dump and failed with exit 1; now a SourceError (exit 2) before anything is written.
+    Control: the same file tiles without a target CRS."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    src = write_dem(tmp_path / "local.tif", np.arange(33 * 33, dtype=np.float32).reshape(33, 33),
+                    crs=LOCAL_CS)  # fmt: skip
+    with rasterio.open(src) as ds:
+        assert ds.crs is not None and not ds.crs.is_projected and not ds.crs.is_geographic
+    with pytest.raises(SourceError, match="local engineering one .*tile it without dst_crs"):
+        tile(src, tmp_path / "a.zarr", TileOptions(dst_crs=dst_crs, block_size=33))
+    assert not (tmp_path / "a.zarr").exists()
+    exe = Path(sys.executable).with_name("terrastream")
+    run = subprocess.run(
+        [str(exe), "tile", str(src), str(tmp_path / "b.zarr"), "--dst-crs", dst_crs],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 2, run.stderr
+    assert "tile it without --dst-crs" in run.stderr and "ERROR" not in run.stderr, run.stderr
+    assert not (tmp_path / "b.zarr").exists()
+    tile(src, tmp_path / "c.zarr", TileOptions(block_size=33))  # control: no target CRS
+    assert (tmp_path / "c.zarr" / "zarr.json").exists()
