@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from streamer.session import Session
 
 Block = tuple[int, int]
+Errors = dict[str, list[np.ndarray]]
 
 
 class BlockSource:
@@ -105,6 +106,35 @@ class BlockSource:
         if mask is None or not has_boundary(mask):
             return lambda: None
         return lambda: mixed_nodes(mask, k)[:k]
+
+    def held(self) -> dict[Block, int]:
+        """The synced session's finest resident level of every block it holds
+        (:meth:`streamer.session.Session.resident_levels`; empty without a session)."""
+        session = self._live()
+        return {} if session is None else session.resident_levels()
+
+    def held_version(self) -> int | None:
+        """:meth:`streamer.session.Session.resident_version` of the synced session (None
+        without one): :meth:`held` is unchanged while it is."""
+        session = self._live()
+        return None if session is None else session.resident_version()
+
+    def held_later(
+        self, block: Block, level: int
+    ) -> tuple[Callable[[], np.ndarray], Errors, Callable[[], list[np.ndarray] | None]] | None:
+        """``(grid_later, stored errors, mixed_later)`` of a block the session holds to
+        ``level`` with its side data, for a build on another thread; None when it does not
+        (then nothing is read: a block not yet drawn is not worth a store read)."""
+        session = self._live()
+        side = None if session is None else session.block_side(block)
+        if side is None:
+            return None
+        levels = session.levels(block)
+        if not len(levels) > level >= 0:
+            return None
+        mixed = side.mixed
+        later = (lambda: None) if mixed is None else partial(unpack_mixed, mixed)
+        return partial(reconstruct, levels, level), side.errors, later
 
     def forget(self, block: Block) -> None:
         """Drop what is kept of ``block`` (it left the GPU; read again if it comes back)."""

@@ -29,9 +29,10 @@ class BackgroundBuilds(Generic[T]):
     one (a key's earlier pending build is cancelled if not started, and its result dropped if
     it was); :meth:`done` hands back the finished ones; a failed build raises there."""
 
-    def __init__(self, what: str = "a block's data") -> None:
+    def __init__(self, what: str = "a block's data", name: str = "") -> None:
         self.what = what
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_PREFIX)
+        prefix = f"{THREAD_PREFIX}-{name}" if name else THREAD_PREFIX  # (the thread's name)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=prefix)
         self._pending: dict[Hashable, tuple[Hashable, Future[T], str]] = {}
         self._unfinished: set[Future[T]] = set()  # replaced ones too (close waits for them)
         self._lock = threading.Lock()  # (want/done run on one thread; close may not)

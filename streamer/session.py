@@ -96,6 +96,7 @@ class Session:
         # the cache's finest resident levels as of the latest frame (blocks holding any),
         # kept from LevelCache.take_level_changes: the caller's copy, read without the lock
         self._resident: dict[Block, int] = {}
+        self._resident_version = 0  # +1 whenever that copy changes
         self._closed = False
         self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
@@ -362,6 +363,8 @@ class Session:
         with self._cv:  # what changed since the last frame; the pass runs without the lock
             moved = cache.take_level_changes()
         mirror = self._resident
+        if moved:
+            self._resident_version += 1
         for b, top in moved.items():
             if top < 0:
                 mirror.pop(b, None)
@@ -449,6 +452,16 @@ class Session:
         """Resident decoded levels of a block (for renderers)."""
         with self._cv:
             return self.cache.levels(block)
+
+    def resident_levels(self) -> dict[Block, int]:
+        """The finest resident level of every block holding any, as of the latest
+        :meth:`update` (a copy; call it from the caller's thread, as ``update``): what a
+        renderer may prepare ahead for blocks not yet in view."""
+        return dict(self._resident)
+
+    def resident_version(self) -> int:
+        """A number that changes whenever :meth:`resident_levels` does (no copy made)."""
+        return self._resident_version
 
     def block_side(self, block: Block) -> Side | None:
         """A block's error fields and mask as the loaders read them, and the fields under the

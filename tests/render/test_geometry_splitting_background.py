@@ -11,6 +11,7 @@ import pytest
 from gltools import make_context, rough, tile_dem
 
 import render.strategies.geometry_splitting.gl as gs_gl
+import render.strategies.geometry_splitting.provision as gs_prov
 from render.builds import BuildError
 from render.renderer import RenderConfig, TerrainRenderer
 from render.strategies import get_strategy
@@ -38,7 +39,7 @@ def threads_of_builds(monkeypatch):
     """The names of the threads ``build_tree`` and ``packed_tree`` ran on, with the level of
     their grid."""
     seen: list[tuple[str, int]] = []
-    real = gs_gl.build_tree
+    real = gs_prov.build_tree
 
     def spy(grid_of, *args):
         grid = grid_of()
@@ -49,9 +50,9 @@ def threads_of_builds(monkeypatch):
         seen.append((threading.current_thread().name, (grid.shape[0] - 1).bit_length() - 1))
         return real_packed(bound, grid, mixed, depth=depth)
 
-    real_packed = gs_gl.packed_tree
-    monkeypatch.setattr(gs_gl, "build_tree", spy)
-    monkeypatch.setattr(gs_gl, "packed_tree", spy_packed)  # (textures below full resolution)
+    real_packed = gs_prov.packed_tree
+    monkeypatch.setattr(gs_prov, "build_tree", spy)
+    monkeypatch.setattr(gs_prov, "packed_tree", spy_packed)  # (textures below full resolution)
     return seen
 
 
@@ -172,7 +173,7 @@ def test_a_failed_background_build_is_raised_on_the_render_thread(store_k7, monk
         def broken(*_a):
             raise MemoryError("no room for the tree")
 
-        monkeypatch.setattr(gs_gl, "build_tree", broken)
+        monkeypatch.setattr(gs_prov, "build_tree", broken)
         _raise(r, 7)
         st.select(CAM, 1.0)
         st.settle()  # (waits: a failed build is done too)
@@ -358,4 +359,56 @@ def test_a_store_that_fits_the_first_buffer_never_moves_a_texture(
             assert st._tex.read(b) == st.tree(b, 7).packed(st._depth(b, 7)).tobytes()
         assert (st._tex.buf is buf) is (min_bytes > 0)
     finally:
+        r.close()
+
+
+def _ahead_run(path, threads_of_builds, per_frame: int):
+    """A session holding every block in view; the strategy draws one of them for a few
+    frames (the worker idle otherwise), then all: the render thread's level builds in that
+    last frame, the first textures it took ready, and the strategy."""
+    from render.step import resident_levels
+    from streamer.session import open_session
+
+    store = open_store(path)
+    r = TerrainRenderer(store, RenderConfig(size=SIZE, patch_log2=2), ctx=CTX)
+    st = get_strategy("geometry-splitting", r)
+    st.build_in_background()
+    st.ahead.per_frame = per_frame
+    with open_session(store, budget_mb=64, workers=1, tau=1.0, culling="hull") as s:
+        frame = s.update(CAM, wait=True)
+        r.sync(frame.blocks, s)
+        res = resident_levels(frame)
+        first = min(res)
+        assert len(res) >= 3 and s.resident_levels() == res
+        for _ in range(6):  # one block drawn; the others are the session's, not drawn
+            st.select(CAM, 1.0, resident={first: res[first]})
+            st.settle()
+        mark = len(threads_of_builds)
+        st.select(CAM, 1.0, resident=res)
+        me = threading.current_thread().name
+        built_here = [lv for name, lv in threads_of_builds[mark:] if name == me]
+        return st, r, res, first, built_here
+
+
+def test_first_textures_are_built_ahead_for_the_sessions_blocks(store_k7, threads_of_builds):
+    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 2)
+    try:
+        others = [b for b in res if b != first]
+        assert built_here == []  # no texture built on the render thread for the new blocks
+        assert st.ahead.hits == len(others) and st.ahead.ready == {}
+        for b in others:  # the same bytes the render thread would have built
+            lv = min(res[b], gs_gl.PROVISIONAL_LEVEL)
+            assert st._tex.level[b] == lv
+            assert _texture(st, b) == st._texture(b, lv)[0]
+    finally:
+        st.close()
+        r.close()
+
+
+def test_control_without_builds_ahead_the_render_thread_builds_them(store_k7, threads_of_builds):
+    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 0)
+    try:
+        assert len(built_here) == len(res) - 1 and st.ahead.hits == 0
+    finally:
+        st.close()
         r.close()

@@ -112,3 +112,44 @@ def test_mixed_nodes_packed_and_unpacked():
         for a, w in zip(unpack_mixed(packed), mixed[:k], strict=True):
             assert a.dtype == bool
             np.testing.assert_array_equal(a, w)
+
+
+def test_resident_levels_follow_the_cache_and_what_a_renderer_takes_of_them(nodata_store):
+    """`Session.resident_levels()` is the cache's finest level per block after each update and
+    its version moves only when it changes; `BlockSource.held_later` gives a block's inputs
+    from the session without a store read (the same values as the store's), None for a block
+    the session does not hold."""
+    from render.block_source import BlockSource
+    from tiler.layout import reconstruct
+
+    s = nodata_store
+    z0, z1 = s.meta.extra["value_range"]
+    cams = default_flythrough(s.grid, z0, z1, 12, 30.0, viewport=(320, 240))
+    src = BlockSource(s)
+    assert src.held() == {} and src.held_version() is None
+    with open_session(s, budget_mb=64, workers=1) as sess:
+        src.attach(sess)
+        versions = []
+        for cam in cams:
+            sess.update(cam, wait=True)
+            held = sess.resident_levels()
+            want = {b: len(sess.levels(b)) - 1 for b in s.blocks() if len(sess.levels(b))}
+            assert held == want and src.held() == held
+            versions.append(sess.resident_version())
+        sess.update(cams[-1], wait=True)  # the same pose again: nothing changed
+        assert sess.resident_version() == versions[-1]
+        assert versions[0] >= 1 and len(set(versions)) > 1
+        b = max(held, key=lambda x: (held[x], x))
+        grid_of, errors, mixed_of = src.held_later(b, held[b])
+        np.testing.assert_array_equal(grid_of(), reconstruct(s.read_levels(b, held[b]), held[b]))
+        for a, w in zip(errors["bound"], s.read_errors(b)["bound"], strict=True):
+            np.testing.assert_array_equal(a, w)
+        mixed = mixed_of()
+        mask = s.read_mask(b)
+        if has_boundary(mask):
+            for a, w in zip(mixed, mixed_nodes(mask, s.k)[: s.k], strict=True):
+                np.testing.assert_array_equal(a, w)
+        else:
+            assert mixed is None
+        assert src.held_later(b, held[b] + 1) is None  # a level it does not hold
+        assert src.held_later((99, 99), 0) is None  # a block it does not hold

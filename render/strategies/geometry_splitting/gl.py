@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import time
 import weakref
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 
 import moderngl
@@ -28,23 +26,18 @@ from render.strategies.base import (
     triangle_screen_errors,
 )
 from render.strategies.feedback import block_neighbours, feedback_pass
-from render.strategies.geometry_splitting.kernels import (
-    packed_tree,
-    quad_errors,
-    stored_tree,
-    warm_up,
+from render.strategies.geometry_splitting.ahead import AheadTextures
+from render.strategies.geometry_splitting.provision import (  # noqa: F401 (re-exported)
+    PROVISIONAL_LEVEL,
+    TextureProvision,
+    build_tree,
 )
-from render.strategies.geometry_splitting.pure import BlockTree, texture_depth
+from render.strategies.geometry_splitting.pure import BlockTree
 from render.strategies.geometry_splitting.reference import CULL_MARGIN, expand_reference
-from render.strategies.geometry_splitting.textures import TextureStore, Write
+from render.strategies.geometry_splitting.textures import TextureStore
 from streamer.camera import Camera
 
 NO_CAP = 99  # border cap meaning "no restriction"
-_WARM_UP = ("kernels",)  # the background builds' first job
-#: with background builds, a new block's first texture is built at once from this level's
-#: grid (~2 ms at 1025²: its ranges from 65² corners, no exact errors), the texture of its
-#: resident level on the worker thread
-PROVISIONAL_LEVEL = 6
 #: the texture buffer grows up to this size (or the store's blocks) to keep the textures of
 #: blocks that left the GPU, for when they come back; past it the oldest gives way (a buffer
 #: with more live blocks than this grows for them: ``slots.SlotTable``)
@@ -95,39 +88,13 @@ class Selection:
         return self.leaves
 
 
-def build_tree(
-    grid_of: Callable[[], np.ndarray],
-    bound: list[np.ndarray],
-    mask: np.ndarray | None,
-    deep: range,
-    mixed_of: Callable[[], list[np.ndarray] | None],
-) -> BlockTree:
-    """One block's quadtree texture (:func:`stored_tree`) from its level grid (``grid_of()``),
-    stored ``bound`` errors, the exact errors at ``deep`` depths (full resolution, ``mask``'s
-    samples) and σ = ∞ at the ``mixed_of()`` nodes (mask boundaries: refined). No GL: any
-    thread."""
-    grid = grid_of()
-    exact = quad_errors(grid, mask, deep) if len(deep) else None
-    tree = stored_tree(bound, grid, exact)
-    mixed = mixed_of()
-    if mixed is not None:
-        for d, sig in enumerate(tree.sigma):
-            sig[mixed[d]] = np.inf
-    return tree
-
-
-def _packed(job: Callable[[], BlockTree], depth: int) -> tuple[BlockTree, bytes, int]:
-    tree = job()
-    return tree, tree.packed(depth).tobytes(), depth
-
-
 def _release(*bufs) -> None:
     for b in bufs:
         if b is not None:
             b.release()
 
 
-class GeometrySplitting(Strategy[Selection]):
+class GeometrySplitting(TextureProvision, Strategy[Selection]):
     """Lee & Shin: GPU quadtree expansion and triangle splitting."""
 
     name = "geometry-splitting"
@@ -165,143 +132,17 @@ class GeometrySplitting(Strategy[Selection]):
         )
         self.heights = GlobalHeights(renderer.store)
         self._builds: BackgroundBuilds[tuple[BlockTree, bytes, int]] | None = None
+        self._ahead_builds: BackgroundBuilds[tuple[bytes, int]] | None = None
+        #: first textures built ahead for the session's blocks not yet drawn (with
+        #: :meth:`build_in_background`; ``ahead.py``)
+        self.ahead = AheadTextures()
+        self._ahead_key: tuple | None = None  # what the last want was made from
+        self.build_cpu_ms = 0.0  # the render thread's CPU in the last frame's textures
         check_gl(ctx, "creating the geometry-splitting programs")
 
     def own_gpu_bytes(self) -> int:
         """The quadtree texture buffer (σ and height ranges of every resident block)."""
         return self._tex.nbytes
-
-    # -- quadtree texture --------------------------------------------------------------------
-
-    def tree(self, b: Block, level: int | None = None) -> BlockTree:
-        """The block's quadtree texture for its resident ``level`` (default: the GPU's), from
-        the stored errors and that level's grid (:func:`build_tree`; rebuilt when the level
-        changes)."""
-        lv = self.r.gpu_level(b) if level is None else int(level)
-        if self._tree_level.get(b) != lv or b not in self.trees:
-            self.trees[b] = self._tree_job(b, lv)()
-            self._tree_level[b] = lv
-        return self.trees[b]
-
-    def gpu_tree(self, b: Block, level: int) -> BlockTree:
-        """The tree of the texture the GPU holds for ``b`` (drawn at ``level``): built for
-        ``level``, or for the level before while its rebuild runs in the background."""
-        return self.tree(b, self._tex.level.get(b, level) if self._builds else level)
-
-    def _tree_job(self, b: Block, lv: int) -> Callable[[], BlockTree]:
-        """Building ``b``'s tree for level ``lv``: its inputs gathered now, on the render
-        thread (the session's arrays), the work left to the function (any thread)."""
-        deep = range(self.r.store.meta.error_cap + 1, self.k) if lv == self.k else range(0)
-        return partial(
-            build_tree,
-            self.r.block_grid_later(b, max(lv, 0)),
-            self.r.stored_errors(b)["bound"],
-            self.r.mask(b) if len(deep) else None,
-            deep,
-            self.r.mixed_nodes_later(b),  # (the session's loaders derived them)
-        )
-
-    def _depth(self, b: Block, lv: int) -> int:
-        """The depth ``b``'s texture for level ``lv`` stores node by node
-        (:func:`~render.strategies.geometry_splitting.pure.texture_depth`; a block with nodata
-        adds the bitmask of its deeper nodes whose σ is ∞)."""
-        return texture_depth(self.k, max(lv, 0), self.r.store.meta.error_cap)
-
-    def _texture(self, b: Block, lv: int) -> tuple[bytes, int]:
-        """The packed texture of ``b`` for level ``lv``, built now, and its depth: below full
-        resolution without the per-node arrays (:func:`packed_tree`, the same bytes;
-        :meth:`tree` builds them if asked), at full resolution from :meth:`tree` (its exact
-        errors)."""
-        depth = self._depth(b, lv)
-        if lv >= self.k or self._tree_level.get(b) == lv:
-            return self.tree(b, lv).packed(depth).tobytes(), depth
-        grid = self.r.block_grid_later(b, max(lv, 0))()
-        mixed = self.r.mixed_nodes_later(b)()
-        bound = self.r.stored_errors(b)["bound"]
-        return packed_tree(bound, grid, mixed, depth=depth).tobytes(), depth
-
-    def build_in_background(self) -> bool:
-        """A block whose level changes keeps its texture until a worker thread has built the
-        new one; a new block finer than :data:`PROVISIONAL_LEVEL` is drawn with the texture
-        of that level (built at once) until then. Either texture bounds the block's terrain
-        (σ from the stored errors, ranges around every sample) but Lee & Shin's projected
-        error is evaluated at a range's mid-height, so the selection differs meanwhile."""
-        if self._builds is None:
-            self._builds = BackgroundBuilds("a geometry-splitting quadtree texture")
-            # the compiled kernels loaded by the worker, before its first build (not the
-            # render thread: ``auto`` then uses them in both)
-            self._builds.want(_WARM_UP, 0, warm_up, "loading the compiled tree kernels (numba)")
-        return True
-
-    def close(self) -> None:
-        if self._builds is not None:
-            self._builds.close()
-            self._builds = None
-
-    def interim_blocks(self, resident: dict[Block, int] | None = None) -> list[Block]:
-        """The drawn blocks whose texture is not yet their drawn level's (its build runs in
-        the background)."""
-        return [b for b, lv in self.r.drawable(resident) if self._tex.level.get(b, lv) != lv]
-
-    def settle(self, timeout: float = 30.0) -> None:
-        """Wait for the background builds asked for so far (:meth:`build_in_background`);
-        the next :meth:`select` uploads them."""
-        if self._builds is not None:
-            self._builds.wait(timeout)
-
-    def _take_built(self, level: dict[Block, int]) -> list[Write]:
-        """The background builds that finished, where the block still has its texture and the
-        level they were built for: to write."""
-        out = []
-        for b, lv, built in self._builds.done() if self._builds else ():
-            if b == _WARM_UP:
-                continue
-            tree, data, depth = built
-            if b in self._tex.offset and level.get(b, self.r.gpu_level(b)) == lv:
-                out.append((b, lv, data, depth))
-                self.trees[b], self._tree_level[b] = tree, lv
-        return out
-
-    def _upload_trees(self, pairs: list[tuple[Block, int]]) -> None:
-        later: list[tuple[Block, int]] = []  # background builds, asked for after the frame's
-        try:  # own (a worker started at once takes the GIL from them: 6-36 ms, not ~1.5)
-            self._place_textures(pairs, later)
-        finally:
-            for b, lv in later:
-                job = partial(_packed, self._tree_job(b, lv), self._depth(b, lv))
-                self._builds.want(b, lv, job)
-
-    def _place_textures(self, pairs: list[tuple[Block, int]], later: list) -> None:
-        """Write the textures ``pairs`` need now; append those left to the worker to
-        ``later``."""
-        level = dict(pairs)
-        tex = self._tex
-        tex.keep([b for b in tex.offset if b in level or self.r.gpu_level(b) >= 0])
-        for b in [b for b in self.trees if not tex.holds(b)]:  # (no texture, no heights)
-            if b not in level and self.r.gpu_level(b) < 0:
-                self._forget(b)
-        for b, _ in pairs:  # back on the GPU before its slot was taken: its texture is there
-            if b not in tex.offset:
-                tex.revive(b)
-        writes = self._take_built(level)
-        fresh = {b for b, *_ in writes}
-        for b, lv in pairs:
-            if b in fresh or (b in tex.offset and tex.level[b] == lv):  # (its texture is there)
-                continue
-            if b in tex.offset and self._builds is not None:  # later: it keeps its texture
-                later.append((b, lv))
-                continue
-            if b not in tex.offset and self._builds is not None and lv > PROVISIONAL_LEVEL:
-                later.append((b, lv))  # a new block: the rest later
-                lv = PROVISIONAL_LEVEL
-            writes.append((b, lv, *self._texture(b, lv)))
-        for b in tex.write(writes):
-            self._forget(b)
-
-    def _forget(self, b: Block) -> None:
-        """Drop ``b``'s tree (its texture has gone, or it never had one)."""
-        self.trees.pop(b, None)
-        self._tree_level.pop(b, None)
 
     def block_table(
         self, resident: dict[Block, int] | None = None
@@ -350,9 +191,7 @@ class GeometrySplitting(Strategy[Selection]):
         t0 = time.perf_counter()
         ctx = self.r.ctx
         self.r.make_current()  # the passes make and use GL objects of the renderer's context
-        tb = time.perf_counter()
-        self._upload_trees(self.r.drawable(resident))
-        build_ms = self.build_ms = (time.perf_counter() - tb) * 1000.0
+        build_ms = self.upload_textures(self.r.drawable(resident), camera)
         blocks, table = self.block_table(resident)
         block_buf = ctx.buffer(np.ascontiguousarray(table).tobytes() or bytes(64))
         stats = ctx.buffer(np.array([0, -1, 1 << 30, 0], np.int32).tobytes())
