@@ -99,6 +99,7 @@ def fly(
         "full_textures_in_max": max(nbytes) / per,  # the buffer's size in full-size textures
         "growth_frames": [i for i in range(1, len(rows)) if nbytes[i] != nbytes[i - 1]],
         "frames_over_2ms": [i for i, b in enumerate(build) if b > 2.0],
+        "first_build_ms": build[0],
         "max_build_ms_after_first": max(build[1:]) if len(build) > 1 else 0.0,
         "build_cpu_ms_after_first": sum(cpu[1:]) if cpu else None,
         "frames_over_1ms_cpu": [i for i, c in enumerate(cpu) if c > 1.0] if cpu else None,
@@ -146,14 +147,14 @@ def main(argv: list[str] | None = None) -> int:
         for kind in a.paths.split(",")
     ]
     head = ("path", "frames", "max GPU blocks", "max texture MB", "full textures in it",
-            "growths", "frames > 2 ms", "max ms after first", "CPU ms after first",
-            "frames > 1 ms CPU", "ahead hits/misses/dropped")  # fmt: skip
+            "growths", "frames > 2 ms", "first frame ms", "max ms after first",
+            "CPU ms after first", "frames > 1 ms CPU", "ahead hits/misses/dropped")  # fmt: skip
     print(" | ".join(head))
     for x in runs:
         print(" | ".join(str(v) for v in (
             x["path"], x["frames"], x["max_gpu_blocks"], f"{x['max_texture_mb']:.1f}",
             f"{x['full_textures_in_max']:.1f}", len(x["growth_frames"]), len(x["frames_over_2ms"]),
-            f"{x['max_build_ms_after_first']:.2f}",
+            f"{x['first_build_ms']:.1f}", f"{x['max_build_ms_after_first']:.2f}",
             _fmt(x["build_cpu_ms_after_first"]),
             "-" if x["frames_over_1ms_cpu"] is None else len(x["frames_over_1ms_cpu"]),
             "/".join(map(str, x["ahead_hits_misses_dropped"] or ["-"])),

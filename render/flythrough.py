@@ -40,6 +40,7 @@ class FlyRow:
     patches: int
     selection_ms: float
     build_ms: float  # per-block data built on the render thread (geometry-splitting's trees)
+    build_cpu_ms: float  # the render thread's CPU in that (build_ms is wall time)
     gpu_ms: float
     loaded_mb: float
     resident_mb: float
@@ -135,6 +136,7 @@ def flythrough(
                     patches=st.patches,
                     selection_ms=ms,
                     build_ms=strat.build_ms,
+                    build_cpu_ms=strat.build_cpu_ms,
                     gpu_ms=st.frame_ms,
                     loaded_mb=(fs.realtime_bytes + fs.prefetched_bytes) / 2**20,
                     resident_mb=fs.resident_bytes / 2**20,
@@ -188,6 +190,7 @@ def flythrough(
         "max_selection_ms": float(np.max([x.selection_ms for x in rows])),
         "mean_build_ms": float(np.mean([x.build_ms for x in rows])),
         "max_build_ms": float(np.max([x.build_ms for x in rows])),
+        "max_build_cpu_ms": float(np.max([x.build_cpu_ms for x in rows])),
         "mean_gpu_ms": float(np.mean([x.gpu_ms for x in rows])),
         "max_strategy_gpu_mb": float(np.max([x.strategy_gpu_mb for x in rows])),
         "stall_frames": int(sum(x.stalled for x in rows)),

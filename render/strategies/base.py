@@ -127,6 +127,8 @@ class Strategy(ABC, Generic[S]):
         #: ms the last :meth:`select` spent on the render thread building per-block data
         #: (quadtree textures, ε tables) outside its selection ms
         self.build_ms = 0.0
+        #: the render thread's CPU ms in that work (``time.thread_time``; ``build_ms`` is wall)
+        self.build_cpu_ms = 0.0
 
     def build_in_background(self) -> bool:
         """Build per-block data that can wait (a level change's) on a worker thread from now

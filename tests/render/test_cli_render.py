@@ -106,6 +106,7 @@ def test_every_strategy_flies(store, tmp_path, lod):
     with (out / "frames.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 and all(float(r["build_ms"]) >= 0.0 for r in rows)
+    assert all(float(r["build_cpu_ms"]) >= 0.0 for r in rows)
     assert all(float(r["strategy_gpu_mb"]) >= 0.0 and int(r["drawn_px"]) > 0 for r in rows)
 
 
@@ -123,8 +124,10 @@ def test_a_geometry_splitting_flythrough_reports_its_texture_builds(store, tmp_p
     with (out / "frames.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     assert float(rows[0]["build_ms"]) > 0.0  # the first frame's blocks are new: built there
+    assert float(rows[0]["build_cpu_ms"]) > 0.0  # (the render thread's CPU in it)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["max_build_ms"] == max(float(r["build_ms"]) for r in rows)
+    assert summary["max_build_cpu_ms"] == max(float(r["build_cpu_ms"]) for r in rows)
     gpu_mb = [float(r["strategy_gpu_mb"]) for r in rows]  # its texture buffer
     assert min(gpu_mb) > 0.0 and summary["max_strategy_gpu_mb"] == max(gpu_mb)
     assert "builds max" in res.output

@@ -137,7 +137,6 @@ class GeometrySplitting(TextureProvision, Strategy[Selection]):
         #: :meth:`build_in_background`; ``ahead.py``)
         self.ahead = AheadTextures()
         self._ahead_key: tuple | None = None  # what the last want was made from
-        self.build_cpu_ms = 0.0  # the render thread's CPU in the last frame's textures
         check_gl(ctx, "creating the geometry-splitting programs")
 
     def own_gpu_bytes(self) -> int:

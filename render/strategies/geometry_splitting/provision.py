@@ -85,7 +85,7 @@ class TextureProvision:
     _ahead_builds: BackgroundBuilds[tuple[bytes, int]] | None
     ahead: AheadTextures
     _ahead_key: tuple | None
-    build_ms: float
+    build_ms: float  # (Strategy's)
     build_cpu_ms: float
 
     def tree(self, b: Block, level: int | None = None) -> BlockTree:
