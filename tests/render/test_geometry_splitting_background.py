@@ -390,16 +390,23 @@ def _ahead_run(path, threads_of_builds, per_frame: int):
         return st, r, res, first, built_here
 
 
-def test_first_textures_are_built_ahead_for_the_sessions_blocks(store_k7, threads_of_builds):
-    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 2)
+@pytest.mark.parametrize("name", ["store_k7", "store_k7_nodata"])
+def test_first_textures_are_built_ahead_for_the_sessions_blocks(
+    request, name, threads_of_builds, monkeypatch
+):
+    if name == "store_k7_nodata":  # first textures at level 4: compact (the cap is 3), so a
+        monkeypatch.setattr(gs_prov, "PROVISIONAL_LEVEL", 4)  # block with nodata adds its bitmask
+    st, r, res, first, built_here = _ahead_run(request.getfixturevalue(name), threads_of_builds, 2)
     try:
         others = [b for b in res if b != first]
         assert built_here == []  # no texture built on the render thread for the new blocks
         assert st.ahead.hits == len(others) and st.ahead.ready == {}
         for b in others:  # the same bytes the render thread would have built
-            lv = min(res[b], gs_gl.PROVISIONAL_LEVEL)
+            lv = min(res[b], gs_prov.PROVISIONAL_LEVEL)
             assert st._tex.level[b] == lv
             assert _texture(st, b) == st._texture(b, lv)[0]
+        # with nodata, textures carrying the bitmask of their mixed nodes (the session's)
+        assert any(st._tex.bits(b) for b in others) is (name == "store_k7_nodata")
     finally:
         st.close()
         r.close()
