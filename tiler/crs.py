@@ -17,7 +17,7 @@ import numpy as np
 import rasterio
 from rasterio.crs import CRS
 from rasterio.errors import CRSError
-from rasterio.warp import transform_bounds
+from rasterio.warp import transform, transform_bounds
 
 from tiler.errors import GeographicStoreError, SourceError
 from tiler.vertical import require_heights
@@ -179,22 +179,24 @@ def choose_crs(dst_crs: str, src_crs: CRS | None, bounds: tuple[float, ...]) -> 
             params={"dst_crs": "dst_crs"},
             name=src_crs.to_wkt().split('"')[1] if '"' in src_crs.to_wkt() else "unnamed",
         )
-    if dst_crs != AUTO:
-        return CRS.from_wkt(dst_crs)
-    if src_crs.is_geographic:
-        return auto_crs(tuple(bounds))
-    try:
-        lonlat = transform_bounds(src_crs, "EPSG:4326", *bounds)
+    target = None if dst_crs == AUTO else CRS.from_wkt(dst_crs)
+    left, bottom, right, top = bounds
+    try:  # (within an Env: GDAL's "ERROR 1: PROJ ..." to logging, not to stderr)
+        with rasterio.Env():
+            # the centre first: a CRS of another body (Mars) has no operation to the target
+            transform(src_crs, target or "EPSG:4326", [(left + right) / 2], [(bottom + top) / 2])
+            if target is None and not src_crs.is_geographic:
+                bounds = transform_bounds(src_crs, "EPSG:4326", *bounds)
     except Exception as exc:  # (GDAL/PROJ: no operation between the two)
         raise SourceError(
-            "the source's CRS ({name}) has no transformation to longitude/latitude ({exc}), "
-            "so {dst_crs_auto} cannot pick a projection: name one with {dst_crs}, or tile "
-            "without it",
-            params={"dst_crs_auto": "dst_crs='auto'", "dst_crs": "dst_crs"},
+            "the source's CRS ({name}) has no transformation to {to} ({exc}): name a target "
+            "CRS it can reach with {dst_crs}, or tile without one",
+            params={"dst_crs": "dst_crs"},
             name=crs_name(src_crs.to_wkt()),
+            to="longitude/latitude, which 'auto' needs" if target is None else crs_name(dst_crs),
             exc=str(exc).split("\n")[0][:200],
         ) from exc
-    return auto_crs(tuple(lonlat))
+    return target if target is not None else auto_crs(tuple(bounds))
 
 
 def is_local(crs: CRS | None) -> bool:

@@ -340,3 +340,45 @@ def test_a_local_engineering_crs_is_refused_for_reprojection_with_one_message(tm
     assert not (tmp_path / "b.zarr").exists()
     tile(src, tmp_path / "c.zarr", TileOptions(block_size=33))  # control: no target CRS
     assert (tmp_path / "c.zarr" / "zarr.json").exists()
+
+
+MARS_EQC, MARS_LONLAT = "IAU_2015:49912", "IAU_2015:49900"
+
+
+@pytest.mark.parametrize(
+    ("src", "dst", "to"),
+    [
+        (MARS_EQC, "auto", "longitude/latitude, which 'auto' needs"),
+        (MARS_LONLAT, "auto", "longitude/latitude, which 'auto' needs"),  # (was: an Earth UTM)
+        (MARS_EQC, "EPSG:32633", "EPSG:32633"),
+    ],
+)
+def test_a_crs_with_no_way_to_the_target_is_one_message(src, dst, to):
+    """A DEM of another body: `auto` (or an Earth target) has no operation from it. A
+    SourceError naming both, not GDAL's error later in the warp (or, for a Mars lon/lat
+    source, an Earth UTM zone chosen from its degrees). Control: a Mars target is reachable."""
+    from tiler.crs import choose_crs
+
+    crs = CRS.from_user_input(src)
+    box = (-1.0, -1.0, 1.0, 1.0) if crs.is_geographic else (0.0, 0.0, 1e5, 1e5)
+    target = dst if dst == "auto" else parse_dst_crs(dst)
+    with pytest.raises(SourceError, match=f"has no transformation to {to} .*name a target"):
+        choose_crs(target, crs, box)
+    mars = CRS.from_user_input(MARS_EQC)
+    assert choose_crs(mars.to_wkt(), crs, box).to_wkt() == mars.to_wkt()  # control
+
+
+def test_no_transformation_is_said_once_not_by_gdal_on_stderr():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "from rasterio.crs import CRS\nfrom tiler.crs import choose_crs\n"
+        f"try:\n    choose_crs('auto', CRS.from_user_input('{MARS_EQC}'), (0, 0, 1, 1))\n"
+        "except ValueError as e:\n    print(e)"
+    )
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True, cwd=root)  # fmt: skip
+    assert "has no transformation" in run.stdout and "ERROR" not in run.stderr, run.stderr
