@@ -73,7 +73,7 @@ def fly(
     ahead_per_frame: int | None = None,
 ) -> dict:
     """One flight in a fresh process; its per-frame records and their summary
-    (``ahead_per_frame``: the first textures built ahead a frame, default the strategy's)."""
+    (``ahead_per_frame``: the first textures asked ahead at once, default the strategy's)."""
     cmd = [sys.executable, "-c", CHILD, str(store), kind, str(frames), *map(str, size), str(tau)]
     env = dict(os.environ)
     if ahead_per_frame is not None:
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         "--ahead-per-frame",
         type=int,
         default=None,
-        help="first textures built ahead a frame (0: none; default: the strategy's)",
+        help="first textures asked ahead at once (0: none; default: the strategy's)",
     )
     ap.add_argument("--out", type=Path, default=RESULTS / "texture_slots.json")
     a = ap.parse_args(argv)

@@ -1,10 +1,10 @@
-"""``geometry-splitting``: first textures built ahead, on the worker thread, for blocks the
+"""``geometry-splitting``: first textures built ahead, on a worker thread, for blocks the
 streaming session already holds but the GPU does not draw yet (prefetched), so that a block
 entering the view gets its first texture without a build on the render thread.
 
 A new block's first texture is the one the render thread would build at once — its level
-capped at ``PROVISIONAL_LEVEL`` (``gl.py``) — so the bytes and the drawing are the same either
-way; only where the work runs changes. This module is the bookkeeping (no GL, no threads):
+capped at ``PROVISIONAL_LEVEL`` (``provision.py``) — so the bytes and the drawing are the same
+either way; only where the work runs changes. This module is the bookkeeping (no GL, no threads):
 which blocks to build ahead, the finished textures (bounded in bytes), and the counts a
 benchmark reports.
 """
@@ -28,7 +28,7 @@ class AheadTextures:
 
     def __init__(self, limit_bytes: int = AHEAD_BYTES, per_frame: int = AHEAD_PER_FRAME) -> None:
         self.limit_bytes = int(limit_bytes)
-        self.per_frame = int(per_frame)
+        self.per_frame = int(per_frame)  # (asked at once: a frame asks for the room left)
         #: block -> (level built for, packed bytes, depth stored node by node)
         self.ready: dict[Block, tuple[int, bytes, int]] = {}
         self.asked: set[Block] = set()  #: builds asked for, not yet :meth:`put`

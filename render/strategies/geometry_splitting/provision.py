@@ -61,14 +61,14 @@ def _packed(job: Callable[[], BlockTree], depth: int) -> tuple[BlockTree, bytes,
     return tree, tree.packed(depth).tobytes(), depth
 
 
-def _ahead_texture(
+def _packed_texture(
     grid_of: Callable[[], np.ndarray],
     bound: list[np.ndarray],
     mixed_of: Callable[[], list[np.ndarray] | None],
     depth: int,
 ) -> tuple[bytes, int]:
-    """A first texture below full resolution built ahead (any thread): what
-    ``GeometrySplitting._texture`` builds on the render thread, from the same inputs."""
+    """A texture below full resolution and its depth, without the per-node arrays
+    (:func:`packed_tree`), on any thread: the render thread's and the ones built ahead."""
     return packed_tree(bound, grid_of(), mixed_of(), depth=depth).tobytes(), depth
 
 
@@ -130,10 +130,8 @@ class TextureProvision:
         depth = self._depth(b, lv)
         if lv >= self.k or self._tree_level.get(b) == lv:
             return self.tree(b, lv).packed(depth).tobytes(), depth
-        grid = self.r.block_grid_later(b, max(lv, 0))()
-        mixed = self.r.mixed_nodes_later(b)()
-        bound = self.r.stored_errors(b)["bound"]
-        return packed_tree(bound, grid, mixed, depth=depth).tobytes(), depth
+        grid_of, bound = self.r.block_grid_later(b, max(lv, 0)), self.r.stored_errors(b)["bound"]
+        return _packed_texture(grid_of, bound, self.r.mixed_nodes_later(b), depth)
 
     def build_in_background(self) -> bool:
         """A block whose level changes keeps its texture until a worker thread has built the
@@ -237,7 +235,7 @@ class TextureProvision:
             if inputs is not None:
                 grid_of, errors, mixed_of = inputs
                 job = partial(
-                    _ahead_texture, grid_of, errors["bound"], mixed_of, self._depth(b, lv)
+                    _packed_texture, grid_of, errors["bound"], mixed_of, self._depth(b, lv)
                 )
                 self._ahead_builds.want(b, lv, job, f"building the first texture of {b}")
                 ahead.asking(b)
