@@ -60,7 +60,8 @@ finally:
     st.close()
     r.close()
 print(json.dumps({"k": store.k, "rows": rows,
-                  "ahead": None if ahead is None else [ahead.hits, ahead.misses, ahead.dropped]}))
+                  "ahead": None if ahead is None else [ahead.hits, ahead.misses, ahead.dropped],
+                  "interims": getattr(ahead, "interims", None)}))
 """
 
 
@@ -105,6 +106,9 @@ def fly(
         "frames_over_1ms_cpu": [i for i, c in enumerate(cpu) if c > 1.0] if cpu else None,
         # first textures taken built ahead / built on the render thread / dropped unused
         "ahead_hits_misses_dropped": ahead,
+        # first textures taken ready at another level than drawn, drawn meanwhile (None: the
+        # code measured took none of them)
+        "ahead_interims": d.get("interims"),
         "mean_triangles": sum(x[4] for x in rows) / len(rows),
         "per_frame": [
             {
@@ -148,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     ]
     head = ("path", "frames", "max GPU blocks", "max texture MB", "full textures in it",
             "growths", "frames > 2 ms", "first frame ms", "max ms after first",
-            "CPU ms after first", "frames > 1 ms CPU", "ahead hits/misses/dropped")  # fmt: skip
+            "CPU ms after first", "frames > 1 ms CPU", "ahead hits/misses/dropped",
+            "interims", "mean triangles")  # fmt: skip
     print(" | ".join(head))
     for x in runs:
         print(" | ".join(str(v) for v in (
@@ -158,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
             _fmt(x["build_cpu_ms_after_first"]),
             "-" if x["frames_over_1ms_cpu"] is None else len(x["frames_over_1ms_cpu"]),
             "/".join(map(str, x["ahead_hits_misses_dropped"] or ["-"])),
+            "-" if x["ahead_interims"] is None else x["ahead_interims"],
+            f"{x['mean_triangles']:.0f}",
         )))  # fmt: skip
     a.out.parent.mkdir(parents=True, exist_ok=True)
     doc = {"machine": machine_info(), "store": portable(str(a.store)), "size": list(size),

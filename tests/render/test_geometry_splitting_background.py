@@ -362,10 +362,12 @@ def test_a_store_that_fits_the_first_buffer_never_moves_a_texture(
         r.close()
 
 
-def _ahead_run(path, threads_of_builds, per_frame: int):
+def _ahead_run(path, threads_of_builds, per_frame: int, lower: int = 0):
     """A session holding every block in view; the strategy draws one of them for a few
-    frames (the worker idle otherwise), then all: the render thread's level builds in that
-    last frame, the first textures it took ready, and the strategy."""
+    frames (the worker idle otherwise), then all (the others ``lower`` levels below their
+    first texture's level, as if the session had changed their level after it was built):
+    the render thread's level builds in that last frame, the first textures it took ready,
+    and the strategy."""
     from render.step import resident_levels
     from streamer.session import open_session
 
@@ -384,6 +386,10 @@ def _ahead_run(path, threads_of_builds, per_frame: int):
             st.select(CAM, 1.0, resident={first: res[first]})
             st.settle()
         mark = len(threads_of_builds)
+        if lower:
+            cap = gs_prov.PROVISIONAL_LEVEL
+            res = {b: lv if b == first else min(lv, cap) - lower for b, lv in res.items()}
+            assert min(res.values()) >= 0
         st.select(CAM, 1.0, resident=res)
         me = threading.current_thread().name
         built_here = [lv for name, lv in threads_of_builds[mark:] if name == me]
@@ -416,6 +422,61 @@ def test_control_without_builds_ahead_the_render_thread_builds_them(store_k7, th
     st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 0)
     try:
         assert len(built_here) == len(res) - 1 and st.ahead.hits == 0
+    finally:
+        st.close()
+        r.close()
+
+
+def test_a_first_texture_built_for_another_level_is_drawn_until_the_blocks_own_is_built(
+    store_k7, threads_of_builds
+):
+    """The session changed a held block's level after its first texture was built ahead: the
+    block is drawn with that texture (an interim one, as after a level change on the GPU) and
+    its own is built on the level worker, not on the render thread."""
+    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 2, lower=1)
+    try:
+        others = [b for b in res if b != first]
+        assert built_here == []  # nothing built on the render thread
+        # (the one miss: the block drawn from the first frame, before anything was held)
+        assert (st.ahead.hits, st.ahead.misses, st.ahead.interims) == (0, 1, len(others))
+        built = {b: res[b] + 1 for b in others}  # (the level the session held them at)
+        for b in others:  # drawn meanwhile with the texture built ahead
+            assert st._tex.level[b] == built[b]
+            assert _texture(st, b) == st._texture(b, built[b])[0]
+        assert sorted(st.interim_blocks(res)) == sorted(others)
+        mark = len(threads_of_builds)
+        st.settle()
+        st.select(CAM, 1.0, resident=res)  # uploads the worker's builds
+        assert st.interim_blocks(res) == []
+        me = threading.current_thread().name
+        assert [lv for name, lv in threads_of_builds[mark:] if name == me] == []
+        worker = sorted(lv for name, lv in threads_of_builds if name == "terrastream-block-build_0")
+        assert all(worker.count(res[b]) >= 1 for b in others)  # (built there)
+        for b in others:  # the texture the render thread would have built for the level
+            assert st._tex.level[b] == res[b]
+            assert _texture(st, b) == st._texture(b, res[b])[0]
+    finally:
+        st.close()
+        r.close()
+
+
+def test_control_a_first_texture_of_another_level_refused_is_built_on_the_render_thread(
+    store_k7, threads_of_builds, monkeypatch
+):
+    """Control: taking only a texture built for the level drawn (the code before interims),
+    the render thread builds the first textures of those blocks itself."""
+    real = gs_prov.AheadTextures.take
+
+    def same_level_only(self, b, level):
+        got = real(self, b, level)
+        return got if got is None or got[0] == level else None
+
+    monkeypatch.setattr(gs_prov.AheadTextures, "take", same_level_only)
+    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 2, lower=1)
+    try:
+        others = [b for b in res if b != first]
+        assert sorted(built_here) == sorted(res[b] for b in others)
+        assert st.interim_blocks(res) == []
     finally:
         st.close()
         r.close()

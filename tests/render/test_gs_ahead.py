@@ -36,15 +36,17 @@ def test_a_finer_resident_level_wants_a_new_build_and_a_negative_level_none():
     assert a.wanted({(0, 0): 4}, lambda lv: -1, lambda b: False, _by_row) == []
 
 
-def test_take_hands_over_only_the_level_asked_for():
+def test_take_hands_over_a_texture_once_counting_hits_and_interims():
     a = AheadTextures()
     a.put((0, 0), 6, b"t" * 8, 6)
-    assert a.take((0, 0), 6) == (b"t" * 8, 6)
-    assert (a.hits, a.misses, a.nbytes, a.ready) == (1, 0, 0, {})
+    assert a.take((0, 0), 6) == (6, b"t" * 8, 6)
+    assert (a.hits, a.misses, a.interims, a.nbytes, a.ready) == (1, 0, 0, 0, {})
     assert a.take((0, 0), 6) is None  # handed over once
     a.put((1, 1), 4, b"u" * 8, 6)
-    assert a.take((1, 1), 5) is None  # another level: dropped, the render thread builds it
-    assert (a.hits, a.misses, a.nbytes, a.ready) == (1, 2, 0, {})
+    # built for another level (the session raised the block's): handed over as an interim,
+    # with the level it was built for
+    assert a.take((1, 1), 5) == (4, b"u" * 8, 6)
+    assert (a.hits, a.misses, a.interims, a.nbytes, a.ready) == (1, 1, 1, 0, {})
 
 
 def test_blocks_the_session_dropped_lose_their_textures_and_the_bytes_are_bounded():

@@ -37,7 +37,10 @@ class AheadTextures:
         self.version = 0
         self.nbytes = 0
         self.hits = 0  #: first textures taken from here (no build on the render thread)
-        self.misses = 0  #: first textures the render thread built (nothing ready at its level)
+        self.misses = 0  #: first textures the render thread built (nothing ready)
+        #: first textures taken ready at another level than the block is drawn at (its own
+        #: is then built on the level worker, the block drawn with this one meanwhile)
+        self.interims = 0
         #: finished textures dropped unused (the block left the session, or was drawn first)
         self.dropped = 0
 
@@ -85,17 +88,21 @@ class AheadTextures:
         self.nbytes += len(data)
         self.version += 1
 
-    def take(self, b: Block, level: int) -> tuple[bytes, int] | None:
-        """``b``'s ready texture ``(bytes, depth)`` if it was built for ``level`` (then it is
-        handed over, counted a hit), else None (a miss; a ready one at another level is
-        dropped: the block is drawn now, its texture comes from the render thread)."""
+    def take(self, b: Block, level: int) -> tuple[int, bytes, int] | None:
+        """``b``'s ready texture ``(level built for, bytes, depth)``, handed over (once), or
+        None (a miss: the render thread builds it). Built for ``level``, it is a hit; built
+        for another level (the session changed the block's level after the build), it is an
+        interim texture, drawn until the block's own is built, as after a level change of a
+        block on the GPU."""
         got = self.ready.get(b)
         self._drop(b)
-        if got is not None and got[0] == level:
+        if got is None:
+            self.misses += 1
+        elif got[0] == level:
             self.hits += 1
-            return got[1], got[2]
-        self.misses += 1
-        return None
+        else:
+            self.interims += 1
+        return got
 
     def _drop(self, b: Block) -> None:
         got = self.ready.pop(b, None)

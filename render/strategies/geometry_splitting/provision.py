@@ -261,13 +261,14 @@ class TextureProvision:
                 later.append((b, lv))
                 continue
             if b not in tex.offset and self._builds is not None:  # a new block
-                if lv > PROVISIONAL_LEVEL:
-                    later.append((b, lv))  # the rest later
-                    lv = PROVISIONAL_LEVEL
-                got = self.ahead.take(b, lv) if lv < self.k else None
-                if got is not None:  # built ahead, on the worker
-                    writes.append((b, lv, *got))
+                first = min(lv, PROVISIONAL_LEVEL)
+                got = self.ahead.take(b, first) if first < self.k else None
+                if lv > first or (got is not None and got[0] != first):
+                    later.append((b, lv))  # its own texture later (the worker's)
+                if got is not None:  # built ahead, on the worker (for another level: interim)
+                    writes.append((b, *got))
                     continue
+                lv = first
             writes.append((b, lv, *self._texture(b, lv)))
         for b in tex.write(writes):
             self._forget(b)
