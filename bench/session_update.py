@@ -8,8 +8,11 @@ once more with the session's lock probed (:mod:`streamer.lockprobe`, which slows
 little) and reports each thread role's lock holds (µs, wall and thread CPU; how many held the
 CPU for 20, 50 and 100 µs or more, and the CPU held in all, since a percentile moves with the
 number of short holds) and the reads,
-decodes or planning found under the lock (0 expected). ``TERRASTREAM_KERNELS=numpy`` runs the
-planning's numpy reference instead of its compiled kernels. Prints a table and writes
+decodes or planning found under the lock (0 expected), beside a ``floor`` row: an empty hold of
+a probed lock of its own that the caller takes after each update (the probe's clocks and what
+the machine adds to any hold at that moment: a hold's length above it is its work).
+``TERRASTREAM_KERNELS=numpy`` runs the planning's numpy reference instead of its compiled
+kernels. Prints a table and writes
 ``bench/results/session_update.json``.
 
 The third row, ``plan``, is ``FrameStats.update_cpu_ms``: the caller's CPU without the reads
@@ -150,14 +153,19 @@ def main(argv: list[str] | None = None) -> int:
 
 def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict:
     """The flight again with the lock probed: per role p50/p99/max hold µs (wall, CPU)."""
-    from streamer.lockprobe import install
+    from streamer.lockprobe import ProbeLock, install
 
+    # the probe's floor: an empty hold of a lock of its own, taken by the caller after each
+    # update (the clocks' own cost and what the machine adds to any hold meanwhile)
+    floor = ProbeLock()
     with open_session(store, budget_mb=budget_mb, workers=workers, **opts) as s:
         probe = install(s)
         s.warm_up(cams[0])
         probe.clear()
         for cam in cams:
             s.update(cam, 1 / 60)
+            with floor:
+                pass
     out: dict = {"violations": len(probe.violations)}
     print(
         f"# lock holds (µs), probed flight; violations (read/decode/plan under it): "
@@ -167,7 +175,9 @@ def _lock_holds(store, cams, workers: int, budget_mb: float, opts: dict) -> dict
         f"{'role':8} {'holds':>8} {'wall p50':>9} {'p99':>8} {'max':>9} {'cpu p50':>8} "
         f"{'p99':>8} {'max':>8} {'>=20':>7} {'>=50':>6} {'>=100':>6} {'sum ms':>8}"
     )
-    for role, holds in sorted(probe.by_role().items()):
+    roles = sorted(probe.by_role().items())
+    roles.append(("floor", [(w, c) for _, w, c in floor.holds]))  # (the empty holds)
+    for role, holds in roles:
         us = np.array(holds) * 1e6
         row = {"holds": len(us)}
         for j, kind in enumerate(("wall", "cpu")):
