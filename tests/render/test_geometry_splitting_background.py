@@ -366,8 +366,8 @@ def _ahead_run(path, threads_of_builds, per_frame: int, lower: int = 0):
     """A session holding every block in view; the strategy draws one of them for a few
     frames (the worker idle otherwise), then all (the others ``lower`` levels below their
     first texture's level, as if the session had changed their level after it was built):
-    the render thread's level builds in that last frame, the first textures it took ready,
-    and the strategy."""
+    the strategy, renderer, levels, first block, the render thread's level builds in that
+    last frame and that frame's selection."""
     from render.step import resident_levels
     from streamer.session import open_session
 
@@ -390,10 +390,10 @@ def _ahead_run(path, threads_of_builds, per_frame: int, lower: int = 0):
             cap = gs_prov.PROVISIONAL_LEVEL
             res = {b: lv if b == first else min(lv, cap) - lower for b, lv in res.items()}
             assert min(res.values()) >= 0
-        st.select(CAM, 1.0, resident=res)
+        sel, _ = st.select(CAM, 1.0, resident=res)
         me = threading.current_thread().name
         built_here = [lv for name, lv in threads_of_builds[mark:] if name == me]
-        return st, r, res, first, built_here
+        return st, r, res, first, built_here, sel
 
 
 @pytest.mark.parametrize("name", ["store_k7", "store_k7_nodata"])
@@ -402,7 +402,9 @@ def test_first_textures_are_built_ahead_for_the_sessions_blocks(
 ):
     if name == "store_k7_nodata":  # first textures at level 4: compact (the cap is 3), so a
         monkeypatch.setattr(gs_prov, "PROVISIONAL_LEVEL", 4)  # block with nodata adds its bitmask
-    st, r, res, first, built_here = _ahead_run(request.getfixturevalue(name), threads_of_builds, 2)
+    st, r, res, first, built_here, sel = _ahead_run(
+        request.getfixturevalue(name), threads_of_builds, 2
+    )
     try:
         others = [b for b in res if b != first]
         assert built_here == []  # no texture built on the render thread for the new blocks
@@ -419,7 +421,7 @@ def test_first_textures_are_built_ahead_for_the_sessions_blocks(
 
 
 def test_control_without_builds_ahead_the_render_thread_builds_them(store_k7, threads_of_builds):
-    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 0)
+    st, r, res, first, built_here, sel = _ahead_run(store_k7, threads_of_builds, 0)
     try:
         assert len(built_here) == len(res) - 1 and st.ahead.hits == 0
     finally:
@@ -433,7 +435,7 @@ def test_a_first_texture_built_for_another_level_is_drawn_until_the_blocks_own_i
     """The session changed a held block's level after its first texture was built ahead: the
     block is drawn with that texture (an interim one, as after a level change on the GPU) and
     its own is built on the level worker, not on the render thread."""
-    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 2, lower=1)
+    st, r, res, first, built_here, sel = _ahead_run(store_k7, threads_of_builds, 2, lower=1)
     try:
         others = [b for b in res if b != first]
         assert built_here == []  # nothing built on the render thread
@@ -444,6 +446,12 @@ def test_a_first_texture_built_for_another_level_is_drawn_until_the_blocks_own_i
             assert st._tex.level[b] == built[b]
             assert _texture(st, b) == st._texture(b, built[b])[0]
         assert sorted(st.interim_blocks(res)) == sorted(others)
+        # drawn deeper than its level (texture 6, heights 5): what the CPU twin gets from the
+        # texture's tree
+        counts, leaves, _ = st.expand_reference(CAM, 1.0, res)
+        got = st.leaf_nodes(sel)
+        assert sel.pass_counts == counts
+        np.testing.assert_array_equal(got[np.lexsort(got.T[::-1])], leaves)
         mark = len(threads_of_builds)
         st.settle()
         st.select(CAM, 1.0, resident=res)  # uploads the worker's builds
@@ -472,7 +480,7 @@ def test_control_a_first_texture_of_another_level_refused_is_built_on_the_render
         return got if got is None or got[0] == level else None
 
     monkeypatch.setattr(gs_prov.AheadTextures, "take", same_level_only)
-    st, r, res, first, built_here = _ahead_run(store_k7, threads_of_builds, 2, lower=1)
+    st, r, res, first, built_here, sel = _ahead_run(store_k7, threads_of_builds, 2, lower=1)
     try:
         others = [b for b in res if b != first]
         assert sorted(built_here) == sorted(res[b] for b in others)
