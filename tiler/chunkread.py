@@ -11,7 +11,8 @@ chain (anything else keeps zarr's reader), and every crc32c is checked as zarr c
 per-block ``errors`` and ``mask`` arrays (one unsharded chunk per block, the same chain) are read
 the same way (:func:`block_spec`), in their chunk's shape.
 
-Pure functions here take bytes; :func:`read_local` is the only one touching files.
+Pure functions here take bytes; :func:`read_local` is the only one touching files (a remote
+store's chunks: :mod:`tiler.chunkread_remote`).
 """
 
 from __future__ import annotations
@@ -149,6 +150,19 @@ def block_spec(name: str, metadata: dict[str, Any]) -> LevelSpec | None:
     if len(shape) < 3 or chunks != (1, 1, *shape[2:]) or not is_block_chain(codecs, dtype.itemsize):
         return None
     return LevelSpec(name, int(np.prod(shape[2:])), dtype, None, tuple(shape[2:]))
+
+
+def direct_specs(arrays: dict[str, Any], k: int) -> dict[str, LevelSpec]:
+    """The :class:`LevelSpec` of every array of a ``k`` store read directly (levels
+    ``0..k``, ``errors``, ``mask``; ``arrays``: the open zarr arrays by name), those whose
+    metadata is the expected chain."""
+    out = {}
+    for name in [*(f"levels/{i}" for i in range(k + 1)), "errors", "mask"]:
+        meta = arrays[name].metadata.to_dict()
+        spec = level_spec(name, meta) if name.startswith("levels/") else block_spec(name, meta)
+        if spec is not None:
+            out[name] = spec
+    return out
 
 
 def check_crc(data: bytes, what: str) -> np.ndarray:

@@ -3,6 +3,7 @@ repair it) or the server's failure (:mod:`tiler.transport`); pure, no I/O."""
 
 from __future__ import annotations
 
+import numpy as np
 import zarr.errors
 
 from tiler.errors import (
@@ -71,6 +72,17 @@ def read_error(
         block=block,
         level=level,
     )
+
+
+def is_fill(name: str, out: np.ndarray, fill: int | None, has_nodata: bool) -> bool:
+    """Whether a block's values that zarr read from array ``name`` are what zarr gives for an
+    absent chunk (its fill: a level's ``fill``, NaN errors, an all-True mask of a block with
+    nodata, which writes one): then only the chunk's key can tell."""
+    if name.startswith("levels/"):
+        return bool(np.all(out == fill))
+    if name == "errors":
+        return bool(np.all(np.isnan(out)))
+    return name == "mask" and has_nodata and bool(out.all())
 
 
 def missing_chunk(

@@ -30,8 +30,10 @@ from typing import Any
 
 import numpy as np
 import zarr
+from zarr.core.sync import sync
 
 from tiler import chunkread, codecs, scratch, static_error
+from tiler.chunkread_remote import IndexCache, read_chunk, read_chunks
 from tiler.errors import (
     MissingChunkError,
     StoreChangedError,
@@ -45,7 +47,7 @@ from tiler.interrupt import DeferredInterrupt
 from tiler.layout import level_end, level_start
 from tiler.location import Location, as_location, is_url
 from tiler.meta import BlockIndex, StoreMeta, read_meta, tool_version, write_meta
-from tiler.read_errors import READ_ERRORS, missing_chunk, open_error, read_error
+from tiler.read_errors import READ_ERRORS, is_fill, missing_chunk, open_error, read_error
 from tiler.schema import (
     ATTR,
     DEFAULT_CLEVEL,
@@ -99,8 +101,10 @@ class TerrainStore:
     may return the new store's chunks). Once seen, the change is final: every later read
     raises it.
 
-    Level chunks of a local format-2 store are read and decoded by :mod:`tiler.chunkread`
-    (same checks, no zarr call per chunk); ``direct_reads=False`` reads them through zarr.
+    Level chunks of a format-2 store are read and decoded by :mod:`tiler.chunkread` (same
+    checks, no zarr call per chunk; a remote store's one request each, its shard indexes kept
+    and a block's levels asked for at once: :mod:`tiler.chunkread_remote`);
+    ``direct_reads=False`` reads them through zarr.
     """
 
     def __init__(
@@ -147,18 +151,16 @@ class TerrainStore:
         self._changed: str | None = None
         if self.meta.complete:  # a missing array is damage, not an empty one
             self._open_arrays(array_names(self.k))
-        self._direct: dict[str, chunkread.LevelSpec] = {}
-        if direct_reads and self.checksummed and self.location.is_local and self.meta.complete:
-            for i in range(self.k + 1):
-                name = f"levels/{i}"
-                spec = chunkread.level_spec(name, self._arrays[name].metadata.to_dict())
-                if spec is not None:
-                    self._direct[name] = spec
-            for name in ("errors", "mask"):
-                spec = chunkread.block_spec(name, self._arrays[name].metadata.to_dict())
-                if spec is not None:
-                    self._direct[name] = spec
-        self._root = str(self.location.path) if self._direct else ""
+        remote = not (self.location.is_local or self.location.is_memory)
+        direct = direct_reads and self.checksummed and self.meta.complete
+        self._direct = chunkread.direct_specs(self._arrays, self.k) if direct else {}
+        if self.location.is_memory:  # (a memory store is read through zarr)
+            self._direct = {}
+        self._root = str(self.location.path) if self._direct and not remote else ""
+        #: a remote store's zarr store, its chunks read directly (tiler.chunkread_remote),
+        #: and the shard indexes read from it
+        self._remote = self._group.store if self._direct and remote else None
+        self.shard_indexes = IndexCache()
 
     @property
     def direct_reads(self) -> bool:
@@ -244,18 +246,47 @@ class TerrainStore:
         (a direct level read decompresses into ``into`` when given)."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
-        what = f"level {level}" if level is not None else name
         spec = self._direct.get(name)
         try:
-            if spec is not None:
-                out = chunkread.read_local(self._root, spec, block, into)
-            else:
+            if spec is None:
                 out = self._array(name)[block]
+            elif self._remote is None:
+                out = chunkread.read_local(self._root, spec, block, into)
+            else:  # (a Ctrl-C once the read is over: it decompresses into ``into``)
+                with DeferredInterrupt():
+                    out = sync(read_chunk(self._remote, spec, block, into, self.shard_indexes))
         except Exception as exc:
-            err = read_error(self.url, name, block, level, exc)
+            out = exc
+        return self._checked(name, block, level, out)
+
+    def _remote_levels(self, block: tuple[int, int], views: list[np.ndarray]) -> list[np.ndarray]:
+        """Levels ``0..len(views)-1`` of ``block`` from a remote store, asked for at once (one
+        round trip: :func:`tiler.chunkread_remote.read_chunks`), decompressed into ``views``."""
+        if self._changed is not None:
+            raise StoreChangedError(self._changed)
+        names = [f"levels/{i}" for i in range(len(views))]
+        reads = [(self._direct[n], block, v) for n, v in zip(names, views, strict=True)]
+        with DeferredInterrupt():  # a Ctrl-C once the reads are over (they fill ``views``)
+            got = sync(read_chunks(self._remote, reads, self.shard_indexes))
+        return [self._checked(f"levels/{i}", block, i, g) for i, g in enumerate(got)]
+
+    def _checked(
+        self, name: str, block: tuple[int, int], level: int | None, out: Any
+    ) -> np.ndarray:
+        """What a read of ``block`` of array ``name`` gave (``out``: its values, None for no
+        chunk, or the exception it raised), with checksum and missing-chunk errors naming the
+        block."""
+        what = f"level {level}" if level is not None else name
+        if isinstance(out, BaseException):
+            err = (
+                read_error(self.url, name, block, level, out)
+                if isinstance(out, Exception)
+                else None
+            )
             if err is None:
-                raise
-            raise err from exc
+                raise out
+            raise err from out
+        spec = self._direct.get(name)
         if spec is not None:  # what zarr's reader makes of it: see _looks_missing
             if out is None and name == "mask" and not self.index.has_nodata[block]:
                 return np.ones(spec.shape, dtype=bool)  # zarr's fill: such blocks write none
@@ -274,16 +305,8 @@ class TerrainStore:
         return missing_chunk(self.url, what, name, block, level)
 
     def _looks_missing(self, name: str, block: tuple[int, int], out: np.ndarray) -> bool:
-        if name.startswith("levels/"):
-            if not np.all(out == self._fill):
-                return False
-        elif name == "errors":
-            if not np.all(np.isnan(out)):
-                return False
-        elif name == "mask":
-            if not (self.index.has_nodata[block] and out.all()):
-                return False
-        else:
+        nodata = name == "mask" and bool(self.index.has_nodata[block])
+        if not is_fill(name, out, self._fill, nodata):
             return False
         key = chunk_key(name, block, *self.grid.shape)
         sharded = name.startswith("levels/") and int(name.split("/")[1]) < SHARDED_LEVELS
@@ -363,6 +386,8 @@ class TerrainStore:
             if seq is None:
                 seq = np.empty(n, dtype=self.meta.storage_dtype)
             views = [seq[level_start(i) : level_end(i) + 1] for i in levels]
+            if self._remote is not None:
+                return self._remote_levels(block, views)
             return [self._read(f"levels/{i}", block, i, views[i]) for i in levels]
         if self.location.is_local or self.location.is_memory or max_level == 0:
             return [self._read(f"levels/{i}", block, i) for i in levels]

@@ -294,7 +294,7 @@ def test_reads_use_obstore_by_default_and_fsspec_on_request(
     fall back to fsspec; both read the same values."""
     pytest.importorskip("obstore")
     from tiler.s3_reader import S3_READER_ENV, open_s3_reader
-    from tiler.store import open_store
+    from tiler.store import TerrainStore, open_store
 
     src = _dem(tmp_path)
     url = f"s3://{bucket}/r.zarr"
@@ -305,8 +305,12 @@ def test_reads_use_obstore_by_default_and_fsspec_on_request(
     monkeypatch.setenv(S3_READER_ENV, "fsspec")
     b = open_store(url)
     assert type(b._group.store).__name__ == "FsspecStore"
+    z = TerrainStore(url, direct_reads=False)  # zarr's reads: the reference
+    assert a.direct_reads and b.direct_reads and not z.direct_reads  # (tiler.chunkread_remote)
     for blk in list(a.blocks())[:5]:
         assert np.array_equal(a.read_block(blk), b.read_block(blk))
+        assert np.array_equal(a.read_block(blk), z.read_block(blk))
+        assert np.array_equal(a.read_block(blk, 3), z.read_block(blk, 3))
     assert open_s3_reader(url, {"profile": "x"}) is None  # only s3fs knows profiles
     # endpoint and keys from storage options alone (no AWS_* variables)
     monkeypatch.delenv(S3_READER_ENV)

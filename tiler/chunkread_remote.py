@@ -1,0 +1,151 @@
+"""Direct reads of a remote format-2 store's block chunks: :mod:`tiler.chunkread`'s checks and
+decoding over the zarr store's own byte-range requests, without a zarr array call per chunk.
+
+Through zarr, an inner chunk of a sharded level (levels ``0..SHARDED_LEVELS-1``) costs two
+dependent requests — the shard's index, then the chunk — so a level read waits two round
+trips; and a whole block's levels went through a pool of 8 threads, 11 levels in two waves.
+Here a shard's encoded index is kept once read (:class:`IndexCache`, bounded: 16 bytes per
+block of the shard), so a level is one request, and :func:`read_chunks` asks for a block's
+levels at once on zarr's event loop: one round trip for the block.
+
+The bytes are checked as :mod:`tiler.chunkread` checks them (the index's and the chunk's
+crc32c, the blosc frame's size). A kept index that does not match its shard any more — the
+store rewritten under the reader, which :meth:`TerrainStore.check_unchanged` reports within a
+second — fails those checks, or finds no chunk where there was one: it is fetched again once,
+and only a fresh index's failure is the store's damage.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from zarr.abc.store import RangeByteRequest, SuffixByteRequest
+from zarr.core.buffer import default_buffer_prototype
+
+from tiler.chunkread import (
+    ChecksumMismatch,
+    ChunkDecodeError,
+    LevelSpec,
+    decode_chunk,
+    shard_entry,
+)
+
+__all__ = ["IndexCache", "read_chunk", "read_chunks"]
+
+#: shard indexes kept per store, at most (a 16×16-block shard's is 4 KiB: 2 MiB in all)
+INDEX_ENTRIES = 512
+
+
+class IndexCache:
+    """Encoded shard indexes by store key, the ``max_entries`` most recently used (thread
+    safe: the session's loader threads share a store); ``fetches`` counts the indexes read."""
+
+    def __init__(self, max_entries: int = INDEX_ENTRIES) -> None:
+        self.max_entries = int(max_entries)
+        self._lock = threading.Lock()
+        self._entries: OrderedDict[str, bytes] = OrderedDict()
+        self.fetches = 0
+
+    def get(self, key: str) -> bytes | None:
+        """The kept index of shard ``key`` (now the most recently used), or None."""
+        with self._lock:
+            index = self._entries.get(key)
+            if index is not None:
+                self._entries.move_to_end(key)
+            return index
+
+    def put(self, key: str, index: bytes, fetched: bool = False) -> None:
+        """Keep ``index`` for shard ``key`` (the least recently used go past the bound);
+        ``fetched``: it was just read from the store (counted)."""
+        with self._lock:
+            self.fetches += fetched
+            self._entries[key] = index
+            self._entries.move_to_end(key)
+            while len(self._entries) > self.max_entries:
+                self._entries.popitem(last=False)
+
+    def drop(self, key: str) -> None:
+        """Forget shard ``key``'s index (it no longer matched the shard)."""
+        with self._lock:
+            self._entries.pop(key, None)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+async def read_chunk(
+    store: Any,
+    spec: LevelSpec,
+    block: tuple[int, int],
+    out: np.ndarray | None = None,
+    cache: IndexCache | None = None,
+) -> np.ndarray | None:
+    """``block``'s stored values of one array from zarr store ``store`` (into ``out`` if given,
+    as :func:`tiler.chunkread.decode_chunk`), or None if the store holds no such chunk. Raises
+    :class:`~tiler.chunkread.ChecksumMismatch` / :class:`~tiler.chunkread.ChunkDecodeError`
+    for damage, and the store's own errors for a failed request."""
+    proto = default_buffer_prototype()
+    key = spec.key(block)
+    if spec.shard is None:
+        buf = await store.get(key, proto)
+        if buf is None:
+            return None
+        values = decode_chunk(buf.to_bytes(), spec, out)
+        return values.reshape(spec.shape) if len(spec.shape) > 1 else values
+    inner = spec.inner(block)
+    for fresh in (False, True):
+        index = None if fresh or cache is None else cache.get(key)
+        kept = index is not None
+        if index is None:
+            buf = await store.get(key, proto, SuffixByteRequest(spec.index_nbytes))
+            if buf is None:
+                return None  # no such shard
+            index = buf.to_bytes()
+            if len(index) != spec.index_nbytes:
+                raise ChunkDecodeError(
+                    f"the store answered {len(index)} bytes for the {spec.index_nbytes}-byte "
+                    f"index at the end of a shard of {spec.name}"
+                )
+            entry = shard_entry(index, spec, inner)  # (checked before it is kept)
+            if cache is not None:
+                cache.put(key, index, fetched=True)
+        else:
+            entry = shard_entry(index, spec, inner)
+        if entry is None:
+            if kept:
+                continue  # a kept index may predate the chunk: ask the shard again
+            return None
+        off, nbytes = entry
+        buf = await store.get(key, proto, RangeByteRequest(off, off + nbytes))
+        try:
+            data = b"" if buf is None else buf.to_bytes()
+            if len(data) != nbytes:
+                raise ChunkDecodeError(
+                    f"the store answered {len(data)} bytes for the {nbytes}-byte chunk at "
+                    f"{off} of a shard of {spec.name} (its index points past its data?)"
+                )
+            return decode_chunk(data, spec, out)
+        except (ChecksumMismatch, ChunkDecodeError):
+            if not kept:
+                raise
+            assert cache is not None
+            cache.drop(key)  # the kept index no longer matches the shard: ask it again
+    raise AssertionError("unreachable: the second pass reads a fresh index")  # pragma: no cover
+
+
+async def read_chunks(
+    store: Any,
+    reads: Sequence[tuple[LevelSpec, tuple[int, int], np.ndarray | None]],
+    cache: IndexCache | None = None,
+) -> list[np.ndarray | None | BaseException]:
+    """:func:`read_chunk` of every ``(spec, block, out)`` at once (one gather on the loop):
+    each result, or the exception its read raised, in order."""
+    return await asyncio.gather(
+        *(read_chunk(store, spec, block, out, cache) for spec, block, out in reads),
+        return_exceptions=True,
+    )
