@@ -184,6 +184,12 @@ def check_crc(data: bytes, what: str) -> np.ndarray:
 def decode_chunk(data: bytes, spec: LevelSpec, out: np.ndarray | None = None) -> np.ndarray:
     """A block's stored values (``(n,)``) from its chunk bytes, decompressed into ``out``
     (contiguous, ``n`` values of the storage dtype) or a new array."""
+    return decompress(check_chunk(data, spec), spec, out)
+
+
+def check_chunk(data: bytes, spec: LevelSpec) -> np.ndarray:
+    """The blosc frame of a chunk's bytes, its crc32c and frame size checked (what
+    :func:`decompress` takes)."""
     body = check_crc(data, f"chunk of {spec.name}")
     want = spec.n * spec.dtype.itemsize
     # blosc 1 header: version, versionlz, flags, typesize, then uint32 LE nbytes, blocksize,
@@ -194,6 +200,12 @@ def decode_chunk(data: bytes, spec: LevelSpec, out: np.ndarray | None = None) ->
             f"chunk of {spec.name} is not a blosc frame of {want} bytes ({spec.n} values): "
             f"header says {nbytes} bytes from {cbytes}, the chunk has {len(body)}"
         )
+    return body
+
+
+def decompress(body: np.ndarray, spec: LevelSpec, out: np.ndarray | None = None) -> np.ndarray:
+    """A block's stored values (``(n,)``) from a checked blosc frame (:func:`check_chunk`),
+    into ``out`` (see :func:`decode_chunk`) or a new array."""
     native = spec.dtype.isnative
     if out is None or not native:
         buf = np.empty(spec.n, dtype=spec.dtype)

@@ -6,7 +6,9 @@ dependent requests — the shard's index, then the chunk — so a level read wai
 trips; and a whole block's levels went through a pool of 8 threads, 11 levels in two waves.
 Here a shard's encoded index is kept once read (:class:`IndexCache`, bounded: 16 bytes per
 block of the shard), so a level is one request, and :func:`read_chunks` asks for a block's
-levels at once on zarr's event loop: one round trip for the block.
+levels at once on zarr's event loop: one round trip for the block. The loop only fetches and
+checks the bytes; the calling thread decompresses them (as a local read does), so the session's
+loaders decompress side by side.
 
 The bytes are checked as :mod:`tiler.chunkread` checks them (the index's and the chunk's
 crc32c, the blosc frame's size). A kept index that does not match its shard any more — the
@@ -31,11 +33,12 @@ from tiler.chunkread import (
     ChecksumMismatch,
     ChunkDecodeError,
     LevelSpec,
-    decode_chunk,
+    check_chunk,
+    decompress,
     shard_entry,
 )
 
-__all__ = ["IndexCache", "read_chunk", "read_chunks"]
+__all__ = ["IndexCache", "decoded", "fetch_chunk", "fetch_chunks"]
 
 #: shard indexes kept per store, at most (a 16×16-block shard's is 4 KiB: 2 MiB in all)
 INDEX_ENTRIES = 512
@@ -78,25 +81,19 @@ class IndexCache:
         return len(self._entries)
 
 
-async def read_chunk(
-    store: Any,
-    spec: LevelSpec,
-    block: tuple[int, int],
-    out: np.ndarray | None = None,
-    cache: IndexCache | None = None,
+async def fetch_chunk(
+    store: Any, spec: LevelSpec, block: tuple[int, int], cache: IndexCache | None = None
 ) -> np.ndarray | None:
-    """``block``'s stored values of one array from zarr store ``store`` (into ``out`` if given,
-    as :func:`tiler.chunkread.decode_chunk`), or None if the store holds no such chunk. Raises
+    """``block``'s chunk of one array from zarr store ``store``: its blosc frame, checked
+    (:func:`tiler.chunkread.check_chunk`; the caller's thread decompresses it, so the event
+    loop only waits for bytes), or None if the store holds no such chunk. Raises
     :class:`~tiler.chunkread.ChecksumMismatch` / :class:`~tiler.chunkread.ChunkDecodeError`
     for damage, and the store's own errors for a failed request."""
     proto = default_buffer_prototype()
     key = spec.key(block)
     if spec.shard is None:
         buf = await store.get(key, proto)
-        if buf is None:
-            return None
-        values = decode_chunk(buf.to_bytes(), spec, out)
-        return values.reshape(spec.shape) if len(spec.shape) > 1 else values
+        return None if buf is None else check_chunk(buf.to_bytes(), spec)
     inner = spec.inner(block)
     for fresh in (False, True):
         index = None if fresh or cache is None else cache.get(key)
@@ -129,7 +126,7 @@ async def read_chunk(
                     f"the store answered {len(data)} bytes for the {nbytes}-byte chunk at "
                     f"{off} of a shard of {spec.name} (its index points past its data?)"
                 )
-            return decode_chunk(data, spec, out)
+            return check_chunk(data, spec)
         except (ChecksumMismatch, ChunkDecodeError):
             if not kept:
                 raise
@@ -138,14 +135,28 @@ async def read_chunk(
     raise AssertionError("unreachable: the second pass reads a fresh index")  # pragma: no cover
 
 
-async def read_chunks(
+def decoded(frame: Any, spec: LevelSpec, out: np.ndarray | None = None) -> Any:
+    """A :func:`fetch_chunk` result made values on the calling thread: its frame decompressed
+    into ``out`` if given (:func:`tiler.chunkread.decompress`), in the chunk's shape; or what
+    came instead of a frame (None: no chunk; the exception the read raised), and the
+    exception a decompression raises, returned, not raised (the caller names it)."""
+    if not isinstance(frame, np.ndarray):
+        return frame
+    try:
+        got = decompress(frame, spec, out)
+    except Exception as exc:
+        return exc
+    return got.reshape(spec.shape) if len(spec.shape) > 1 else got
+
+
+async def fetch_chunks(
     store: Any,
-    reads: Sequence[tuple[LevelSpec, tuple[int, int], np.ndarray | None]],
+    reads: Sequence[tuple[LevelSpec, tuple[int, int]]],
     cache: IndexCache | None = None,
 ) -> list[np.ndarray | None | BaseException]:
-    """:func:`read_chunk` of every ``(spec, block, out)`` at once (one gather on the loop):
-    each result, or the exception its read raised, in order."""
+    """:func:`fetch_chunk` of every ``(spec, block)`` at once (one gather on the loop): each
+    frame, or the exception its read raised, in order."""
     return await asyncio.gather(
-        *(read_chunk(store, spec, block, out, cache) for spec, block, out in reads),
+        *(fetch_chunk(store, spec, block, cache) for spec, block in reads),
         return_exceptions=True,
     )

@@ -33,7 +33,7 @@ import zarr
 from zarr.core.sync import sync
 
 from tiler import chunkread, codecs, scratch, static_error
-from tiler.chunkread_remote import IndexCache, read_chunk, read_chunks
+from tiler.chunkread_remote import IndexCache, decoded, fetch_chunk, fetch_chunks
 from tiler.errors import (
     MissingChunkError,
     StoreChangedError,
@@ -252,23 +252,23 @@ class TerrainStore:
                 out = self._array(name)[block]
             elif self._remote is None:
                 out = chunkread.read_local(self._root, spec, block, into)
-            else:  # (a Ctrl-C once the read is over: it decompresses into ``into``)
-                with DeferredInterrupt():
-                    out = sync(read_chunk(self._remote, spec, block, into, self.shard_indexes))
+            else:
+                frame = sync(fetch_chunk(self._remote, spec, block, self.shard_indexes))
+                out = decoded(frame, spec, into)
         except Exception as exc:
             out = exc
         return self._checked(name, block, level, out)
 
     def _remote_levels(self, block: tuple[int, int], views: list[np.ndarray]) -> list[np.ndarray]:
         """Levels ``0..len(views)-1`` of ``block`` from a remote store, asked for at once (one
-        round trip: :func:`tiler.chunkread_remote.read_chunks`), decompressed into ``views``."""
+        round trip: :func:`tiler.chunkread_remote.fetch_chunks`), decompressed into ``views``
+        here."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
-        names = [f"levels/{i}" for i in range(len(views))]
-        reads = [(self._direct[n], block, v) for n, v in zip(names, views, strict=True)]
-        with DeferredInterrupt():  # a Ctrl-C once the reads are over (they fill ``views``)
-            got = sync(read_chunks(self._remote, reads, self.shard_indexes))
-        return [self._checked(f"levels/{i}", block, i, g) for i, g in enumerate(got)]
+        specs = [self._direct[f"levels/{i}"] for i in range(len(views))]
+        got = sync(fetch_chunks(self._remote, [(sp, block) for sp in specs], self.shard_indexes))
+        return [self._checked(f"levels/{i}", block, i, decoded(f, sp, v))
+                for i, (sp, f, v) in enumerate(zip(specs, got, views, strict=True))]  # fmt: skip
 
     def _checked(
         self, name: str, block: tuple[int, int], level: int | None, out: Any

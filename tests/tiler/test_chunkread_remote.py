@@ -176,9 +176,9 @@ def test_the_index_cache_is_bounded():
 
 
 def test_ctrl_c_while_a_blocks_levels_are_asked_for_is_raised_and_the_store_reads_on(served):
-    """A Ctrl-C while the main thread waits for a block's levels (on zarr's event loop) is
-    raised once they are read (they decompress into the caller's buffer: none is left being
-    written behind it), by tiler.interrupt; the next read works."""
+    """A Ctrl-C while the main thread waits for a block's levels (fetched on zarr's event
+    loop, decompressed on the calling thread: nothing writes into its buffers behind it) is
+    raised; the next read works."""
     import os
     import signal
     import threading
@@ -189,9 +189,8 @@ def test_ctrl_c_while_a_blocks_levels_are_asked_for_is_raised_and_the_store_read
         s = open_store(f"{url}/s.zarr")
         timer = threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT))
         timer.start()
-        with pytest.raises(KeyboardInterrupt) as e:
+        with pytest.raises(KeyboardInterrupt):
             s.read_block((0, 0))
         timer.join()
-        assert e.traceback[-1].path.name == "interrupt.py"  # raised after the reads
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
         np.testing.assert_array_equal(s.read_block((0, 1)), local.read_block((0, 1)))
