@@ -5,7 +5,7 @@ Through zarr, an inner chunk of a sharded level (levels ``0..SHARDED_LEVELS-1``)
 dependent requests — the shard's index, then the chunk — so a level read waits two round
 trips; and a whole block's levels went through a pool of 8 threads, 11 levels in two waves.
 Here a shard's encoded index is kept once read (:class:`IndexCache`, bounded: 16 bytes per
-block of the shard), so a level is one request, and :func:`read_chunks` asks for a block's
+block of the shard), so a level is one request, and :func:`fetch_chunks` asks for a block's
 levels at once on zarr's event loop: one round trip for the block. The loop only fetches and
 checks the bytes; the calling thread decompresses them (as a local read does), so the session's
 loaders decompress side by side.
