@@ -149,3 +149,17 @@ def flythrough_rows(
             raise RuntimeError(f"flythrough failed (exit {res.returncode}):\n{res.stderr[-3000:]}")
         with open(Path(out) / "frames.csv", newline="") as f:
             return list(csv.DictReader(f))
+
+
+def count_requests(store: Any) -> list[str]:
+    """The keys of every request a ``TerrainStore`` makes of its zarr store from now on (its
+    ``get`` wrapped: exact, whichever reader asks)."""
+    zstore = store._group.store
+    real, keys = zstore.get, []
+
+    async def get(key: str, prototype: Any, byte_range: Any = None) -> Any:
+        keys.append(key)
+        return await real(key, prototype, byte_range)
+
+    zstore.get = get
+    return keys

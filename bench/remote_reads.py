@@ -29,23 +29,17 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import RESULTS, WORK, git_head, machine_info, portable  # noqa: E402
+from bench.common import (  # noqa: E402
+    RESULTS,
+    WORK,
+    count_requests,
+    git_head,
+    machine_info,
+    portable,
+)
 from bench.prefetch_stores import http_server  # noqa: E402
 
 DEFAULT_STORES = [WORK / "prefetch" / "n44w072_eqc_b257.zarr", WORK / "s4097.zarr"]
-
-
-def _counting(store) -> list[str]:
-    """Count every request of a TerrainStore's zarr store from now on (keys appended)."""
-    zstore = store._group.store
-    real, keys = zstore.get, []
-
-    async def get(key, prototype, byte_range=None):
-        keys.append(key)
-        return await real(key, prototype, byte_range)
-
-    zstore.get = get
-    return keys
 
 
 def _reads(url: str, direct: bool, n_blocks: int) -> dict:
@@ -53,7 +47,7 @@ def _reads(url: str, direct: bool, n_blocks: int) -> dict:
 
     s = TerrainStore(url, direct_reads=direct)
     assert s.direct_reads is direct
-    keys = _counting(s)
+    keys = count_requests(s)
     blocks = list(s.blocks())[:n_blocks]
     out = {}
     for what, fn in (
@@ -77,7 +71,7 @@ def _session(url: str, direct: bool, frames: int) -> dict:
     from tiler.store import TerrainStore
 
     s = TerrainStore(url, direct_reads=direct)
-    keys = _counting(s)
+    keys = count_requests(s)
     cams = make_path(s, "default", frames=frames, viewport=(640, 480))
     with open_session(s, budget_mb=256, workers=4) as sess:
         t0 = time.perf_counter()

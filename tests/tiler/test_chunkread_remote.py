@@ -12,6 +12,7 @@ import pytest
 from demtools import fractal, write_dem
 from rangeserver import LoopbackServer
 
+from bench.common import count_requests
 from tiler import chunkread, schema
 from tiler.chunkread_remote import IndexCache
 from tiler.errors import ChunkChecksumError, MissingChunkError
@@ -38,19 +39,6 @@ def served(request, tmp_path_factory):
             src = write_dem(d / f"{name}.tif", _dem(seed), nodata=np.nan)
             tile(src, d / f"{name}.zarr", TileOptions(block_size=65))
     return d, request.param
-
-
-def _counting(store: TerrainStore) -> list[str]:
-    """The keys of every request ``store`` makes from now on."""
-    zstore = store._group.store
-    real, keys = zstore.get, []
-
-    async def get(key, prototype, byte_range=None):
-        keys.append(key)
-        return await real(key, prototype, byte_range)
-
-    zstore.get = get
-    return keys
 
 
 def test_remote_reads_are_direct_and_equal_the_local_store(served):
@@ -80,7 +68,7 @@ def test_a_block_is_one_request_per_level_once_its_shard_indexes_are_kept(served
     d, _ = served
     with LoopbackServer(d) as url:
         s = open_store(f"{url}/s.zarr")
-        keys = _counting(s)
+        keys = count_requests(s)
         s.read_levels_raw((0, 0), K)
         assert len(keys) == (K + 1) + 6  # the first block of its shards: their indexes too
         assert s.shard_indexes.fetches == 6
@@ -91,7 +79,7 @@ def test_a_block_is_one_request_per_level_once_its_shard_indexes_are_kept(served
         s.read_level_raw((1, 0), 2)
         assert keys == ["levels/2/c/0/0/0"]
         z = TerrainStore(f"{url}/s.zarr", direct_reads=False)
-        zkeys = _counting(z)
+        zkeys = count_requests(z)
         z.read_levels_raw((0, 1), K)
         assert len(zkeys) >= 2 * 6 + 1
 
