@@ -53,6 +53,14 @@ class IndexCache:
         self._lock = threading.Lock()
         self._entries: OrderedDict[str, bytes] = OrderedDict()
         self.fetches = 0
+        #: shard key -> the read of its index under way (event-loop side only: concurrent
+        #: reads of one shard's index share a request)
+        self.inflight: dict[str, asyncio.Future] = {}
+
+    def fetched(self) -> None:
+        """Count one index read from the store."""
+        with self._lock:
+            self.fetches += 1
 
     def get(self, key: str) -> bytes | None:
         """The kept index of shard ``key`` (now the most recently used), or None."""
@@ -62,11 +70,9 @@ class IndexCache:
                 self._entries.move_to_end(key)
             return index
 
-    def put(self, key: str, index: bytes, fetched: bool = False) -> None:
-        """Keep ``index`` for shard ``key`` (the least recently used go past the bound);
-        ``fetched``: it was just read from the store (counted)."""
+    def put(self, key: str, index: bytes) -> None:
+        """Keep ``index`` for shard ``key`` (the least recently used go past the bound)."""
         with self._lock:
-            self.fetches += fetched
             self._entries[key] = index
             self._entries.move_to_end(key)
             while len(self._entries) > self.max_entries:
@@ -99,18 +105,12 @@ async def fetch_chunk(
         index = None if fresh or cache is None else cache.get(key)
         kept = index is not None
         if index is None:
-            buf = await store.get(key, proto, SuffixByteRequest(spec.index_nbytes))
-            if buf is None:
+            index = await _shared_index(store, key, spec, cache)
+            if index is None:
                 return None  # no such shard
-            index = buf.to_bytes()
-            if len(index) != spec.index_nbytes:
-                raise ChunkDecodeError(
-                    f"the store answered {len(index)} bytes for the {spec.index_nbytes}-byte "
-                    f"index at the end of a shard of {spec.name}"
-                )
             entry = shard_entry(index, spec, inner)  # (checked before it is kept)
             if cache is not None:
-                cache.put(key, index, fetched=True)
+                cache.put(key, index)
         else:
             entry = shard_entry(index, spec, inner)
         if entry is None:
@@ -133,6 +133,49 @@ async def fetch_chunk(
             assert cache is not None
             cache.drop(key)  # the kept index no longer matches the shard: ask it again
     raise AssertionError("unreachable: the second pass reads a fresh index")  # pragma: no cover
+
+
+_FAILED = object()  # a shared index read that raised: each waiter reads for itself
+
+
+async def _read_index(store: Any, key: str, spec: LevelSpec) -> bytes | None:
+    """Shard ``key``'s encoded index, from the end of the shard (None: no such shard)."""
+    buf = await store.get(key, default_buffer_prototype(), SuffixByteRequest(spec.index_nbytes))
+    if buf is None:
+        return None
+    index = buf.to_bytes()
+    if len(index) != spec.index_nbytes:
+        raise ChunkDecodeError(
+            f"the store answered {len(index)} bytes for the {spec.index_nbytes}-byte "
+            f"index at the end of a shard of {spec.name}"
+        )
+    return index
+
+
+async def _shared_index(
+    store: Any, key: str, spec: LevelSpec, cache: IndexCache | None
+) -> bytes | None:
+    """:func:`_read_index`, one request for the reads of one shard's index under way at
+    once (a session's loaders starting on blocks of one shard); counted in ``cache``."""
+    if cache is None:
+        return await _read_index(store, key, spec)
+    pending = cache.inflight.get(key)
+    if pending is not None:
+        got = await asyncio.shield(pending)
+        return await _read_index(store, key, spec) if got is _FAILED else got
+    fut = asyncio.get_running_loop().create_future()
+    cache.inflight[key] = fut
+    try:
+        got = await _read_index(store, key, spec)
+    except BaseException:
+        fut.set_result(_FAILED)
+        raise
+    finally:
+        if cache.inflight.get(key) is fut:
+            del cache.inflight[key]
+    cache.fetched()
+    fut.set_result(got)
+    return got
 
 
 def decoded(frame: Any, spec: LevelSpec, out: np.ndarray | None = None) -> Any:

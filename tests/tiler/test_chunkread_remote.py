@@ -156,8 +156,8 @@ def test_a_kept_index_that_no_longer_matches_its_shard_is_read_again(served, tmp
 def test_the_index_cache_is_bounded():
     c = IndexCache(max_entries=2)
     for i in range(3):
-        c.put(f"k{i}", bytes([i]), fetched=True)
-    assert len(c) == 2 and c.get("k0") is None and c.get("k2") == b"\x02" and c.fetches == 3
+        c.put(f"k{i}", bytes([i]))
+    assert len(c) == 2 and c.get("k0") is None and c.get("k2") == b"\x02"
     c.get("k1")  # most recently used: k2 goes first
     c.put("k3", b"\x03")
     assert c.get("k2") is None and c.get("k1") == b"\x01"
@@ -182,3 +182,27 @@ def test_ctrl_c_while_a_blocks_levels_are_asked_for_is_raised_and_the_store_read
         timer.join()
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
         np.testing.assert_array_equal(s.read_block((0, 1)), local.read_block((0, 1)))
+
+
+def test_reads_of_one_shards_index_under_way_at_once_share_a_request(served):
+    """Four blocks of one shard asked for at once with no index kept (a session's loaders
+    starting together): one index request. Control: without a cache, one each."""
+    from zarr.core.sync import sync
+
+    from tiler.chunkread_remote import fetch_chunks
+
+    d, _ = served  # (shards of 2×2 blocks or more: the four blocks share one)
+    local = open_store(d / "s.zarr")
+    with LoopbackServer(d) as url:
+        for cache in (IndexCache(), None):
+            s = open_store(f"{url}/s.zarr")
+            keys = count_requests(s)
+            spec = s._direct["levels/3"]
+            blocks = [(0, 0), (0, 1), (1, 0), (1, 1)]
+            got = sync(fetch_chunks(s._remote, [(spec, b) for b in blocks], cache))
+            assert len(keys) == len(blocks) + (1 if cache is not None else len(blocks))
+            if cache is not None:
+                assert cache.fetches == 1 and cache.inflight == {}
+            for b, frame in zip(blocks, got, strict=True):
+                want = local.read_level_raw(b, 3)
+                np.testing.assert_array_equal(chunkread.decompress(frame, spec), want)
