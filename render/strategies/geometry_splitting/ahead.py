@@ -4,7 +4,9 @@ entering the view gets its first texture without a build on the render thread.
 
 A new block's first texture is the one the render thread would build at once — its level
 capped at ``PROVISIONAL_LEVEL`` (``provision.py``) — so the bytes and the drawing are the same
-either way; only where the work runs changes. This module is the bookkeeping (no GL, no threads):
+either way; only where the work runs changes. One built for a level the session has changed
+since is drawn meanwhile, as an interim texture (as a block on the GPU keeps its texture after
+a level change), while the block's own is built. This module is the bookkeeping (no GL, no threads):
 which blocks to build ahead, the finished textures (bounded in bytes), and the counts a
 benchmark reports.
 """
