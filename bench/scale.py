@@ -321,11 +321,14 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 def s3_reads(rounds: int, out: Path) -> dict:
-    """fsspec (s3fs) vs obstore zarr stores for the streamer's reads on a loopback S3 server.
+    """fsspec (s3fs) vs obstore zarr stores for the streamer's reads on a loopback S3 server,
+    each with the chunks read directly (``tiler.chunkread_remote``) and through zarr
+    (``-zarr``, ``direct_reads=False``).
 
     A 2049^2 int16 synthetic tiled with 257^2 blocks into moto's S3 server; per round and per
     backend (interleaved): open the store, first view (session opened, first camera's blocks
-    all loaded), and the latency of one level read per level over 24 blocks.
+    all loaded), the latency of one level read per level over 24 blocks, and of a whole block
+    (``read_levels_raw``) over 8.
     """
     import logging
     import statistics
@@ -361,18 +364,23 @@ def s3_reads(rounds: int, out: Path) -> dict:
     url = "s3://bench/s2049.zarr"
     tile(src, url, TileOptions(block_size=257, workers=2))
 
-    def opener(reader: str):
+    def opener(reader: str, direct: bool = True):
         def go() -> TerrainStore:
             os.environ[S3_READER_ENV] = reader
-            store = TerrainStore(Location(url))
+            store = TerrainStore(Location(url), direct_reads=direct)
             # the group's zarr store: FsspecStore or ObjectStore
             kind = type(store._group.store).__name__
             assert kind == {"fsspec": "FsspecStore", "obstore": "ObjectStore"}[reader], kind
+            assert store.direct_reads is direct
             return store
 
         return go
 
-    backends = {"fsspec": opener("fsspec"), "obstore": opener("obstore")}
+    # each reader with the chunks read directly (tiler.chunkread_remote, the default) and
+    # through zarr's arrays (the code before it)
+    backends = {"fsspec": opener("fsspec"), "obstore": opener("obstore"),
+                "fsspec-zarr": opener("fsspec", False),
+                "obstore-zarr": opener("obstore", False)}  # fmt: skip
     rng = np.random.default_rng(0)
     rows: dict[str, dict[str, list[float]]] = {b: {} for b in backends}
     for _ in range(rounds):
@@ -397,6 +405,12 @@ def s3_reads(rounds: int, out: Path) -> dict:
                     store.read_level_raw(b, level)
                     ts.append((time.perf_counter() - t) * 1e3)
                 r.setdefault(f"level{level}_ms", []).append(statistics.median(ts))
+            ts = []
+            for b in pick[:8]:
+                t = time.perf_counter()
+                store.read_levels_raw(b, store.k)
+                ts.append((time.perf_counter() - t) * 1e3)
+            r.setdefault("block_ms", []).append(statistics.median(ts))
     server.stop()
     summary = {
         name: {key: round(statistics.median(v), 2) for key, v in r.items()}
@@ -431,7 +445,8 @@ def main() -> None:
         type=int,
         default=0,
         metavar="ROUNDS",
-        help="measure fsspec vs obstore reads on a loopback S3 server instead",
+        help="measure fsspec vs obstore reads (direct and through zarr) on a loopback S3 "
+        "server instead",
     )
     ap.add_argument(
         "--malloc", type=int, default=0, metavar="ROUNDS",
