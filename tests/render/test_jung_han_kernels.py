@@ -188,6 +188,34 @@ def test_radix_sort_and_unique_equal_numpy(numba_kernels):
                 assert np.array_equal(x, y)
 
 
+def test_unique_by_hashing_equals_numpy_with_any_workspace(numba_kernels):
+    """The distinct keys found by hashing, then sorted, equal ``np.unique``'s arrays: mesh-like
+    keys (each ~6 times), all distinct (the table doubles), one key, none; with no workspace,
+    one too short for the table, one with room for the table but not the sort, and a large
+    one holding stale values (nothing read from it before it is written)."""
+    rng = np.random.default_rng(3)
+    verts = rng.integers(0, 1281 * 865, 6000, dtype=np.int64)
+    cases = [
+        rng.choice(verts, 33_000),  # the benchmark view's shape: 33 k corners, ~6 k vertices
+        rng.permutation(np.arange(40_000, dtype=np.int64) * 7919),  # all distinct
+        np.full(17, 2**40, dtype=np.int64),
+        np.zeros(0, dtype=np.int64),
+    ]
+    for keys in cases:
+        n = len(keys)
+        want = np.unique(keys, return_index=True, return_inverse=True)
+        for size in (0, 100, 2 * n + 4 * 8192, 10 * n + 20_000):
+            ws = np.full(size, 12345, np.int64)  # stale values
+            got = numba_kernels.unique_index_ws(keys, ws)
+            for x, y in zip((want[0], want[1], want[2].ravel()), got, strict=True):
+                assert x.shape == y.shape and np.array_equal(x, y), (n, size)
+    # positive control: one key changed changes the answer (the comparison can fail)
+    keys = cases[0].copy()
+    keys[5] = 2**50
+    got = numba_kernels.unique_index_ws(keys, np.empty(0, np.int64))
+    assert not np.array_equal(got[0], np.unique(cases[0]))
+
+
 def test_first_corner_pairs_equal_numpy(numba_kernels):
     """The GPU vertices' distinct (group, vertex) pairs found along per-vertex chains equal
     ``np.unique`` of the corner keys put in the order of their first corners: first corners,

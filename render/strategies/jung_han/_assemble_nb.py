@@ -30,9 +30,10 @@ _BIG = np.finfo(np.float64).max
 
 def ws_size_assemble(m: int) -> int:
     """Length of the int64 workspace :func:`assemble` needs for ``m`` triangles (with the
-    usual splits; a frame that splits more allocates its own): the largest of its users, the
-    vertex keys' sort (``4 * 3 m + _COUNTS``) and the GPU vertices' chains (``nv + 2 * 3 m'``
-    over the ``m'`` split triangles)."""
+    usual splits and ~6 corners a vertex; a frame beyond allocates its own): the largest of its
+    users, the vertex keys' de-duplication (a hash table of at most ``2 * 3 m`` and the
+    distinct keys, ``2 * 3 m``, then their sort, ``4 nv + _COUNTS``), the sort by slot and the
+    GPU vertices' chains (``nv + 2 * 3 m'`` over the ``m'`` split triangles)."""
     n = 3 * (m + m // 4 + 64)
     return 4 * n + _COUNTS
 

@@ -36,6 +36,7 @@ from render.strategies.jung_han._mesh_nb import (  # noqa: F401  (the mesh kerne
     t_junction_picks,
     t_junctions,
     unique_index,
+    unique_index_ws,
 )
 from render.strategies.jung_han._tree_nb import build_tree  # noqa: F401  (re-exported)
 from render.strategies.jung_han.pure import EDGE_QUADS, FAN_EDGE, FAN_QUAD, OWN, TEMPLATE

@@ -341,25 +341,73 @@ def _conform_picked(tri, tid, slot, level, vcol, vrow, ranks, pick, pid):
 
 
 @_jit
-def _unique_index(keys, ws):
-    """``np.unique(keys, return_index=True, return_inverse=True)`` for non-negative int64."""
-    n = keys.shape[0]
-    order = _argsort_ws(keys, ws)  # a view of ws: used up here
-    inv = np.empty(n, np.int64)
+def _hash_insert(keys, tab, bits, inv, tfirst, tkey):
+    """Each key's place among the distinct keys in first-occurrence order (``inv``), each
+    distinct key and its first index (``tkey``, ``tfirst``), through an open-addressing table
+    of ``2**bits`` (key, place) pairs in ``tab`` (linear probing, Fibonacci hashing): the number
+    of distinct keys, or -1 once they would fill more than half the table (the caller doubles
+    it and starts again)."""
+    size = 1 << bits
+    mask = size - 1
+    for h in range(2 * size):
+        tab[h] = -1  # (keys are >= 0)
     m = 0
-    for i in range(n):
-        if i == 0 or keys[order[i]] != keys[order[i - 1]]:
-            m += 1
+    for i in range(keys.shape[0]):
+        kk = keys[i]
+        h = ((kk * -7046029254386353131) >> (64 - bits)) & mask  # the product's top bits
+        while True:
+            c = tab[2 * h]
+            if c == kk:
+                inv[i] = tab[2 * h + 1]
+                break
+            if c == -1:
+                if 2 * (m + 1) > size:
+                    return -1
+                tab[2 * h], tab[2 * h + 1] = kk, m
+                tfirst[m], tkey[m], inv[i] = i, kk, m
+                m += 1
+                break
+            h = (h + 1) & mask
+    return m
+
+
+@_jit
+def _unique_index(keys, ws):
+    """``np.unique(keys, return_index=True, return_inverse=True)`` for non-negative int64.
+
+    The distinct keys are found by hashing, in first-occurrence order, and only they are sorted
+    (a mesh's corners hold each vertex ~6 times: the radix sort of every key cost twice as
+    much). The table and the distinct keys are carved from the end of the int64 workspace
+    ``ws``, the sort's buffers from its start (fresh ones where it is too short)."""
+    n = keys.shape[0]
+    bits = 4
+    while (1 << bits) < n // 2:  # half the keys distinct at most, as a start
+        bits += 1
+    inv = np.empty(n, np.int64)
+    while True:
+        need = (2 << bits) + 2 * n
+        wsx = ws if ws.shape[0] >= need else np.empty(need, np.int64)
+        top = wsx.shape[0]
+        tab = wsx[top - (2 << bits) : top]
+        tfirst = wsx[top - need : top - need + n]
+        tkey = wsx[top - need + n : top - (2 << bits)]
+        m = _hash_insert(keys, tab, bits, inv, tfirst, tkey)
+        if m >= 0:
+            break
+        bits += 1
+    # the sort's buffers (4 m + _COUNTS) from the workspace's start, if they fit before tfirst
+    front = wsx[0 : top - need] if wsx is ws else np.empty(0, np.int64)
+    order = _argsort_ws(tkey[:m], front)  # (distinct keys: the order is the sorted one)
     uk = np.empty(m, np.int64)
     first = np.empty(m, np.int64)
-    u = -1
+    rank = np.empty(m, np.int64)
+    for u in range(m):
+        o = order[u]
+        rank[o] = u
+        uk[u] = tkey[o]
+        first[u] = tfirst[o]  # the first occurrence: the place's first key
     for i in range(n):
-        o = order[i]
-        if i == 0 or keys[o] != keys[order[i - 1]]:
-            u += 1
-            uk[u] = keys[o]
-            first[u] = o  # stable: the first occurrence
-        inv[o] = u
+        inv[i] = rank[inv[i]]
     return uk, first, inv
 
 
@@ -429,6 +477,12 @@ def conform(tri, tid, slot, level, vcol, vrow):
 def unique_index(keys):
     """:func:`_unique_index`."""
     return _unique_index(keys, np.empty(0, np.int64))
+
+
+@_jit
+def unique_index_ws(keys, ws):
+    """:func:`_unique_index` with the workspace ``ws`` (as the assembly calls it)."""
+    return _unique_index(keys, ws)
 
 
 @_jit
