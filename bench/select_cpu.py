@@ -7,7 +7,7 @@ Usage::
 
     python bench/select_cpu.py [STORE ...] [--taus 0.5,1,2,4] [--sizes 320x240,1024x768]
                                [--frames 8] [--reps 3] [--no-compile] [--tune-malloc]
-                               [--out PATH]
+                               [--only jung-han:numba] [--drop] [--out PATH]
     python bench/select_cpu.py --metric conservative-view [STORE ...] [--taus 0.5,1,2]
                                [--fovs 5,45,120,170] [--patch-log2 1,4] [--nodata gap]
                                [--sizes 320x240] [--reps 5] [--out PATH]
@@ -35,7 +35,14 @@ N44W072 metre store of ``bench/prefetch.py`` (missing ones are skipped with a me
 Each row also gives the selecting thread's minor page faults (median per frame): after the
 numpy backend's large temporaries are freed, glibc may hand the next selection fresh pages to
 zero-fill. ``--tune-malloc`` fixes the allocator's thresholds first (``tiler.malloc``), as a
-long-running process whose allocations had settled would see them.
+long-running process whose allocations had settled would see them. ``--only`` times the
+listed strategy/backend pairs alone (each repetition still goes through every frame in turn, as a
+moving camera does; ``bench/jung_han_split.py`` repeats one frame).
+
+Each strategy's last selection is kept until its next one replaces it, as a renderer keeps the
+selection it draws: freed at once (``--drop``, the method before session 40) its ~2 MB of arrays
+left free memory at the top of glibc's heap, which trimmed it, and the next selection zero-filled
+~420 fresh pages (~0.4 ms at τ = 1 on N44W072 1024×768) that a renderer does not pay.
 """
 
 from __future__ import annotations
@@ -81,17 +88,33 @@ def _faults() -> int:
     return resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
 
 
-def _timed(strategy, cam, tau, res) -> tuple[float, float, int, int]:
+def _timed(strategy, cam, tau, res, kept: dict | None = None) -> tuple[float, float, int, int]:
+    """``(wall ms, thread CPU ms, len, minor faults)`` of one ``select``. ``kept``: the
+    strategy's last selection stays referenced there until this one replaces it, as a renderer
+    keeps the selection it draws (``None``: freed at once, the method before session 40)."""
     f0 = _faults()
     t0 = time.thread_time()
     sel, ms = strategy.select(cam, tau, resident=res)
-    return ms, (time.thread_time() - t0) * 1000.0, len(sel), _faults() - f0
+    out = ms, (time.thread_time() - t0) * 1000.0, len(sel), _faults() - f0
+    if kept is not None:
+        kept[id(strategy)] = sel
+    return out
 
 
-def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, reps: int):
+def measure(
+    path: str,
+    size: tuple[int, int],
+    taus: list[float],
+    frames: int,
+    reps: int,
+    only: set[tuple[str, str]] | None = None,
+    drop: bool = False,
+):
     """Rows ``{store, size, strategy, backend, tau, wall_ms, cpu_ms, selected, minor_faults}``
     (``selected``: ``len`` of the selection, jung-han's drawn triangles, seamless-patches' leaf
-    patches; ``minor_faults``: the selecting thread's minor page faults, median per frame)."""
+    patches; ``minor_faults``: the selecting thread's minor page faults, median per frame).
+    ``only``: the ``(strategy, backend)`` pairs to time (default all four, interleaved);
+    ``drop``: free each selection at once instead of keeping it until the strategy's next."""
     from render.strategies import get_strategy
     from tiler.store import open_store
 
@@ -102,17 +125,20 @@ def measure(path: str, size: tuple[int, int], taus: list[float], frames: int, re
     runs = [("jung-han", "numpy", jh["numpy"]), ("jung-han", "numba", jh["numba"])]
     for b in ("numpy", "numba"):
         runs.append(("seamless-patches", b, get_strategy("seamless-patches", r, kernels=b)))
+    if only:
+        runs = [(n, b, st) for n, b, st in runs if (n, b) in only]
     for _, _, st in runs:  # warm: trees, packed forest, compiled kernels, tables
         for cam, res in views:
             st.select(cam, 1.0, resident=res)
     rows = []
     for tau in taus:
         acc = {(n, b): [[[], [], 0, []] for _ in views] for n, b, _ in runs}
+        kept: dict | None = None if drop else {}
         for rep in range(reps):
             order = runs if rep % 2 == 0 else runs[::-1]
             for i, (cam, res) in enumerate(views):
                 for n, b, st in order:
-                    wall, cpu, tris, faults = _timed(st, cam, tau, res)
+                    wall, cpu, tris, faults = _timed(st, cam, tau, res, kept)
                     a = acc[(n, b)][i]
                     a[0].append(wall)
                     a[1].append(cpu)
@@ -299,6 +325,18 @@ def main() -> None:
         help="fix glibc's mmap/trim thresholds first (tiler.malloc), so the numpy backend's "
         "large frees do not leave the numba selections zero-filling fresh pages",
     )
+    ap.add_argument(
+        "--only",
+        default=None,
+        help="STRATEGY:BACKEND[,...] to time, e.g. jung-han:numba (alone: each repetition "
+        "still cycles through the frames); default every strategy and backend, interleaved",
+    )
+    ap.add_argument(
+        "--drop",
+        action="store_true",
+        help="free each selection as soon as it is timed (the method before session 40; a "
+        "renderer keeps the one it draws until the next replaces it)",
+    )
     ap.add_argument("--out", default=None, help="default bench/results/select_cpu[_METRIC].json")
     ap.add_argument("--metric", default=None, help="time qiu's selection with this metric")
     ap.add_argument("--patch-log2", default="1,4", help="--metric: patch sizes (log2 cells)")
@@ -315,6 +353,14 @@ def main() -> None:
 
         if not tune_allocator():
             sys.exit("--tune-malloc: glibc's mallopt is not available here")
+    only = None
+    if a.only:
+        pairs = [tuple(v.strip().split(":", 1)) for v in a.only.split(",")]
+        known = {(n, b) for n in ("jung-han", "seamless-patches") for b in ("numpy", "numba")}
+        bad = [":".join(p) for p in pairs if p not in known]
+        if bad:
+            ap.error(f"--only {bad[0]!r}: use STRATEGY:BACKEND from {sorted(known)}")
+        only = set(pairs)
     a.taus, a.sizes = a.taus or "0.5,1,2,4", a.sizes or "320x240,1024x768"
     a.reps = 3 if a.reps is None else a.reps
     a.out = a.out or str(RESULTS / "select_cpu.json")
@@ -322,6 +368,8 @@ def main() -> None:
     sizes = [tuple(int(v) for v in s.split("x")) for s in a.sizes.split(",")]
     info = machine_info()
     info["tune_malloc"] = bool(a.tune_malloc)
+    info["only"] = sorted(":".join(p) for p in only) if only else None
+    info["drop"] = bool(a.drop)
     rows, compile_s = [], {}
     print("store size strategy backend tau wall_ms cpu_ms selected faults load1")
     for path in a.stores:
@@ -332,7 +380,7 @@ def main() -> None:
             compile_s[Path(path).name] = compile_times(path)
             print(f"# {Path(path).name} numba compile/load s: {compile_s[Path(path).name]}")
         for size in sizes:
-            for row in measure(path, size, taus, a.frames, a.reps):
+            for row in measure(path, size, taus, a.frames, a.reps, only, a.drop):
                 rows.append(row)
                 print(
                     f"{row['store']} {row['size']} {row['strategy']} {row['backend']} "
