@@ -68,7 +68,8 @@ def _vertex_error(basis, eye, focal, d, x, y, h):
     z1 = c2 + d * u2
     if not (c2 > 0.0 and z1 > 0.0):
         return np.inf
-    rho = focal * abs(d) * math.hypot(c2 * u0 - c0 * u2, c2 * u1 - c1 * u2) / (c2 * z1)
+    g0, g1 = c2 * u0 - c0 * u2, c2 * u1 - c1 * u2
+    rho = focal * abs(d) * math.sqrt(g0 * g0 + g1 * g1) / (c2 * z1)  # (as the reference)
     return rho if math.isfinite(rho) else np.inf
 
 

@@ -177,9 +177,11 @@ def vertex_errors(delta: np.ndarray, points: np.ndarray, camera: Camera) -> np.n
     u0, u1, u2 = camera.right[2], camera.up[2], camera.forward[2]
     z1 = c2 + d * u2
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        rho = (
-            camera.focal_px * np.abs(d) * np.hypot(c2 * u0 - c0 * u2, c2 * u1 - c1 * u2) / (c2 * z1)
-        )
+        # |g| as sqrt(g0² + g1²), not hypot (a libm call per vertex in the compiled twin, which
+        # repeats this): camera-relative components (≪ 1e150) do not overflow, and the two
+        # differ by about an ulp
+        g0, g1 = c2 * u0 - c0 * u2, c2 * u1 - c1 * u2
+        rho = camera.focal_px * np.abs(d) * np.sqrt(g0 * g0 + g1 * g1) / (c2 * z1)
     rho = np.where((c2 > 0.0) & (z1 > 0.0), rho, np.inf)
     return np.where(d == 0.0, 0.0, np.where(np.isfinite(rho), rho, np.inf))
 
