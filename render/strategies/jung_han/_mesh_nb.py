@@ -139,10 +139,10 @@ def _t_junctions_picked(tri, tid, vcol, vrow, ranks, picks):
     nv = vcol.shape[0]
     rank_h, perm_h, rank_v, perm_v = ranks  # (see _ranks)
     found = np.full(nv, -1, np.int64)
-    ends = np.zeros((nv, 2, 2), np.int64)
-    frac = np.zeros(nv)
-    e_lo = np.zeros(nv, np.int64)  # id of the lo / hi end of the vertex's edge
-    e_hi = np.zeros(nv, np.int64)
+    ends = np.empty((nv, 2, 2), np.int64)  # (these four: only the found vertices' are read)
+    frac = np.empty(nv)
+    e_lo = np.empty(nv, np.int64)  # id of the lo / hi end of the vertex's edge
+    e_hi = np.empty(nv, np.int64)
     # best[g, r]: the last edge (3 t + j) of group g (0/1 horizontal, opposite vertex above/
     # below; 2/3 vertical) starting at the vertex of rank r along the group's axis, in the
     # reference's edge order (j major, then t); walk: the starts of edges with a vertex inside
