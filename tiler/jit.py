@@ -114,23 +114,44 @@ def _with_sources(cls: type) -> type:
     return type(f"Sources{cls.__name__}", (cls,), {"get_source_stamp": get_source_stamp})
 
 
-class _SourcesImpl(caching.CompileResultCacheImpl):
-    _locator_classes = [
-        _with_sources(c) if issubclass(c, caching._SourceFileBackedLocatorMixin) else c
-        for c in caching.CompileResultCacheImpl._locator_classes
-    ]
+def _sources_cache_class() -> type | None:
+    """numba's function cache class keyed also on :func:`kernel_sources`, built on numba's
+    caching internals (``numba.core.caching``); None, logged, where they are not as expected
+    (another numba version): the kernels then cache with numba's own key."""
+    try:
+        backed = caching._SourceFileBackedLocatorMixin
+
+        class _SourcesImpl(caching.CompileResultCacheImpl):
+            _locator_classes = [
+                _with_sources(c) if issubclass(c, backed) else c
+                for c in caching.CompileResultCacheImpl._locator_classes
+            ]
+
+        class _SourcesCache(caching.FunctionCache):
+            """numba's function cache, keyed also on the kernel module's imported sources."""
+
+            _impl_class = _SourcesImpl
+
+        return _SourcesCache
+    except (AttributeError, TypeError) as exc:
+        log.warning(
+            "numba %s: its cache cannot be keyed on the kernels' imported sources (%s); a "
+            "change to a kernel module may need its __pycache__ cleared",
+            numba.__version__,
+            exc,
+        )
+        return None
 
 
-class _SourcesCache(caching.FunctionCache):
-    """numba's function cache, keyed also on the kernel module's imported sources."""
-
-    _impl_class = _SourcesImpl
+_SourcesCache = _sources_cache_class()
 
 
 def _cached(fn: Callable, opts: dict[str, Any]) -> Any:
-    """``numba.njit(cache=True, **opts)(fn)`` with :class:`_SourcesCache` as its cache (what
+    """``numba.njit(cache=True, **opts)(fn)`` with :data:`_SourcesCache` as its cache (what
     ``cache=True`` does, ``Dispatcher.enable_caching``, with the key of the module doc); raises
     numba's ``RuntimeError`` where no cache directory works."""
+    if _SourcesCache is None:
+        return numba.njit(cache=True, **opts)(fn)
     disp = numba.njit(cache=False, **opts)(fn)
     if hasattr(disp, "_cache"):  # (not NUMBA_DISABLE_JIT's plain function)
         disp._cache = _SourcesCache(disp.py_func)

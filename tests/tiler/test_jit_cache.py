@@ -122,6 +122,21 @@ def test_the_project_kernels_carry_the_sources_key():
     assert isinstance(_kernels_nb.traverse._cache, _SourcesCache)
 
 
+def test_without_numba_internals_the_kernels_still_cache(monkeypatch, caplog):
+    """Another numba without the caching internals used here: a warning, numba's own key."""
+    from numba.core import caching
+
+    import tiler.jit as jit
+
+    monkeypatch.delattr(caching, "_SourceFileBackedLocatorMixin")
+    with caplog.at_level("WARNING", logger="tiler.kernels"):
+        assert jit._sources_cache_class() is None
+    assert "cannot be keyed" in caplog.text
+    monkeypatch.setattr(jit, "_SourcesCache", None)
+    f = jit.cached_njit()(lambda: 7)
+    assert f() == 7 and type(f._cache) is caching.FunctionCache  # cached, numba's way
+
+
 def test_relative_and_multiline_imports_are_followed(tmp_path):
     pkg = tmp_path / "rp"
     (pkg / "sub").mkdir(parents=True)
