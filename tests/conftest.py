@@ -4,11 +4,22 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
 from demtools import write_dem
+
+
+def pytest_configure(config):
+    """Ctrl-C as a terminal sends it, whatever started the run: a shell starts a background
+    command without job control (``( cmd & )``, ``nohup`` in scripts) with SIGINT ignored, and
+    the ignored disposition passes to every child, so the Ctrl-C tests (ours in-process, the
+    CLI's in children) saw nothing to catch. With a handler here, children start with the
+    default again and install Python's own."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
