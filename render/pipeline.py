@@ -21,6 +21,7 @@ from render.strategies import (
     DEFAULT,
     check_name,
     check_nodata,
+    error_label,
     get_strategy,
     nodata_options,
     stream_metric,
@@ -302,7 +303,7 @@ def tradeoff(
         used = sum(4 * grid_side(lv) ** 2 for lv in strat.used_levels(camera, patches).values())
         row = TradeoffRow(
             tau=float(tau),
-            metric=metric,
+            metric=error_label(lod, metric),
             triangles=st.triangles,
             patches=st.patches,
             selection_ms=sel_ms,

@@ -67,6 +67,7 @@ def render(
     from PIL import Image
 
     from render.pipeline import ViewOptions, render_view
+    from render.strategies import error_label
     from render.views import make_camera
 
     with fail_on_errors():
@@ -103,7 +104,13 @@ def render(
             )
         Image.fromarray(img).save(out)
         if as_json:
-            d = {"out": str(out), "tau": tau, "metric": metric, "lod": lod, "nodata_rule": rule}
+            d = {
+                "out": str(out),
+                "tau": tau,
+                "metric": error_label(lod, metric),
+                "lod": lod,
+                "nodata_rule": rule,
+            }
             d.update(asdict(st))
             d["viewport"] = list(viewport)
             typer.echo(json.dumps(d))

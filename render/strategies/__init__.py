@@ -126,6 +126,17 @@ def stream_metric(name: str, metric: str) -> str:
     return metric if strategy_class(name).uses_metric else "conservative"
 
 
+#: the ``metric`` a table or JSON row records for a strategy that selects with its own screen
+#: error (``uses_metric`` False: ``--metric`` does not apply to it)
+OWN_ERROR = "own"
+
+
+def error_label(name: str, metric: str) -> str:
+    """What τ bounds in strategy ``name``'s selection, for tables and JSON rows: ``metric``
+    when the strategy selects with it, else :data:`OWN_ERROR` (its own error, not Eq. 7's)."""
+    return metric if strategy_class(name).uses_metric else OWN_ERROR
+
+
 def get_strategy(name: str, renderer: FrameServices, **options: Any) -> Strategy:
     """An instance of strategy ``name`` drawing with ``renderer``."""
     return strategy_class(name)(renderer, **options)
@@ -133,12 +144,14 @@ def get_strategy(name: str, renderer: FrameServices, **options: Any) -> Strategy
 
 __all__ = [
     "DEFAULT",
+    "OWN_ERROR",
     "STRATEGIES",
     "NodataRuleError",
     "Strategy",
     "UnknownStrategyError",
     "check_name",
     "check_nodata",
+    "error_label",
     "get_strategy",
     "nodata_options",
     "nodata_strategies",

@@ -12,7 +12,7 @@ from gltools import make_context, rough, tile_dem
 from render import measure
 from render.pipeline import tradeoff
 from render.renderer import CLEAR, RenderConfig, TerrainRenderer
-from render.strategies import get_strategy, strategy_names
+from render.strategies import OWN_ERROR, get_strategy, strategy_class, strategy_names
 from render.strategies.base import GlobalHeights
 from streamer.camera import Camera
 from tiler.store import open_store
@@ -165,6 +165,8 @@ def test_tradeoff_row_through_the_streaming_session(rough_store, name):
     row = rows[0]
     assert row.strategy == name and row.crack_pixels == 0
     assert row.triangles > 0 and row.samples_in_view > 5000
+    # the row names what τ bounded: Eq. 7 only for the strategy that selects with it
+    assert row.metric == ("qiu" if strategy_class(name).uses_metric else OWN_ERROR)
 
 
 @pytest.mark.parametrize("name", NAMES)
