@@ -3,7 +3,6 @@ it for a rerun, and creating a fresh store's root, arrays and journal (:func:`cr
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import replace
 from typing import TYPE_CHECKING
@@ -14,7 +13,7 @@ from tiler.errors import StoreError
 from tiler.interrupt import DeferredInterrupt
 from tiler.lease import LEASE_KEY
 from tiler.location import Location
-from tiler.meta import StoreMeta, read_meta, write_meta
+from tiler.meta import StoreMeta, read_meta, sealed, write_meta
 from tiler.resume import check_same_job, create_journal
 from tiler.schema import ATTR, compact_metadata, create_layout
 
@@ -75,9 +74,8 @@ def clean_siblings(loc: Location) -> None:
 
 def fresh_group(loc: Location, meta: StoreMeta) -> zarr.Group:
     """Create the root group with the metadata in state ``layout`` (one write)."""
-    attrs = json.loads(json.dumps(meta.to_json(), allow_nan=False))
     try:
-        return loc.open_group("a", attributes={ATTR: attrs})
+        return loc.open_group("a", attributes={ATTR: sealed(meta)})
     except (OSError, ValueError) as exc:
         raise StoreError(f"cannot create a store at {loc.url!r}: {exc}") from exc
 

@@ -8,6 +8,7 @@ of ``index/``. The reader is :class:`tiler.store.TerrainStore` (docs/FORMAT.md f
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field
 from typing import Any
@@ -20,7 +21,34 @@ from tiler.grid import BlockGrid
 from tiler.layout import grid_side
 from tiler.schema import ATTR, FORMAT_VERSION, compact_metadata
 
-__all__ = ["BlockIndex", "StoreMeta", "read_meta", "tool_version", "write_meta"]
+__all__ = [
+    "CHECKSUM_KEY",
+    "BlockIndex",
+    "StoreMeta",
+    "read_meta",
+    "sealed",
+    "tool_version",
+    "write_meta",
+]
+
+#: the root attribute's own checksum (format 2 stores written since 0.2; older ones have none)
+CHECKSUM_KEY = "metadata_checksum"
+
+
+def _checksum(d: dict[str, Any]) -> str:
+    """``blake2b-128:<hex>`` of the attribute ``d`` without its checksum, as canonical JSON
+    (sorted keys, no spaces: the same text for the same values however zarr wrote them)."""
+    body = {k: v for k, v in d.items() if k != CHECKSUM_KEY}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return "blake2b-128:" + hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def sealed(meta: StoreMeta) -> dict[str, Any]:
+    """The root attribute of ``meta`` as written: JSON-ready, with its checksum, so that an
+    edited or damaged geotransform, CRS, nodata or value range is detected on reading."""
+    d = json.loads(json.dumps(meta.to_json(), allow_nan=False))
+    d[CHECKSUM_KEY] = _checksum(d)
+    return d
 
 
 def tool_version() -> str:
@@ -120,9 +148,18 @@ class StoreMeta:
                 f"store format version {version} is newer than this terrastream reads "
                 f"({FORMAT_VERSION}); upgrade terrastream."
             )
+        want = d.get(CHECKSUM_KEY)
+        if want is not None and want != _checksum(d):
+            raise StoreCorruptError(
+                "the store's root metadata (the 'terrastream' attribute of its zarr.json: "
+                "georeferencing, CRS, nodata, value range) does not match its checksum "
+                f"({want}): it was edited or damaged after tiling and cannot be trusted; tile "
+                "the source again (terrastream tile SRC DST --overwrite)"
+            )
         names = {f for f in cls.__dataclass_fields__ if f != "extra"}
         known = {k: v for k, v in d.items() if k in names}
-        extra = {k: v for k, v in d.items() if k not in names and k not in ("levels", "block_size")}
+        skip = ("levels", "block_size", CHECKSUM_KEY)
+        extra = {k: v for k, v in d.items() if k not in names and k not in skip}
         try:
             known["geotransform"] = tuple(float(x) for x in known["geotransform"])
             known["error_fields"] = tuple(known["error_fields"])
@@ -134,9 +171,9 @@ class StoreMeta:
 
 
 def write_meta(group: zarr.Group, meta: StoreMeta) -> None:
-    """Write the root attribute (``complete`` as given in ``meta``)."""
+    """Write the root attribute (``complete`` as given in ``meta``), sealed (:func:`sealed`)."""
     with compact_metadata():
-        group.attrs[ATTR] = json.loads(json.dumps(meta.to_json(), allow_nan=False))
+        group.attrs[ATTR] = sealed(meta)
 
 
 def read_meta(group: zarr.Group) -> StoreMeta:

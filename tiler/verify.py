@@ -19,8 +19,10 @@ import numpy as np
 from tiler.errors import StoreError
 from tiler.layout import level_size
 from tiler.location import Location, as_location
+from tiler.meta import CHECKSUM_KEY
 from tiler.resume import TILING_STATES
 from tiler.schema import (
+    ATTR,
     INDEX_NAMES,
     SHARDED_LEVELS,
     chunk_key,
@@ -53,6 +55,8 @@ class VerifyReport:
     location: str
     format_version: int | None = None
     checksummed: bool = False
+    #: the root metadata carries its own checksum (and matched it: else it is a problem)
+    metadata_checksummed: bool = False
     complete: bool = False
     chunks_checked: int = 0
     blocks_total: int = 0
@@ -88,6 +92,7 @@ class VerifyReport:
             "ok": self.ok,
             "format_version": self.format_version,
             "checksummed": self.checksummed,
+            "metadata_checksummed": self.metadata_checksummed,
             "complete": self.complete,
             "state": self.state,
             "chunks_checked": self.chunks_checked,
@@ -134,6 +139,7 @@ def verify_store(
         meta.checksummed,
         meta.complete,
     )
+    rep.metadata_checksummed = CHECKSUM_KEY in (group.attrs.get(ATTR) or {})
     grid = meta.grid
     rows, cols = grid.shape
     rep.blocks_total = rows * cols

@@ -53,6 +53,10 @@ def verify(
             if len(rep.problems) > MAX_LISTED:
                 typer.echo(f"... and {len(rep.problems) - MAX_LISTED} more (--json lists all)")
             checks = "crc32c checksums" if rep.checksummed else "no checksums (format 1)"
+            if rep.format_version is None:
+                checks = "the root metadata is unreadable"
+            if rep.format_version is not None and not rep.metadata_checksummed:
+                checks += "; the root metadata has no checksum (an older store)"
             status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
             if not rep.ok and not rep.bad_blocks and all(p.kind == "source" for p in rep.problems):
                 status = "the source does not match"

@@ -9,7 +9,9 @@ import numpy as np
 
 from tiler.schema import ATTR
 
-VOLATILE = ("generation",)  # differs between two builds by design (reader change detection)
+#: differ between two builds by design: the build's id (reader change detection) and the root
+#: metadata's checksum, which covers it
+VOLATILE = ("generation", "metadata_checksum")
 
 
 def store_files(root: Path) -> dict[str, bytes]:

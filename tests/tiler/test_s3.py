@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 
 from tests.demtools import fractal, write_dem
 from tests.render.shared_gl import gl_context
+from tests.tiler.storetools import VOLATILE
 from tiler import tile as tile_mod
 from tiler.errors import StorageOptionsError, StoreLockedError
 from tiler.location import Location, parse_storage_options
@@ -80,7 +81,8 @@ def _objects(url: str, **so) -> dict[str, bytes]:
         data = loc.get_bytes(key)
         if key == "zarr.json":
             doc = json.loads(data)
-            doc["attributes"]["terrastream"].pop("generation", None)
+            for name in VOLATILE:
+                doc["attributes"]["terrastream"].pop(name, None)
             data = json.dumps(doc, sort_keys=True).encode()
         out[key] = data
     return out
@@ -94,7 +96,8 @@ def _local(root: Path) -> dict[str, bytes]:
             data = p.read_bytes()
             if key == "zarr.json":
                 doc = json.loads(data)
-                doc["attributes"]["terrastream"].pop("generation", None)
+                for name in VOLATILE:
+                    doc["attributes"]["terrastream"].pop(name, None)
                 data = json.dumps(doc, sort_keys=True).encode()
             out[key] = data
     return out
