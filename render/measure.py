@@ -35,20 +35,54 @@ class ErrorStats:
     samples: int
 
 
-def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: np.ndarray, n: int):
-    """Height of the regular (unsnapped) patch surface at patch cell coords ``(u, v)``."""
-    ci = np.minimum(np.floor(u).astype(np.int64), n - 1)
-    cj = np.minimum(np.floor(v).astype(np.int64), n - 1)
-    fu, fv = u - ci, v - cj
-    ra, ca = r0 + cj * s, c0 + ci * s
+def _cell_heights(full, ra, ca, s, fu, fv, upper):
+    """Height at ``(fu, fv)`` of the cell with corner ``a`` at ``(ra, ca)``: its upper
+    ``(a, b, d)`` or lower ``(a, c, d)`` triangle, NaN if one of that triangle's corners is
+    masked (a triangle with a nodata corner is not drawn)."""
     ha = full[ra, ca]
     hb = full[ra, ca + s]
     hc = full[ra + s, ca]
     hd = full[ra + s, ca + s]
-    upper = fu >= fv
     return np.where(
         upper, ha + fu * (hb - ha) + fv * (hd - hb), ha + fv * (hc - ha) + fu * (hd - hc)
     )
+
+
+def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: np.ndarray, n: int):
+    """Height of the regular (unsnapped) patch surface at patch cell coords ``(u, v)``: in the
+    cell and triangle the point falls in, or, where that triangle is not drawn (a masked
+    corner), in another drawn triangle of the patch that contains the point (it lies on their
+    shared edge or corner; the surface is continuous there); NaN where none is drawn."""
+    ci = np.minimum(np.floor(u).astype(np.int64), n - 1)
+    cj = np.minimum(np.floor(v).astype(np.int64), n - 1)
+    fu, fv = u - ci, v - cj
+    h = _cell_heights(full, r0 + cj * s, c0 + ci * s, s, fu, fv, fu >= fv)
+    miss = np.isnan(h)
+    if not miss.any():
+        return h
+    # the points on a triangle's border: the cell's other triangle (the diagonal), the cells to
+    # the left and above (the cell's left and top edges) and above-left (its corner a)
+    shape = h.shape
+    ci, cj, fu, fv = (np.broadcast_to(a, shape)[miss] for a in (ci, cj, fu, fv))
+    r0, c0 = (np.broadcast_to(a, shape)[miss] for a in (r0, c0))
+    got = np.full(ci.shape, np.nan)
+    one = np.ones_like(fu)
+    for di, dj, gu, gv, upper, on in (
+        (0, 0, fu, fv, False, fu == fv),
+        (1, 0, one, fv, True, fu == 0),
+        (1, 0, one, fv, False, (fu == 0) & (fv == 1)),
+        (0, 1, fu, one, False, fv == 0),
+        (0, 1, fu, one, True, (fv == 0) & (fu == 1)),
+        (1, 1, one, one, True, (fu == 0) & (fv == 0)),
+        (1, 1, one, one, False, (fu == 0) & (fv == 0)),
+    ):
+        ok = on & (ci >= di) & (cj >= dj) & np.isnan(got)
+        if ok.any():
+            ra, ca = r0[ok] + (cj[ok] - dj) * s, c0[ok] + (ci[ok] - di) * s
+            got[ok] = _cell_heights(full, ra, ca, s, gu[ok], gv[ok], upper)
+    h = h.copy() if not h.flags.writeable else h
+    h[miss] = got
+    return h
 
 
 def rasterise(tri: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
