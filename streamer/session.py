@@ -30,6 +30,7 @@ Bytes are decoded level bytes (the source dtype), the quantity held in memory an
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -213,13 +214,41 @@ class Session:
         """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
         answer, ``changes``: ``LevelCache.pin_changes``', both found before taking the lock;
         ``need``: the pinned bytes, if summed; caller holds the lock)."""
-        self.cache.set_pins(needed, self.level_bytes, need, changes)
+        try:
+            self.cache.set_pins(needed, self.level_bytes, need, changes)
+        except BudgetError as exc:
+            raise self._budget_error(exc, needed) from None
         if todo is None:
             todo = self._to_queue(needed)
         push = self.loader.push
         for b in todo:
             push(b)
         return len(todo)
+
+    def _budget_error(self, exc: BudgetError, needed: dict[Block, int]) -> BudgetError:
+        """``exc`` (the pins exceed the budget), saying so when no τ can help: under the nodata
+        rule ``full`` the visible blocks holding nodata stay at full resolution, and when
+        those plus every other block at level 0 already exceed the budget, only a larger budget
+        does."""
+        if self.config.nodata != "full" or exc.template is None or not needed:
+            return exc
+        k, has = self.store.k, self.store.index.has_nodata
+        held = [b for b, lv in needed.items() if lv >= k and has[b]]
+        cum = self._cum_bytes
+        floor = len(held) * cum[k] + (len(needed) - len(held)) * cum[0]
+        if not held or floor <= self.cache.budget:
+            return exc
+        return BudgetError(
+            "the visible blocks need {need} at their levels but the budget is {budget}; "
+            "the visible blocks with nodata beside terrain ({held} of {visible}) stay at full "
+            "resolution under the nodata rule 'full' whatever {tau}, so no {tau} fits: raise "
+            "{budget_mb} to at least {floor}",
+            params=exc.params,
+            **exc.values,
+            held=len(held),
+            visible=len(needed),
+            floor=f"{math.ceil(floor * 100 / 2**20) / 100:.2f} MiB ({floor:,} bytes)",
+        )
 
     def _raise_background_error(self, *, fatal: bool = True) -> None:
         """Re-raise a planning failure or a loader bug on the caller's thread, and (``fatal``)

@@ -64,6 +64,32 @@ def test_budget_never_exceeded_and_visible_set_too_big(store):
                 s.update(cam, wait=True)
 
 
+@pytest.fixture(scope="module")
+def holey_store(tmp_path_factory):
+    """Nodata in every 65² block (a grid of 3² holes): under the rule 'full' each visible block
+    stays at full resolution whatever τ."""
+    tmp = tmp_path_factory.mktemp("holes")
+    data = fractal((257, 257), 4).astype(np.float32)
+    data[20::64, 20::64] = np.nan
+    src = write_dem(tmp / "d.tif", data, cell=10.0, nodata=float("nan"))
+    return tile(src, tmp / "s.zarr", TileOptions(block_size=65, workers=1))
+
+
+def test_a_budget_no_tau_can_meet_says_so(holey_store):
+    """Beside nodata the need does not fall with τ: the error says only a larger budget helps
+    and how large (the store without nodata above keeps 'raise budget_mb or ... tau')."""
+    cam = flight(holey_store, 1)[0]
+    msg = r"whatever tau, so no tau fits: raise budget_mb to at least ([\d.]+) MiB"
+    with (
+        open_session(holey_store, budget_mb=0.05, workers=1, tau=1e6) as s,
+        pytest.raises(BudgetError, match=msg) as err,
+    ):
+        s.update(cam, wait=True)
+    at_least = float(re.search(msg, str(err.value)).group(1))
+    with open_session(holey_store, budget_mb=at_least, workers=1, tau=1e6) as s:
+        assert s.update(cam, wait=True).blocks  # the figure given is enough
+
+
 def test_teleports_cancel_queued_loads(store):
     xmin, ymin, xmax, ymax = store.grid.extent
     path = teleports((xmin, ymin, 200.0, xmax, ymax, 800.0), 40, seed=3, every=2)
