@@ -5,6 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 
+def _box(box: list[float], d: dict[str, Any]) -> str:
+    """``x xmin .. xmax, y ymin .. ymax``: millimetres in metres, ~0.1 m in degrees."""
+    f = ".6f" if d.get("crs_geographic") else ".3f"
+    return f"x {box[0]:{f}} .. {box[2]:{f}}, y {box[1]:{f}} .. {box[3]:{f}}"
+
+
 def human_bytes(n: float) -> str:
     """``1536`` → ``1.5 KiB``."""
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
@@ -64,8 +70,8 @@ def format_info(d: dict) -> str:
         f"nodata         {'none' if d['nodata'] is None else format(d['nodata'], 'g')}",
         f"checksums      {d.get('checksums', 'none')}",
         f"crs            {d['crs']}" + _crs_note(d),
-        f"extent         x {d['extent'][0]:.3f} .. {d['extent'][2]:.3f}, "
-        f"y {d['extent'][1]:.3f} .. {d['extent'][3]:.3f}",
+        f"extent         {_box(d['extent'], d)} (sample centres)",
+        f"bounds         {_box(d['bounds'], d)} (pixel edges, as GDAL)",
         f"values         {d['value_range'][0]:g} .. {d['value_range'][1]:g}"
         + (" m" if d.get("vertical") else f" {d['vertical_units']}" if d["vertical_units"] else "")
         + _vertical_note(d),

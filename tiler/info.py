@@ -13,6 +13,16 @@ from tiler.store import TerrainStore, open_store
 from tiler.vertical import height_transform
 
 
+def raster_bounds(geotransform: Any, height: int, width: int) -> list[float]:
+    """``(left, bottom, right, top)`` of the raster's pixel edges (rasterio's ``bounds``) from
+    the store's geotransform (Affine order): half a cell beyond the sample centres of
+    ``BlockGrid.extent``."""
+    from rasterio.transform import Affine, array_bounds
+
+    west, south, east, north = array_bounds(height, width, Affine(*geotransform))
+    return [float(west), float(south), float(east), float(north)]
+
+
 def store_info(url: str | os.PathLike) -> dict[str, Any]:
     """Blocks, levels, bytes per level and component, ratio to raw, CRS, extent, value range."""
     s = open_store(url)
@@ -56,7 +66,8 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         "generation": m.generation,
         "compressor": compressor_text(m.compressor),
         "crs": crs,
-        "extent": list(s.grid.extent),
+        "extent": list(s.grid.extent),  # sample centres (xmin, ymin, xmax, ymax)
+        "bounds": raster_bounds(m.geotransform, m.height, m.width),  # pixel edges, as GDAL
         "value_range": vr,
         "vertical_units": m.vertical_units,
         # heights: value_range is in metres; the stored values are (metres - offset) / scale

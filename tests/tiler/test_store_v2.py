@@ -124,6 +124,26 @@ def test_info_counts_nodata_not_padding(dem_factory, tmp_path):
     assert info["blocks_with_nodata"] == 1 and info["checksums"] == "crc32c on every chunk"
 
 
+@pytest.mark.parametrize("crs", ["EPSG:32633", "EPSG:4326"])
+def test_info_bounds_are_the_rasters_and_extent_its_sample_centres(dem_factory, tmp_path, crs):
+    import rasterio
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    cell, origin = (30.0, (500000.0, 5000000.0)) if crs != "EPSG:4326" else (1 / 1200, (1.0, 43.0))
+    src = dem_factory(fractal((40, 50), 4), crs=crs, cell=cell, origin=origin)
+    tile(src, tmp_path / "s.zarr", TileOptions(block_size=17))
+    info = store_info(tmp_path / "s.zarr")
+    with rasterio.open(src) as ds:
+        assert info["bounds"] == pytest.approx(list(ds.bounds), abs=1e-9)
+    half = np.array([cell, cell, -cell, -cell]) / 2
+    assert info["extent"] == pytest.approx(list(np.array(info["bounds"]) + half), abs=1e-9)
+    out = CliRunner().invoke(app, ["info", str(tmp_path / "s.zarr")]).output
+    digits = 6 if crs == "EPSG:4326" else 3  # degrees to ~0.1 m, metres to the millimetre
+    assert f"bounds         x {info['bounds'][0]:.{digits}f} .. " in out
+
+
 def test_block_size_larger_than_needed_is_clamped(dem_factory, tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         s = tile(
