@@ -49,6 +49,15 @@ def lease_is_fresh(d: dict[str, Any], timeout_s: float) -> bool:
     return time.time() - float(d.get("heartbeat", 0.0)) < timeout_s
 
 
+def live_writer(loc: Location, timeout_s: float = DEFAULT_TIMEOUT_S) -> str | None:
+    """Who holds a live lease on ``loc`` (a fresh heartbeat, its process not known gone), for
+    messages; None if no writer does."""
+    d = read_lease(loc)
+    if d is None or d.get("unreadable") or not lease_is_fresh(d, timeout_s) or _owner_gone(d):
+        return None
+    return _describe(d)
+
+
 def _describe(d: dict[str, Any]) -> str:
     if d.get("unreadable"):
         return "a writer whose lease record is unreadable"

@@ -45,6 +45,7 @@ from tiler.errors import (
 )
 from tiler.interrupt import DeferredInterrupt
 from tiler.layout import level_end, level_start
+from tiler.lease import live_writer
 from tiler.location import Location, as_location, is_url
 from tiler.meta import BlockIndex, StoreMeta, read_meta, tool_version, write_meta
 from tiler.read_errors import READ_ERRORS, is_fill, missing_chunk, open_error, read_error
@@ -127,6 +128,12 @@ class TerrainStore:
                 raise StoreCorruptError(msg) from exc
             self.meta = read_meta(self._group)
         if not self.meta.complete and not allow_incomplete:
+            writer = live_writer(self.location)
+            if writer is not None:  # not interrupted: still being written
+                raise StoreIncompleteError(
+                    f"store {self.url!r} is being written now by {writer}; wait until that "
+                    "'terrastream tile' finishes (it refuses a second writer meanwhile)"
+                )
             raise StoreIncompleteError(
                 f"store {self.url!r} was never finished (interrupted tiling?); run the same "
                 "'terrastream tile' command again to complete it."

@@ -18,6 +18,7 @@ import numpy as np
 
 from tiler.errors import StoreError
 from tiler.layout import level_size
+from tiler.lease import live_writer
 from tiler.location import Location, as_location
 from tiler.meta import CHECKSUM_KEY
 from tiler.resume import TILING_STATES
@@ -67,6 +68,8 @@ class VerifyReport:
     unrepairable: list[str] = field(default_factory=list)
     #: the store's state while unfinished (``layout``, ``tiling``, ``finishing``, ``repair``)
     state: str | None = None
+    #: who is writing the unfinished store now (a live writer lease), None if nobody is
+    writer: str | None = None
 
     @property
     def unfinished(self) -> bool:
@@ -95,6 +98,7 @@ class VerifyReport:
             "metadata_checksummed": self.metadata_checksummed,
             "complete": self.complete,
             "state": self.state,
+            "writer": self.writer,
             "chunks_checked": self.chunks_checked,
             "blocks_total": self.blocks_total,
             "source_checked": self.source_checked,
@@ -146,13 +150,17 @@ def verify_store(
     if not meta.complete:
         rep.state = str(meta.extra.get("state") or "tiling")
     if rep.unfinished:  # its written chunks are still checked below, its missing ones not
+        writer = rep.writer = live_writer(loc)
         rep.add(
             "unfinished",
             "",
             None,
             None,
-            f"the store is unfinished (state {rep.state!r}: an interrupted tiling); rerun the "
-            "same `terrastream tile` command to finish it",
+            f"the store is unfinished (state {rep.state!r}): it is being written now by "
+            f"{writer}; verify it once that tiling finishes"
+            if writer is not None
+            else f"the store is unfinished (state {rep.state!r}: an interrupted tiling); rerun "
+            "the same `terrastream tile` command to finish it",
         )
     arrays = _open_arrays(group, meta, rep)
     idx = _check_index(arrays, loc, meta, rep)

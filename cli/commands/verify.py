@@ -72,7 +72,13 @@ def verify(
                 + (", source digests compared" if rep.source_checked else "")
             )
         if not rep.ok:
-            if not as_json and rep.unfinished:
+            if not as_json and rep.unfinished and rep.writer is not None:
+                typer.echo(
+                    f"error: {store} is being written now by {rep.writer}; verify it once "
+                    "that tiling finishes",
+                    err=True,
+                )
+            elif not as_json and rep.unfinished:
                 then = " (then `--repair` the bad blocks listed)" if rep.bad_blocks else ""
                 typer.echo(
                     f"error: {store} is unfinished (an interrupted tiling); rerun the same "

@@ -26,8 +26,11 @@ from tiler.errors import (
     StoreVersionError,
 )
 from tiler.export import export_geotiff
+from tiler.lease import WriterLease
+from tiler.location import Location
 from tiler.store import ATTR, open_store
 from tiler.tile import TileOptions, tile
+from tiler.verify import verify_store
 
 
 def assert_store_matches(store, data: np.ndarray, nodata=None, tol: float = 0.0):
@@ -198,6 +201,15 @@ def test_interrupted_run_resumes_to_identical_store(dem_factory, tmp_path, monke
         tile(src, tmp_path / "s.zarr", opts)
     with pytest.raises(StoreIncompleteError, match="run the same"):
         open_store(tmp_path / "s.zarr")
+    # while a writer holds the store it is not called interrupted (a rerun would be refused)
+    with WriterLease(Location(str(tmp_path / "s.zarr"))):
+        with pytest.raises(
+            StoreIncompleteError, match=rf"being written now by process {os.getpid()}"
+        ):
+            open_store(tmp_path / "s.zarr")
+        rep = verify_store(tmp_path / "s.zarr")
+        assert "being written now" in rep.problems[0].message and str(os.getpid()) in rep.writer
+    assert verify_store(tmp_path / "s.zarr").writer is None  # released: interrupted again
     done = zarr.open_group(tmp_path / "s.zarr", mode="r")["index/done"][...]
     assert 0 < done.sum() < done.size
     monkeypatch.undo()
