@@ -44,7 +44,7 @@ def export(
     Example: terrastream export n44.zarr n44.tif --level 8
     (a COG whose overviews are levels 7, 6, ...; --format gtiff for a plain GeoTIFF)
     """
-    from tiler.export import export_cog, export_geotiff
+    from tiler.export import COG_BLOCK, export_cog, export_geotiff
 
     with fail_on_errors():
         output_file(out, "OUT", suffixes=(".tif", ".tiff"), overwrite=overwrite)
@@ -59,9 +59,14 @@ def export(
             )
         if fmt is ExportFormat.cog:
             levels = export_cog(s, out, level)
+            ovr = ", ".join(map(str, levels[1:]))
             typer.echo(
-                f"wrote {out}: COG of level {levels[0]} of {s.k}, overviews = levels "
-                f"{', '.join(map(str, levels[1:])) or 'none'}"
+                f"wrote {out}: COG of level {levels[0]} of {s.k}, "
+                + (
+                    f"overviews = levels {ovr}"
+                    if ovr
+                    else f"no overviews (it fits one {COG_BLOCK}² tile)"
+                )
             )
         else:
             export_geotiff(s, out, level)

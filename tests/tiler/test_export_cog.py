@@ -77,6 +77,10 @@ def test_cli_export_defaults_to_cog_for_tif(store, tmp_path):
     r = runner.invoke(app, ["export", s.url, str(tmp_path / "b.tif"), "--format", "gtiff"])
     assert r.exit_code == 0, r.output
     assert not cog_validate(str(tmp_path / "b.tif"), strict=True)[0]
+    # a level that fits one COG tile has no overview, said in words ("levels none" before)
+    r = runner.invoke(app, ["export", s.url, str(tmp_path / "c.tif"), "--level", "5"])
+    assert r.exit_code == 0, r.output
+    assert "COG of level 5 of 8, no overviews (it fits one 512² tile)" in r.output
 
 
 @pytest.mark.shared_data
