@@ -61,6 +61,10 @@ from tiler.vertical import height_dtype
 log = logging.getLogger(__name__)
 
 
+#: the τ a budget error plans with to find the least a view needs (any larger changes nothing)
+UNBOUNDED_TAU = 1e30
+
+
 class Session:
     """A streaming session over one store. Use as a context manager; not for sharing between
     callers (one thread calls :meth:`update`)."""
@@ -210,14 +214,17 @@ class Session:
         todo: list[Block] | None = None,
         need: int | None = None,
         changes: PinChanges | None = None,
+        *,
+        camera: Camera,
     ) -> int:
         """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
         answer, ``changes``: ``LevelCache.pin_changes``', both found before taking the lock;
-        ``need``: the pinned bytes, if summed; caller holds the lock)."""
+        ``need``: the pinned bytes, if summed; ``camera``: the pose they are for, to word a
+        budget error; caller holds the lock)."""
         try:
             self.cache.set_pins(needed, self.level_bytes, need, changes)
         except BudgetError as exc:
-            raise self._budget_error(exc, needed) from None
+            raise self._budget_error(exc, needed, camera) from None
         if todo is None:
             todo = self._to_queue(needed)
         push = self.loader.push
@@ -225,28 +232,39 @@ class Session:
             push(b)
         return len(todo)
 
-    def _budget_error(self, exc: BudgetError, needed: dict[Block, int]) -> BudgetError:
-        """``exc`` (the pins exceed the budget), saying so when no τ can help: under the nodata
-        rule ``full`` the visible blocks holding nodata stay at full resolution, and when
-        those plus every other block at level 0 already exceed the budget, only a larger budget
-        does."""
-        if self.config.nodata != "full" or exc.template is None or not needed:
+    def _budget_error(
+        self, exc: BudgetError, needed: dict[Block, int], camera: Camera | None
+    ) -> BudgetError:
+        """``exc`` (the pins exceed the budget), or, when no τ can help, an error saying so and
+        giving the smallest budget that fits this view: its visible blocks at the levels an
+        unbounded τ still needs (the patch level; beside nodata, what the nodata rule keeps)."""
+        if exc.template is None or camera is None or not needed:
             return exc
-        k, has = self.store.k, self.store.index.has_nodata
-        held = [b for b, lv in needed.items() if lv >= k and has[b]]
-        cum = self._cum_bytes
-        floor = len(held) * cum[k] + (len(needed) - len(held)) * cum[0]
-        if not held or floor <= self.cache.budget:
-            return exc
+        least = self.planner.needed(camera, tau=UNBOUNDED_TAU)
+        floor = sum(self._cum_bytes[lv] for lv in least.values() if lv >= 0)
+        if floor <= self.cache.budget:
+            return exc  # a larger τ fits: the advice holds
+        has = self.store.index.has_nodata
+        n, holes = len(least), sum(1 for b in least if has[b])
+        who = "it" if n == 1 else f"{holes} of them"
+        hold, stay = ("holds", "stays") if who == "it" or holes == 1 else ("hold", "stay")
+        why = ""
+        if holes and self.config.nodata == "full":
+            why = (
+                f" ({who} {hold} nodata beside terrain and {stay} at full resolution under the "
+                "nodata rule 'full')"
+            )
+        elif holes:
+            why = (
+                f" ({who} {hold} nodata beside terrain, which the nodata rule "
+                f"'{self.config.nodata}' refines while its cells span more than a pixel)"
+            )
         return BudgetError(
-            "the visible blocks need {need} at their levels but the budget is {budget}; "
-            "the visible blocks with nodata beside terrain ({held} of {visible}) stay at full "
-            "resolution under the nodata rule 'full' whatever {tau}, so no {tau} fits: raise "
-            "{budget_mb} to at least {floor}",
+            "the visible blocks need {need} at their levels but the budget is {budget}; at "
+            "any {tau} {visible} at least {floor}" + why + ": raise {budget_mb} to at least that",
             params=exc.params,
             **exc.values,
-            held=len(held),
-            visible=len(needed),
+            visible="the visible block needs" if n == 1 else f"the {n} visible blocks need",
             floor=f"{math.ceil(floor * 100 / 2**20) / 100:.2f} MiB ({floor:,} bytes)",
         )
 
@@ -294,7 +312,7 @@ class Session:
             for _ in range(3):  # errors first, then the levels they ask for, then a last check
                 needed = self.planner.needed(camera)
                 with self._cv:
-                    self._pin_and_queue(needed)
+                    self._pin_and_queue(needed, camera=camera)
                     self._plans.pending = (camera, None, set(needed))
                 self._plans.plan()
                 if self.config.workers == 0:
@@ -343,7 +361,7 @@ class Session:
         need = int(self._cum_array[levels].sum())
         changes = self.cache.pin_changes(needed)  # (only this thread sets the pins)
         with self._cv:  # (one hold: a contended one costs the caller a GIL hand-off too)
-            self._pin_and_queue(needed, todo, need, changes)
+            self._pin_and_queue(needed, todo, need, changes, camera=camera)
             start = self._plans.post(camera, velocity, needed.keys())
         if start:
             self._plans.start()
@@ -360,7 +378,7 @@ class Session:
             if fresh != needed:
                 # the errors arrived while waiting: wait for what they say is needed
                 with self._cv:
-                    self._pin_and_queue(fresh)
+                    self._pin_and_queue(fresh, camera=camera)
                 needed, levels, need = fresh, _values(fresh), None
                 wait_for(self.loader, cfg, self._raise_background_error, needed, self._due)
         t2, c2 = time.perf_counter(), time.thread_time()

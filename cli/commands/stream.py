@@ -12,8 +12,10 @@ from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
 from cli.formatters import format_summary
 from cli.options import (
     METRIC_DEFAULT,
+    NODATA_DEFAULT,
     BudgetOpt,
     MetricOpt,
+    NodataRuleOpt,
     PathKindOpt,
     PathOpt,
     PlotOpt,
@@ -66,6 +68,7 @@ def stream(
     ] = 0.0,
     tau: TauOpt = 1.0,
     metric: MetricOpt = METRIC_DEFAULT,
+    nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     size: SizeOpt = "1024x768",
     every: Annotated[int, integer("--every", "Print every N-th frame (0: auto).", min=0)] = 0,
     plot: PlotOpt = None,
@@ -110,6 +113,7 @@ def stream(
         if path is not None:  # a keyframe file may dip under the terrain: say so
             warn_path_below_ground(s, cams, "a viewer flying it sees the terrain from below")
         cfg = dict(fps=fps, prefetch=not no_prefetch, latency_ms=latency_ms, tau=tau, metric=metric)
+        cfg["nodata"] = nodata_rule  # the levels qiu would draw under that rule
         cfg["raise_on_failure"] = False  # keep flying: failures are in the frames and summary
         cfg["freeze_gc"] = True  # the command owns its process: no full collection mid-flight
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting

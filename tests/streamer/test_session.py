@@ -75,18 +75,22 @@ def holey_store(tmp_path_factory):
     return tile(src, tmp / "s.zarr", TileOptions(block_size=65, workers=1))
 
 
-def test_a_budget_no_tau_can_meet_says_so(holey_store):
-    """Beside nodata the need does not fall with τ: the error says only a larger budget helps
-    and how large (the store without nodata above keeps 'raise budget_mb or ... tau')."""
+@pytest.mark.parametrize("rule", ["full", "gap"])
+def test_a_budget_no_tau_can_meet_says_so(holey_store, rule):
+    """Beside nodata the need stops falling with τ: the error says only a larger budget helps
+    and how large, and that budget suffices (the store without nodata above keeps 'raise
+    budget_mb or ... tau', where a larger τ does fit)."""
     cam = flight(holey_store, 1)[0]
-    msg = r"whatever tau, so no tau fits: raise budget_mb to at least ([\d.]+) MiB"
+    msg = r"at any tau the \d+ visible blocks need at least ([\d.]+) MiB .*: raise budget_mb"
+    kw = dict(workers=1, tau=1e6, nodata=rule)
     with (
-        open_session(holey_store, budget_mb=0.05, workers=1, tau=1e6) as s,
+        open_session(holey_store, budget_mb=0.05, **kw) as s,
         pytest.raises(BudgetError, match=msg) as err,
     ):
         s.update(cam, wait=True)
+    assert f"nodata rule '{rule}'" in str(err.value)
     at_least = float(re.search(msg, str(err.value)).group(1))
-    with open_session(holey_store, budget_mb=at_least, workers=1, tau=1e6) as s:
+    with open_session(holey_store, budget_mb=at_least, **kw) as s:
         assert s.update(cam, wait=True).blocks  # the figure given is enough
 
 
