@@ -101,6 +101,8 @@ def export_geotiff(
         raise StoreError(f"cannot write {str(out)!r}: {exc}") from exc
     with dst:
         _write_vertical(dst, store)
+        if m.extra.get("area_or_point") == "Point":  # (the transform read back is the same)
+            dst.update_tags(AREA_OR_POINT="Point")
         for br in range(grid.rows):
             r0 = br * bstep
             nrows = min(bstep + 1, height - r0)
@@ -251,6 +253,8 @@ def export_cog(
             )
         band.append("</VRTRasterBand>")
         xml = [f'<VRTDataset rasterXSize="{width}" rasterYSize="{height}">']
+        if store.meta.extra.get("area_or_point") == "Point":
+            xml.append('<Metadata><MDI key="AREA_OR_POINT">Point</MDI></Metadata>')
         if crs_wkt:
             xml.append(f"<SRS>{escape(crs_wkt)}</SRS>")
         xml.append(f"<GeoTransform>{', '.join(repr(float(x)) for x in gt)}</GeoTransform>")

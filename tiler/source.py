@@ -154,6 +154,8 @@ def source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreMe
         extra["vertical"] = vertical
     if len(spec.sources) > 1:
         extra["mosaic"] = {"count": len(spec.sources), "overlap_rule": "first-valid"}
+    if not spec.warp and all(i.area_or_point == "Point" for i in spec.sources):
+        extra["area_or_point"] = "Point"  # what export writes back (SRTM, many DEMs)
     return StoreMeta(
         format_version=1,
         k=k,

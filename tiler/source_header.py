@@ -43,6 +43,9 @@ class SourceInfo:
     hull: tuple[tuple[float, float], ...] = ()
     # GDAL marks the band's invalid samples by a mask (a per-dataset mask or an alpha band)
     masked: bool = False
+    # GDAL's AREA_OR_POINT ("Area", "Point" or None): how its samples are meant (GDAL's
+    # geotransform is the pixel corners' either way)
+    area_or_point: str | None = None
 
 
 def open_raster(path: str) -> rasterio.DatasetReader:
@@ -192,4 +195,5 @@ def _read_info(path: str, band: int) -> SourceInfo:
             units=units or None,
             size_bytes=size,
             masked=MaskFlags.per_dataset in flags or MaskFlags.alpha in flags,
+            area_or_point=ds.tags().get("AREA_OR_POINT"),
         )

@@ -91,3 +91,23 @@ def test_srtm_cog_validates(tmp_path):
     assert cog_validate(str(tmp_path / "n44.tif"), strict=True) == (True, [], [])
     with rasterio.open(src) as a, rasterio.open(tmp_path / "n44.tif") as b:
         np.testing.assert_array_equal(a.read(1), b.read(1))
+
+
+@pytest.mark.parametrize("kind", ["Point", "Area", None])
+def test_area_or_point_is_kept(tmp_path, kind):
+    """A source whose samples are points (SRTM's AREA_OR_POINT=Point) exports as points, with
+    the same geotransform read back; an Area or untagged source stays as it was (the control:
+    exported as Area before)."""
+    src = write_dem(tmp_path / "p.tif", fractal((300, 280), seed=3))
+    if kind is not None:
+        with rasterio.open(src, "r+") as ds:
+            ds.update_tags(AREA_OR_POINT=kind)
+    s = tile(src, tmp_path / "p.zarr", TileOptions(block_size=257))
+    export_cog(s, tmp_path / "c.tif")
+    export_geotiff(s, tmp_path / "g.tif")
+    for out in ("c.tif", "g.tif"):
+        with rasterio.open(src) as a, rasterio.open(tmp_path / out) as b:
+            assert b.tags().get("AREA_OR_POINT") == (kind or "Area"), out
+            assert b.transform == a.transform, out
+            np.testing.assert_array_equal(b.read(1), a.read(1))
+    assert cog_validate(str(tmp_path / "c.tif"), strict=True)[0]
