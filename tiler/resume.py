@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import astuple, dataclass, replace
+from dataclasses import astuple, dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -129,6 +129,12 @@ def done_blocks(arr: zarr.Array) -> np.ndarray:
     return out
 
 
+def _masked_at(info: Any) -> int:
+    """The position of ``masked`` among a ``SourceInfo``'s fields (those before it, the path
+    aside, are the source's part of the fingerprint)."""
+    return [f.name for f in fields(info)].index("masked")
+
+
 def source_fingerprint(ds: Any, band: int) -> str:
     """blake2b-128 of the source's shape, dtype, georeferencing, nodata and three sample windows.
 
@@ -139,9 +145,10 @@ def source_fingerprint(ds: Any, band: int) -> str:
     spec = getattr(ds, "spec", None)  # a tiler.mosaic.MosaicReader: every source and the warp
     if spec is not None:
         # (``masked``, added later, only when True: an unmasked source keeps the fingerprint
-        # of the stores tiled before it existed, so they still resume and repair)
+        # of the stores tiled before it existed, so they still resume and repair; the fields
+        # after it, how the samples are labelled, are not the data and are left out)
         parts = [
-            (os.path.basename(s.path), *astuple(replace(s, masked=False))[1:-1])
+            (os.path.basename(s.path), *astuple(s)[1 : _masked_at(s)])
             + ((True,) if s.masked else ())
             for s in spec.sources
         ]
