@@ -279,15 +279,25 @@ def pixel_errors(
 ) -> Any:
     """Pixel distance between the projections of ``(x, y, htrue)`` and ``(x, y, hlod)``, for
     the points whose true projection is in the viewport and the depth range (``with_index``:
-    also the indices of those points)."""
+    also the indices of those points). A drawn point ``(x, y, hlod)`` outside the depth range
+    (nearer than the near plane, behind the eye, beyond the far plane) is clipped, drawn nowhere
+    on screen: it counts as :func:`clipped_px`, not as its projection through the eye (tens of
+    thousands of px) nor, behind the eye, as nothing."""
     px0, py0, d0, keep = project_in_view(camera, x, y, htrue)
     px1, py1, d1 = camera.project(
         np.stack([np.asarray(x)[keep], np.asarray(y)[keep], np.asarray(hlod)[keep]], -1)
     )
-    front = d1 > 0
     with np.errstate(invalid="ignore"):
-        err = np.hypot(px1 - px0, py1 - py0)[front]
-    return (err, keep[front]) if with_index else err
+        drawn = (d1 >= camera.near) & (d1 <= camera.far)
+        err = np.where(drawn, np.hypot(px1 - px0, py1 - py0), clipped_px(camera))
+    return (err, keep) if with_index else err
+
+
+def clipped_px(camera: Camera) -> float:
+    """The error a sample counts whose drawn point the depth range clips: the viewport's
+    diagonal, which no displacement between two points on screen exceeds."""
+    w, h = camera.viewport
+    return float(np.hypot(w, h))
 
 
 def project_in_view(
