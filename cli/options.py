@@ -70,9 +70,9 @@ class FiniteFloat:
         except (TypeError, ValueError):
             raise typer.BadParameter(f"{value!r} is not a number") from None
         if not math.isfinite(x):
-            raise typer.BadParameter(
-                f"{value!r} is not a finite number; give one in the range {self.describe()}"
-            )
+            bounded = self.min is not None or self.max is not None
+            where = f" in the range {self.describe()}" if bounded else ""
+            raise typer.BadParameter(f"{value!r} is not a finite number; give a finite one{where}")
         below = self.min is not None and (x <= self.min if self.min_open else x < self.min)
         above = self.max is not None and (x >= self.max if self.max_open else x > self.max)
         if below or above:

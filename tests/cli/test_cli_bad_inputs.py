@@ -48,7 +48,7 @@ CASES = {
                         "error: size 100,000,000 is beyond the 1,048,577 samples per side synth "
                         "writes (1e+16 samples)"),
     "budget-inf": (["stream", "{store}", "--budget-mb", "inf"], 2,
-                   "'inf' is not a finite number; give one in the range 9.53674e-07<=x"),
+                   "'inf' is not a finite number; give a finite one in the range 9.53674e-07<=x"),
     "budget-nan": (["flythrough", "{store}", "--budget-mb", "nan"], 2,
                    "'nan' is not a finite number"),
     "budget-zero": (["stream", "{store}", "--budget-mb", "0"], 2,
@@ -115,11 +115,13 @@ CASES = {
     "frames-text": (["flythrough", "{store}", "--frames", "many"], 2,
                     "'many' is not an integer"),
     "tau-nan": (["render", "{store}", "--tau", "nan"], 2,
-                "Invalid value for '--tau': 'nan' is not a finite number; give one in the range "
-                "0<=x"),
+                "Invalid value for '--tau': 'nan' is not a finite number; give a finite one in "
+                "the range 0<=x"),
     "tau-negative": (["stream", "{store}", "--tau", "-1"], 2, "-1 is not in the range 0<=x"),
     "fov-nan": (["render", "{store}", "--fov", "nan"], 2,
-                "'nan' is not a finite number; give one in the range 1<=x<=170"),
+                "'nan' is not a finite number; give a finite one in the range 1<=x<=170"),
+    "pitch-nan": (["render", "{store}", "--pitch", "nan"], 2,  # (unbounded: no range said)
+                  "Invalid value for '--pitch': 'nan' is not a finite number; give a finite one"),
     "fov-large": (["tradeoff", "{store}", "--fov", "200"], 2, "200 is not in the range 1<=x<=170"),
     "fps-inf": (["stream", "{store}", "--fps", "inf"], 2, "'inf' is not a finite number"),
     "speed-negative": (["stream", "{store}", "--speed", "-3"], 2, "-3 is not in the range 0<x"),
