@@ -16,8 +16,10 @@ positions at a coarse level use ``export_geotiff(level=L)`` or the xarray backen
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable
+import tempfile
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import rasterio
@@ -27,6 +29,30 @@ from rasterio.windows import Window
 from tiler.encoding import dequantise
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
+
+
+@contextlib.contextmanager
+def _written_whole(store: TerrainStore, out: str | os.PathLike) -> Iterator[str]:
+    """A temporary path beside ``out`` to write to; once written, and the store found
+    unchanged (a forced check: a remote store replaced meanwhile would mix two DEMs), it is
+    renamed to ``out``, else removed: a partial or mixed raster never looks complete, and an
+    ``out`` being replaced stays as it was until then."""
+    out = os.path.abspath(os.fspath(out))
+    where, name = os.path.split(out)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".partial.tif", dir=where)
+    except OSError as exc:
+        raise StoreError(f"cannot write {out!r}: {exc}") from exc
+    os.close(fd)
+    try:
+        yield tmp
+        store.check_unchanged(force=True)
+        os.replace(tmp, out)
+    except BaseException:
+        for leftover in (tmp, tmp + ".aux.xml"):
+            with contextlib.suppress(OSError):
+                os.unlink(leftover)
+        raise
 
 
 def export_shape(store: TerrainStore, level: int) -> tuple[int, int, int]:
@@ -92,9 +118,26 @@ def export_geotiff(
         profile.pop("blockysize")
         profile["tiled"] = False
     profile.update(creation or {})
+    with _written_whole(store, out) as path:
+        _write_levels(store, path, profile, level, step, progress)
+
+
+def _write_levels(
+    store: TerrainStore,
+    out: str,
+    profile: dict,
+    level: int,
+    step: int,
+    progress: Callable[[int, int], None] | None,
+) -> None:
+    """:func:`export_geotiff`'s writing to ``out`` (``profile``: its rasterio profile), block
+    row by block row."""
+    height, width = profile["height"], profile["width"]
+    dtype, nodata = np.dtype(profile["dtype"]), profile["nodata"]
     grid = store.grid
     bstep = grid.step // step  # block step in output samples
     fill = _fill_value(dtype, nodata)
+    m = store.meta
     try:
         dst = rasterio.open(out, "w", **profile)
     except rasterio.errors.RasterioIOError as exc:
@@ -264,16 +307,17 @@ def export_cog(
         with open(vrt, "w", encoding="utf-8") as f:
             f.write("\n".join(xml))
         try:
-            rasterio.shutil.copy(
-                vrt,
-                str(out),
-                driver="COG",
-                BLOCKSIZE=COG_BLOCK,
-                COMPRESS="DEFLATE",
-                PREDICTOR="YES",
-                OVERVIEWS="FORCE_USE_EXISTING",
-                BIGTIFF="IF_SAFER",
-            )
+            with _written_whole(store, out) as path:
+                rasterio.shutil.copy(
+                    vrt,
+                    path,
+                    driver="COG",
+                    BLOCKSIZE=COG_BLOCK,
+                    COMPRESS="DEFLATE",
+                    PREDICTOR="YES",
+                    OVERVIEWS="FORCE_USE_EXISTING",
+                    BIGTIFF="IF_SAFER",
+                )
         except rasterio.errors.RasterioError as exc:
             raise StoreError(f"cannot write the COG {str(out)!r}: {exc}") from exc
     return levels

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from tiler.errors import StoreError
+from tiler.errors import StoreChangedError, StoreError
 from tiler.layout import level_size
 from tiler.lease import live_writer
 from tiler.location import Location, as_location
@@ -199,7 +199,26 @@ def verify_store(
     if source is not None and "digest" in idx:
         paths = [str(source)] if isinstance(source, str | os.PathLike) else [str(p) for p in source]
         _check_source(paths, meta, idx["digest"], rep)
+    _check_same_store(loc, meta)
     return rep
+
+
+def _check_same_store(loc: Location, meta: StoreMeta) -> None:
+    """Raise :class:`StoreChangedError` if the store was replaced while it was verified (its
+    chunks could then come from two builds, each passing its checksum)."""
+    try:
+        now = read_meta(loc.open_group("r")).generation
+    except Exception as exc:
+        if is_transport_error(exc):
+            raise unavailable("the root metadata (verify concluded nothing)", loc.url, exc) from exc
+        if not isinstance(exc, StoreError | FileNotFoundError | ValueError | KeyError):
+            raise
+        now = None
+    if now != meta.generation:
+        raise StoreChangedError(
+            f"store {loc.url!r} was replaced or rewritten while it was verified (generation "
+            f"{meta.generation!r} -> {now!r}); verify it again"
+        )
 
 
 def _open_arrays(group: Any, meta: StoreMeta, rep: VerifyReport) -> dict[str, Any]:

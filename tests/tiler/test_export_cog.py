@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from tiler.export import cog_levels, export_cog, export_geotiff
+from tiler.store import open_store
 from tiler.tile import TileOptions, tile
 
 
@@ -111,3 +112,48 @@ def test_area_or_point_is_kept(tmp_path, kind):
             assert b.transform == a.transform, out
             np.testing.assert_array_equal(b.read(1), a.read(1))
     assert cog_validate(str(tmp_path / "c.tif"), strict=True)[0]
+
+
+def _small(tmp_path, name="s.zarr", seed=4):
+    src = write_dem(tmp_path / f"{name}.tif", fractal((300, 280), seed=seed))
+    return tile(src, tmp_path / name, TileOptions(block_size=129)), src
+
+
+@pytest.mark.parametrize("fmt", ["gtiff", "cog"])
+def test_a_failed_export_leaves_no_raster_and_keeps_the_old_one(tmp_path, fmt):
+    """A read error half way (a chunk deleted) leaves no partial raster that looks complete, and
+    an ``out`` being replaced keeps its bytes (before, a GeoTIFF with the first block row)."""
+    from tiler.errors import StoreError
+
+    s, _ = _small(tmp_path)
+    (tmp_path / "s.zarr" / "levels" / "7" / "c" / "1" / "1" / "0").unlink()
+    s = open_store(tmp_path / "s.zarr")
+    export = export_cog if fmt == "cog" else export_geotiff
+    with pytest.raises(StoreError, match="missing"):
+        export(s, tmp_path / "new.tif")
+    assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".zarr") == ["s.zarr.tif"]
+    (tmp_path / "old.tif").write_bytes(b"the old export")
+    with pytest.raises(StoreError, match="missing"):
+        export(s, tmp_path / "old.tif")
+    assert (tmp_path / "old.tif").read_bytes() == b"the old export"
+
+
+def test_a_store_replaced_during_an_export_is_an_error_not_a_mixed_raster(tmp_path):
+    """The store is tiled again from another DEM once the last block row is read: the final
+    check finds it (a remote store is checked at most once a second while reading, so an
+    export could finish on a mixed DEM), and no raster is left."""
+    from tiler.errors import StoreChangedError
+
+    s, _ = _small(tmp_path)
+    other = write_dem(tmp_path / "other.tif", fractal((300, 280), seed=5))
+
+    def swap(done, total):
+        if done == total:
+            tile(other, tmp_path / "s.zarr", TileOptions(block_size=129, overwrite=True))
+
+    with pytest.raises(StoreChangedError):
+        export_geotiff(s, tmp_path / "x.tif", progress=swap)
+    assert not (tmp_path / "x.tif").exists()
+    export_geotiff(open_store(tmp_path / "s.zarr"), tmp_path / "y.tif")  # (the control)
+    with rasterio.open(tmp_path / "y.tif") as a, rasterio.open(other) as b:
+        np.testing.assert_array_equal(a.read(1), b.read(1))

@@ -97,3 +97,23 @@ def test_resealed_on_every_write_of_the_tiler(store, dem_factory, tmp_path):
     tile(src, store, TileOptions(block_size=17, repair=True))
     rep = verify_store(str(store))
     assert rep.ok and rep.metadata_checksummed
+
+
+def test_a_store_replaced_while_verified_is_an_error(store, dem_factory, tmp_path, monkeypatch):
+    """Every chunk passes its checksum, but half could be another build's: verify says the
+    store changed instead of 'ok' (the control: the same verify without the swap is ok)."""
+    import tiler.verify as verify_mod
+    from tiler.errors import StoreChangedError
+
+    other = dem_factory(fractal((40, 40), 2).astype(np.float32), name="other.tif")
+    real = verify_mod._check_index
+
+    def then_swap(*args, **kw):
+        out = real(*args, **kw)
+        tile(other, store, TileOptions(block_size=17, overwrite=True))
+        return out
+
+    assert verify_store(str(store)).ok
+    monkeypatch.setattr(verify_mod, "_check_index", then_swap)
+    with pytest.raises(StoreChangedError, match="while it was verified"):
+        verify_store(str(store))
