@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import functools
 import re
+from typing import Any
 
 from tiler.errors import RemoteStoreError, StoreError
+from tiler.transport import HTTP_TIMEOUT_S, TIMEOUT_OPTION, http_options
 
-TIMEOUT_S = 10.0
+#: the probe's timeout when the storage options set none: the store's own default
+TIMEOUT_S = HTTP_TIMEOUT_S
 _CONTENT_RANGE = re.compile(r"bytes (\d+)-(\d+)/(\d+|\*)")
 
 
@@ -24,32 +27,65 @@ def is_http(url: str) -> bool:
     return str(url).lower().startswith(("http://", "https://"))
 
 
-def _probe(url: str, rng: str, timeout: float) -> tuple[int, str | None, int]:
-    """``(status, Content-Range, body length)`` of a GET with ``Range: rng``."""
+def _probe(
+    url: str, rng: str, timeout: float, headers: tuple[tuple[str, str], ...] = ()
+) -> tuple[int, str | None, int]:
+    """``(status, Content-Range, body length)`` of a GET with ``Range: rng`` (and ``headers``,
+    the store's own: authorisation, ...)."""
     import requests
 
     try:
-        with requests.get(url, headers={"Range": rng}, timeout=timeout, stream=True) as r:
+        asked = {**dict(headers), "Range": rng}
+        with requests.get(url, headers=asked, timeout=timeout, stream=True) as r:
             body = r.raw.read(1 << 16, decode_content=True) if r.status_code < 400 else b""
             return r.status_code, r.headers.get("Content-Range"), len(body)
+    except requests.Timeout as exc:
+        raise RemoteStoreError(
+            f"{url!r} did not answer within {timeout:g} s: check the server, or raise the "
+            f"storage option {TIMEOUT_OPTION!r} (seconds)"
+        ) from exc
     except requests.RequestException as exc:
-        raise RemoteStoreError(f"cannot reach {url!r}: {exc}") from exc
+        raise RemoteStoreError(
+            f"cannot reach {url!r} ({type(exc).__name__}): check the URL, that the server runs "
+            "and the network"
+        ) from exc
 
 
-def check_range_support(store_url: str, timeout: float = TIMEOUT_S) -> None:
+def probe_settings(options: dict[str, Any] | None) -> tuple[float, tuple[tuple[str, str], ...]]:
+    """The probe's ``(timeout, headers)`` from a store's storage options: the ``timeout``
+    option (default :data:`TIMEOUT_S`) and the headers fsspec's HTTP reads send
+    (``headers`` and ``client_kwargs.headers``), so a store behind header authorisation opens."""
+    so = dict(options or {})
+    seconds = so.get(TIMEOUT_OPTION, TIMEOUT_S)
+    http_options(so)  # validates the timeout (StorageOptionsError naming it)
+    headers: dict[str, str] = {}
+    for h in ((so.get("client_kwargs") or {}).get("headers"), so.get("headers")):
+        if isinstance(h, dict):
+            headers.update({str(k): str(v) for k, v in h.items()})
+    return float(seconds), tuple(sorted(headers.items()))
+
+
+def check_range_support(store_url: str, options: dict[str, Any] | None = None) -> None:
     """Raise ``RemoteStoreError`` unless the server of an HTTP store answers byte-range and
-    suffix-range requests with ``206 Partial Content``; a no-op for other URLs."""
+    suffix-range requests with ``206 Partial Content``, asked with the store's storage
+    ``options`` (:func:`probe_settings`); a no-op for other URLs."""
     if not is_http(store_url):
         return
-    _check_cached(str(store_url).rstrip("/"), float(timeout))
+    _check_cached(str(store_url).rstrip("/"), *probe_settings(options))
 
 
 @functools.lru_cache(maxsize=64)
-def _check_cached(base: str, timeout: float) -> None:
+def _check_cached(base: str, timeout: float, headers: tuple[tuple[str, str], ...] = ()) -> None:
     url = f"{base}/zarr.json"
-    status, crange, n = _probe(url, "bytes=0-0", timeout)
+    status, crange, n = _probe(url, "bytes=0-0", timeout, headers)
     if status == 404:
         raise StoreError(f"no terrastream store at {base!r}: {url} was not found (HTTP 404)")
+    if status in (401, 403):
+        raise RemoteStoreError(
+            f"the server of {base!r} answered HTTP {status} for {url}: access was refused, not "
+            "the store damaged: check the credentials (the storage options' headers) and try "
+            "again"
+        )
     if status >= 400:
         raise RemoteStoreError(f"the server of {base!r} answered HTTP {status} for {url}")
     if status != 206 or not crange or not _CONTENT_RANGE.match(crange) or n != 1:
@@ -60,7 +96,7 @@ def _check_cached(base: str, timeout: float) -> None:
             "a server that supports them (nginx, Apache, caddy, any object store), or copy it "
             "to a local directory."
         )
-    status, crange, n = _probe(url, "bytes=-1", timeout)
+    status, crange, n = _probe(url, "bytes=-1", timeout, headers)
     if status != 206 or not crange or not _CONTENT_RANGE.match(crange) or n != 1:
         raise RemoteStoreError(
             f"the server of {base!r} supports byte ranges but not suffix ranges (`bytes=-N`): "

@@ -521,5 +521,5 @@ def open_store(
         )
     from tiler.remote import check_range_support
 
-    check_range_support(loc.url)  # HTTP servers must serve byte ranges
+    check_range_support(loc.url, loc.storage_options)  # HTTP servers must serve byte ranges
     return TerrainStore(loc, allow_incomplete=allow_incomplete)

@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from tiler.errors import RemoteStoreError, StoreError
+from tiler.location import Location
 from tiler.remote import _check_cached, check_range_support
 from tiler.store import TerrainStore, open_store
 from tiler.tile import TileOptions, tile
@@ -39,6 +40,37 @@ class NoSuffixRanges(RangeHandler):
         if re.match(r"bytes=-\d+$", self.headers.get("Range", "") or ""):
             self.send_error(400, "suffix ranges not supported")
             return
+        super().do_GET()
+
+
+class NeedsToken(RangeHandler):
+    """A store behind header authorisation: 401 without ``Authorization: Bearer secret``."""
+
+    stall, release = threading.Event(), threading.Event()  # (never stalls)
+
+    def _refused(self) -> bool:
+        if self.headers.get("Authorization") == "Bearer secret":
+            return False
+        self.send_error(401, "no token")
+        return True
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server API)
+        if not self._refused():
+            super().do_GET()
+
+    def do_HEAD(self) -> None:  # noqa: N802 (http.server API)
+        if not self._refused():
+            super().do_HEAD()
+
+
+class Slow(RangeHandler):
+    """Answers the root metadata after 1 s."""
+
+    stall, release = threading.Event(), threading.Event()  # (never stalls)
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server API)
+        if self.path.endswith("/zarr.json") and self.path.count("/") == 2:
+            time.sleep(1.0)
         super().do_GET()
 
 
@@ -129,6 +161,23 @@ def test_ctrl_c_during_a_remote_blocks_level_reads_is_raised_after_its_pool(serv
     assert e.traceback[-1].path.name == "interrupt.py"  # raised by the check, after the pool
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     assert not [t for t in threading.enumerate() if t.name.startswith("terrastream-read")]
+
+
+def test_the_probe_sends_the_stores_headers_and_keeps_its_timeout(served):
+    """The range probe asks as the store's reads do: with the storage options' headers (a
+    store behind a token opened, before, never: the probe's 401), and within their timeout
+    (it had its own 10 s)."""
+    so = {"client_kwargs": {"headers": {"Authorization": "Bearer secret"}}}
+    local = open_store(served / "s.zarr")
+    with serve(served, NeedsToken) as url:
+        with pytest.raises(RemoteStoreError, match="HTTP 401 .* access was refused"):
+            open_store(f"{url}/s.zarr")  # (the control: no token)
+        s = open_store(Location(f"{url}/s.zarr", so))
+        np.testing.assert_array_equal(s.read_block((1, 1)), local.read_block((1, 1)))
+    with serve(served, Slow) as url:
+        with pytest.raises(RemoteStoreError, match=r"did not answer within 0.5 s.*'timeout'"):
+            open_store(Location(f"{url}/s.zarr", {"timeout": 0.5}))
+        open_store(Location(f"{url}/s.zarr", {"timeout": 5}))
 
 
 def test_non_http_urls_are_not_probed():
