@@ -78,13 +78,22 @@ def format_info(d: dict) -> str:
         "",
         "level  values/block      stored     share",
     ]
-    total = d["bytes"]["total"]
+    b = d["bytes"]
+    if b is None:  # (an http(s) server lists no files: the sizes are unknown, not 0)
+        lines[-1] = "level  values/block"
+        lines += [f"{r['level']:>5}  {r['values_per_block']:>12}" for r in d["bytes_per_level"]]
+        lines += [
+            "",
+            "stored bytes unknown: an http(s) server cannot list the store's files (info on "
+            "a local or object-store copy gives them)",
+        ]
+        return "\n".join(lines)
+    total = b["total"]
     for row in d["bytes_per_level"]:
         lines.append(
             f"{row['level']:>5}  {row['values_per_block']:>12}  {human_bytes(row['bytes']):>10}"
             f"  {100 * row['bytes'] / max(total, 1):6.2f} %"
         )
-    b = d["bytes"]
     lines += [
         "",
         f"levels {human_bytes(b['levels'])}, errors {human_bytes(b['errors'])}, "

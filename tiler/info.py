@@ -28,8 +28,10 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
     s = open_store(url)
     m = s.meta
     idx = s.index
-    nbytes = s.nbytes()
-    per_level = s.level_nbytes()
+    # sizes: None where the store's files cannot be listed (an http(s) server), not 0
+    listed = s.location.can_list
+    nbytes = s.nbytes() if listed else None
+    per_level = s.level_nbytes() if listed else [None] * (m.k + 1)
     raw = m.height * m.width * np.dtype(m.dtype).itemsize
     crs = None
     if m.crs_wkt:
@@ -86,7 +88,7 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         ],
         "bytes": nbytes,
         "raw_bytes": raw,
-        "ratio_to_raw": nbytes["total"] / raw,
+        "ratio_to_raw": nbytes["total"] / raw if nbytes else None,
     }
 
 

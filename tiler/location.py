@@ -404,6 +404,12 @@ class Location:
             return []
         return sorted(p[len(root) + 1 :] for p in fs.find(base))
 
+    @property
+    def can_list(self) -> bool:
+        """False where the backend cannot list a store's files (plain HTTP), so
+        :meth:`total_size` cannot sum them."""
+        return not str(self.target).lower().startswith(("http://", "https://"))
+
     def total_size(self, prefix: str = "") -> int:
         """Total bytes stored under ``prefix`` (0 where the backend cannot list, e.g. HTTP)."""
         if self.is_local:

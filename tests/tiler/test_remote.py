@@ -222,3 +222,22 @@ def test_real_python_m_http_server(served):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_info_over_http_says_the_sizes_are_unknown_not_zero(served):
+    """An http(s) server lists no files: info's sizes are unknown (null), not 0 B and a ratio
+    of 0.000 as before; the same store on disk gives them (the control)."""
+    import json
+
+    from tiler.info import store_info
+
+    local = store_info(served / "s.zarr")
+    assert local["bytes"]["total"] > 0 and local["ratio_to_raw"] > 0
+    with LoopbackServer(served) as url:
+        d = store_info(f"{url}/s.zarr")
+        assert d["bytes"] is None and d["ratio_to_raw"] is None
+        assert all(r["bytes"] is None for r in d["bytes_per_level"])
+        out = CliRunner().invoke(app, ["info", f"{url}/s.zarr"]).output
+        assert "stored bytes unknown" in out and "0 B" not in out
+        js = json.loads(CliRunner().invoke(app, ["info", f"{url}/s.zarr", "--json"]).output)
+        assert js["bytes"] is None
