@@ -37,6 +37,7 @@ from tiler.chunkread import (
     decompress,
     shard_entry,
 )
+from tiler.errors import RemoteStoreError
 
 __all__ = ["IndexCache", "decoded", "fetch_chunk", "fetch_chunks"]
 
@@ -121,6 +122,8 @@ async def fetch_chunk(
         buf = await store.get(key, proto, RangeByteRequest(off, off + nbytes))
         try:
             data = b"" if buf is None else buf.to_bytes()
+            if len(data) > nbytes:
+                raise _range_ignored(len(data), nbytes, f"chunk at {off} of {key}")
             if len(data) != nbytes:
                 raise ChunkDecodeError(
                     f"the store answered {len(data)} bytes for the {nbytes}-byte chunk at "
@@ -135,6 +138,16 @@ async def fetch_chunk(
     raise AssertionError("unreachable: the second pass reads a fresh index")  # pragma: no cover
 
 
+def _range_ignored(got: int, asked: int, what: str) -> RemoteStoreError:
+    """More bytes than a range asked for: no store can cause that, its server (or a proxy
+    between) answered the whole object; named as such, not as damage to verify."""
+    return RemoteStoreError(
+        f"the server answered {got} bytes for the {asked}-byte {what}: it, or a proxy between, "
+        "ignored the byte range for this key (a store read in ranges needs them on every key); "
+        "serve the store with range support, or copy it to a local directory"
+    )
+
+
 _FAILED = object()  # a shared index read that raised: each waiter reads for itself
 
 
@@ -144,6 +157,8 @@ async def _read_index(store: Any, key: str, spec: LevelSpec) -> bytes | None:
     if buf is None:
         return None
     index = buf.to_bytes()
+    if len(index) > spec.index_nbytes:
+        raise _range_ignored(len(index), spec.index_nbytes, f"index at the end of {key}")
     if len(index) != spec.index_nbytes:
         raise ChunkDecodeError(
             f"the store answered {len(index)} bytes for the {spec.index_nbytes}-byte "

@@ -111,7 +111,8 @@ def test_plain_http_server_is_named_as_the_cause(served):
         assert isinstance(e.value, StoreError) and isinstance(e.value, ConnectionError)
         # positive control: without the check, the same server gives the far-away symptom
         # users met (a complaint about a block's data), not the cause: through zarr a
-        # checksum, read directly the sizes the server answered
+        # checksum; read directly, the sizes the server answered, blamed on it (since session
+        # 41: more bytes than a range asked for cannot come from the store)
         s = TerrainStore(f"{url}/s.zarr")
         with pytest.raises(StoreError, match=r"answered \d+ bytes for the \d+-byte index"):
             s.read_block((0, 0))
@@ -178,6 +179,27 @@ def test_the_probe_sends_the_stores_headers_and_keeps_its_timeout(served):
         with pytest.raises(RemoteStoreError, match=r"did not answer within 0.5 s.*'timeout'"):
             open_store(Location(f"{url}/s.zarr", {"timeout": 0.5}))
         open_store(Location(f"{url}/s.zarr", {"timeout": 5}))
+
+
+class RangesButNotForLevel(RangeHandler):
+    """Serves ranges, except on the shards of ``levels/0`` (whole objects: a proxy rule)."""
+
+    stall, release = threading.Event(), threading.Event()  # (never stalls)
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server API)
+        if "/levels/0/c/" in self.path:
+            del self.headers["Range"]
+        super().do_GET()
+
+
+def test_a_server_ignoring_ranges_on_some_keys_is_blamed_not_the_store(served):
+    """The probe of the root metadata passes; a level's shard is then answered whole: the
+    error names the server (before: 'the store is damaged: verify it', and verify said ok)."""
+    with serve(served, RangesButNotForLevel) as url:
+        s = open_store(f"{url}/s.zarr")
+        with pytest.raises(StoreError, match="ignored the byte range") as e:
+            s.read_block((0, 0))
+        assert "not the store" in str(e.value) and "verify" not in str(e.value)
 
 
 def test_non_http_urls_are_not_probed():
