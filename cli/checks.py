@@ -141,7 +141,14 @@ def output_dir(path: Path, hint: str) -> Path:
 
 def store_destination(url: str, hint: str = "DST") -> str:
     """``url`` if a store can be made there: for a local path, its parent directory exists
-    and is writable (other locations are checked by the tiler)."""
+    and is writable; an ``http(s)://`` URL is read-only (other locations are checked by the
+    tiler)."""
+    if str(url).lower().startswith(("http://", "https://")):
+        raise UsageError(
+            f"{url!r} is an http(s) store, which is read-only here: tile (or --repair) a local "
+            "directory or an object store (s3://...) and serve that",
+            hint,
+        )
     if is_local(url):
         path = Path(url)
         if path.exists() and not path.is_dir():

@@ -471,7 +471,13 @@ def as_location(
 
 def for_writing(loc: Location) -> Location:
     """``loc`` with the client retries of a store being written (``s3://``: botocore's
-    :data:`~tiler.transport.S3FS_WRITE_RETRIES` unless set; others as they are)."""
+    :data:`~tiler.transport.S3FS_WRITE_RETRIES` unless set; others as they are). An
+    ``http(s)://`` store is read-only: :class:`StoreError` saying where to write instead."""
+    if not loc.can_list:
+        raise StoreError(
+            f"{loc.url!r} is an http(s) store, which is read-only here: tile (or --repair) a "
+            "local directory or an object store (s3://...) and serve that"
+        )
     if not loc.is_s3:
         return loc
     return Location(loc.target, s3fs_options(loc.storage_options, write=True), writing=True)

@@ -102,6 +102,13 @@ def verify(
                     "the tiling's). To store it, tile it again with --overwrite",
                     err=True,
                 )
+            elif not as_json and str(store).lower().startswith(("http://", "https://")):
+                typer.echo(  # (an http(s) store is read-only: mended where it is written)
+                    f"error: {store} is damaged; run `terrastream tile SRC STORE --repair` on the "
+                    "store it is served from (a local directory or object store) to recompute "
+                    "the bad blocks from the source",
+                    err=True,
+                )
             elif not as_json:
                 typer.echo(
                     f"error: {store} is damaged; rerun `terrastream tile SRC {store} --repair` "

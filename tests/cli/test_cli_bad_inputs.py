@@ -79,6 +79,8 @@ CASES = {
                             "from its extension '.png'; use one of .tif, .tiff"),
     "export-out-extension": (["export", "{store}", "{tmp}/e.png"], 2,
                              "from its extension '.png'; use one of .tif, .tiff"),
+    "tile-dst-http": (["tile", "{src}", "http://127.0.0.1:9/s.zarr"], 2,
+                      "DST: 'http://127.0.0.1:9/s.zarr' is an http(s) store, which is read-only"),
     "tile-dst-missing-parent": (["tile", "{src}", "{tmp}/no/s.zarr", "--block-size", "33"], 2,
                                 "the directory '{tmp}/no' for {tmp}/no/s.zarr does not exist"),
     "tile-dst-is-file": (["tile", "{src}", "{src}", "--block-size", "33"], 2,
