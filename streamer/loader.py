@@ -111,6 +111,7 @@ class Loader:
         self.unreported: list[tuple[Block, BaseException]] = []
         self.last_error: dict[Block, BaseException] = {}  # blocks whose latest read failed
         self.latest_error: BaseException | None = None  # the latest read error of any block
+        self.failed_level: dict[Block, int] = {}  # the level of each block's last failed read
         self.frame_realtime = 0
         self.frame_prefetched = 0
         self.frame_io_s = 0.0
@@ -305,6 +306,7 @@ class Loader:
                 was_failed = self.queue.is_failed(b)
                 count = self.queue.failed_read(b, time.monotonic())
                 self.last_error[b] = exc
+                self.failed_level[b] = level
                 self.latest_error = exc
                 if self.queue.is_failed(b) and not was_failed:
                     self.unreported.append((b, exc))
@@ -315,15 +317,28 @@ class Loader:
             self.errors.add(b, *data)  # the table has its own writer lock; readers need none
         with self.cv:
             self.queue.succeeded(b)
-            self.last_error.pop(b, None)
+            healed = self.last_error.pop(b, None)
+            if self.failed_level.pop(b, None) != level:
+                healed = None  # (another level failed: this read says nothing of its data)
             self.frame_io_s += time.perf_counter() - t0
             if level < 0:
                 self.cv.notify_all()
-                return
-            self.raw.setdefault(b, {})[level] = data
-            if b in self.decoding:
-                return
-            self.decoding.add(b)
+                decode = False
+            else:
+                self.raw.setdefault(b, {})[level] = data
+                decode = b not in self.decoding
+                if decode:
+                    self.decoding.add(b)
+        if healed is not None:  # (a damage message above was a transfer's, not the store's)
+            log.warning(
+                "block %s level %d read correctly after a failed read of it (%s): its data in "
+                "the store is intact, the failure was in transfer",
+                b,
+                level,
+                healed,
+            )
+        if not decode:
+            return
         try:
             self._decode_ready(b)
         finally:

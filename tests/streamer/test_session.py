@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import threading
 import time
@@ -125,6 +126,43 @@ def test_persistent_read_failure_reaches_update_and_session_survives(store):
         assert f.stats.io_errors >= 2
         assert s.levels(bad["block"]) and len(s.levels(bad["block"])) == 5  # levels 0..4
     assert not loader_threads()
+
+
+@pytest.mark.parametrize("same_level", [True, False])
+def test_a_checksum_error_that_heals_on_retry_is_said_to_be_transfer(store, caplog, same_level):
+    """A level whose first read fails its checksum (a flipped bit in transfer) and whose
+    retry reads correctly: the log says the data in the store is intact, after the warning
+    that called it damaged; not when another level of the block failed (the control)."""
+    from tiler.errors import ChunkChecksumError
+
+    failed: dict = {}
+
+    def hook(block, level):
+        if level >= 1 and not failed:
+            failed.update(block=block, level=level)
+            raise ChunkChecksumError(
+                "crc32c mismatch", array=f"levels/{level}", block=block, level=level
+            )
+        if not same_level and block == failed.get("block") and level == failed["level"]:
+            raise ChunkChecksumError(
+                "crc32c mismatch again", array=f"levels/{level}", block=block, level=level
+            )
+
+    with (
+        caplog.at_level("WARNING", logger="streamer"),
+        open_session(
+            store, budget_mb=64, workers=1, retries=3, backoff_s=0.001, wait_timeout_s=1.0
+        ) as s,
+    ):
+        s._read_hook = hook
+        for cam in flight(store, 4):
+            with contextlib.suppress(LoadError):
+                s.update(cam, wait=True)
+    healed = [r for r in caplog.records if "read correctly after a failed read" in r.message]
+    if same_level:
+        assert healed and f"block {failed['block']} level {failed['level']}" in healed[0].message
+    else:
+        assert not healed  # the level still fails; a later read of another level says nothing
 
 
 def test_a_wait_that_times_out_names_the_levels_and_their_state(store):
