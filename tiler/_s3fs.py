@@ -10,6 +10,9 @@ pickle by name like it.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import weakref
 from typing import Any
 
 import s3fs
@@ -48,4 +51,26 @@ def s3fs_filesystem(
     already applied) trying each request :data:`~tiler.transport.S3FS_TRIES` times
     (:data:`~tiler.transport.S3FS_WRITE_TRIES` with ``write``)."""
     cls = WriteS3FileSystem if write else ReadS3FileSystem
-    return cls(asynchronous=asynchronous, **(options or {}))
+    fs = cls(asynchronous=asynchronous, **(options or {}))
+    if asynchronous:
+        _ASYNC.add(fs)
+    return fs
+
+
+#: the asynchronous filesystems made here (zarr's stores run them on zarr's event loop)
+_ASYNC: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def close_sessions() -> None:
+    """Close the S3 clients of the asynchronous filesystems on zarr's loop, before exit. s3fs
+    registers no finalizer for asynchronous instances, so every command that wrote to S3 ended
+    with aiohttp's "ERROR asyncio: Unclosed client session" logged at exit."""
+    creators = [c for c in (getattr(fs, "_s3creator", None) for fs in list(_ASYNC)) if c]
+    if not creators:
+        return
+    from zarr.core.sync import sync
+
+    for creator in creators:
+        with contextlib.suppress(Exception):  # (at exit: a loop or client already gone)
+            sync(creator.__aexit__(None, None, None), timeout=5.0)
