@@ -78,8 +78,15 @@ def tradeoff(
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
         )
-        typer.echo(TABLE_HEADER)
-        rows = run(s, cam, values, repeats=repeats, log=typer.echo, options=opts)
+        shown: list[str] = []
+
+        def log(line: str) -> None:  # the header with the first row (not before an error)
+            if not shown:
+                shown.append(TABLE_HEADER)
+                typer.echo(TABLE_HEADER)
+            typer.echo(line)
+
+        rows = run(s, cam, values, repeats=repeats, log=log, options=opts)
         if rows:
             typer.echo(
                 f"reference (full resolution): {rows[0].reference_triangles:,} triangles, "
