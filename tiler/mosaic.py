@@ -40,6 +40,16 @@ MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
 WARP_TOLERANCE = 0.01  # source pixels of transform approximation (GDAL: 0.125); see notes
 
 
+def same_nodata(a: float | None, b: float | None) -> bool:
+    """True when the nodata values ``a`` and ``b`` mark the same samples (both None, both NaN,
+    or equal)."""
+    if a is None or b is None:
+        return a is None and b is None
+    if np.isnan(a) or np.isnan(b):
+        return bool(np.isnan(a) and np.isnan(b))
+    return float(a) == float(b)
+
+
 def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
     valid = np.ones(data.shape, dtype=bool)
     if data.dtype.kind == "f":
@@ -92,8 +102,11 @@ class MosaicReader:
         self.height, self.width = spec.height, spec.width
         # the nodata value :func:`_mosaic_nodata` chose (no source declares one), if a sample
         # could take it (not NaN): a valid sample equal to it would read as nodata
-        chosen = spec.nodata is not None and not np.isnan(spec.nodata)
-        self._chosen = chosen and all(s.nodata is None for s in spec.sources)
+        takeable = spec.nodata is not None and not np.isnan(spec.nodata)
+        self._chosen = takeable and all(s.nodata is None for s in spec.sources)
+        #: per source: the mosaic's nodata differs from its own and a sample could take it (a
+        #: valid sample equal to it would read as nodata: refused, as for a chosen one)
+        self._foreign = [takeable and not same_nodata(s.nodata, spec.nodata) for s in spec.sources]
 
     def __enter__(self) -> MosaicReader:
         return self
@@ -154,7 +167,17 @@ class MosaicReader:
     def _read_window(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         spec = self.spec
         hits = self.sources_for(r0, c0, h, w)
-        if len(hits) == 1 and not spec.warp and not spec.sources[hits[0]].masked:
+        one = hits[0] if len(hits) == 1 else None
+        if (
+            one is not None
+            and not spec.warp
+            and not spec.sources[one].masked
+            # its own nodata is the mosaic's (or it has none): its samples need no mapping
+            and (
+                spec.sources[one].nodata is None
+                or same_nodata(spec.sources[one].nodata, spec.nodata)
+            )
+        ):
             fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[hits[0]])
             if fr0 <= r0 and fc0 <= c0 and r0 + h <= fr1 and c0 + w <= fc1:  # inside one source
                 data, _ = self._read_aligned(hits[0], r0 - fr0, c0 - fc0, h, w)
@@ -212,12 +235,21 @@ class MosaicReader:
     def _check_chosen_nodata(self, data: np.ndarray, valid: np.ndarray | None, i: int) -> None:
         """Refuse a valid sample equal to a nodata value no source declared (the one
         :func:`_mosaic_nodata` chose for gaps and masked samples): it would read as nodata."""
-        if not self._chosen:
+        if not self._chosen and not self._foreign[i]:
             return
         spec = self.spec
         same = data == np.asarray(spec.nodata).astype(data.dtype)
         if valid is not None:
             same &= valid
+        if same.any() and not self._chosen:
+            path = spec.sources[i].path
+            first = next(s.path for s in spec.sources if s.nodata is not None)
+            raise SourceError(
+                f"{path!r} has valid samples equal to {spec.nodata:g}, the mosaic's nodata value "
+                f"(declared by {os.path.basename(first)!r}, the first source with one): they "
+                "would read as nodata; give the sources one nodata value no valid sample takes, "
+                f"e.g. `gdal_translate -a_nodata V {os.path.basename(path)} fixed.tif`"
+            )
         if same.any():
             path = spec.sources[i].path
             raise SourceError(

@@ -246,3 +246,51 @@ def test_a_hundred_tiles_from_a_list_equal_the_single_file(tmp_path):
     with MosaicReader(plan_mosaic(read_source_list(lst))) as reader:
         np.testing.assert_array_equal(reader.read_window(0, 0, 91, 91), data)
         assert len(reader._open) <= MAX_OPEN < 100
+
+
+def _side_by_side(tmp_path, b_void):
+    """Two int16 tiles side by side: A (nodata -32768, a void) and B (nodata -9999, its own
+    void at ``b_void``). Returns their paths and the expected mosaic (NaN: nodata)."""
+    base = np.round(fractal((120, 160), seed=9) / 10).astype(np.int16) + 100
+    a, b = base[:, :80].copy(), base[:, 80:].copy()
+    a[10:20, 10:20] = -32768
+    b[b_void] = -9999
+    pa = write_dem(tmp_path / "a.tif", a, nodata=-32768)
+    pb = write_dem(tmp_path / "b.tif", b, nodata=-9999, origin=(500000.0 + 80 * 30, 5e6))
+    want = base.astype(float)
+    want[10:20, 10:20] = np.nan
+    want[:, 80:][b_void] = np.nan
+    return pa, pb, want
+
+
+@pytest.mark.parametrize("block_size", [33, 257])
+def test_a_later_sources_own_nodata_is_nodata_in_every_block(tmp_path, block_size):
+    """B's voids (its nodata -9999, not A's -32768) are nodata whatever the block size; with
+    blocks inside B alone they were stored as -9999 m heights (the single-source shortcut kept
+    B's raw samples), and verify --source agreed."""
+    from tiler.verify import verify_store
+
+    pa, pb, want = _side_by_side(tmp_path, (slice(40, 80), slice(30, 70)))
+    s = tile([pa, pb], tmp_path / "m.zarr", TileOptions(block_size=block_size))
+    got = np.full(want.shape, np.nan)
+    for br, bc in s.blocks():
+        r0, c0, h, w = s.grid.block_window(br, bc)
+        g = s.read_block((br, bc), extent=(h, w)).astype(float)
+        g[~s.read_mask((br, bc))[:h, :w]] = np.nan
+        got[r0 : r0 + h, c0 : c0 + w] = g
+    np.testing.assert_array_equal(got, want)
+    assert s.meta.extra["value_range"][0] >= 0  # (-9999 was the minimum)
+    assert verify_store(tmp_path / "m.zarr", source=[pa, pb]).ok
+
+
+def test_a_valid_sample_equal_to_the_mosaics_nodata_is_refused(tmp_path):
+    """B declares no nodata and has valid -9999 m samples... where A's nodata is -9999: they
+    would read as nodata. Refused, naming B and the value (they vanished before)."""
+    base = np.round(fractal((120, 160), seed=9) / 10).astype(np.int16) + 100
+    a, b = base[:, :80].copy(), base[:, 80:].copy()
+    a[10:20, 10:20] = -9999
+    b[:5, :5] = -9999  # valid heights in B (it declares no nodata)
+    pa = write_dem(tmp_path / "a.tif", a, nodata=-9999)
+    pb = write_dem(tmp_path / "b.tif", b, nodata=None, origin=(500000.0 + 80 * 30, 5e6))
+    with pytest.raises(SourceError, match=r"'.*b\.tif' has valid samples equal to -9999, the "):
+        tile([pa, pb], tmp_path / "m.zarr", TileOptions(block_size=33))
