@@ -24,18 +24,43 @@ import xarray as xr
 from xarray.backends import BackendArray, BackendEntrypoint
 from xarray.core import indexing
 
+from tiler.errors import StoreChangedError
 from tiler.store import ATTR, TerrainStore, open_store
 
-_STORES: dict[str, TerrainStore] = {}
+#: open stores by (URL, generation), and the one each URL opens to now: a dataset reads the
+#: build it was opened on (a rewritten store raises for it), a new open reads the new build
+_STORES: dict[tuple[str, str | None], TerrainStore] = {}
+_LATEST: dict[str, TerrainStore] = {}
 _STORES_LOCK = threading.Lock()
+_NOW = object()  # (the store a URL opens to now)
 
 
-def _cached_store(url: str) -> TerrainStore:
-    """One open store per URL and process (TerrainStore is thread-safe, not picklable)."""
+def _cached_store(url: str, generation: str | None | object = _NOW) -> TerrainStore:
+    """One open store per URL, build and process (TerrainStore is thread-safe, not
+    picklable). Without ``generation``: the store the URL holds now (a cached one rewritten
+    since, e.g. by ``tile --overwrite``, is opened anew); with it: that build's store, or
+    :class:`StoreChangedError` if the URL holds another build now."""
     with _STORES_LOCK:
-        s = _STORES.get(url)
-        if s is None:
-            s = _STORES[url] = open_store(url)
+        if generation is _NOW:
+            s = _LATEST.get(url)
+            if s is not None:
+                try:
+                    s.check_unchanged(force=True)
+                    return s
+                except StoreChangedError:
+                    pass  # rewritten: open the build it holds now
+            s = open_store(url)
+            _STORES[(url, s.meta.generation)] = _LATEST[url] = s
+            return s
+        s = _STORES.get((url, generation))  # type: ignore[arg-type]
+        if s is None:  # (a dask worker process: open it, and check it is the same build)
+            s = open_store(url)
+            if s.meta.generation != generation:
+                raise StoreChangedError(
+                    f"store {url!r} was replaced or rewritten since this dataset was opened "
+                    f"(generation {generation!r} -> {s.meta.generation!r}); open it again"
+                )
+            _STORES[(url, generation)] = s  # type: ignore[index]
         return s
 
 
@@ -54,10 +79,13 @@ def height_dtype(store: TerrainStore) -> np.dtype:
     return np.dtype(np.float32)
 
 
-def read_level_chunk(url: str, level: int, br: int, bc: int) -> np.ndarray:
+def read_level_chunk(
+    url: str, level: int, br: int, bc: int, generation: str | None | object = _NOW
+) -> np.ndarray:
     """Chunk ``(br, bc)`` of a level: block ``(br, bc)`` without its shared last row/column
-    (kept for the last block), nodata and padding as NaN."""
-    store = _cached_store(url)
+    (kept for the last block), nodata and padding as NaN; ``generation``: of the build read
+    (default: the one the URL holds now)."""
+    store = _cached_store(url, generation)
     h, w, step = level_shape(store, level)
     bstep = store.grid.step // step
     nr = min(bstep, h - br * bstep) if br < store.grid.rows - 1 else h - br * bstep
@@ -85,6 +113,7 @@ class LevelArray(BackendArray):
     def __init__(self, url: str, level: int) -> None:
         store = _cached_store(url)
         self.url, self.level = url, level
+        self.generation = store.meta.generation  # the build this array reads
         h, w, step = level_shape(store, level)
         self.shape = (h, w)
         self.dtype = height_dtype(store)
@@ -110,7 +139,7 @@ class LevelArray(BackendArray):
         rows, cols = self.blocks
         for br in range(min(r0 // b, rows - 1), min((r1 - 1) // b, rows - 1) + 1):
             for bc in range(min(c0 // b, cols - 1), min((c1 - 1) // b, cols - 1) + 1):
-                chunk = read_level_chunk(self.url, self.level, br, bc)
+                chunk = read_level_chunk(self.url, self.level, br, bc, self.generation)
                 cr0, cc0 = br * b, bc * b
                 ir0, ir1 = max(r0, cr0), min(r1, cr0 + chunk.shape[0])
                 ic0, ic1 = max(c0, cc0), min(c1, cc0 + chunk.shape[1])
@@ -138,7 +167,8 @@ def level_dataarray(store: TerrainStore, level: int | None = None) -> xr.DataArr
         raise StoreError(f"level must be in 0..{k} for {store.url!r}, got {level}")
     var = level_variable(store, level)
     arr = LevelArray(store.url, level)
-    name = f"terrastream-{tokenize(store.url, level, store.meta.source.get('checksum'))}"
+    build = (store.meta.generation, store.meta.source.get("checksum"))
+    name = f"terrastream-{tokenize(store.url, level, *build)}"
     chunks = tuple(var.encoding["preferred_chunks"].values())
     data = da.from_array(arr, chunks=chunks, name=name, meta=np.empty((0, 0), arr.dtype))
     return xr.DataArray(
