@@ -193,6 +193,7 @@ def level_variable(store: TerrainStore, level: int) -> xr.Variable:
         attrs["grid_mapping"] = "spatial_ref"
     var = xr.Variable(("y", "x"), indexing.LazilyIndexedArray(LevelArray(store.url, level)), attrs)
     var.encoding["preferred_chunks"] = {"y": _chunks(h, bstep, rows), "x": _chunks(w, bstep, cols)}
+    var.encoding["_FillValue"] = np.nan  # nodata and padding are NaN (rioxarray's rio.nodata)
     return var
 
 

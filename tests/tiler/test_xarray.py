@@ -159,3 +159,13 @@ def test_a_store_rewritten_in_place_opens_anew_and_old_datasets_refuse(tmp_path)
     for stale in (old, first):  # opened on the old build: they refuse to read the new one
         with pytest.raises(StoreChangedError):
             stale["height"].values  # noqa: B018
+
+
+def test_nodata_is_nan_for_rioxarray(store, tmp_path):
+    """``rio.nodata`` is NaN (it was None: ``rio.to_raster`` wrote the NaNs untagged)."""
+    h = xr.open_dataset(store[0].url, engine="terrastream")["height"]
+    assert np.isnan(h.rio.nodata)
+    h.rio.to_raster(tmp_path / "h.tif")
+    with rasterio.open(tmp_path / "h.tif") as ds:
+        assert ds.nodata is not None and np.isnan(ds.nodata)
+        assert (~ds.read_masks(1).astype(bool)).sum() == (store[1] == -9999).sum()
