@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from tiler.errors import SourceError, StoreCorruptError
+from tiler.errors import SchedulerError, SourceError, StoreCorruptError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt
 from tiler.location import Location
@@ -108,9 +108,14 @@ def build(
     report = progress_reporter(total, skipped, progress)
     report(0, 0)
     asm = ShardAssembler(group, loc, meta, done)
-    summary.executor = run_blocks(
-        src, loc, opts, grid, block_params(meta), todo, done, report, lease, asm.blocks_done
-    )
+    try:
+        summary.executor = run_blocks(
+            src, loc, opts, grid, block_params(meta), todo, done, report, lease, asm.blocks_done
+        )
+    except SchedulerError:
+        if not resume and not done.any():  # (an unreachable scheduler: nothing was computed)
+            loc.remove()  # leave no unfinished store that a rerun would be told to resume
+        raise
     # a Ctrl-C during the final writes (zarr's synchronous calls: raised inside them it left
     # writes pending on zarr's loop) waits for them; once they are done the store is complete
     # and the run ends as finished

@@ -241,6 +241,9 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path):
     src = _dem(tmp_path)
     with pytest.raises(SchedulerError, match="cannot reach the dask scheduler"):
         tile(src, tmp_path / "o.zarr", TileOptions(block_size=33, scheduler="tcp://127.0.0.1:9"))
+    # nothing was computed: no unfinished store is left that a rerun would be told to resume
+    # (it was, in state 'tiling')
+    assert not (tmp_path / "o.zarr").exists()
 
 
 def test_distributed_not_imported_for_local_runs(tmp_path):
