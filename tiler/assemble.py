@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from tiler.errors import SchedulerError, SourceError, StoreCorruptError
+from tiler.errors import JobMismatchError, SchedulerError, SourceError, StoreCorruptError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt
 from tiler.location import Location
@@ -93,6 +93,8 @@ def build(
     grid = meta.grid
     # a store just created has an empty journal: nothing to read back
     done = done_blocks(group[JOURNAL]) if resume else np.zeros(grid.shape, dtype=bool)
+    if resume and done.any():
+        _check_done_unchanged(src, opts.band, grid, group[JOURNAL], done, meta, loc)
     todo = [b for b in grid.blocks() if not done[b]]
     total = grid.rows * grid.cols
     skipped = total - len(todo)
@@ -127,6 +129,26 @@ def build(
             raise
     if late.interrupted:
         log.warning("Ctrl-C during the final writes: they were completed, the store is finished")
+
+
+def _check_done_unchanged(
+    src: Any, band: int, grid: BlockGrid, journal: Any, done: np.ndarray, meta: StoreMeta, loc: Any
+) -> None:
+    """Refuse to resume when the source's samples of blocks already done changed since (a
+    source edited in place passes the job's fingerprint: the same size, header and three
+    sample windows), naming the blocks: the store would mix two DEMs."""
+    from tiler.resume import changed_done_blocks
+    from tiler.source import open_source
+
+    with open_source(src, band) as ds:
+        changed = changed_done_blocks(ds, band, grid, journal, done, meta)
+    if changed:
+        shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
+        raise JobMismatchError(
+            f"{loc.url!r} holds an unfinished store whose source changed since it was started: "
+            f"the samples of {len(changed)} block(s) already done differ ({shown}); rerun with "
+            "the original source to finish it, or tile with --overwrite to start again"
+        )
 
 
 def _region_entries(

@@ -11,7 +11,6 @@ local store builds next to it and swaps the directories at the end.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import os
@@ -48,6 +47,7 @@ from tiler.location import Location, as_location, for_writing
 from tiler.mosaic import MosaicReader, MosaicSpec
 from tiler.resume import (
     TILING_STATES,
+    block_digest,
     check_same_job,
     job_identity,
     source_fingerprint,
@@ -259,9 +259,7 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     dtype = np.dtype(params.dtype)
     data = np.asarray(window, dtype=dtype)
     h, w = data.shape
-    hasher = hashlib.blake2b(np.ascontiguousarray(data), digest_size=8)  # no copy of the window
-    hasher.update(np.array([h, w], np.int64).tobytes())
-    digest = int.from_bytes(hasher.digest(), "little")
+    digest = block_digest(data)
     valid = np.zeros((side, side), dtype=bool)
     valid[:h, :w] = valid_mask(data, params.nodata)
     exists = bool(valid.any())

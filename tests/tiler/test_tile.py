@@ -319,3 +319,34 @@ def test_precision_on_integer_dem_refused(dem_factory, tmp_path):
     src = dem_factory(fractal((20, 20)))
     with pytest.raises(SourceError, match="Drop precision"):
         tile(src, tmp_path / "s.zarr", TileOptions(precision=0.1))
+
+
+def test_a_source_edited_in_place_is_not_resumed(tmp_path, monkeypatch):
+    """An interrupted tiling whose source is then edited in place, in a block already done and
+    outside the fingerprint's windows (same size, same header): the rerun is refused naming the
+    changed blocks (it resumed, exit 0, to a store mixing the two DEMs); the control: the same
+    rerun on the unedited source resumes."""
+    from tiler.errors import JobMismatchError
+
+    data = fractal((600, 600), 11).astype(np.int16)
+    src = tmp_path / "u.tif"
+    at = rasterio.transform.from_origin(5e5, 5e6, 30, 30)
+    profile = dict(driver="GTiff", width=600, height=600, count=1, dtype="int16")
+    profile.update(crs="EPSG:32633", transform=at)
+    with rasterio.open(src, "w", **profile) as ds:  # uncompressed: an edit keeps the size
+        ds.write(data, 1)
+    opts = TileOptions(block_size=33, workers=2, executor="threads")
+    _interrupt_after(monkeypatch, 60)  # the first row of blocks (19 a row) is done
+    with pytest.raises(KeyboardInterrupt):
+        tile(src, tmp_path / "s.zarr", opts)
+    monkeypatch.undo()
+    size = src.stat().st_size
+    with rasterio.open(src, "r+") as ds:  # rows 20..29, columns 270..284: block (0, 8)
+        ds.write(data[20:30, 270:285] + 100, 1, window=rasterio.windows.Window(270, 20, 15, 10))
+    assert src.stat().st_size == size
+    with pytest.raises(JobMismatchError, match=r"source changed since .* 1 block\(s\).*\(0, 8\)"):
+        tile(src, tmp_path / "s.zarr", opts)
+    with rasterio.open(src, "r+") as ds:  # (the control: the original samples back)
+        ds.write(data[20:30, 270:285], 1, window=rasterio.windows.Window(270, 20, 15, 10))
+    s = tile(src, tmp_path / "s.zarr", opts)
+    assert s.tile_summary.resumed and verify_store(tmp_path / "s.zarr", source=src).ok
