@@ -31,6 +31,7 @@ from tiler.errors import HeightRangeError, StoreError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location, as_location
+from tiler.parent_watch import die_with_parent
 from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk, is_sparse
 from tiler.source import open_source, read_window
@@ -225,8 +226,9 @@ def worker_setup(gdal_cache_mb: int, kernels_backend: str, dtype: str) -> None:
         kernels.warm_up(dtype)
 
 
-def _process_init(gdal_cache_mb: int, kernels_backend: str, *args: Any) -> None:
+def _process_init(gdal_cache_mb: int, kernels_backend: str, parent: int, *args: Any) -> None:
     global _PROCESS_WORKER
+    die_with_parent(parent)  # (a killed parent left its workers running: tiler.parent_watch)
     # Ctrl-C reaches the whole process group: the parent reports it once (TilingInterrupted).
     # The worker was started with SIGINT blocked (see _submit): ignore it, then unblock (a
     # Ctrl-C that arrived while this process was importing is discarded here).
@@ -391,7 +393,7 @@ def _run_local(run: BlockRun) -> str:
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_process_init,
-            initargs=(opts.gdal_cache_mb, backend, *args),
+            initargs=(opts.gdal_cache_mb, backend, os.getpid(), *args),
         )
         task: Any = _process_run
     else:

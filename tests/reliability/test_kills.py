@@ -128,3 +128,32 @@ def test_random_kills_resume_byte_identical(tmp_path):
         counts["blocks_redone"] += s.blocks_computed
     record("SIGKILL + rerun", **counts)
     assert counts["identical"] == counts["injected"] == KILLS, counts
+
+
+def test_workers_end_with_a_killed_parent(tmp_path):
+    """SIGKILL of a tiling with worker processes (the parent only, not its group): the workers
+    end within seconds (they ran on for ever, reparented, blocked on their task pipe, ~100 MB
+    each; ``tiler.parent_watch``). The control: they were running before the kill."""
+    import psutil
+
+    src = write_dem(tmp_path / "d.tif", fractal((1025, 1025), 4))
+    script = tmp_path / "run.py"
+    script.write_text(SCRIPT.replace("block_size=17", "block_size=65"))
+    env = dict(os.environ, TERRASTREAM_KERNELS="numpy")  # (slow blocks: time to see them)
+    p = subprocess.Popen([sys.executable, str(script), str(src), str(tmp_path / "s.zarr"),
+                          "processes"], env=env, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        workers: list = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(workers) < 2:
+            time.sleep(0.2)
+            kids = psutil.Process(p.pid).children(recursive=True)
+            workers = [c for c in kids if "spawn_main" in " ".join(c.cmdline())]
+        assert len(workers) >= 2, "the tiling's worker processes did not start"
+    finally:
+        p.send_signal(signal.SIGKILL)
+        p.wait(timeout=30)
+    gone, alive = psutil.wait_procs(workers, timeout=10)
+    for w in alive:  # (do not leak them when the check fails)
+        w.kill()
+    assert not alive, [w.pid for w in alive]
