@@ -145,9 +145,13 @@ def _check_done_unchanged(
     if changed:
         shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
         raise JobMismatchError(
-            f"{loc.url!r} holds an unfinished store whose source changed since it was started: "
-            f"the samples of {len(changed)} block(s) already done differ ({shown}); rerun with "
-            "the original source to finish it, or tile with --overwrite to start again"
+            "{url!r} holds an unfinished store whose source changed since it was started: the "
+            "samples of {n} block(s) already done differ ({shown}); rerun with the original "
+            "source to finish it, or tile with {overwrite} to start again",
+            params={"overwrite": "overwrite=True"},
+            url=loc.url,
+            n=len(changed),
+            shown=shown,
         )
 
 
@@ -339,8 +343,10 @@ def repair_store(
     report = verify_store(loc)
     if report.unrepairable:
         raise StoreCorruptError(
-            f"{loc.url!r} cannot be repaired ({'; '.join(report.unrepairable)}); tile the DEM "
-            "again with overwrite"
+            "{url!r} cannot be repaired ({why}); tile the DEM again with {overwrite}",
+            params={"overwrite": "overwrite=True"},
+            url=loc.url,
+            why="; ".join(report.unrepairable),
         )
     with WriterLease(loc, opts.lease_timeout_s) as lease:
         group = loc.open_group("r+")

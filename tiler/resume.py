@@ -221,9 +221,12 @@ def check_same_job(
     then = "repair it" if repair else "finish it"
     if old is None:
         raise JobMismatchError(
-            f"{url!r} holds {store} from an older terrastream (no job identity); it cannot be "
-            f"{'repaired' if repair else 'resumed'}: remove it or tile with overwrite to start "
-            "again."
+            "{url!r} holds {store} from an older terrastream (no job identity); it cannot be "
+            "{done}: remove it or tile with {overwrite} to start again.",
+            params={"overwrite": "overwrite=True"},
+            url=url,
+            store=store,
+            done="repaired" if repair else "resumed",
         )
     diffs = [
         f"{key}: store has {old.get(key)!r}, this run has {value!r}"
@@ -232,6 +235,11 @@ def check_same_job(
     ]
     if diffs:
         raise JobMismatchError(
-            f"{url!r} holds {store} of another job ({'; '.join(diffs)}); rerun with the "
-            f"original source and settings to {then}, or tile with overwrite to start again."
+            "{url!r} holds {store} of another job ({diffs}); rerun with the original source "
+            "and settings to {then}, or tile with {overwrite} to start again.",
+            params={"overwrite": "overwrite=True"},
+            url=url,
+            store=store,
+            diffs="; ".join(diffs),
+            then=then,
         )

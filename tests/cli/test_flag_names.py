@@ -46,6 +46,20 @@ def _errors():
         "1 MiB; raise --budget-mb or the error threshold --tau",
     )
 
+    from tiler.resume import check_same_job
+
+    try:  # a rerun of another job (was "tile with overwrite", the API's word, in the CLI too)
+        check_same_job("s.zarr", {"block_size": 33}, {"block_size": 65})
+    except StoreError as exc:
+        mismatch = exc
+    yield (
+        "job-mismatch",
+        mismatch,
+        "block_size: store has 33, this run has 65); rerun with the original source and "
+        "settings to finish it, or tile with overwrite=True to start again.",
+        "or tile with --overwrite to start again.",
+    )
+
     from streamer.errors import LoadError
     from streamer.waits import MORE_TIME
 
