@@ -143,7 +143,9 @@ def store_destination(url: str, hint: str = "DST") -> str:
     """``url`` if a store can be made there: for a local path, its parent directory exists
     and is writable; an ``http(s)://`` URL is read-only (other locations are checked by the
     tiler)."""
-    if str(url).lower().startswith(("http://", "https://")):
+    from tiler.remote import is_http
+
+    if is_http(url):
         raise UsageError(
             f"{url!r} is an http(s) store, which is read-only here: tile (or --repair) a local "
             "directory or an object store (s3://...) and serve that",

@@ -31,6 +31,7 @@ from zarr.buffer import default_buffer_prototype
 
 from tiler.atomic import partial_name, write_atomic
 from tiler.errors import StorageOptionsError, StoreError
+from tiler.remote import is_http
 from tiler.s3_reader import S3_READER_ENV, open_s3_reader
 from tiler.transport import http_options, s3fs_options
 
@@ -408,7 +409,7 @@ class Location:
     def can_list(self) -> bool:
         """False where the backend cannot list a store's files (plain HTTP), so
         :meth:`total_size` cannot sum them."""
-        return not str(self.target).lower().startswith(("http://", "https://"))
+        return not is_http(str(self.target))
 
     def total_size(self, prefix: str = "") -> int:
         """Total bytes stored under ``prefix`` (0 where the backend cannot list, e.g. HTTP)."""

@@ -34,6 +34,7 @@ def verify(
 
     Example: terrastream verify n44.zarr --source N44W072.hgt
     """
+    from tiler.remote import is_http
     from tiler.verify import verify_store
 
     with fail_on_errors():
@@ -102,7 +103,7 @@ def verify(
                     "the tiling's). To store it, tile it again with --overwrite",
                     err=True,
                 )
-            elif not as_json and str(store).lower().startswith(("http://", "https://")):
+            elif not as_json and is_http(store):
                 typer.echo(  # (an http(s) store is read-only: mended where it is written)
                     f"error: {store} is damaged; run `terrastream tile SRC STORE --repair` on the "
                     "store it is served from (a local directory or object store) to recompute "
