@@ -139,6 +139,13 @@ def output_dir(path: Path, hint: str) -> Path:
     return path
 
 
+def remove_if_left_empty(path: Path, made: bool) -> None:
+    """Remove the directory ``path`` when this run made it (``made``) and left it empty (a
+    command that failed before writing anything leaves no empty output folder behind)."""
+    if made and path.is_dir() and not any(path.iterdir()):
+        path.rmdir()
+
+
 def store_destination(url: str, hint: str = "DST") -> str:
     """``url`` if a store can be made there: for a local path, its parent directory exists
     and is writable; an ``http(s)://`` URL is read-only (other locations are checked by the

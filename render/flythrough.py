@@ -66,6 +66,12 @@ def warn_frames_below_ground(store: TerrainStore, cameras: Sequence[Camera]) -> 
     return warn_path_below_ground(store, cameras, "they show the terrain from below", log)
 
 
+def _remove_if_empty(out: Path, created: bool) -> None:
+    """Remove ``out`` when this run created it and an error left nothing in it."""
+    if created and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+
+
 def flythrough(
     store: TerrainStore,
     cameras: Sequence[Camera],
@@ -100,6 +106,7 @@ def flythrough(
         raise RenderError("the camera path has no frames")
     warn_frames_below_ground(store, cameras)
     out = Path(out_dir)
+    created = not out.exists()  # a folder made here and left empty by an error is removed
     out.mkdir(parents=True, exist_ok=True)
     r = TerrainRenderer(store, RenderConfig(size=cameras[0].viewport, patch_log2=o.patch_log2))
     strat = get_strategy(lod, r, **o.strategy_options())
@@ -155,6 +162,8 @@ def flythrough(
         if rows:
             write_rows(out, rows)
             exc.frames_flown = len(rows)  # type: ignore[attr-defined]
+        else:
+            _remove_if_empty(out, created)
         raise
     finally:
         try:
@@ -166,6 +175,7 @@ def flythrough(
     if len(empty) == len(rows):  # blank frames are not a fly-through: none is left behind
         for i in range(0, len(rows), save_every) if save_every else ():  # only this run's
             (out / f"frame_{i:05d}.png").unlink(missing_ok=True)
+        _remove_if_empty(out, created)
         if not seen:
             raise out_of_view(store, len(rows))
         if any(x.triangles for x in rows):
@@ -182,6 +192,7 @@ def flythrough(
         )
     write_rows(out, rows)
     tri = np.array([x.triangles for x in rows])
+    in_frames = int(summary["realtime_bytes"]) + int(summary["prefetched_bytes"])
     summary = {
         "frames": len(rows),
         "mean_triangles": float(tri.mean()),
@@ -201,7 +212,10 @@ def flythrough(
         # whose triangles covered no pixel (the others were stalled: nothing resident)
         "unseen_frames": int(sum(x.visible_blocks == 0 for x in rows if x.triangles == 0)),
         "pixelless_frames": int(sum(x.triangles > 0 and x.drawn_px == 0 for x in rows)),
-        "loaded_mb": float(summary["loaded_bytes"] / 2**20),
+        # the frames' loads, as frames.csv sums them; reads ahead that finished while the
+        # session closed, after the last frame, apart
+        "loaded_mb": float(in_frames / 2**20),
+        "loaded_after_frames_mb": float(max(0, summary["loaded_bytes"] - in_frames) / 2**20),
         "io_errors": int(summary["io_errors"]),
         "failing_blocks": int(summary["failing_blocks"]),
         # why the fly-through is incomplete (streamer.run.flight_problem), or None

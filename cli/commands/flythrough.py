@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from cli.checks import input_file, open_store_arg, output_dir
+from cli.checks import input_file, open_store_arg, output_dir, remove_if_left_empty
 from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors, one_line
 from cli.options import (
     LOD_DEFAULT,
@@ -80,85 +80,103 @@ def flythrough(
     from streamer.errors import PathOutOfViewError
     from streamer.run import make_path
 
-    with fail_on_errors():
-        viewport = parse_size(size)
-        rule = check_nodata_rule([lod], nodata_rule)
-        check_metric(lod, metric)
-        opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
-        input_file(path, "--path")
-        output_dir(out, "--out")
-        s = open_store_arg(store_location(store, storage_options), projected=True)
-        cams = make_path(s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport)
-        every_line = max(1, frames // 10)
-        typer.echo(
-            f"{'frame':>6} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'MiB in':>7} stall"
-        )
-
-        def on_frame(r) -> None:
-            if r.frame % every_line == 0:
-                typer.echo(
-                    f"{r.frame:>6} {r.triangles:>10,} {r.selection_ms:>7.2f} {r.gpu_ms:>7.1f} "
-                    f"{r.loaded_mb:>7.2f} {'yes' if r.stalled else ''}"
-                )
-
-        try:
-            _, summary = run(
-                s,
-                cams,
-                out,
-                workers=workers,
-                budget_mb=budget_mb,
-                fps=fps,
-                save_every=every,
-                on_frame=on_frame,
-                options=opts,
-                background_builds=not render_thread_builds,
+    made = not out.exists()  # an --out folder made here and left empty by an error goes
+    try:
+        with fail_on_errors():
+            viewport = parse_size(size)
+            rule = check_nodata_rule([lod], nodata_rule)
+            check_metric(lod, metric)
+            opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
+            input_file(path, "--path")
+            output_dir(out, "--out")
+            s = open_store_arg(store_location(store, storage_options), projected=True)
+            cams = make_path(
+                s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport
             )
-        except PathOutOfViewError as exc:
-            raise UsageError(str(exc), hint="--path") from None
-        except Exception as exc:
-            flown = getattr(exc, "frames_flown", 0)
-            if flown:  # frames.csv has them; the summary says where and why it stopped
-                stopped = {"after_frames": flown, "of_frames": len(cams), "error": one_line(exc)}
-                (out / "summary.json").write_text(json.dumps({"stopped": stopped}, indent=1))
-                typer.echo(
-                    f"wrote {out}/frames.csv and summary.json ({flown} of {len(cams)} frames)"
-                )
-            raise
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        typer.echo(
-            f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
-            f"selection {summary['mean_selection_ms']:.2f} ms (max "
-            f"{summary['max_selection_ms']:.2f}; builds max {summary['max_build_ms']:.2f}), "
-            f"GPU {summary['mean_gpu_ms']:.1f} ms, "
-            f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MiB; "
-            f"wrote {out}/frames.csv"
-        )
-        if summary["empty_frames"]:
-            n, unseen = summary["empty_frames"], summary["unseen_frames"]
-            tiny = summary["pixelless_frames"]
-            why = "the camera sees none of the DEM there"
-            if unseen < n:
-                parts = [f"{unseen} saw none of the DEM"]
-                if n - unseen - tiny:
-                    parts.append(f"{n - unseen - tiny} had none of its levels loaded yet (stalled)")
-                if tiny:
-                    parts.append(
-                        f"{tiny} drew triangles covering no pixel (too far, or terrain too "
-                        "sparse to draw)"
+            every_line = max(1, frames // 10)
+            typer.echo(
+                f"{'frame':>6} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'MiB in':>7} stall"
+            )
+
+            def on_frame(r) -> None:
+                if r.frame % every_line == 0:
+                    typer.echo(
+                        f"{r.frame:>6} {r.triangles:>10,} {r.selection_ms:>7.2f} {r.gpu_ms:>7.1f} "
+                        f"{r.loaded_mb:>7.2f} {'yes' if r.stalled else ''}"
                     )
-                why = ", ".join(parts)
+
+            try:
+                _, summary = run(
+                    s,
+                    cams,
+                    out,
+                    workers=workers,
+                    budget_mb=budget_mb,
+                    fps=fps,
+                    save_every=every,
+                    on_frame=on_frame,
+                    options=opts,
+                    background_builds=not render_thread_builds,
+                )
+            except PathOutOfViewError as exc:
+                raise UsageError(str(exc), hint="--path") from None
+            except Exception as exc:
+                flown = getattr(exc, "frames_flown", 0)
+                if flown:  # frames.csv has them; the summary says where and why it stopped
+                    stopped = {
+                        "after_frames": flown,
+                        "of_frames": len(cams),
+                        "error": one_line(exc),
+                    }
+                    (out / "summary.json").write_text(json.dumps({"stopped": stopped}, indent=1))
+                    typer.echo(
+                        f"wrote {out}/frames.csv and summary.json ({flown} of {len(cams)} frames)"
+                    )
+                raise
+            (out / "summary.json").write_text(json.dumps(summary, indent=1))
             typer.echo(
-                f"warning: {n} of {summary['frames']} frames drew no terrain (the first: frame "
-                f"{summary['first_empty_frame']}): {why}",
-                err=True,
+                f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
+                f"selection {summary['mean_selection_ms']:.2f} ms (max "
+                f"{summary['max_selection_ms']:.2f}; builds max {summary['max_build_ms']:.2f}), "
+                f"GPU {summary['mean_gpu_ms']:.1f} ms, "
+                f"{summary['stall_frames']} stalled, loaded {summary['loaded_mb']:.1f} MiB"
+                + (
+                    f" (+{summary['loaded_after_frames_mb']:.1f} read ahead after the last frame)"
+                    if summary["loaded_after_frames_mb"] >= 0.05
+                    else ""
+                )
+                + "; "
+                f"wrote {out}/frames.csv"
             )
-        if summary["problem"]:  # the frames and summary are written; the run is incomplete
-            typer.echo(
-                f"error: the fly-through over {store!r} is incomplete: {summary['problem']}",
-                err=True,
-            )
-            raise typer.Exit(EXIT_RUNTIME)
+            if summary["empty_frames"]:
+                n, unseen = summary["empty_frames"], summary["unseen_frames"]
+                tiny = summary["pixelless_frames"]
+                why = "the camera sees none of the DEM there"
+                if unseen < n:
+                    parts = [f"{unseen} saw none of the DEM"]
+                    if n - unseen - tiny:
+                        parts.append(
+                            f"{n - unseen - tiny} had none of its levels loaded yet (stalled)"
+                        )
+                    if tiny:
+                        parts.append(
+                            f"{tiny} drew triangles covering no pixel (too far, or terrain too "
+                            "sparse to draw)"
+                        )
+                    why = ", ".join(parts)
+                typer.echo(
+                    f"warning: {n} of {summary['frames']} frames drew no terrain (the first: frame "
+                    f"{summary['first_empty_frame']}): {why}",
+                    err=True,
+                )
+            if summary["problem"]:  # the frames and summary are written; the run is incomplete
+                typer.echo(
+                    f"error: the fly-through over {store!r} is incomplete: {summary['problem']}",
+                    err=True,
+                )
+                raise typer.Exit(EXIT_RUNTIME)
+    finally:
+        remove_if_left_empty(out, made)
 
 
 def register(app: typer.Typer) -> None:

@@ -106,6 +106,10 @@ def test_every_strategy_flies(store, tmp_path, lod):
     with (out / "frames.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 and all(float(r["build_ms"]) >= 0.0 for r in rows)
+    # the summary's loads are the frames' (reads finished after the last frame apart)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["loaded_mb"] == pytest.approx(sum(float(r["loaded_mb"]) for r in rows))
+    assert summary["loaded_mb"] > 0.0 and summary["loaded_after_frames_mb"] >= 0.0
     assert all(float(r["build_cpu_ms"]) >= 0.0 for r in rows)
     assert all(float(r["strategy_gpu_mb"]) >= 0.0 and int(r["drawn_px"]) > 0 for r in rows)
 
@@ -242,7 +246,10 @@ def test_a_flythrough_that_sees_no_terrain_is_an_error_not_blank_frames(store, t
     res = _fly(store, _keyframes(tmp_path, [(0, *away), (1, *away)]), tmp_path / "f")
     assert res.exit_code == 2, res.output
     assert "--path: none of the 3 frame(s) of the camera path sees the DEM" in res.output
-    assert not list((tmp_path / "f").iterdir())  # no blank PNG, no frames.csv or summary
+    assert not (tmp_path / "f").exists()  # no blank PNG, no frames.csv, no empty folder
+    (tmp_path / "mine").mkdir()  # a folder the user made is left, empty as it was
+    res = _fly(store, _keyframes(tmp_path, [(0, *away), (1, *away)]), tmp_path / "mine")
+    assert res.exit_code == 2 and (tmp_path / "mine").is_dir()
     # positive control: turning to look at the DEM half way draws, and names the empty frames
     cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
     turn = [(0, cx, cy, 3000, 0, 80), (1, cx, cy, 3000, 0, -89)]
@@ -348,7 +355,7 @@ def test_a_flythrough_whose_frames_saw_the_dem_but_drew_nothing_is_an_error(
     monkeypatch.setattr(fly, "frame_step", nothing_drawn)
     with pytest.raises(RenderError, match=r"none of the 2 frame\(s\) drew terrain, though 2 saw"):
         flythrough(s, cams, tmp_path / "f", patch_log2=2)
-    assert not list((tmp_path / "f").iterdir())
+    assert not (tmp_path / "f").exists()  # no blank PNG, no empty folder it made
     # positive control: drawn for real, the same frames are written
     monkeypatch.setattr(fly, "frame_step", real)
     rows, summary = flythrough(s, cams, tmp_path / "g", patch_log2=2)
