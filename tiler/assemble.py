@@ -336,7 +336,7 @@ def repair_store(
 ) -> Any:
     """Recompute the blocks ``verify_store`` finds damaged, from ``src``; return the store."""
     from tiler.lease import WriterLease
-    from tiler.resume import check_same_job
+    from tiler.resume import check_same_job, source_of
     from tiler.store import TerrainStore
     from tiler.verify import verify_store
 
@@ -360,6 +360,7 @@ def repair_store(
                 "compression_level": old_job.get("compression_level", job["compression_level"]),
             },
             repair=True,
+            sources=(source_of(meta.source), src),
         )
         bad = sorted(report.bad_blocks)
         for name in report.bad_tables:

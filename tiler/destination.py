@@ -14,7 +14,7 @@ from tiler.interrupt import DeferredInterrupt
 from tiler.lease import LEASE_KEY
 from tiler.location import Location
 from tiler.meta import StoreMeta, read_meta, sealed, write_meta
-from tiler.resume import check_same_job, create_journal
+from tiler.resume import check_same_job, create_journal, source_of
 from tiler.schema import ATTR, compact_metadata, create_layout
 
 if TYPE_CHECKING:
@@ -23,12 +23,15 @@ if TYPE_CHECKING:
 log = logging.getLogger("tiler.tile")
 
 
-def check_unfinished_is_recreatable(loc: Location, old: StoreMeta, job: dict) -> None:
-    """An unfinished store without a resumable state: same job (or a layout kill) recreates it."""
+def check_unfinished_is_recreatable(
+    loc: Location, old: StoreMeta, job: dict, source: str | None = None
+) -> None:
+    """An unfinished store without a resumable state: same job (or a layout kill) recreates it
+    (``source``: this run's, named when the store's differs)."""
     if old.extra.get("state") == "layout":
         log.info("%s was interrupted while its layout was created: creating it again", loc.url)
         return
-    check_same_job(loc.url, old.extra.get("job"), job)
+    check_same_job(loc.url, old.extra.get("job"), job, sources=(source_of(old.source), source))
 
 
 def inspect_destination(loc: Location) -> tuple[str, StoreMeta | None, str]:

@@ -212,11 +212,39 @@ def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
     }
 
 
+def source_of(label: dict | None) -> str | None:
+    """A store metadata's ``source`` entry as :func:`check_same_job` names it: the path, or
+    the mosaic's name (its first file and how many more)."""
+    if not label:
+        return None
+    return label.get("name") if label.get("paths") else label.get("path")
+
+
+def _source_diff(was: Any, now: Any) -> str:
+    """The differing source, by name when they are known (its fingerprint after)."""
+    if was and now and str(was) != str(now):
+        return f"source: store was tiled from {str(was)!r}, this run reads {str(now)!r}"
+    if was or now:
+        name = str(was or now)
+        return (
+            f"source: {name!r} is not the file the store was tiled from as it was then (its "
+            "size, georeferencing, nodata or samples differ: edited or replaced since?)"
+        )
+    return "source: another file, or the same one changed (its fingerprint differs)"
+
+
 def check_same_job(
-    url: str, old: dict[str, Any] | None, new: dict[str, Any], *, repair: bool = False
+    url: str,
+    old: dict[str, Any] | None,
+    new: dict[str, Any],
+    *,
+    repair: bool = False,
+    sources: tuple[Any, Any] = (None, None),
 ) -> None:
     """Raise JobMismatchError naming every differing item and both of its values (``repair``:
-    the store is a finished one being repaired, not an unfinished one being resumed)."""
+    the store is a finished one being repaired, not an unfinished one being resumed;
+    ``sources``: the store's and this run's source names, said beside a differing
+    fingerprint, which alone names no file)."""
     store = "a store" if repair else "an unfinished store"
     then = "repair it" if repair else "finish it"
     if old is None:
@@ -231,8 +259,11 @@ def check_same_job(
     diffs = [
         f"{key}: store has {old.get(key)!r}, this run has {value!r}"
         for key, value in new.items()
-        if old.get(key) != value
+        if old.get(key) != value and key != "source_fingerprint"
     ]
+    if old.get("source_fingerprint") != new.get("source_fingerprint"):
+        was, now = sources
+        diffs.insert(0, _source_diff(was, now))
     if diffs:
         raise JobMismatchError(
             "{url!r} holds {store} of another job ({diffs}); rerun with the original source "

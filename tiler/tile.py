@@ -51,6 +51,7 @@ from tiler.resume import (
     check_same_job,
     job_identity,
     source_fingerprint,
+    source_of,
 )
 from tiler.schema import (
     DEFAULT_CLEVEL,
@@ -419,12 +420,17 @@ def _tile(
             lease.reassert()
             build(src, loc, meta, opts, progress, summary, lease, resume=False)
         elif kind == "store" and old.extra.get("state") in ("tiling", "finishing"):
-            check_same_job(loc.url, old.extra.get("job"), job)
+            check_same_job(
+                loc.url,
+                old.extra.get("job"),
+                job,
+                sources=(source_of(old.source), source_of(meta.source)),
+            )
             log.info("resuming unfinished store %s", loc.url)
             build(src, loc, meta, opts, progress, summary, lease, resume=True)
         else:
             if kind == "store":
-                check_unfinished_is_recreatable(loc, old, job)
+                check_unfinished_is_recreatable(loc, old, job, source_of(meta.source))
             clear_destination(loc)
             lease.reassert()
             build(src, loc, meta, opts, progress, summary, lease, resume=False)

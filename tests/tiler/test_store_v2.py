@@ -342,13 +342,32 @@ def test_resume_with_other_source_or_option_refused(dem_factory, tmp_path, monke
     with pytest.raises(KeyboardInterrupt):
         tile(a, tmp_path / "s.zarr", opts)
     monkeypatch.undo()
-    with pytest.raises(JobMismatchError, match="source_fingerprint: store has '[0-9a-f]+', this"):
+    # the message names both files (a fingerprint alone names none)
+    with pytest.raises(
+        JobMismatchError,
+        match=r"source: store was tiled from '.*a\.tif', this run reads '.*b\.tif'",
+    ):
         tile(b, tmp_path / "s.zarr", opts)
     with pytest.raises(
         JobMismatchError, match=f"compression_level: store has {DEFAULT_CLEVEL}, this run has 7"
     ):
         tile(a, tmp_path / "s.zarr", TileOptions(block_size=17, compression_level=7))
     tile(a, tmp_path / "s.zarr", opts)  # the original job still finishes
+    _interrupt(monkeypatch, 3)
+    with pytest.raises(KeyboardInterrupt):
+        tile(a, tmp_path / "t.zarr", opts)
+    monkeypatch.undo()
+    # the same file edited in place: named, and said to differ from what was tiled
+    edited = fractal((60, 60), 13)
+    import rasterio
+
+    with rasterio.open(a, "r+") as ds:
+        ds.write(edited.astype(ds.dtypes[0]), 1)
+    with pytest.raises(
+        JobMismatchError,
+        match=r"source: '.*a\.tif' is not the file the store was tiled from as it was then",
+    ):
+        tile(a, tmp_path / "t.zarr", opts)
 
 
 def test_killed_during_layout_is_recreated(dem_factory, tmp_path):
