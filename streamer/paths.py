@@ -234,6 +234,11 @@ def keyframes_from_records(
                 raise KeyframeError(f"keyframe {i}: {f} must be a number, got {raw!r}") from None
             if not math.isfinite(v):
                 raise KeyframeError(f"keyframe {i}: {f} must be finite, got {raw!r}")
+            if f == "pitch" and not -90.0 <= v <= 90.0:  # (an interpolated one would be named)
+                raise KeyframeError(
+                    f"keyframe {i}: pitch must be within [-90, 90] degrees (negative looks "
+                    f"down), got {raw!r}"
+                )
             cols[f].append(v)
     a = {f: np.array(v) for f, v in cols.items()}
     t = a["t"]

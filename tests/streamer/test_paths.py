@@ -202,8 +202,17 @@ def test_keyframes_single_and_roll():
         ([RECORDS[0], {**RECORDS[1], "t": 0.0}], "increase"),
         ([{**RECORDS[0], "z": "high"}], "z.*high"),
         ([{**RECORDS[0], "x": float("inf")}], "x.*finite"),
+        ([RECORDS[0], {**RECORDS[1], "pitch": -120}], r"^keyframe 1: pitch must be within"),
     ],
-    ids=["empty", "missing-column", "unsorted", "repeated-t", "not-a-number", "infinite"],
+    ids=[
+        "empty",
+        "missing-column",
+        "unsorted",
+        "repeated-t",
+        "not-a-number",
+        "infinite",
+        "pitch-beyond-90",
+    ],
 )
 def test_keyframes_invalid(records, match):
     with pytest.raises(KeyframeError, match=match) as info:
@@ -235,6 +244,9 @@ def test_a_bad_keyframe_record_names_its_file(tmp_path):
     f = tmp_path / "flight.csv"
     f.write_text(rows)
     with pytest.raises(KeyframeError, match=r"flight\.csv: keyframe times must strictly"):
+        keyframes(f, 3)
+    f.write_text("t,x,y,z,yaw,pitch\n0,0,0,100,0,-10\n1,0,0,100,0,95\n")  # 95: beyond 90
+    with pytest.raises(KeyframeError, match=r"flight\.csv: keyframe 1: pitch .* got '95'"):
         keyframes(f, 3)
     recs = [{"t": 1, "x": 0, "y": 0, "z": 100, "yaw": 0, "pitch": -10},
             {"t": 0, "x": 0, "y": 0, "z": 100, "yaw": 0, "pitch": -10}]  # fmt: skip
