@@ -19,7 +19,13 @@ from typing import Any
 import numpy as np
 import zarr
 
-from tiler.errors import JobMismatchError, SchedulerError, SourceError, StoreCorruptError
+from tiler.errors import (
+    HeightRangeError,
+    JobMismatchError,
+    SchedulerError,
+    SourceError,
+    StoreCorruptError,
+)
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt
 from tiler.location import Location
@@ -117,6 +123,12 @@ def build(
     except SchedulerError:
         if not resume and not done.any():  # (an unreachable scheduler: nothing was computed)
             loc.remove()  # leave no unfinished store that a rerun would be told to resume
+        raise
+    except HeightRangeError:
+        # samples no rerun can tile: the source must change first, and the changed source is
+        # another job; a store this run began is removed rather than left to be "resumed"
+        if not resume:
+            loc.remove()
         raise
     # a Ctrl-C during the final writes (zarr's synchronous calls: raised inside them it left
     # writes pending on zarr's loop) waits for them; once they are done the store is complete

@@ -7,6 +7,7 @@ declared, and real extremes (-11 km, +9 km)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 from demtools import fractal, write_dem
 
 from tiler.errors import HeightRangeError
+from tiler.store import open_store
 from tiler.tile import BlockParams, TileOptions, process_block, tile
 
 F32_MIN = float(np.finfo(np.float32).min)
@@ -35,10 +37,17 @@ def test_an_undeclared_float_sentinel_is_refused_naming_where(tmp_path, executor
     assert msg.startswith("und.tif, block (1, 1), first at row 40, column 50 of the DEM"), msg
     assert "25 sample(s) of -3.40282e+38 m" in msg and "-a_nodata" in msg and "und.tif`" in msg
     assert (e.value.row, e.value.col, e.value.count) == (40, 50, 25)
+    # no unfinished store is left that readers would call interrupted and a rerun could never
+    # finish (the source must change first: another job)
+    assert not (tmp_path / "s.zarr").exists()
     # the control: declared, the same samples are nodata and the store is complete
     ok = write_dem(tmp_path / "ok.tif", _dem(F32_MIN), nodata=F32_MIN)
     s = tile(ok, tmp_path / "ok.zarr", opts)
     assert s.meta.complete and s.meta.extra["value_range"][0] > -1e4
+    # and a finished store that the refused source was to replace is kept as it was
+    with pytest.raises(HeightRangeError):
+        tile(src, tmp_path / "ok.zarr", dataclasses.replace(opts, overwrite=True))
+    assert open_store(tmp_path / "ok.zarr").meta.complete
 
 
 def test_heights_in_millimetres_are_refused_and_real_extremes_are_not(tmp_path):
