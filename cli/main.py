@@ -55,7 +55,9 @@ def _root(
             help="More of terrastream's logging: -v info, -vv debug (and tracebacks).",
         ),
     ] = 0,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Only errors.")] = False,
+    quiet: Annotated[
+        bool, typer.Option("--quiet", "-q", help="No warnings or progress (results still print).")
+    ] = False,
     show_version: Annotated[
         bool,
         typer.Option(

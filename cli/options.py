@@ -252,6 +252,18 @@ StorageOptionsOpt = Annotated[
     ),
 ]
 
+#: ``tile``'s: it writes the store, and an http(s) store is read-only (refused at once)
+DstStorageOptionsOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--storage-options",
+        metavar="JSON",
+        help="fsspec storage options for an s3://, gs://... DST: a JSON object with keys "
+        "such as endpoint_url, key, secret, anon (default: the environment, e.g. "
+        "AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY).",
+    ),
+]
+
 
 def store_location(url: str, storage_options: str | None) -> Any:
     """``url`` itself, or a ``tiler.location.Location`` carrying the parsed storage options.

@@ -12,7 +12,7 @@ import typer
 
 from cli.checks import store_destination
 from cli.common import fail_on_errors
-from cli.options import StorageOptionsOpt, integer, number, store_location
+from cli.options import DstStorageOptionsOpt, integer, number, store_location
 from cli.progress import Progress
 
 Resampling = Enum(
@@ -123,7 +123,7 @@ def tile(
     retries: Annotated[
         int, integer("--retries", "dask: retries of a failed block before the run fails.", min=0)
     ] = 2,
-    storage_options: StorageOptionsOpt = None,
+    storage_options: DstStorageOptionsOpt = None,
 ) -> None:
     """Tile a DEM into a non-redundant level store.
 
