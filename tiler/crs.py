@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -236,9 +237,35 @@ def horizontal_unit(crs_wkt: str | None) -> tuple[str, float] | None:
         return None
     try:
         name, factor = crs.linear_units_factor
-    except CRSError:
-        return None
+    except CRSError:  # not projected: an engineering (local) CRS has its axes' unit all the same
+        try:
+            name, factor = crs.units_factor
+        except CRSError:
+            return None
     return str(name), float(factor)
+
+
+_VERT = re.compile(
+    r'(?:VERT_CS|VERTCRS|VERTICALCRS)\[.*?(?:LENGTHUNIT|UNIT)\["([^"]+)",\s*([0-9.eE+-]+)'
+)
+
+
+def vertical_crs_unit(crs: Any) -> str | None:
+    """The unit of a compound CRS's vertical part (``"foot"``, ``"US survey foot"``), as the
+    vertical-unit names :mod:`tiler.vertical` knows; None without one or in metres."""
+    if crs is None:
+        return None
+    m = _VERT.search(crs.to_wkt() if hasattr(crs, "to_wkt") else str(crs))
+    if m is None:
+        return None
+    name, factor = m.group(1), float(m.group(2))
+    if abs(factor - 1.0) < 1e-12:
+        return None
+    if abs(factor - 0.3048) < 1e-12:
+        return "foot"
+    if abs(factor - 1200.0 / 3937.0) < 1e-12:
+        return "US survey foot"
+    return name
 
 
 def non_metre_unit(crs_wkt: str | None) -> tuple[str, float] | None:

@@ -218,18 +218,22 @@ class MosaicReader:
     def _read_aligned(
         self, i: int, r0: int, c0: int, h: int, w: int
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Rows ``r0..r0+h``, columns ``c0..c0+w`` of source ``i`` counted north-up, and its
-        mask there (True = valid; None without one): a south-up source's rows are read from
-        the bottom and flipped, sample for sample."""
+        """Rows ``r0..r0+h``, columns ``c0..c0+w`` of source ``i`` counted north-up from the
+        west, and its mask there (True = valid; None without one): a south-up source's rows
+        are read from the bottom and flipped, sample for sample (columns running east to west
+        likewise)."""
         info = self.spec.sources[i]
         ds = self._dataset(i)
-        flip = info.transform[4] > 0
-        win = Window(c0, info.height - r0 - h if flip else r0, w, h)
+        flip, mirror = info.transform[4] > 0, info.transform[0] < 0
+        win = Window(
+            info.width - c0 - w if mirror else c0, info.height - r0 - h if flip else r0, w, h
+        )
         data = _read(ds.read, self.spec.band, win, info.path)
         mask = _read(ds.read_masks, self.spec.band, win, info.path) != 0 if info.masked else None
-        if flip:
-            data = data[::-1]
-            mask = None if mask is None else mask[::-1]
+        if flip or mirror:
+            turn = (slice(None, None, -1 if flip else 1), slice(None, None, -1 if mirror else 1))
+            data = data[turn]
+            mask = None if mask is None else mask[turn]
         return data, mask
 
     def _check_chosen_nodata(self, data: np.ndarray, valid: np.ndarray | None, i: int) -> None:

@@ -134,7 +134,8 @@ def _plan_aligned(
                 f"{info.path!r} has a rotated geotransform {info.transform}; give a target CRS "
                 "to reproject it north-up while tiling"
             )
-    # a south-up source (rows from south to north) is placed, and read, flipped: no resampling
+    # a south-up source (rows from south to north), or one whose columns run from east to
+    # west, is placed, and read, flipped: no resampling
     north = [_north_up(info) for info in infos]
     a, _, c, _, e, f = north[0]
     for info, nt in zip(infos, north, strict=True):
@@ -178,11 +179,14 @@ def _plan_aligned(
 
 
 def _north_up(info: SourceInfo) -> tuple[float, float, float, float, float, float]:
-    """The source's geotransform with its rows counted from the north (as it is if they are)."""
+    """The source's geotransform with its rows counted from the north and its columns from
+    the west (as it is if they are)."""
     a, b, c, d, e, f = info.transform
     if e > 0:  # row 0 is the southern edge: the north-up grid starts at the last row's end
-        return (a, b, c, d, -e, f + e * info.height)
-    return info.transform
+        e, f = -e, f + e * info.height
+    if a < 0:  # column 0 is the eastern edge: the grid starts at the last column's end
+        a, c = -a, c + a * info.width
+    return (a, b, c, d, e, f)
 
 
 def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> SourceInfo:

@@ -15,6 +15,7 @@ import rasterio
 import rasterio.errors
 from rasterio.enums import ColorInterp, MaskFlags
 
+from tiler.crs import vertical_crs_unit
 from tiler.encoding import parse_dtype
 from tiler.errors import SourceError, SourceNotFoundError, SourceUnavailableError
 from tiler.source_http import http_url, remote_env, server_failure, slow_advice
@@ -87,9 +88,15 @@ def _open_failed(path: str, exc: Exception) -> SourceError:
 
 
 def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
-    """Refuse a raster without a geotransform (GDAL's identity and no CRS), naming what it has
-    instead (ground control points, RPCs or nothing) and how to put it on a grid."""
-    if not (ds.transform.is_identity and ds.crs is None):
+    """Refuse a raster without a geotransform (GDAL's identity, with or without a CRS: a CRS
+    alone places nothing), naming what it has instead (ground control points, RPCs or
+    nothing) and how to put it on a grid; and a geotransform that is not finite."""
+    if not all(math.isfinite(v) for v in tuple(ds.transform)[:6]):
+        raise SourceError(
+            f"{path!r} has a geotransform that is not finite {tuple(ds.transform)[:6]}; fix it "
+            "(`gdal_edit.py -a_ullr ULX ULY LRX LRY`) and tile it again"
+        )
+    if not ds.transform.is_identity:
         return
     name = os.path.basename(path.rstrip("/"))
     gcps, gcp_crs = ds.gcps
@@ -104,6 +111,12 @@ def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:
         raise SourceError(
             f"{path!r} is georeferenced by RPCs, not a geotransform; orthorectify it onto a "
             f"grid first, e.g. `gdalwarp -rpc -t_srs <CRS> {name} grid.tif`, and tile that"
+        )
+    if ds.crs is not None:
+        raise SourceError(
+            f"{path!r} has a CRS but no geotransform (GDAL's identity: no position on the "
+            "ground, rows running south); give it its corners first, e.g. `gdal_translate "
+            f"-a_ullr ULX ULY LRX LRY {name} grid.tif`, and tile that"
         )
     raise SourceError(
         f"{path!r} is not georeferenced (no geotransform, ground control points or RPCs); "
@@ -180,7 +193,8 @@ def _read_info(path: str, band: int) -> SourceInfo:
         _check_nodata(path, ds.dtypes[band - 1], nodata)
         flags = ds.mask_flag_enums[band - 1]
         _warn_colour(path, band, ds.colorinterp[band - 1])
-        units = ds.units[band - 1] if ds.units else None
+        # the band's units, else the vertical part of a compound CRS (NAVD88 height in feet)
+        units = (ds.units[band - 1] if ds.units else None) or vertical_crs_unit(ds.crs)
         size = os.path.getsize(path) if not is_url(path) and os.path.isfile(path) else None
         return SourceInfo(
             path=path,
@@ -194,6 +208,8 @@ def _read_info(path: str, band: int) -> SourceInfo:
             offset=float(ds.offsets[band - 1]) if ds.offsets else 0.0,
             units=units or None,
             size_bytes=size,
-            masked=MaskFlags.per_dataset in flags or MaskFlags.alpha in flags,
+            # a per-dataset mask, an alpha band or the band's own mask band (GDAL's flags are
+            # then none of all-valid and nodata); a nodata value is applied as nodata
+            masked=MaskFlags.all_valid not in flags and MaskFlags.nodata not in flags,
             area_or_point=ds.tags().get("AREA_OR_POINT"),
         )

@@ -46,6 +46,16 @@ UNITS: dict[str, float] = {
     "us-ft": 1200.0 / 3937.0,
     "ftus": 1200.0 / 3937.0,
     "survey foot": 1200.0 / 3937.0,
+    "us survey feet": 1200.0 / 3937.0,
+    "us foot": 1200.0 / 3937.0,
+    "us feet": 1200.0 / 3937.0,
+    "foot_us": 1200.0 / 3937.0,  # (ESRI's spelling)
+    "foot us": 1200.0 / 3937.0,
+    "feet_us": 1200.0 / 3937.0,
+    "ft_us": 1200.0 / 3937.0,
+    "us_ft": 1200.0 / 3937.0,
+    "international feet": 0.3048,
+    "foot_international": 0.3048,
 }
 
 

@@ -7,6 +7,7 @@ import pytest
 import rasterio
 from demtools import shared_file, write_dem
 from rasterio.crs import CRS
+from rasterio.transform import Affine
 
 from tiler.accuracy import resampling_error
 from tiler.crs import (
@@ -382,3 +383,46 @@ def test_no_transformation_is_said_once_not_by_gdal_on_stderr():
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True, cwd=root)  # fmt: skip
     assert "has no transformation" in run.stdout and "ERROR" not in run.stderr, run.stderr
+
+
+def test_a_source_whose_columns_run_east_to_west_is_mirrored_sample_for_sample(tmp_path):
+    """A negative x pixel size (column 0 at the eastern edge) was tiled as it lay in the file:
+    `export` was right but the store's grid, `info`'s extent, xarray's x and every render were
+    mirrored east-west (exit 0). Now it is read mirrored, as a south-up source is flipped; the
+    control: the same DEM written west-to-east gives the same store."""
+    data = np.arange(20 * 30, dtype=np.int16).reshape(20, 30)
+    x0, y0 = 499980.0, 5000580.0  # the west and north edges
+    path = tmp_path / "west.tif"
+    with rasterio.open(
+        path, "w", driver="GTiff", width=30, height=20, count=1, dtype="int16",
+        crs="EPSG:32633", transform=Affine(-30.0, 0.0, x0 + 900.0, 0.0, -30.0, y0),
+    ) as dst:  # fmt: skip
+        dst.write(data[:, ::-1], 1)  # column 0: the eastern edge
+    s = tile(path, tmp_path / "w.zarr", TileOptions(block_size=33))
+    assert s.meta.geotransform == (30.0, 0.0, x0, 0.0, -30.0, y0)
+    np.testing.assert_array_equal(s.read_block((0, 0))[:20, :30], data)
+    plain = write_dem(tmp_path / "p.tif", data, crs="EPSG:32633", origin=(x0, y0))
+    p = tile(plain, tmp_path / "p.zarr", TileOptions(block_size=33))
+    assert p.meta.geotransform == s.meta.geotransform
+    np.testing.assert_array_equal(p.read_block((0, 0)), s.read_block((0, 0)))
+    # both ways at once (south-up and east-to-west): rows and columns turned
+    both = tmp_path / "both.tif"
+    with rasterio.open(
+        both, "w", driver="GTiff", width=30, height=20, count=1, dtype="int16",
+        crs="EPSG:32633", transform=Affine(-30.0, 0.0, x0 + 900.0, 0.0, 30.0, y0 - 600.0),
+    ) as dst:  # fmt: skip
+        dst.write(data[::-1, ::-1], 1)
+    b = tile(both, tmp_path / "b.zarr", TileOptions(block_size=33))
+    assert b.meta.geotransform == s.meta.geotransform
+    np.testing.assert_array_equal(b.read_block((0, 0))[:20, :30], data)
+
+
+def test_a_local_crs_in_feet_is_not_taken_as_metres():
+    """An engineering (LOCAL_CS) CRS in feet had no unit as far as the renderer knew (rasterio
+    defines no linear-units factor but for projected CRSs), so it was drawn as metres;
+    control: the same CRS in metres."""
+    from tiler.crs import non_metre_unit
+
+    ft = 'LOCAL_CS["site ft",UNIT["foot",0.3048],AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
+    assert non_metre_unit(ft) == ("foot", 0.3048)
+    assert non_metre_unit(ft.replace('"foot",0.3048', '"metre",1')) is None

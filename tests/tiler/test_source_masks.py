@@ -298,3 +298,67 @@ def test_a_store_given_as_the_source_is_named(tmp_path):
     with pytest.raises(SourceError, match=r"is a zarr store, not a DEM .*terrastream export"):
         tile(tmp_path / "d.zarr", tmp_path / "out.zarr", TileOptions(block_size=33))
     assert not (tmp_path / "out.zarr").exists()  # refused before anything was written
+
+
+def test_a_crs_without_a_geotransform_is_refused(tmp_path):
+    """A file with a CRS but no geotransform was tiled at x 0..w, y 0..h, its rows reversed
+    (GDAL's identity read as south-up), exit 0; refused now like one without a CRS. The
+    control: the same file given its corners tiles."""
+    data = fractal((40, 30), 7)
+    path = tmp_path / "c.tif"
+    with rasterio.open(
+        path, "w", driver="GTiff", width=30, height=40, count=1, dtype=data.dtype,
+        crs="EPSG:32633",
+    ) as d:  # fmt: skip
+        d.write(data, 1)
+    with pytest.raises(SourceError, match="has a CRS but no geotransform.*-a_ullr"):
+        tile(path, tmp_path / "c.zarr", TileOptions(block_size=33))
+    assert not (tmp_path / "c.zarr").exists()
+    with rasterio.open(path, "r+") as d:
+        d.transform = from_origin(500000.0, 5e6, 30.0, 30.0)
+    s = tile(path, tmp_path / "c.zarr", TileOptions(block_size=65))
+    assert np.array_equal(s.read_block((0, 0))[:40, :30], data)
+
+
+def test_a_geotransform_that_is_not_finite_is_refused_naming_it(tmp_path):
+    path = write_dem(tmp_path / "n.tif", fractal((40, 30), 7))
+    with rasterio.open(path, "r+") as d:
+        d.transform = rasterio.Affine(float("nan"), 0.0, float("nan"), 0.0, -30.0, 5e6)
+    with pytest.raises(SourceError, match=r"geotransform that is not finite \(nan"):
+        tile(path, tmp_path / "n.zarr", TileOptions(block_size=33))
+
+
+def test_a_band_s_own_mask_band_is_nodata(tmp_path):
+    """A band with its own mask band (a VRT's ``<MaskBand>``; GDAL's flags none of all-valid,
+    per-dataset, alpha or nodata) had its masked samples tiled as heights (-32000 m, exit 0,
+    ``verify --source`` ok). Control: the per-dataset mask of the same samples."""
+    data = fractal((60, 50), 1)
+    valid = np.ones(data.shape, bool)
+    valid[10:30, 5:25] = False
+    data[~valid] = -32000
+    base = write_dem(tmp_path / "d.tif", data)
+    msk = write_dem(tmp_path / "m.tif", np.where(valid, 255, 0).astype(np.uint8))
+    vrt = tmp_path / "b.vrt"
+    band = (
+        '<SimpleSource><SourceFilename relativeToVRT="1">{f}</SourceFilename>'
+        "<SourceBand>1</SourceBand></SimpleSource>"
+    )
+    with rasterio.open(base) as ds:
+        gt = ", ".join(repr(v) for v in ds.transform.to_gdal())
+        wkt = ds.crs.to_wkt()
+    vrt.write_text(
+        f'<VRTDataset rasterXSize="50" rasterYSize="60"><SRS>{wkt}</SRS>'
+        f"<GeoTransform>{gt}</GeoTransform>"
+        f'<VRTRasterBand dataType="{data.dtype.name.capitalize()}" band="1">'
+        + band.format(f=base.name)
+        + '<MaskBand><VRTRasterBand dataType="Byte">'
+        + band.format(f=msk.name)
+        + "</VRTRasterBand></MaskBand></VRTRasterBand></VRTDataset>"
+    )
+    with rasterio.open(vrt) as ds:
+        assert ds.mask_flag_enums[0] == []  # the band's own mask
+    s = tile(str(vrt), tmp_path / "b.zarr", TileOptions(block_size=65, workers=1))
+    h, m = _stored(s)
+    assert np.array_equal(m, valid) and np.array_equal(h[valid], data[valid])
+    c = tile(_masked(tmp_path / "p.tif", data, valid), tmp_path / "p.zarr", TileOptions(65))
+    assert np.array_equal(_stored(c)[1], m)

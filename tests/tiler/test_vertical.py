@@ -107,3 +107,34 @@ def test_precision_with_a_vertical_scale_is_refused(tmp_path):
     src = scaled_dem(tmp_path / "f.tif", fractal((20, 20), dtype="float32"), units="ft")
     with pytest.raises(SourceError, match="precision with a band scale"):
         tile(src, tmp_path / "f.zarr", TileOptions(block_size=17, precision=0.01))
+
+
+def test_feet_declared_only_by_a_compound_crs_are_feet(tmp_path):
+    """A DEM in EPSG:32633+8228 (NAVD88 height in ft) whose band declares no unit was tiled as
+    metres (3.28x too tall, exit 0): the vertical CRS's unit now applies when the band gives
+    none. Control: the same samples in EPSG:32633+5703 (metres) stay as they are."""
+    data = fractal((40, 30), seed=9, dtype="float32") + 300.0
+    base = write_dem(tmp_path / "d.tif", data)
+    with rasterio.open(base) as ds:
+        gt = ", ".join(repr(v) for v in ds.transform.to_gdal())
+    for crs, factor in (("EPSG:32633+8228", 0.3048), ("EPSG:32633+5703", 1.0)):
+        # a VRT: a GeoTIFF would also write the unit as the band's (GDAL reads it back so)
+        wkt = rasterio.crs.CRS.from_user_input(crs).to_wkt().replace('"', "&quot;")
+        path = tmp_path / f"{factor}.vrt"
+        path.write_text(
+            f'<VRTDataset rasterXSize="30" rasterYSize="40"><SRS>{wkt}</SRS>'
+            f'<GeoTransform>{gt}</GeoTransform><VRTRasterBand dataType="Float32" band="1">'
+            '<SimpleSource><SourceFilename relativeToVRT="1">d.tif</SourceFilename>'
+            "<SourceBand>1</SourceBand></SimpleSource></VRTRasterBand></VRTDataset>"
+        )
+        with rasterio.open(path) as ds:
+            assert not ds.units[0]  # no unit on the band: only the CRS says feet
+        s = tile(str(path), tmp_path / f"{factor}.zarr", TileOptions(block_size=65))
+        got = s.read_block((0, 0))[:40, :30]
+        np.testing.assert_allclose(got, data.astype(np.float64) * factor, rtol=1e-12)
+
+
+def test_esri_and_us_spellings_of_the_survey_foot_are_known():
+    for name in ("Foot_US", "US survey feet", "ft_US", "us foot"):
+        assert metres_per_unit(name) == pytest.approx(1200 / 3937), name
+    assert metres_per_unit("foot_international") == 0.3048
