@@ -6,7 +6,7 @@ Exit statuses (rio's convention), also printed at the end of every command's ``-
 * 1 — the command started and failed (an I/O error, a damaged store, a library failure);
 * 2 — usage: a bad option or argument value, a missing input, an output that exists without
   ``--overwrite``, a missing capability (no display / OpenGL);
-* 130 — interrupted (Ctrl-C); rerunning the same command resumes where it can.
+* 130 — interrupted (Ctrl-C); rerunning the same ``tile`` resumes its store.
 """
 
 from __future__ import annotations
@@ -34,9 +34,11 @@ EXIT_USER_ERROR = EXIT_USAGE
 EXIT_STATUS_HELP = (
     "Exit status: 0 success; 1 the command failed while running (I/O error, damaged store, "
     "library failure); 2 usage error (bad value, missing input, existing output without "
-    "--overwrite, no display or OpenGL); 130 interrupted (rerun the same command to resume)."
+    "--overwrite, no display or OpenGL); 130 interrupted (a rerun of `tile` resumes)."
 )
-INTERRUPTED_MESSAGE = "interrupted; rerun the same command to resume"
+INTERRUPTED_MESSAGE = "interrupted"
+#: ``tile``'s: its store resumes (other commands start again: nothing of theirs resumes)
+RESUME_MESSAGE = "interrupted; rerun the same command to resume"
 
 #: the loggers -v/-vv raise (every other library stays at WARNING)
 OWN_LOGGERS = ("tiler", "streamer", "render", "cli", "terrastream", "bench")
@@ -180,8 +182,9 @@ _PASS_THROUGH = (
 
 
 @contextmanager
-def fail_on_errors() -> Iterator[None]:
-    """Any error → one ``error: …`` line on stderr and exit 1 or 2; Ctrl-C → exit 130.
+def fail_on_errors(*, resumable: bool = False) -> Iterator[None]:
+    """Any error → one ``error: …`` line on stderr and exit 1 or 2; Ctrl-C → exit 130 (with
+    "rerun the same command to resume" when the command is ``resumable``).
 
     The traceback is printed too with ``-vv``. Click's own usage errors pass through.
     """
@@ -190,7 +193,7 @@ def fail_on_errors() -> Iterator[None]:
     except _PASS_THROUGH:
         raise
     except KeyboardInterrupt:
-        typer.echo(INTERRUPTED_MESSAGE, err=True)
+        typer.echo(RESUME_MESSAGE if resumable else INTERRUPTED_MESSAGE, err=True)
         raise typer.Exit(EXIT_INTERRUPTED) from None
     except BrokenPipeError:
         # the reader of our output went away (`| head`): exit 1 without a message, as other

@@ -158,7 +158,7 @@ def flythrough(
                     on_frame(row)
             # reads still in flight may finish, fail or never answer: say which (as `stream`)
             unfinished, summary = close_for_verdict(session)
-    except Exception as exc:  # a flight stopped midway keeps the statistics of its frames
+    except BaseException as exc:  # a flight stopped midway (Ctrl-C too) keeps its frames' figures
         if rows:
             write_rows(out, rows)
             exc.frames_flown = len(rows)  # type: ignore[attr-defined]

@@ -30,7 +30,7 @@ $TS stream "$OUT/demo.zarr" --frames 300 --fps 60 --latency-ms 20 --workers 8 \
 echo "== 6. render an overview at tau = 1 px"
 $TS render "$OUT/demo.zarr" --size 1024x768 --tau 1 -o "$OUT/view.png"
 echo "== 7. render 30 frames of the fly-through"
-$TS flythrough "$OUT/demo.zarr" --frames 30 --size 640x480 --tau 1 --out "$OUT/frames"
+$TS flythrough "$OUT/demo.zarr" --frames 30 --size 640x480 --tau 1 --out "$OUT/frames" --overwrite
 echo "== 8. measure the speed/accuracy trade on a low oblique view from 8 km south of the DEM"
 echo "      (the overview of step 6 is drawn from the coarsest patches at every tau >= 1)"
 LOW=(--camera 530735,4930000,4000 --yaw 0 --pitch -12)

@@ -70,6 +70,14 @@ def flythrough(
             "change's is built on a worker thread and frames use the previous one meanwhile.",
         ),
     ] = False,
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Replace the frames, frames.csv and summary.json of an earlier fly-through "
+            "in --out (other files there are left).",
+        ),
+    ] = False,
 ) -> None:
     """Stream and render a camera path: PNG frames, frames.csv and a summary.
 
@@ -89,6 +97,7 @@ def flythrough(
             opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
             input_file(path, "--path")
             output_dir(out, "--out")
+            earlier_outputs(out, overwrite)
             s = open_store_arg(store_location(store, storage_options), projected=True)
             cams = make_path(
                 s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport
@@ -120,13 +129,15 @@ def flythrough(
                 )
             except PathOutOfViewError as exc:
                 raise UsageError(str(exc), hint="--path") from None
-            except Exception as exc:
+            except BaseException as exc:  # (Ctrl-C included: its frames are kept the same way)
                 flown = getattr(exc, "frames_flown", 0)
                 if flown:  # frames.csv has them; the summary says where and why it stopped
                     stopped = {
                         "after_frames": flown,
                         "of_frames": len(cams),
-                        "error": one_line(exc),
+                        "error": "interrupted (Ctrl-C)"
+                        if isinstance(exc, KeyboardInterrupt)
+                        else one_line(exc),
                     }
                     (out / "summary.json").write_text(json.dumps({"stopped": stopped}, indent=1))
                     typer.echo(
@@ -177,6 +188,26 @@ def flythrough(
                 raise typer.Exit(EXIT_RUNTIME)
     finally:
         remove_if_left_empty(out, made)
+
+
+def earlier_outputs(out: Path, overwrite: bool) -> None:
+    """Refuse an ``out`` holding an earlier fly-through's files (its PNGs would stay beside
+    the new ones, unlike them), or remove those files when ``overwrite``."""
+    old = sorted(out.glob("frame_*.png")) + [
+        p for p in (out / "frames.csv", out / "summary.json") if p.exists()
+    ]
+    if not old:
+        return
+    if not overwrite:
+        pngs = sum(p.suffix == ".png" for p in old)
+        raise UsageError(
+            f"{str(out)!r} holds an earlier fly-through ({pngs} frame PNG(s)"
+            + (", frames.csv" if (out / "frames.csv").exists() else "")
+            + "); pass --overwrite to replace it, or give another --out",
+            hint="--out",
+        )
+    for p in old:
+        p.unlink()
 
 
 def register(app: typer.Typer) -> None:

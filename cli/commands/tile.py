@@ -143,7 +143,7 @@ def tile(
     from tiler.tile import tile as run_tile
 
     src, dst = _sources_and_destination(paths, from_list)
-    with fail_on_errors():
+    with fail_on_errors(resumable=True):
         store_destination(dst)
         target = store_location(dst, storage_options)
         opts = TileOptions(

@@ -513,3 +513,47 @@ def test_a_keyframe_path_under_the_ground_is_warned_about_by_stream_and_compare(
     res = runner.invoke(app, [*args, "--path", _keyframes(tmp_path, above)])
     assert res.exit_code == 0, res.output
     assert "below the terrain" not in res.output
+
+
+def test_a_flythrough_into_an_earlier_one_s_folder_needs_overwrite(store, tmp_path):
+    """A second fly-through into the same --out left the first one's extra PNGs beside the new
+    frames (20 PNGs, frames.csv of 10 rows, exit 0). It is refused now; --overwrite removes
+    the earlier frames first and leaves other files."""
+    out = tmp_path / "f"
+    base = ["flythrough", store, "--size", "64x48", "--patch-log2", "2", "--out", str(out)]
+    assert runner.invoke(app, [*base, "--frames", "4"]).exit_code == 0
+    (out / "notes.txt").write_text("mine")
+    res = runner.invoke(app, [*base, "--frames", "2"])
+    assert res.exit_code == 2 and "holds an earlier fly-through (4 frame PNG(s)" in res.output
+    assert len(list(out.glob("frame_*.png"))) == 4  # nothing touched
+    res = runner.invoke(app, [*base, "--frames", "2", "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_00000.png", "frame_00001.png"]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert json.loads((out / "summary.json").read_text())["frames"] == 2
+
+
+def test_a_flythrough_stopped_by_ctrl_c_keeps_its_frames_figures(store, tmp_path, monkeypatch):
+    """Ctrl-C left the PNGs flown without frames.csv or summary.json (an error kept them);
+    now both, `stopped` saying it was interrupted, and exit 130."""
+    import render.flythrough as fly
+
+    real, calls = fly.frame_step, []
+
+    def stop_at_third(*a, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*a, **kw)
+
+    monkeypatch.setattr(fly, "frame_step", stop_at_third)
+    out = tmp_path / "f"
+    args = ["flythrough", store, "--size", "64x48", "--frames", "5", "--patch-log2", "2",
+            "--out", str(out)]  # fmt: skip
+    res = runner.invoke(app, args)
+    assert res.exit_code == 130, res.output
+    assert res.output.strip().endswith("interrupted")
+    with (out / "frames.csv").open(newline="") as f:
+        assert len(list(csv.DictReader(f))) == 2
+    stopped = json.loads((out / "summary.json").read_text())["stopped"]
+    assert stopped == {"after_frames": 2, "of_frames": 5, "error": "interrupted (Ctrl-C)"}
