@@ -20,6 +20,7 @@ from streamer.errors import KeyframeError, PathError
 from tiler.grid import BlockGrid
 
 KEYFRAME_FIELDS = ("t", "x", "y", "z", "yaw", "pitch")
+LINE = "__line__"  # a CSV record's line in its file, for the messages
 
 
 def _count(name: str, value: int) -> int:
@@ -189,7 +190,13 @@ def teleports(
 def read_keyframes(path: str | Path) -> list[dict[str, object]]:
     """Keyframe records from a ``.json`` or ``.csv`` file (see :func:`keyframes`)."""
     p = Path(path)
-    text = p.read_text(encoding="utf-8")
+    try:  # (utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark)
+        text = p.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise KeyframeError(
+            f"{p}: not UTF-8 text (byte {e.start} is {e.object[e.start : e.start + 1]!r}); "
+            "save it as UTF-8"
+        ) from None
     if p.suffix.lower() == ".json":
         try:
             data = json.loads(text)
@@ -200,7 +207,15 @@ def read_keyframes(path: str | Path) -> list[dict[str, object]]:
         return [dict(r) for r in data]
     if p.suffix.lower() == ".csv":
         rows = csv.DictReader(text.splitlines())
-        return [{(k or "").strip(): v for k, v in r.items()} for r in rows]
+        out: list[dict[str, object]] = []
+        for r in rows:
+            if None in r:  # more fields than the header names
+                raise KeyframeError(
+                    f"{p}: line {rows.line_num} has {len(r) - 1 + len(r[None])} fields, the "
+                    f"header {len(rows.fieldnames or ())}"
+                )
+            out.append({(k or "").strip(): v for k, v in r.items()} | {LINE: rows.line_num})
+        return out
     raise KeyframeError(f"{p}: keyframe files must end in .json or .csv, got {p.suffix!r}")
 
 
@@ -223,20 +238,23 @@ def keyframes_from_records(
         raise KeyframeError("keyframes need at least one record")
     cols: dict[str, list[float]] = {f: [] for f in (*KEYFRAME_FIELDS, "roll")}
     for i, r in enumerate(recs):
+        name = f"keyframe {i}" + (f" (line {r[LINE]})" if LINE in r else "")
         missing = [f for f in KEYFRAME_FIELDS if f not in r]
         if missing:
-            raise KeyframeError(f"keyframe {i} lacks {missing} (needs {list(KEYFRAME_FIELDS)})")
+            raise KeyframeError(f"{name} lacks {missing} (needs {list(KEYFRAME_FIELDS)})")
         for f in cols:
             raw = r.get(f, 0.0) if f == "roll" else r[f]
             try:
+                if isinstance(raw, bool):  # (JSON true/false: not 1 and 0)
+                    raise TypeError
                 v = float(raw)  # type: ignore[arg-type]
             except (TypeError, ValueError):
-                raise KeyframeError(f"keyframe {i}: {f} must be a number, got {raw!r}") from None
+                raise KeyframeError(f"{name}: {f} must be a number, got {raw!r}") from None
             if not math.isfinite(v):
-                raise KeyframeError(f"keyframe {i}: {f} must be finite, got {raw!r}")
+                raise KeyframeError(f"{name}: {f} must be finite, got {raw!r}")
             if f == "pitch" and not -90.0 <= v <= 90.0:  # (an interpolated one would be named)
                 raise KeyframeError(
-                    f"keyframe {i}: pitch must be within [-90, 90] degrees (negative looks "
+                    f"{name}: pitch must be within [-90, 90] degrees (negative looks "
                     f"down), got {raw!r}"
                 )
             cols[f].append(v)

@@ -246,8 +246,32 @@ def test_a_bad_keyframe_record_names_its_file(tmp_path):
     with pytest.raises(KeyframeError, match=r"flight\.csv: keyframe times must strictly"):
         keyframes(f, 3)
     f.write_text("t,x,y,z,yaw,pitch\n0,0,0,100,0,-10\n1,0,0,100,0,95\n")  # 95: beyond 90
-    with pytest.raises(KeyframeError, match=r"flight\.csv: keyframe 1: pitch .* got '95'"):
+    with pytest.raises(KeyframeError, match=r"flight\.csv: keyframe 1 \(line 3\): pitch .* '95'"):
         keyframes(f, 3)
+
+
+def test_keyframe_files_as_spreadsheets_and_editors_write_them(tmp_path):
+    """A "CSV UTF-8" file (a byte-order mark first) was refused as lacking ``t``; a Latin-1
+    byte gave a bare UnicodeDecodeError; JSON ``true`` passed as 1.0; a row with more fields
+    than the header passed. Controls: the same file without the mark; the record as numbers."""
+    rows = "t,x,y,z,yaw,pitch\n0,0,0,100,0,-10\n1,5,0,100,0,-10\n"
+    f = tmp_path / "k.csv"
+    f.write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    bom = keyframes(f, 2)
+    f.write_text(rows)
+    assert keyframes(f, 2) == bom and bom[1].position[0] == 5.0
+    f.write_bytes(rows.replace("100,0,-10\n1", "100,0,-10 \xe9\n1").encode("latin-1"))
+    with pytest.raises(KeyframeError, match=r"k\.csv: not UTF-8 text \(byte \d+ is b'\\xe9'\)"):
+        keyframes(f, 2)
+    f.write_text(rows + "2,5,5,100,0,-10,7\n")
+    with pytest.raises(KeyframeError, match=r"k\.csv: line 4 has 7 fields, the header 6"):
+        keyframes(f, 2)
+    j = tmp_path / "k.json"
+    j.write_text(json.dumps([{**RECORDS[0], "x": True}, RECORDS[1]]))
+    with pytest.raises(KeyframeError, match=r"keyframe 0: x must be a number, got True"):
+        keyframes(j, 2)
+    j.write_text(json.dumps([{**RECORDS[0], "x": 1}, RECORDS[1]]))
+    assert keyframes(j, 2)[0].position[0] == 1.0
     recs = [{"t": 1, "x": 0, "y": 0, "z": 100, "yaw": 0, "pitch": -10},
             {"t": 0, "x": 0, "y": 0, "z": 100, "yaw": 0, "pitch": -10}]  # fmt: skip
     with pytest.raises(KeyframeError, match="^keyframe times must strictly"):
