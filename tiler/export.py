@@ -95,8 +95,8 @@ def export_geotiff(
         )
     dtype = np.dtype(m.dtype)
     nodata = m.nodata
-    if nodata is None and dtype.kind == "f" and bool(store.index.has_nodata.any()):
-        nodata = float("nan")
+    if nodata is None and dtype.kind == "f" and _holes_inside(store):
+        nodata = float("nan")  # (masked samples, NaN, with no value declared)
     profile = {
         "driver": "GTiff",
         "width": width,
@@ -144,7 +144,9 @@ def _write_levels(
         raise StoreError(f"cannot write {str(out)!r}: {exc}") from exc
     with dst:
         _write_vertical(dst, store)
-        if m.extra.get("area_or_point") == "Point":  # (the transform read back is the same)
+        # (the transform read back is the same; a GeoTIFF without a CRS cannot say it without
+        # GDAL inventing one, LOCAL_CS["unnamed"], which a re-tiling would then keep)
+        if m.extra.get("area_or_point") == "Point" and m.crs_wkt:
             dst.update_tags(AREA_OR_POINT="Point")
         for br in range(grid.rows):
             r0 = br * bstep
@@ -189,6 +191,13 @@ def _write_vertical(dst: rasterio.io.DatasetWriter, store: TerrainStore) -> None
         dst.offsets = (float(v["offset"]),)
     if store.meta.vertical_units:
         dst.units = (store.meta.vertical_units,)
+
+
+def _holes_inside(store: TerrainStore) -> bool:
+    """True if the DEM has masked samples (the padding past its edge is not one)."""
+    from tiler.info import blocks_with_nodata
+
+    return not bool(store.index.exists.all()) or blocks_with_nodata(store) > 0
 
 
 def _fill_value(dtype: np.dtype, nodata: float | None):
@@ -296,7 +305,7 @@ def export_cog(
             )
         band.append("</VRTRasterBand>")
         xml = [f'<VRTDataset rasterXSize="{width}" rasterYSize="{height}">']
-        if store.meta.extra.get("area_or_point") == "Point":
+        if store.meta.extra.get("area_or_point") == "Point" and crs_wkt:  # (as above)
             xml.append('<Metadata><MDI key="AREA_OR_POINT">Point</MDI></Metadata>')
         if crs_wkt:
             xml.append(f"<SRS>{escape(crs_wkt)}</SRS>")

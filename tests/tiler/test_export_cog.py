@@ -157,3 +157,32 @@ def test_a_store_replaced_during_an_export_is_an_error_not_a_mixed_raster(tmp_pa
     export_geotiff(open_store(tmp_path / "s.zarr"), tmp_path / "y.tif")  # (the control)
     with rasterio.open(tmp_path / "y.tif") as a, rasterio.open(other) as b:
         np.testing.assert_array_equal(a.read(1), b.read(1))
+
+
+def test_export_declares_no_nodata_and_invents_no_crs_a_source_lacks(tmp_path):
+    """A float DEM without nodata whose edge blocks hold padding exported with nodata NaN
+    (the padding counted as nodata), and a point DEM without a CRS gained GDAL's
+    LOCAL_CS["unnamed"] with its AREA_OR_POINT tag, which a re-tiling kept. Controls: a DEM
+    with NaN voids exports nodata NaN; a point DEM with a CRS keeps its tag."""
+    data = np.round(fractal((300, 280), seed=3).astype(np.float32) * 4) / 4
+    src = tmp_path / "f.asc"  # an ASCII grid by its cell centres: points, no CRS
+    src.write_text(
+        "ncols 280\nnrows 300\nxllcenter 0.5\nyllcenter 0.5\ncellsize 1\n"
+        + "\n".join(" ".join(f"{v:g}" for v in row) for row in data)
+        + "\n"
+    )
+    with rasterio.open(src) as ds:
+        assert ds.crs is None and ds.tags().get("AREA_OR_POINT") == "Point"
+    s = tile(str(src), tmp_path / "f.zarr", TileOptions(block_size=257))  # 2x2, padding
+    assert s.index.has_nodata.any()  # (the padding)
+    for out, write in (("g.tif", export_geotiff), ("c.tif", export_cog)):
+        write(s, tmp_path / out)
+        with rasterio.open(tmp_path / out) as b:
+            assert b.nodata is None and b.crs is None, out
+            np.testing.assert_array_equal(b.read(1), data)
+    voids = data.copy()
+    voids[10:20, 10:20] = np.nan
+    v = tile(write_dem(tmp_path / "v.tif", voids), tmp_path / "v.zarr", TileOptions(257))
+    export_geotiff(v, tmp_path / "v_out.tif")
+    with rasterio.open(tmp_path / "v_out.tif") as b:
+        assert b.nodata is not None and np.isnan(b.nodata)
