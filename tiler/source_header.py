@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import warnings
 from dataclasses import dataclass
 
@@ -49,12 +50,24 @@ class SourceInfo:
     area_or_point: str | None = None
 
 
+#: GDAL's connection strings naming a part of a file: ``NETCDF:"f.nc":elevation``,
+#: ``HDF5:"f.h5"://grp/dem``, ``GTIFF_DIR:2:f.tif``
+_GDAL_SUBDATASET = re.compile(r"^[A-Za-z][A-Za-z0-9_]+:(?!//)")  # (rasterio lists netcdf:...)
+
+
+def is_file_path(path: str) -> bool:
+    """True if ``path`` names a file on this machine (not a URL, a ``/vsi...`` path or a GDAL
+    subdataset such as ``NETCDF:"f.nc":elevation``): one whose absence can be told at once."""
+    text = str(path)
+    return not (is_url(text) or text.startswith("/vsi") or _GDAL_SUBDATASET.match(text))
+
+
 def open_raster(path: str) -> rasterio.DatasetReader:
     """Open a source raster with rasterio (a remote one with
     :func:`~tiler.source_http.remote_env`'s time limits); a missing file or one GDAL cannot
     read is a :class:`SourceError` naming the path, a URL whose server failed a
     :class:`SourceUnavailableError` (:func:`_open_failed`)."""
-    if not is_url(path) and not path.startswith("/vsi") and not os.path.exists(path):
+    if is_file_path(path) and not os.path.exists(path):
         raise SourceNotFoundError(f"source raster {path!r} does not exist")
     try:
         with warnings.catch_warnings(), remote_env(path):
@@ -177,12 +190,26 @@ def _read_info(path: str, band: int) -> SourceInfo:
                     f"already: `terrastream export {path} dem.tif` rebuilds its DEM); give the "
                     "source DEM"
                 )
+            if ds.subdatasets:  # a netCDF/HDF file of several variables
+                subs = ds.subdatasets
+                listed = ", ".join(subs[:6]) + (" ..." if len(subs) > 6 else "")
+                raise SourceError(
+                    f"{path!r} holds {len(subs)} rasters, not one; give the DEM's as GDAL "
+                    f"names it: {listed}"
+                )
             raise SourceError(
                 f"{path!r} has no raster bands (GDAL's {ds.driver} driver opened it); give a "
                 "DEM raster"
             )
         if band > ds.count:
             raise SourceError(f"band {band} does not exist: {path!r} has {ds.count} band(s)")
+        if ds.count > 1:
+            log.warning(
+                "%r has %d bands; band %d is read as the heights (tile --band chooses another)",
+                path,
+                ds.count,
+                band,
+            )
         if ds.height < 2 or ds.width < 2:
             raise SourceError(
                 f"{path!r} is {ds.height}x{ds.width} samples; a DEM needs at least 2x2"

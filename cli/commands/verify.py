@@ -18,9 +18,10 @@ MAX_LISTED = 20  # problems printed one per line; the rest are counted (all are 
 def verify(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
     source: Annotated[
-        list[Path] | None,
+        list[str] | None,
         typer.Option(
             "--source",
+            metavar="SRC",
             help="Also recompute every block's digest from this source DEM (read with the "
             "store's band and reprojection); repeat it for each source of a mosaic, in order.",
         ),
@@ -35,14 +36,16 @@ def verify(
     Example: terrastream verify n44.zarr --source N44W072.hgt
     """
     from tiler.remote import is_http
+    from tiler.source_header import is_file_path
     from tiler.verify import verify_store
 
     with fail_on_errors():
         if is_local(store) and not Path(store).exists():
             open_store_arg(store)  # the usage error
         not_a_store(store)
-        for path in source or []:
-            input_file(path, "--source")
+        for path in source or []:  # (a URL, /vsi... path or subdataset is checked on open)
+            if is_file_path(path):
+                input_file(Path(path), "--source")
         rep = verify_store(store_location(store, storage_options), source=source or None)
         if as_json:
             typer.echo(json.dumps(rep.to_json(), indent=2))

@@ -362,3 +362,90 @@ def test_a_band_s_own_mask_band_is_nodata(tmp_path):
     assert np.array_equal(m, valid) and np.array_equal(h[valid], data[valid])
     c = tile(_masked(tmp_path / "p.tif", data, valid), tmp_path / "p.zarr", TileOptions(65))
     assert np.array_equal(_stored(c)[1], m)
+
+
+def _two_variable_netcdf(path: Path, z: np.ndarray) -> Path:
+    """A netCDF-3 file holding ``slope`` then ``elevation`` on a 30 m UTM grid (GDAL lists
+    them as subdatasets), written byte by byte (the netCDF classic format)."""
+    import struct
+
+    h, w = z.shape
+
+    def name(s: str) -> bytes:
+        b = s.encode()
+        return struct.pack(">i", len(b)) + b + b"\0" * (-len(b) % 4)
+
+    def text(k: str, v: str) -> bytes:
+        b = v.encode()
+        return name(k) + struct.pack(">ii", 2, len(b)) + b + b"\0" * (-len(b) % 4)
+
+    xs = 500000 + 30 * (np.arange(w) + 0.5)
+    ys = 4000000 - 30 * (np.arange(h) + 0.5)
+    std = "standard_name"
+    variables = [
+        ("y", [0], 6, ys.astype(">f8"), [("units", "m"), (std, "projection_y_coordinate")]),
+        ("x", [1], 6, xs.astype(">f8"), [("units", "m"), (std, "projection_x_coordinate")]),
+        ("slope", [0, 1], 5, np.full((h, w), 7, ">f4"), [("units", "degree")]),
+        ("elevation", [0, 1], 5, z.astype(">f4"), [("units", "m")]),
+    ]  # fmt: skip
+
+    def header(begins: list[int]) -> bytes:
+        out = b"CDF\x01" + struct.pack(">i", 0) + struct.pack(">ii", 10, 2)
+        out += name("y") + struct.pack(">i", h) + name("x") + struct.pack(">i", w)
+        out += struct.pack(">ii", 0, 0) + struct.pack(">ii", 11, len(variables))
+        for (n, dims, t, data, atts), begin in zip(variables, begins, strict=True):
+            out += name(n) + struct.pack(">i", len(dims))
+            out += b"".join(struct.pack(">i", d) for d in dims)
+            out += struct.pack(">ii", 12, len(atts)) + b"".join(text(k, v) for k, v in atts)
+            out += struct.pack(">iii", t, data.nbytes + (-data.nbytes % 4), begin)
+        return out
+
+    begins, offset = [], len(header([0] * len(variables)))
+    for v in variables:
+        begins.append(offset)
+        offset += v[3].nbytes + (-v[3].nbytes % 4)
+    with open(path, "wb") as f:
+        f.write(header(begins))
+        for v in variables:
+            f.write(v[3].tobytes() + b"\0" * (-v[3].nbytes % 4))
+    return path
+
+
+def test_a_netcdf_of_several_variables_names_them_and_one_tiles_by_its_gdal_name(tmp_path):
+    """A netCDF holding several variables was refused as "no raster bands", and the GDAL name
+    of one (``NETCDF:"f.nc":elevation``) as "does not exist" (`tile`, and `verify --source`,
+    which also mangled URLs); the variable now tiles and verifies, and the file's error lists
+    the names to give."""
+    z = fractal((40, 30), 7).astype(np.float32)
+    nc = _two_variable_netcdf(tmp_path / "multi.nc", z)
+    with pytest.raises(SourceError, match=r"holds 2 rasters, not one; .*netcdf:[^,]+:elevation"):
+        tile(str(nc), tmp_path / "m.zarr", TileOptions(block_size=65))
+    sub = f'NETCDF:"{nc}":elevation'
+    s = tile(sub, tmp_path / "e.zarr", TileOptions(block_size=65))
+    assert np.array_equal(s.read_block((0, 0))[:40, :30], z)
+    r = CliRunner().invoke(app, ["verify", str(tmp_path / "e.zarr"), "--source", sub])
+    assert r.exit_code == 0 and "source digests compared" in r.output, r.output
+    listed = f"netcdf:{nc}:elevation"  # (as the message lists it: rasterio's spelling)
+    assert np.array_equal(
+        tile(listed, tmp_path / "l.zarr", TileOptions(65)).read_block((0, 0))[:40, :30], z
+    )
+    # the control: a missing plain file is still refused at once, naming it
+    r = CliRunner().invoke(app, ["verify", str(tmp_path / "e.zarr"), "--source", "nope.nc"])
+    assert r.exit_code == 2 and "'nope.nc' does not exist" in r.output, r.output
+
+
+def test_a_multi_band_source_says_which_band_is_tiled(tmp_path, caplog):
+    data = fractal((40, 30), 7)
+    path = tmp_path / "two.tif"
+    with rasterio.open(
+        path, "w", width=30, height=40, dtype=data.dtype, **dict(PROFILE, count=2)
+    ) as d:
+        d.write(np.stack([data, data + 5]))
+    with caplog.at_level("WARNING"):
+        s = tile(path, tmp_path / "t.zarr", TileOptions(block_size=65, band=2))
+    assert "has 2 bands; band 2 is read as the heights" in caplog.text
+    assert np.array_equal(s.read_block((0, 0))[:40, :30], data + 5)
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        tile(write_dem(tmp_path / "one.tif", data), tmp_path / "o.zarr", TileOptions(65))
+    assert "bands" not in caplog.text  # the control: one band, nothing to say
