@@ -167,6 +167,36 @@ def _check_done_unchanged(
         )
 
 
+def _check_repair_source(
+    src: Any, band: int, meta: StoreMeta, group: zarr.Group, bad: list, loc: Any
+) -> None:
+    """Refuse a repair from a source whose samples of the bad blocks differ from what the
+    store recorded (their ``index/digest``): the job's fingerprint lets a same-size edit
+    through, and the repaired blocks would hold another DEM than the rest."""
+    from tiler.resume import changed_blocks_by_index
+    from tiler.source import open_source
+
+    digests = np.zeros(meta.grid.shape, dtype=np.uint64)
+    try:
+        digests[...] = group["index/digest"][...]
+    except (ValueError, OSError, RuntimeError, KeyError):
+        return  # a damaged digest table: repaired itself, nothing to compare against
+    with open_source(src, band) as ds:
+        changed = changed_blocks_by_index(ds, band, meta.grid, digests, bad, meta)
+    if changed:
+        shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
+        raise JobMismatchError(
+            "cannot repair {url!r} from this source: its samples of {n} damaged block(s) differ "
+            "from what the store recorded ({shown}), so it changed since the store was tiled "
+            "and the repaired blocks would hold another DEM; repair from the original source, "
+            "or tile with {overwrite} to start again",
+            params={"overwrite": "overwrite=True"},
+            url=loc.url,
+            n=len(changed),
+            shown=shown,
+        )
+
+
 def _region_entries(
     jarr: zarr.Array, r0: int, r1: int, c0: int, c1: int, meta: StoreMeta
 ) -> dict[tuple[int, int], JournalEntry]:
@@ -349,6 +379,7 @@ def repair_store(
     """Recompute the blocks ``verify_store`` finds damaged, from ``src``; return the store."""
     from tiler.lease import WriterLease
     from tiler.resume import check_same_job, source_of
+    from tiler.source import source_label
     from tiler.store import TerrainStore
     from tiler.verify import verify_store
 
@@ -372,7 +403,7 @@ def repair_store(
                 "compression_level": old_job.get("compression_level", job["compression_level"]),
             },
             repair=True,
-            sources=(source_of(meta.source), src),
+            sources=(source_of(meta.source), source_of(source_label(src))),
         )
         bad = sorted(report.bad_blocks)
         for name in report.bad_tables:
@@ -380,6 +411,7 @@ def repair_store(
         summary.blocks_total = meta.grid.rows * meta.grid.cols
         summary.blocks_repaired = summary.blocks_computed = len(bad)
         if bad:
+            _check_repair_source(src, opts.band, meta, group, bad, loc)
             where = getattr(src, "label", src)  # a MosaicSpec: its paths, not its repr
             log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, where)
             write_meta(group, replace(meta, complete=False, extra=dict(meta.extra, state="repair")))

@@ -142,6 +142,26 @@ def changed_done_blocks(
     return changed
 
 
+def changed_blocks_by_index(
+    ds: Any, band: int, grid: Any, digests: np.ndarray, blocks: list, meta: Any
+) -> list[tuple[int, int]]:
+    """Of ``blocks``, those whose source samples no longer match the store's recorded digest
+    (``digests``: ``index/digest``, 0 where unknown): what a repair would rebuild from a
+    source edited since the store was tiled (same size, header and fingerprint windows)."""
+    from tiler.source import read_window
+
+    dtype = np.dtype(meta.dtype)
+    changed = []
+    for br, bc in blocks:
+        want = int(digests[br, bc])
+        if want == 0:  # (a damaged index chunk, or a block never recorded: nothing to compare)
+            continue
+        data = np.asarray(read_window(ds, band, grid, br, bc), dtype=dtype)
+        if block_digest(data) != want:
+            changed.append((br, bc))
+    return changed
+
+
 def done_blocks(arr: zarr.Array) -> np.ndarray:
     """``(rows, cols)`` bool: blocks whose journal entry is written and intact."""
     rows, cols, _ = arr.shape

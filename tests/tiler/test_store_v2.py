@@ -188,6 +188,39 @@ def test_bit_flip_found_named_and_repaired(dem_factory, tmp_path, caplog):
     assert diff_stores(tmp_path / "s.zarr", tmp_path / "ref.zarr") == []
 
 
+def test_a_repair_from_a_source_edited_since_is_refused(dem_factory, tmp_path):
+    """`--repair` trusted the job's fingerprint (header, size, three 256² windows): a source
+    edited in place elsewhere passed, and the repaired block held the new samples beside
+    blocks of the old DEM (exit 0). The bad blocks' source samples are now compared with the
+    digests the store recorded. Control: the original source repairs."""
+    import rasterio
+
+    data = fractal((700, 700), 7)
+    src = dem_factory(data)
+    opts = TileOptions(block_size=257)
+    tile(src, tmp_path / "s.zarr", opts)
+    flip_bit(tmp_path / "s.zarr" / "levels" / "8" / "c" / "1" / "2" / "0", np.random.default_rng(1))
+    edited = data.copy()
+    edited[260:270, 600:610] += 3  # inside block (1, 2), outside the fingerprint's windows
+    with rasterio.open(src, "r+") as ds:
+        ds.write(edited, 1)
+    with pytest.raises(
+        JobMismatchError, match=r"samples of 1 damaged block\(s\) differ .*\(1, 2\)"
+    ):
+        tile(src, tmp_path / "s.zarr", TileOptions(block_size=257, repair=True))
+    assert verify_store(tmp_path / "s.zarr").bad_blocks == {(1, 2)}  # nothing written
+    with rasterio.open(src, "r+") as ds:
+        ds.write(data, 1)
+    fixed = tile(src, tmp_path / "s.zarr", TileOptions(block_size=257, repair=True))
+    assert fixed.tile_summary.blocks_repaired == 1 and verify_store(tmp_path / "s.zarr").ok
+    # a repair from another file names both files (not the mosaic plan's repr)
+    other = dem_factory(fractal((700, 700), 8), "other.tif")
+    with pytest.raises(
+        JobMismatchError, match=r"store was tiled from '.*dem\.tif', this run reads '.*other\.tif'"
+    ):
+        tile(other, tmp_path / "s.zarr", TileOptions(block_size=257, repair=True))
+
+
 def test_missing_chunk_is_an_error_not_fill(dem_factory, tmp_path):
     tile(dem_factory(fractal((40, 40), 8)), tmp_path / "s.zarr", TileOptions(block_size=17))
     (tmp_path / "s.zarr" / "errors" / "c" / "0" / "1" / "0" / "0").unlink()
