@@ -123,8 +123,9 @@ MD_HEAD = (
 
 
 def _pop_md(r: dict, motion: str) -> str:
+    px = r[f"popping_{motion}_px"]  # (None: the motion had no pair of frames)
     return (
-        f"{r[f'popping_{motion}_px']:.2f} "
+        f"{'n/a' if px is None else format(px, '.2f')} "
         f"({r[f'popping_{motion}_lod_frames']}/{r[f'popping_{motion}_frames']})"
     )
 

@@ -2,9 +2,10 @@
 
 The *in-view samples* of a camera are the full-resolution samples of every node the reference
 selection (every visible node at full resolution) holds whose position projects into the
-viewport and depth range: terrain samples at their true height, nodata samples at the middle of
-the terrain's height range. :func:`coverage` gives the share of in-view terrain samples the
-drawn triangles cover, the share of in-view nodata samples they cover (a hole drawn over), and
+viewport and depth range: terrain samples at their true height, nodata samples (the DEM's own
+masked samples; the store's padding beyond the DEM's last row and column is not nodata) at the
+middle of the terrain's height range. :func:`coverage` gives the share of in-view terrain samples
+the drawn triangles cover, the share of in-view nodata samples they cover (a hole drawn over), and
 the terrain samples that lie in the lateral view in front of the camera but nearer than its near
 plane (clipped by it, so not measured as error). A view with no terrain sample in it is an error
 (:class:`render.errors.EmptyViewError`), not a perfect row.
@@ -81,8 +82,11 @@ def _in_view(
         if ok.any():
             zs.append((float(h[ok].min()), float(h[ok].max())))
         clipped.append((gr[ok] * wg + gc[ok])[_near_clipped(camera, x[ok], y[ok], h[ok])])
-        if (~ok).any():
-            nodata.append((gr[~ok], gc[~ok], x[~ok], y[~ok]))
+        # masked samples inside the DEM's extent are nodata; those beyond it are the store's
+        # padding of its last block row and column, not part of the DEM
+        nd = ~ok & (gr < grid.height) & (gc < grid.width)
+        if nd.any():
+            nodata.append((gr[nd], gc[nd], x[nd], y[nd]))
     zmid = 0.5 * (min(z[0] for z in zs) + max(z[1] for z in zs)) if zs else 0.0
     nd = []
     for gr, gc, x, y in nodata:

@@ -48,15 +48,29 @@ def _cell_heights(full, ra, ca, s, fu, fv, upper):
     )
 
 
-def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: np.ndarray, n: int):
+def _tri_heights(
+    full: np.ndarray,
+    r0: int,
+    c0: int,
+    s: int,
+    u: np.ndarray,
+    v: np.ndarray,
+    n: int,
+    strips: tuple[np.ndarray, ...] | None = None,
+):
     """Height of the regular (unsnapped) patch surface at patch cell coords ``(u, v)``: in the
     cell and triangle the point falls in, or, where that triangle is not drawn (a masked
     corner), in another drawn triangle of the patch that contains the point (it lies on their
-    shared edge or corner; the surface is continuous there); NaN where none is drawn."""
+    shared edge or corner; the surface is continuous there); NaN where none is drawn.
+    ``strips``: per patch whether its N, E, S, W edge is snapped (broadcast like ``r0``): the
+    cells along a snapped edge are drawn as snapped strips (:func:`lod_surface` rasterises
+    them), so neither the point's cell nor a neighbour that is such a cell counts here."""
     ci = np.minimum(np.floor(u).astype(np.int64), n - 1)
     cj = np.minimum(np.floor(v).astype(np.int64), n - 1)
     fu, fv = u - ci, v - cj
     h = _cell_heights(full, r0 + cj * s, c0 + ci * s, s, fu, fv, fu >= fv)
+    if strips is not None:
+        h = np.where(_in_strip(strips, ci, cj, n), np.nan, h)
     miss = np.isnan(h)
     if not miss.any():
         return h
@@ -65,6 +79,8 @@ def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: n
     shape = h.shape
     ci, cj, fu, fv = (np.broadcast_to(a, shape)[miss] for a in (ci, cj, fu, fv))
     r0, c0 = (np.broadcast_to(a, shape)[miss] for a in (r0, c0))
+    if strips is not None:
+        strips = tuple(np.broadcast_to(t, shape)[miss] for t in strips)
     got = np.full(ci.shape, np.nan)
     one = np.ones_like(fu)
     for di, dj, gu, gv, upper, on in (
@@ -77,12 +93,20 @@ def _tri_heights(full: np.ndarray, r0: int, c0: int, s: int, u: np.ndarray, v: n
         (1, 1, one, one, False, (fu == 0) & (fv == 0)),
     ):
         ok = on & (ci >= di) & (cj >= dj) & np.isnan(got)
+        if strips is not None:
+            ok &= ~_in_strip(strips, ci - di, cj - dj, n)
         if ok.any():
             ra, ca = r0[ok] + (cj[ok] - dj) * s, c0[ok] + (ci[ok] - di) * s
             got[ok] = _cell_heights(full, ra, ca, s, gu[ok], gv[ok], upper)
     h = h.copy() if not h.flags.writeable else h
     h[miss] = got
     return h
+
+
+def _in_strip(strips: tuple[np.ndarray, ...], ci: np.ndarray, cj: np.ndarray, n: int):
+    """Cell ``(ci, cj)`` lies along a snapped edge (``strips``: N, E, S, W snapped)."""
+    sn, se, ss, sw = strips
+    return (sn & (cj == 0)) | (se & (ci == n - 1)) | (ss & (cj == n - 1)) | (sw & (ci == 0))
 
 
 def rasterise(tri: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -153,13 +177,13 @@ def lod_surface(
             )
             v = np.broadcast_to(loc[None, :, None] / s, rr.shape)
             u = np.broadcast_to(loc[None, None, :] / s, rr.shape)
-            hreg = _reg(full, r0, c0, s, u, v, n)
-            sn = patches.snap[part]
-            excl = np.zeros(rr.shape, dtype=bool)
-            excl |= (sn[:, 0] > 0)[:, None, None] & (v <= 1)
-            excl |= (sn[:, 2] > 0)[:, None, None] & (v >= n - 1)
-            excl |= (sn[:, 3] > 0)[:, None, None] & (u <= 1)
-            excl |= (sn[:, 1] > 0)[:, None, None] & (u >= n - 1)
+            strips = tuple((patches.snap[part, e] > 0)[:, None, None] for e in range(4))
+            hreg = _reg(full, r0, c0, s, u, v, n, strips)
+            # samples strictly inside the cells along a snapped edge are the strips' alone; those
+            # on the strips' inner border are also the regular cells' (a strip facing nodata has
+            # every triangle undrawn there, and the regular cell beside it draws them)
+            sn, se, ss, sw = strips
+            excl = (sn & (v < 1)) | (ss & (v > n - 1)) | (sw & (u < 1)) | (se & (u > n - 1))
             keep = ~excl
             yield b, rr[keep], cc[keep], hreg[keep]
         for i in sel[snapped[sel]]:
@@ -210,11 +234,12 @@ def patch_triangles(
     return np.concatenate(tris).astype(np.int64), np.concatenate(hs)
 
 
-def _reg(full, r0, c0, s, u, v, n):
-    """Regular surface for a stack of patches (origins ``r0, c0`` broadcast over the grid)."""
+def _reg(full, r0, c0, s, u, v, n, strips=None):
+    """Regular surface for a stack of patches (origins ``r0, c0`` broadcast over the grid;
+    ``strips``: their snapped edges, see :func:`_tri_heights`)."""
     r0 = r0[:, None, None]
     c0 = c0[:, None, None]
-    return _tri_heights(full, r0, c0, s, u, v, n)
+    return _tri_heights(full, r0, c0, s, u, v, n, strips)
 
 
 def screen_errors(

@@ -118,7 +118,8 @@ def render(
         typer.echo(
             f"wrote {out}: {st.triangles:,} triangles in {st.patches} patches (levels "
             f"{st.min_level}..{st.max_level}), selection {st.selection_ms:.2f} ms, GPU "
-            f"{st.frame_ms:.1f} ms, {st.gpu_bytes / 2**20:.1f} MiB of heights on the GPU"
+            f"{st.frame_ms:.1f} ms, {st.gpu_bytes / 2**20:.1f} MiB on the GPU (heights and the "
+            "strategy's own buffers)"
             + (f", {st.clamped} nodes clamped to resident levels" if st.clamped else "")
         )
 

@@ -173,8 +173,9 @@ class Strategy(ABC, Generic[S]):
         return 0.0
 
     def draw_gpu_bytes(self) -> int:
-        """GPU bytes a drawn frame reports besides the height pool's."""
-        return 0
+        """GPU bytes a drawn frame reports besides the height pool's: the strategy's own
+        buffers (:meth:`own_gpu_bytes`), as ``tradeoff`` and ``compare`` count them."""
+        return self.own_gpu_bytes()
 
     def draw(
         self, camera: Camera, sel: S, options: DrawOptions | None = None, **kw: Any

@@ -18,10 +18,15 @@ and ``dolly`` — the middle camera moved slowly forward along its view directio
 quarter of the depth of the view centre (nodes split on the way: Eq. 7's split distance is
 proportional to the distance). Per motion, ``popping_<motion>_px`` is the largest screen
 displacement (seen from the later camera) of the drawn surface at any full-resolution sample
-drawn in both frames, i.e. the jump caused by the LOD change alone, and
+drawn in both frames, i.e. the jump caused by the LOD change alone (None, "n/a" in the table,
+for a motion with no pair of frames: a one-camera path), and
 ``popping_<motion>_lod_frames`` how many of the frames changed the drawn surface's height at a
-sample drawn in both (a LOD change; samples entering or leaving the view do not count; a row
-with 0 LOD frames says nothing about popping). ``popping_px`` is the larger of the two.
+sample drawn in both and in the later camera's view (a LOD change on screen; samples entering
+or leaving the view, and changes off screen, do not count; a row with 0 LOD frames says
+nothing about popping). ``popping_px`` is the larger of the two measured. The table shows the
+middle camera's ``triangles`` (``mid tris``) beside its errors and the fly-through means
+(``fly tris``, ``fly CPU ms``, ``fly GPU ms``) in their own columns; the JSON rows' and the
+Pareto plot's ``triangles`` are the middle camera's too.
 """
 
 from __future__ import annotations
@@ -67,10 +72,11 @@ def dolly(camera: Camera, distance: float, steps: int) -> list[Camera]:
 
 @dataclass(frozen=True)
 class Popping:
-    """Popping over a camera motion: the largest surface jump (px per frame), the frames whose
-    drawn surface changed (``lod_frames``) and the frames compared."""
+    """Popping over a camera motion: the largest surface jump (px per frame; None when the
+    motion has no pair of frames to compare), the frames whose drawn surface changed
+    (``lod_frames``) and the frames compared."""
 
-    max_px: float
+    max_px: float | None
     lod_frames: int
     frames: int
 
@@ -84,8 +90,10 @@ def popping(
 ) -> Popping:
     """Largest screen displacement (px, seen by the later camera) of the drawn surface at
     samples drawn in both frames, over consecutive pairs of ``cams``, and how many pairs
-    changed the drawn height at a sample drawn in both (culling alone does not count).
-    ``prepare(cam)`` runs before each selection (e.g. streaming its data in)."""
+    changed the drawn height at a sample drawn in both and in the later camera's view (culling
+    alone and changes off screen do not count).
+    ``prepare(cam)`` runs before each selection (e.g. streaming its data in). With fewer than
+    two cameras nothing is compared: ``max_px`` is None, not a measured 0."""
     prev = None
     worst, changed = 0.0, 0
     for cam in cams:
@@ -96,15 +104,17 @@ def popping(
         if prev is not None and not _same(prev, surf):
             rows, cols, ha, hb = common_samples(prev, surf)
             moved = ha != hb  # equal drawn heights do not move on screen
-            # only a sample drawn in both frames at another height is a LOD change: samples
-            # entering or leaving the view (culling) are not
-            changed += int(moved.any())
+            # only a sample drawn in both frames at another height, in the later camera's
+            # view, is a LOD change: samples entering or leaving the view (culling) are not,
+            # nor are changes off screen (pixel_errors keeps the samples in view)
             x, y = strat.r.grid.sample_xy(rows[moved], cols[moved])
             d = measure.pixel_errors(cam, x, y, ha[moved], hb[moved])
+            changed += int(d.size > 0)
             if d.size:
                 worst = max(worst, float(d.max()))
         prev = surf
-    return Popping(worst, changed, max(0, len(cams) - 1))
+    pairs = max(0, len(cams) - 1)
+    return Popping(worst if pairs else None, changed, pairs)
 
 
 def _same(a, b) -> bool:
@@ -214,9 +224,10 @@ def compare(
                 row[f"popping_{m}_px"] = pop.max_px
                 row[f"popping_{m}_lod_frames"] = pop.lod_frames
                 row[f"popping_{m}_frames"] = pop.frames
+            measured = [p.max_px for p in pops.values() if p.max_px is not None]
             row.update(
                 strategy=name,
-                popping_px=max(p.max_px for p in pops.values()),
+                popping_px=max(measured) if measured else None,
                 popping_steps=pop_steps,
                 fly_frames=len(cameras),
                 fly_triangles=float(np.mean(tri)),
@@ -230,33 +241,52 @@ def compare(
     return rows
 
 
-HEADER = (
-    f"{'strategy':>20} {'tau':>5} {'tris/frame':>10} {'CPU ms':>7} {'GPU ms':>7} "
-    f"{'max px':>7} {'p99 px':>7} {'mean px':>7} {'cracks':>6} {'above':>6} {'open':>5} "
-    f"{'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'undrawn px':>10} {'clipped':>7} "
-    f"{'pop path':>13} {'pop dolly':>13} {'data MiB':>8} {'own MiB':>7}"
-)
+#: the table's columns, (label, width): ``mid tris`` to ``clipped`` are the middle camera's
+#: (the JSON row's ``triangles`` and tradeoff figures, which the plot shows too), ``fly tris``,
+#: ``fly CPU ms`` and ``fly GPU ms`` the means over every camera of the fly-through
+#: (``fly_triangles``, ``fly_cpu_ms``, ``fly_gpu_ms``), then popping and bytes
+COLUMNS: tuple[tuple[str, int], ...] = (
+    ("strategy", 20), ("tau", 5), ("mid tris", 9), ("max px", 7), ("p99 px", 7),
+    ("mean px", 7), ("cracks", 6), ("above", 6), ("open", 5), ("gaps", 5), ("gap m", 7),
+    ("terrain", 7), ("nodata", 6), ("undrawn px", 10), ("clipped", 7), ("fly tris", 9),
+    ("fly CPU ms", 10), ("fly GPU ms", 10), ("pop path", 13), ("pop dolly", 13),
+    ("data MiB", 8), ("own MiB", 7),
+)  # fmt: skip
+
+HEADER = " ".join(f"{label:>{w}}" for label, w in COLUMNS)
 
 
 def _pop(row: dict[str, Any], m: str) -> str:
-    px = row.get(f"popping_{m}_px", 0.0)
-    return f"{px:.2f} ({row.get(f'popping_{m}_lod_frames', 0)}/{row.get(f'popping_{m}_frames', 0)})"
+    """``px (LOD frames/frames)`` of motion ``m``; ``n/a`` for the px of a motion with no
+    pair of frames (nothing was measured)."""
+    px = row.get(f"popping_{m}_px")
+    shown = "n/a" if px is None else f"{px:.2f}"
+    return f"{shown} ({row.get(f'popping_{m}_lod_frames', 0)}/{row.get(f'popping_{m}_frames', 0)})"
+
+
+def table_cells(row: dict[str, Any]) -> dict[str, str]:
+    """The table's cells of one row, by :data:`COLUMNS` label (unpadded)."""
+    cells = (
+        row["strategy"], f"{row['tau']:g}", f"{row['triangles']:,}",
+        f"{row['max_screen_error_px']:.2f}", f"{row['p99_screen_error_px']:.2f}",
+        f"{row['mean_screen_error_px']:.3f}", f"{row['crack_pixels']}",
+        f"{row['crack_pixels_above']}", f"{row['open_edges']}", f"{row['gap_edges']}",
+        f"{row['max_gap_m']:.2f}", f"{100 * row['terrain_covered']:.1f}%",
+        f"{100 * row['nodata_covered']:.1f}%", f"{row.get('uncovered_px', 0.0):.2f}",
+        f"{row['near_clipped_samples']}", f"{row['fly_triangles']:,.0f}",
+        f"{row['fly_cpu_ms']:.2f}", f"{row['fly_gpu_ms']:.1f}", _pop(row, "path"),
+        _pop(row, "dolly"), f"{row['used_bytes'] / 2**20:.2f}",
+        f"{row['own_gpu_bytes'] / 2**20:.2f}",
+    )  # fmt: skip
+    return dict(zip((label for label, _ in COLUMNS), cells, strict=True))
 
 
 def format_row(row: dict[str, Any]) -> str:
-    """One line of the comparison table (popping: largest jump px (LOD-changing frames /
-    frames) per motion)."""
-    return (
-        f"{row['strategy']:>20} {row['tau']:>5g} {row['fly_triangles']:>10,.0f} "
-        f"{row['fly_cpu_ms']:>7.2f} {row['fly_gpu_ms']:>7.1f} {row['max_screen_error_px']:>7.2f} "
-        f"{row['p99_screen_error_px']:>7.2f} {row['mean_screen_error_px']:>7.3f} "
-        f"{row['crack_pixels']:>6} {row['crack_pixels_above']:>6} {row['open_edges']:>5} "
-        f"{row['gap_edges']:>5} {row['max_gap_m']:>7.2f} {100 * row['terrain_covered']:>6.1f}% "
-        f"{100 * row['nodata_covered']:>5.1f}% {row.get('uncovered_px', 0.0):>10.2f} "
-        f"{row['near_clipped_samples']:>7} "
-        f"{_pop(row, 'path'):>13} {_pop(row, 'dolly'):>13} "
-        f"{row['used_bytes'] / 2**20:>8.2f} {row['own_gpu_bytes'] / 2**20:>7.2f}"
-    )
+    """One line of the comparison table: the middle camera's triangles beside its errors, the
+    fly-through means in their own columns (popping: largest jump px (LOD-changing frames /
+    frames) per motion, ``n/a`` px for a motion with no pair of frames)."""
+    cells = table_cells(row)
+    return " ".join(f"{cells[label]:>{w}}" for label, w in COLUMNS)
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -274,7 +304,8 @@ MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 
 
 def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = "") -> None:
-    """Triangles per frame (middle camera) vs measured max and p99 error, per strategy."""
+    """Triangles of the middle camera (the JSON rows' ``triangles``, the table's ``mid
+    tris``) vs its measured max and p99 error, per strategy."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -297,7 +328,7 @@ def plot_pareto(rows: Sequence[dict[str, Any]], out: str | Path, title: str = ""
             a.step(xs, ys, "k--", where="post", lw=1, alpha=0.5, label="Pareto front")
     for a, lab in zip(ax, ("measured max error px", "measured p99 error px"), strict=True):
         a.set_xlabel(lab)
-        a.set_ylabel("triangles")
+        a.set_ylabel("triangles (middle camera)")
         a.set_yscale("log")
         a.grid(alpha=0.3)
         a.legend(fontsize=8)

@@ -70,3 +70,37 @@ def test_strategies_with_their_own_error_stream_with_the_conservative_metric():
         want = "qiu" if strategy_class(name).uses_metric else "conservative"
         assert stream_metric(name, "qiu") == want
     assert stream_metric("jung-han", "qiu") == "conservative"
+
+
+def _row(**kw):
+    """A compare row (JSON keys) with distinctive figures."""
+    row = dict(
+        strategy="qiu", tau=4.0, triangles=4036, max_screen_error_px=3.25,
+        p99_screen_error_px=1.5, mean_screen_error_px=0.25, crack_pixels=0,
+        crack_pixels_above=0, open_edges=0, gap_edges=0, max_gap_m=0.0, terrain_covered=1.0,
+        nodata_covered=0.0, uncovered_px=0.0, near_clipped_samples=0, fly_triangles=3648.0,
+        fly_cpu_ms=1.25, fly_gpu_ms=7.5, popping_path_px=0.5, popping_path_lod_frames=2,
+        popping_path_frames=3, popping_dolly_px=0.75, popping_dolly_lod_frames=4,
+        popping_dolly_frames=8, used_bytes=2**20, own_gpu_bytes=0,
+    )  # fmt: skip
+    row.update(kw)
+    return row
+
+
+def test_table_shows_the_middle_views_triangles_beside_its_errors():
+    """The table's triangles beside the middle camera's errors were the fly-through mean
+    (3,648) where the JSON row and the plot have the middle camera's (4,036)."""
+    line = compare.format_row(_row()).split()
+    i = line.index("4,036")  # the JSON's `triangles`, as the plot draws them
+    assert line[i + 1 : i + 4] == ["3.25", "1.50", "0.250"]  # its max / p99 / mean px
+    assert "3,648" in line[i + 4 :]  # the flight's mean in a column of its own
+    assert "mid tris" in compare.HEADER and "fly tris" in compare.HEADER
+    assert len(compare.format_row(_row())) == len(compare.HEADER)  # columns line up
+
+
+def test_a_motion_with_no_frame_pairs_shows_no_popping_figure():
+    """A one-camera path compares no frames: its popping read 0.00 (0/0), as if measured."""
+    row = _row(popping_path_px=None, popping_path_lod_frames=0, popping_path_frames=0)
+    line = compare.format_row(row)
+    assert "n/a (0/0)" in line and "0.00 (0/0)" not in line
+    assert "0.75 (4/8)" in line  # the dolly, measured, is shown

@@ -193,3 +193,24 @@ def test_reference_cover_of_some_samples_reads_only_their_patches(islanded, monk
     part = coverage.reference_cover(g, ref, heights, keys)
     assert np.array_equal(part, whole[np.isin(whole, keys)])
     assert 25 * wg + 25 not in part and seen[0] < len(ref) / 2
+
+
+@pytest.mark.parametrize("hole", [False, True])
+def test_the_stores_padding_is_not_nodata(tmp_path, hole):
+    """A 50² DEM in 33² blocks: rows and columns 50–64 of the last blocks are padding. They
+    were counted as in-view nodata on a DEM without any; the DEM's own hole still is."""
+    dem = np.full((50, 50), 300.0, np.float32)
+    dem += np.add.outer(np.arange(50), np.arange(50)).astype(np.float32)
+    if hole:
+        dem[10:15, 10:15] = np.nan
+    s = open_store(tile_dem(tmp_path, dem, 33, nodata=np.nan))
+    r = TerrainRenderer(s, RenderConfig(size=SIZE, patch_log2=2), ctx=make_context())
+    for b in s.blocks():
+        r.upload(b, s.read_levels(b, s.k))
+    g = r.grid
+    assert (g.height, g.width, g.rows * g.step + 1) == (50, 50, 65)  # padded
+    cam = Camera((g.x0 + 32 * g.dx, g.y0 - 32 * g.dy, 2500.0), pitch=-90.0, viewport=SIZE)
+    c = _cov(r, cam, *_drawn(r, cam, 0.0))
+    r.close()
+    assert c.terrain_in_view + c.undrawable == 50 * 50 - (25 if hole else 0)  # all in view
+    assert c.nodata_in_view == (25 if hole else 0)

@@ -82,3 +82,45 @@ def test_the_samples_beside_nodata_are_the_ones_that_were_missed():
     # e.g. the diagonal of the cell whose lower triangle is drawn and upper is not
     undrawn = {(r, c) for r in range(17) for c in range(17)} - set(want)
     assert (8, 8) in undrawn and (6, 6) in want and (4, 6) in want
+
+
+def _snapped(level: int, depth: int, snaps) -> Patches:
+    """:func:`_patches` with every patch's edges snapped by ``snaps`` (N, E, S, W)."""
+    p = _patches(level, depth)
+    return Patches(**{**p.__dict__, "snap": np.tile(np.asarray(snaps, np.int64), (len(p), 1))})
+
+
+@pytest.mark.parametrize(
+    ("level", "depth", "snaps"),
+    # neighbouring patches agree on their shared edges (N = S, E = W) where there are several
+    [(4, 1, (1, 1, 1, 1)), (4, 1, (0, 2, 0, 2)), (4, 0, (2, 1, 3, 0)), (3, 1, (2, 1, 2, 1))],
+)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_every_drawn_sample_of_snapped_patches_is_measured(level, depth, snaps, seed):
+    rng = np.random.default_rng(seed)
+    full = rng.normal(100.0, 10.0, (17, 17))
+    full[:, -1] = full[-1, :] = np.nan  # nodata beyond the last column and row (east, south)
+    step = 1 << (K - level)
+    lattice = np.arange(0, 17, step)
+    for _ in range(2):
+        full[rng.choice(lattice), rng.choice(lattice)] = np.nan
+    p = _snapped(level, depth, snaps)
+    got, want = _measured(p, full), _drawn(p, full)
+    assert set(got) == set(want)
+    assert max(abs(got[s] - want[s]) for s in want) < 1e-9
+
+
+def test_samples_beside_a_snapped_edge_facing_nodata_are_measured():
+    """A patch whose snapped east and south edges are all nodata (a neighbour wholly nodata
+    beyond them): the drawn samples on the last valid column and row, which the regular cells
+    draw, were handed to the edge strips, whose triangles all have a nodata corner, and left
+    unmeasured. The west and north edges (valid, snapped) are the control."""
+    full = np.full((17, 17), 50.0) + np.add.outer(np.arange(17.0), np.arange(17.0))
+    full[:, 16] = full[16, :] = np.nan
+    p = _snapped(4, 0, (1, 1, 1, 1))  # one patch of 16 cells a side, every edge snapped
+    got, want = _measured(p, full), _drawn(p, full)
+    # (0, 15) and (15, 0) lie on the snapped N and W edges, in a strip triangle with a corner
+    # in the nodata column and row: not drawn
+    last = {(r, 15) for r in range(1, 16)} | {(15, c) for c in range(1, 16)}
+    assert last <= set(want) and last <= set(got)
+    assert set(got) == set(want)
