@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from render.errors import EmptyViewError, RenderError
-from render.pipeline import ViewOptions
+from render.pipeline import ViewOptions, session_patch_log2
 from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step
 from render.strategies import DEFAULT, get_strategy, stream_metric
@@ -121,7 +121,7 @@ def flythrough(
             workers=workers,
             tau=tau,
             metric=stream_metric(lod, metric),
-            patch_log2=r.p,
+            patch_log2=session_patch_log2(strat, r),  # (chunk-tessellation: its chunks)
             culling="hull",
             fps=fps,
             nodata=o.nodata,

@@ -28,8 +28,10 @@ def ramp_map(zrange: tuple[float, float], zref: float = 0.0) -> tuple[float, flo
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Renderer settings; ``patch_log2`` is the one patch size of the renderer and of the
-    session streaming for it (:func:`render.pipeline.open_render_session` takes it from here)."""
+    """Renderer settings; ``patch_log2`` is the patch size of the renderer and of the session
+    streaming for it (:func:`render.pipeline.open_render_session` takes it from here), but for
+    chunk-tessellation, whose sessions plan with its chunks
+    (:func:`render.pipeline.session_patch_log2`)."""
 
     size: tuple[int, int] = (1024, 768)
     patch_log2: int = 4

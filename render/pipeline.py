@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 
 from render import coverage, cracks, measure
-from render.errors import EmptyViewError
+from render.errors import EmptyViewError, RenderError
 from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
+from render.select import Patches, coarse_leaves, uncounted_clamps
 from render.step import frame_step, stream_step
 from render.step import resident_levels as resident_levels  # re-exported
 from render.strategies import (
@@ -27,7 +28,8 @@ from render.strategies import (
     stream_metric,
 )
 from render.strategies.base import DrawOptions
-from render.strategies.qiu import patch_counts, select_clod
+from render.strategies.chunk_tess import ChunkTessellation, GpuChunks, start_depth
+from render.strategies.qiu import QiuStrategy, patch_counts, select_clod
 from streamer.camera import Camera
 from streamer.session import Session, open_session
 from tiler.layout import grid_side, level_size
@@ -118,6 +120,34 @@ def draw_timed(
 RESTREAM = (0.5, 0.25, 0.0)
 
 
+def session_patch_log2(strategy: Any, renderer: TerrainRenderer) -> int:
+    """The node size a view's session plans levels with: a chunk-tessellation strategy's
+    chunks (``2**c`` cells; the renderer's smaller patches would load levels coarser than its
+    chunks, which it would then draw below their own level), else the renderer's patches."""
+    if isinstance(strategy, ChunkTessellation):
+        return int(strategy.c)
+    return int(renderer.p)
+
+
+def unmet_leaves(
+    strategy: Any, camera: Camera, tau: float, sel: Any, resident: Mapping[Block, int]
+) -> int:
+    """Leaves of ``sel`` drawn from a level coarser than their own node level that the
+    strategy's clamped count leaves out (:func:`render.select.uncounted_clamps`; the patches of
+    ``qiu`` and ``chunk-tessellation``, 0 for the other strategies)."""
+    k = strategy.r.k
+    if isinstance(strategy, ChunkTessellation):
+        pt, p, md = strategy.patches(sel), strategy.c, 0
+        if isinstance(sel, GpuChunks) and coarse_leaves(pt, k, p).any():
+            # the read-back has no rho: the CPU twin's (the same chunks) at the GPU's start
+            pt, md = strategy.select_twin(camera, tau, dict(resident)), start_depth(k, p)
+    elif isinstance(strategy, QiuStrategy) and isinstance(sel, Patches):
+        pt, p, md = sel, strategy.r.p, 0
+    else:
+        return 0
+    return uncounted_clamps(pt, k, p, tau, md)
+
+
 def restream_taus(tau: float) -> list[float]:
     """The stream taus a one-shot view tries in turn: ``tau``, then :data:`RESTREAM`'s
     fractions of it while the strategy still clamps."""
@@ -149,12 +179,16 @@ def render_view(
     r = renderer
     strat = get_strategy(o.lod, r, **o.strategy_options())
     metric = stream_metric(o.lod, o.metric)
+    p = session_patch_log2(strat, r)
     for st_tau in restream_taus(o.tau):  # once, unless the strategy wants unloaded levels
-        with open_render_session(store, st_tau, metric, r.p, nodata=o.nodata) as session:
+        with open_render_session(store, st_tau, metric, p, nodata=o.nodata) as session:
             step = frame_step(session, strat, camera, o.tau, o.metric, options=o.draw_options())
-        if not step.stats.clamped:
+        clamped = step.stats.clamped + unmet_leaves(
+            strat, camera, o.tau, step.selection, step.resident
+        )
+        if not clamped:
             break
-    return r.image(), replace(step.stats, drawn_px=r.drawn_pixels())
+    return r.image(), replace(step.stats, drawn_px=r.drawn_pixels(), clamped=clamped)
 
 
 def nadir_for(camera: Camera, zmid: float) -> Camera:
@@ -255,9 +289,16 @@ def tradeoff(
         finally:
             r.close()
     r = renderer
-    with open_render_session(store, 0.0, metric, r.p) as ref_session:
+    # planned with nodes of the whole block (patch_log2 = k): every block in view at level k,
+    # whatever its stored errors (a tau-0 plan stops where they are 0)
+    with open_render_session(store, 0.0, metric, r.k) as ref_session:
         ref_res = stream_step(ref_session, r, camera)[1]
     ref_p, _ = r.select(camera, 0.0, metric, resident=ref_res, full=True)
+    if ref_p.clamped:
+        raise RenderError(
+            f"the full-resolution reference is not: {ref_p.clamped:,} of its nodes are capped "
+            "by the levels its session loaded"
+        )
     ref_st = draw_timed(r, camera, ref_p, repeats)
     ref_img = r.image()
     r.draw(camera, ref_p, clear=CLEAR)
@@ -276,16 +317,18 @@ def tradeoff(
         raise ValueError("pass the nodata rule as options=ViewOptions(nodata=...): it also plans "
                          "the session")  # fmt: skip
     strat = get_strategy(lod, r, **o.strategy_options(), **(lod_options or {}))
+    sp = session_patch_log2(strat, r)
     rows = []
     for tau in taus:
         sm = stream_metric(lod, metric)
         for st_tau in restream_taus(tau if stream_tau is None else stream_tau):
-            with open_render_session(store, st_tau, sm, r.p, nodata=o.nodata) as s:
+            with open_render_session(store, st_tau, sm, sp, nodata=o.nodata) as s:
                 # the levels each tau's session would hold (the data is on the GPU already)
                 frame, res = stream_step(s, None, camera)
                 loaded = s.summary()["loaded_bytes"]
             patches, sel_ms = strat.select(camera, tau, metric, resident=res)
-            if not strat.counts(patches).clamped:  # else it wants levels not loaded: more
+            unmet = unmet_leaves(strat, camera, tau, patches, res)
+            if not strat.counts(patches).clamped + unmet:  # else it wants levels not loaded
                 break
         for _ in range(max(0, repeats - 1)):
             patches, ms = strat.select(camera, tau, metric, resident=res)
@@ -320,7 +363,7 @@ def tradeoff(
             resident_bytes=int(frame.stats.resident_bytes),
             loaded_bytes=int(loaded),
             gpu_bytes=gpu,
-            clamped=st.clamped,
+            clamped=st.clamped + unmet,
             strategy=lod,
             nodata=o.nodata,
             used_bytes=int(used),

@@ -7,7 +7,9 @@ while ``metric(delta) > tau``. A node at depth ``d`` is drawn as a patch from le
 ``min(k, d + patch_log2)`` (the streamer's convention, :mod:`streamer.lod`); its ``delta`` is the
 largest stored error of its descendants at depth ``d + patch_log2``. A block whose finest
 *resident* level ``R`` is coarser than that is not split beyond depth ``R - patch_log2`` and is
-drawn at level ``R`` (counted as clamped).
+drawn at level ``R``: counted as clamped when it wanted to split; a leaf that stopped at its
+error but is drawn below its own level is not (``delta`` then does not bound it):
+:func:`uncounted_clamps` counts those.
 
 :class:`PatchTable` keeps those pooled patch errors of every known block in one
 ``(slots, 2**d, 2**d)`` array per depth (like :class:`streamer.levels.PatchErrorTable`), so a
@@ -131,6 +133,23 @@ class Patches:
             violations=self.violations,
             **f,
         )
+
+
+def coarse_leaves(patches: Patches, k: int, patch_log2: int) -> np.ndarray:
+    """Per leaf: drawn from a level coarser than its own, ``min(k, depth + patch_log2)`` (its
+    block's resident level capped it, so its ``delta`` does not bound what is drawn)."""
+    return patches.level < np.minimum(k, patches.depth + patch_log2)
+
+
+def uncounted_clamps(
+    patches: Patches, k: int, patch_log2: int, tau: float, min_depth: int = 0
+) -> int:
+    """Leaves drawn coarser than their own level (:func:`coarse_leaves`) that
+    ``patches.clamped`` leaves out: it counts the nodes that wanted to split (``rho > tau``, or
+    shallower than ``min_depth``), not those that stopped at their error but were capped below
+    their own level by the resident one (a NaN ``rho`` counts as wanting)."""
+    want = ~(patches.rho <= tau) | (patches.depth < min_depth)
+    return int(np.count_nonzero(coarse_leaves(patches, k, patch_log2) & ~want))
 
 
 def check_drawable(patches: Patches, held: np.ndarray) -> None:

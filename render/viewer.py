@@ -25,7 +25,7 @@ import moderngl
 import numpy as np
 
 from render.errors import RenderError
-from render.pipeline import ViewOptions
+from render.pipeline import ViewOptions, session_patch_log2
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step
 from render.strategies import warm_up_kernels
@@ -338,7 +338,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             workers=workers,
             tau=state["tau"],
             metric=stream_metric(lod, metric),
-            patch_log2=r.p,
+            patch_log2=session_patch_log2(strat, r),  # (chunk-tessellation: its chunks)
             culling="hull",
             nodata=o.nodata,
         )

@@ -41,7 +41,7 @@ import numpy as np
 
 from render import measure
 from render.errors import EmptyViewError
-from render.pipeline import ViewOptions, open_render_session, tradeoff
+from render.pipeline import ViewOptions, open_render_session, session_patch_log2, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
 from render.step import frame_step, stream_step
 from render.strategies import check_nodata, get_strategy, nodata_options, strategy_names
@@ -209,7 +209,8 @@ def compare(
                 ) from None
             row = asdict(tr[0])
             tri, cpu, gpu = [], [], []
-            with open_render_session(store, 0.0, metric, r.p, nodata=o.nodata) as s:
+            sp = session_patch_log2(strat, r)  # (chunk-tessellation: its chunks)
+            with open_render_session(store, 0.0, metric, sp, nodata=o.nodata) as s:
                 for cam in cameras:
                     step = frame_step(s, strat, cam, tau, metric)
                     tri.append(step.stats.triangles)
