@@ -16,12 +16,13 @@ import rasterio
 from rasterio.crs import CRS
 from rasterio.warp import transform as warp_transform
 
+from tiler.grid import as_index
 from tiler.store import TerrainStore
 
 
 def store_array(store: TerrainStore, level: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(heights, valid)`` of the whole DEM at ``level`` (default finest), block by block."""
-    level = store.k if level is None else int(level)
+    level = store.k if level is None else as_index(level, "level")
     step = 1 << (store.k - level)
     m = store.meta
     h, w = (m.height - 1) // step + 1, (m.width - 1) // step + 1

@@ -28,6 +28,7 @@ from rasterio.windows import Window
 
 from tiler.encoding import dequantise
 from tiler.errors import StoreError
+from tiler.grid import as_index
 from tiler.store import TerrainStore
 
 
@@ -77,7 +78,7 @@ def export_geotiff(
     transform's pixel size grows by that factor (its origin stays on sample (0, 0)).
     """
     k = store.k
-    level = k if level is None else int(level)
+    level = k if level is None else as_index(level, "level")
     if not 0 <= level <= k:
         raise StoreError(
             "{level_param} must be in 0..{k} for this store, got {level}",
@@ -247,7 +248,7 @@ def export_cog(
     import rasterio.shutil
 
     k = store.k
-    level = k if level is None else int(level)
+    level = k if level is None else as_index(level, "level")
     if not 0 <= level <= k:
         raise StoreError(
             "{level_param} must be in 0..{k} for this store, got {level}",

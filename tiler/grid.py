@@ -21,6 +21,26 @@ from tiler.errors import LayoutError
 from tiler.layout import grid_side, parse_block_size
 
 
+def as_index(value: object, what: str) -> int:
+    """``value`` as an int if it is an integer (Python's or numpy's, not a bool); else a
+    ``LayoutError`` naming ``what``: ``int()`` would truncate 1.7 or read ``"1"``, and return
+    another block or level than asked for, silently."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
+        return int(value)
+    raise LayoutError(f"{what} must be an integer, got {value!r}")
+
+
+def as_block(block: object) -> tuple[int, int]:
+    """A block id ``(row, col)`` of integers (:func:`as_index`), or a ``LayoutError``."""
+    try:
+        n = len(block)  # type: ignore[arg-type]
+    except TypeError:
+        n = -1
+    if n != 2 or isinstance(block, (str, bytes)):
+        raise LayoutError(f"a block is (row, col), got {block!r}")
+    return as_index(block[0], "a block row"), as_index(block[1], "a block column")  # type: ignore[index]
+
+
 @dataclass(frozen=True)
 class BlockGrid:
     """Block layout of one DEM: sizes, block count and the sample-to-world mapping."""

@@ -101,9 +101,11 @@ class Location:
         *,
         writing: bool = False,
     ) -> None:
+        shown: str | None = None
         if isinstance(target, Location):
             storage_options = storage_options or target.storage_options
             writing = writing or target.writing
+            shown = target._shown
             target = target.target
         #: a store being written (:func:`for_writing`): ``s3://`` clients keep more tries
         self.writing = writing
@@ -113,10 +115,17 @@ class Location:
             self.target = target
         elif isinstance(target, str | os.PathLike):
             self.target = str(target)
+            if not is_url(self.target) and not self.target.startswith("memory:"):
+                # a local path is kept absolute (a later os.chdir would read another
+                # directory), and shown as it was given
+                shown = shown or self.target
+                self.target = os.path.abspath(self.target)
         else:
             raise StoreError(
                 f"a store location must be a path, a URL or a zarr Store, got {type(target)!r}"
             )
+        #: the path as the caller gave it (messages), for a local target
+        self._shown = shown
         if self.storage_options and not (isinstance(self.target, str) and is_url(self.target)):
             raise StorageOptionsError(
                 f"storage options apply to URLs (s3://, gs://, http://...), not to {self.url!r}; "
@@ -127,7 +136,9 @@ class Location:
     # ---- identity ------------------------------------------------------------------------
     @property
     def url(self) -> str:
-        """A display string: the path or URL, or the Store's repr."""
+        """A display string: the path (as given) or URL, or the Store's repr."""
+        if self._shown is not None:
+            return self._shown
         return self.target if isinstance(self.target, str) else repr(self.target)
 
     def __repr__(self) -> str:

@@ -43,6 +43,7 @@ from tiler.errors import (
     StoreUnavailableError,
     StoreVersionError,
 )
+from tiler.grid import as_block, as_index
 from tiler.interrupt import DeferredInterrupt
 from tiler.layout import level_end, level_start
 from tiler.lease import live_writer
@@ -292,6 +293,8 @@ class TerrainStore:
             )
             if err is None:
                 raise out
+            if not isinstance(err, StoreUnavailableError):  # (a server's failure is not damage)
+                self._not_replaced()
             raise err from out
         spec = self._direct.get(name)
         if spec is not None:  # what zarr's reader makes of it: see _looks_missing
@@ -300,11 +303,21 @@ class TerrainStore:
             if out is None or (
                 spec.shard is not None and out[0] == self._fill and np.all(out == self._fill)
             ):
+                self._not_replaced()
                 raise self._missing(what, name, block, level)
             return out
         if self.checksummed and self._looks_missing(name, block, out):
+            self._not_replaced()
             raise self._missing(what, name, block, level)
         return out
+
+    def _not_replaced(self) -> None:
+        """Before a read failure is called damage: raise ``StoreChangedError`` if the store
+        was removed, replaced or rewritten since it was opened (its chunks are gone or
+        another store's, not damaged: reopen it, do not repair it). A check the server does
+        not answer leaves the read's own error to be raised."""
+        with contextlib.suppress(StoreUnavailableError):
+            self.check_unchanged(force=True)
 
     def _missing(
         self, what: str, name: str, block: tuple[int, int], level: int | None
@@ -333,6 +346,7 @@ class TerrainStore:
             except StoreUnavailableError:
                 raise
             except READ_ERRORS as exc:
+                self._not_replaced()
                 raise StoreCorruptError(
                     f"the block index 'index/{n}' of {self.url!r} is damaged ({exc}); the store "
                     "is damaged: verify it and repair it from the source"
@@ -357,14 +371,15 @@ class TerrainStore:
         return BlockIndex(**out)
 
     def check_block(self, block: tuple[int, int]) -> tuple[int, int]:
-        """Validate a block id and return it as ints."""
-        br, bc = int(block[0]), int(block[1])
+        """Validate a block id (two integers inside the grid) and return it as ints."""
+        br, bc = as_block(block)
         self.grid.check_block(br, bc)
         return br, bc
 
     def read_level_raw(self, block: tuple[int, int], level: int) -> np.ndarray:
         """One block's one stored level, as stored (residuals): exactly one chunk read."""
         br, bc = self.check_block(block)
+        level = as_index(level, "level")
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
         out = self._read(f"levels/{level}", (br, bc), level)
@@ -378,6 +393,7 @@ class TerrainStore:
         the block's sequence, which the decoders then use without a copy.
         """
         br, bc = self.check_block(block)
+        max_level = as_index(max_level, "level")
         if not 0 <= max_level <= self.k:
             raise StoreError(f"level {max_level} is outside 0..{self.k}")
         out = self._levels_raw((br, bc), max_level, None)
@@ -439,10 +455,12 @@ class TerrainStore:
         ``extent=(rows, cols)``: only the grid's top-left ``rows x cols``, decoded alone (an
         edge block's samples inside the DEM: :meth:`block_extent`; the padding is not decoded).
         """
-        level = self.k if max_level is None else int(max_level)
+        level = self.k if max_level is None else as_index(max_level, "level")
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
         br, bc = self.check_block(block)
+        if extent is not None:
+            extent = (as_index(extent[0], "extent rows"), as_index(extent[1], "extent columns"))
         seq = self._scratch(level_end(level) + 1) if self.direct_reads else None
         raws = self._levels_raw((br, bc), level, seq)
         self.check_unchanged()
@@ -454,7 +472,7 @@ class TerrainStore:
     def block_extent(self, block: tuple[int, int], level: int | None = None) -> tuple[int, int]:
         """``(rows, cols)`` of a block's level-``level`` grid that lie inside the DEM (its
         shared last row and column included): the ``extent`` that drops only padding."""
-        level = self.k if level is None else int(level)
+        level = self.k if level is None else as_index(level, "level")
         if not 0 <= level <= self.k:
             raise StoreError(f"level {level} is outside 0..{self.k}")
         _, _, h, w = self.grid.block_window(*self.check_block(block))

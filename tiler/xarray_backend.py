@@ -25,6 +25,7 @@ from xarray.backends import BackendArray, BackendEntrypoint
 from xarray.core import indexing
 
 from tiler.errors import StoreChangedError
+from tiler.grid import as_index
 from tiler.store import ATTR, TerrainStore, open_store
 
 #: open stores by (URL, generation), and the one each URL opens to now: a dataset reads the
@@ -160,7 +161,7 @@ def level_dataarray(store: TerrainStore, level: int | None = None) -> xr.DataArr
     from dask.base import tokenize
 
     k = store.k
-    level = k if level is None else int(level)
+    level = k if level is None else as_index(level, "level")
     if not 0 <= level <= k:
         from tiler.errors import StoreError
 
@@ -246,7 +247,7 @@ def grid_mapping_attrs(store: TerrainStore, step: int = 1) -> dict[str, Any]:
 def level_dataset(store: TerrainStore, level: int | None = None, lazy: bool = False) -> xr.Dataset:
     """A Dataset holding a level's ``height`` and the store's description as attributes:
     dask-chunked per block, or (``lazy=True``, what the backend returns) lazily indexed."""
-    level = store.k if level is None else int(level)
+    level = store.k if level is None else as_index(level, "level")
     if lazy:
         if not 0 <= level <= store.k:
             from tiler.errors import StoreError
@@ -270,7 +271,8 @@ def _url(filename_or_obj: Any) -> str:
     if isinstance(filename_or_obj, TerrainStore):
         return filename_or_obj.url
     if isinstance(filename_or_obj, str | os.PathLike):
-        return os.fspath(filename_or_obj)
+        text = os.fspath(filename_or_obj)  # (a local path absolute: one cache entry per store,
+        return text if "://" in text else os.path.abspath(text)  # whatever the cwd since)
     raise TypeError(f"the terrastream engine opens a store path or URL, not {filename_or_obj!r}")
 
 
