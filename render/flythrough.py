@@ -220,6 +220,8 @@ def flythrough(
         "failing_blocks": int(summary["failing_blocks"]),
         # why the fly-through is incomplete (streamer.run.flight_problem), or None
         "problem": problem,
-        "peak_resident_mb": float(summary["peak_resident_bytes"] / 2**20),
+        # the frames' peak, as frames.csv's resident_mb shows it (reads that arrived while
+        # the session closed, after the last frame, are not the flight's)
+        "peak_resident_mb": float(summary["peak_resident_bytes_frames"] / 2**20),
     }
     return rows, summary

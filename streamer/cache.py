@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from decimal import ROUND_CEILING, Decimal, localcontext
 from itertools import chain, islice, repeat
 
 import numpy as np
@@ -19,7 +20,7 @@ import numpy as np
 from streamer.errors import BudgetError
 from streamer.evict import Block, Entry, EvictionIndex
 
-__all__ = ["Block", "LevelCache", "PinChanges"]
+__all__ = ["Block", "LevelCache", "PinChanges", "mib_text"]
 
 
 @dataclass(frozen=True)
@@ -35,8 +36,18 @@ class PinChanges:
     prev_negative: bool  # a previous pin is below 0 (the session never pins below 0)
 
 
-def _mib(n: int) -> str:
-    return f"{n / 2**20:.3g} MiB ({n:,} bytes)"
+def mib_text(n: int) -> str:
+    """``n`` bytes as ``"X MiB (n bytes)"``, X rounded *up* to 4 significant digits: a budget
+    of X MiB holds ``n`` bytes, and one byte count always reads the same."""
+    with localcontext() as ctx:
+        ctx.prec = 60  # n / 2**20 exactly (a terminating decimal)
+        v = Decimal(int(n)) / Decimal(2**20)
+        if v > 0:
+            v = v.quantize(Decimal(1).scaleb(v.adjusted() - 3), rounding=ROUND_CEILING)
+        return f"{format(v.normalize(), 'f')} MiB ({int(n):,} bytes)"
+
+
+_mib = mib_text
 
 
 class LevelCache(EvictionIndex):

@@ -9,7 +9,10 @@
   ``R = that / cos(half_fov_x)``. At pitch 0 the triangle is exactly the frustum's horizontal
   trace. It is an approximation otherwise: a pitched camera's side planes meet the ground along
   lines that start behind the camera and are narrower, so the triangle misses the view's lower
-  corners close to the camera (and everything below and behind a steeply pitched one).
+  corners close to the camera (and everything below and behind a steeply pitched one). Given
+  the terrain's heights, a camera looking above the horizon (pitch > 0) reaches only as far as
+  its frustum meets them (:func:`ground_reach`): pitched up with its whole frustum above the
+  terrain, it sees no ground and its triangle is empty.
 * :func:`frustum_hull` — Jung & Han's convex hull of the 8 frustum corners projected on the
   ground: the exact shadow of the whole frustum, optionally clipped to a slab of heights
   ``zrange`` first (tighter, still exact for terrain inside that range).
@@ -170,11 +173,25 @@ def polygon_meets_circles(
 # --- Qiu's triangle and its extension ---------------------------------------------------------
 
 
-def qiu_reach(camera: Camera) -> float:
-    """Leg length ``R`` of Qiu's triangle: far-plane horizontal reach / cos(half FOV x)."""
+def qiu_reach(camera: Camera, zrange: tuple[float, float] | None = None) -> float:
+    """Leg length ``R`` of Qiu's triangle: far-plane horizontal reach / cos(half FOV x).
+
+    With ``zrange`` (the terrain's heights) a camera looking above the horizon (pitch > 0)
+    reaches only as far along its axis as its frustum meets that slab (0: it sees no ground).
+    """
     p = math.radians(camera.pitch)
     reach = camera.far * (math.cos(p) + camera.tan_half_y * abs(math.sin(p)))
+    if zrange is not None and camera.pitch > 0.0:
+        reach = min(reach, ground_reach(camera, zrange))
     return reach / math.cos(math.atan(camera.tan_half_x))
+
+
+def ground_reach(camera: Camera, zrange: tuple[float, float]) -> float:
+    """How far ahead (along the horizontal view direction) the frustum's part within the slab
+    of heights ``zrange`` reaches; 0 when that part is empty or lies behind the camera."""
+    pts = _slab_points(camera, zrange)
+    hx, hy = camera.heading.tolist()
+    return max([0.0] + [x * hx + y * hy for x, y in pts])
 
 
 def _isosceles(apex: np.ndarray, axis: np.ndarray, tan_half: float, height: float) -> np.ndarray:
@@ -185,9 +202,20 @@ def _isosceles(apex: np.ndarray, axis: np.ndarray, tan_half: float, height: floa
     return np.stack([apex, far + half * side, far - half * side])
 
 
-def view_triangle(camera: Camera, reach: float | None = None) -> np.ndarray:
-    """Qiu's projected view frustum: ``(3, 2)`` apex, far-right, far-left (ccw), legs ``R``."""
-    r = qiu_reach(camera) if reach is None else float(reach)
+def view_triangle(
+    camera: Camera, reach: float | None = None, zrange: tuple[float, float] | None = None
+) -> np.ndarray:
+    """Qiu's projected view frustum: ``(3, 2)`` apex, far-right, far-left (ccw), legs ``R``.
+
+    ``zrange``: the terrain's heights, for :func:`qiu_reach` (a camera looking up reaches the
+    ground only where its frustum does); empty ``(0, 2)`` when the frustum meets no ground.
+    """
+    if reach is None:
+        r = qiu_reach(camera, zrange)
+        if r == 0.0:
+            return np.zeros((0, 2))
+    else:
+        r = float(reach)
     if not (math.isfinite(r) and r > 0.0):
         raise FrustumError(f"reach must be a positive finite length, got {reach}")
     cos_h = math.cos(math.atan(camera.tan_half_x))
@@ -251,24 +279,32 @@ def frustum_hull(camera: Camera, zrange: tuple[float, float] | None = None) -> n
     With ``zrange=(zlo, zhi)`` the frustum is first clipped to that slab of heights (exact for
     terrain inside it); the result is empty ``(0, 2)`` when the frustum misses the slab.
     """
-    rel = camera.frustum_corners_rel()
     if zrange is None:
-        pts = [(x, y) for x, y, _ in rel]
+        pts = [(x, y) for x, y, _ in camera.frustum_corners_rel()]
     else:
-        zlo, zhi = (float(z) for z in zrange)
-        if not (math.isfinite(zlo) and math.isfinite(zhi) and zlo <= zhi):
-            raise FrustumError(f"zrange must be finite (zlo, zhi) with zlo <= zhi, got {zrange}")
-        zlo -= float(camera.position[2])
-        zhi -= float(camera.position[2])
-        pts = [(x, y) for x, y, z in rel if zlo <= z <= zhi]
-        for z0 in (zlo, zhi):
-            for i, j in _EDGE_PAIRS:
-                (ax, ay, az), (bx, by, bz) = rel[i], rel[j]
-                da, db = az - z0, bz - z0
-                if da * db < 0.0:
-                    t = da / (da - db)
-                    pts.append((ax + t * (bx - ax), ay + t * (by - ay)))
+        pts = _slab_points(camera, zrange)
     return convex_hull(np.array(pts, dtype=np.float64).reshape(-1, 2)) + camera.eye[:2]
+
+
+def _slab_points(camera: Camera, zrange: tuple[float, float]) -> list[tuple[float, float]]:
+    """``(x, y)`` relative to the eye of the frustum corners within the slab of heights
+    ``zrange`` and of its edges' crossings of the slab's planes: the frustum clipped to the
+    slab is their convex hull (none: the frustum misses the slab)."""
+    rel = camera.frustum_corners_rel()
+    zlo, zhi = (float(z) for z in zrange)
+    if not (math.isfinite(zlo) and math.isfinite(zhi) and zlo <= zhi):
+        raise FrustumError(f"zrange must be finite (zlo, zhi) with zlo <= zhi, got {zrange}")
+    zlo -= float(camera.position[2])
+    zhi -= float(camera.position[2])
+    pts = [(x, y) for x, y, z in rel if zlo <= z <= zhi]
+    for z0 in (zlo, zhi):
+        for i, j in _EDGE_PAIRS:
+            (ax, ay, az), (bx, by, bz) = rel[i], rel[j]
+            da, db = az - z0, bz - z0
+            if da * db < 0.0:
+                t = da / (da - db)
+                pts.append((ax + t * (bx - ax), ay + t * (by - ay)))
+    return pts
 
 
 # --- blocks -----------------------------------------------------------------------------------
@@ -321,7 +357,7 @@ def visible_sets(
     """Qiu's block sets ``(M, N)``: meeting the frustum, and ``M`` plus those meeting the
     extension; ``N - M`` is to prefetch. ``culling`` is "qiu" (triangle) or "hull"."""
     if culling == "qiu":
-        view = view_triangle(camera)
+        view = view_triangle(camera, zrange=zrange)
     elif culling == "hull":
         view = frustum_hull(camera, zrange)
     else:

@@ -118,7 +118,7 @@ class Planner:
 
     def _visible_ids(self, camera: Camera, culling: str | None) -> np.ndarray:
         if (culling or self.config.culling) == "qiu":
-            return self._existing_ids(view_triangle(camera))
+            return self._existing_ids(view_triangle(camera, zrange=self.zrange))
         return self._existing_ids(frustum_hull(camera, self.zrange))
 
     def visible(self, camera: Camera, culling: str | None = None) -> list[Block]:

@@ -28,6 +28,8 @@ from tiler.errors import StoreChangedError
 from tiler.store import TerrainStore
 
 PATH_KINDS = ("default", "line", "circle", "canyon", "teleports")
+#: what a flight streams and counts stalls over: Qiu's triangle, or the frustum hull drawn
+CULLINGS = ("qiu", "hull")
 T = TypeVar("T")
 
 
@@ -167,7 +169,7 @@ def run_flythrough(
     With ``first_wait`` the session is warmed up for the first camera (see
     :meth:`Session.warm_up`; reported as ``warmup_ms``/``warmup_bytes``) and frame 0 waits.
     An exception that stops the flight carries the frames flown so far as ``exc.partial``
-    (a :class:`RunResult`).
+    (a :class:`RunResult`). Either summary's figures are the rows' (:func:`frames_summary`).
     """
     fps = session.config.fps
     rows: list[dict[str, Any]] = []
@@ -181,10 +183,35 @@ def run_flythrough(
             if on_frame is not None:
                 on_frame(i, frame.stats)
     except Exception as exc:
-        # the frames flown so far, for the caller's report (stream --json/--plot)
-        exc.partial = RunResult(rows=rows, summary=session.summary())  # type: ignore[attr-defined]
+        # the frames flown so far, for the caller's report (stream --json/--plot); a frame
+        # the session counted before raising (LoadError carries it) is one of them
+        ended = getattr(exc, "frame", None)
+        stats = getattr(ended, "stats", None)
+        if stats is not None and (not rows or rows[-1]["frame"] != stats.frame):
+            rows.append(asdict(stats))
+        partial = RunResult(rows=rows, summary=frames_summary(session.summary(), rows))
+        exc.partial = partial  # type: ignore[attr-defined]
         raise
-    return RunResult(rows=rows, summary=session.summary())
+    return RunResult(rows=rows, summary=frames_summary(session.summary(), rows))
+
+
+def frames_summary(summary: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """``summary`` (a live session's) with its loaded bytes those of the frames ``rows``.
+
+    Loaders keep reading after the last frame (until the session closes, or while an error
+    stops the flight), so a session's ``loaded_bytes`` may exceed the warm-up's plus the
+    frames' real-time and prefetched bytes: ``loaded_bytes`` becomes that sum (``wasted_bytes``
+    follows) and ``loaded_after_frames_bytes`` says what arrived after the last frame.
+    """
+    out = dict(summary)
+    in_frames = int(out.get("warmup_bytes", 0)) + sum(
+        int(r["realtime_bytes"]) + int(r["prefetched_bytes"]) for r in rows
+    )
+    total = int(out.get("loaded_bytes", in_frames))
+    out["loaded_bytes"] = in_frames
+    out["loaded_after_frames_bytes"] = max(0, total - in_frames)
+    out["wasted_bytes"] = max(0, in_frames - int(out.get("used_bytes", 0)))
+    return out
 
 
 def out_of_view(store: TerrainStore, frames: int) -> PathOutOfViewError:

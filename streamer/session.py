@@ -41,9 +41,16 @@ import numpy as np
 
 from streamer import levels as levels_kernels
 from streamer.blockside import Side
-from streamer.cache import Block, PinChanges
+from streamer.cache import Block, PinChanges, mib_text
 from streamer.camera import Camera
-from streamer.errors import BudgetError, LoadError, LodError, SessionClosedError, StreamerError
+from streamer.errors import (
+    BudgetError,
+    CameraError,
+    LoadError,
+    LodError,
+    SessionClosedError,
+    StreamerError,
+)
 from streamer.frames import Frame, FrameStats, SessionConfig
 from streamer.gcfreeze import freeze_heap
 from streamer.loader import READ_ERRORS, Loader
@@ -105,6 +112,9 @@ class Session:
         self._closed = False
         self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
+        self._peak_frames = 0  # the largest FrameStats.resident_bytes of the frames so far
+        # account_hull: frames with a block of the hull holding no level (None: not accounted)
+        self._hull_hole_frames: int | None = None
         self._plans = PlanThread(self.planner, self.loader, self.config.workers)
 
     @property
@@ -240,6 +250,10 @@ class Session:
         unbounded τ still needs (the patch level; beside nodata, what the nodata rule keeps)."""
         if exc.template is None or camera is None or not needed:
             return exc
+        # the levels a block needs at any τ come from its error table: a block whose table is
+        # not read yet (the first frame's, during warm-up) would count at the patch level, a
+        # floor that fails again once the table arrives; read them now (an error's path)
+        unread = self._read_error_tables(self.planner.visible(camera))
         least = self.planner.needed(camera, tau=UNBOUNDED_TAU)
         floor = sum(self._cum_bytes[lv] for lv in least.values() if lv >= 0)
         if floor <= self.cache.budget:
@@ -259,14 +273,36 @@ class Session:
                 f" ({who} {hold} nodata beside terrain, which the nodata rule "
                 f"'{self.config.nodata}' refines while its cells span more than a pixel)"
             )
+        if unread:
+            why += (
+                f" ({unread} of them counted at their coarsest levels: their error tables could"
+                " not be read, so they may need more)"
+            )
         return BudgetError(
             "the visible blocks need {need} at their levels but the budget is {budget}; at "
             "any {tau} {visible} at least {floor}" + why + ": raise {budget_mb} to at least that",
             params=exc.params,
             **exc.values,
             visible="the visible block needs" if n == 1 else f"the {n} visible blocks need",
-            floor=f"{math.ceil(floor * 100 / 2**20) / 100:.2f} MiB ({floor:,} bytes)",
+            floor=mib_text(floor),
         )
+
+    def _read_error_tables(self, blocks: list[Block]) -> int:
+        """Read the error tables of those of ``blocks`` the session has not read yet, as the
+        loaders do (for a budget error's floor); the number that could not be read."""
+        ld = self.loader
+        unread = 0
+        for b, slot in zip(blocks, ld.errors.lookup(blocks).tolist(), strict=True):
+            if slot >= 0:
+                continue
+            try:
+                data = ld._read_errors(b)
+            except READ_ERRORS as exc:
+                log.warning("reading the error table of block %s failed: %s", b, exc)
+                unread += 1
+                continue
+            ld.errors.add(b, *data)
+        return unread
 
     def _raise_background_error(self, *, fatal: bool = True) -> None:
         """Re-raise a planning failure or a loader bug on the caller's thread, and (``fatal``)
@@ -319,15 +355,13 @@ class Session:
                     self.loader.load_inline(None, deadline)
                     continue
                 wait_idle(self.loader, self._raise_background_error, deadline, limit, start)
-        with self._cv:
+        with self._cv:  # (one hold: a read arriving now counts in the warm-up or in frame 0)
             self.loader.frame_realtime = self.loader.frame_prefetched = 0
             self.loader.frame_io_s = 0.0
+            loaded = self.totals.loaded_bytes - before
         if self.config.freeze_gc:
             freeze_heap()  # one collection now rather than tens of ms in some later frame
-        out = {
-            "ms": (time.perf_counter() - t0) * 1000.0,
-            "bytes": float(self.totals.loaded_bytes - before),
-        }
+        out = {"ms": (time.perf_counter() - t0) * 1000.0, "bytes": float(loaded)}
         self.totals.warmup = out
         return out
 
@@ -335,12 +369,14 @@ class Session:
         """Schedule loads for this camera and report what can be drawn now.
 
         ``dt`` is the time since the previous pose (default ``1/fps``), used for the velocity
-        that stretches the frustum extension. ``wait=True`` blocks until every visible block
-        holds its needed level or has failed ``retries`` times in a row and ``retries`` more
-        times during this wait (bounded by ``wait_timeout_s``). With ``warm_start``, the first
-        call runs :meth:`warm_up` first.
+        that stretches the frustum extension: a finite number of seconds >= 0 (0: no velocity;
+        NaN, negative or infinite raise :class:`~streamer.errors.CameraError`, a ValueError).
+        ``wait=True`` blocks until every visible block holds its needed level or has failed
+        ``retries`` times in a row and ``retries`` more times during this wait (bounded by
+        ``wait_timeout_s``). With ``warm_start``, the first call runs :meth:`warm_up` first.
         """
         self._check_open()
+        dt = _check_dt(dt)
         if self.config.warm_start and self.totals.frames == 0 and not self.totals.warmup:
             self.warm_up(camera)
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -418,7 +454,9 @@ class Session:
             else:
                 mirror[b] = top
         seen = mirror.get
+        hull_holes = 0
         if hull is not None:
+            hull_holes = sum(1 for b in hull if seen(b, -1) < 0)
             hull = any(seen(b, -1) < lv or b not in errors_table for b, lv in hull.items())
         have_list = list(map(seen, keys, repeat(-1)))
         blocks = dict(zip(keys, zip(have_list, needed.values(), strict=True), strict=True))
@@ -444,7 +482,7 @@ class Session:
                     ld.due.setdefault((b, lvl), due)
             realtime, prefetched, io_s, late, news = ld.take_frame_counts()
             failed = frozenset(b for b in ld.queue.failed_blocks() if b in needed)
-            resident = cache.nbytes
+            resident = cache.nbytes - cache.reserved  # levels held, not reads in flight
             errors = self.totals.io_errors
         used = self.totals.used  # (the caller's own: no lock)
         for i in changed:
@@ -481,6 +519,8 @@ class Session:
             levels_short=max(0, short),
         )
         frame = Frame(camera=camera, blocks=blocks, stats=stats, failed=failed)
+        if hull is not None:
+            self._hull_hole_frames = (self._hull_hole_frames or 0) + int(hull_holes > 0)
         self._record(frame)
         if news and self.config.raise_on_failure:
             b, exc = news[0]
@@ -490,6 +530,7 @@ class Session:
 
     def _record(self, frame: Frame) -> None:
         self.totals.add(frame)
+        self._peak_frames = max(self._peak_frames, frame.stats.resident_bytes)
         if self._clock0 is None:
             self._clock0 = time.monotonic()  # the frame clock starts once frame 0 is shown
 
@@ -517,21 +558,32 @@ class Session:
         return self.loader.side.get(block)
 
     def summary(self) -> dict[str, Any]:
-        """Totals over every frame so far (the ``summary`` object of ``--json``)."""
+        """Totals over every frame so far (the ``summary`` object of ``--json``).
+
+        ``peak_resident_bytes`` is the cache's peak of decoded levels at any time (reads that
+        arrived after the last frame included); ``peak_resident_bytes_frames`` the largest
+        ``FrameStats.resident_bytes`` of the frames (the same quantity, as frames saw it).
+        With ``account_hull``, ``stall_frames_hull`` and ``hole_frames_hull`` count the frames
+        that lacked a level, or had a block with none, over the frustum hull the renderer draws.
+        """
         t = self.totals
         with self._cv:
             used_bytes = sum(self._cum_bytes[top] for top in t.used.values() if top >= 0)
             failed_now = sorted(self.loader.queue.failed_blocks())
             failing = loader_failing(self.loader)
-        return t.summary(
+            peak, held = self.cache.peak_nbytes, self.cache.peak_held
+        out = t.summary(
             failing=failing,
             used_bytes=used_bytes,
-            peak_resident_bytes=self.cache.peak_nbytes,
-            peak_held_bytes=self.cache.peak_held,
+            peak_resident_bytes=peak,
+            peak_held_bytes=held,
             budget_bytes=self.cache.budget,
             stall_set=self.stall_set,
             failed_now=failed_now,
         )
+        out["peak_resident_bytes_frames"] = self._peak_frames
+        out["hole_frames_hull"] = self._hull_hole_frames  # None unless account_hull
+        return out
 
 
 def open_session(
@@ -556,6 +608,20 @@ __all__ = [
     "SessionConfig",
     "open_session",
 ]
+
+
+def _check_dt(dt: float | None) -> float | None:
+    """``dt`` as a float (None stays None), or :class:`CameraError` unless it is a finite
+    number of seconds >= 0 (0: the same instant, no velocity)."""
+    if dt is None:
+        return None
+    try:
+        value = float(dt)
+    except (TypeError, ValueError):
+        raise CameraError(f"dt must be a number of seconds, got {dt!r}") from None
+    if not (math.isfinite(value) and value >= 0.0):
+        raise CameraError(f"dt must be a finite number of seconds >= 0, got {dt!r}")
+    return value
 
 
 def _values(needed: dict[Block, int]) -> np.ndarray:

@@ -19,9 +19,11 @@ from cli.options import (
     PathKindOpt,
     PathOpt,
     PlotOpt,
+    Registry,
     SizeOpt,
     StorageOptionsOpt,
     TauOpt,
+    choice_option,
     integer,
     number,
     parse_size,
@@ -35,6 +37,7 @@ if TYPE_CHECKING:
 #: ``--latency-ms`` must stay below the session's wait for a frame's reads
 #: (``SessionConfig.wait_timeout_s``, 30 s): at or above it no read could finish in a wait
 LATENCY_MAX_MS = 30_000.0
+CULLINGS = Registry("streamer.run", "CULLINGS", "culling")
 
 
 def stream(
@@ -69,6 +72,15 @@ def stream(
     tau: TauOpt = 1.0,
     metric: MetricOpt = METRIC_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
+    culling: Annotated[
+        str,
+        choice_option(
+            "--culling",
+            CULLINGS,
+            "What frames stream and stalls count over: qiu (Qiu's triangle; the hull the "
+            "renderer draws is counted too) or hull (the frustum hull, as flythrough).",
+        ),
+    ] = "qiu",
     size: SizeOpt = "1024x768",
     every: Annotated[int, integer("--every", "Print every N-th frame (0: auto).", min=0)] = 0,
     plot: PlotOpt = None,
@@ -114,6 +126,10 @@ def stream(
             warn_path_below_ground(s, cams, "a viewer flying it sees the terrain from below")
         cfg = dict(fps=fps, prefetch=not no_prefetch, latency_ms=latency_ms, tau=tau, metric=metric)
         cfg["nodata"] = nodata_rule  # the levels qiu would draw under that rule
+        # Qiu's triangle misses what a steep camera sees below and behind it: under it the
+        # hull the renderer draws is accounted too (stalls and holes), so the figures are true
+        cfg["culling"] = culling
+        cfg["account_hull"] = culling == "qiu"
         cfg["raise_on_failure"] = False  # keep flying: failures are in the frames and summary
         cfg["freeze_gc"] = True  # the command owns its process: no full collection mid-flight
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting
@@ -154,6 +170,7 @@ def stream(
         typer.echo("\n".join(lines))
         typer.echo("")
         typer.echo(format_summary(result.summary))
+        hull_note(result.summary)
         problem = flight_problem(end, unfinished, store)
         result.summary["at_close"] = {k: end[k] for k in AT_CLOSE} | {
             "unanswered_reads": sum(n.startswith(THREAD_PREFIX) for n in unfinished),
@@ -163,6 +180,26 @@ def stream(
         if problem:
             typer.echo(f"error: the flight over {store!r} is incomplete: {problem}", err=True)
             raise typer.Exit(EXIT_RUNTIME)
+
+
+def hull_note(summary: dict) -> None:
+    """Under Qiu's triangle, say what the frames lacked over the frustum hull the renderer
+    draws, and warn when that is more than the triangle's figures show."""
+    hull_stalls, hull_holes = summary.get("stall_frames_hull"), summary.get("hole_frames_hull")
+    if hull_stalls is None:
+        return
+    typer.echo(
+        f"over the frustum hull the renderer draws: stall frames {hull_stalls}, frames with "
+        f"holes {hull_holes or 0}"
+    )
+    if hull_stalls > summary["stall_frames"] or (hull_holes or 0) > summary["hole_frames"]:
+        typer.echo(
+            f"warning: {hull_stalls} of {summary['frames']} frame(s) lacked data the renderer "
+            f"draws ({hull_holes or 0} with holes) where Qiu's triangle counts "
+            f"{summary['stall_frames']} ({summary['hole_frames']}): the triangle misses what "
+            "the camera sees beside and behind its apex; --culling hull streams what is drawn",
+            err=True,
+        )
 
 
 def write_partial(

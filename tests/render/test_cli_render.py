@@ -110,6 +110,7 @@ def test_every_strategy_flies(store, tmp_path, lod):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["loaded_mb"] == pytest.approx(sum(float(r["loaded_mb"]) for r in rows))
     assert summary["loaded_mb"] > 0.0 and summary["loaded_after_frames_mb"] >= 0.0
+    assert summary["peak_resident_mb"] == max(float(r["resident_mb"]) for r in rows)
     assert all(float(r["build_cpu_ms"]) >= 0.0 for r in rows)
     assert all(float(r["strategy_gpu_mb"]) >= 0.0 and int(r["drawn_px"]) > 0 for r in rows)
 
