@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 import uuid
+from collections.abc import Callable, Iterator
 from typing import Any
 
 
@@ -30,3 +32,57 @@ def write_atomic(path: str, *pieces: Any) -> int:
             os.unlink(tmp)
         raise
     return n
+
+
+def _umask() -> int:
+    """The process's umask (read by setting it, then set back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def readable_whole(path: str, out: str) -> None:
+    """Read every block of the raster just written at ``path`` back: GDAL reports a write that
+    failed when its cache is flushed (a full disk: "No space left on device") only on
+    stderr, and the file it leaves is cut short. :class:`tiler.errors.OutputError` naming
+    ``out`` if any block cannot be read."""
+    import rasterio
+    import rasterio.errors
+
+    from tiler.errors import OutputError
+
+    try:
+        with rasterio.open(path) as ds:
+            for _, window in ds.block_windows(1):
+                ds.read(window=window)
+    except rasterio.errors.RasterioError as exc:
+        raise OutputError(
+            f"cannot write {out!r}: the raster written could not be read back whole ({exc}); "
+            "is the disk full? Nothing was written there"
+        ) from exc
+
+
+@contextlib.contextmanager
+def raster_written_whole(
+    out: str | os.PathLike, before_rename: Callable[[], None] | None = None
+) -> Iterator[str]:
+    """A temporary path beside ``out`` to write a raster to; once written, read back whole
+    (:func:`readable_whole`) and ``before_rename`` passed, it is renamed to ``out`` (with the
+    mode a new file gets), else removed: a partial raster (an error, a full disk, Ctrl-C)
+    never looks complete, and an ``out`` being replaced stays as it was until then."""
+    out = os.path.abspath(os.fspath(out))
+    where, name = os.path.split(out)
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".partial.tif", dir=where)
+    os.close(fd)
+    try:
+        yield tmp
+        readable_whole(tmp, out)
+        if before_rename is not None:
+            before_rename()
+        os.chmod(tmp, 0o666 & ~_umask())  # (mkstemp's file is 0600)
+        os.replace(tmp, out)
+    except BaseException:
+        for leftover in (tmp, tmp + ".aux.xml"):
+            with contextlib.suppress(OSError):
+                os.unlink(leftover)
+        raise

@@ -83,6 +83,11 @@ class StoreError(TilerError, OSError):
     """A store that cannot be written or read as asked."""
 
 
+class OutputError(TilerError, OSError):
+    """An output file (a GeoTIFF written by ``export`` or ``synth``) that could not be written
+    whole: nothing is left at its path."""
+
+
 class StoreExistsError(StoreError, FileExistsError):
     """The destination exists and ``overwrite`` was not given."""
 

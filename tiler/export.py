@@ -23,9 +23,11 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import rasterio
+import rasterio.errors
 from rasterio.transform import Affine
 from rasterio.windows import Window
 
+from tiler.atomic import raster_written_whole
 from tiler.encoding import dequantise
 from tiler.errors import StoreError
 from tiler.grid import as_index
@@ -34,26 +36,19 @@ from tiler.store import TerrainStore
 
 @contextlib.contextmanager
 def _written_whole(store: TerrainStore, out: str | os.PathLike) -> Iterator[str]:
-    """A temporary path beside ``out`` to write to; once written, and the store found
-    unchanged (a forced check: a remote store replaced meanwhile would mix two DEMs), it is
-    renamed to ``out``, else removed: a partial or mixed raster never looks complete, and an
-    ``out`` being replaced stays as it was until then."""
-    out = os.path.abspath(os.fspath(out))
-    where, name = os.path.split(out)
+    """A temporary path beside ``out`` to write to (:func:`tiler.atomic.raster_written_whole`):
+    renamed to ``out`` once read back whole and the store found unchanged (a forced check: a
+    remote store replaced meanwhile would mix two DEMs), else removed."""
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".partial.tif", dir=where)
-    except OSError as exc:
-        raise StoreError(f"cannot write {out!r}: {exc}") from exc
-    os.close(fd)
-    try:
-        yield tmp
-        store.check_unchanged(force=True)
-        os.replace(tmp, out)
-    except BaseException:
-        for leftover in (tmp, tmp + ".aux.xml"):
-            with contextlib.suppress(OSError):
-                os.unlink(leftover)
+        with raster_written_whole(out, lambda: store.check_unchanged(force=True)) as tmp:
+            yield tmp
+    except StoreError:
         raise
+    except OSError as exc:  # (mkstemp's, or the raster that could not be read back)
+        text = str(exc)
+        raise StoreError(
+            text if text.startswith("cannot write") else f"cannot write {str(out)!r}: {text}"
+        ) from exc
 
 
 def export_shape(store: TerrainStore, level: int) -> tuple[int, int, int]:
@@ -242,7 +237,6 @@ def export_cog(
     Each level is first written to a temporary tiled GeoTIFF (in ``tmpdir``, by default beside
     ``out``; about 1.33x the output's raw size), then GDAL's COG driver assembles them.
     """
-    import tempfile
     from xml.sax.saxutils import escape
 
     import rasterio.shutil

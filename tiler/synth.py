@@ -43,6 +43,7 @@ import rasterio
 from rasterio.transform import Affine
 from rasterio.windows import Window
 
+from tiler.atomic import raster_written_whole
 from tiler.errors import SourceError
 
 __all__ = ["DTYPES", "synth_array", "synth_dem"]
@@ -340,7 +341,10 @@ def synth_dem(
         profile.update(tiled=True, blockxsize=_BLOCK, blockysize=_BLOCK)
     total = size * size
     done = 0
-    with rasterio.open(path, "w", **profile) as dst:
+    # written beside ``path`` and renamed once read back whole: an interrupted or failed run
+    # (Ctrl-C, a full disk) leaves no DEM that looks complete (GDAL fills unwritten tiles with
+    # 0 when the file is closed), and a ``path`` being replaced stays as it was until then
+    with raster_written_whole(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
         for r0 in range(0, size, window):
             nr = min(window, size - r0)
             for c0 in range(0, size, window):
