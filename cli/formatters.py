@@ -69,7 +69,7 @@ def format_info(d: dict) -> str:
         f"levels         {d['levels']} (encoding {d['encoding']}, {d['compressor']})",
         f"nodata         {'none' if d['nodata'] is None else format(d['nodata'], 'g')}",
         f"checksums      {d.get('checksums', 'none')}",
-        f"crs            {d['crs']}" + _crs_note(d),
+        f"crs            {d['crs'] or 'none'}" + _crs_note(d),
         f"extent         {_box(d['extent'], d)} (sample centres)",
         f"bounds         {_box(d['bounds'], d)} (pixel edges, as GDAL)",
         f"values         {d['value_range'][0]:g} .. {d['value_range'][1]:g}"

@@ -219,7 +219,7 @@ def crs_name(wkt: str | None) -> str:
     try:
         return crs.to_proj4() or crs.to_string()
     except CRSError:
-        return crs.to_string()[:80]
+        return crs.to_string()
 
 
 def is_geographic(crs_wkt: str | None) -> bool:

@@ -33,13 +33,9 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
     nbytes = s.nbytes() if listed else None
     per_level = s.level_nbytes() if listed else [None] * (m.k + 1)
     raw = m.height * m.width * np.dtype(m.dtype).itemsize
-    crs = None
-    if m.crs_wkt:
-        from rasterio.crs import CRS
-
-        c = CRS.from_wkt(m.crs_wkt)
-        epsg = c.to_epsg()
-        crs = f"EPSG:{epsg}" if epsg else c.to_string()[:80]
+    # EPSG:n, else the PROJ string, whole (a WKT cut at 80 characters could not be parsed);
+    # None without a CRS
+    crs = crs_name(m.crs_wkt) if m.crs_wkt else None
     vr = m.extra.get("value_range", [float("nan"), float("nan")])
     vertical = m.extra.get("vertical")
     a, b = height_transform(m)

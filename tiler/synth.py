@@ -4,7 +4,9 @@ Method
 ------
 Every sample is a pure function of its global ``(row, col)``, the seed, the raster size, ``relief``
 and ``base``. Coordinates are normalised by the raster size (``u = col / (size - 1)``), so two sizes
-show the same landscape at two resolutions; a larger raster only adds finer octaves.
+show the same landscape at two resolutions (in samples: the GeoTIFF's cells are ``cell_size``
+metres whatever the size, so a larger raster spreads that landscape over more ground unless
+``cell_size`` shrinks with it); a larger raster only adds finer octaves.
 
 Each octave ``o`` is 2-D gradient (Perlin) noise on an integer lattice of ``2 * 2**o`` cells across
 the raster (lacunarity 2), shifted by a seed-derived sub-cell offset so the octaves' lattices do
@@ -19,8 +21,8 @@ to 12 of them. Roles by octave:
 * octaves 7 and up, fBm with gain 0.5: small-scale roughness, stronger in the mountains.
 
 The sum is shaped into ``t`` (about 0 in the deepest valleys to 1 on the highest peaks) and the
-elevation is ``base + relief * t``. ``int16`` rounds half away from zero and clips; ``float32``
-keeps fractional metres.
+elevation is ``base + relief * t``. ``int16`` rounds half to even (``np.round``) and clips;
+``float32`` keeps fractional metres.
 
 Gradient noise is separable along the two axes, so an octave is evaluated as a handful of
 gathers and products of per-row and per-column vectors instead of per-sample hashing. Only

@@ -10,17 +10,29 @@ import typer
 
 from cli.checks import output_file
 from cli.common import fail_on_errors
-from cli.options import DTYPE_DEFAULT, DTYPES, choice_option, integer
+from cli.options import DTYPE_DEFAULT, DTYPES, choice_option, integer, number
 from cli.progress import Progress
 
 
 def synth(
     out: Annotated[Path, typer.Argument(help="Output GeoTIFF.", show_default=False)],
     size: Annotated[int, integer("--size", "Samples per side.", min=2)] = 4097,
-    seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed, same DEM).")] = 0,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Random seed (same seed, same DEM; modulo 2^64).")
+    ] = 0,
     dtype: Annotated[str, choice_option("--dtype", DTYPES, "Sample type of the GeoTIFF.")] = (
         DTYPE_DEFAULT
     ),
+    cell_size: Annotated[
+        float,
+        number(
+            "--cell-size",
+            "Metres per sample (EPSG:32633, north-west corner at 500000, 5000000): the DEM "
+            "covers size x cell-size metres.",
+            min=0.0,
+            min_open=True,
+        ),
+    ] = 30.0,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
     ] = False,
@@ -43,7 +55,7 @@ def synth(
             bar.update(done, total, f"{rate:.2f} M samples/s")
 
         try:
-            synth_dem(out, size, seed=seed, dtype=dtype, progress=on_progress)
+            synth_dem(out, size, seed=seed, dtype=dtype, cell_size=cell_size, progress=on_progress)
         finally:
             bar.close()
         typer.echo(f"wrote {out}: {size} x {size} {dtype}, seed {seed}")

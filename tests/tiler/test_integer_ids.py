@@ -110,3 +110,29 @@ def test_a_store_opened_by_a_relative_path_survives_a_chdir(tmp_path, monkeypatc
     )
     np.testing.assert_array_equal(s.read_block((1, 1)), want)
     assert s.url == "s.zarr"  # (messages name it as given)
+
+
+def test_info_names_a_crs_without_an_epsg_code_whole(tmp_path):
+    """`info` cut a CRS without an EPSG code to its WKT's first 80 characters (unparseable,
+    in --json too) and printed `crs None` without one; now the whole PROJ string, and
+    "none". Control: an EPSG CRS is `EPSG:n`."""
+    from rasterio.crs import CRS
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from tiler.info import store_info
+
+    src = write_dem(tmp_path / "d.tif", fractal((100, 100), 3))
+    laea = "+proj=laea +lat_0=45 +lon_0=15 +datum=WGS84"
+    tile(src, tmp_path / "l.zarr", TileOptions(65, dst_crs=laea, resolution=30.0))
+    got = store_info(tmp_path / "l.zarr")["crs"]
+    assert CRS.from_user_input(got) == CRS.from_user_input(laea), got
+    tile(src, tmp_path / "u.zarr", TileOptions(65))
+    assert store_info(tmp_path / "u.zarr")["crs"] == "EPSG:32633"
+    tile(
+        write_dem(tmp_path / "n.tif", fractal((100, 100), 3), crs=None),
+        tmp_path / "n.zarr",
+        TileOptions(65),
+    )
+    r = CliRunner().invoke(app, ["info", str(tmp_path / "n.zarr")])
+    assert r.exit_code == 0 and "crs            none" in r.output, r.output

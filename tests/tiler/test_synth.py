@@ -236,3 +236,25 @@ def test_synth_array_rejects_bad_dtype_and_size():
         synth_array(FULL, FULL, 64, dtype="uint8")
     with pytest.raises(SourceError, match="1"):
         synth_array(FULL, FULL, 1)
+
+
+def test_the_cli_takes_the_cell_size(tmp_path):
+    """`synth` placed every DEM at 30 m cells (a 2^20+1 one 31,457 km wide, past its UTM
+    zone and to infinite longitudes); `--cell-size` chooses. Control: the default is 30 m."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    r = CliRunner().invoke(
+        app, ["synth", str(tmp_path / "a.tif"), "--size", "33", "--cell-size", "2.5"]
+    )
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "b.tif"), "--size", "33"])
+    assert r.exit_code == 0, r.output
+    with rasterio.open(tmp_path / "a.tif") as a, rasterio.open(tmp_path / "b.tif") as b:
+        assert a.transform.a == 2.5 and b.transform.a == 30.0
+        np.testing.assert_array_equal(a.read(1), b.read(1))  # the same samples, smaller cells
+    r = CliRunner().invoke(
+        app, ["synth", str(tmp_path / "c.tif"), "--size", "33", "--cell-size", "0"]
+    )
+    assert r.exit_code == 2 and "--cell-size" in r.output
