@@ -33,6 +33,7 @@ from render.strategies.base import DrawOptions
 from render.views import near_plane
 from streamer.camera import Camera
 from streamer.gcfreeze import freeze_heap
+from streamer.run import close_for_verdict, flight_problem
 from streamer.session import LoadError, open_session
 from tiler.store import TerrainStore
 
@@ -242,6 +243,9 @@ class ViewResult:
     tau: float
     resident_mb: float
     screenshot: Path | None
+    # why a scripted run's view is incomplete (streamer.run.flight_problem: blocks that could
+    # not be read, reads never answered), its screenshot then removed; None: it is whole
+    problem: str | None = None
 
 
 def status_line(
@@ -411,13 +415,18 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
                 freeze_heap()
                 frozen = True
     finally:
-        session.close()
+        # (reads in flight may finish, fail or never answer: a scripted run says which)
+        unfinished, summary = close_for_verdict(session)
         warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds
         try:
             strat.close()
         finally:
             r.close()
-    return ViewResult(n, last, state["tau"], mb, shot)
+    problem = flight_problem(summary, unfinished, store.url) if scripted else None
+    if problem and shot is not None:  # a screenshot of a view drawn without its data
+        shot.unlink(missing_ok=True)
+        shot = None
+    return ViewResult(n, last, state["tau"], mb, shot, problem)
 
 
 def _save(ctx: moderngl.Context, size: tuple[int, int], path: Path) -> None:

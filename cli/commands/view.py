@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import image_suffixes, open_store_arg, output_file
-from cli.common import UsageError, fail_on_errors
+from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -103,6 +103,13 @@ def view(
             f"{res.tau:.3g}, {res.resident_mb:.1f} MiB resident"
             + (f"; wrote {res.screenshot}" if res.screenshot else "")
         )
+        if res.problem:  # drawn without data it needed: not a view of the store
+            typer.echo(
+                f"error: the view of {store!r} is incomplete: {res.problem}"
+                + ("; the screenshot was not kept" if screenshot is not None else ""),
+                err=True,
+            )
+            raise typer.Exit(EXIT_RUNTIME)
 
 
 def register(app: typer.Typer) -> None:

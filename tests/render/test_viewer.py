@@ -195,6 +195,29 @@ def test_viewer_draws_terrain_and_the_status_line(viewer_store, display, tmp_pat
     assert bar.mean() < 0.7 * sky.mean() and (bar.min(axis=2) > 200).sum() > 20
 
 
+@pytest.mark.gl
+def test_a_scripted_view_of_a_damaged_store_fails(viewer_store, display, tmp_path):
+    """`view --frames` on a store with damaged chunks exited 0 and wrote its screenshot, the
+    damaged blocks drawn coarser than asked (`render` exits 1 there); now exit 1 naming the
+    blocks, the screenshot not kept. The control: the intact store (the test above)."""
+    import shutil
+
+    store = tmp_path / "d.zarr"
+    shutil.copytree(viewer_store, store)
+    level = max(int(p.name) for p in (store / "levels").iterdir() if p.name.isdigit())
+    chunk = next(p for p in (store / "levels" / str(level) / "c").rglob("0") if p.is_file())
+    data = bytearray(chunk.read_bytes())
+    data[40:44] = b"\xff\xff\xff\xff"
+    chunk.write_bytes(bytes(data))
+    shot = tmp_path / "shot.png"
+    res = _view(store, display, "--size", "160x100", "--frames", "3", "--tau", "0",
+                "--screenshot", str(shot), "--workers", "2")  # fmt: skip
+    _skip_without_gl_window(res)
+    assert res.returncode == 1, (res.stdout, res.stderr)
+    assert "is incomplete" in res.stderr and "could not be read" in res.stderr, res.stderr
+    assert not shot.exists()
+
+
 def test_viewer_without_display_says_so(viewer_store):
     res = _view(viewer_store, None, "--frames", "1")
     assert res.returncode == 2, res.stderr
@@ -231,9 +254,9 @@ else:
         s = real_open(*a, **k)
         close = s.close
 
-        def closing():
+        def closing(*a, **k):
             release.set()
-            close()
+            return close(*a, **k)
 
         s.close = closing
         return s
