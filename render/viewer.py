@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -215,10 +216,14 @@ def open_window(
         glfw.make_context_current(win)
     except glfw.GLFWError as exc:
         glfw.terminate()
-        raise ViewerUnavailableError(
-            f"cannot open an OpenGL 4.5 window: {exc} (needs a display: on a headless machine "
-            "run it inside xvfb-run)"
-        ) from exc
+        has_display = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        why = (
+            "the display has no OpenGL 4.5 core profile: check `glxinfo -B` (a driver or "
+            "MESA_GL_VERSION_OVERRIDE below 4.5?)"
+            if has_display
+            else "needs a display: on a headless machine run it inside xvfb-run"
+        )
+        raise ViewerUnavailableError(f"cannot open an OpenGL 4.5 window: {exc} ({why})") from exc
     finally:
         glfw.ERROR_REPORTING = "warn"
     for backend in (None, "egl"):  # GLX on X11; EGL when GLFW made an EGL context (Wayland)

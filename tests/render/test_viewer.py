@@ -218,6 +218,20 @@ def test_a_scripted_view_of_a_damaged_store_fails(viewer_store, display, tmp_pat
     assert not shot.exists()
 
 
+@pytest.mark.gl
+def test_a_display_without_opengl_4_5_is_said_so(viewer_store, display):
+    """Inside xvfb-run, a display whose OpenGL is below 4.5 was told to "run it inside
+    xvfb-run"; it names the GL version now (the control, no display: the next test)."""
+    env = _env(display) | {"MESA_GL_VERSION_OVERRIDE": "3.3"}
+    cmd = [sys.executable, "-c", "from cli.main import main; main()", "view", str(viewer_store),
+           "--frames", "1"]  # fmt: skip
+    res = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    if res.returncode == 0:
+        pytest.skip("this display's driver ignores MESA_GL_VERSION_OVERRIDE")
+    assert res.returncode == 2, res.stderr
+    assert "no OpenGL 4.5 core profile" in res.stderr and "xvfb-run" not in res.stderr
+
+
 def test_viewer_without_display_says_so(viewer_store):
     res = _view(viewer_store, None, "--frames", "1")
     assert res.returncode == 2, res.stderr
