@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from streamer.cache import Block
 from streamer.camera import Camera
 from streamer.errors import StreamerError
@@ -67,19 +69,43 @@ class SessionConfig:
     # garbage collection walks the start-up's objects again (process-wide, see that module)
 
     def __post_init__(self) -> None:
+        for name in ("workers", "patch_log2", "retries"):  # (2.5 workers started 2, then failed)
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise StreamerError(f"invalid {name}: {v!r} (an integer)")
+        if self.inline_bytes_per_frame is not None and (
+            isinstance(self.inline_bytes_per_frame, bool)
+            or not isinstance(self.inline_bytes_per_frame, (int, np.integer))
+        ):
+            raise StreamerError(f"invalid inline_bytes_per_frame: {self.inline_bytes_per_frame!r}")
+        for name in (
+            "budget_mb", "fps", "tau", "lookahead", "latency_ms", "backoff_s", "max_backoff_s",
+            "wait_timeout_s", "horizon_s",
+        ):  # fmt: skip
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise StreamerError(f"invalid {name}: {v!r} (a number)")
+        for name in ("extension_L", "linger_s"):
+            v = getattr(self, name)
+            if v is not None and (
+                isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating))
+            ):
+                raise StreamerError(f"invalid {name}: {v!r} (a number or None)")
         checks = [
-            ("budget_mb", self.budget_mb * 2**20 >= 1),  # at least a byte
+            ("budget_mb", self.budget_mb * 2**20 >= 1 and math.isfinite(self.budget_mb)),
             ("workers", self.workers >= 0 and self.workers <= 64),
             ("fps", self.fps > 0 and math.isfinite(self.fps)),
             ("tau", self.tau >= 0),
-            ("patch_log2", self.patch_log2 >= 0),
-            ("latency_ms", self.latency_ms >= 0),
+            ("patch_log2", 0 <= self.patch_log2 <= 20),
+            ("latency_ms", 0 <= self.latency_ms < math.inf),
             ("retries", self.retries >= 1),
             ("backoff_s", self.backoff_s >= 0 and math.isfinite(self.backoff_s)),
             ("max_backoff_s", self.max_backoff_s >= 0 and math.isfinite(self.max_backoff_s)),
-            ("wait_timeout_s", self.wait_timeout_s > 0),
-            ("linger_s", self.linger_s is None or self.linger_s >= 0),
-            ("horizon_s", self.horizon_s >= 0),
+            ("wait_timeout_s", 0 < self.wait_timeout_s < math.inf),
+            ("linger_s", self.linger_s is None or 0 <= self.linger_s < math.inf),
+            ("horizon_s", 0 <= self.horizon_s < math.inf),
+            ("extension_L", self.extension_L is None or 0 <= self.extension_L < math.inf),
+            ("inline_bytes_per_frame", (self.inline_bytes_per_frame or 0) >= 0),
             ("lookahead", 0 < self.lookahead <= 1),
         ]
         for name, ok in checks:

@@ -60,7 +60,7 @@ from streamer.planner import Planner
 from streamer.planthread import PlanThread
 from streamer.waits import wait_for, wait_idle, waiting
 from tiler.crs import require_projected
-from tiler.errors import StoreChangedError
+from tiler.errors import StoreChangedError, StoreIncompleteError
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
 from tiler.vertical import height_dtype
@@ -84,6 +84,12 @@ class Session:
         read_hook: Callable[[Block, int], None] | None = None,
     ) -> None:
         self.store = store if isinstance(store, TerrainStore) else open_store(store)
+        if not self.store.meta.complete:  # (opened with allow_incomplete: its index is empty
+            # until the tiling finishes, so every frame would see nothing and report no hole)
+            raise StoreIncompleteError(
+                f"store {self.store.url!r} is not finished: a session streams finished stores "
+                "only; run the 'terrastream tile' command that writes it to completion"
+            )
         require_projected(self.store)  # degrees beside metres cannot be streamed
         self._config = config or SessionConfig()
         self.grid = self.store.grid

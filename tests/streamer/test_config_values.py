@@ -1,0 +1,60 @@
+"""Session settings and stores a session refuses at once, naming the value: ``budget_mb=inf``
+raised an OverflowError, ``latency_ms``/``wait_timeout_s=inf`` an OverflowError from
+``update()``, ``workers=2.5`` started two loaders and failed in a finaliser, ``patch_log2=2.5``
+a TypeError, ``extension_L=-5`` failed as "prefetch planning failed" at the first frame; and a
+store opened with ``allow_incomplete`` streamed frames that saw nothing and reported no hole.
+Controls: numpy numbers and a finished store."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from demtools import fractal, write_dem
+
+from streamer.errors import StreamerError
+from streamer.frames import SessionConfig
+from streamer.session import Session
+from tiler.errors import StoreIncompleteError
+from tiler.store import open_store
+from tiler.tile import TileOptions, tile
+
+INF, NAN = float("inf"), float("nan")
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("budget_mb", INF), ("budget_mb", "64"), ("latency_ms", INF), ("wait_timeout_s", INF),
+        ("workers", 2.5), ("workers", "2"), ("workers", True), ("patch_log2", 2.5),
+        ("patch_log2", 50), ("extension_L", -5.0), ("extension_L", NAN), ("retries", 1.5),
+        ("horizon_s", INF), ("linger_s", INF),
+    ],
+)  # fmt: skip
+def test_a_setting_that_cannot_work_is_refused_naming_it(field, value):
+    with pytest.raises(StreamerError, match=f"invalid {field}: "):
+        SessionConfig(**{field: value})
+
+
+def test_numpy_numbers_are_settings_too():
+    c = SessionConfig(workers=np.int64(2), budget_mb=np.float32(3.0), extension_L=np.float64(5))
+    assert c.workers == 2 and c.extension_L == 5.0
+
+
+def test_a_session_refuses_an_unfinished_store(tmp_path):
+    src = write_dem(tmp_path / "d.tif", fractal((200, 200), 3))
+    calls = []
+
+    def stop(progress) -> None:
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        tile(
+            src, tmp_path / "s.zarr", TileOptions(65, workers=1, executor="threads"), progress=stop
+        )
+    unfinished = open_store(tmp_path / "s.zarr", allow_incomplete=True)
+    with pytest.raises(StoreIncompleteError, match="not finished: a session streams finished"):
+        Session(unfinished)
+    tile(src, tmp_path / "s.zarr", TileOptions(65, workers=1, executor="threads"))
+    Session(open_store(tmp_path / "s.zarr")).close()  # the control: finished, it streams
