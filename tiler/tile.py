@@ -41,6 +41,7 @@ from tiler.errors import (
     StoreExistsError,
     TilingInterrupted,
 )
+from tiler.grid import as_index
 from tiler.layout import grid_side, parse_block_size
 from tiler.lease import DEFAULT_TIMEOUT_S, WriterLease
 from tiler.location import Location, as_location, for_writing
@@ -113,6 +114,13 @@ class TileOptions:
     resolution: float | None = None  # target pixel size, target CRS units (with dst_crs)
 
     def __post_init__(self) -> None:
+        for name in ("block_size", "band", "workers", "compression_level", "gdal_cache_mb",
+                     "retries"):  # fmt: skip
+            as_index(getattr(self, name), name)  # (a float or a string failed later, unnamed)
+        if self.error_cap is not None:
+            as_index(self.error_cap, "error_cap")
+        if self.gdal_cache_mb < 1:
+            raise SourceError(f"gdal_cache_mb must be >= 1, got {self.gdal_cache_mb}")
         parse_block_size(self.block_size)
         if self.band < 1:
             raise SourceError(f"band must be >= 1, got {self.band}")

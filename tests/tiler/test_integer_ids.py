@@ -136,3 +136,19 @@ def test_info_names_a_crs_without_an_epsg_code_whole(tmp_path):
     )
     r = CliRunner().invoke(app, ["info", str(tmp_path / "n.zarr")])
     assert r.exit_code == 0 and "crs            none" in r.output, r.output
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [dict(compression_level=2.5), dict(error_cap=1.5), dict(band="1"), dict(workers=1.5),
+     dict(block_size=65.0), dict(gdal_cache_mb=-5)],
+)  # fmt: skip
+def test_tile_options_that_are_not_integers_are_refused_naming_them(kw):
+    """``compression_level=2.5`` failed inside zarr, ``error_cap=1.5`` as "Expected an
+    iterable of integers", ``band="1"`` as a TypeError; ``gdal_cache_mb=-5`` and
+    ``workers=1.5`` were accepted. The control: numpy integers are options too."""
+    from tiler.errors import TilerError
+
+    with pytest.raises(TilerError, match=next(iter(kw))):
+        TileOptions(**kw)
+    TileOptions(block_size=np.int64(65), band=np.int32(1), workers=np.uint8(2))
