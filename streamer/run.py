@@ -9,6 +9,7 @@ so the fly-through starts with its data), and records the frame's stats.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -26,6 +27,8 @@ from streamer.loader import THREAD_PREFIX
 from streamer.session import FrameStats, Session
 from tiler.errors import StoreChangedError
 from tiler.store import TerrainStore
+
+log = logging.getLogger(__name__)
 
 PATH_KINDS = ("default", "line", "circle", "canyon", "teleports")
 #: what a flight streams and counts stalls over: Qiu's triangle, or the frustum hull drawn
@@ -95,6 +98,14 @@ def make_path(
     edge = grid.step * grid.dx
     v = edge if speed is None else float(speed)
     if path_file is not None:
+        if kind != "default" or speed is not None:  # (the file's keyframes set both)
+            log.warning(
+                "the keyframe file %s sets the path and its speed: the path kind %r and "
+                "speed %s are not used",
+                path_file,
+                kind,
+                "(default)" if speed is None else f"{speed:g}",
+            )
         cams = paths.keyframes(path_file, frames, **camera_kw)
         if "near" in camera_kw or "far" in camera_kw:
             return cams
@@ -111,13 +122,18 @@ def make_path(
         kw = {k: camera_kw[k] for k in ("viewport", "fov_y") if k in camera_kw}
         return paths.default_flythrough(grid, zmin, zmax, frames, fps, speed=v, **kw)
     if kind == "line":
-        half = min(dist, math.hypot(x1 - x0, y1 - y0)) / 2
+        # (frames - 1 steps between its first and last frame: at v each)
+        half = min(v * max(frames - 1, 1) / fps, math.hypot(x1 - x0, y1 - y0)) / 2
         a = np.array([cx, cy]) - half * np.array([1.0, 1.0]) / math.sqrt(2)
         b = np.array([cx, cy]) + half * np.array([1.0, 1.0]) / math.sqrt(2)
+        why = "it is capped at the DEM's diagonal"
+        _say_speed(kind, 2 * half / max(frames - 1, 1) * fps, v, speed, why)
         return paths.line((*a, height), (*b, height), frames, **camera_kw)
     if kind == "circle":
         radius = min(0.35 * min(x1 - x0, y1 - y0), v * frames / fps / (2 * math.pi))
         radius = max(radius, edge / 4)
+        why = "one loop of a radius between a quarter block edge and 0.35 of the DEM's side"
+        _say_speed(kind, 2 * math.pi * radius / frames * fps, v, speed, why)  # (frames steps)
         return paths.circle((cx, cy), radius, height, frames, look="tangent", **camera_kw)
     if kind == "canyon":
         fn = store_height_fn(store)
@@ -130,6 +146,22 @@ def make_path(
         bounds = (x0, y0, zmax, x1, y1, height + 0.2 * (zmax - zmin))
         return paths.teleports(bounds, frames, seed, max(1, int(fps)), **camera_kw)
     raise PathError(f"unknown path kind {kind!r}; choose one of {', '.join(PATH_KINDS)}")
+
+
+def _say_speed(kind: str, flown: float, v: float, asked: float | None, why: str) -> None:
+    """Warn when a path fitted to the DEM flies at ``flown`` units/s, more than 5 % off the
+    speed ``v`` asked (``asked``: the option's value, None when not given), and why."""
+    if asked is None:
+        return
+    if abs(flown - v) > 0.05 * v:
+        log.warning(
+            "the %s path flies at %.4g units/s, not the --speed %.4g asked: %s (--frames and "
+            "--fps set how long it is flown)",
+            kind,
+            flown,
+            v,
+            why,
+        )
 
 
 def paced(items: Iterable[T], fps: float) -> Iterator[T]:

@@ -58,3 +58,48 @@ def test_a_session_refuses_an_unfinished_store(tmp_path):
         Session(unfinished)
     tile(src, tmp_path / "s.zarr", TileOptions(65, workers=1, executor="threads"))
     Session(open_store(tmp_path / "s.zarr")).close()  # the control: finished, it streams
+
+
+def _store(tmp_path):
+    return tile(
+        write_dem(tmp_path / "d.tif", fractal((257, 257), 3)), tmp_path / "s.zarr", TileOptions(65)
+    )
+
+
+def test_a_path_fitted_to_the_dem_says_when_it_flies_slower_than_asked(tmp_path, caplog):
+    """`--path-kind circle --speed 100` flew at 6,029 units/s (one loop, its radius at least a
+    quarter block edge) and `line` was capped at the DEM's diagonal, silently; they say the
+    speed they fly at now. Controls: a speed they can fly says nothing, and a line flies it
+    exactly (frames - 1 steps)."""
+    from streamer.run import make_path
+
+    s = _store(tmp_path)
+    with caplog.at_level("WARNING", logger="streamer.run"):
+        make_path(s, "circle", frames=60, fps=30, speed=1.0)
+    assert "the circle path flies at" in caplog.text and "not the --speed 1 asked" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="streamer.run"):
+        make_path(s, "line", frames=60, fps=30, speed=1e6)
+    assert "capped at the DEM's diagonal" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="streamer.run"):
+        cams = make_path(s, "line", frames=31, fps=30, speed=50.0)
+    assert caplog.text == ""
+    step = np.linalg.norm(np.subtract(cams[1].position, cams[0].position))
+    assert step * 30 == pytest.approx(50.0)
+
+
+def test_a_keyframe_file_says_the_kind_and_speed_given_are_not_used(tmp_path, caplog):
+    from streamer.run import make_path
+
+    s = _store(tmp_path)
+    x0, y0, x1, y1 = s.grid.extent
+    f = tmp_path / "k.csv"
+    f.write_text(f"t,x,y,z,yaw,pitch\n0,{x0},{y0},3000,45,-30\n1,{x1},{y1},3000,45,-30\n")
+    with caplog.at_level("WARNING", logger="streamer.run"):
+        make_path(s, "circle", frames=3, speed=5.0, path_file=f)
+    assert "sets the path and its speed: the path kind 'circle' and speed 5" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="streamer.run"):
+        make_path(s, frames=3, path_file=f)  # the control: nothing else given
+    assert caplog.text == ""
