@@ -8,6 +8,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from render.errors import RenderError
 
 CLEAR = (255, 0, 255)  # magenta: contrasts with every terrain colour
@@ -43,13 +45,24 @@ class RenderConfig:
         w, h = self.size
         if not (1 <= w <= 16384 and 1 <= h <= 16384):
             raise RenderError(f"viewport {w}x{h} is outside 1..16384 pixels per side")
-        if not 1 <= self.patch_log2 <= 7:
-            # a 1-cell patch cannot snap an edge to a coarser neighbour, so stitching would
-            # split every neighbour to one level across the whole view (render.select.stitch)
-            raise RenderError(
-                f"patch_log2 must be in 1..7, got {self.patch_log2}: patches of one cell "
-                "(0) cannot be stitched to coarser neighbours; use 1 for the finest patches"
-            )
+        check_patch_log2(self.patch_log2)
+
+
+def check_patch_log2(value: object) -> int:
+    """``value`` if it is a patch size the renderer draws (an integer in 1..7), else a
+    :class:`RenderError` naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise RenderError(f"patch_log2 must be an integer in 1..7, got {value!r}")
+    if value == 0:
+        # a 1-cell patch cannot snap an edge to a coarser neighbour, so stitching would
+        # split every neighbour to one level across the whole view (render.select.stitch)
+        raise RenderError(
+            "patch_log2 must be in 1..7, got 0: patches of one cell cannot be stitched to "
+            "coarser neighbours; use 1 for the finest patches"
+        )
+    if not 1 <= value <= 7:
+        raise RenderError(f"patch_log2 must be in 1..7, got {value}")
+    return int(value)
 
 
 @dataclass(frozen=True)

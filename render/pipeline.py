@@ -13,6 +13,7 @@ import numpy as np
 
 from render import coverage, cracks, measure
 from render.errors import EmptyViewError, RenderError
+from render.frame_types import check_patch_log2
 from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
 from render.select import Patches, coarse_leaves, uncounted_clamps
@@ -31,6 +32,7 @@ from render.strategies.base import DrawOptions
 from render.strategies.chunk_tess import ChunkTessellation, GpuChunks, start_depth
 from render.strategies.qiu import QiuStrategy, patch_counts, select_clod
 from streamer.camera import Camera
+from streamer.lod import get_metric
 from streamer.session import Session, open_session
 from tiler.layout import grid_side, level_size
 from tiler.store import TerrainStore
@@ -88,6 +90,14 @@ class ViewOptions:
     def __post_init__(self) -> None:
         check_name(self.lod)
         check_nodata(self.lod, self.nodata)
+        # (a bad value failed later, in the selection or the shaders, unnamed)
+        tau = self.tau
+        if isinstance(tau, bool) or not isinstance(tau, (int, float, np.integer, np.floating)):
+            raise RenderError(f"tau must be a number of pixels, got {tau!r}")
+        if not (math.isfinite(tau) and tau >= 0):
+            raise RenderError(f"tau must be a finite number of pixels >= 0, got {tau!r}")
+        get_metric(self.metric)  # (StreamerError naming the metric and the known ones)
+        check_patch_log2(self.patch_log2)
 
     def strategy_options(self) -> dict[str, str]:
         """The strategy's constructor options these imply (the nodata rule)."""

@@ -311,3 +311,26 @@ def test_geometry_splitting_takes_the_mixed_nodes_from_the_session(nodata_path, 
     finally:
         r.close()
         bare.close()
+
+
+def test_view_options_that_cannot_work_are_refused_naming_them():
+    """``ViewOptions(tau=-1, metric="bogus", patch_log2=-3)`` was accepted and failed later,
+    in the selection or the shaders; each is refused at once now. The control: numpy
+    numbers."""
+    import numpy as np
+    import pytest
+
+    from render.errors import RenderError
+    from render.pipeline import ViewOptions
+    from streamer.errors import LodError
+
+    for kw, match in (
+        (dict(tau=-1.0), "tau must be a finite"), (dict(tau=float("nan")), "tau must be a finite"),
+        (dict(tau="1"), "tau must be a number"), (dict(patch_log2=2.5), "an integer in 1..7"),
+        (dict(patch_log2=-3), "in 1..7, got -3"), (dict(patch_log2=0), "cannot be stitched"),
+    ):  # fmt: skip
+        with pytest.raises(RenderError, match=match):
+            ViewOptions(**kw)
+    with pytest.raises(LodError, match="unknown metric 'bogus'"):
+        ViewOptions(metric="bogus")
+    assert ViewOptions(tau=np.float32(2), patch_log2=np.int64(3)).patch_log2 == 3
