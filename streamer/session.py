@@ -344,10 +344,19 @@ class Session:
         with :func:`streamer.gcfreeze.freeze_heap`.
         """
         self._check_open()
+        _check_camera(camera)
+        if timeout_s is not None and not (
+            isinstance(timeout_s, (int, float)) and not isinstance(timeout_s, bool)
+            and 0 < timeout_s < math.inf
+        ):  # fmt: skip
+            raise StreamerError(
+                f"timeout_s must be a finite number of seconds > 0 (None: the session's "
+                f"wait_timeout_s), got {timeout_s!r}"
+            )
         t0 = time.perf_counter()
         levels_kernels.warm_up(self.loader.errors)
         before = self.totals.loaded_bytes
-        limit = timeout_s or self.config.wait_timeout_s
+        limit = self.config.wait_timeout_s if timeout_s is None else float(timeout_s)
         start = time.monotonic()
         deadline = start + limit
         with waiting(self.loader, start):  # blocks that gave up are not retried meanwhile
@@ -382,6 +391,7 @@ class Session:
         ``wait_timeout_s``). With ``warm_start``, the first call runs :meth:`warm_up` first.
         """
         self._check_open()
+        _check_camera(camera)
         dt = _check_dt(dt)
         if self.config.warm_start and self.totals.frames == 0 and not self.totals.warmup:
             self.warm_up(camera)
@@ -614,6 +624,13 @@ __all__ = [
     "SessionConfig",
     "open_session",
 ]
+
+
+def _check_camera(camera: object) -> None:
+    """A :class:`CameraError` unless ``camera`` is a :class:`Camera` (None gave an
+    AttributeError about ``pitch`` from deep inside the planner)."""
+    if not isinstance(camera, Camera):
+        raise CameraError(f"a session needs a streamer.camera.Camera, got {camera!r}")
 
 
 def _check_dt(dt: float | None) -> float | None:

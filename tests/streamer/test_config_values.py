@@ -103,3 +103,22 @@ def test_a_keyframe_file_says_the_kind_and_speed_given_are_not_used(tmp_path, ca
     with caplog.at_level("WARNING", logger="streamer.run"):
         make_path(s, frames=3, path_file=f)  # the control: nothing else given
     assert caplog.text == ""
+
+
+def test_update_and_warm_up_name_a_bad_camera_or_timeout(tmp_path):
+    """``update(None)`` raised an AttributeError about ``pitch`` from inside the planner;
+    ``warm_up(cam, timeout_s=0)`` waited the default 30 s instead, and a negative timeout
+    passed. Control: a camera and a timeout work."""
+    from streamer.errors import CameraError
+    from streamer.run import make_path
+
+    s = _store(tmp_path)
+    cam = make_path(s, frames=1)[0]
+    with Session(s) as session:
+        with pytest.raises(CameraError, match="needs a streamer.camera.Camera, got None"):
+            session.update(None)
+        for bad in (0, -1.0, float("nan"), "5"):
+            with pytest.raises(StreamerError, match="timeout_s must be a finite number"):
+                session.warm_up(cam, timeout_s=bad)
+        assert session.warm_up(cam, timeout_s=30)["bytes"] > 0
+        assert session.update(cam).stats.visible_blocks > 0
