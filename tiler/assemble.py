@@ -155,16 +155,26 @@ def _check_done_unchanged(
     with open_source(src, band) as ds:
         changed = changed_done_blocks(ds, band, grid, journal, done, meta)
     if changed:
-        shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
-        raise JobMismatchError(
+        raise _source_changed(
             "{url!r} holds an unfinished store whose source changed since it was started: the "
             "samples of {n} block(s) already done differ ({shown}); rerun with the original "
             "source to finish it, or tile with {overwrite} to start again",
-            params={"overwrite": "overwrite=True"},
-            url=loc.url,
-            n=len(changed),
-            shown=shown,
+            loc,
+            changed,
         )
+
+
+def _source_changed(template: str, loc: Any, changed: list) -> JobMismatchError:
+    """The refusal ``template`` (``{url}``, ``{n}``, ``{shown}``, ``{overwrite}``) naming the
+    first blocks of ``changed`` whose source samples differ from what was recorded."""
+    shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
+    return JobMismatchError(
+        template,
+        params={"overwrite": "overwrite=True"},
+        url=loc.url,
+        n=len(changed),
+        shown=shown,
+    )
 
 
 def _check_repair_source(
@@ -184,16 +194,13 @@ def _check_repair_source(
     with open_source(src, band) as ds:
         changed = changed_blocks_by_index(ds, band, meta.grid, digests, bad, meta)
     if changed:
-        shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
-        raise JobMismatchError(
+        raise _source_changed(
             "cannot repair {url!r} from this source: its samples of {n} damaged block(s) differ "
             "from what the store recorded ({shown}), so it changed since the store was tiled "
             "and the repaired blocks would hold another DEM; repair from the original source, "
             "or tile with {overwrite} to start again",
-            params={"overwrite": "overwrite=True"},
-            url=loc.url,
-            n=len(changed),
-            shown=shown,
+            loc,
+            changed,
         )
 
 
