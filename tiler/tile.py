@@ -18,6 +18,7 @@ import uuid
 from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -347,6 +348,18 @@ def tile(
             rasterio._env.del_gdal_config("GDAL_CACHEMAX")
         else:
             rasterio.env.set_gdal_config("GDAL_CACHEMAX", previous)
+
+
+def stored_settings(dst: Any) -> dict[str, Any]:
+    """The tiling settings a finished store at ``dst`` was made with (``block_size``,
+    ``precision``; empty when there is no store or it records none): what ``--repair`` uses
+    when they are not given again."""
+    loc = as_location(dst)
+    if not loc.exists():
+        return {}
+    kind, meta, _ = inspect_destination(loc)
+    job = (meta.extra.get("job") or {}) if kind == "store" and meta is not None else {}
+    return {k: job[k] for k in ("block_size", "precision") if k in job}
 
 
 def _clamp_block_size(ds: MosaicReader, opts: TileOptions, notes: list[str]):

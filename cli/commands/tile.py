@@ -15,6 +15,9 @@ from cli.common import fail_on_errors
 from cli.options import DstStorageOptionsOpt, integer, number, store_location
 from cli.progress import Progress
 
+#: ``--block-size`` when not given (a repair takes the store's)
+DEFAULT_BLOCK_SIZE = 1025
+
 Resampling = Enum(
     "Resampling",
     {n: n for n in ("nearest", "bilinear", "cubic", "cubic_spline", "lanczos", "average")},
@@ -75,8 +78,13 @@ def tile(
         ),
     ] = None,
     block_size: Annotated[
-        int, typer.Option("--block-size", help="Block edge in samples, 2^k+1.")
-    ] = 1025,
+        int | None,
+        typer.Option(
+            "--block-size",
+            help="Block edge in samples, 2^k+1 (default 1025; with --repair: the store's).",
+            show_default=False,
+        ),
+    ] = None,
     band: Annotated[int, typer.Option("--band", help="Band to tile (1-based).")] = 1,
     precision: Annotated[
         float | None,
@@ -139,20 +147,24 @@ def tile(
     (or --from-list tiles.txt). A geographic DEM (degrees) needs --dst-crs auto to be streamed
     and rendered.
     """
-    from tiler.tile import TileOptions, TileProgress
+    from tiler.tile import TileOptions, TileProgress, stored_settings
     from tiler.tile import tile as run_tile
 
     src, dst = _sources_and_destination(paths, from_list)
     with fail_on_errors(resumable=True):
         store_destination(dst)
         target = store_location(dst, storage_options)
+        if repair:  # the settings the store was made with, unless given again
+            made = stored_settings(target)
+            block_size = made.get("block_size") if block_size is None else block_size
+            precision = made.get("precision") if precision is None else precision
         opts = TileOptions(
             scheduler=scheduler,
             retries=retries,
             dst_crs=dst_crs,
             resampling=resampling.value,
             resolution=resolution,
-            block_size=block_size,
+            block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size,
             band=band,
             precision=precision,
             workers=workers,

@@ -56,6 +56,23 @@ def test_verify_names_a_flipped_bit_and_repair_mends_it(store):
     assert run("verify", dst).exit_code == 0
 
 
+def test_repair_takes_the_store_s_block_size_when_not_given(dem_factory, tmp_path):
+    """`tile SRC STORE --repair` of a store tiled with `--block-size 33` was refused as
+    "another job (block_size: store has 33, this run has 129)"; the repair takes the store's
+    size when none is given. Control: another size given is still refused."""
+    src = str(dem_factory(fractal((90, 70), 5)))
+    dst = tmp_path / "b.zarr"
+    assert run("tile", src, dst, "--block-size", "33").exit_code == 0
+    chunk = chunk_files(dst, "levels/5")[0]
+    before = chunk.read_bytes()
+    flip_bit(chunk, np.random.default_rng(2))
+    r = run("tile", src, dst, "--repair", "--block-size", "65")
+    assert r.exit_code == 2 and "block_size: store has 33" in r.output, r.output
+    r = run("tile", src, dst, "--repair")
+    assert r.exit_code == 0, r.output
+    assert chunk.read_bytes() == before and run("verify", dst).exit_code == 0
+
+
 def test_verify_of_a_missing_store_is_a_usage_error(tmp_path):
     r = run("verify", tmp_path / "nope.zarr")
     assert r.exit_code == 2 and "nope.zarr" in r.output
