@@ -362,6 +362,21 @@ def stored_settings(dst: Any) -> dict[str, Any]:
     return {k: job[k] for k in ("block_size", "precision") if k in job}
 
 
+def finished_generation(dst: Any) -> str | None:
+    """The generation of the finished store at ``dst`` (None: none there, or unfinished or
+    unreadable): which build a Ctrl-C at the very end of a run left behind."""
+    try:
+        loc = as_location(dst)
+        if not loc.exists():
+            return None
+        kind, meta, _ = inspect_destination(loc)
+    except Exception:  # noqa: BLE001 - asked while a Ctrl-C is handled: no answer is None
+        return None
+    if kind != "store" or meta is None or not meta.complete:
+        return None
+    return meta.generation
+
+
 def _clamp_block_size(ds: MosaicReader, opts: TileOptions, notes: list[str]):
     k = needed_k(ds.height, ds.width)
     if opts.k <= k:

@@ -11,7 +11,7 @@ from typing import Annotated, Any
 import typer
 
 from cli.checks import store_destination
-from cli.common import fail_on_errors
+from cli.common import EXIT_INTERRUPTED, fail_on_errors
 from cli.options import DstStorageOptionsOpt, integer, number, store_location
 from cli.progress import Progress
 
@@ -147,62 +147,77 @@ def tile(
     (or --from-list tiles.txt). A geographic DEM (degrees) needs --dst-crs auto to be streamed
     and rendered.
     """
-    from tiler.tile import TileOptions, TileProgress, stored_settings
+    from tiler.tile import TileOptions, TileProgress, finished_generation, stored_settings
     from tiler.tile import tile as run_tile
 
     src, dst = _sources_and_destination(paths, from_list)
     with fail_on_errors(resumable=True):
         store_destination(dst)
         target = store_location(dst, storage_options)
-        if repair:  # the settings the store was made with, unless given again
-            made = stored_settings(target)
-            block_size = made.get("block_size") if block_size is None else block_size
-            precision = made.get("precision") if precision is None else precision
-        opts = TileOptions(
-            scheduler=scheduler,
-            retries=retries,
-            dst_crs=dst_crs,
-            resampling=resampling.value,
-            resolution=resolution,
-            block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size,
-            band=band,
-            precision=precision,
-            workers=workers,
-            overwrite=overwrite,
-            repair=repair,
-            compression_level=level,
-        )
-        bar = Progress("tiling", "block")
-        last: list[TileProgress] = []
-
-        def on_progress(p: TileProgress) -> None:
-            last[:] = [p]
-            rate = p.bytes_done / max(p.elapsed_s, 1e-9) / 2**20
-            bar.update(
-                p.blocks_done,
-                p.blocks_total,
-                f"{rate:.1f} MiB/s" + (f", {p.skipped} resumed" if p.skipped else ""),
-            )
-
-        t0 = time.perf_counter()
+        before = finished_generation(target)  # (a store being replaced is not this run's)
         try:
-            store = run_tile(src, target, opts, progress=on_progress)
-        finally:
-            bar.close()
-        elapsed = time.perf_counter() - t0
-        if as_json:
-            typer.echo(json.dumps(tile_summary(dst, store, last[0] if last else None, elapsed)))
-            return
-        typer.echo(f"wrote {dst}: {store.grid.cols}x{store.grid.rows} blocks, {store.k + 1} levels")
-        rep = store.meta.extra.get("reprojection")
-        if rep:
-            from tiler.crs import crs_name
-
-            src_crs = crs_name(store.meta.extra.get("source_crs_wkt"))
-            typer.echo(
-                f"reprojected from {src_crs} to {rep['crs']} ({rep['requested']}), "
-                f"{rep['resolution'][0]:g} m pixels, {rep['resampling']} resampling"
+            if repair:  # the settings the store was made with, unless given again
+                made = stored_settings(target)
+                block_size = made.get("block_size") if block_size is None else block_size
+                precision = made.get("precision") if precision is None else precision
+            opts = TileOptions(
+                scheduler=scheduler,
+                retries=retries,
+                dst_crs=dst_crs,
+                resampling=resampling.value,
+                resolution=resolution,
+                block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size,
+                band=band,
+                precision=precision,
+                workers=workers,
+                overwrite=overwrite,
+                repair=repair,
+                compression_level=level,
             )
+            bar = Progress("tiling", "block")
+            last: list[TileProgress] = []
+
+            def on_progress(p: TileProgress) -> None:
+                last[:] = [p]
+                rate = p.bytes_done / max(p.elapsed_s, 1e-9) / 2**20
+                bar.update(
+                    p.blocks_done,
+                    p.blocks_total,
+                    f"{rate:.1f} MiB/s" + (f", {p.skipped} resumed" if p.skipped else ""),
+                )
+
+            t0 = time.perf_counter()
+            try:
+                store = run_tile(src, target, opts, progress=on_progress)
+            finally:
+                bar.close()
+            elapsed = time.perf_counter() - t0
+            if as_json:
+                typer.echo(json.dumps(tile_summary(dst, store, last[0] if last else None, elapsed)))
+                return
+            typer.echo(
+                f"wrote {dst}: {store.grid.cols}x{store.grid.rows} blocks, {store.k + 1} levels"
+            )
+            rep = store.meta.extra.get("reprojection")
+            if rep:
+                from tiler.crs import crs_name
+
+                src_crs = crs_name(store.meta.extra.get("source_crs_wkt"))
+                typer.echo(
+                    f"reprojected from {src_crs} to {rep['crs']} ({rep['requested']}), "
+                    f"{rep['resolution'][0]:g} m pixels, {rep['resampling']} resampling"
+                )
+
+        except KeyboardInterrupt:
+            after = finished_generation(target)
+            if after is not None and after != before:  # the interrupt came once it was done
+                typer.echo(
+                    f"interrupted after {dst} was finished: the store is complete, nothing to "
+                    "resume",
+                    err=True,
+                )
+                raise typer.Exit(EXIT_INTERRUPTED) from None
+            raise
 
 
 def tile_summary(dst: str, store: Any, p: Any, elapsed_s: float) -> dict[str, Any]:

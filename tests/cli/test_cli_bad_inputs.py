@@ -231,6 +231,25 @@ def test_ctrl_c_exits_130_with_one_line(paths, monkeypatch, where, tmp_path):
     assert r.output.strip() == want
 
 
+def test_a_ctrl_c_after_the_store_was_finished_says_so(paths, monkeypatch, tmp_path):
+    """A Ctrl-C landing after `tile` finished the store (while it printed its summary) said
+    "rerun the same command to resume", and the rerun was refused: the store is finished. It
+    says so now (exit 130). The control, an interrupt before the end: the test above."""
+    import tiler.tile
+
+    real = tiler.tile.tile
+
+    def finished_then_interrupted(*a, **k):
+        real(*a, **k)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tiler.tile, "tile", finished_then_interrupted)
+    r = run("tile", paths["src"], tmp_path / "t.zarr")
+    assert r.exit_code == 130
+    assert "was finished: the store is complete, nothing to resume" in r.output, r.output
+    assert "rerun" not in r.output
+
+
 def test_numpy_reprs_are_shown_as_values():
     import numpy as np
 
