@@ -35,7 +35,12 @@ def write_atomic(path: str, *pieces: Any) -> int:
 
 
 def _umask() -> int:
-    """The process's umask (read by setting it, then set back)."""
+    """The process's umask: from ``/proc/self/status`` (Linux), else read by setting it and
+    setting it back (a brief window in which another thread's new files would get 022)."""
+    with contextlib.suppress(OSError, ValueError), open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
