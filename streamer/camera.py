@@ -30,6 +30,12 @@ from streamer.errors import CameraError
 
 Vec3 = tuple[float, float, float]
 
+#: The nearest near plane (metres): the GPU gets ``near`` as a float32, and the depth below
+#: ~1e-30 m underflows (a blank image); 1 µm is far below any clearance that matters.
+MIN_NEAR_M = 1e-6
+#: The farthest far plane (metres): beyond ~1e38 float32 overflows (a blank image).
+MAX_FAR_M = 1e15
+
 
 def _finite(name: str, value: float) -> float:
     """``value`` as a float, or raise ``CameraError`` naming it."""
@@ -93,8 +99,16 @@ class Camera:
         set_(self, "viewport", (int(vp[0]), int(vp[1])))
         if not self.near > 0.0:
             raise CameraError(f"near must be > 0, got {self.near}")
+        if self.near < MIN_NEAR_M:
+            raise CameraError(
+                f"near must be at least {MIN_NEAR_M:g} m (float32 depth), got {self.near:g}"
+            )
         if not self.far > self.near:
             raise CameraError(f"far must be > near ({self.near}), got {self.far}")
+        if self.far > MAX_FAR_M:
+            raise CameraError(
+                f"far must be at most {MAX_FAR_M:g} m (float32 depth), got {self.far:g}"
+            )
 
     @classmethod
     def look_at(

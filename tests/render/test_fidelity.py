@@ -93,6 +93,23 @@ def test_a_millimetre_near_plane_keeps_far_occlusion(ridges, name):
     assert diff < 0.005, f"{diff:.1%} of the pixels changed with the near plane"
 
 
+def test_the_cameras_depth_limits_still_draw_the_view(ridges):
+    """``Camera`` refuses near < 1e-6 m and far > 1e15 m (near = 1e-40 or far = 1e300 drew
+    an empty image); the limits themselves draw what near = 5 m, far = 1e6 m draws."""
+    from streamer.camera import MAX_FAR_M, MIN_NEAR_M
+
+    st = strategy(ridges, "qiu")
+    x0, y0, x1, y1 = st.r.grid.extent
+    eye, look = (x0 - 3000, y1 - 3000, 1100.0), ((x0 + x1) / 2, (y0 + y1) / 2, 700.0)
+    imgs = [
+        draw(st, Camera.look_at(eye, look, viewport=SIZE, near=n, far=f), tau=0.0).astype(int)
+        for n, f in ((5.0, 1e6), (MIN_NEAR_M, MAX_FAR_M))
+    ]
+    assert 0.05 < (~sky(st, imgs[1].astype(np.uint8))).mean()
+    diff = (np.abs(imgs[0] - imgs[1]).max(-1) > 2).mean()
+    assert diff < 0.005, f"{diff:.1%} of the pixels changed at the depth limits"
+
+
 # -- colour ------------------------------------------------------------------------------------
 
 

@@ -224,6 +224,8 @@ def test_derived_intrinsics():
         ({"viewport": (True, 10)}, "viewport.*True"),
         ({"near": 0.0}, "near.*0.0"),
         ({"near": 5.0, "far": 5.0}, "far.*5.0"),
+        ({"near": 1e-40}, "near must be at least 1e-06 m.*1e-40"),  # rendered blank
+        ({"far": 1e300}, "far must be at most 1e.15 m.*1e.300"),  # rendered blank
         ({"pitch": 91.0}, "pitch.*91"),
         ({"yaw": float("inf")}, "yaw"),
         ({"position": (0, float("nan"), 0)}, r"position\[1\]"),
