@@ -6,7 +6,8 @@ Exit statuses (rio's convention), also printed at the end of every command's ``-
 * 1 — the command started and failed (an I/O error, a damaged store, a library failure);
 * 2 — usage: a bad option or argument value, a missing input, an output that exists without
   ``--overwrite``, a missing capability (no display / OpenGL);
-* 130 — interrupted (Ctrl-C); rerunning the same ``tile`` resumes its store.
+* 130 — interrupted (Ctrl-C); rerunning the same ``tile`` resumes its store;
+* 143 — terminated (SIGTERM), handled as a Ctrl-C: outputs cleaned up, ``tile`` resumes.
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ import contextlib
 import logging
 import os
 import re
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -28,13 +31,16 @@ from typer.core import TyperArgument, TyperCommand, TyperGroup, TyperOption
 EXIT_RUNTIME = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+#: 128 + SIGTERM: a SIGTERM is handled as a Ctrl-C (:func:`route_sigterm`)
+EXIT_TERMINATED = 143
 #: kept for code written before the 1/2 split: usage errors
 EXIT_USER_ERROR = EXIT_USAGE
 
 EXIT_STATUS_HELP = (
     "Exit status: 0 success; 1 the command failed while running (I/O error, damaged store, "
     "library failure); 2 usage error (bad value, missing input, existing output without "
-    "--overwrite, no display or OpenGL); 130 interrupted (a rerun of `tile` resumes)."
+    "--overwrite, no display or OpenGL); 130 interrupted (a rerun of `tile` resumes); 143 "
+    "terminated (SIGTERM), as 130."
 )
 INTERRUPTED_MESSAGE = "interrupted"
 #: ``tile``'s: its store resumes (other commands start again: nothing of theirs resumes)
@@ -54,6 +60,8 @@ class UsageError(ValueError):
 class _State:
     verbose = 0
     quiet = False
+    #: a SIGTERM arrived (:func:`route_sigterm`): the interrupt is reported as termination
+    terminated = False
 
 
 state = _State()
@@ -181,6 +189,47 @@ _PASS_THROUGH = (
 )
 
 
+def interrupted_exit() -> int:
+    """The exit status of an interrupted command: 143 after a SIGTERM, else 130."""
+    return EXIT_TERMINATED if state.terminated else EXIT_INTERRUPTED
+
+
+def interrupted_text(resumable: bool = False, what: str = "") -> str:
+    """The word for an interrupt (``interrupted``, or ``terminated (SIGTERM)``), then ``what``,
+    then the resume advice when ``resumable``."""
+    word = "terminated (SIGTERM)" if state.terminated else "interrupted"
+    tail = "; rerun the same command to resume" if resumable else ""
+    return f"{word}{what}{tail}"
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    """SIGTERM handled as SIGINT by SIGINT's current handler (Python's, which raises
+    ``KeyboardInterrupt``, or :class:`tiler.interrupt.DeferredInterrupt`'s flag), so the
+    command cleans up as after a Ctrl-C. With SIGINT ignored, SIGTERM ends the process as
+    it would without this handler."""
+    handler = signal.getsignal(signal.SIGINT)
+    if os.getpid() != _SIGTERM_PID or not callable(handler):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return
+    state.terminated = True
+    handler(signal.SIGINT, frame)
+
+
+_SIGTERM_PID = 0
+
+
+def route_sigterm() -> None:
+    """Handle SIGTERM as a Ctrl-C from now on (main thread of the ``terrastream`` process only:
+    a SIGTERM used to leave ``export``'s and ``synth``'s temporary files, and cut
+    ``flythrough``'s frames.csv mid-line)."""
+    global _SIGTERM_PID
+    if threading.current_thread() is not threading.main_thread():
+        return
+    _SIGTERM_PID = os.getpid()
+    signal.signal(signal.SIGTERM, _on_sigterm)
+
+
 @contextmanager
 def fail_on_errors(*, resumable: bool = False) -> Iterator[None]:
     """Any error → one ``error: …`` line on stderr and exit 1 or 2; Ctrl-C → exit 130 (with
@@ -193,8 +242,8 @@ def fail_on_errors(*, resumable: bool = False) -> Iterator[None]:
     except _PASS_THROUGH:
         raise
     except KeyboardInterrupt:
-        typer.echo(RESUME_MESSAGE if resumable else INTERRUPTED_MESSAGE, err=True)
-        raise typer.Exit(EXIT_INTERRUPTED) from None
+        typer.echo(interrupted_text(resumable), err=True)
+        raise typer.Exit(interrupted_exit()) from None
     except BrokenPipeError:
         # the reader of our output went away (`| head`): exit 1 without a message, as other
         # tools do; stdout goes to /dev/null so the interpreter's last flush does not fail too

@@ -19,11 +19,12 @@ from typer.core import TyperCommand
 
 from cli.commands import COMMANDS
 from cli.common import (
-    EXIT_INTERRUPTED,
     EXIT_STATUS_HELP,
-    INTERRUPTED_MESSAGE,
     Command,
     Group,
+    interrupted_exit,
+    interrupted_text,
+    route_sigterm,
     setup_logging,
 )
 
@@ -120,12 +121,13 @@ def leave_hung_reads(code: int | str | None) -> None:
 
 def main() -> None:
     """Console entry point."""
+    route_sigterm()
     try:
         app()
     except KeyboardInterrupt:  # outside a command (while parsing, say)
-        sys.stderr.write(INTERRUPTED_MESSAGE + "\n")
-        leave_hung_reads(EXIT_INTERRUPTED)
-        sys.exit(EXIT_INTERRUPTED)
+        sys.stderr.write(interrupted_text() + "\n")
+        leave_hung_reads(interrupted_exit())
+        sys.exit(interrupted_exit())
     except SystemExit as exc:
         leave_hung_reads(exc.code)
         raise

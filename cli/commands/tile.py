@@ -11,7 +11,7 @@ from typing import Annotated, Any
 import typer
 
 from cli.checks import store_destination
-from cli.common import EXIT_INTERRUPTED, fail_on_errors
+from cli.common import fail_on_errors, interrupted_exit, interrupted_text
 from cli.options import DstStorageOptionsOpt, integer, number, store_location
 from cli.progress import Progress
 
@@ -211,12 +211,12 @@ def tile(
         except KeyboardInterrupt:
             after = finished_generation(target)
             if after is not None and after != before:  # the interrupt came once it was done
+                done = f" after {dst} was finished: the store is complete, nothing to resume"
                 typer.echo(
-                    f"interrupted after {dst} was finished: the store is complete, nothing to "
-                    "resume",
+                    interrupted_text(what=done),
                     err=True,
                 )
-                raise typer.Exit(EXIT_INTERRUPTED) from None
+                raise typer.Exit(interrupted_exit()) from None
             raise
 
 
