@@ -57,3 +57,8 @@ class LoadError(StreamerError, OSError):
 
 class SessionClosedError(StreamerError, RuntimeError):
     """The session was used after :meth:`Session.close`."""
+
+
+class SessionThreadError(StreamerError, RuntimeError):
+    """:meth:`Session.update` was called while another thread was inside it (one caller
+    thread drives a session: its frame state is not shared)."""

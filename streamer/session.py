@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -49,6 +50,7 @@ from streamer.errors import (
     LoadError,
     LodError,
     SessionClosedError,
+    SessionThreadError,
     StreamerError,
 )
 from streamer.frames import Frame, FrameStats, SessionConfig
@@ -116,6 +118,7 @@ class Session:
         self._resident: dict[Block, int] = {}
         self._resident_version = 0  # +1 whenever that copy changes
         self._closed = False
+        self._updating = threading.Lock()  # held by the thread inside update() (one at a time)
         self._fatal_raised = False  # the store change was raised to the caller once
         self.unfinished: list[str] = []  # threads still running when close() returned
         self._peak_frames = 0  # the largest FrameStats.resident_bytes of the frames so far
@@ -393,6 +396,18 @@ class Session:
         self._check_open()
         _check_camera(camera)
         dt = _check_dt(dt)
+        if not self._updating.acquire(blocking=False):
+            raise SessionThreadError(
+                "Session.update was called while another thread is inside it; drive a session "
+                "from one thread (the renderer's), or give each thread its own session"
+            )
+        try:
+            return self._update(camera, dt, wait)
+        finally:
+            self._updating.release()
+
+    def _update(self, camera: Camera, dt: float | None, wait: bool) -> Frame:
+        """:meth:`update`, its arguments checked, its caller alone inside it."""
         if self.config.warm_start and self.totals.frames == 0 and not self.totals.warmup:
             self.warm_up(camera)
         t0, c0 = time.perf_counter(), time.thread_time()

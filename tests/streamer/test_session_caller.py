@@ -226,3 +226,38 @@ def test_the_callers_copy_of_the_resident_levels_is_the_caches(store):
 def test_positive_control_a_drop_not_recorded_leaves_the_copy_stale(store):
     misses, evicted = _mirror_misses(store, forget_drops=True)
     assert evicted > 0 and misses > 0
+
+
+def test_update_from_two_threads_at_once_is_refused(store):
+    """Two threads inside ``update`` at once shared its frame state unnoticed (the previous
+    camera, the pins, the frame count); the second is now refused, naming the rule. The
+    control: the same two threads taking turns both get their frames."""
+    import threading
+
+    from streamer.errors import SessionThreadError
+
+    c = cams(store, 2)
+    inside, go_on = threading.Event(), threading.Event()
+    with open_session(store, budget_mb=64, workers=0) as s:
+        plan = s.planner.needed_arrays
+
+        def slow_plan(cam):
+            inside.set()
+            assert go_on.wait(10)
+            return plan(cam)
+
+        s.planner.needed_arrays = slow_plan
+        first = threading.Thread(target=s.update, args=(c[0],), name="first-caller")
+        first.start()
+        assert inside.wait(10)
+        with pytest.raises(SessionThreadError, match="another thread is inside it"):
+            s.update(c[1])
+        go_on.set()
+        first.join(10)
+        assert not first.is_alive()
+        s.planner.needed_arrays = plan
+        turn = threading.Thread(target=s.update, args=(c[1],), name="second-caller")
+        turn.start()
+        turn.join(10)
+        s.update(c[0])
+        assert s.summary()["frames"] == 3
