@@ -28,6 +28,8 @@ import click
 import typer
 from typer.core import TyperArgument, TyperCommand, TyperGroup, TyperOption
 
+from tiler.interrupt import defer_active
+
 EXIT_RUNTIME = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -205,15 +207,17 @@ def interrupted_text(resumable: bool = False, what: str = "") -> str:
 def _on_sigterm(signum: int, frame: Any) -> None:
     """SIGTERM handled as SIGINT by SIGINT's current handler (Python's, which raises
     ``KeyboardInterrupt``, or :class:`tiler.interrupt.DeferredInterrupt`'s flag), so the
-    command cleans up as after a Ctrl-C. With SIGINT ignored, SIGTERM ends the process as
-    it would without this handler."""
-    handler = signal.getsignal(signal.SIGINT)
-    if os.getpid() != _SIGTERM_PID or not callable(handler):
+    command cleans up as after a Ctrl-C; with SIGINT ignored, as that handler would."""
+    if os.getpid() != _SIGTERM_PID:  # (a forked child: die as it would have)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         os.kill(os.getpid(), signal.SIGTERM)
         return
     state.terminated = True
-    handler(signal.SIGINT, frame)
+    handler = signal.getsignal(signal.SIGINT)
+    if callable(handler):
+        handler(signal.SIGINT, frame)
+    elif not defer_active():  # SIGINT ignored (`cmd &` from a script): no handler to borrow
+        raise KeyboardInterrupt
 
 
 _SIGTERM_PID = 0

@@ -24,6 +24,19 @@ from typing import Any
 #: the longest a Ctrl-C waits to be noticed while no block finishes
 POLL_S = 0.2
 
+#: the :class:`DeferredInterrupt` contexts the main thread is inside (innermost last)
+_ACTIVE: list[DeferredInterrupt] = []
+
+
+def defer_active() -> bool:
+    """Flag the innermost :class:`DeferredInterrupt` the main thread is inside, as a Ctrl-C
+    would (for a SIGTERM handled as one while SIGINT is ignored, so no SIGINT handler is
+    installed); False when there is none."""
+    if not _ACTIVE:
+        return False
+    _ACTIVE[-1].interrupted = True
+    return True
+
 
 class DeferredInterrupt:
     """Context manager: inside it, SIGINT sets :attr:`interrupted` instead of raising.
@@ -57,6 +70,8 @@ class DeferredInterrupt:
 
     def __enter__(self) -> DeferredInterrupt:
         main = threading.current_thread() is threading.main_thread()
+        if main:
+            _ACTIVE.append(self)
         if main and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             self._old = signal.signal(signal.SIGINT, self._handler)
         return self
@@ -70,6 +85,8 @@ class DeferredInterrupt:
         if self._old is not None:
             signal.signal(signal.SIGINT, self._old)
             self._old = None
+        if self in _ACTIVE:
+            _ACTIVE.remove(self)
         if exc_type is None and self.raise_on_exit:
             self.check()
 

@@ -29,10 +29,19 @@ EXE = str(Path(sys.executable).with_name("terrastream"))
 BARE = [sys.executable, "-c", "import sys; from cli.main import app; sys.argv[0] = 'x'; app()"]
 
 
-def _term_when(cmd: list[str], ready, timeout_s: float = 120.0) -> subprocess.CompletedProcess:
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as `cmd &` from a script starts it
+
+
+def _term_when(
+    cmd: list[str], ready, timeout_s: float = 120.0, sigint_ignored: bool = False
+) -> subprocess.CompletedProcess:
     """Run ``cmd``; send it SIGTERM once ``ready()`` is true; return its result."""
     env = dict(os.environ, PYTHONPATH=os.getcwd())
-    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_ignore_sigint if sigint_ignored else None,
+    )  # fmt: skip
     try:
         t0 = time.monotonic()
         while not ready() and p.poll() is None:
@@ -53,11 +62,18 @@ def _partials(d: Path) -> list[str]:
     return sorted(p.name for p in d.iterdir() if ".partial" in p.name)
 
 
-@pytest.mark.parametrize("handled", [True, False], ids=["cli", "control-without-handler"])
-def test_sigterm_during_synth_leaves_nothing(tmp_path, handled):
+@pytest.mark.parametrize(
+    ("handled", "sigint_ignored"),
+    [(True, False), (True, True), (False, False)],
+    ids=["cli", "cli-sigint-ignored", "control-without-handler"],
+)
+def test_sigterm_during_synth_leaves_nothing(tmp_path, handled, sigint_ignored):
     out = tmp_path / "dem.tif"
     cmd = [EXE] if handled else BARE
-    res = _term_when([*cmd, "synth", str(out), "--size", "8193"], lambda: _partials(tmp_path))
+    res = _term_when(
+        [*cmd, "synth", str(out), "--size", "8193"], lambda: _partials(tmp_path),
+        sigint_ignored=sigint_ignored,
+    )  # fmt: skip
     if handled:
         assert res.returncode == 143, res.stderr
         assert "terminated (SIGTERM)" in res.stderr and "Traceback" not in res.stderr
@@ -67,14 +83,17 @@ def test_sigterm_during_synth_leaves_nothing(tmp_path, handled):
         assert _partials(tmp_path)
 
 
-def test_sigterm_during_tile_resumes(dem_factory, tmp_path):
+@pytest.mark.parametrize("sigint_ignored", [False, True], ids=["sigint", "sigint-ignored"])
+def test_sigterm_during_tile_resumes(dem_factory, tmp_path, sigint_ignored):
+    """With SIGINT ignored the block run's deferred interrupt still takes the SIGTERM (a
+    KeyboardInterrupt raised inside the pool's locks could hang it: tiler.interrupt)."""
     src = dem_factory(fractal((300, 300), 5))
     ref, dst = tmp_path / "ref.zarr", tmp_path / "s.zarr"
     tile(src, ref, TileOptions(block_size=17))
     res = _term_when(
-        [EXE, "tile", str(src), str(dst), "--block-size", "17", "--workers", "1"],
-        lambda: (dst / "zarr.json").exists(),
-    )
+        [EXE, "tile", str(src), str(dst), "--block-size", "17", "--workers", "2"],
+        lambda: (dst / "zarr.json").exists(), sigint_ignored=sigint_ignored,
+    )  # fmt: skip
     if res.returncode == 0:  # (the signal came once the store was finished: rare)
         pytest.skip("the run finished before the signal")
     assert res.returncode == 143, res.stderr
