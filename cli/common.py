@@ -76,6 +76,7 @@ FLAG_NAMES = {
     "pitch": "--pitch",
     "level_param": "--level",
     "overwrite": "--overwrite",
+    "repair": "--repair",
     "precision": "--precision",
     "budget_mb": "--budget-mb",
     "tau": "--tau",

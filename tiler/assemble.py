@@ -12,6 +12,7 @@ import contextlib
 import hashlib
 import logging
 import os
+import uuid
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -38,7 +39,7 @@ from tiler.resume import (
     unpack,
 )
 from tiler.run import open_for_write, progress_reporter, run_blocks
-from tiler.schema import INDEX_DTYPES, chunk_key, expected_table, index_chunk, shard_shape
+from tiler.schema import chunk_key, expected_table, index_chunk, index_dtypes, shard_shape
 from tiler.store import StoreMeta, read_meta, write_meta
 from tiler.vertical import height_transform
 from tiler.zarr_batch import open_arrays, read_all, write_all
@@ -268,7 +269,7 @@ class ShardAssembler:
                 self.remaining[r0 // self.sr, c0 // self.sc] = int((~region).sum())
         self.flushed: set[tuple[int, int]] = set()
         self.index = {
-            n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in INDEX_DTYPES.items()
+            n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in index_dtypes(meta).items()
         }
 
     def blocks_done(self, blocks: list[tuple[int, int]]) -> None:
@@ -289,8 +290,7 @@ class ShardAssembler:
         entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta)
         write_small_levels(self.loc, self.meta, entries, (r0, r1, c0, c1))
         for b, e in entries.items():
-            for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
-                self.index[name][b] = getattr(e, name)
+            _index_row(self.index, b, e, self.meta)
         self.flushed.add(s)
 
     def finish_all(self) -> None:
@@ -298,6 +298,16 @@ class ShardAssembler:
         for s in self.remaining:
             if s not in self.flushed:
                 self.flush(s)
+
+
+def _index_row(index: dict[str, np.ndarray], b: tuple[int, int], e: Any, meta: StoreMeta) -> None:
+    """Put journal entry ``e``'s index row into ``index`` at block ``b``."""
+    for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
+        index[name][b] = getattr(e, name)
+    if "content" in index:
+        if e.content is None:  # (a store keeping them is journaled with them)
+            raise StoreCorruptError(f"the journal entry of block {b} has no content digest")
+        index["content"][b] = e.content
 
 
 def finish(
@@ -412,28 +422,61 @@ def repair_store(
             repair=True,
             sources=(source_of(meta.source), source_of(source_label(src))),
         )
-        bad = sorted(report.bad_blocks)
+        # an interrupted repair (state "repair"): the blocks its journal holds were
+        # recomputed (their big levels are written); they are patched in, not recomputed
+        resuming = not meta.complete and meta.extra.get("state") == "repair"
+        prior: set[tuple[int, int]] = set()
+        if resuming and JOURNAL in group:
+            done = done_blocks(group[JOURNAL])
+            prior = {(int(r), int(c)) for r, c in zip(*np.nonzero(done), strict=True)}
+        bad = sorted(report.bad_blocks - prior)
+        damage = [p for p in report.problems if p.kind != "unfinished"]
+        if damage and not bad and not prior and not report.bad_tables and not resuming:
+            raise StoreCorruptError(
+                "{url!r} is damaged in a way no block rebuild repairs ({why}); tile the DEM "
+                "again with {overwrite}",
+                params={"overwrite": "overwrite=True"},
+                url=loc.url,
+                why="; ".join(p.message for p in damage),
+            )
         for name in report.bad_tables:
             open_for_write(loc, name)[...] = expected_table(name, meta.k)
         summary.blocks_total = meta.grid.rows * meta.grid.cols
-        summary.blocks_repaired = summary.blocks_computed = len(bad)
-        if bad:
-            _check_repair_source(src, opts.band, meta, group, bad, loc)
+        summary.blocks_repaired = len(bad) + len(prior)
+        summary.blocks_computed = len(bad)
+        summary.blocks_skipped = len(prior)
+        if bad or resuming:
             where = getattr(src, "label", src)  # a MosaicSpec: its paths, not its repr
-            log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, where)
-            write_meta(group, replace(meta, complete=False, extra=dict(meta.extra, state="repair")))
-            create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
+            if bad:
+                _check_repair_source(src, opts.band, meta, group, bad, loc)
+                log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, where)
+            if resuming:
+                log.warning(
+                    "finishing the interrupted repair of %s (%d block(s) recomputed before)",
+                    loc.url, len(prior),
+                )  # fmt: skip
+            else:
+                write_meta(
+                    group, replace(meta, complete=False, extra=dict(meta.extra, state="repair"))
+                )
+            if bad and (not resuming or JOURNAL not in group):
+                create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
             grid = meta.grid
-            done = np.ones(grid.shape, bool)
-            for b in bad:
-                done[b] = False
-            report_fn = progress_reporter(len(bad), 0, progress)
-            summary.executor = run_blocks(
-                src, loc, opts, grid, block_params(meta), bad, done, report_fn, lease
-            )
-            _patch(group, loc, meta, bad)
+            if bad:
+                done = np.ones(grid.shape, bool)
+                for b in bad:
+                    done[b] = False
+                report_fn = progress_reporter(len(bad), 0, progress)
+                summary.executor = run_blocks(
+                    src, loc, opts, grid, block_params(meta), bad, done, report_fn, lease
+                )
+            if bad or prior:
+                _patch(group, loc, meta, sorted(set(bad) | prior))
             loc.delete_prefix(JOURNAL)
-            complete(group, meta)
+            # a new revision: the root metadata changes, so remote readers that kept shard
+            # indexes of the old blocks drop them (TerrainStore.check_unchanged)
+            extra = {k: v for k, v in meta.extra.items() if k != "state"}
+            complete(group, replace(meta, extra=dict(extra, revision=uuid.uuid4().hex)))
     store = TerrainStore(loc)
     store.tile_summary = summary
     return store
@@ -459,7 +502,7 @@ def _patch(group: zarr.Group, loc: Location, meta: StoreMeta, bad: list[tuple[in
         write_small_levels(loc, meta, ents, (r0, min(r0 + sr, rows), c0, min(c0 + sc, cols)))
     index = {}
     ir, ic = index_chunk(rows, cols)
-    for name, (dt, fv) in INDEX_DTYPES.items():
+    for name, (dt, fv) in index_dtypes(meta).items():
         arr = group[f"index/{name}"]
         index[name] = np.full((rows, cols), fv, dtype=dt)
         for r0 in range(0, rows, ir):
@@ -468,7 +511,6 @@ def _patch(group: zarr.Group, loc: Location, meta: StoreMeta, bad: list[tuple[in
                 with contextlib.suppress(ValueError, OSError, RuntimeError):
                     index[name][sl] = arr[sl]  # a damaged chunk's blocks are all repaired
     for b, e in entries.items():
-        for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
-            index[name][b] = getattr(e, name)
+        _index_row(index, b, e, meta)
     index["done"][...] = True
     write_index(loc, grid, index)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 import uuid
 from collections.abc import Callable, Iterator
@@ -16,6 +17,15 @@ from typing import Any
 def partial_name(path: str) -> str:
     """A private temporary name beside ``path`` (``<path>.<random>.partial``)."""
     return f"{path}.{uuid.uuid4().hex}.partial"
+
+
+_OWN_PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial$")
+
+
+def is_own_partial(name: str) -> bool:
+    """True for a name :func:`partial_name` makes (a leftover of an interrupted write), not
+    any file that happens to end in ``.partial``."""
+    return _OWN_PARTIAL.search(name) is not None
 
 
 def write_atomic(path: str, *pieces: Any) -> int:

@@ -79,6 +79,11 @@ class IndexCache:
             while len(self._entries) > self.max_entries:
                 self._entries.popitem(last=False)
 
+    def clear(self) -> None:
+        """Forget every kept index (the store was rewritten: ``TerrainStore.check_unchanged``)."""
+        with self._lock:
+            self._entries.clear()
+
     def drop(self, key: str) -> None:
         """Forget shard ``key``'s index (it no longer matched the shard)."""
         with self._lock:

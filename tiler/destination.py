@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import zarr
 
+from tiler.atomic import is_own_partial
 from tiler.errors import StoreError
 from tiler.interrupt import DeferredInterrupt
 from tiler.lease import LEASE_KEY
@@ -42,7 +43,7 @@ def inspect_destination(loc: Location) -> tuple[str, StoreMeta | None, str]:
         p = loc.path
         if not p.is_dir():
             return "foreign", None, "it is a file"
-        names = {c.name for c in p.iterdir() if not c.name.endswith(".partial")}
+        names = {c.name for c in p.iterdir() if not is_own_partial(c.name)}
         if not names - {LEASE_KEY}:
             return "absent", None, ""
         if "zarr.json" not in names:

@@ -28,7 +28,10 @@ from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs
 
 JOURNAL = "journal"
 _ROW = np.dtype([("exists", "u1"), ("has_nodata", "u1"), ("zmin", "<f8"), ("zmax", "<f8"),
-                 ("digest", "<u8"), ("mark", "u1")])  # fmt: skip
+                 ("digest", "<u8"), ("content", "<u8"), ("mark", "u1")])  # fmt: skip
+#: the row of a journal begun before content digests (resumed as it was begun)
+_ROW_NO_CONTENT = np.dtype([("exists", "u1"), ("has_nodata", "u1"), ("zmin", "<f8"),
+                            ("zmax", "<f8"), ("digest", "<u8"), ("mark", "u1")])  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,8 @@ class JournalEntry:
     zmin: float
     zmax: float
     digest: int
+    #: the block's :func:`tiler.content.content_digest` (None: a journal begun without them)
+    content: int | None = None
 
 
 def small_levels(k: int) -> int:
@@ -48,10 +53,12 @@ def small_levels(k: int) -> int:
     return min(SHARDED_LEVELS, k + 1)
 
 
-def entry_nbytes(k: int, storage_dtype: str) -> int:
-    """Bytes of one journal entry."""
+def entry_nbytes(k: int, storage_dtype: str, content: bool = True) -> int:
+    """Bytes of one journal entry (``content``: with the content digest, as journals are
+    begun now)."""
     n = sum(level_size(i) for i in range(small_levels(k)))
-    return n * np.dtype(storage_dtype).itemsize + _ROW.itemsize
+    row = _ROW if content else _ROW_NO_CONTENT
+    return n * np.dtype(storage_dtype).itemsize + row.itemsize
 
 
 #: a store's ``state`` while a tiling run has not finished it (``tiler.tile``,
@@ -75,11 +82,12 @@ def create_journal(group: zarr.Group, rows: int, cols: int, k: int, storage_dtyp
     )
 
 
-def pack(entry: JournalEntry, storage_dtype: str) -> np.ndarray:
-    """The entry as the bytes of one journal chunk (last byte 1 marks a written entry)."""
+def pack(entry: JournalEntry, storage_dtype: str, content: bool = True) -> np.ndarray:
+    """The entry as the bytes of one journal chunk (last byte 1 marks a written entry);
+    ``content`` False: the row of a journal begun without content digests."""
     dt = np.dtype(storage_dtype).newbyteorder("<")
     parts = [np.ascontiguousarray(v, dtype=dt).view(np.uint8) for v in entry.levels]
-    row = np.zeros(1, _ROW)
+    row = np.zeros(1, _ROW if content else _ROW_NO_CONTENT)
     row["exists"], row["has_nodata"] = entry.exists, entry.has_nodata
     row["zmin"], row["zmax"], row["digest"], row["mark"] = (
         entry.zmin,
@@ -87,6 +95,8 @@ def pack(entry: JournalEntry, storage_dtype: str) -> np.ndarray:
         entry.digest,
         1,
     )
+    if content:
+        row["content"] = entry.content or 0
     return np.concatenate([*parts, row.view(np.uint8)])
 
 
@@ -101,7 +111,8 @@ def unpack(raw: np.ndarray, k: int, storage_dtype: str) -> JournalEntry | None:
         n = level_size(i) * dt.itemsize
         levels.append(raw[off : off + n].view(dt).astype(np.dtype(storage_dtype)))
         off += n
-    row = raw[off:].view(_ROW)[0]
+    content = raw.size - off == _ROW.itemsize
+    row = raw[off:].view(_ROW if content else _ROW_NO_CONTENT)[0]
     return JournalEntry(
         levels=levels,
         exists=bool(row["exists"]),
@@ -109,6 +120,7 @@ def unpack(raw: np.ndarray, k: int, storage_dtype: str) -> JournalEntry | None:
         zmin=float(row["zmin"]),
         zmax=float(row["zmax"]),
         digest=int(row["digest"]),
+        content=int(row["content"]) if content else None,
     )
 
 
@@ -229,7 +241,16 @@ def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
         "compression_level": opts.compression_level,
         "encoding": meta.encoding,
         "format_version": meta.format_version,
+        # the reprojection asked for (its effect is also in the fingerprint, which names no
+        # option): a rerun with another is refused naming it
+        "dst_crs": getattr(opts, "dst_crs", None),
+        "resampling": getattr(opts, "resampling", None) if getattr(opts, "dst_crs", None) else None,
+        "resolution": getattr(opts, "resolution", None) if getattr(opts, "dst_crs", None) else None,
     }
+
+
+#: job items added after stores were begun without them: absent from a store's job, they match
+_LATER_ITEMS = ("dst_crs", "resampling", "resolution")
 
 
 def source_of(label: dict | None) -> str | None:
@@ -279,9 +300,12 @@ def check_same_job(
     diffs = [
         f"{key}: store has {old.get(key)!r}, this run has {value!r}"
         for key, value in new.items()
-        if old.get(key) != value and key != "source_fingerprint"
+        if old.get(key) != value
+        and key != "source_fingerprint"
+        and (key in old or key not in _LATER_ITEMS)
     ]
-    if old.get("source_fingerprint") != new.get("source_fingerprint"):
+    warp = any(d.split(":")[0] in _LATER_ITEMS for d in diffs)  # (it explains the samples)
+    if old.get("source_fingerprint") != new.get("source_fingerprint") and not warp:
         was, now = sources
         diffs.insert(0, _source_diff(was, now))
     if diffs:

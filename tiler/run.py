@@ -27,12 +27,13 @@ import rasterio.env
 import zarr
 
 from tiler import chunkwrite, kernels
+from tiler.content import content_digest
 from tiler.errors import HeightRangeError, StoreError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt, wait_first
 from tiler.location import Location, as_location
 from tiler.parent_watch import die_with_parent
-from tiler.resume import JOURNAL, JournalEntry, pack, small_levels
+from tiler.resume import JOURNAL, JournalEntry, entry_nbytes, pack, small_levels
 from tiler.schema import WRITE_CONFIG, index_chunk, is_sparse
 from tiler.source import open_source, read_window
 from tiler.vertical import height_range_message
@@ -142,6 +143,9 @@ class BlockWorker:
         self._write("errors", (br, bc), res.errors)
         if res.mask is not None:
             self._write("mask", (br, bc), res.mask)
+        journal = self.arrays[JOURNAL]
+        # (a journal begun before content digests is resumed without them)
+        with_content = journal.shape[-1] == entry_nbytes(self.params.k, self.params.storage_dtype)
         entry = JournalEntry(
             levels=res.levels[: self.small],
             exists=res.exists,
@@ -149,8 +153,11 @@ class BlockWorker:
             zmin=res.zmin,
             zmax=res.zmax,
             digest=res.digest,
+            content=content_digest(
+                (br, bc), res.parts, res.exists, res.has_nodata, res.zmin, res.zmax, res.digest
+            ),
         )
-        self.arrays[JOURNAL][br, bc] = pack(entry, self.params.storage_dtype)
+        journal[br, bc] = pack(entry, self.params.storage_dtype, content=with_content)
         return br, bc
 
     def close(self) -> None:

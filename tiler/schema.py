@@ -20,6 +20,7 @@ from zarr.codecs import BloscCodec, Crc32cCodec
 
 from tiler import static_error
 from tiler.atomic import write_atomic
+from tiler.content import CONTENT_KEY
 from tiler.layout import level_index, level_size, order_index
 
 FORMAT_VERSION = 2
@@ -43,6 +44,15 @@ INDEX_DTYPES = {
     "zmax": ("float64", np.nan),
     "digest": ("uint64", 0),
 }
+
+
+def index_dtypes(meta: Any) -> dict[str, tuple[str, Any]]:
+    """:data:`INDEX_DTYPES` of a store described by ``meta``, with ``content``
+    (``index/content``, :mod:`tiler.content`) when the store keeps content digests."""
+    out = dict(INDEX_DTYPES)
+    if (getattr(meta, "extra", None) or {}).get(CONTENT_KEY):
+        out["content"] = ("uint64", 0)
+    return out
 
 
 def compressor(
@@ -256,7 +266,7 @@ def layout_specs(meta: Any, comp_level: int) -> list[tuple[str, dict[str, Any]]]
         )
     )
     ic = index_chunk(rows, cols)
-    for name, (dtype, fv) in INDEX_DTYPES.items():
+    for name, (dtype, fv) in index_dtypes(meta).items():
         specs.append(
             (
                 f"index/{name}",

@@ -33,6 +33,7 @@ import zarr
 from zarr.core.sync import sync
 
 from tiler import chunkread, codecs, scratch, static_error
+from tiler.array_check import array_problem
 from tiler.chunkread_remote import IndexCache, decoded, fetch_chunk, fetch_chunks
 from tiler.errors import (
     MissingChunkError,
@@ -159,6 +160,8 @@ class TerrainStore:
         self._changed: str | None = None
         if self.meta.complete:  # a missing array is damage, not an empty one
             self._open_arrays(array_names(self.k))
+            if self.checksummed:
+                self._check_array_metadata()
         remote = not (self.location.is_local or self.location.is_memory)
         direct = direct_reads and self.checksummed and self.meta.complete
         self._direct = chunkread.direct_specs(self._arrays, self.k) if direct else {}
@@ -214,6 +217,19 @@ class TerrainStore:
             for name, arr in zip(names, found, strict=True):
                 self._arrays.setdefault(name, arr)
 
+    def _check_array_metadata(self) -> None:
+        """Refuse an array whose ``zarr.json`` departs from the format's fixed chain
+        (:mod:`tiler.array_check`): zarr would decode it, wrongly, with no error."""
+        for name, arr in list(self._arrays.items()):
+            why = array_problem(name, arr.metadata.to_dict(), self.meta)
+            if why is not None:
+                self._not_replaced()
+                raise StoreCorruptError(
+                    f"array {name!r} of {self.url!r} has metadata no terrastream store has "
+                    f"({why}): read by it, its values would be wrong. The store is damaged; "
+                    "tile the DEM again with --overwrite"
+                )
+
     def check_unchanged(self, *, force: bool = False) -> None:
         """Raise StoreChangedError if the store was replaced or rewritten since it was opened
         (once seen, on every later call and read: the change is final for this reader)."""
@@ -241,6 +257,9 @@ class TerrainStore:
                 f"{self.meta.generation!r} -> {gen!r}); reopen it to read the new store"
             )
             raise StoreChangedError(self._changed)
+        # the same store, its metadata rewritten (a repair: blocks rebuilt, so their chunks
+        # moved within the shards): kept shard indexes may point at other blocks' chunks
+        self.shard_indexes.clear()
         self._token = token
 
     def _read(
@@ -255,6 +274,8 @@ class TerrainStore:
         if self._changed is not None:
             raise StoreChangedError(self._changed)
         spec = self._direct.get(name)
+        if self._remote is not None:  # (rate-limited) a repair seen drops kept shard indexes
+            self.check_unchanged()  # before they are used, not after
         try:
             if spec is None:
                 out = self._array(name)[block]
@@ -273,6 +294,7 @@ class TerrainStore:
         here."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
+        self.check_unchanged()  # (as in _read: before the kept shard indexes are used)
         specs = [self._direct[f"levels/{i}"] for i in range(len(views))]
         got = sync(fetch_chunks(self._remote, [(sp, block) for sp in specs], self.shard_indexes))
         return [self._checked(f"levels/{i}", block, i, decoded(f, sp, v))

@@ -27,6 +27,7 @@ import rasterio.env
 import zarr
 
 from tiler import codecs, static_error
+from tiler.content import CONTENT_KEY, CONTENT_SCHEME, ERRORS_DTYPE, part_digest
 from tiler.destination import (
     check_unfinished_is_recreatable,
     clean_siblings,
@@ -199,6 +200,8 @@ class BlockResult:
     zmin: float
     zmax: float
     digest: int
+    #: :func:`tiler.content.part_digest` of each stored array: levels 0..k, errors, mask
+    parts: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -297,15 +300,22 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     if params.z_scale != 1.0:  # errors in metres (tiler.vertical)
         err_grid = err_grid.astype(np.float64) * abs(params.z_scale)
     errors = static_error.block_errors(err_grid, valid, k, params.error_cap)
+    mask = valid if has_nodata else None
+    parts = (
+        *(part_digest(v, params.storage_dtype) for v in levels),
+        part_digest(errors, ERRORS_DTYPE),
+        part_digest(mask, bool),
+    )
     return BlockResult(
         levels=levels,
         errors=errors,
-        mask=valid if has_nodata else None,
+        mask=mask,
         exists=exists,
         has_nodata=has_nodata,
         zmin=zmin,
         zmax=zmax,
         digest=digest,
+        parts=parts,
     )
 
 
@@ -352,14 +362,16 @@ def tile(
 
 def stored_settings(dst: Any) -> dict[str, Any]:
     """The tiling settings a finished store at ``dst`` was made with (``block_size``,
-    ``precision``; empty when there is no store or it records none): what ``--repair`` uses
-    when they are not given again."""
+    ``precision``, and its reprojection's ``dst_crs``, ``resampling``, ``resolution``; empty
+    when there is no store or it records none): what ``--repair`` uses when they are not given
+    again."""
     loc = as_location(dst)
     if not loc.exists():
         return {}
     kind, meta, _ = inspect_destination(loc)
     job = (meta.extra.get("job") or {}) if kind == "store" and meta is not None else {}
-    return {k: job[k] for k in ("block_size", "precision") if k in job}
+    keys = ("block_size", "precision", "dst_crs", "resampling", "resolution")
+    return {k: job[k] for k in keys if k in job}
 
 
 def finished_generation(dst: Any) -> str | None:
@@ -404,7 +416,15 @@ def _tile(
         fingerprint = source_fingerprint(ds, opts.band)
     meta = replace(meta, format_version=FORMAT_VERSION)
     job = job_identity(fingerprint, opts, meta)
-    meta = replace(meta, extra={**meta.extra, "generation": uuid.uuid4().hex, "job": job})
+    meta = replace(
+        meta,
+        extra={
+            **meta.extra,
+            "generation": uuid.uuid4().hex,
+            "job": job,
+            CONTENT_KEY: CONTENT_SCHEME,  # (a resumed store keeps what it was begun with)
+        },
+    )
     summary.block_size = meta.block_size
     # the destination's first contact: a dead endpoint is the server's failure, said so
     with nullcontext() if loc.is_local else server_errors("what is at the destination", loc.url):
@@ -419,6 +439,13 @@ def _tile(
         from tiler.assemble import repair_store
 
         return repair_store(src, loc, opts, job, progress, summary)
+    if kind == "store" and old.extra.get("state") == "repair" and not opts.overwrite:
+        raise StoreExistsError(
+            "{url!r} holds an interrupted repair; finish it with the same source and {repair} "
+            "(or replace the store with {overwrite})",
+            params={"repair": "repair=True", "overwrite": "overwrite=True"},
+            url=loc.url,
+        )
     if opts.repair:  # an interrupted tiling is finished, as the same command without --repair
         log.info("%s is an unfinished tiling, not a damaged store: finishing it", loc.url)
     if kind == "foreign":

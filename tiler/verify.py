@@ -15,7 +15,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import zarr
 
+from tiler.array_check import array_problem
+from tiler.content import CONTENT_KEY, ERRORS_DTYPE, content_digest, part_digest
 from tiler.errors import StoreChangedError, StoreError
 from tiler.layout import level_size
 from tiler.lease import live_writer
@@ -62,6 +65,8 @@ class VerifyReport:
     chunks_checked: int = 0
     blocks_total: int = 0
     source_checked: bool = False
+    #: every block's content digest was recomputed (stores tiled before them have none)
+    content_checked: bool = False
     problems: list[Problem] = field(default_factory=list)
     bad_blocks: set[tuple[int, int]] = field(default_factory=set)
     bad_tables: list[str] = field(default_factory=list)
@@ -102,6 +107,7 @@ class VerifyReport:
             "chunks_checked": self.chunks_checked,
             "blocks_total": self.blocks_total,
             "source_checked": self.source_checked,
+            "content_checked": self.content_checked,
             "bad_blocks": sorted([list(b) for b in self.bad_blocks]),
             "bad_tables": self.bad_tables,
             "unrepairable": self.unrepairable,
@@ -149,6 +155,15 @@ def verify_store(
     rep.blocks_total = rows * cols
     if not meta.complete:
         rep.state = str(meta.extra.get("state") or "tiling")
+    if rep.state == "repair":  # (its chunks are checked below: a repair rewrites few)
+        rep.add(
+            "unfinished",
+            "",
+            None,
+            None,
+            "the store's repair was interrupted (state 'repair'); rerun `terrastream tile SRC "
+            f"{loc.url} --repair` to finish it",
+        )
     if rep.unfinished:  # its written chunks are still checked below, its missing ones not
         writer = rep.writer = live_writer(loc)
         rep.add(
@@ -164,14 +179,17 @@ def verify_store(
         )
     arrays = _open_arrays(group, meta, rep)
     idx = _check_index(arrays, loc, meta, rep)
+    parts = Parts(meta)
     for i in range(meta.levels):
         if f"levels/{i}" in arrays:
-            _check_level(arrays[f"levels/{i}"], i, loc, meta, rep)
+            _check_level(arrays[f"levels/{i}"], i, loc, meta, rep, parts)
     if "errors" in arrays:
-        _check_blocks(arrays["errors"], "errors", loc, meta, rep, grid.blocks())
+        _check_blocks(arrays["errors"], "errors", loc, meta, rep, grid.blocks(), parts=parts)
     if "mask" in arrays and "has_nodata" in idx:
         need = [b for b in grid.blocks() if idx["has_nodata"][b]]
-        _check_blocks(arrays["mask"], "mask", loc, meta, rep, need, has_nodata=True)
+        _check_blocks(arrays["mask"], "mask", loc, meta, rep, need, has_nodata=True, parts=parts)
+    if meta.extra.get(CONTENT_KEY) and not rep.unfinished:
+        _check_content(meta, idx, parts, rep)
     for name in ("level_index", "order_index"):
         if name not in arrays:
             continue
@@ -229,9 +247,22 @@ def _open_arrays(group: Any, meta: StoreMeta, rep: VerifyReport) -> dict[str, An
     }
     want["errors"] = None  # type: ignore[assignment]
     want["mask"] = (rows, cols, side, side)
-    for n in INDEX_NAMES:
+    for n in _index_names(meta):
         want[f"index/{n}"] = (rows, cols, 4) if n == "window" else (rows, cols)
     want["level_index"] = want["order_index"] = (side, side)
+    for name in ("levels", "index"):  # (xarray.open_zarr(store, group="levels") needs them)
+        try:
+            ok = isinstance(group[name], zarr.Group)
+            exc: Exception | None = None
+        except Exception as e:
+            _damage(e, f"the metadata of group {name!r}", rep)
+            ok, exc = False, e
+        if not ok:
+            msg = f"group {name!r} is missing or its metadata is damaged" + (
+                f": {exc}" if exc is not None else " (it is not a group)"
+            )
+            rep.add("metadata", name, None, None, msg)
+            rep.unrepairable.append(msg)
     out = {}
     for name, shape in want.items():
         try:
@@ -247,6 +278,12 @@ def _open_arrays(group: Any, meta: StoreMeta, rep: VerifyReport) -> dict[str, An
             rep.add("metadata", name, None, None, msg)
             rep.unrepairable.append(msg)
             continue
+        why = array_problem(name, arr.metadata.to_dict(), meta) if meta.checksummed else None
+        if why is not None:  # (zarr would decode it, wrongly: nothing read from it is checked)
+            msg = f"array {name!r} has metadata no terrastream store has ({why})"
+            rep.add("metadata", name, None, None, msg)
+            rep.unrepairable.append(msg)
+            continue
         out[name] = arr
     return out
 
@@ -255,7 +292,7 @@ def _check_index(arrays: dict, loc: Location, meta: StoreMeta, rep: VerifyReport
     rows, cols = meta.grid.shape
     ir, ic = index_chunk(rows, cols)
     out = {}
-    for n in INDEX_NAMES:
+    for n in _index_names(meta):
         arr = arrays.get(f"index/{n}")
         if arr is None:
             continue
@@ -312,10 +349,62 @@ def _bad_all(rep: VerifyReport, kind: str, array: str, blocks: list, msg: str) -
     rep.bad_blocks.update(blocks)
 
 
-def _check_level(arr: Any, level: int, loc: Location, meta: StoreMeta, rep: VerifyReport) -> None:
+def _index_names(meta: StoreMeta) -> tuple[str, ...]:
+    """The index arrays ``meta``'s store has (``content`` when it keeps content digests)."""
+    return (*INDEX_NAMES, "content") if meta.extra.get(CONTENT_KEY) else INDEX_NAMES
+
+
+class Parts:
+    """The :func:`tiler.content.part_digest` of every stored array of every block read: levels
+    0..k, then errors, then mask (0: not stored), for :func:`_check_content`."""
+
+    def __init__(self, meta: StoreMeta) -> None:
+        rows, cols = meta.grid.shape
+        self.n = meta.levels + 2
+        self.values = np.zeros((rows, cols, self.n), np.uint64)
+        self.seen = np.zeros((rows, cols, self.n), bool)
+        self.seen[..., -1] = True  # (a mask is read only for blocks with nodata)
+        self.dtypes = [np.dtype(meta.storage_dtype)] * meta.levels + [ERRORS_DTYPE, np.bool_]
+
+    def add(self, b: tuple[int, int], i: int, v: np.ndarray) -> None:
+        """Record part ``i`` (a level, ``-2`` errors, ``-1`` mask) of block ``b``."""
+        self.values[b][i] = part_digest(v, self.dtypes[i])
+        self.seen[b][i] = True
+
+
+def _check_content(meta: StoreMeta, idx: dict, parts: Parts, rep: VerifyReport) -> None:
+    """Compare every block's content digest, recomputed from the chunks read and its index
+    row, with ``index/content``: a chunk moved to another block or copied from another store
+    passes its crc32c but not this."""
+    need = ("content", "exists", "has_nodata", "zmin", "zmax", "digest")
+    if not all(n in idx for n in need):
+        return  # (an index array already reported)
+    rep.content_checked = True
+    for b in meta.grid.blocks():
+        if b in rep.bad_blocks or not parts.seen[b].all():
+            continue
+        got = content_digest(b, parts.values[b].tolist(), idx["exists"][b],
+                             idx["has_nodata"][b], idx["zmin"][b], idx["zmax"][b],
+                             idx["digest"][b])  # fmt: skip
+        if got != int(idx["content"][b]):
+            rep.add(
+                "mismatch",
+                "index/content",
+                b,
+                None,
+                "its chunks or its index row are not the ones tiled for it (a valid chunk "
+                "moved from another block or copied from another store, or an index value "
+                "changed): its content digest differs",
+            )
+
+
+def _check_level(
+    arr: Any, level: int, loc: Location, meta: StoreMeta, rep: VerifyReport, parts: Parts
+) -> None:
     rows, cols = meta.grid.shape
     if level >= SHARDED_LEVELS:
-        _check_blocks(arr, f"levels/{level}", loc, meta, rep, meta.grid.blocks(), level=level)
+        blocks = meta.grid.blocks()
+        _check_blocks(arr, f"levels/{level}", loc, meta, rep, blocks, level=level, parts=parts)
         return
     sr, sc = shard_shape(rows, cols)
     fill = level_fill(meta.storage_dtype)
@@ -345,6 +434,7 @@ def _check_level(arr: Any, level: int, loc: Location, meta: StoreMeta, rep: Veri
                             continue
                     else:
                         v = region[br - r0, bc - c0]
+                    parts.add((br, bc), level, v)
                     if meta.checksummed and not rep.unfinished and np.all(v == fill):
                         rep.add(
                             "missing",
@@ -364,8 +454,10 @@ def _check_blocks(
     blocks: list,
     level: int | None = None,
     has_nodata: bool = False,
+    parts: Parts | None = None,
 ) -> None:
     rows, cols = meta.grid.shape
+    part = level if level is not None else (-1 if name == "mask" else -2)
     fill = level_fill(meta.storage_dtype) if name.startswith("levels/") else None
     what = f"level {level}" if level is not None else name
     for b in blocks:
@@ -376,6 +468,8 @@ def _check_blocks(
             _damage(exc, f"{what} of block {b}", rep)
             rep.add("checksum", name, b, level, f"{what} of block {b}: {exc}")
             continue
+        if parts is not None:
+            parts.add(b, part, v)
         if (not meta.checksummed and not has_nodata) or rep.unfinished:
             continue  # (an unfinished tiling lacks what its rerun writes: not damage)
         if fill is not None:

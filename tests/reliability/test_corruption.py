@@ -38,10 +38,12 @@ KINDS = [
     "index/zmax",
     "index/digest",
     "index/window",
+    "index/content",
     "level_index",
     "order_index",
 ]
-TABLES = ("level_index", "order_index")  # derived; no reader uses them: verify must
+#: no reader uses them (derived tables, content digests): verify must find their damage
+TABLES = ("level_index", "order_index", "index/content")
 pytestmark = pytest.mark.reliability
 OPTS = TileOptions(block_size=65, workers=1, executor="threads")
 

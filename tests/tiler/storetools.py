@@ -9,9 +9,9 @@ import numpy as np
 
 from tiler.schema import ATTR
 
-#: differ between two builds by design: the build's id (reader change detection) and the root
-#: metadata's checksum, which covers it
-VOLATILE = ("generation", "metadata_checksum")
+#: differ between two builds by design: the build's id (reader change detection), a repair's
+#: revision (the same) and the root metadata's checksum, which covers them
+VOLATILE = ("generation", "revision", "metadata_checksum")
 
 
 def store_files(root: Path) -> dict[str, bytes]:

@@ -13,6 +13,7 @@ import zarr
 from demtools import fractal
 
 from tiler import encoding, schema
+from tiler.content import CONTENT_KEY
 from tiler.info import store_info
 from tiler.store import open_store
 from tiler.tile import TileOptions, tile
@@ -46,7 +47,8 @@ def test_layout_methods_are_byte_identical(meta, tmp_path, version, method, comp
             schema.create_layout(group, m, 3, method=how)
     assert diff_stores(tmp_path / "seq", tmp_path / method) == []
     arrays = {p for p, _ in schema.layout_specs(m, 3)}
-    assert arrays == set(schema.array_names(m.k))  # every array of the format, each once
+    content = {"index/content"} if m.extra.get(CONTENT_KEY) else set()  # (tiler.content)
+    assert arrays == set(schema.array_names(m.k)) | content  # every array of the format, once
     assert (tmp_path / method / "order_index" / "c" / "0" / "0").is_file()  # the tables' data
     assert not list((tmp_path / method).rglob("*.partial"))
 
