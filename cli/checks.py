@@ -97,18 +97,71 @@ def _probe_dir(directory: Path, hint: str, what: str) -> None:
         ) from None
 
 
+def _real(path: Any) -> Path:
+    """``path`` made absolute with its symbolic links resolved (it need not exist)."""
+    return Path(os.path.realpath(os.path.expanduser(str(path))))
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` name one file (by resolved path, or by device and inode: a hard link)."""
+    if _real(a) == _real(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def not_an_input(path: Path | None, hint: str, inputs: Iterable[tuple[str, Any]]) -> None:
+    """A usage error when the output ``path`` is one of the command's ``inputs`` — pairs of
+    the option naming it and its value: a store (``STORE``: the directory and everything in
+    it) or a file (``--path``). Refused with ``--overwrite`` too: it never replaces an input
+    (``tradeoff s.zarr --json s.zarr/zarr.json`` destroyed the store it measured)."""
+    if path is None:
+        return
+    out = _real(path)
+    for what, value in inputs:
+        if value is None or not is_local(value):
+            continue
+        src = Path(str(value))
+        inside = _real(src) in out.parents and (src.is_dir() or not src.exists())
+        if _same_file(path, src) or inside:
+            where = "is inside" if inside else "is"
+            raise UsageError(
+                f"{str(path)!r} {where} the input {what} {str(value)!r} this command reads; "
+                "give another file (--overwrite never replaces an input)",
+                hint=hint,
+            )
+
+
+def distinct_outputs(*outputs: tuple[str, Path | None]) -> None:
+    """A usage error when two output options (pairs of option and value; ``None`` skipped)
+    name the same file: the second would overwrite the first."""
+    given = [(hint, p) for hint, p in outputs if p is not None]
+    for i, (hint, p) in enumerate(given):
+        for other, q in given[:i]:
+            if _same_file(p, q):
+                raise UsageError(
+                    f"{other} and {hint} both name {str(p)!r}; give each its own file",
+                    hint=hint,
+                )
+
+
 def output_file(
     path: Path | None,
     hint: str,
     *,
     suffixes: Iterable[str] | None = None,
     overwrite: bool | None = None,
+    inputs: Iterable[tuple[str, Any]] = (),
 ) -> Path | None:
     """``path`` if a file can be written there (``None`` passes): its directory exists and is
-    writable, it is not a directory, its extension is one of ``suffixes`` (when given), and it
-    does not exist unless ``overwrite`` is true (when given)."""
+    writable, it is not a directory, its extension is one of ``suffixes`` (when given), it
+    does not exist unless ``overwrite`` is true (when given), and it is none of ``inputs``
+    (:func:`not_an_input`: refused whatever ``overwrite`` says)."""
     if path is None:
         return None
+    not_an_input(path, hint, inputs)
     if path.is_dir():
         raise UsageError(f"{str(path)!r} is a directory; give a file name", hint=hint)
     if suffixes is not None:

@@ -2,7 +2,42 @@
 
 from __future__ import annotations
 
+import json
+import math
 from typing import Any
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float (NaN, ±inf; numpy's too) replaced by ``None``, numpy
+    scalars by Python numbers and tuples by lists: what strict JSON can hold."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, bool) or obj is None or isinstance(obj, (str, int)):
+        return obj
+    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "shape", None) == ():
+        return json_safe(obj.item())  # a numpy scalar
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    return obj
+
+
+def json_nodata(value: Any) -> Any:
+    """A nodata value for JSON: a finite number as is, a non-finite one as the string
+    ``"nan"``, ``"inf"`` or ``"-inf"`` (what ``float()`` reads back; null means no nodata)."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return value
+    return value if math.isfinite(x) else repr(x)
+
+
+def json_text(obj: Any, indent: int | None = None) -> str:
+    """``obj`` as strict JSON (:func:`json_safe`, then ``allow_nan=False``): no ``NaN`` or
+    ``Infinity`` token, which JSON parsers other than Python's refuse. Every JSON the command
+    line prints or writes goes through it."""
+    return json.dumps(json_safe(obj), indent=indent, allow_nan=False)
 
 
 def _box(box: list[float], d: dict[str, Any]) -> str:

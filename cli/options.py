@@ -82,10 +82,11 @@ class FiniteFloat:
 
 
 class BoundedInt:
-    """Parser: an integer within optional bounds; the message names the value given."""
+    """Parser: an integer within optional bounds; the message names the value given (and
+    ``why`` the bounds are what they are, when given)."""
 
-    def __init__(self, min: int | None = None, max: int | None = None) -> None:
-        self.min, self.max = min, max
+    def __init__(self, min: int | None = None, max: int | None = None, *, why: str = "") -> None:
+        self.min, self.max, self.why = min, max, why
 
     def describe(self) -> str:
         """``x>=1``, ``0<=x<=7`` ..."""
@@ -104,14 +105,18 @@ class BoundedInt:
         if x is not None and (
             (self.min is not None and x < self.min) or (self.max is not None and x > self.max)
         ):
-            raise typer.BadParameter(f"{value} is not in the range {self.describe()}")
+            why = f" ({self.why})" if self.why else ""
+            raise typer.BadParameter(f"{value} is not in the range {self.describe()}{why}")
         return x
 
 
 def integer(flag: str, help: str, *decls: str, **bounds: Any) -> Any:
     """A ``typer.Option`` taking an integer within ``bounds`` (:class:`BoundedInt`)."""
     t = BoundedInt(**bounds)
-    return typer.Option(flag, *decls, parser=t, help=f"{help} [{t.describe()}]")
+    rng = t.describe()
+    return typer.Option(
+        flag, *decls, parser=t, help=help + ("" if rng == "any integer" else f" [{rng}]")
+    )
 
 
 def choice_option(flag: str, registry: Registry, help: str) -> Any:
@@ -180,10 +185,27 @@ PathOpt = Annotated[
 ]
 PatchOpt = Annotated[int, integer("--patch-log2", "Patch cells per side, log2.", min=1, max=7)]
 TauOpt = Annotated[float, number("--tau", "Screen-space error threshold, pixels.", min=0.0)]
+#: ``--budget-mb``'s largest (2^40 MiB = 1 EiB: more than any machine holds, and its bytes
+#: still an exact 64-bit integer; 1e308 overflowed the conversion to bytes)
+MAX_BUDGET_MB = float(2**40)
 BudgetOpt = Annotated[
     float,
-    number("--budget-mb", "Resident byte budget, MiB.", min=2**-20, why="one byte, 2^-20 MiB"),
+    number(
+        "--budget-mb",
+        "Resident byte budget, MiB.",
+        min=2**-20,
+        max=MAX_BUDGET_MB,
+        why="one byte (2^-20 MiB) to 1 EiB (2^40 MiB)",
+    ),
 ]
+#: ``--frames``' largest: ten million frames are 46 h at 60 fps (a run beyond it would only
+#: fail late, out of memory, or overflow)
+MAX_FRAMES = 10**7
+
+
+def frames_option(help: str) -> Any:
+    """The ``--frames N`` option: 1 to :data:`MAX_FRAMES`."""
+    return integer("--frames", help, min=1, max=MAX_FRAMES, why="at most ten million frames")
 
 
 def check_nodata_rule(lods: list[str] | None, rule: str) -> str:
@@ -210,6 +232,23 @@ def check_metric(lod: str, metric: str) -> str:
     raise UsageError(
         f"--lod {lod} selects with its own error and does not use --metric {metric}; drop "
         f"--metric, or use a strategy that takes it: {', '.join(takers)}",
+        "--metric",
+    )
+
+
+def check_metric_any(lods: list[str] | None, metric: str) -> str:
+    """``metric`` when one strategy of ``lods`` (None: all) selects with it (or it is the
+    default), else a usage error naming ``--metric``: every strategy compared would ignore it
+    (``compare --lods seamless-patches --metric conservative``)."""
+    from render.strategies import strategy_class, strategy_names
+
+    names = lods or strategy_names()
+    if metric == METRIC_DEFAULT or any(strategy_class(n).uses_metric for n in names):
+        return metric
+    takers = [n for n in strategy_names() if strategy_class(n).uses_metric]
+    raise UsageError(
+        f"--lods {','.join(names)} select with their own errors and do not use --metric "
+        f"{metric}; drop --metric, or add a strategy that takes it: {', '.join(takers)}",
         "--metric",
     )
 

@@ -26,18 +26,19 @@ sys.exit(0 if same else 1)
 PY
 echo "== 5. stream a 5 s fly-through in real time (20 ms added to every store request)"
 $TS stream "$OUT/demo.zarr" --frames 300 --fps 60 --latency-ms 20 --workers 8 \
-    --json "$OUT/stream.json" --plot "$OUT/stream.png"
+    --json "$OUT/stream.json" --plot "$OUT/stream.png" --overwrite
 echo "== 6. render an overview at tau = 1 px"
-$TS render "$OUT/demo.zarr" --size 1024x768 --tau 1 -o "$OUT/view.png"
+$TS render "$OUT/demo.zarr" --size 1024x768 --tau 1 -o "$OUT/view.png" --overwrite
 echo "== 7. render 30 frames of the fly-through"
 $TS flythrough "$OUT/demo.zarr" --frames 30 --size 640x480 --tau 1 --out "$OUT/frames" --overwrite
 echo "== 8. measure the speed/accuracy trade on a low oblique view from 8 km south of the DEM"
 echo "      (the overview of step 6 is drawn from the coarsest patches at every tau >= 1)"
 LOW=(--camera 530735,4930000,4000 --yaw 0 --pitch -12)
 $TS tradeoff "$OUT/demo.zarr" --size 640x480 --taus 0.5,1,2,4,8 "${LOW[@]}" \
-    --json "$OUT/tradeoff.json" --plot "$OUT/tradeoff.png"
+    --json "$OUT/tradeoff.json" --plot "$OUT/tradeoff.png" --overwrite
 $TS tradeoff "$OUT/demo.zarr" --size 640x480 --taus 0.5,1,2,4,8 --metric conservative \
-    "${LOW[@]}" --json "$OUT/tradeoff-conservative.json"
+    "${LOW[@]}" --json "$OUT/tradeoff-conservative.json" --overwrite
 echo "== 9. compare the five papers' LOD strategies (and chunk-tessellation-gpu) on the same fly-through (a quick run)"
-$TS compare "$OUT/demo.zarr" --quick --json "$OUT/compare.json" --plot "$OUT/compare.png"
+$TS compare "$OUT/demo.zarr" --quick --json "$OUT/compare.json" --plot "$OUT/compare.png" \
+    --overwrite
 echo "== done: see $OUT/ (view.png, frames/, stream.png, tradeoff.png, compare.png, *.json)"

@@ -34,6 +34,17 @@ SCHEMES: dict[str, tuple[bool, bool, bool]] = {
 }
 
 
+#: the largest budget a session takes, MiB (2^40: 1 EiB, still an exact 64-bit byte count;
+#: a budget of 1e308 MiB passed as finite and overflowed the loader's conversion to bytes)
+MAX_BUDGET_MB = 2**40
+
+
+def budget_ok(budget_mb: float) -> bool:
+    """``budget_mb`` in MiB is at least one byte and at most :data:`MAX_BUDGET_MB` (finite:
+    its bytes are an integer)."""
+    return math.isfinite(budget_mb) and budget_mb * 2**20 >= 1 and budget_mb <= MAX_BUDGET_MB
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """Streaming settings (all validated)."""
@@ -92,7 +103,7 @@ class SessionConfig:
             ):
                 raise StreamerError(f"invalid {name}: {v!r} (a number or None)")
         checks = [
-            ("budget_mb", self.budget_mb * 2**20 >= 1 and math.isfinite(self.budget_mb)),
+            ("budget_mb", budget_ok(self.budget_mb)),
             ("workers", self.workers >= 0 and self.workers <= 64),
             ("fps", self.fps > 0 and math.isfinite(self.fps)),
             ("tau", self.tau >= 0),
@@ -109,6 +120,11 @@ class SessionConfig:
             ("lookahead", 0 < self.lookahead <= 1),
         ]
         for name, ok in checks:
+            if name == "budget_mb" and not ok:
+                raise StreamerError(
+                    f"invalid budget_mb: {self.budget_mb!r} (from one byte, 2^-20 MiB, to "
+                    f"2^{MAX_BUDGET_MB.bit_length() - 1} MiB; give a budget in that range)"
+                )
             if not ok:
                 raise StreamerError(f"invalid {name}: {getattr(self, name)!r}")
         get_metric(self.metric)

@@ -45,6 +45,12 @@ def read_source_list(path: str | os.PathLike) -> list[str]:
             lines = f.read().splitlines()
     except OSError as exc:
         raise SourceError(f"cannot read the source list {path!r}: {exc}") from exc
+    except UnicodeDecodeError as exc:  # (a DEM given as the list: `--from-list dem.tif`)
+        raise SourceError(
+            f"the source list {path!r} (--from-list) is not a UTF-8 text file (byte "
+            f"{exc.start}: {exc.reason}); give a text file naming one source per line, or "
+            "give the raster itself as a SRC argument"
+        ) from None
     base = os.path.dirname(os.path.abspath(path))
     out = []
     for line in lines:

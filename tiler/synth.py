@@ -260,6 +260,46 @@ def _check_size(size: int) -> int:
     return int(size)
 
 
+#: the finest ``cell_size`` (m): finer cells could not be told apart at the origin's
+#: coordinates (500000, 5000000) in a GeoTIFF's float64 transform, and 1e-300 wrote bounds
+#: of ±0 width
+MIN_CELL_SIZE = 1e-6
+#: the widest DEM (m, size x cell_size): the Earth's circumference; a larger extent is no
+#: place on Earth (1e308 m cells wrote a GeoTIFF with infinite bounds)
+MAX_EXTENT_M = 4e7
+
+
+def check_extent(
+    size: int, cell_size: float, origin: tuple[float, float] = (500000.0, 5000000.0)
+) -> float:
+    """``cell_size`` if a ``size`` x ``size`` DEM of such cells from ``origin`` has finite,
+    representable bounds: at least :data:`MIN_CELL_SIZE`, and ``size`` x ``cell_size`` at
+    most :data:`MAX_EXTENT_M`; else :class:`SourceError` naming the value and what to give
+    (``size`` is checked first: beyond :data:`MAX_SYNTH_SIZE`, that is the error)."""
+    size = _check_size(size)
+    try:
+        c = float(cell_size)
+    except (TypeError, ValueError):
+        raise SourceError(f"Expected a positive cell size, got {cell_size!r}.") from None
+    if isinstance(cell_size, bool) or not (math.isfinite(c) and c > 0):
+        raise SourceError(f"Expected a positive cell size, got {cell_size!r}.")
+    if not all(math.isfinite(float(o)) for o in origin):
+        raise SourceError(f"Expected a finite origin, got {origin!r}.")
+    if c < MIN_CELL_SIZE:
+        raise SourceError(
+            f"cell size {c:g} m is finer than {MIN_CELL_SIZE:g} m: the DEM's bounds could not "
+            f"be told apart from its origin; give a cell size of at least {MIN_CELL_SIZE:g} m"
+        )
+    extent = size * c
+    if not (math.isfinite(extent) and extent <= MAX_EXTENT_M):
+        raise SourceError(
+            f"cell size {c:g} m makes the {size:,}-sample DEM {extent:g} m wide, beyond "
+            f"{MAX_EXTENT_M:g} m (the Earth's circumference); give a cell size of at most "
+            f"{MAX_EXTENT_M / size:g} m for this size"
+        )
+    return c
+
+
 def synth_array(
     rows: slice,
     cols: slice,
@@ -324,8 +364,7 @@ def synth_dem(
         raise SourceError(f"Expected dtype to be one of {', '.join(DTYPES)}, got {dtype!r}.")
     if isinstance(window, bool) or not isinstance(window, int) or window < 16:
         raise SourceError(f"Expected window to be an integer >= 16, got {window!r}.")
-    if not (math.isfinite(cell_size) and cell_size > 0):
-        raise SourceError(f"Expected a positive cell size, got {cell_size!r}.")
+    cell_size = check_extent(size, cell_size, origin)
     profile = {
         "driver": "GTiff",
         "width": size,

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
-from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
+from cli.checks import (
+    distinct_outputs,
+    input_file,
+    open_store_arg,
+    output_file,
+    plot_suffixes,
+)
 from cli.common import UsageError, fail_on_errors
+from cli.formatters import json_text
 from cli.options import (
     LODS,
     METRIC_DEFAULT,
@@ -23,8 +29,9 @@ from cli.options import (
     StorageOptionsOpt,
     StoreArg,
     TausOpt,
+    check_metric_any,
     check_nodata_rule,
-    integer,
+    frames_option,
     parse_size,
     parse_taus,
     store_location,
@@ -39,7 +46,7 @@ def compare(
     store: StoreArg,
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
-    frames: Annotated[int, integer("--frames", "Fly-through frames.", min=1)] = 8,
+    frames: Annotated[int, frames_option("Fly-through frames.")] = 8,
     taus: TausOpt = "0.5,1,2,4",
     lods: Annotated[
         str | None,
@@ -69,6 +76,9 @@ def compare(
         Path | None, typer.Option("--plot", metavar="FILE", help="Pareto plot (PNG, SVG, PDF).")
     ] = None,
     storage_options: StorageOptionsOpt = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace the --json and --plot files if they exist.")
+    ] = False,
 ) -> None:
     """Compare every LOD strategy on the same fly-through: triangles, CPU/GPU ms, measured
     screen error, cracks, popping, bytes.
@@ -91,16 +101,25 @@ def compare(
         values = parse_taus(taus)
         names = parse_lods(lods)
         rule = check_nodata_rule(names, nodata_rule)  # every strategy compared must take it
+        check_metric_any(names, metric)  # one strategy compared at least must use it
         opts = ViewOptions(metric=metric, patch_log2=patch_log2, nodata=rule)
         input_file(path, "--path")
-        output_file(json_out, "--json")
-        output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
+        inputs = [("STORE", store), ("--path", path)]
+        output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
+        output_file(
+            plot,
+            "--plot",
+            suffixes=plot_suffixes() if plot else None,
+            overwrite=overwrite,
+            inputs=inputs,
+        )
+        distinct_outputs(("--json", json_out), ("--plot", plot))
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(s, path_kind, frames=frames, path_file=path, viewport=viewport)
         typer.echo(HEADER)
         rows = run(s, cams, values, strategies=names, log=typer.echo, options=opts)
         if json_out:
-            json_out.write_text(json.dumps(rows, indent=1))
+            json_out.write_text(json_text(rows, indent=1))
             typer.echo(f"wrote {json_out}")
         if plot:
             plot_pareto(rows, plot, title=f"{Path(store).name} {viewport[0]}x{viewport[1]}")

@@ -10,7 +10,7 @@ import typer
 
 from cli.checks import open_store_arg, output_file
 from cli.common import UsageError, fail_on_errors
-from cli.options import StorageOptionsOpt, store_location
+from cli.options import StorageOptionsOpt, integer, store_location
 
 
 class ExportFormat(StrEnum):
@@ -24,7 +24,7 @@ def export(
     store: Annotated[str, typer.Argument(help="A terrastream store (path or URL).")],
     out: Annotated[Path, typer.Argument(help="Output GeoTIFF.")],
     level: Annotated[
-        int | None, typer.Option("--level", help="Level to export (default: the finest).")
+        int | None, integer("--level", "Level to export (default: the finest).", min=0)
     ] = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace OUT if it exists.")

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from cli.checks import input_file, open_store_arg, output_dir, remove_if_left_empty
-from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors, one_line
+from cli.checks import (
+    input_file,
+    not_an_input,
+    open_store_arg,
+    output_dir,
+    remove_if_left_empty,
+)
+from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors, interrupted_text, one_line
+from cli.formatters import json_text
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -27,6 +33,7 @@ from cli.options import (
     TauOpt,
     check_metric,
     check_nodata_rule,
+    frames_option,
     integer,
     number,
     parse_size,
@@ -41,7 +48,7 @@ def flythrough(
     ] = Path("frames"),
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
-    frames: Annotated[int, integer("--frames", "Frames to render.", min=1)] = 120,
+    frames: Annotated[int, frames_option("Frames to render.")] = 120,
     fps: Annotated[float, number("--fps", "Path frame rate.", min=1e-3)] = 30.0,
     tau: TauOpt = 1.0,
     metric: MetricOpt = METRIC_DEFAULT,
@@ -57,7 +64,15 @@ def flythrough(
             max=64,
         ),
     ] = 2,
-    every: Annotated[int, integer("--every", "Save every N-th PNG.", min=0)] = 1,
+    every: Annotated[
+        int,
+        integer(
+            "--every",
+            "Save every N-th frame as a PNG (0: no PNGs; frames.csv and summary.json are "
+            "written all the same).",
+            min=0,
+        ),
+    ] = 1,
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     storage_options: StorageOptionsOpt = None,
@@ -96,12 +111,17 @@ def flythrough(
             check_metric(lod, metric)
             opts = ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2, nodata=rule)
             input_file(path, "--path")
+            not_an_input(out, "--out", [("STORE", store)])
             output_dir(out, "--out")
-            earlier_outputs(out, overwrite)
+            old = earlier_outputs(out, overwrite)  # (refused at once without --overwrite)
+            for p in old:
+                not_an_input(p, "--out", [("--path", path)])  # a keyframe file named frames.csv
             s = open_store_arg(store_location(store, storage_options), projected=True)
             cams = make_path(
                 s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport
             )
+            for p in old:  # removed only once the store is open and the path built
+                p.unlink(missing_ok=True)
             every_line = max(1, frames // 10)
             typer.echo(
                 f"{'frame':>6} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'MiB in':>7} stall"
@@ -135,16 +155,16 @@ def flythrough(
                     stopped = {
                         "after_frames": flown,
                         "of_frames": len(cams),
-                        "error": "interrupted (Ctrl-C)"
+                        "error": interrupted_text()
                         if isinstance(exc, KeyboardInterrupt)
                         else one_line(exc),
                     }
-                    (out / "summary.json").write_text(json.dumps({"stopped": stopped}, indent=1))
+                    (out / "summary.json").write_text(json_text({"stopped": stopped}, indent=1))
                     typer.echo(
                         f"wrote {out}/frames.csv and summary.json ({flown} of {len(cams)} frames)"
                     )
                 raise
-            (out / "summary.json").write_text(json.dumps(summary, indent=1))
+            (out / "summary.json").write_text(json_text(summary, indent=1))
             typer.echo(
                 f"{summary['frames']} frames: mean {summary['mean_triangles']:,.0f} triangles, "
                 f"selection {summary['mean_selection_ms']:.2f} ms (max "
@@ -190,14 +210,16 @@ def flythrough(
         remove_if_left_empty(out, made)
 
 
-def earlier_outputs(out: Path, overwrite: bool) -> None:
+def earlier_outputs(out: Path, overwrite: bool) -> list[Path]:
     """Refuse an ``out`` holding an earlier fly-through's files (its PNGs would stay beside
-    the new ones, unlike them), or remove those files when ``overwrite``."""
+    the new ones, unlike them), or, when ``overwrite``, return those files: the caller removes
+    them once the store is open and the path built (a typo in STORE or --path left the
+    earlier fly-through deleted, and nothing new)."""
     old = sorted(out.glob("frame_*.png")) + [
         p for p in (out / "frames.csv", out / "summary.json") if p.exists()
     ]
     if not old:
-        return
+        return []
     if not overwrite:
         pngs = sum(p.suffix == ".png" for p in old)
         raise UsageError(
@@ -206,8 +228,7 @@ def earlier_outputs(out: Path, overwrite: bool) -> None:
             + "); pass --overwrite to replace it, or give another --out",
             hint="--out",
         )
-    for p in old:
-        p.unlink()
+    return old
 
 
 def register(app: typer.Typer) -> None:

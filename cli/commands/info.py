@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -10,7 +9,7 @@ import typer
 
 from cli.checks import is_local, not_a_store, open_store_arg
 from cli.common import fail_on_errors
-from cli.formatters import format_info
+from cli.formatters import format_info, json_nodata, json_text
 from cli.options import StorageOptionsOpt, store_location
 
 
@@ -32,7 +31,8 @@ def info(
         not_a_store(store)
         d = store_info(location)
         if as_json:
-            typer.echo(json.dumps(d, indent=2))
+            # (strict JSON: a NaN nodata is the string "nan", other non-finite values null)
+            typer.echo(json_text(d | {"nodata": json_nodata(d.get("nodata"))}, indent=2))
             return
         typer.echo(format_info(d))
 

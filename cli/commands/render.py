@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
-import json
+import io
+import os
 from dataclasses import asdict
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+if TYPE_CHECKING:
+    from PIL.Image import Image as PILImage
+
 from cli.checks import image_suffixes, open_store_arg, output_file
 from cli.common import UsageError, fail_on_errors
+from cli.formatters import json_text
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -58,6 +63,9 @@ def render(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print the frame's statistics as JSON.")
     ] = False,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace OUT if it exists.")
+    ] = False,
 ) -> None:
     """Render one view of a store to a PNG (default: an oblique overview of the whole DEM).
 
@@ -75,7 +83,9 @@ def render(
         rule = check_nodata_rule([lod], nodata_rule)
         check_metric(lod, metric)
         opts = ViewOptions(lod, tau, metric, patch_log2, wireframe, lod_colour, nodata=rule)
-        output_file(out, "--out", suffixes=image_suffixes())
+        output_file(
+            out, "--out", suffixes=image_suffixes(), overwrite=overwrite, inputs=[("STORE", store)]
+        )
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
@@ -102,7 +112,7 @@ def render(
                 "--look-at)",
                 hint="--camera",
             )
-        Image.fromarray(img).save(out)
+        save_image(Image.fromarray(img), out)
         if as_json:
             d = {
                 "out": str(out),
@@ -113,7 +123,7 @@ def render(
             }
             d.update(asdict(st))
             d["viewport"] = list(viewport)
-            typer.echo(json.dumps(d))
+            typer.echo(json_text(d))
             return
         typer.echo(
             f"wrote {out}: {st.triangles:,} triangles in {st.patches} patches (levels "
@@ -122,6 +132,19 @@ def render(
             "strategy's own buffers)"
             + (f", {st.clamped} nodes clamped to resident levels" if st.clamped else "")
         )
+
+
+def save_image(img: PILImage, out: Path) -> None:
+    """Save ``img`` to ``out`` whole or not at all: encoded in memory (the format from OUT's
+    extension), written beside OUT and renamed over it (``tiler.atomic.write_atomic``), so a
+    failed save (a full disk, Ctrl-C) leaves neither half an image nor a damaged earlier OUT."""
+    from PIL import Image
+
+    from tiler.atomic import write_atomic
+
+    buf = io.BytesIO()
+    img.save(buf, format=Image.registered_extensions()[out.suffix.lower()])
+    write_atomic(os.path.abspath(out), buf.getvalue())
 
 
 def register(app: typer.Typer) -> None:

@@ -7,9 +7,9 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from cli.checks import input_file, open_store_arg, output_file, plot_suffixes
+from cli.checks import distinct_outputs, input_file, open_store_arg, output_file, plot_suffixes
 from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
-from cli.formatters import format_summary
+from cli.formatters import format_summary, json_text
 from cli.options import (
     METRIC_DEFAULT,
     NODATA_DEFAULT,
@@ -24,6 +24,7 @@ from cli.options import (
     StorageOptionsOpt,
     TauOpt,
     choice_option,
+    frames_option,
     integer,
     number,
     parse_size,
@@ -37,6 +38,37 @@ if TYPE_CHECKING:
 #: ``--latency-ms`` must stay below the session's wait for a frame's reads
 #: (``SessionConfig.wait_timeout_s``, 30 s): at or above it no read could finish in a wait
 LATENCY_MAX_MS = 30_000.0
+#: the session's waits for reads (the warm-up's, frame 0's) with no injected latency, s
+WAIT_BASE_S = 30.0
+#: ... plus this many times ``--latency-ms``: the warm-up reads a view's levels a few at a
+#: time, every request delayed (24 latencies for a 4 x 4-block store and 4 workers), so a
+#: fixed 30 s timed out at 10 s per request and blamed the store's server
+WAIT_LATENCIES = 100
+
+
+def wait_timeout_s(latency_ms: float) -> float:
+    """The session's ``wait_timeout_s`` for ``--latency-ms``: 30 s plus 100 latencies."""
+    return WAIT_BASE_S + WAIT_LATENCIES * latency_ms / 1000.0
+
+
+def latency_timeout(exc: BaseException, latency_ms: float, limit: float) -> UsageError | None:
+    """The usage error naming ``--latency-ms`` when ``exc`` is a wait for reads that timed out
+    with latency injected (the latency is the cause, not the server the message blames)."""
+    from cli.common import one_line
+    from streamer.errors import LoadError
+
+    text = one_line(exc)
+    blame = ": check the store's server"
+    if not latency_ms or not isinstance(exc, LoadError) or blame not in text:
+        return None
+    return UsageError(
+        f"{text.split(blame)[0]}, with {latency_ms:g} ms added to every store request: the "
+        f"injected latency is the cause (the wait allows {limit:g} s, 30 s plus "
+        f"{WAIT_LATENCIES} latencies); lower --latency-ms {latency_ms:g}",
+        hint="--latency-ms",
+    )
+
+
 CULLINGS = Registry("streamer.run", "CULLINGS", "culling")
 
 
@@ -45,7 +77,7 @@ def stream(
     storage_options: StorageOptionsOpt = None,
     path: PathOpt = None,
     path_kind: PathKindOpt = "default",
-    frames: Annotated[int, integer("--frames", "Frames to fly.", min=1)] = 600,
+    frames: Annotated[int, frames_option("Frames to fly.")] = 600,
     fps: Annotated[float, number("--fps", "Frame rate (real time).", min=1e-3)] = 60.0,
     speed: Annotated[
         float | None,
@@ -62,7 +94,8 @@ def stream(
         float,
         number(
             "--latency-ms",
-            "Delay added to every store request, ms.",
+            "Delay added to every store request, ms (the waits for reads allow 30 s plus 100 "
+            "times it).",
             min=0.0,
             max=LATENCY_MAX_MS,
             max_open=True,
@@ -87,6 +120,9 @@ def stream(
     json_out: Annotated[
         Path | None, typer.Option("--json", metavar="FILE", help="Write rows + summary.")
     ] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace the --json and --plot files if they exist.")
+    ] = False,
 ) -> None:
     """Fly a camera over a store in real time, streaming what each frame needs.
 
@@ -110,8 +146,16 @@ def stream(
     with fail_on_errors():
         viewport = parse_size(size)
         input_file(path, "--path")
-        output_file(json_out, "--json")
-        output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
+        inputs = [("STORE", store), ("--path", path)]
+        output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
+        output_file(
+            plot,
+            "--plot",
+            suffixes=plot_suffixes() if plot else None,
+            overwrite=overwrite,
+            inputs=inputs,
+        )
+        distinct_outputs(("--json", json_out), ("--plot", plot))
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(
             s,
@@ -132,6 +176,7 @@ def stream(
         cfg["account_hull"] = culling == "qiu"
         cfg["raise_on_failure"] = False  # keep flying: failures are in the frames and summary
         cfg["freeze_gc"] = True  # the command owns its process: no full collection mid-flight
+        cfg["wait_timeout_s"] = wait_timeout_s(latency_ms)  # injected latency: more time
         SessionConfig(budget_mb=budget_mb, workers=workers, **cfg)  # validate before starting
         every = every or max(1, frames // 20)
         header = (
@@ -158,6 +203,9 @@ def stream(
             except Exception as exc:
                 bar.close()
                 write_partial(getattr(exc, "partial", None), exc, len(cams), json_out, plot)
+                slow = latency_timeout(exc, latency_ms, cfg["wait_timeout_s"])
+                if slow is not None:
+                    raise slow from exc
                 raise
             finally:
                 bar.close()
@@ -230,7 +278,8 @@ def write_outputs(
     from streamer.run import plot_run
 
     if json_out:
-        result.to_json(json_out)
+        rows = {"frames": result.rows, "summary": result.summary}  # (RunResult.to_json's)
+        json_out.write_text(json_text(rows, indent=1))
         typer.echo(f"wrote {json_out}{what}")
     if plot:
         plot_run(result, plot)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from enum import Enum
 from pathlib import Path
@@ -10,8 +9,9 @@ from typing import Annotated, Any
 
 import typer
 
-from cli.checks import store_destination
-from cli.common import fail_on_errors, interrupted_exit, interrupted_text
+from cli.checks import is_local, store_destination
+from cli.common import UsageError, fail_on_errors, interrupted_exit, interrupted_text
+from cli.formatters import json_text
 from cli.options import DstStorageOptionsOpt, integer, number, store_location
 from cli.progress import Progress
 
@@ -47,6 +47,7 @@ def _sources_and_destination(paths: list[str], from_list: Path | None) -> tuple[
 
 
 def tile(
+    ctx: typer.Context,
     paths: Annotated[
         list[str],
         typer.Argument(
@@ -72,20 +73,21 @@ def tile(
     ] = Resampling.bilinear,
     resolution: Annotated[
         float | None,
-        typer.Option(
+        number(
             "--resolution",
-            help="Target pixel size in target CRS units (default: the source's finer side).",
+            "Target pixel size in target CRS units (default: the source's finer side).",
+            min=0.0,
+            min_open=True,
         ),
     ] = None,
     block_size: Annotated[
         int | None,
-        typer.Option(
+        integer(
             "--block-size",
-            help="Block edge in samples, 2^k+1 (default 1025; with --repair: the store's).",
-            show_default=False,
+            "Block edge in samples, 2^k+1 (default 1025; with --repair: the store's).",
         ),
     ] = None,
-    band: Annotated[int, typer.Option("--band", help="Band to tile (1-based).")] = 1,
+    band: Annotated[int, integer("--band", "Band to tile (1-based).", min=1)] = 1,
     precision: Annotated[
         float | None,
         number(
@@ -97,9 +99,9 @@ def tile(
     ] = None,
     workers: Annotated[
         int,
-        typer.Option(
+        integer(
             "--workers",
-            help="Parallel workers (0 = one per CPU core): processes for large jobs (threads "
+            "Parallel workers (0 = one per CPU core): processes for large jobs (threads "
             "for up to 2 with the compiled kernels), threads for small ones and memory:// stores.",
         ),
     ] = 0,
@@ -151,8 +153,16 @@ def tile(
     from tiler.tile import tile as run_tile
 
     src, dst = _sources_and_destination(paths, from_list)
+    if dst_crs is None and _source(ctx, "resampling") == "COMMANDLINE":
+        raise typer.BadParameter(
+            f"--resampling {resampling.value} applies when reprojecting; give a target CRS "
+            "(--dst-crs auto|EPSG:n) or drop --resampling",
+            param_hint="--resampling",
+        )
     with fail_on_errors(resumable=True):
         store_destination(dst)
+        if repair and is_local(dst) and not Path(dst).exists():
+            raise UsageError(f"no store at {dst} to repair; tile without --repair", hint="--repair")
         target = store_location(dst, storage_options)
         before = finished_generation(target)  # (a store being replaced is not this run's)
         try:
@@ -160,6 +170,11 @@ def tile(
                 made = stored_settings(target)
                 block_size = made.get("block_size") if block_size is None else block_size
                 precision = made.get("precision") if precision is None else precision
+                if dst_crs is None and made.get("dst_crs"):  # (and its warp's settings)
+                    dst_crs = made["dst_crs"]
+                    if _source(ctx, "resampling") != "COMMANDLINE" and made.get("resampling"):
+                        resampling = Resampling(made["resampling"])
+                    resolution = made.get("resolution") if resolution is None else resolution
             opts = TileOptions(
                 scheduler=scheduler,
                 retries=retries,
@@ -193,7 +208,7 @@ def tile(
                 bar.close()
             elapsed = time.perf_counter() - t0
             if as_json:
-                typer.echo(json.dumps(tile_summary(dst, store, last[0] if last else None, elapsed)))
+                typer.echo(json_text(tile_summary(dst, store, last[0] if last else None, elapsed)))
                 return
             typer.echo(
                 f"wrote {dst}: {store.grid.cols}x{store.grid.rows} blocks, {store.k + 1} levels"
@@ -218,6 +233,13 @@ def tile(
                 )
                 raise typer.Exit(interrupted_exit()) from None
             raise
+
+
+def _source(ctx: typer.Context, name: str) -> str | None:
+    """Where parameter ``name`` got its value (click's ``ParameterSource`` name), as
+    ``compare``'s."""
+    src = ctx.get_parameter_source(name)
+    return None if src is None else src.name
 
 
 def tile_summary(dst: str, store: Any, p: Any, elapsed_s: float) -> dict[str, Any]:

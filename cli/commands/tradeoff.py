@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from cli.checks import open_store_arg, output_file, plot_suffixes
+from cli.checks import distinct_outputs, open_store_arg, output_file, plot_suffixes
 from cli.common import fail_on_errors
+from cli.formatters import json_text
 from cli.options import (
     LOD_DEFAULT,
     METRIC_DEFAULT,
@@ -57,6 +57,9 @@ def tradeoff(
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     storage_options: StorageOptionsOpt = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace the --json and --plot files if they exist.")
+    ] = False,
 ) -> None:
     """Measure what tau costs and buys against the full-resolution render of the same view.
 
@@ -72,8 +75,16 @@ def tradeoff(
         rule = check_nodata_rule([lod], nodata_rule)
         check_metric(lod, metric)
         opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2, nodata=rule)
-        output_file(json_out, "--json")
-        output_file(plot, "--plot", suffixes=plot_suffixes() if plot else None)
+        inputs = [("STORE", store)]
+        output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
+        output_file(
+            plot,
+            "--plot",
+            suffixes=plot_suffixes() if plot else None,
+            overwrite=overwrite,
+            inputs=inputs,
+        )
+        distinct_outputs(("--json", json_out), ("--plot", plot))
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
@@ -93,7 +104,7 @@ def tradeoff(
                 f"{rows[0].reference_frame_ms:.1f} ms GPU"
             )
         if json_out:
-            json_out.write_text(json.dumps([asdict(r) for r in rows], indent=1))
+            json_out.write_text(json_text([asdict(r) for r in rows], indent=1))
             typer.echo(f"wrote {json_out}")
         if plot:
             plot_tradeoff(rows, plot, title=f"{Path(store).name} {viewport[0]}x{viewport[1]}")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -10,6 +9,7 @@ import typer
 
 from cli.checks import input_file, is_local, not_a_store, open_store_arg
 from cli.common import EXIT_RUNTIME, fail_on_errors
+from cli.formatters import json_text
 from cli.options import StorageOptionsOpt, store_location
 
 MAX_LISTED = 20  # problems printed one per line; the rest are counted (all are in --json)
@@ -48,7 +48,7 @@ def verify(
                 input_file(Path(path), "--source")
         rep = verify_store(store_location(store, storage_options), source=source or None)
         if as_json:
-            typer.echo(json.dumps(rep.to_json(), indent=2))
+            typer.echo(json_text(rep.to_json(), indent=2))
         else:
             for p in rep.problems[:MAX_LISTED]:
                 where = f" block {p.block}" if p.block is not None else ""
@@ -61,6 +61,10 @@ def verify(
                 checks = "the root metadata is unreadable"
             if rep.format_version is not None and not rep.metadata_checksummed:
                 checks += "; the root metadata has no checksum (an older store)"
+            if rep.checksummed and rep.complete and not rep.content_checked and rep.ok:
+                checks += "; content digests: none (an older store: tile it again to add them)"
+            elif rep.content_checked:
+                checks += ", content digests"
             status = "ok" if rep.ok else f"{len(rep.bad_blocks)} bad block(s)"
             if not rep.ok and not rep.bad_blocks and all(p.kind == "source" for p in rep.problems):
                 status = "the source does not match"

@@ -29,6 +29,7 @@ from cli.options import (
     YawOpt,
     check_metric,
     check_nodata_rule,
+    frames_option,
     integer,
     parse_size,
     store_location,
@@ -51,9 +52,7 @@ def view(
         int, integer("--workers", "Loader threads of the streaming session.", min=1)
     ] = 4,
     wireframe: Annotated[bool, typer.Option("--wireframe", help="Start in wireframe.")] = False,
-    frames: Annotated[
-        int | None, integer("--frames", "Run N frames without input, then exit.", min=1)
-    ] = None,
+    frames: Annotated[int | None, frames_option("Run N frames without input, then exit.")] = None,
     screenshot: Annotated[
         Path | None,
         typer.Option(
@@ -63,6 +62,9 @@ def view(
     lod: LodOpt = LOD_DEFAULT,
     nodata_rule: NodataRuleOpt = NODATA_DEFAULT,
     storage_options: StorageOptionsOpt = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace the --screenshot file if it exists.")
+    ] = False,
 ) -> None:
     """Fly over a store in a window: WASD + mouse, Q/E (or C/Space) down/up, Shift faster,
     +/- tau, F or Tab wireframe, Esc releases the mouse (twice: quit).
@@ -83,7 +85,13 @@ def view(
         )  # fmt: skip
         if screenshot is not None and frames is None:
             raise UsageError("--screenshot needs --frames N")
-        output_file(screenshot, "--screenshot", suffixes=image_suffixes() if screenshot else None)
+        output_file(
+            screenshot,
+            "--screenshot",
+            suffixes=image_suffixes() if screenshot else None,
+            overwrite=overwrite,
+            inputs=[("STORE", store)],
+        )
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov

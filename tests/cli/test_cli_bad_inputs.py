@@ -52,7 +52,7 @@ CASES = {
     "budget-nan": (["flythrough", "{store}", "--budget-mb", "nan"], 2,
                    "'nan' is not a finite number"),
     "budget-zero": (["stream", "{store}", "--budget-mb", "0"], 2,
-                    "0 is not in the range 9.53674e-07<=x (one byte"),
+                    "0 is not in the range 9.53674e-07<=x<=1.09951e+12 (one byte"),
     "stream-json-missing-dir": (["stream", "{store}", "--json", "{tmp}/no/s.json"], 2,
                                 "the directory '{tmp}/no' for {tmp}/no/s.json does not exist"),
     "stream-plot-extension": (["stream", "{store}", "--plot", "{tmp}/p.xyz"], 2,

@@ -187,7 +187,8 @@ def test_render_json_stats(store, tmp_path, gl_context):
     assert d["triangles"] > 0 and d["viewport"] == [64, 48] and d["lod"] == "qiu"
     assert d["metric"] == "qiu" and out.stat().st_size > 0
     # a strategy with its own error does not record Eq. 7 as what τ bounded
-    r = run("render", store, "--size", "64x48", "--lod", "jung-han", "-o", out, "--json")
+    again = ["--overwrite"]  # (the same -o as above)
+    r = run("render", store, "--size", "64x48", "--lod", "jung-han", "-o", out, "--json", *again)
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
     assert d["lod"] == "jung-han" and d["metric"] == "own"

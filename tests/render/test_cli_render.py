@@ -467,7 +467,7 @@ def test_compare_quick_keeps_what_is_given_beside_it(store, tmp_path):
     res = runner.invoke(app, [*args, "--taus", "2"])
     assert res.exit_code == 0, res.output
     assert [r["tau"] for r in json.loads(js.read_text())] == [2.0]
-    res = runner.invoke(app, args)
+    res = runner.invoke(app, [*args, "--overwrite"])  # (the same --json as above)
     assert res.exit_code == 0, res.output
     assert [r["tau"] for r in json.loads(js.read_text())] == [1.0, 4.0]
 
@@ -557,4 +557,4 @@ def test_a_flythrough_stopped_by_ctrl_c_keeps_its_frames_figures(store, tmp_path
     with (out / "frames.csv").open(newline="") as f:
         assert len(list(csv.DictReader(f))) == 2
     stopped = json.loads((out / "summary.json").read_text())["stopped"]
-    assert stopped == {"after_frames": 2, "of_frames": 5, "error": "interrupted (Ctrl-C)"}
+    assert stopped == {"after_frames": 2, "of_frames": 5, "error": "interrupted"}
