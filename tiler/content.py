@@ -14,12 +14,13 @@ import hashlib
 import math
 from collections.abc import Sequence
 
+import google_crc32c  # (zarr's own dependency: its crc32c codec)
 import numpy as np
 
 #: the root metadata's ``extra`` key naming the scheme (absent: a store tiled before it)
 CONTENT_KEY = "content_digests"
 #: the scheme written now
-CONTENT_SCHEME = "blake2b-64/v1"
+CONTENT_SCHEME = "crc32c-blake2b-64/v1"
 #: the array holding them
 CONTENT_ARRAY = "index/content"
 #: the dtype each part is hashed in: errors are stored as float16, masks as bool
@@ -27,15 +28,17 @@ ERRORS_DTYPE = np.dtype("<f2")
 
 
 def part_digest(values: np.ndarray | None, dtype: np.dtype | str) -> int:
-    """A 64-bit digest of one stored array of a block (a level, the errors, the mask), its
-    values in ``dtype`` (little-endian); 0 for ``None`` (a mask not stored: no nodata)."""
+    """A 64-bit digest of one stored array of a block (a level, the errors, the mask): the
+    crc32c of its values in ``dtype`` (little-endian) in the high 32 bits, their count (mod
+    2^32) in the low; 0 for ``None`` (a mask not stored: no nodata). crc32c runs at ~6 GB/s
+    (blake2b at ~0.9 GB/s added 8 % to encoding a block); a misplaced chunk is not an
+    adversary, and the block's digest hashes the parts with its id and index row."""
     if values is None:
         return 0
     dt = np.dtype(dtype).newbyteorder("<")
     a = np.ascontiguousarray(values, dtype=dt)
-    h = hashlib.blake2b(a.view(np.uint8), digest_size=8)
-    h.update(np.array(a.shape, np.int64).tobytes())
-    return int.from_bytes(h.digest(), "little")
+    crc = google_crc32c.value(a.tobytes())
+    return (int(crc) << 32) | (a.size & 0xFFFFFFFF)
 
 
 def _finite_or_zero(v: float) -> tuple[float, int]:
