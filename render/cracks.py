@@ -14,7 +14,11 @@ Two kinds of figures (docs/RENDER.md, "Measurements"):
   longest gap edge (metres in x/y).
 * **Crack pixels** of a drawn image (:func:`render.measure.crack_pixels`) seen from the
   measured camera and from above (:func:`above_camera`: a nadir camera framing the drawn
-  triangles), counted in :func:`render.pipeline.tradeoff`.
+  triangles), counted in :func:`render.pipeline.tradeoff`. From above, a clear pixel counts
+  only when its ray goes below the drawn surface (:func:`rays_below`): through a gap in it.
+  A ray that stays above the surface wherever it passes over it and leaves past its edge sees
+  the background past a ridge (steep relief folds over itself in a wide-angle picture), which
+  is no crack.
 """
 
 from __future__ import annotations
@@ -161,3 +165,72 @@ def above_camera(grid: BlockGrid, camera: Camera, tri_cr: np.ndarray, tri_h: np.
         near=max(0.1, 0.5 * dist),
         far=top - zlo + 0.5 * dist + 1.0,
     )
+
+
+def rays_below(
+    grid: BlockGrid,
+    camera: Camera,
+    tri_cr: np.ndarray,
+    tri_h: np.ndarray,
+    pixels: np.ndarray,
+    chunk: int = 1 << 19,
+) -> np.ndarray:
+    """Per pixel ``(row, col)`` of ``camera``'s image (rows of ``pixels``): does the ray
+    through its centre pass below the drawn surface (the triangles ``tri_cr``/``tri_h``, hidden
+    ones left out) somewhere over it, by more than the float32 tolerance? Exact float64
+    geometry: the ray's ground track is clipped to each triangle and its height above the
+    triangle's plane, linear along the track, is read at the clipped ends (down to the lowest
+    drawn height). False for a ray that stays above the surface wherever it passes over it:
+    background seen past a ridge (or past the mesh's edge), not through a gap."""
+    px = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
+    out = np.zeros(len(px), dtype=bool)
+    tri, h = drawn(tri_cr, tri_h)
+    if not len(px) or not len(tri):
+        return out
+    x, y = grid.sample_xy(tri[..., 1], tri[..., 0])  # (m, 3) each
+    e = camera.eye
+    x, y = x - e[0], y - e[1]  # eye-relative: UTM metres keep their precision
+    z = h - e[2]
+    ax, ay, az = x[:, 0], y[:, 0], z[:, 0]
+    ux, uy, uz = x[:, 1] - ax, y[:, 1] - ay, z[:, 1] - az
+    vx, vy, vz = x[:, 2] - ax, y[:, 2] - ay, z[:, 2] - az
+    den = ux * vy - vx * uy  # non-zero: drawn() dropped zero-area triangles
+    gx, gy = (uz * vy - vz * uy) / den, (ux * vz - vx * uz) / den  # the plane's slope
+    sgn = np.sign(den)
+    # edges i -> i+1 with inward normals (counter-clockwise after the orientation sign)
+    ex = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 1], x[:, 0] - x[:, 2]], 1)
+    ey = np.stack([y[:, 1] - y[:, 0], y[:, 2] - y[:, 1], y[:, 0] - y[:, 2]], 1)
+    nx, ny = -ey * sgn[:, None], ex * sgn[:, None]
+    tol = _tol(np.abs(h).max(axis=1))
+    w, hh = camera.viewport
+    f = camera.focal_px
+    sx = (px[:, 1] + 0.5 - w / 2.0) / f
+    sy = (hh / 2.0 - (px[:, 0] + 0.5)) / f
+    d = camera.forward[None, :] + sx[:, None] * camera.right + sy[:, None] * camera.up
+    zlo = float(h.min()) - e[2]
+    step = max(1, chunk // len(tri))
+    for s0 in range(0, len(px), step):
+        dd = d[s0 : s0 + step]
+        dx, dy, dz = dd[:, 0:1], dd[:, 1:2], dd[:, 2:3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_end = np.where(dz < 0.0, (zlo - 1.0) / dz, np.inf)  # down past the lowest point
+        lo = np.zeros((len(dd), len(tri)))
+        hi = np.broadcast_to(t_end, lo.shape).copy()
+        for i in range(3):  # inside edge i: n . (p(t) - v_i) >= 0, linear in t
+            a = nx[:, i] * (0.0 - x[:, i]) + ny[:, i] * (0.0 - y[:, i])
+            b = nx[:, i] * dx + ny[:, i] * dy
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = -a / b
+            lo = np.where(b > 0.0, np.maximum(lo, t), lo)
+            hi = np.where(b < 0.0, np.minimum(hi, t), hi)
+            lo = np.where((b == 0.0) & (a < 0.0), np.inf, lo)  # parallel, outside
+        meet = lo <= hi
+        with np.errstate(invalid="ignore"):
+            # height of the ray above the plane at t: (dz - g.d_xy) t - (az - g.a_xy)
+            rate = dz - gx * dx - gy * dy
+            off = az - gx * ax - gy * ay
+            c_lo = rate * lo - off
+            c_hi = np.where(np.isfinite(hi), rate * hi - off, np.where(rate < 0, -np.inf, np.inf))
+            below = meet & (np.minimum(c_lo, c_hi) < -tol)
+        out[s0 : s0 + step] = below.any(axis=1)
+    return out

@@ -382,6 +382,17 @@ def crack_pixels(
     drawn, where the view sees through a hole in the data (one the reference hid behind terrain
     that a coarser silhouette in front of it reveals), not through a crack.
     """
+    return int(crack_mask(img, footprint, clear_rgb, max_iter, holes).sum())
+
+
+def crack_mask(
+    img: np.ndarray,
+    footprint: np.ndarray,
+    clear_rgb: tuple[int, int, int],
+    max_iter: int = 4096,
+    holes: np.ndarray | None = None,
+) -> np.ndarray:
+    """The pixels :func:`crack_pixels` counts, as a boolean image."""
     clear = is_clear(img, clear_rgb)
     reach = clear & ~footprint
     reach[0] |= clear[0]
@@ -401,7 +412,7 @@ def crack_pixels(
     counted = clear & footprint & ~reach
     if holes is not None:
         counted &= ~holes
-    return int(counted.sum())
+    return counted
 
 
 def heights_fn(store: TerrainStore, patches: Patches) -> Callable[[int], np.ndarray]:

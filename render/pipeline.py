@@ -16,7 +16,7 @@ from render.errors import EmptyViewError, RenderError
 from render.frame_types import check_patch_log2
 from render.measure import heights_fn as heights_fn  # re-exported (moved there)
 from render.renderer import CLEAR, RenderConfig, RenderStats, TerrainRenderer
-from render.select import Patches, coarse_leaves, uncounted_clamps
+from render.select import Patches, check_tau, coarse_leaves, uncounted_clamps
 from render.step import frame_step, stream_step
 from render.step import resident_levels as resident_levels  # re-exported
 from render.strategies import (
@@ -31,6 +31,7 @@ from render.strategies import (
 from render.strategies.base import DrawOptions
 from render.strategies.chunk_tess import ChunkTessellation, GpuChunks, start_depth
 from render.strategies.qiu import QiuStrategy, patch_counts, select_clod
+from render.views import ground_note
 from streamer.camera import Camera
 from streamer.lod import get_metric
 from streamer.session import Session, open_session
@@ -291,6 +292,8 @@ def tradeoff(
     ``{"rho": "paper"}``)."""
     o = options or ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2)
     lod, metric = o.lod, o.metric
+    for t in taus:  # before the reference's work: finite taus only (check_tau says why)
+        check_tau(t)
     if renderer is None:  # made here, so closed here (else its context stays current)
         r = TerrainRenderer(store, RenderConfig(size=camera.viewport, patch_log2=o.patch_log2))
         try:
@@ -314,14 +317,16 @@ def tradeoff(
     r.draw(camera, ref_p, clear=CLEAR)
     footprint = ~measure.is_clear(r.image(), CLEAR)
     if not footprint.any():  # every figure would compare sky with sky
+        where = ground_note(store, camera)  # on or under the ground: that is why
         raise EmptyViewError(
             f"the view from ({camera.position[0]:.1f}, {camera.position[1]:.1f}, "
             f"{camera.position[2]:.1f}) draws no terrain pixel at full resolution "
             f"({ref_st.triangles:,} triangles in the {camera.viewport[0]}x"
-            f"{camera.viewport[1]} view): it holds no terrain sample, or the DEM is smaller "
-            "than a pixel from there; its error, PSNR and crack figures would be vacuous: aim "
-            "the camera at the terrain, closer"
-        )
+            f"{camera.viewport[1]} view): "
+            + (where or "it holds no terrain sample, or the DEM is smaller than a pixel from "
+               "there; its error, PSNR and crack figures would be vacuous: aim the camera at "
+               "the terrain, closer")
+        )  # fmt: skip
     ref_heights = measure.heights_fn(store, ref_p)
     if "nodata" in (lod_options or {}):
         raise ValueError("pass the nodata rule as options=ViewOptions(nodata=...): it also plans "
@@ -445,19 +450,26 @@ def drawn_cracks(
     drawn triangles — ``triangles``, default ``strat.triangles(camera, sel)`` — inside the
     reference selection ``ref_p`` drawn from there, where the reference's surface lies in
     ``camera``'s view: outside it each selection culls at its own granularity, and where the
-    two culled edges pinch below a pixel the gap between them is enclosed, not a crack). On a
+    two culled edges pinch below a pixel the gap between them is enclosed, not a crack); from
+    above, only pixels whose ray passes below the drawn surface (:func:`render.cracks.rays_below`:
+    through a gap, not past a ridge that wide-angle relief folds over the background). On a
     store with nodata, a pixel that the selection covers once its nodata holes are drawn sees a
     hole in the data, not a crack, and is not counted (:func:`render.measure.crack_pixels`'
     ``holes``)."""
     nodata = bool(np.asarray(r.store.index.has_nodata).any())
 
-    def seen(cam: Camera, fp: np.ndarray) -> int:
+    def seen(cam: Camera, fp: np.ndarray, mesh: tuple | None = None) -> int:
         strat.draw(cam, sel, clear=CLEAR)
         img = r.image()
         n = measure.crack_pixels(img, fp, CLEAR)
+        holes = None
         if n and nodata:  # holes in the data among them? (drawn only when there is a doubt)
             strat.draw(cam, sel, clear=CLEAR, holes=True)
-            n = measure.crack_pixels(img, fp, CLEAR, holes=~measure.is_clear(r.image(), CLEAR))
+            holes = ~measure.is_clear(r.image(), CLEAR)
+            n = measure.crack_pixels(img, fp, CLEAR, holes=holes)
+        if n and mesh is not None:  # only rays that pass below the drawn surface: a gap
+            rows, cols = np.nonzero(measure.crack_mask(img, fp, CLEAR, holes=holes))
+            n = int(cracks.rays_below(r.grid, cam, *mesh, np.c_[rows, cols]).sum())
         return n
 
     here = seen(camera, footprint)
@@ -466,7 +478,7 @@ def drawn_cracks(
     r.draw(above, ref_p, clear=CLEAR)
     fp_above = ~measure.is_clear(r.image(), CLEAR)
     fp_above &= in_view(camera, r.surface_points(above))
-    return here, seen(above, fp_above)
+    return here, seen(above, fp_above, (tri, h))
 
 
 def in_view(camera: Camera, points: np.ndarray) -> np.ndarray:

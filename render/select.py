@@ -26,6 +26,7 @@ neighbour (repeatedly); see docs/RENDER.md. All edges' probes at all depths are 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -39,6 +40,7 @@ from streamer.camera import Camera
 from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
 from streamer.lod import Metric, get_metric, horizontal_px
+from streamer.lod import gap_scale as lod_gap_scale
 from tiler.grid import BlockGrid
 from tiler.quadtree import (
     block_origins,
@@ -173,14 +175,23 @@ def check_drawable(patches: Patches, held: np.ndarray) -> None:
 
 
 def check_tau(tau: float) -> float:
-    """``tau`` as a float, or :class:`SelectionError` unless it is a number >= 0 (inf allowed)."""
+    """``tau`` as a float, or :class:`SelectionError` unless it is a finite number >= 0.
+
+    Infinity is refused (as the CLI refuses it): a mixed terrain/nodata node splits because its
+    error, inf, exceeds tau, which ``inf > inf`` does not (terrain beside nodata would be
+    dropped), and the gap rule's ``tau / min(tau, 1)`` scale would make ``0 * inf = nan``. The
+    largest finite taus (``1e300``) are taken: every finite error then stays unrefined."""
     try:
-        ok = float(tau) >= 0.0
-    except (TypeError, ValueError):
+        t = float(tau)
+        ok = t >= 0.0 and math.isfinite(t)
+    except (TypeError, ValueError, OverflowError):
         ok = False
     if not ok:
-        raise SelectionError(f"tau must be a pixel threshold >= 0, got {tau!r}")
-    return float(tau)
+        raise SelectionError(
+            f"tau must be a finite pixel threshold >= 0 (for no refinement give a large finite "
+            f"one, e.g. 1e300), got {tau!r}"
+        )
+    return t
 
 
 def select_patches(
@@ -235,7 +246,7 @@ def select_patches(
     gap_of = np.full(m, -1, np.int64)
     if gap_slots is not None:
         gap_of[res >= 0] = gap_slots
-    gap_scale = tau / min(tau, 1.0) if tau > 0 else 0.0
+    gap_scale = lod_gap_scale(tau)
     bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1]) if m else (np.zeros(0),) * 2
     cull = DiscCull(polygon) if polygon is not None and len(polygon) else None
     if win is not None and m and (win[:, 2:] > 1 << k).all():

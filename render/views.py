@@ -15,7 +15,7 @@ import numpy as np
 
 from render.errors import CameraSpecError
 from streamer.camera import Camera
-from streamer.clip import MIN_NEAR, depth_below_ground, near_plane
+from streamer.clip import MIN_NEAR, clipped_by_near, ground_clearance, near_plane, near_reach
 from streamer.clip import reach as scene_reach
 from streamer.clip import zrange as _zrange
 from streamer.errors import CameraError
@@ -125,19 +125,58 @@ def _camera(store, eye, target, size, fov, reach) -> Camera:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
 
 
-def warn_below_ground(store: TerrainStore, eye: tuple[float, float, float]) -> float:
-    """Log a warning when ``eye`` is below the terrain under it (the view then shows the
-    terrain from below); how far below (0: not, or unknown). Reads a block only when the eye
-    is under its block's highest point (:func:`streamer.clip.depth_below_ground`)."""
-    depth = float(depth_below_ground(store, np.array([eye], dtype=np.float64))[0])
-    if depth > 0:
+def warn_below_ground(
+    store: TerrainStore, eye: tuple[float, float, float], camera: Camera | None = None
+) -> float:
+    """Log a warning when ``eye`` is below the terrain under it (the full-resolution surface,
+    :func:`streamer.clip.ground_height`: the view then shows the terrain from below) and, given
+    the ``camera``, when it is on or above the ground but closer to it than its near plane
+    reaches (:func:`streamer.clip.clipped_by_near`: the near plane clips the ground in front
+    of it), naming the clearance; how far below (0: not, or unknown). Reads a block only when
+    the eye is under its block's highest point (plus the near plane's reach)."""
+    within = near_reach(camera) if camera is not None else 0.0
+    clearance = ground_clearance(store, np.array([eye], dtype=np.float64), within)
+    c = float(clearance[0])
+    if c < 0:
         log.warning(
             "the camera at z = %.1f m is %.1f m below the terrain under it (at least %.1f m at "
             "x %.1f, y %.1f): the view shows the terrain from below; raise the camera above "
             "the ground",
-            eye[2], depth, eye[2] + depth, eye[0], eye[1],
+            eye[2], -c, eye[2] - c, eye[0], eye[1],
         )  # fmt: skip
-    return depth
+        return -c
+    if camera is not None and clipped_by_near(clearance, [camera])[0]:
+        log.warning(
+            "the camera at z = %.3f m is %s the terrain under it (the ground at %.3f m at x "
+            "%.1f, y %.1f), "
+            "closer than its %.3g m near plane reaches (%.3g m): the near plane clips the "
+            "ground in front of it, so the view shows sky or nothing where the terrain is; "
+            "raise the camera at least %.3g m above the ground",
+            eye[2], "on" if c == 0 else f"only {c:.3g} m above", eye[2] - c, eye[0], eye[1],
+            camera.near, near_reach(camera), near_reach(camera),
+        )  # fmt: skip
+    return 0.0
+
+
+def ground_note(store: TerrainStore, camera: Camera) -> str:
+    """Why ``camera`` may see no terrain because of where it is: ``""``, or a clause naming
+    its depth below the terrain under it or its clearance above it when that is less than its
+    near plane reaches (for a "no terrain pixel" error; no warning is logged)."""
+    reach_ = near_reach(camera)
+    c = float(ground_clearance(store, np.array([camera.position], dtype=np.float64), reach_)[0])
+    if c < 0:
+        return (
+            f"the camera is {-c:.3g} m below the terrain under it (it sees the terrain from "
+            "below, or nothing); raise it above the ground"
+        )
+    if clipped_by_near([c], [camera])[0]:
+        where = "on" if c == 0 else f"only {c:.3g} m above"
+        return (
+            f"the camera is {where} the terrain under it, closer than its {camera.near:.3g} m "
+            f"near plane reaches ({reach_:.3g} m): the near plane clips the ground in front "
+            f"of it; raise the camera at least {reach_:.3g} m above the ground"
+        )
+    return ""
 
 
 def make_camera(
@@ -172,7 +211,7 @@ def make_camera(
         if yaw is not None or pitch is not None:
             raise CameraSpecError("give either {look_at} or {yaw}/{pitch}, not both")
         cam = _camera(store, eye, parse_triple(look_at, "look_at"), size, fov, reach)
-        warn_below_ground(store, eye)  # once the camera is valid
+        warn_below_ground(store, eye, cam)  # once the camera is valid
         return cam
     near = near_plane(store, eye, _tan_half_diag(size, fov), max(0.5, reach * 1e-4))
     try:
@@ -187,5 +226,5 @@ def make_camera(
         )
     except CameraError as exc:
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
-    warn_below_ground(store, eye)
+    warn_below_ground(store, eye, cam)
     return cam

@@ -35,6 +35,9 @@ Vec3 = tuple[float, float, float]
 MIN_NEAR_M = 1e-6
 #: The farthest far plane (metres): beyond ~1e38 float32 overflows (a blank image).
 MAX_FAR_M = 1e15
+#: The narrowest vertical field of view (degrees): a subnormal one made ``focal_px`` inf (NaN
+#: projections) or divided by zero; the CLI's ``--fov`` starts at 1.
+MIN_FOV_Y = 1e-3
 
 
 def _finite(name: str, value: float) -> float:
@@ -55,6 +58,11 @@ def _vec3(name: str, value: object) -> Vec3:
         raise CameraError(f"{name} must be 3 numbers (x, y, z), got {value!r}")
     x, y, z = (_finite(f"{name}[{i}]", arr[i]) for i in range(3))
     return x, y, z
+
+
+def _turn(degrees: float) -> float:
+    """An angle reduced to ``(-360, 360)`` degrees exactly (``math.fmod``; unchanged within)."""
+    return math.fmod(degrees, 360.0)
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -83,8 +91,8 @@ class Camera:
             set_(self, name, _finite(name, getattr(self, name)))
         if not -90.0 <= self.pitch <= 90.0:
             raise CameraError(f"pitch must be in [-90, 90] degrees, got {self.pitch}")
-        if not 0.0 < self.fov_y < 180.0:
-            raise CameraError(f"fov_y must be in (0, 180) degrees, got {self.fov_y}")
+        if not MIN_FOV_Y <= self.fov_y < 180.0:
+            raise CameraError(f"fov_y must be in [{MIN_FOV_Y:g}, 180) degrees, got {self.fov_y!r}")
         vp = tuple(self.viewport) if isinstance(self.viewport, tuple | list) else None
         if vp is None or len(vp) != 2:
             raise CameraError(f"viewport must be (width, height) pixels, got {self.viewport!r}")
@@ -150,7 +158,9 @@ class Camera:
         # float arithmetic, the same operations as numpy's (cross product, scaled sums) and so
         # the same bits, without a dozen small-array calls per pose (it runs once per frame on
         # the caller's thread; tests/streamer/test_camera.py compares it with the numpy form)
-        y, p, r = (math.radians(a) for a in (self.yaw, self.pitch, self.roll))
+        # yaw and roll reduced in degrees first (exactly: fmod; the identity within +-360): a
+        # huge angle converted to radians first loses its heading (1e20 deg is 280 deg)
+        y, p, r = (math.radians(a) for a in (_turn(self.yaw), self.pitch, _turn(self.roll)))
         sy, cy, sp, cp = math.sin(y), math.cos(y), math.sin(p), math.cos(p)
         f = (sy * cp, cy * cp, sp)
         r0 = (cy, -sy, 0.0)
@@ -182,7 +192,7 @@ class Camera:
     @property
     def heading(self) -> np.ndarray:
         """Unit horizontal view direction ``(x, y)`` from yaw (defined even at pitch +-90)."""
-        y = math.radians(self.yaw)
+        y = math.radians(_turn(self.yaw))
         return np.array([math.sin(y), math.cos(y)])
 
     @property

@@ -22,7 +22,7 @@ import numpy as np
 
 from streamer.camera import Camera
 from streamer.errors import LodError
-from streamer.lod import Metric, get_metric, horizontal_px, qiu_eq7
+from streamer.lod import Metric, check_finite_tau, gap_scale, get_metric, horizontal_px, qiu_eq7
 from tiler.errors import KernelUnavailableError
 from tiler.grid import BlockGrid
 from tiler.kernels import ENV, requested
@@ -245,6 +245,7 @@ class PatchErrorTable:
         ``min(tau, 1)`` px (:func:`streamer.lod.horizontal_px` of its sphere: the selection's
         rule, ``render.select.select_patches`` with ``gaps``); those blocks take the numpy walk."""
         fn = get_metric(metric)
+        tau = check_finite_tau(tau)  # inf: mixed nodes (error inf) would not split
         k, p = self.k, self.patch_log2
         m = len(blocks)
         levels = np.full(m, min(k, p), dtype=np.int64)
@@ -301,7 +302,7 @@ class PatchErrorTable:
         k, p = self.k, self.patch_log2
         zmid, zhalf = 0.5 * (zr[:, 0] + zr[:, 1]), 0.5 * (zr[:, 1] - zr[:, 0])
         bx0, by1 = block_origins(grid, blk[:, 0], blk[:, 1])
-        gap_scale = tau / min(tau, 1.0) if tau > 0 else 0.0
+        scale = gap_scale(tau)
         rows = np.zeros(len(idx), dtype=np.int64)
         cols = np.zeros(len(idx), dtype=np.int64)
         for d in range(self.depths):
@@ -315,7 +316,7 @@ class PatchErrorTable:
                 w = _delta(gap_arrays, self.depths, slots[idx], d, rows, cols)
                 if (w > 0).any():  # rho > tau also when the gap projects past min(tau, 1) px
                     g = np.asarray(horizontal_px(w, centres, radius, camera), np.float64)
-                    rho = np.maximum(rho, g * gap_scale)
+                    rho = np.maximum(rho, g * scale)
             if with_rho:
                 np.maximum.at(rho_max, idx, np.where(np.isfinite(rho), rho, 1e30))
             split = ~(rho <= tau)

@@ -72,7 +72,10 @@ def qiu_eq7(
         cos_b[zero] = 1.0
     sin_b = np.sqrt(np.clip(1.0 - cos_b * cos_b, 0.0, 1.0))
     sin_b[cos_b < 0.0] = 1.0
-    rho = camera.focal_px * d * cos_t / (np.maximum(dist, camera.near) * (1.0 + sin_b))
+    # delta inf (a mixed node) straight below the eye: inf * cos_t 0 is NaN, as the compiled
+    # twin's (_plan_nb._qiu), and NaN is not <= tau: the node splits, without a warning
+    with np.errstate(invalid="ignore"):
+        rho = camera.focal_px * d * cos_t / (np.maximum(dist, camera.near) * (1.0 + sin_b))
     rho[dist <= radius] = np.inf
     rho[d == 0.0] = 0.0
     return rho
@@ -214,6 +217,29 @@ def horizontal_px(
         rho = np.where(z_min > camera.near, rho, np.inf)
     unseen = (z_max < camera.near) | (z_min > camera.far) | (d == 0.0)
     return np.where(unseen, 0.0, rho)
+
+
+def check_finite_tau(tau: float) -> float:
+    """``tau`` as a float, or :class:`LodError` unless it is a finite number >= 0: a mixed
+    terrain/nodata node splits because its error, ``inf``, exceeds tau (``inf > inf`` does
+    not), and :func:`gap_scale` would make ``0 * inf = nan``."""
+    try:
+        t = float(tau)
+        ok = t >= 0.0 and math.isfinite(t)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise LodError(f"tau must be a finite pixel threshold >= 0, got {tau!r}")
+    return t
+
+
+def gap_scale(tau: float) -> float:
+    """The nodata rule ``"gap"``'s factor on a mixed cell's :func:`horizontal_px`: a node then
+    has ``rho > tau`` while the cell spans more than ``min(tau, 1)`` px, ``tau / min(tau, 1)``
+    (0 at tau 0, where every node splits anyway); :class:`LodError` for a tau that is not
+    finite (:func:`check_finite_tau`)."""
+    t = check_finite_tau(tau)
+    return t / min(t, 1.0) if t > 0 else 0.0
 
 
 def exact_projected(delta: np.ndarray, points: np.ndarray, camera: Camera) -> np.ndarray:

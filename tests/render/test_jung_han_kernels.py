@@ -17,7 +17,7 @@ SIZE = (128, 96)
 FIELDS = ("tri", "tri_h", "tri_slot", "tri_level", "nodes", "flags", "adjusted")
 GPU = ("v_slot", "v_level", "v_cr", "v_h", "index")
 COUNTS = ("clamped", "evaluated", "jh_triangles", "corner_blocks")
-TAUS = (0.0, 0.05, 0.5, 1.0, 4.0, 1e6, np.inf)
+TAUS = (0.0, 0.05, 0.5, 1.0, 4.0, 1e6, 1e300)  # inf is refused (check_tau): the largest finite
 
 
 class Services:

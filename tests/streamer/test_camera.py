@@ -64,8 +64,10 @@ def test_basis_orthonormal_right_handed(yaw, pitch, roll):
 
 
 def _numpy_basis(cam: Camera) -> np.ndarray:
-    """The basis as numpy computed it before it became float arithmetic (the reference)."""
-    y, p, r = (math.radians(a) for a in (cam.yaw, cam.pitch, cam.roll))
+    """The basis as numpy computed it before it became float arithmetic (the reference); yaw
+    and roll reduced in degrees first (``math.fmod``: a huge yaw keeps its heading)."""
+    yaw, roll = math.fmod(cam.yaw, 360.0), math.fmod(cam.roll, 360.0)
+    y, p, r = (math.radians(a) for a in (yaw, cam.pitch, roll))
     f = np.array([math.sin(y) * math.cos(p), math.cos(y) * math.cos(p), math.sin(p)])
     r0 = np.array([math.cos(y), -math.sin(y), 0.0])
     u0 = np.cross(r0, f)

@@ -96,9 +96,12 @@ def test_a_path_that_sees_none_of_the_dem_is_an_error(store, tmp_path):
         require_view(run_flythrough(s, cams, realtime=False), store)
 
 
-def test_ground_height_is_the_lowest_corner_of_the_cell_under_a_point(tmp_path):
-    """Known heights: each sample is ``100 * row + col``; points inside a cell, on a block's
-    shared border and at the DEM's last sample; ``None`` off the DEM and beside nodata."""
+def test_ground_height_is_the_triangulated_surface_under_a_point(tmp_path):
+    """Known heights: each sample is ``100 * row + col`` (a plane: both diagonals of a cell
+    interpolate it); points inside a cell, on a block's shared border and at the DEM's last
+    sample; ``None`` off the DEM and beside nodata. (It was the cell's lowest corner, which let
+    a camera tens of metres under the surface pass as above it:
+    tests/streamer/test_numeric_audit_streamer.py.)"""
     from streamer.clip import ground_height
 
     data = (100.0 * np.arange(65)[:, None] + np.arange(65)[None, :]).astype(np.float32)
@@ -111,9 +114,9 @@ def test_ground_height_is_the_lowest_corner_of_the_cell_under_a_point(tmp_path):
         x, y = g.sample_xy(row, col)
         return ground_height(st, float(x), float(y))
 
-    assert at(10.5, 20.5) == 100.0 * 10 + 20  # the cell's lowest corner
+    assert at(10.5, 20.5) == 100.0 * 10.5 + 20.5  # inside the cell: the surface there
     assert at(32.0, 32.0) == 100.0 * 32 + 32  # a shared block border
-    assert at(64.0, 64.0) == 100.0 * 63 + 63  # the last sample: the last cell
+    assert at(64.0, 64.0) == 100.0 * 64 + 64  # the last sample: the last cell's corner
     assert at(40.5, 49.5) is None  # a corner is nodata
     assert at(-1.0, 5.0) is None and at(5.0, 64.5) is None  # off the DEM
 

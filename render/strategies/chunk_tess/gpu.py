@@ -28,6 +28,9 @@ HERE = Path(__file__).parent
 GS = HERE.parent / "geometry_splitting"
 UNSET = -2  # a node channel whose neighbour level is not known yet (traverse.glsl)
 MAX_HULL = 32  # vertices of the frustum's ground hull the shaders take
+#: the largest tau the traversal's float32 uniform holds (a larger finite tau splits the same
+#: nodes: their errors, float32 too, are either finite and below it or inf)
+TAU_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(eq=False)
@@ -143,7 +146,9 @@ class GpuSelector:
         self.r.fbo.use()
         self.r.set_camera(prog, camera)
         poly, n_poly, ccw = hull
-        values = {"tau": float(tau), "chunk": self.c, "start_depth": self.start}
+        # a float32 uniform: a finite tau beyond float32's range would read +inf (and the
+        # traversal's ``!(inf <= inf)`` would stop splitting mixed nodes, error inf)
+        values = {"tau": min(float(tau), TAU_MAX), "chunk": self.c, "start_depth": self.start}
         values |= {"n_poly": n_poly, "poly_ccw": int(ccw)}
         for name, v in values.items():
             if name in prog:

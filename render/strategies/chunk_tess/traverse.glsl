@@ -73,7 +73,12 @@ float screen_error(ivec4 n) {
     return isnan(rho) ? INF : rho;
 }
 
-bool wants(ivec4 n) { return n.y < start_depth || !(screen_error(n) <= tau); }
+// an infinite error (a mixed terrain/nodata node, the eye inside the sphere) always splits,
+// whatever the float32 tau (gpu.py clamps it to float32's max: a huge tau is not inf here)
+bool wants(ivec4 n) {
+    float e = screen_error(n);
+    return n.y < start_depth || isinf(e) || !(e <= tau);
+}
 bool refinable(ivec4 n) { return n.y + chunk < k; }
 bool allowed(ivec4 n) { return n.y + chunk < blk[4 * n.x].w; }
 bool splits(ivec4 n) { return refinable(n) && allowed(n) && wants(n); }
