@@ -106,7 +106,7 @@ class SessionConfig:
             ("budget_mb", budget_ok(self.budget_mb)),
             ("workers", self.workers >= 0 and self.workers <= 64),
             ("fps", self.fps > 0 and math.isfinite(self.fps)),
-            ("tau", self.tau >= 0),
+            ("tau", 0 <= self.tau < math.inf),
             ("patch_log2", 0 <= self.patch_log2 <= 20),
             ("latency_ms", 0 <= self.latency_ms < math.inf),
             ("retries", self.retries >= 1),

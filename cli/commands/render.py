@@ -76,7 +76,7 @@ def render(
 
     from render.pipeline import ViewOptions, render_view
     from render.strategies import error_label
-    from render.views import make_camera
+    from render.views import ground_note, make_camera
 
     with fail_on_errors():
         viewport = parse_size(size)
@@ -96,6 +96,12 @@ def render(
                 f"the view of {store!r} drew no terrain (0 triangles): the camera sees none of "
                 "the DEM, or no level could be loaded; point it at the terrain (--camera, "
                 "--look-at, --pitch) or run `terrastream verify` on the store",
+                hint="--camera",
+            )
+        if st.drawn_px == 0 and ground_note(s, cam):  # on or under the ground: the reason
+            raise UsageError(
+                f"the view of {store!r} drew no terrain pixel ({st.triangles:,} triangles): "
+                f"{ground_note(s, cam)}",
                 hint="--camera",
             )
         if st.drawn_px == 0:  # triangles, but none covers a pixel: a picture of sky

@@ -161,3 +161,21 @@ def test_a_view_from_on_the_ground_names_the_camera_not_the_distance(tmp_path):
     cam = make_camera(s, SIZE, position=f"{pos},1", yaw=0.0, pitch=-10.0)
     (row,) = pipeline.tradeoff(s, cam, [1.0], repeats=1)
     assert row.terrain_covered == 1.0
+
+
+def test_render_from_on_the_ground_names_the_camera(tmp_path):
+    """``render`` of the same view said "the DEM is too far from the camera to be seen; move
+    the camera closer"; it names the camera on the ground. The control: 1 m above, a PNG."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    p = tile_dem(tmp_path, np.zeros((65, 65), np.int16), 33)
+    x0, y0, x1, y1 = open_store(p).grid.extent
+    pos = f"{(x0 + x1) / 2},{(y0 + y1) / 2}"
+    base = ["render", str(p), "--size", "96x64", "--yaw", "0", "--pitch", "-10"]
+    res = CliRunner().invoke(app, [*base, "--camera", f"{pos},0", "-o", str(tmp_path / "a.png")])
+    assert res.exit_code == 2, res.output
+    assert "the camera is on the terrain" in res.output and "too far" not in res.output
+    res = CliRunner().invoke(app, [*base, "--camera", f"{pos},1", "-o", str(tmp_path / "b.png")])
+    assert res.exit_code == 0 and (tmp_path / "b.png").is_file(), res.output

@@ -27,7 +27,7 @@ INF, NAN = float("inf"), float("nan")
         ("budget_mb", INF), ("budget_mb", "64"), ("latency_ms", INF), ("wait_timeout_s", INF),
         ("workers", 2.5), ("workers", "2"), ("workers", True), ("patch_log2", 2.5),
         ("patch_log2", 50), ("extension_L", -5.0), ("extension_L", NAN), ("retries", 1.5),
-        ("horizon_s", INF), ("linger_s", INF),
+        ("horizon_s", INF), ("linger_s", INF), ("tau", INF),
     ],
 )  # fmt: skip
 def test_a_setting_that_cannot_work_is_refused_naming_it(field, value):
