@@ -169,6 +169,15 @@ class RemoteStoreError(StoreError, ConnectionError):
     """A remote store whose server cannot serve what reading a store needs (byte ranges)."""
 
 
+class BucketNotFoundError(StoreError, FileNotFoundError):
+    """The object-store bucket a store URL names does not exist (``s3://no-such-bucket/...``)."""
+
+
+class StoreURLError(StoreError, ValueError):
+    """A store URL that cannot address the store's keys (an http(s) URL with a query string
+    or fragment): a usage error."""
+
+
 class StorageOptionsError(TilerError, ValueError):
     """Storage options that are not a JSON object, or given for a non-URL location."""
 

@@ -30,10 +30,17 @@ from zarr.abc.store import Store
 from zarr.buffer import default_buffer_prototype
 
 from tiler.atomic import partial_name, write_atomic
-from tiler.errors import StorageOptionsError, StoreError
+from tiler.errors import BucketNotFoundError, StorageOptionsError, StoreError, StoreURLError
 from tiler.remote import is_http
 from tiler.s3_reader import S3_READER_ENV, open_s3_reader
-from tiler.transport import http_options, s3fs_options
+from tiler.transport import (
+    http_options,
+    is_transport_error,
+    missing_bucket,
+    missing_bucket_message,
+    s3fs_options,
+    unavailable,
+)
 
 T = TypeVar("T")
 
@@ -126,6 +133,8 @@ class Location:
             )
         #: the path as the caller gave it (messages), for a local target
         self._shown = shown
+        if isinstance(self.target, str) and is_http(self.target):
+            _refuse_query(self.target)
         if self.storage_options and not (isinstance(self.target, str) and is_url(self.target)):
             raise StorageOptionsError(
                 f"storage options apply to URLs (s3://, gs://, http://...), not to {self.url!r}; "
@@ -256,8 +265,25 @@ class Location:
             return os.path.exists(self.target)  # type: ignore[arg-type]
         if isinstance(self.target, str):
             fs, path = self._fs()
-            return bool(fs.exists(path))
+            return self._fs_exists(fs, path, "the store")
         return self.key_exists("zarr.json")
+
+    def _fs_exists(self, fs: Any, path: str, subject: str) -> bool:
+        """Whether ``path`` exists on ``fs``. Over http(s) only an HTTP 404 (or 410) says no:
+        fsspec's plain ``exists`` says no to any status >= 400 and any connection failure, so
+        a transient 503 read as a missing chunk, damage; a server's or the network's failure
+        is :func:`~tiler.transport.unavailable`'s :class:`StoreUnavailableError` instead.
+        (s3fs's ``exists`` already raises such failures as they are, which callers classify.)"""
+        if not is_http(str(self.target)):
+            return bool(fs.exists(path))
+        try:
+            return bool(fs.exists(path, strict=True))
+        except FileNotFoundError:
+            return False
+        except Exception as exc:
+            if not is_transport_error(exc):
+                raise
+            raise unavailable(f"whether {subject} exists", self.url, exc) from exc
 
     def remove(self) -> None:
         """Remove everything stored at this location (no checks: callers decide)."""
@@ -328,7 +354,12 @@ class Location:
             write_atomic(self._key_path(key), data)
             return
         fs, _ = self._fs()
-        fs.pipe_file(self._key_path(key), data)
+        try:
+            fs.pipe_file(self._key_path(key), data)
+        except FileNotFoundError as exc:  # (s3fs: the first write into a missing bucket)
+            if missing_bucket(exc):
+                raise BucketNotFoundError(missing_bucket_message(self.url)) from exc
+            raise
 
     def put_if_absent(self, key: str, data: bytes) -> bool:
         """Create ``key`` only if it does not exist; True if this call created it.
@@ -390,7 +421,7 @@ class Location:
         if self.is_local:
             return os.path.isfile(self._key_path(key))
         fs, _ = self._fs()
-        return bool(fs.exists(self._key_path(key)))
+        return self._fs_exists(fs, self._key_path(key), f"key {key!r}")
 
     def list_keys(self, prefix: str = "") -> list[str]:
         """Every key under ``prefix`` (raises NotImplementedError where listing is impossible)."""
@@ -470,6 +501,22 @@ class Location:
             return (st.st_ino, st.st_mtime_ns, st.st_size)
         data = self.get_bytes("zarr.json")
         return None if data is None else hashlib.blake2b(data, digest_size=16).digest()
+
+
+def _refuse_query(url: str) -> None:
+    """Refuse an http(s) store URL with a query string or fragment: each key's URL is the
+    store's URL with ``/<key>`` appended, so a token there (``?sig=...``) would reach the
+    server as part of the last value (``?sig=1/zarr.json``) and be refused as wrong."""
+    if "?" not in url and "#" not in url:
+        return
+    what = "a query string" if "?" in url else "a fragment (#...)"
+    raise StoreURLError(
+        f"the store URL {url!r} has {what}, which cannot be carried to each of the store's "
+        "keys (each is read at <store URL>/<key>); give the store's URL without it, and pass a "
+        "token as a header instead: --storage-options "
+        '\'{"headers": {"Authorization": "Bearer ..."}}\' (or '
+        '{"client_kwargs": {"headers": {...}}}; storage_options= in the Python API)'
+    )
 
 
 def as_location(

@@ -19,7 +19,15 @@ from rasterio.enums import ColorInterp, MaskFlags
 from tiler.crs import vertical_crs_unit
 from tiler.encoding import parse_dtype
 from tiler.errors import SourceError, SourceNotFoundError, SourceUnavailableError
-from tiler.source_http import http_url, remote_env, server_failure, slow_advice
+from tiler.source_http import (
+    gdal_network_failure,
+    http_url,
+    is_remote,
+    is_s3,
+    remote_env,
+    server_failure,
+    slow_advice,
+)
 from tiler.store import is_url
 
 log = logging.getLogger(__name__)
@@ -83,6 +91,10 @@ def _open_failed(path: str, exc: Exception) -> SourceError:
     supported file format")."""
     url = http_url(path)
     failure = server_failure(url) if url else None
+    if failure is None and not url and is_remote(path):
+        return _network_failed(path, exc) or SourceError(
+            f"cannot open {path!r} as a raster (GDAL says: {exc})"
+        )
     if failure is None:
         return SourceError(f"cannot open {path!r} as a raster (GDAL says: {exc})")
     what, status = failure
@@ -98,6 +110,43 @@ def _open_failed(path: str, exc: Exception) -> SourceError:
         todo = "the server or the network failed, not the file: check them and try again"
         todo += slow_advice(what)
     return SourceUnavailableError(f"cannot open source {path!r}: its server {what}; {todo}")
+
+
+def _network_failed(path: str, exc: Exception) -> SourceUnavailableError | None:
+    """For a network path no plain GET can ask about (``s3://``, ``/vsis3/``... : signed
+    requests), the error GDAL's own words call for: a server or network that failed, or
+    refused the credentials, is :class:`SourceUnavailableError` (None: anything else)."""
+    said = str(exc)
+    kind = gdal_network_failure(said)
+    if kind is None:
+        return None
+    where = ""
+    if is_s3(path):
+        endpoint = os.environ.get("AWS_S3_ENDPOINT") or os.environ.get("AWS_ENDPOINT_URL_S3")
+        endpoint = endpoint or os.environ.get("AWS_ENDPOINT_URL")
+        where = (
+            f" (S3 endpoint {endpoint!r}: AWS_ENDPOINT_URL, or GDAL's AWS_S3_ENDPOINT/"
+            "AWS_HTTPS/AWS_VIRTUAL_HOSTING)"
+            if endpoint
+            else " (AWS's own endpoint; an S3-compatible server is named by AWS_ENDPOINT_URL)"
+        )
+    if kind == "refused":
+        todo = (
+            "access was refused, not the file damaged: check the credentials (AWS_ACCESS_KEY_ID"
+            "/AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or AWS_NO_SIGN_REQUEST=YES for a public "
+            "bucket) and try again"
+            if is_s3(path)
+            else "access was refused, not the file damaged: check GDAL's credentials and try again"
+        )
+        return SourceUnavailableError(
+            f"cannot open source {path!r}: its server refused access{where} (GDAL says: {said}); "
+            f"{todo}"
+        )
+    return SourceUnavailableError(
+        f"cannot open source {path!r}: GDAL could not get it from its server{where} (GDAL "
+        f"says: {said}); the server or the network failed, not the file: check the server, "
+        "the endpoint and the network, and try again"
+    )
 
 
 def _check_georeferenced(ds: rasterio.DatasetReader, path: str) -> None:

@@ -19,7 +19,9 @@ from __future__ import annotations
 import http.client
 import math
 import os
+import re
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -59,19 +61,56 @@ def gdal_http_options(
     return {k: v for k, v in GDAL_HTTP_DEFAULTS.items() if k not in env and k not in cur}
 
 
+def is_s3(path: str) -> bool:
+    """True for a source GDAL reads from S3 (``s3://...``, ``/vsis3/...``)."""
+    return str(path).startswith("s3://") or "/vsis3/" in str(path)
+
+
+#: GDAL's own S3 endpoint settings: when one is set, GDAL is left to them
+_GDAL_S3_KEYS = ("AWS_S3_ENDPOINT", "AWS_HTTPS", "AWS_VIRTUAL_HOSTING")
+
+
+def gdal_s3_options(
+    environ: Mapping[str, str] | None = None, current: Mapping[str, object] | None = None
+) -> dict[str, str]:
+    """GDAL's S3 endpoint settings from ``AWS_ENDPOINT_URL_S3`` or ``AWS_ENDPOINT_URL`` (what
+    boto3, s3fs and obstore read, and terrastream's ``s3://`` stores honour), unless
+    ``environ`` (default ``os.environ``) or ``current`` sets GDAL's own ``AWS_S3_ENDPOINT``:
+    ``AWS_S3_ENDPOINT`` (host[:port]), ``AWS_HTTPS`` (NO for ``http://``) and
+    ``AWS_VIRTUAL_HOSTING=FALSE`` (path-style addressing, as boto3 uses with an endpoint), each
+    unless set. GDAL itself ignores ``AWS_ENDPOINT_URL``: an ``s3://`` source went to AWS."""
+    env = os.environ if environ is None else environ
+    cur = current or {}
+    if "AWS_S3_ENDPOINT" in env or "AWS_S3_ENDPOINT" in cur:
+        return {}
+    endpoint = env.get("AWS_ENDPOINT_URL_S3") or env.get("AWS_ENDPOINT_URL")
+    parts = urllib.parse.urlsplit(endpoint or "")
+    if parts.scheme.lower() not in ("http", "https") or not parts.netloc:
+        return {}
+    out = {
+        "AWS_S3_ENDPOINT": parts.netloc + parts.path.rstrip("/"),
+        "AWS_HTTPS": "NO" if parts.scheme.lower() == "http" else "YES",
+        "AWS_VIRTUAL_HOSTING": "FALSE",
+    }
+    return {k: v for k, v in out.items() if k not in env and k not in cur}
+
+
 @contextmanager
 def remote_env(*paths: str) -> Iterator[None]:
     """Inside, GDAL works with :func:`gdal_http_options` if one of ``paths`` is remote (its
     open, and the side files and reads that follow: GDAL asks for ``.msk``/``.aux.xml``
-    files with the settings of the moment); the options of a ``rasterio.Env`` the caller
-    entered win too."""
+    files with the settings of the moment), and an S3 source with :func:`gdal_s3_options`
+    (``AWS_ENDPOINT_URL``); the options of a ``rasterio.Env`` the caller entered win too."""
     if not any(is_remote(p) for p in paths):
         yield
         return
     import rasterio
     import rasterio.env
 
-    opts = gdal_http_options(current=rasterio.env.getenv() if rasterio.env.hasenv() else None)
+    current = rasterio.env.getenv() if rasterio.env.hasenv() else None
+    opts = gdal_http_options(current=current)
+    if any(is_s3(p) for p in paths):
+        opts.update(gdal_s3_options(current=current))
     if not opts:
         yield
         return
@@ -125,3 +164,28 @@ def slow_advice(what: str) -> str:
     if not what.startswith("did not answer"):
         return ""
     return " (GDAL_HTTP_LOW_SPEED_TIME sets the seconds a read may go without a byte)"
+
+
+#: GDAL's words for a request refused for its credentials (S3's error codes, HTTP 401/403)
+_GDAL_REFUSED = re.compile(
+    r"HTTP (?:response|error) code:? *40[13]\b|Access ?Denied|InvalidAccessKeyId|"
+    r"SignatureDoesNotMatch|ExpiredToken|InvalidToken",
+    re.I,
+)
+#: GDAL's words for a server or network that failed (curl's errors, HTTP 429/5xx, timeouts)
+_GDAL_FAILED = re.compile(
+    r"CURL error|HTTP (?:response|error) code:? *(?:429|5\d\d)\b|timed? ?out|"
+    r"Could not resolve|Failed to connect|Connection (?:refused|reset)|SlowDown|"
+    r"ServiceUnavailable|InternalError",
+    re.I,
+)
+
+
+def gdal_network_failure(message: str) -> str | None:
+    """``"refused"`` or ``"failed"`` if GDAL's ``message`` about a network path says its
+    server refused the credentials or failed (or the network did), else None."""
+    if _GDAL_REFUSED.search(message):
+        return "refused"
+    if _GDAL_FAILED.search(message):
+        return "failed"
+    return None

@@ -230,6 +230,12 @@ class TerrainStore:
                     "tile the DEM again with --overwrite"
                 )
 
+    def _check_before_read(self) -> None:
+        """:meth:`check_unchanged` before a remote read; a server failure is left to the read
+        itself, which names the block it could not read."""
+        with contextlib.suppress(StoreUnavailableError):
+            self.check_unchanged()
+
     def check_unchanged(self, *, force: bool = False) -> None:
         """Raise StoreChangedError if the store was replaced or rewritten since it was opened
         (once seen, on every later call and read: the change is final for this reader)."""
@@ -275,7 +281,7 @@ class TerrainStore:
             raise StoreChangedError(self._changed)
         spec = self._direct.get(name)
         if self._remote is not None:  # (rate-limited) a repair seen drops kept shard indexes
-            self.check_unchanged()  # before they are used, not after
+            self._check_before_read()  # before they are used, not after
         try:
             if spec is None:
                 out = self._array(name)[block]
@@ -294,7 +300,7 @@ class TerrainStore:
         here."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
-        self.check_unchanged()  # (as in _read: before the kept shard indexes are used)
+        self._check_before_read()  # (as in _read: before the kept shard indexes are used)
         specs = [self._direct[f"levels/{i}"] for i in range(len(views))]
         got = sync(fetch_chunks(self._remote, [(sp, block) for sp in specs], self.shard_indexes))
         return [self._checked(f"levels/{i}", block, i, decoded(f, sp, v))

@@ -13,6 +13,9 @@ Pure: no I/O; the client libraries are only looked up if they are already import
 
 from __future__ import annotations
 
+import difflib
+import functools
+import inspect
 import math
 import os
 import sys
@@ -58,6 +61,8 @@ def is_transport_error(exc: BaseException) -> bool:
     boto = sys.modules.get("botocore.exceptions")  # s3fs lets some through untranslated
     if boto is not None and isinstance(exc, boto.ConnectionError | boto.HTTPClientError):
         return True
+    if no_credentials(exc):  # (fixed outside the store, like a refused access)
+        return True
     obstore_exc = sys.modules.get("obstore.exceptions")
     if obstore_exc is not None and isinstance(exc, obstore_exc.BaseError):
         # NotFoundError is a missing key, which zarr's ObjectStore turns into an absent chunk
@@ -74,8 +79,47 @@ def describe(exc: BaseException, most: int = 400) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+def no_credentials(exc: BaseException) -> bool:
+    """True if ``exc`` is botocore's "no (or partial) S3 credentials were found"."""
+    boto = sys.modules.get("botocore.exceptions")
+    return boto is not None and isinstance(
+        exc, boto.NoCredentialsError | boto.PartialCredentialsError
+    )
+
+
+#: what to do when no S3 credentials were found
+CREDENTIALS_ADVICE = (
+    "no S3 credentials were found: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY (or "
+    'AWS_PROFILE), give them as --storage-options \'{"key": "...", "secret": "..."}\', '
+    "or read a public bucket without them with --storage-options '{\"anon\": true}'"
+)
+
+
+def missing_bucket(exc: BaseException) -> bool:
+    """True if ``exc`` is s3fs's "The specified bucket does not exist" (a ``FileNotFoundError``
+    naming no bucket)."""
+    return isinstance(exc, FileNotFoundError) and "bucket does not exist" in str(exc).lower()
+
+
+def bucket_of(url: str) -> str:
+    """The bucket of an object-store URL (``s3://bucket/key`` → ``bucket``)."""
+    return str(url).split("://", 1)[-1].split("/", 1)[0]
+
+
+def missing_bucket_message(url: str) -> str:
+    """The message for writing or reading ``url`` in a bucket that does not exist."""
+    bucket = bucket_of(url)
+    return (
+        f"the bucket {bucket!r} of {url!r} does not exist: create it (e.g. `aws s3 mb "
+        f"s3://{bucket}`) or check the bucket's name and the endpoint (AWS_ENDPOINT_URL or "
+        "the storage option 'endpoint_url')"
+    )
+
+
 def advice(exc: BaseException) -> str:
     """What to do about the transport error ``exc``."""
+    if no_credentials(exc):
+        return CREDENTIALS_ADVICE
     if isinstance(exc, PermissionError) or getattr(exc, "status", None) in (401, 403):
         return (
             "access was refused, not the store damaged: check the credentials (storage "
@@ -112,24 +156,22 @@ def server_errors(subject: str, url: str) -> Iterator[None]:
 def http_options(options: dict[str, Any] | None) -> dict[str, Any]:
     """fsspec options for an ``http(s)://`` store: ``timeout`` (seconds without a byte, default
     :data:`HTTP_TIMEOUT_S`) becomes aiohttp's connect and read timeouts, unless
-    ``client_kwargs`` sets its own ``timeout``. aiohttp's default (300 s in total, per
-    request) let a server that stopped answering hang a flight for five minutes.
+    ``client_kwargs`` sets its own ``timeout`` (a number there is taken as these seconds).
+    aiohttp's default (300 s in total, per request) let a server that stopped answering hang
+    a flight for five minutes. An option fsspec's HTTP filesystem does not take is refused
+    (:func:`check_option_names`).
     """
     so = dict(options or {})
-    seconds = so.pop(TIMEOUT_OPTION, HTTP_TIMEOUT_S)
-    if (
-        isinstance(seconds, bool)
-        or not isinstance(seconds, int | float)
-        or not (math.isfinite(seconds) and seconds > 0)
-    ):
-        raise StorageOptionsError(
-            f"storage option {TIMEOUT_OPTION!r} must be a number of seconds > 0, got "
-            f'{seconds!r}; e.g. {{"{TIMEOUT_OPTION}": 30}}'
-        )
+    check_option_names(so, "http")
+    seconds = _seconds(so.pop(TIMEOUT_OPTION, HTTP_TIMEOUT_S))
     client = dict(so.get("client_kwargs") or {})
-    if "timeout" not in client:
-        import aiohttp
+    import aiohttp
 
+    if "timeout" in client and not isinstance(client["timeout"], aiohttp.ClientTimeout):
+        # aiohttp refuses a number here ("use timeout=ClientTimeout(...)"): taken as the
+        # ``timeout`` option's seconds, for a JSON option cannot hold a ClientTimeout
+        seconds = _seconds(client.pop("timeout"), "client_kwargs.timeout")
+    if "timeout" not in client:
         client["timeout"] = aiohttp.ClientTimeout(
             total=None, sock_connect=float(seconds), sock_read=float(seconds)
         )
@@ -137,14 +179,157 @@ def http_options(options: dict[str, Any] | None) -> dict[str, Any]:
     return so
 
 
+def _seconds(value: Any, name: str = TIMEOUT_OPTION) -> float:
+    """``value`` as a number of seconds > 0, or :class:`StorageOptionsError` naming ``name``."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not (math.isfinite(value) and value > 0)
+    ):
+        raise StorageOptionsError(
+            f"storage option {name!r} must be a number of seconds > 0, got "
+            f'{value!r}; e.g. {{"{TIMEOUT_OPTION}": 30}}'
+        )
+    return float(value)
+
+
+def http_timeout(options: dict[str, Any] | None) -> float:
+    """The seconds an ``http(s)://`` store's reads wait (:func:`http_options`'s): the
+    ``timeout`` option, else a number in ``client_kwargs.timeout``, else
+    :data:`HTTP_TIMEOUT_S`."""
+    so = dict(options or {})
+    if TIMEOUT_OPTION in so:
+        return _seconds(so[TIMEOUT_OPTION])
+    client = so.get("client_kwargs") or {}
+    if isinstance(client, dict) and isinstance(client.get("timeout"), int | float):
+        return _seconds(client["timeout"], "client_kwargs.timeout")
+    return HTTP_TIMEOUT_S
+
+
+#: options fsspec's filesystems take themselves (its instance and listings caches)
+_FSSPEC_OWN = ("skip_instance_cache", "use_listings_cache", "listings_expiry_time", "max_paths")
+#: the storage options most given, named first when an unknown one is refused
+_COMMON = {
+    "http": ("timeout", "headers", "client_kwargs", "auth"),
+    "s3": ("endpoint_url", "key", "secret", "token", "anon", "timeout", "client_kwargs",
+           "config_kwargs", "profile"),
+}  # fmt: skip
+
+
+def _names(func: Any, skip: tuple[str, ...] = ("self",), *, whole: bool = True) -> set[str]:
+    """The keyword parameters of ``func`` (not ``*args``/``**kwargs``, nor ``skip``). With
+    ``whole``, a ``func`` taking ``**kwargs`` raises ``TypeError``: its names are not all
+    known (a later library version), so that level is not checked rather than refused."""
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    params = inspect.signature(func).parameters.values()
+    if whole and any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        raise TypeError(f"{func!r} takes **kwargs")
+    return {p.name for p in params if p.kind in kinds and p.name not in skip}
+
+
+def _level(names: Any) -> frozenset[str]:
+    """``names()`` as a frozenset, or an empty one (not checked) if they are not all known."""
+    try:
+        return frozenset(names())
+    except (TypeError, ValueError):
+        return frozenset()
+
+
+@functools.lru_cache(maxsize=4)
+def option_names(kind: str) -> dict[str, frozenset[str]]:
+    """The storage options a ``kind`` (``http`` or ``s3``) store's filesystem takes: ``""`` the
+    top level, ``client_kwargs`` and ``config_kwargs`` those dicts' keys (empty: not checked).
+    Read from the client libraries' signatures (what they would otherwise refuse with a bare
+    ``TypeError`` when the first request is made)."""
+    if kind == "http":
+        import aiohttp
+        from fsspec.implementations.http import HTTPFileSystem
+
+        def top() -> set[str]:
+            # fsspec's own, then each request's keywords (headers, auth, proxy, ssl...)
+            own = _names(HTTPFileSystem.__init__, whole=False) | set(_FSSPEC_OWN)
+            request = _names(aiohttp.ClientSession._request, ("self", "method", "str_or_url"))
+            return own | request | {TIMEOUT_OPTION}
+
+        return {"": _level(top), "client_kwargs": _level(lambda: _names(aiohttp.ClientSession))}
+    if kind == "s3":
+        import botocore.config
+        import botocore.session
+        import s3fs
+        from aiobotocore.config import AioConfig
+        from aiobotocore.session import AioSession
+
+        def top() -> set[str]:
+            # s3fs gives what it does not know to aiobotocore's session
+            own = _names(s3fs.S3FileSystem.__init__, whole=False) | _names(AioSession.__init__)
+            return own | set(_FSSPEC_OWN) | {TIMEOUT_OPTION}
+
+        def config() -> set[str]:  # (AioConfig gives the rest to botocore's Config)
+            return set(botocore.config.Config.OPTION_DEFAULTS) | _names(
+                AioConfig.__init__, whole=False
+            )
+
+        create = botocore.session.Session.create_client
+        return {
+            "": _level(top),
+            "client_kwargs": _level(lambda: _names(create, ("self", "service_name"))),
+            "config_kwargs": _level(config),
+        }
+    return {}
+
+
+def check_option_names(options: dict[str, Any] | None, kind: str) -> None:
+    """Refuse a storage option the ``kind`` store's filesystem does not take (a typo such as
+    ``endpoint_ur``) with :class:`StorageOptionsError` naming it and the closest known one,
+    instead of the client library's ``TypeError`` at the first request."""
+    so = dict(options or {})
+    if not so:
+        return
+    try:
+        known = option_names(kind)
+    except ImportError:  # (the library is missing: its filesystem fails alike, later)
+        return
+    for where, names in known.items():
+        given = so if not where else so.get(where)
+        if not isinstance(given, dict) or not names:
+            if where and given is not None and not isinstance(given, dict):
+                raise StorageOptionsError(
+                    f"storage option {where!r} must be a JSON object (key: value), got {given!r}"
+                )
+            continue
+        for key in given:
+            if key in names:
+                continue
+            name = f"{where}.{key}" if where else key
+            close = difflib.get_close_matches(str(key), sorted(names), n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            common = ", ".join(n for n in _COMMON.get(kind, ()) if n in names) if not where else ""
+            scheme = "http(s)://" if kind == "http" else f"{kind}://"
+            listed = f"; the usual ones are {common}" if common else ""
+            raise StorageOptionsError(
+                f"unknown storage option {name!r} for an {scheme} store: {hint}check its "
+                f"spelling{listed} (see README, storage options)"
+            )
+
+
 def s3fs_options(options: dict[str, Any] | None, *, write: bool = False) -> dict[str, Any]:
     """fsspec options for an ``s3://`` store: botocore's retries :data:`S3FS_RETRIES`
     (:data:`S3FS_WRITE_RETRIES` with ``write``) unless ``config_kwargs`` sets ``retries`` or
-    the environment sets ``AWS_MAX_ATTEMPTS`` or ``AWS_RETRY_MODE``."""
+    the environment sets ``AWS_MAX_ATTEMPTS`` or ``AWS_RETRY_MODE``; the ``timeout`` option
+    (seconds) becomes botocore's connect and read timeouts. An option s3fs does not take is
+    refused (:func:`check_option_names`)."""
     so = dict(options or {})
+    check_option_names(so, "s3")
+    config = dict(so.get("config_kwargs") or {})
+    if TIMEOUT_OPTION in so:
+        # the same rule as an http(s) store's: botocore's connect and read timeouts (unless
+        # ``config_kwargs`` sets them); s3fs itself has no ``timeout``
+        seconds = _seconds(so.pop(TIMEOUT_OPTION))
+        config.setdefault("connect_timeout", seconds)
+        config.setdefault("read_timeout", seconds)
+        so["config_kwargs"] = config
     if os.environ.get("AWS_MAX_ATTEMPTS") or os.environ.get("AWS_RETRY_MODE"):
         return so
-    config = dict(so.get("config_kwargs") or {})
     if "retries" not in config:
         config["retries"] = dict(S3FS_WRITE_RETRIES if write else S3FS_RETRIES)
         so["config_kwargs"] = config
