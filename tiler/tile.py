@@ -34,7 +34,7 @@ from tiler.destination import (
     clear_destination,
     inspect_destination,
 )
-from tiler.encoding import fill_invalid, quantise
+from tiler.encoding import dequantise, fill_invalid, quantise
 from tiler.errors import (
     HeightRangeError,
     SchedulerError,
@@ -284,6 +284,9 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     if exists:
         vals = grid if not has_nodata else grid[valid]
         zmin, zmax = float(vals.min()), float(vals.max())
+        if params.precision:  # the heights the store holds (and reads return): rounded
+            lo_hi = quantise(np.array([zmin, zmax]), params.precision)
+            zmin, zmax = (float(v) for v in dequantise(lo_hi, params.precision, dtype))
         if (params.z_scale, params.z_offset) != (1.0, 0.0):  # heights in metres (tiler.vertical)
             a, b = params.z_scale, params.z_offset
             zmin, zmax = sorted((zmin * a + b, zmax * a + b))
