@@ -237,20 +237,25 @@ def _process_init(gdal_cache_mb: int, kernels_backend: str, parent: int, *args: 
     global _PROCESS_WORKER
     die_with_parent(parent)  # (a killed parent left its workers running: tiler.parent_watch)
     # Ctrl-C reaches the whole process group: the parent reports it once (TilingInterrupted).
-    # The worker was started with SIGINT blocked (see _submit): ignore it, then unblock (a
-    # Ctrl-C that arrived while this process was importing is discarded here).
+    # So does a SIGTERM sent to the group (systemd, `timeout`): the worker died of it and the
+    # parent reported a worker "out of memory or killed" instead of the termination. The
+    # worker was started with both blocked (see _submit): ignore them, then unblock (a signal
+    # that arrived while this process was importing is discarded here). It still dies with
+    # its parent (die_with_parent).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     worker_setup(gdal_cache_mb, kernels_backend, args[4].dtype)
     _PROCESS_WORKER = BlockWorker(*args)
 
 
 def _submit_blocking_sigint(pool: Any, fn: Any, *args: Any) -> Future:
-    """``pool.submit`` with SIGINT blocked in this thread: a worker process the pool spawns now
-    inherits the blocked signal, so a Ctrl-C during its start-up (imports, before the
-    initializer ignores SIGINT) cannot print a traceback. Other threads still take the signal
-    for the parent, and a signal pending here is delivered on unblocking: none is lost."""
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    """``pool.submit`` with SIGINT and SIGTERM blocked in this thread: a worker process the pool
+    spawns now inherits the blocked signals, so a Ctrl-C or SIGTERM during its start-up
+    (imports, before the initializer ignores them) cannot print a traceback or kill it. Other
+    threads still take the signals for the parent, and one pending here is delivered on
+    unblocking: none is lost."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
         return pool.submit(fn, *args)
     finally:
@@ -437,6 +442,7 @@ def _run_local(run: BlockRun) -> str:
                     try:
                         fut.result()  # re-raises a worker's exception here
                     except BrokenProcessPool as exc:
+                        interrupt.check()  # (killed by the signal the run was given)
                         raise StoreError(
                             "a tiling worker process died (out of memory or killed); rerun "
                             "the same call to resume (finished blocks are kept)"

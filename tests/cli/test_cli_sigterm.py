@@ -34,13 +34,19 @@ def _ignore_sigint() -> None:
 
 
 def _term_when(
-    cmd: list[str], ready, timeout_s: float = 120.0, sigint_ignored: bool = False
+    cmd: list[str],
+    ready,
+    timeout_s: float = 120.0,
+    sigint_ignored: bool = False,
+    group: bool = False,
+    after_s: float = 0.0,
 ) -> subprocess.CompletedProcess:
-    """Run ``cmd``; send it SIGTERM once ``ready()`` is true; return its result."""
+    """Run ``cmd``; send it SIGTERM ``after_s`` after ``ready()`` is true (to its whole
+    process group with ``group``, as systemd and ``timeout`` do); return its result."""
     env = dict(os.environ, PYTHONPATH=os.getcwd())
     p = subprocess.Popen(
         cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        preexec_fn=_ignore_sigint if sigint_ignored else None,
+        preexec_fn=_ignore_sigint if sigint_ignored else None, start_new_session=group,
     )  # fmt: skip
     try:
         t0 = time.monotonic()
@@ -48,8 +54,12 @@ def _term_when(
             if time.monotonic() - t0 > timeout_s:
                 pytest.fail(f"{cmd[1:3]} never got under way")
             time.sleep(0.005)
+        time.sleep(after_s)
         assert p.poll() is None, f"the command ended before the signal: {p.communicate()}"
-        p.send_signal(signal.SIGTERM)
+        if group:
+            os.killpg(p.pid, signal.SIGTERM)
+        else:
+            p.send_signal(signal.SIGTERM)
         out, err = p.communicate(timeout=120)
     finally:
         if p.poll() is None:
@@ -98,5 +108,25 @@ def test_sigterm_during_tile_resumes(dem_factory, tmp_path, sigint_ignored):
         pytest.skip("the run finished before the signal")
     assert res.returncode == 143, res.stderr
     assert "terminated (SIGTERM)" in res.stderr and "rerun the same command" in res.stderr
+    tile(src, dst, TileOptions(block_size=17))
+    assert diff_stores(dst, ref) == []
+
+
+def test_sigterm_to_the_group_of_a_tile_with_worker_processes_resumes(dem_factory, tmp_path):
+    """SIGTERM to the whole process group reached the worker processes too, which died of it:
+    the run said "a tiling worker process died (out of memory or killed)", exit 1. The workers
+    now ignore it (they still die with their parent) and the run ends as terminated."""
+    src = dem_factory(fractal((400, 400), 6))
+    ref, dst = tmp_path / "ref.zarr", tmp_path / "s.zarr"
+    tile(src, ref, TileOptions(block_size=17))
+    res = _term_when(
+        [EXE, "tile", str(src), str(dst), "--block-size", "17", "--workers", "2",
+         "--scheduler", "processes"],
+        lambda: (dst / "journal").exists(), group=True, after_s=1.0,
+    )  # fmt: skip
+    if res.returncode == 0:
+        pytest.skip("the run finished before the signal")
+    assert res.returncode == 143, res.stderr
+    assert "terminated (SIGTERM)" in res.stderr and "worker process died" not in res.stderr
     tile(src, dst, TileOptions(block_size=17))
     assert diff_stores(dst, ref) == []
