@@ -243,9 +243,25 @@ def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
         "format_version": meta.format_version,
         # the reprojection asked for (its effect is also in the fingerprint, which names no
         # option): a rerun with another is refused naming it
-        "dst_crs": getattr(opts, "dst_crs", None),
-        "resampling": getattr(opts, "resampling", None) if getattr(opts, "dst_crs", None) else None,
-        "resolution": getattr(opts, "resolution", None) if getattr(opts, "dst_crs", None) else None,
+        **_reprojection_items(opts),
+    }
+
+
+def _reprojection_items(opts: Any) -> dict[str, Any]:
+    """``dst_crs``, ``resampling`` and ``resolution`` as a job compares them: spelled one way
+    (``"auto"``, ``EPSG:n`` or a PROJ string; lower-case; a float), JSON values (a CRS object
+    given is named, not stored); all None without a target CRS."""
+    from tiler.crs import AUTO, crs_name, parse_dst_crs
+
+    dst = getattr(opts, "dst_crs", None)
+    if dst is None:
+        return {"dst_crs": None, "resampling": None, "resolution": None}
+    parsed = parse_dst_crs(dst)
+    res = getattr(opts, "resolution", None)
+    return {
+        "dst_crs": AUTO if parsed == AUTO else crs_name(parsed),
+        "resampling": str(getattr(opts, "resampling", "") or "").lower() or None,
+        "resolution": None if res is None else float(res),
     }
 
 

@@ -153,7 +153,8 @@ def tile(
     from tiler.tile import tile as run_tile
 
     src, dst = _sources_and_destination(paths, from_list)
-    if dst_crs is None and _source(ctx, "resampling") == "COMMANDLINE":
+    given_resampling = _source(ctx, "resampling") == "COMMANDLINE"
+    if dst_crs is None and given_resampling and not repair:  # (a repair may take the store's)
         raise typer.BadParameter(
             f"--resampling {resampling.value} applies when reprojecting; give a target CRS "
             "(--dst-crs auto|EPSG:n) or drop --resampling",
@@ -172,9 +173,15 @@ def tile(
                 precision = made.get("precision") if precision is None else precision
                 if dst_crs is None and made.get("dst_crs"):  # (and its warp's settings)
                     dst_crs = made["dst_crs"]
-                    if _source(ctx, "resampling") != "COMMANDLINE" and made.get("resampling"):
+                    if not given_resampling and made.get("resampling"):
                         resampling = Resampling(made["resampling"])
                     resolution = made.get("resolution") if resolution is None else resolution
+                if dst_crs is None and given_resampling:
+                    raise UsageError(
+                        f"--resampling {resampling.value} applies when reprojecting, and the "
+                        f"store at {dst} was not reprojected; drop --resampling",
+                        hint="--resampling",
+                    )
             opts = TileOptions(
                 scheduler=scheduler,
                 retries=retries,

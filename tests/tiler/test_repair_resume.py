@@ -149,3 +149,46 @@ def test_a_reprojected_store_is_repaired_with_its_own_reprojection(tmp_path):
     res = CliRunner().invoke(app, ["tile", str(src), str(s), "--repair"])
     assert res.exit_code == 0, res.output
     assert verify_store(s).ok and diff_stores(s, ref) == []
+    chunk_files(s, "errors")[2].unlink()  # given again, the store's resampling is accepted
+    res = CliRunner().invoke(app, ["tile", str(src), str(s), "--repair", "--resampling", "cubic"])
+    assert res.exit_code == 0, res.output
+    assert verify_store(s).ok and diff_stores(s, ref) == []
+    plain = tmp_path / "plain.zarr"  # the control: a store not reprojected refuses it
+    flat = write_dem(tmp_path / "flat.tif", fractal((40, 40), 1))
+    tile(flat, plain, TileOptions(block_size=17, workers=1))
+    res = CliRunner().invoke(app, ["tile", str(flat), str(plain), "--repair",
+                                   "--resampling", "cubic"])  # fmt: skip
+    assert res.exit_code == 2 and "was not reprojected" in res.output, res.output
+
+
+def test_reprojection_items_are_compared_as_spelled_one_way(tmp_path, monkeypatch):
+    """The job kept the options as given: a rasterio CRS object made the metadata unwritable
+    (TypeError, not JSON) and ``epsg:32632`` then ``EPSG:32632`` (or ``Cubic``/``cubic``) was
+    refused as another job. Both now resume; another CRS is still refused (the control)."""
+    from rasterio.crs import CRS
+
+    import tiler.tile as tile_mod
+    from tiler.errors import JobMismatchError
+
+    src = write_dem(tmp_path / "geo.tif", fractal((120, 120), 3), crs="EPSG:4326",
+                    origin=(10.0, 45.0), cell=0.0005)  # fmt: skip
+    base = dict(block_size=17, workers=1, executor="threads")
+    real = tile_mod.process_block
+    n = {"blocks": 0}
+
+    def dies(window, params):
+        n["blocks"] += 1
+        if n["blocks"] > 5:
+            raise KeyboardInterrupt("simulated kill")
+        return real(window, params)
+
+    monkeypatch.setattr(tile_mod, "process_block", dies)
+    with pytest.raises(KeyboardInterrupt):
+        tile(src, tmp_path / "s.zarr", TileOptions(**base, dst_crs=CRS.from_epsg(32632),
+                                                   resampling="Cubic"))  # fmt: skip
+    monkeypatch.setattr(tile_mod, "process_block", real)
+    with pytest.raises(JobMismatchError, match="dst_crs: store has 'EPSG:32632', this run has"):
+        tile(src, tmp_path / "s.zarr", TileOptions(**base, dst_crs="EPSG:32633"))
+    s = tile(src, tmp_path / "s.zarr", TileOptions(**base, dst_crs="epsg:32632",
+                                                   resampling="cubic"))  # fmt: skip
+    assert s.tile_summary.blocks_skipped >= 1 and verify_store(s.location).ok
