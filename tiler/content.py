@@ -20,7 +20,7 @@ import numpy as np
 #: the root metadata's ``extra`` key naming the scheme (absent: a store tiled before it)
 CONTENT_KEY = "content_digests"
 #: the scheme written now
-CONTENT_SCHEME = "crc32c-blake2b-64/v1"
+CONTENT_SCHEME = "crc32c-fold-blake2b-64/v1"
 #: the array holding them
 CONTENT_ARRAY = "index/content"
 #: the dtype each part is hashed in: errors are stored as float16, masks as bool
@@ -41,26 +41,47 @@ def part_digest(values: np.ndarray | None, dtype: np.dtype | str) -> int:
     return (int(crc) << 32) | (a.size & 0xFFFFFFFF)
 
 
+#: the fold of a block's part digests: ``acc = (acc * FOLD_PRIME + part) mod 2^64`` from
+#: ``FOLD_SEED`` (FNV-1's constants), so a reader can fold them as it reads, one value a block
+FOLD_SEED = 0xCBF29CE484222325
+FOLD_PRIME = 0x100000001B3
+_MASK = (1 << 64) - 1
+
+
+def fold(acc: int, part: int) -> int:
+    """``acc`` with one more part digest folded in."""
+    return (int(acc) * FOLD_PRIME + int(part)) & _MASK
+
+
+def fold_parts(parts: Sequence[int]) -> int:
+    """The fold of ``parts`` (levels 0..k, errors, mask, in that order) from ``FOLD_SEED``."""
+    acc = FOLD_SEED
+    for p in parts:
+        acc = fold(acc, p)
+    return acc
+
+
 def _finite_or_zero(v: float) -> tuple[float, int]:
     return (0.0, 1) if math.isnan(v) else (float(v), 0)
 
 
 def content_digest(
     block: tuple[int, int],
-    parts: Sequence[int],
+    folded: int,
     exists: bool,
     has_nodata: bool,
     zmin: float,
     zmax: float,
     digest: int,
 ) -> int:
-    """A block's content digest: its id, the :func:`part_digest` of each stored array (levels
-    0..k, errors, mask, in that order) and its index row (NaN heights hashed as a flag)."""
+    """A block's content digest: its id, the :func:`fold_parts` of the :func:`part_digest` of
+    each stored array (levels 0..k, errors, mask) and its index row (NaN heights hashed as a
+    flag)."""
     lo, lo_nan = _finite_or_zero(zmin)
     hi, hi_nan = _finite_or_zero(zmax)
     h = hashlib.blake2b(digest_size=8)
     h.update(np.array([int(block[0]), int(block[1])], "<i8").tobytes())
-    h.update(np.array([int(p) for p in parts], "<u8").tobytes())
+    h.update(np.array([int(folded)], "<u8").tobytes())
     h.update(np.array([bool(exists), bool(has_nodata), lo_nan, hi_nan], "u1").tobytes())
     h.update(np.array([lo, hi], "<f8").tobytes())
     h.update(np.array([int(digest)], "<u8").tobytes())

@@ -27,7 +27,7 @@ import rasterio.env
 import zarr
 
 from tiler import chunkwrite, kernels
-from tiler.content import content_digest
+from tiler.content import content_digest, fold_parts
 from tiler.errors import HeightRangeError, StoreError
 from tiler.grid import BlockGrid
 from tiler.interrupt import DeferredInterrupt, wait_first
@@ -154,7 +154,13 @@ class BlockWorker:
             zmax=res.zmax,
             digest=res.digest,
             content=content_digest(
-                (br, bc), res.parts, res.exists, res.has_nodata, res.zmin, res.zmax, res.digest
+                (br, bc),
+                fold_parts(res.parts),
+                res.exists,
+                res.has_nodata,
+                res.zmin,
+                res.zmax,
+                res.digest,
             ),
         )
         journal[br, bc] = pack(entry, self.params.storage_dtype, content=with_content)

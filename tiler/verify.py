@@ -18,7 +18,14 @@ import numpy as np
 import zarr
 
 from tiler.array_check import array_problem
-from tiler.content import CONTENT_KEY, ERRORS_DTYPE, content_digest, part_digest
+from tiler.content import (
+    CONTENT_KEY,
+    ERRORS_DTYPE,
+    FOLD_SEED,
+    content_digest,
+    fold,
+    part_digest,
+)
 from tiler.errors import StoreChangedError, StoreError
 from tiler.layout import level_size
 from tiler.lease import live_writer
@@ -188,7 +195,8 @@ def verify_store(
     if "mask" in arrays and "has_nodata" in idx:
         need = [b for b in grid.blocks() if idx["has_nodata"][b]]
         _check_blocks(arrays["mask"], "mask", loc, meta, rep, need, has_nodata=True, parts=parts)
-    if meta.extra.get(CONTENT_KEY) and not rep.unfinished:
+    if meta.extra.get(CONTENT_KEY) and not rep.unfinished and "has_nodata" in idx:
+        parts.no_masks(idx["has_nodata"])
         _check_content(meta, idx, parts, rep)
     for name in ("level_index", "order_index"):
         if name not in arrays:
@@ -355,21 +363,32 @@ def _index_names(meta: StoreMeta) -> tuple[str, ...]:
 
 
 class Parts:
-    """The :func:`tiler.content.part_digest` of every stored array of every block read: levels
-    0..k, then errors, then mask (0: not stored), for :func:`_check_content`."""
+    """The running fold (:func:`tiler.content.fold`) of the part digests of every block's
+    stored arrays as they are read — levels 0..k, then errors, then mask (0: not stored) —
+    one uint64 and a count a block, for :func:`_check_content`."""
 
     def __init__(self, meta: StoreMeta) -> None:
         rows, cols = meta.grid.shape
         self.n = meta.levels + 2
-        self.values = np.zeros((rows, cols, self.n), np.uint64)
-        self.seen = np.zeros((rows, cols, self.n), bool)
-        self.seen[..., -1] = True  # (a mask is read only for blocks with nodata)
+        self.acc = np.full((rows, cols), FOLD_SEED, np.uint64)
+        self.count = np.zeros((rows, cols), np.uint8 if self.n < 256 else np.uint16)
         self.dtypes = [np.dtype(meta.storage_dtype)] * meta.levels + [ERRORS_DTYPE, np.bool_]
 
-    def add(self, b: tuple[int, int], i: int, v: np.ndarray) -> None:
-        """Record part ``i`` (a level, ``-2`` errors, ``-1`` mask) of block ``b``."""
-        self.values[b][i] = part_digest(v, self.dtypes[i])
-        self.seen[b][i] = True
+    def add(self, b: tuple[int, int], i: int, v: np.ndarray | None) -> None:
+        """Fold part ``i`` (a level, ``-2`` errors, ``-1`` mask; ``v`` None: not stored) of
+        block ``b`` in (in the order the parts are read: levels, errors, mask)."""
+        part = part_digest(v, self.dtypes[i])
+        self.acc[b] = np.uint64(fold(int(self.acc[b]), part))
+        self.count[b] += 1
+
+    def no_masks(self, has_nodata: np.ndarray) -> None:
+        """Fold the mask part (0) of every block without nodata (their masks are not read)."""
+        for b in zip(*np.nonzero(~has_nodata), strict=True):
+            self.add((int(b[0]), int(b[1])), -1, None)
+
+    def complete(self, b: tuple[int, int]) -> bool:
+        """Every part of ``b`` was read."""
+        return int(self.count[b]) == self.n
 
 
 def _check_content(meta: StoreMeta, idx: dict, parts: Parts, rep: VerifyReport) -> None:
@@ -381,9 +400,9 @@ def _check_content(meta: StoreMeta, idx: dict, parts: Parts, rep: VerifyReport) 
         return  # (an index array already reported)
     rep.content_checked = True
     for b in meta.grid.blocks():
-        if b in rep.bad_blocks or not parts.seen[b].all():
+        if b in rep.bad_blocks or not parts.complete(b):
             continue
-        got = content_digest(b, parts.values[b].tolist(), idx["exists"][b],
+        got = content_digest(b, int(parts.acc[b]), idx["exists"][b],
                              idx["has_nodata"][b], idx["zmin"][b], idx["zmax"][b],
                              idx["digest"][b])  # fmt: skip
         if got != int(idx["content"][b]):

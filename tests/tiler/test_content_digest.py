@@ -18,7 +18,14 @@ from demtools import fractal, write_dem
 from storetools import chunk_files, diff_stores
 
 from tiler import tile as tile_mod
-from tiler.content import CONTENT_KEY, content_digest, part_digest
+from tiler.content import (
+    CONTENT_KEY,
+    FOLD_SEED,
+    content_digest,
+    fold,
+    fold_parts,
+    part_digest,
+)
 from tiler.layout import level_size
 from tiler.resume import JournalEntry, entry_nbytes, pack, unpack
 from tiler.tile import TileOptions, tile
@@ -139,16 +146,21 @@ def test_journal_rows_with_and_without_content_round_trip():
 
 def test_the_digest_ties_content_to_its_block_and_row():
     v = np.arange(16, dtype=np.int16)
-    parts = [part_digest(v, "int16"), part_digest(None, bool)]
-    d = content_digest((0, 0), parts, True, False, 1.0, 2.0, 3)
-    assert d == content_digest((0, 0), parts, True, False, 1.0, 2.0, 3)
-    assert d != content_digest((0, 1), parts, True, False, 1.0, 2.0, 3)  # another block
-    assert d != content_digest((0, 0), parts[::-1], True, False, 1.0, 2.0, 3)
-    assert d != content_digest((0, 0), parts, True, False, 1.0, 2.5, 3)  # another row
-    nan = content_digest((0, 0), parts, False, True, float("nan"), float("nan"), 0)
-    assert nan == content_digest((0, 0), parts, False, True, -float("nan"), float("nan"), 0)
+    parts = [part_digest(v, "int16"), part_digest(v[::-1], "int16"), part_digest(None, bool)]
+    f = fold_parts(parts)
+    d = content_digest((0, 0), f, True, False, 1.0, 2.0, 3)
+    assert d == content_digest((0, 0), fold_parts(list(parts)), True, False, 1.0, 2.0, 3)
+    assert d != content_digest((0, 1), f, True, False, 1.0, 2.0, 3)  # another block
+    assert d != content_digest((0, 0), fold_parts(parts[::-1]), True, False, 1.0, 2.0, 3)
+    assert d != content_digest((0, 0), f, True, False, 1.0, 2.5, 3)  # another row
+    nan = content_digest((0, 0), f, False, True, float("nan"), float("nan"), 0)
+    assert nan == content_digest((0, 0), f, False, True, -float("nan"), float("nan"), 0)
     assert part_digest(v, "int16") != part_digest(v.astype(np.int32), "int32")
     assert part_digest(v, ">i2") == part_digest(v, "<i2")  # values, not their byte order
+    acc = FOLD_SEED  # folding as a reader reads equals folding the list
+    for p in parts:
+        acc = fold(acc, p)
+    assert acc == f
 
 
 def test_a_repair_that_mends_nothing_is_an_error(dems, stores, tmp_path, monkeypatch):
