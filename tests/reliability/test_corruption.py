@@ -116,6 +116,40 @@ def _run_faults(pristine, tmp_path, mode: str, trials: int) -> dict:
     return counts
 
 
+def test_valid_chunks_swapped_within_an_array_are_found_by_verify(pristine, tmp_path):
+    """Two valid chunks of one array swapped pass every crc32c (a read returns another block's
+    data): ``verify``'s content digests find both blocks, and a repair restores the store."""
+    src, clean = pristine
+    rng = np.random.default_rng(SEED + 2)
+    counts = {"injected": 0, "detected_by_verify": 0, "repaired": 0}
+    for kind in KINDS:
+        files = chunk_files(clean, kind)
+        if len(files) < 2:
+            continue  # (one shard, one index chunk: nothing to swap with)
+        for t in range(3 if LONG else 1):
+            work = tmp_path / f"swap-{kind.replace('/', '_')}-{t}.zarr"
+            shutil.copytree(clean, work)
+            i, j = rng.choice(len(files), size=2, replace=False)
+            a, b = (work / files[k].relative_to(clean) for k in (i, j))
+            da, db = a.read_bytes(), b.read_bytes()
+            if da == db:
+                shutil.rmtree(work)
+                continue
+            a.write_bytes(db)
+            b.write_bytes(da)
+            counts["injected"] += 1
+            rep = verify_store(work)
+            assert not rep.ok and len(rep.bad_blocks) >= 2, f"swap in {kind} not found"
+            counts["detected_by_verify"] += 1
+            if t == 0:
+                tile(src, work, TileOptions(block_size=65, repair=True, executor="threads"))
+                assert verify_store(work).ok and diff_stores(work, clean) == []
+                counts["repaired"] += 1
+            shutil.rmtree(work)
+    record("valid chunks swapped", **counts)
+    assert counts["injected"] >= 2 and counts["detected_by_verify"] == counts["injected"]
+
+
 def test_quiet_store_reads_and_verifies_clean(pristine):
     src, clean = pristine
     read_everything(clean)
