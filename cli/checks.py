@@ -147,6 +147,22 @@ def distinct_outputs(*outputs: tuple[str, Path | None]) -> None:
                 )
 
 
+def json_and_plot(
+    json_out: Path | None, plot: Path | None, overwrite: bool, inputs: list[tuple[str, Any]]
+) -> None:
+    """The ``--json`` and ``--plot`` outputs of a measuring command (:func:`output_file` each,
+    and not the same file)."""
+    output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
+    output_file(
+        plot,
+        "--plot",
+        suffixes=plot_suffixes() if plot else None,
+        overwrite=overwrite,
+        inputs=inputs,
+    )
+    distinct_outputs(("--json", json_out), ("--plot", plot))
+
+
 def output_file(
     path: Path | None,
     hint: str,

@@ -26,7 +26,6 @@ neighbour (repeatedly); see docs/RENDER.md. All edges' probes at all depths are 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -37,9 +36,10 @@ from render import stitch_rounds as rounds
 from render.errors import RenderError, SelectionError
 from render.node_boxes import NodeBoxes, node_box_slots, node_rho, snap_over
 from streamer.camera import Camera
+from streamer.errors import LodError
 from streamer.frustum import as_polygon
 from streamer.levels import PatchErrorTable
-from streamer.lod import Metric, get_metric, horizontal_px
+from streamer.lod import Metric, check_finite_tau, get_metric, horizontal_px
 from streamer.lod import gap_scale as lod_gap_scale
 from tiler.grid import BlockGrid
 from tiler.quadtree import (
@@ -180,18 +180,15 @@ def check_tau(tau: float) -> float:
     Infinity is refused (as the CLI refuses it): a mixed terrain/nodata node splits because its
     error, inf, exceeds tau, which ``inf > inf`` does not (terrain beside nodata would be
     dropped), and the gap rule's ``tau / min(tau, 1)`` scale would make ``0 * inf = nan``. The
-    largest finite taus (``1e300``) are taken: every finite error then stays unrefined."""
+    largest finite taus (``1e300``) are taken: every finite error then stays unrefined
+    (:func:`streamer.lod.check_finite_tau`, the planner's check)."""
     try:
-        t = float(tau)
-        ok = t >= 0.0 and math.isfinite(t)
-    except (TypeError, ValueError, OverflowError):
-        ok = False
-    if not ok:
+        return check_finite_tau(tau)
+    except LodError:
         raise SelectionError(
             f"tau must be a finite pixel threshold >= 0 (for no refinement give a large finite "
             f"one, e.g. 1e300), got {tau!r}"
-        )
-    return t
+        ) from None
 
 
 def select_patches(

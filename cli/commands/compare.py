@@ -7,13 +7,7 @@ from typing import Annotated, Any
 
 import typer
 
-from cli.checks import (
-    distinct_outputs,
-    input_file,
-    open_store_arg,
-    output_file,
-    plot_suffixes,
-)
+from cli.checks import input_file, json_and_plot, open_store_arg
 from cli.common import UsageError, fail_on_errors
 from cli.formatters import json_text
 from cli.options import (
@@ -105,15 +99,7 @@ def compare(
         opts = ViewOptions(metric=metric, patch_log2=patch_log2, nodata=rule)
         input_file(path, "--path")
         inputs = [("STORE", store), ("--path", path)]
-        output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
-        output_file(
-            plot,
-            "--plot",
-            suffixes=plot_suffixes() if plot else None,
-            overwrite=overwrite,
-            inputs=inputs,
-        )
-        distinct_outputs(("--json", json_out), ("--plot", plot))
+        json_and_plot(json_out, plot, overwrite, inputs)
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(s, path_kind, frames=frames, path_file=path, viewport=viewport)
         typer.echo(HEADER)

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from cli.checks import distinct_outputs, input_file, open_store_arg, output_file, plot_suffixes
+from cli.checks import input_file, json_and_plot, open_store_arg
 from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
 from cli.formatters import format_summary, json_text
 from cli.options import (
@@ -147,15 +147,7 @@ def stream(
         viewport = parse_size(size)
         input_file(path, "--path")
         inputs = [("STORE", store), ("--path", path)]
-        output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
-        output_file(
-            plot,
-            "--plot",
-            suffixes=plot_suffixes() if plot else None,
-            overwrite=overwrite,
-            inputs=inputs,
-        )
-        distinct_outputs(("--json", json_out), ("--plot", plot))
+        json_and_plot(json_out, plot, overwrite, inputs)
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cams = make_path(
             s,

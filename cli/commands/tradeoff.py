@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from cli.checks import distinct_outputs, open_store_arg, output_file, plot_suffixes
+from cli.checks import json_and_plot, open_store_arg
 from cli.common import fail_on_errors
 from cli.formatters import json_text
 from cli.options import (
@@ -76,15 +76,7 @@ def tradeoff(
         check_metric(lod, metric)
         opts = ViewOptions(lod=lod, metric=metric, patch_log2=patch_log2, nodata=rule)
         inputs = [("STORE", store)]
-        output_file(json_out, "--json", overwrite=overwrite, inputs=inputs)
-        output_file(
-            plot,
-            "--plot",
-            suffixes=plot_suffixes() if plot else None,
-            overwrite=overwrite,
-            inputs=inputs,
-        )
-        distinct_outputs(("--json", json_out), ("--plot", plot))
+        json_and_plot(json_out, plot, overwrite, inputs)
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
