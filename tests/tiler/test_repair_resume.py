@@ -96,22 +96,13 @@ def test_our_own_partial_leftover_is_still_cleared(made, tmp_path):
     assert diff_stores(d, ref) == []
 
 
-@pytest.mark.parametrize(("change", "named"), [
-    ({"resampling": "cubic"}, "resampling: store has 'bilinear', this run has 'cubic'"),
-    ({"resolution": 20.0}, "resolution: store has None, this run has 20.0"),
-])  # fmt: skip
-def test_a_resume_with_other_reprojection_options_names_them(tmp_path, monkeypatch, change,
-                                                             named):  # fmt: skip
-    """A rerun with another ``--resampling`` or ``--resolution`` was refused as "source:
-    'geo.tif' is not the file the store was tiled from" (the options only fed the source's
-    fingerprint); it now names the option and both values. The control: the same options
-    resume."""
+def _interrupted_geo_tiling(tmp_path, monkeypatch, opts: TileOptions):
+    """A geographic DEM whose tiling into ``tmp_path/s.zarr`` with ``opts`` was killed after
+    5 blocks (an unfinished store); returns the DEM's path."""
     import tiler.tile as tile_mod
-    from tiler.errors import JobMismatchError
 
     src = write_dem(tmp_path / "geo.tif", fractal((120, 120), 3), crs="EPSG:4326",
                     origin=(10.0, 45.0), cell=0.0005)  # fmt: skip
-    opts = dict(block_size=17, workers=1, executor="threads", dst_crs="auto")
     real = tile_mod.process_block
     n = {"blocks": 0}
 
@@ -123,8 +114,25 @@ def test_a_resume_with_other_reprojection_options_names_them(tmp_path, monkeypat
 
     monkeypatch.setattr(tile_mod, "process_block", dies)
     with pytest.raises(KeyboardInterrupt):
-        tile(src, tmp_path / "s.zarr", TileOptions(**opts))
+        tile(src, tmp_path / "s.zarr", opts)
     monkeypatch.setattr(tile_mod, "process_block", real)
+    return src
+
+
+@pytest.mark.parametrize(("change", "named"), [
+    ({"resampling": "cubic"}, "resampling: store has 'bilinear', this run has 'cubic'"),
+    ({"resolution": 20.0}, "resolution: store has None, this run has 20.0"),
+])  # fmt: skip
+def test_a_resume_with_other_reprojection_options_names_them(tmp_path, monkeypatch, change,
+                                                             named):  # fmt: skip
+    """A rerun with another ``--resampling`` or ``--resolution`` was refused as "source:
+    'geo.tif' is not the file the store was tiled from" (the options only fed the source's
+    fingerprint); it now names the option and both values. The control: the same options
+    resume."""
+    from tiler.errors import JobMismatchError
+
+    opts = dict(block_size=17, workers=1, executor="threads", dst_crs="auto")
+    src = _interrupted_geo_tiling(tmp_path, monkeypatch, TileOptions(**opts))
     with pytest.raises(JobMismatchError) as info:
         tile(src, tmp_path / "s.zarr", TileOptions(**opts, **change))
     assert named in str(info.value) and "not the file" not in str(info.value)
@@ -167,26 +175,11 @@ def test_reprojection_items_are_compared_as_spelled_one_way(tmp_path, monkeypatc
     refused as another job. Both now resume; another CRS is still refused (the control)."""
     from rasterio.crs import CRS
 
-    import tiler.tile as tile_mod
     from tiler.errors import JobMismatchError
 
-    src = write_dem(tmp_path / "geo.tif", fractal((120, 120), 3), crs="EPSG:4326",
-                    origin=(10.0, 45.0), cell=0.0005)  # fmt: skip
     base = dict(block_size=17, workers=1, executor="threads")
-    real = tile_mod.process_block
-    n = {"blocks": 0}
-
-    def dies(window, params):
-        n["blocks"] += 1
-        if n["blocks"] > 5:
-            raise KeyboardInterrupt("simulated kill")
-        return real(window, params)
-
-    monkeypatch.setattr(tile_mod, "process_block", dies)
-    with pytest.raises(KeyboardInterrupt):
-        tile(src, tmp_path / "s.zarr", TileOptions(**base, dst_crs=CRS.from_epsg(32632),
-                                                   resampling="Cubic"))  # fmt: skip
-    monkeypatch.setattr(tile_mod, "process_block", real)
+    first = TileOptions(**base, dst_crs=CRS.from_epsg(32632), resampling="Cubic")
+    src = _interrupted_geo_tiling(tmp_path, monkeypatch, first)
     with pytest.raises(JobMismatchError, match="dst_crs: store has 'EPSG:32632', this run has"):
         tile(src, tmp_path / "s.zarr", TileOptions(**base, dst_crs="EPSG:32633"))
     s = tile(src, tmp_path / "s.zarr", TileOptions(**base, dst_crs="epsg:32632",
