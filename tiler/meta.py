@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -129,8 +130,7 @@ class StoreMeta:
         out = {k: v for k, v in self.__dict__.items() if k != "extra"}
         out["geotransform"] = list(self.geotransform)
         out["error_fields"] = list(self.error_fields)
-        if self.nodata is not None and np.isnan(self.nodata):
-            out["nodata"] = "NaN"  # JSON has no NaN
+        out["nodata"] = nodata_json(self.nodata)
         out["levels"] = self.levels
         out["block_size"] = self.block_size
         out.update(self.extra)
@@ -168,6 +168,14 @@ class StoreMeta:
             return cls(**known, extra=extra)
         except (KeyError, TypeError, ValueError) as exc:
             raise StoreCorruptError(f"store metadata is incomplete or damaged: {exc}") from exc
+
+
+def nodata_json(value: float | None) -> float | str | None:
+    """A nodata value as strict JSON holds it: NaN and ±inf as zarr's ``"NaN"``,
+    ``"Infinity"`` and ``"-Infinity"`` (which ``float()`` reads back), others as they are."""
+    if value is None or math.isfinite(value):
+        return value
+    return "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
 
 
 def write_meta(group: zarr.Group, meta: StoreMeta) -> None:

@@ -51,9 +51,10 @@ def same_nodata(a: float | None, b: float | None) -> bool:
 
 
 def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
+    """True where a sample is not nodata (nor NaN); ±inf stays for the tiler's height check."""
     valid = np.ones(data.shape, dtype=bool)
     if data.dtype.kind == "f":
-        valid &= np.isfinite(data)
+        valid &= ~np.isnan(data)
     if nodata is not None and not np.isnan(nodata):
         valid &= data != np.asarray(nodata).astype(data.dtype)
     return valid

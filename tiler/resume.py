@@ -24,6 +24,7 @@ from rasterio.windows import Window
 
 from tiler.errors import JobMismatchError
 from tiler.layout import level_size
+from tiler.meta import nodata_json
 from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs
 
 JOURNAL = "journal"
@@ -233,7 +234,7 @@ def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
         "height": meta.height,
         "width": meta.width,
         "dtype": meta.dtype,
-        "nodata": "NaN" if meta.nodata is not None and np.isnan(meta.nodata) else meta.nodata,
+        "nodata": nodata_json(meta.nodata),
         "block_size": meta.block_size,
         "band": opts.band,
         "precision": meta.precision,

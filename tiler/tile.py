@@ -239,10 +239,12 @@ class TileSummary:
 
 
 def valid_mask(data: np.ndarray, nodata: float | None) -> np.ndarray:
-    """True where a sample is terrain: not the nodata value and (floats) finite."""
+    """True where a sample is terrain: not the nodata value and (floats) not NaN. An infinite
+    sample that is not the declared nodata stays "valid" so that the height check refuses it
+    (it is no height; it used to become nodata without a word)."""
     valid = np.ones(data.shape, dtype=bool)
     if data.dtype.kind == "f":
-        valid &= np.isfinite(data)
+        valid &= ~np.isnan(data)
     if nodata is not None and not np.isnan(nodata):
         valid &= data != np.asarray(nodata).astype(data.dtype)
     return valid
@@ -277,10 +279,12 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     valid[:h, :w] = valid_mask(data, params.nodata)
     exists = bool(valid.any())
     has_nodata = not bool(valid.all())
+    if dtype.kind == "f" and exists and bool(np.isinf(data[valid[:h, :w]]).any()):
+        raise _height_range(data, valid[:h, :w], params)  # ±inf not declared nodata
     grid = np.zeros((side, side), dtype=dtype)
     grid[:h, :w] = data
     if dtype.kind == "f":
-        grid[~valid] = 0  # NaN/inf never enter the arithmetic
+        grid[~valid] = 0  # NaN/nodata never enter the arithmetic
     if exists:
         vals = grid if not has_nodata else grid[valid]
         zmin, zmax = float(vals.min()), float(vals.max())

@@ -129,3 +129,33 @@ def test_in_a_mosaic_the_source_holding_the_sample_is_named(tmp_path):
     msg = str(e.value)  # (the control, west's name, would be the mosaic's first source)
     assert msg.startswith("east.tif, block (0, 1), first at row 10, column 42"), msg
     assert "`gdal_edit.py -a_nodata -3.4028234663852886e+38 east.tif`" in msg, msg
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf")])
+def test_infinite_samples_are_refused_not_dropped_as_nodata(tmp_path, value):
+    """±inf is no height: it was made nodata without a count (a DEM of 2,100 samples tiled
+    25 holes with exit 0). It is now refused like any value beyond ±1000 km, in one source and
+    in a mosaic; declared as the nodata value it is nodata (the control), and NaN stays
+    nodata."""
+    src = write_dem(tmp_path / "inf.tif", _dem(value))
+    with pytest.raises(HeightRangeError) as e:
+        tile(src, tmp_path / "s.zarr", TileOptions(block_size=33, workers=1))
+    msg = str(e.value)
+    assert msg.startswith("inf.tif, block (1, 1), first at row 40, column 50"), msg
+    assert f"25 sample(s) of {value:g} m" in msg and f"-a_nodata {value!r}" in msg, msg
+    assert not (tmp_path / "s.zarr").exists()
+    west = write_dem(tmp_path / "west.tif", fractal((70, 60), 5, dtype="float32"))
+    with pytest.raises(HeightRangeError, match=r"^inf\.tif"):  # over another source
+        tile([src, west], tmp_path / "m.zarr", TileOptions(block_size=33, workers=1))
+    # the controls: declared nodata, the same samples are holes; NaN is nodata as before
+    ok = write_dem(tmp_path / "ok.tif", _dem(value), nodata=value)
+    s = tile(ok, tmp_path / "ok.zarr", TileOptions(block_size=33, workers=1))
+    assert s.meta.complete and np.isfinite(s.meta.extra["value_range"]).all()
+    # (a nodata of ±inf could not be written at all: "Out of range float values are not JSON
+    # compliant"; it is now "Infinity" in the metadata, read back as the same value)
+    from tiler.verify import verify_store
+
+    assert open_store(tmp_path / "ok.zarr").meta.nodata == value
+    assert verify_store(tmp_path / "ok.zarr").ok
+    nan = write_dem(tmp_path / "nan.tif", _dem(float("nan")))
+    assert tile(nan, tmp_path / "nan.zarr", TileOptions(block_size=33, workers=1)).meta.complete
