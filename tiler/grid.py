@@ -114,9 +114,21 @@ class BlockGrid:
         return r0, c0, min(self.side, self.height - r0), min(self.side, self.width - c0)
 
     def block_of_sample(self, row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Block containing each sample (shared borders go to the lower-right block)."""
-        r = np.minimum(np.asarray(row) // self.step, self.rows - 1)
-        c = np.minimum(np.asarray(col) // self.step, self.cols - 1)
+        """Block containing each sample (shared borders go to the lower-right block);
+        ``LayoutError`` naming the first sample outside the DEM (it gave negative ids, which
+        numpy indexing takes as another block)."""
+        row, col = np.asarray(row), np.asarray(col)
+        out = (row < 0) | (row > self.height - 1) | (col < 0) | (col > self.width - 1)
+        if out.any():
+            i = int(np.flatnonzero(out.ravel())[0])  # (out has the broadcast shape)
+            r0, c0 = np.broadcast_arrays(row, col)
+            raise LayoutError(
+                f"sample (row {r0.ravel()[i]}, column {c0.ravel()[i]}) is outside the "
+                f"{self.height}x{self.width} DEM (rows 0..{self.height - 1}, columns "
+                f"0..{self.width - 1})"
+            )
+        r = np.minimum(row // self.step, self.rows - 1)
+        c = np.minimum(col // self.step, self.cols - 1)
         return r, c
 
     def block_bounds(self, br: np.ndarray, bc: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -152,3 +152,19 @@ def test_tile_options_that_are_not_integers_are_refused_naming_them(kw):
     with pytest.raises(TilerError, match=next(iter(kw))):
         TileOptions(**kw)
     TileOptions(block_size=np.int64(65), band=np.int32(1), workers=np.uint8(2))
+
+
+def test_block_of_sample_refuses_a_sample_outside_the_dem():
+    """``block_of_sample(-1, -1)`` gave block (-1, -1), which numpy indexing reads as the last
+    block: another block's heights, no error. The control: the DEM's corners (the shared
+    borders go to the lower-right block, the last row and column to the last block)."""
+    from tiler.grid import BlockGrid
+
+    g = BlockGrid(100, 100, 6)  # 2x2 blocks of step 64
+    for row, col in [(-1, -1), (0, -1), (100, 0), (np.array([0, 99]), np.array([5, 100]))]:
+        with pytest.raises(LayoutError, match=r"outside the 100x100 DEM"):
+            g.block_of_sample(row, col)
+    assert [int(v) for v in g.block_of_sample(0, 0)] == [0, 0]
+    assert [int(v) for v in g.block_of_sample(64, 99)] == [1, 1]
+    r, c = g.block_of_sample(np.array([0, 63, 99]), np.array([99, 0, 99]))
+    assert r.tolist() == [0, 0, 1] and c.tolist() == [1, 0, 1]
