@@ -20,6 +20,7 @@ from tiler.crs import vertical_crs_unit
 from tiler.encoding import parse_dtype
 from tiler.errors import SourceError, SourceNotFoundError, SourceUnavailableError
 from tiler.source_http import (
+    forget_failed_open,
     gdal_network_failure,
     http_url,
     is_remote,
@@ -82,6 +83,8 @@ def open_raster(path: str) -> rasterio.DatasetReader:
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             return rasterio.open(path)
     except rasterio.errors.RasterioIOError as exc:
+        if is_remote(path):
+            forget_failed_open()  # (else a second open says "does not exist" unasked)
         raise _open_failed(path, exc) from exc
 
 

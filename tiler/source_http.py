@@ -16,6 +16,9 @@ Everything GDAL does on a remote source runs inside it: the open, the header's s
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import http.client
 import math
 import os
@@ -189,3 +192,36 @@ def gdal_network_failure(message: str) -> str | None:
     if _GDAL_FAILED.search(message):
         return "failed"
     return None
+
+
+@functools.cache
+def _gdal_clear_cache() -> object | None:
+    """GDAL's ``VSICurlClearCache`` from the libgdal rasterio runs on (its wheel's bundled one,
+    else the system's), or None when it cannot be found."""
+    import glob
+
+    import rasterio
+
+    libs = os.path.join(os.path.dirname(os.path.dirname(rasterio.__file__)), "rasterio.libs")
+    bundled = sorted(glob.glob(os.path.join(libs, "libgdal*.so*")))
+    names = [*bundled, ctypes.util.find_library("gdal")]
+    for name in filter(None, names):
+        try:
+            fn = ctypes.CDLL(name).VSICurlClearCache
+        except (OSError, AttributeError):
+            continue
+        fn.restype, fn.argtypes = None, []
+        return fn
+    return None
+
+
+def forget_failed_open() -> bool:
+    """Make GDAL ask the server again after a remote open failed: its network file systems
+    remember a path they could not reach as absent for the rest of the process, so a second
+    open said "does not exist in the file system" whatever the server did (a usage error
+    instead of the network named). False when GDAL's function cannot be found."""
+    fn = _gdal_clear_cache()
+    if fn is None:
+        return False
+    fn()  # type: ignore[operator]
+    return True
