@@ -54,9 +54,12 @@ class IndexCache:
         self._lock = threading.Lock()
         self._entries: OrderedDict[str, bytes] = OrderedDict()
         self.fetches = 0
-        #: shard key -> the read of its index under way (event-loop side only: concurrent
-        #: reads of one shard's index share a request)
-        self.inflight: dict[str, asyncio.Future] = {}
+        #: how many times the cache was cleared: an index read begun before a clear is not
+        #: kept after it (it may predate the rewrite the clear is for)
+        self.epoch = 0
+        #: (epoch, shard key) -> the read of its index under way (event-loop side only:
+        #: concurrent reads of one shard's index in one epoch share a request)
+        self.inflight: dict[tuple[int, str], asyncio.Future] = {}
 
     def fetched(self) -> None:
         """Count one index read from the store."""
@@ -71,9 +74,12 @@ class IndexCache:
                 self._entries.move_to_end(key)
             return index
 
-    def put(self, key: str, index: bytes) -> None:
-        """Keep ``index`` for shard ``key`` (the least recently used go past the bound)."""
+    def put(self, key: str, index: bytes, epoch: int | None = None) -> None:
+        """Keep ``index`` for shard ``key`` (the least recently used go past the bound), unless
+        it was read in an ``epoch`` before the last :meth:`clear`."""
         with self._lock:
+            if epoch is not None and epoch != self.epoch:
+                return
             self._entries[key] = index
             self._entries.move_to_end(key)
             while len(self._entries) > self.max_entries:
@@ -83,6 +89,7 @@ class IndexCache:
         """Forget every kept index (the store was rewritten: ``TerrainStore.check_unchanged``)."""
         with self._lock:
             self._entries.clear()
+            self.epoch += 1
 
     def drop(self, key: str) -> None:
         """Forget shard ``key``'s index (it no longer matched the shard)."""
@@ -108,15 +115,16 @@ async def fetch_chunk(
         return None if buf is None else check_chunk(buf.to_bytes(), spec)
     inner = spec.inner(block)
     for fresh in (False, True):
+        epoch = 0 if cache is None else cache.epoch  # (read before the index is)
         index = None if fresh or cache is None else cache.get(key)
         kept = index is not None
         if index is None:
-            index = await _shared_index(store, key, spec, cache)
+            index = await _shared_index(store, key, spec, cache, epoch)
             if index is None:
                 return None  # no such shard
             entry = shard_entry(index, spec, inner)  # (checked before it is kept)
             if cache is not None:
-                cache.put(key, index)
+                cache.put(key, index, epoch)
         else:
             entry = shard_entry(index, spec, inner)
         if entry is None:
@@ -173,26 +181,28 @@ async def _read_index(store: Any, key: str, spec: LevelSpec) -> bytes | None:
 
 
 async def _shared_index(
-    store: Any, key: str, spec: LevelSpec, cache: IndexCache | None
+    store: Any, key: str, spec: LevelSpec, cache: IndexCache | None, epoch: int = 0
 ) -> bytes | None:
     """:func:`_read_index`, one request for the reads of one shard's index under way at
-    once (a session's loaders starting on blocks of one shard); counted in ``cache``."""
+    once in one ``epoch`` of ``cache`` (a session's loaders starting on blocks of one shard;
+    a read begun before a clear is not shared after it); counted in ``cache``."""
     if cache is None:
         return await _read_index(store, key, spec)
-    pending = cache.inflight.get(key)
+    slot = (epoch, key)
+    pending = cache.inflight.get(slot)
     if pending is not None:
         got = await asyncio.shield(pending)
         return await _read_index(store, key, spec) if got is _FAILED else got
     fut = asyncio.get_running_loop().create_future()
-    cache.inflight[key] = fut
+    cache.inflight[slot] = fut
     try:
         got = await _read_index(store, key, spec)
     except BaseException:
         fut.set_result(_FAILED)
         raise
     finally:
-        if cache.inflight.get(key) is fut:
-            del cache.inflight[key]
+        if cache.inflight.get(slot) is fut:
+            del cache.inflight[slot]
     cache.fetched()
     fut.set_result(got)
     return got

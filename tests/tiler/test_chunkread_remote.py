@@ -206,3 +206,36 @@ def test_reads_of_one_shards_index_under_way_at_once_share_a_request(served):
             for b, frame in zip(blocks, got, strict=True):
                 want = local.read_level_raw(b, 3)
                 np.testing.assert_array_equal(chunkread.decompress(frame, spec), want)
+
+
+def test_an_index_read_across_a_clear_is_not_kept(served):
+    """A shard index read while another thread clears the cache (it saw a repair's new
+    revision) may predate the rewrite: it was kept after the clear, and later reads of a
+    chunk the repair moved took another block's bytes. It is now used for its read and not
+    kept, and no read begun after the clear shares it. The control: the same read with no
+    clear under way keeps the index."""
+    from zarr.abc.store import SuffixByteRequest
+    from zarr.core.sync import sync
+
+    from tiler.chunkread_remote import fetch_chunk
+
+    d, _ = served
+    local = open_store(d / "s.zarr")
+    with LoopbackServer(d) as url:
+        s = open_store(f"{url}/s.zarr")
+        spec, cache = s._direct["levels/3"], IndexCache()
+
+        class Clearing:  # the store, the cache cleared while an index is on its way
+            async def get(self, key, proto, byte_range=None):
+                got = await s._remote.get(key, proto, byte_range)
+                if isinstance(byte_range, SuffixByteRequest):
+                    cache.clear()
+                return got
+
+        frame = sync(fetch_chunk(Clearing(), spec, (0, 0), cache))
+        want = local.read_level_raw((0, 0), 3)
+        np.testing.assert_array_equal(chunkread.decompress(frame, spec), want)
+        assert len(cache) == 0 and cache.fetches == 1 and cache.epoch == 1
+        assert cache.inflight == {}
+        sync(fetch_chunk(s._remote, spec, (0, 0), cache))
+        assert len(cache) == 1 and cache.fetches == 2
