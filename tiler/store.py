@@ -479,6 +479,8 @@ class TerrainStore:
         extent: tuple[int, int] | None = None,
     ) -> np.ndarray:
         """The ``2**L+1`` grid of a block at level ``L`` (default finest), in the source dtype.
+        Samples that are not terrain (nodata, padding, every sample of a block without
+        terrain) hold filler values, not the nodata value: :meth:`read_mask` tells them.
 
         ``extent=(rows, cols)``: only the grid's top-left ``rows x cols``, decoded alone (an
         edge block's samples inside the DEM: :meth:`block_extent`; the padding is not decoded).
