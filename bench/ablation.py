@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REPO, RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import REPO, RESULTS, WORK, machine_info, portable  # noqa: E402
 from streamer.errors import BudgetError  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from streamer.session import Session, SessionConfig  # noqa: E402
@@ -236,7 +236,11 @@ def main(argv: list[str] | None = None) -> int:
         "records": [],
     }
     t_start = time.perf_counter()
-    for name in args.stores.split(","):
+    names = [n.strip() for n in args.stores.split(",") if n.strip()]
+    if bad := [n for n in names if n not in ("real", "synth")]:
+        print(f"error: --stores {','.join(bad)}: use real and/or synth", file=sys.stderr)
+        return 2
+    for name in names:
         prep = prepare_real() if name == "real" else prepare_synth()
         if prep is None:
             log(f"store {name}: source missing, skipped")
@@ -285,6 +289,9 @@ def main(argv: list[str] | None = None) -> int:
             rec["store"] = name
             out["records"].append(rec)
             _save(out, args.out)
+    if not out["records"]:  # (the committed JSON is not replaced by an empty one)
+        print("error: no store was flown (see the skipped lines)", file=sys.stderr)
+        return 1
     out["wall_s"] = time.perf_counter() - t_start
     out["table"] = table(out["records"])
     _save(out, args.out)
@@ -293,8 +300,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _save(out: dict[str, Any], path: Path) -> None:
+    """Write ``out`` as JSON, naming no machine's paths (``--out``, the real DEM's path)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1, default=str))
+    path.write_text(json.dumps(portable(out), indent=1, default=str))
 
 
 if __name__ == "__main__":

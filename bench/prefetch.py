@@ -297,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"  {name}: {notes[name]}")
             else:
                 stores[name] = got
+    if not stores:  # (the committed JSON is not replaced by an empty one)
+        print("error: no store to fly over (see the skipped lines)", file=sys.stderr)
+        return 1
     specs = build_matrix(args, stores)
     est = sum(s["frames"] for s in specs) / FPS
     log(f"{len(specs)} runs, ~{est / 60:.1f} min of frames (plus frame-0 waits)")

@@ -33,6 +33,7 @@ from bench.common import (  # noqa: E402
     RESULTS,
     WORK,
     count_requests,
+    ensure_store,
     git_head,
     machine_info,
     portable,
@@ -109,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     rows = []
     for store in a.stores:
+        ensure_store(store)  # the default stores are made on first use
         if not store.exists():
             print(f"# {portable(str(store))} is missing: skipped (bench/prefetch.py makes it)")
             continue
@@ -122,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
                     row |= _reads(url, direct, a.blocks) | _session(url, direct, a.frames)
                     rows.append(row)
                     print(_line(row, a.frames), flush=True)
+    if not rows:  # (the committed JSON is not replaced by an empty one)
+        print("error: no store was measured (see the # ... skipped lines)", file=sys.stderr)
+        return 1
     a.out.parent.mkdir(parents=True, exist_ok=True)
     doc = {"machine": machine_info(), "git_head": git_head(), "latency_ms": a.latency_ms,
            "blocks": a.blocks, "frames": a.frames, "rows": rows}  # fmt: skip

@@ -22,7 +22,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import N44W072_EQC, RESULTS, S4097, S16385, machine_info  # noqa: E402
+from bench.common import (  # noqa: E402
+    N44W072_EQC,
+    RESULTS,
+    S4097,
+    S16385,
+    ensure_store,
+    machine_info,
+)
 from render import cracks, measure  # noqa: E402
 from render.measure import heights_fn  # noqa: E402
 from render.pipeline import draw_timed, open_render_session  # noqa: E402
@@ -98,16 +105,16 @@ def bench_store(path: str, taus, metric: str, frames: int, size, measure_err: bo
     return rows
 
 
-def main() -> None:
-    """Run the benchmark."""
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; 1 (and no JSON written) when no store was measured."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="2 frames, 64 px smaller, 2 taus")
+    ap.add_argument("--quick", action="store_true", help="2 frames, 2 taus (1 and 4)")
     ap.add_argument("--stores", default=",".join(DEFAULT_STORES))
     ap.add_argument("--metric", default="qiu")
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--no-error", action="store_true", help="skip the measured error")
     ap.add_argument("--out", default=str(RESULTS / "render.json"))
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     taus = [1.0, 4.0] if a.quick else [0.5, 1.0, 2.0, 4.0]
     frames = 2 if a.quick else a.frames
     size = (1024, 768)
@@ -118,10 +125,14 @@ def main() -> None:
     rows = []
     t0 = time.time()
     for path in a.stores.split(","):
+        ensure_store(path)  # s4097 and the N44W072 metre store are made on first use
         if not Path(path).exists():
             print(f"skipping {path}: not found")
             continue
         rows += bench_store(path, taus, a.metric, frames, size, not a.no_error)
+    if not rows:  # (the committed JSON is not replaced by an empty one)
+        print("error: no store was measured (see the skipping lines)", file=sys.stderr)
+        return 1
     summary = []
     for store in sorted({r["store"] for r in rows}):
         for tau in taus:
@@ -166,7 +177,8 @@ def main() -> None:
         )
     )
     print(f"wrote {out} in {time.time() - t0:.0f} s")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -61,7 +61,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
-from bench.common import N44W072_EQC, REPO, RESULTS, S4097, WORK, machine_info  # noqa: E402
+from bench.common import (  # noqa: E402
+    N44W072_EQC,
+    REPO,
+    RESULTS,
+    S4097,
+    WORK,
+    ensure_store,
+    machine_info,
+)
 
 DEFAULT_STORES = [str(S4097), str(N44W072_EQC)]
 
@@ -281,8 +289,9 @@ def measure_metric(path: str, metric: str, size, p: int, fovs, taus, reps: int, 
     return rows
 
 
-def main_metric(a) -> None:
-    """The ``--metric`` run: table (numpy and numba side by side) and JSON."""
+def main_metric(a) -> int:
+    """The ``--metric`` run: table (numpy and numba side by side) and JSON; 1 when no store
+    was measured."""
     taus = [float(t) for t in (a.taus or "0.5,1,2").split(",")]
     fovs = [float(f) for f in a.fovs.split(",")]
     sizes = [tuple(int(v) for v in s.split("x")) for s in (a.sizes or "320x240").split(",")]
@@ -304,14 +313,19 @@ def main_metric(a) -> None:
                         f"{nb['cpu_ms']:.2f} {ref['patches']} {ref['same']} {nb['loadavg']:.2f}",
                         flush=True,
                     )
+    if not rows:  # (the committed JSON is not replaced by an empty one)
+        print("error: no store was measured (see the # skipped lines)", file=sys.stderr)
+        return 1
     info["loadavg_at_end"] = os.getloadavg()
     out = Path(a.out or RESULTS / f"select_cpu_{a.metric}.json")
     out.write_text(json.dumps({"machine": info, "rows": rows}, indent=1))
     print(f"# wrote {out.relative_to(REPO) if out.is_relative_to(REPO) else out}")
+    return 0
 
 
-def main() -> None:
-    """Measure, print the table, write the JSON."""
+def main(argv: list[str] | None = None) -> int:
+    """Measure, print the table, write the JSON; 1 (no JSON written) when no store was
+    measured."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("stores", nargs="*")
     ap.add_argument("--taus", default=None, help="default 0.5,1,2,4 (--metric: 0.5,1,2)")
@@ -342,11 +356,10 @@ def main() -> None:
     ap.add_argument("--patch-log2", default="1,4", help="--metric: patch sizes (log2 cells)")
     ap.add_argument("--fovs", default="5,45,120,170", help="--metric: vertical FOVs")
     ap.add_argument("--nodata", default="gap", help="--metric: qiu's nodata rule")
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     if a.metric is not None:
         a.reps = 5 if a.reps is None else a.reps
-        main_metric(a)
-        return
+        return main_metric(a)
     a.stores = a.stores or DEFAULT_STORES
     if a.tune_malloc:
         from tiler.malloc import tune_allocator
@@ -373,6 +386,7 @@ def main() -> None:
     rows, compile_s = [], {}
     print("store size strategy backend tau wall_ms cpu_ms selected faults load1")
     for path in a.stores:
+        ensure_store(path)  # the default stores are made on first use
         if not Path(path).exists():
             print(f"# skipped {path}: missing (bench/tiling.py / bench/prefetch.py make it)")
             continue
@@ -388,12 +402,16 @@ def main() -> None:
                     f"{row['selected']:.0f} {row['minor_faults']:.0f} {row['loadavg']:.2f}",
                     flush=True,
                 )
+    if not rows:  # (the committed JSON is not replaced by an empty one)
+        print("error: no store was measured (see the # skipped lines)", file=sys.stderr)
+        return 1
     info["loadavg_at_end"] = os.getloadavg()
     Path(a.out).write_text(
         json.dumps({"machine": info, "compile": compile_s, "rows": rows}, indent=1)
     )
     print(f"# wrote {Path(a.out).relative_to(REPO) if Path(a.out).is_relative_to(REPO) else a.out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

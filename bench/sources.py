@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 import rasterio  # noqa: E402
 from rasterio.transform import from_origin  # noqa: E402
 
+from bench.common import portable  # noqa: E402
 from tiler.synth import synth_array  # noqa: E402
 
 WORK = REPO / "bench" / "work" / "sources"
@@ -125,6 +126,11 @@ def run(srcs, dst: Path, workers: int, dst_crs: str | None) -> dict:
     return res
 
 
+def write_result(path: Path, doc: dict) -> None:
+    """Write ``doc`` as the benchmark's JSON, naming no machine's paths (``--out``)."""
+    path.write_text(json.dumps(portable(doc), indent=2))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tiles", type=int, default=4, help="tiles per side (4 -> 16 files)")
@@ -170,7 +176,7 @@ def main() -> None:
     )
     print(f"mosaic store equal to the single-file store: {same}")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps({"args": vars(a), "runs": rows}, indent=2))
+    write_result(Path(a.out), {"args": vars(a), "runs": rows})
 
 
 if __name__ == "__main__":

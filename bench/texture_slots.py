@@ -101,7 +101,8 @@ def fly(
         "growth_frames": [i for i in range(1, len(rows)) if nbytes[i] != nbytes[i - 1]],
         "frames_over_2ms": [i for i, b in enumerate(build) if b > 2.0],
         "first_build_ms": build[0],
-        "max_build_ms_after_first": max(build[1:]) if len(build) > 1 else 0.0,
+        # (None: one frame, nothing after the first was measured)
+        "max_build_ms_after_first": max(build[1:]) if len(build) > 1 else None,
         "build_cpu_ms_after_first": sum(cpu[1:]) if cpu else None,
         "frames_over_1ms_cpu": [i for i, c in enumerate(cpu) if c > 1.0] if cpu else None,
         # first textures taken built ahead / built on the render thread / dropped unused
@@ -123,8 +124,8 @@ def fly(
     }
 
 
-def _fmt(v: float | None) -> str:
-    return "-" if v is None else f"{v:.1f}"
+def _fmt(v: float | None, digits: int = 1) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         print(" | ".join(str(v) for v in (
             x["path"], x["frames"], x["max_gpu_blocks"], f"{x['max_texture_mb']:.1f}",
             f"{x['full_textures_in_max']:.1f}", len(x["growth_frames"]), len(x["frames_over_2ms"]),
-            f"{x['first_build_ms']:.1f}", f"{x['max_build_ms_after_first']:.2f}",
+            f"{x['first_build_ms']:.1f}", _fmt(x["max_build_ms_after_first"], 2),
             _fmt(x["build_cpu_ms_after_first"]),
             "-" if x["frames_over_1ms_cpu"] is None else len(x["frames_over_1ms_cpu"]),
             "/".join(map(str, x["ahead_hits_misses_dropped"] or ["-"])),

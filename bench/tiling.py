@@ -412,6 +412,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"NOTE: {note}", flush=True)
             notes.append(note)
 
+    if not inputs:  # (no result is written: "all targets pass" over nothing would be vacuous)
+        print("error: no input to tile (--sizes is empty and no real DEM)", file=sys.stderr)
+        return 1
     results = []
     for name, src in inputs:
         r = bench_input(name, src, args)

@@ -45,11 +45,23 @@ CONFIGS = {
 }
 
 
+def max_or_none(values) -> float | None:
+    """The largest of ``values``, or None when there is none (nothing measured is not 0)."""
+    return float(np.max(values)) if len(values) else None
+
+
+def _ms(v: float | None) -> str:
+    return f"{'n/a':>18}" if v is None else f"{v:18.2f}"
+
+
 def fly(store: str, config: str, frames: int, tau: float) -> dict:
-    """One ``terrastream flythrough`` in a fresh process: the per-frame build ms statistics."""
+    """One ``terrastream flythrough`` in a fresh process: the per-frame build ms statistics
+    (None where no frame was measured: no frame that built, no frame after the first)."""
     flags, env_add = CONFIGS[config]
     env = {k: v for k, v in os.environ.items() if k != "TERRASTREAM_KERNELS"} | env_add
     rows = flythrough_rows(store, "geometry-splitting", frames, tau, env, *flags)
+    if not rows:
+        raise RuntimeError(f"flythrough ({config}) drew no frame: nothing to measure")
     b = np.array([float(r["build_ms"]) for r in rows])
     built = b[b > 0.05]
     return {
@@ -57,16 +69,22 @@ def fly(store: str, config: str, frames: int, tau: float) -> dict:
         "frames": len(rows),
         "frames_over_2ms": int((b > 2.0).sum()),
         "first_frame_ms": float(b[0]),
-        "median_building_ms": float(np.median(built)) if len(built) else 0.0,
+        "median_building_ms": float(np.median(built)) if len(built) else None,
         "p95_ms": float(np.percentile(b, 95)),
         "max_ms": float(b.max()),
-        "max_after_first_ms": float(b[1:].max()) if len(b) > 1 else 0.0,
+        "max_after_first_ms": max_or_none(b[1:]),
         "sum_ms": float(b.sum()),
         "mean_triangles": float(np.mean([int(r["triangles"]) for r in rows])),
         "mean_gpu_ms": float(np.mean([float(r["gpu_ms"]) for r in rows])),
         "build_ms": [round(x, 3) for x in b.tolist()],
         "triangles": [int(r["triangles"]) for r in rows],
     }
+
+
+def _median_or_none(values: list[float | None]) -> float | None:
+    """The median of the measured ``values`` (None entries left out), or None."""
+    got = [v for v in values if v is not None]
+    return statistics.median(got) if got else None
 
 
 def interim(store_path: str, frames: int, tau: float) -> list[dict]:
@@ -102,8 +120,8 @@ def interim(store_path: str, frames: int, tau: float) -> list[dict]:
                     "drawn_blocks": len(drawn),
                     "triangles": bg.counts(step.selection).triangles,
                     "triangles_at_once": sync.counts(ref).triangles,
-                    "max_px": float(np.max(e_bg)) if len(e_bg) else 0.0,
-                    "max_px_at_once": float(np.max(e_ref)) if len(e_ref) else 0.0,
+                    "max_px": max_or_none(e_bg),  # (None: no sample measured)
+                    "max_px_at_once": max_or_none(e_ref),
                 })  # fmt: skip
     finally:
         bg.close()
@@ -139,15 +157,15 @@ def main(argv: list[str] | None = None) -> int:
             "max_after_first_ms", "sum_ms", "mean_triangles", "mean_gpu_ms"]  # fmt: skip
     print(f"{'config':22} {'round':>5} " + " ".join(f"{c:>18}" for c in cols))
     for r in sorted(runs, key=lambda r: (names.index(r["config"]), r["round"])):
-        print(f"{r['config']:22} {r['round']:5d} " + " ".join(f"{r[c]:18.2f}" for c in cols))
+        print(f"{r['config']:22} {r['round']:5d} " + " ".join(_ms(r[c]) for c in cols))
     rows = [] if a.no_interim else interim(str(store), a.frames, a.tau)
     print(f"\ninterim textures: {len(rows)} frame(s)")
     print(f"{'frame':>5} {'interim':>7} {'drawn':>5} {'triangles':>10} {'at once':>10} "
           f"{'max px':>7} {'at once':>7}")  # fmt: skip
     for x in rows:
         print(f"{x['frame']:5d} {x['interim_blocks']:7d} {x['drawn_blocks']:5d} "
-              f"{x['triangles']:10,} {x['triangles_at_once']:10,} {x['max_px']:7.2f} "
-              f"{x['max_px_at_once']:7.2f}")  # fmt: skip
+              f"{x['triangles']:10,} {x['triangles_at_once']:10,} {_ms(x['max_px'])[-7:]} "
+              f"{_ms(x['max_px_at_once'])[-7:]}")  # fmt: skip
     a.out.parent.mkdir(parents=True, exist_ok=True)
     out = {
         "store": Path(store).name,
@@ -158,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         "summary": {
             c: {
                 "frames_over_2ms": [r["frames_over_2ms"] for r in runs if r["config"] == c],
-                "max_after_first_ms": statistics.median(
+                "max_after_first_ms": _median_or_none(
                     [r["max_after_first_ms"] for r in runs if r["config"] == c]
                 ),
             }
