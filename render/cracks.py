@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from render import measure
 from render.gpu import MASKED_BELOW
 from streamer.camera import Camera
 from tiler.grid import BlockGrid
@@ -234,3 +235,31 @@ def rays_below(
             below = meet & (np.minimum(c_lo, c_hi) < -tol)
         out[s0 : s0 + step] = below.any(axis=1)
     return out
+
+
+def border_only(
+    img: np.ndarray, footprint: np.ndarray, clear_rgb: tuple[int, int, int]
+) -> np.ndarray:
+    """Clear pixels of ``img`` inside ``footprint`` that only the image border reaches through
+    clear pixels (not the outside of ``footprint``): the ones
+    :func:`render.measure.crack_pixels` leaves out for touching the border, where a crack
+    running off the image's edge is as likely as an outline difference."""
+    wide = measure.crack_mask(img, footprint, clear_rgb, border=False)
+    return wide & ~measure.crack_mask(img, footprint, clear_rgb)
+
+
+def gaps_through(
+    grid: BlockGrid,
+    camera: Camera,
+    mesh: tuple[np.ndarray, np.ndarray],
+    pixels: np.ndarray,
+    holes: np.ndarray | None = None,
+) -> int:
+    """How many of the ``pixels`` (a boolean image; ``holes``, when given, left out) look
+    through a gap in the drawn ``mesh`` (:func:`rays_below`): the crack pixels among
+    :func:`border_only`'s."""
+    mask = pixels if holes is None else pixels & ~holes
+    rows, cols = np.nonzero(mask)
+    if not len(rows):
+        return 0
+    return int(rays_below(grid, camera, *mesh, np.c_[rows, cols]).sum())

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -340,9 +341,11 @@ def project_in_view(
 
 
 def error_stats(err: np.ndarray) -> ErrorStats:
-    """Max, 99th percentile and mean of measured errors (0 for an empty view)."""
+    """Max, 99th percentile and mean of measured errors; NaN for each when no sample was
+    measured (the drawn surface covers no in-view sample: nothing was measured, which is not an
+    error of 0 px; JSON ``null``, ``nan`` in the tables)."""
     if err.size == 0:
-        return ErrorStats(0.0, 0.0, 0.0, 0)
+        return ErrorStats(math.nan, math.nan, math.nan, 0)
     return ErrorStats(
         float(err.max()), float(np.percentile(err, 99)), float(err.mean()), int(err.size)
     )
@@ -391,14 +394,19 @@ def crack_mask(
     clear_rgb: tuple[int, int, int],
     max_iter: int = 4096,
     holes: np.ndarray | None = None,
+    border: bool = True,
 ) -> np.ndarray:
-    """The pixels :func:`crack_pixels` counts, as a boolean image."""
+    """The pixels :func:`crack_pixels` counts, as a boolean image. ``border=False``: the image
+    border does not reach in (only the outside of ``footprint`` does), so the clear pixels that
+    only the border reaches are kept too: a crack running off the image's edge, or an outline
+    difference there, which :func:`render.cracks.rays_below` tells apart."""
     clear = is_clear(img, clear_rgb)
     reach = clear & ~footprint
-    reach[0] |= clear[0]
-    reach[-1] |= clear[-1]
-    reach[:, 0] |= clear[:, 0]
-    reach[:, -1] |= clear[:, -1]
+    if border:
+        reach[0] |= clear[0]
+        reach[-1] |= clear[-1]
+        reach[:, 0] |= clear[:, 0]
+        reach[:, -1] |= clear[:, -1]
     for _ in range(max_iter):
         grow = reach.copy()
         grow[1:] |= reach[:-1]

@@ -353,7 +353,7 @@ def tradeoff(
         err = measure.error_stats(strat.screen_errors(camera, patches))
         tri, tri_h = strat.triangles(camera, patches)
         seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint, (tri, tri_h))
-        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h)
+        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h, store=store)
         wt = cracks.watertight(r.grid, tri, tri_h)
         drawn = strat.drawn_blocks(patches)
         own = strat.own_gpu_bytes()
@@ -455,25 +455,32 @@ def drawn_cracks(
     through a gap, not past a ridge that wide-angle relief folds over the background). On a
     store with nodata, a pixel that the selection covers once its nodata holes are drawn sees a
     hole in the data, not a crack, and is not counted (:func:`render.measure.crack_pixels`'
-    ``holes``)."""
+    ``holes``). From the camera, a clear pixel that only the image border reaches (a crack
+    running off the image's edge) counts where its ray passes below the drawn surface
+    (:func:`render.cracks.border_only`, :func:`render.cracks.gaps_through`)."""
     nodata = bool(np.asarray(r.store.index.has_nodata).any())
 
-    def seen(cam: Camera, fp: np.ndarray, mesh: tuple | None = None) -> int:
+    def seen(cam: Camera, fp: np.ndarray, mesh: tuple | None = None, edge: tuple = ()) -> int:
         strat.draw(cam, sel, clear=CLEAR)
         img = r.image()
         n = measure.crack_pixels(img, fp, CLEAR)
+        # edge (the drawn mesh): the clear pixels only the image border reaches count where
+        # their ray passes through a gap in it (a crack running off the image's edge)
+        off = cracks.border_only(img, fp, CLEAR) if edge else None
         holes = None
-        if n and nodata:  # holes in the data among them? (drawn only when there is a doubt)
-            strat.draw(cam, sel, clear=CLEAR, holes=True)
+        if (n or (off is not None and off.any())) and nodata:  # holes in the data among them?
+            strat.draw(cam, sel, clear=CLEAR, holes=True)  # (drawn only when there is a doubt)
             holes = ~measure.is_clear(r.image(), CLEAR)
             n = measure.crack_pixels(img, fp, CLEAR, holes=holes)
         if n and mesh is not None:  # only rays that pass below the drawn surface: a gap
             rows, cols = np.nonzero(measure.crack_mask(img, fp, CLEAR, holes=holes))
             n = int(cracks.rays_below(r.grid, cam, *mesh, np.c_[rows, cols]).sum())
+        if off is not None:
+            n += cracks.gaps_through(r.grid, cam, edge, off, holes)
         return n
 
-    here = seen(camera, footprint)
     tri, h = triangles if triangles is not None else strat.triangles(camera, sel)
+    here = seen(camera, footprint, edge=(tri, h))
     above = cracks.above_camera(r.grid, camera, tri, h)
     r.draw(above, ref_p, clear=CLEAR)
     fp_above = ~measure.is_clear(r.image(), CLEAR)
@@ -504,7 +511,8 @@ def format_row(r: TradeoffRow) -> str:
         f"{r.frame_ms:>7.1f} {r.reference_frame_ms:>7.1f} {r.max_screen_error_px:>7.2f} "
         f"{r.p99_screen_error_px:>7.2f} {r.psnr_db:>6.1f} {100 * r.changed_share:>7.2f}% "
         f"{r.crack_pixels:>6} {r.crack_pixels_above:>6} {r.open_edges:>5} {r.gap_edges:>5} "
-        f"{r.max_gap_m:>7.2f} {100 * r.terrain_covered:>6.1f}% {100 * r.nodata_covered:>5.1f}% "
+        f"{r.max_gap_m:>7.2f} {coverage.percent(r.terrain_covered):>7} "
+        f"{coverage.percent(r.nodata_covered):>6} "
         f"{r.uncovered_px:>10.2f} {r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>12.2f}"
     )
 

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from render import measure
+from render import coverage, measure
 from render.errors import EmptyViewError
 from render.pipeline import ViewOptions, open_render_session, session_patch_log2, tradeoff
 from render.renderer import RenderConfig, TerrainRenderer
@@ -272,8 +272,8 @@ def table_cells(row: dict[str, Any]) -> dict[str, str]:
         f"{row['max_screen_error_px']:.2f}", f"{row['p99_screen_error_px']:.2f}",
         f"{row['mean_screen_error_px']:.3f}", f"{row['crack_pixels']}",
         f"{row['crack_pixels_above']}", f"{row['open_edges']}", f"{row['gap_edges']}",
-        f"{row['max_gap_m']:.2f}", f"{100 * row['terrain_covered']:.1f}%",
-        f"{100 * row['nodata_covered']:.1f}%", f"{row.get('uncovered_px', 0.0):.2f}",
+        f"{row['max_gap_m']:.2f}", coverage.percent(row["terrain_covered"]),
+        coverage.percent(row["nodata_covered"]), f"{row.get('uncovered_px', 0.0):.2f}",
         f"{row['near_clipped_samples']}", f"{row['fly_triangles']:,.0f}",
         f"{row['fly_cpu_ms']:.2f}", f"{row['fly_gpu_ms']:.1f}", _pop(row, "path"),
         _pop(row, "dolly"), f"{row['used_bytes'] / 2**20:.2f}",
@@ -292,9 +292,10 @@ def format_row(row: dict[str, Any]) -> str:
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
     """The points ``(error, triangles)`` no other point beats on both (fewer or equal triangles
-    at lower or equal error), sorted by error."""
+    at lower or equal error), sorted by error; a point with no error measured (NaN: nothing
+    drawn in view) is on no front."""
     front: list[tuple[float, float]] = []
-    for e, t in sorted(points):
+    for e, t in sorted(p for p in points if p[0] == p[0]):
         if not front or t < front[-1][1]:
             front.append((e, t))
     return front
