@@ -9,7 +9,9 @@ whose reads failed or went unanswered says so in ``summary["problem"]`` (the CLI
 from __future__ import annotations
 
 import csv
+import io
 import logging
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,6 +28,7 @@ from streamer.camera import Camera
 from streamer.clip import warn_path_below_ground
 from streamer.run import close_for_verdict, flight_problem, out_of_view
 from streamer.session import open_session
+from tiler.atomic import write_atomic
 from tiler.store import TerrainStore
 
 log = logging.getLogger(__name__)
@@ -66,6 +69,77 @@ def warn_frames_below_ground(store: TerrainStore, cameras: Sequence[Camera]) -> 
     return warn_path_below_ground(store, cameras, "they show the terrain from below", log)
 
 
+def save_frame(image: np.ndarray, path: Path) -> None:
+    """Write the RGB ``image`` as the PNG ``path`` whole or not at all (encoded in memory,
+    then ``tiler.atomic.write_atomic``): a flight stopped while a frame is written (Ctrl-C, a
+    full disk) leaves no cut-short PNG that looks like a frame."""
+    write_atomic(os.path.abspath(path), encode_image(image, Path(path).with_suffix(".png")))
+
+
+class ImageFormatError(RenderError, ValueError):
+    """An image file's extension names a format that cannot hold the picture as it is
+    (``resized``: the size the file would have held instead, when that is why)."""
+
+    def __init__(self, message: str, resized: tuple[int, int] | None = None) -> None:
+        super().__init__(message)
+        self.resized = resized
+
+
+#: Netpbm extensions and the magic numbers of the kind of file each names (Pillow writes an
+#: RGB picture as a P6 pixmap whatever the extension: a ``.pbm`` bitmap or ``.pfm`` float map
+#: reader then finds something else)
+NETPBM_MAGIC = {".pbm": (b"P1", b"P4"), ".pgm": (b"P2", b"P5"), ".pfm": (b"Pf", b"PF")}
+
+
+def encode_image(image: np.ndarray, path: str | Path) -> bytes:
+    """The RGB ``image`` (rows x columns x 3, uint8) encoded in the format of ``path``'s
+    extension; :class:`ImageFormatError` when that format cannot hold it as it is: no encoder
+    for an RGB picture (``.xbm``, ``.palm``, ``.h5`` ...), a Netpbm extension naming another
+    kind of file (:data:`NETPBM_MAGIC`), or a file whose picture is not ``image``'s size (an
+    ``.ico`` holds at most 256 x 256, an ``.icns`` is square)."""
+    from PIL import Image
+
+    Image.init()
+    suffix = Path(path).suffix.lower()
+    fmt = Image.registered_extensions().get(suffix)
+    use = "; use .png (lossless), .jpg or .tif"
+    if fmt is None:
+        raise ImageFormatError(
+            f"cannot tell the image format of {str(path)!r} from its extension "
+            f"{suffix or '(none)'!r}{use}"
+        )
+    buf = io.BytesIO()
+    try:
+        Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8)).save(buf, format=fmt)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if isinstance(exc, OSError) and exc.errno is not None:  # an I/O error, not the format
+            raise
+        raise ImageFormatError(
+            f"cannot write the picture as {fmt} ({suffix}): {exc}{use}"
+        ) from None
+    data = buf.getvalue()
+    if suffix in NETPBM_MAGIC and data[:2] not in NETPBM_MAGIC[suffix]:
+        kind = {".pbm": "bitmap", ".pgm": "greymap", ".pfm": "float map"}[suffix]
+        raise ImageFormatError(
+            f"a {suffix} file is a Netpbm {kind}, not a colour picture (it would be a "
+            f"{data[:2].decode(errors='replace')} pixmap under that name); use .ppm, or .png "
+            "(lossless), .jpg or .tif"
+        )
+    try:  # the header only: the size the file's reader will see
+        with Image.open(io.BytesIO(data)) as im:
+            got = im.size
+    except Exception:  # noqa: BLE001 - no reader here (EPS needs Ghostscript, PDF has none)
+        got = None
+    want = (int(image.shape[1]), int(image.shape[0]))
+    if got is not None and got != want:
+        raise ImageFormatError(
+            f"{fmt} files ({suffix}) cannot hold a {want[0]}x{want[1]} picture: it would be "
+            f"{got[0]}x{got[1]}{use}",
+            resized=got,
+        )
+    return data
+
+
 def _remove_if_empty(out: Path, created: bool) -> None:
     """Remove ``out`` when this run created it and an error left nothing in it."""
     if created and out.is_dir() and not any(out.iterdir()):
@@ -100,8 +174,6 @@ def flythrough(
     what it draws first, as a one-shot render)."""
     o = options or ViewOptions(lod=lod, tau=tau, metric=metric, patch_log2=patch_log2)
     lod, tau, metric = o.lod, o.tau, o.metric
-    from PIL import Image
-
     if not cameras:
         raise RenderError("the camera path has no frames")
     warn_frames_below_ground(store, cameras)
@@ -114,6 +186,7 @@ def flythrough(
         strat.build_in_background()
     draw = o.draw_options()
     rows: list[FlyRow] = []
+    pending: Path | None = None  # a frame's PNG written, its row not yet in rows
     try:
         with open_session(
             store,
@@ -135,7 +208,8 @@ def flythrough(
                 frame, st, ms = step.frame, step.stats, step.selection_ms
                 seen = seen or frame.stats.visible_blocks > 0
                 if save_every and i % save_every == 0:
-                    Image.fromarray(r.image()).save(out / f"frame_{i:05d}.png")
+                    pending = out / f"frame_{i:05d}.png"
+                    save_frame(r.image(), pending)
                 fs = frame.stats
                 row = FlyRow(
                     frame=i,
@@ -154,11 +228,14 @@ def flythrough(
                     drawn_px=r.drawn_pixels() if st.triangles else 0,
                 )
                 rows.append(row)
+                pending = None
                 if on_frame:
                     on_frame(row)
             # reads still in flight may finish, fail or never answer: say which (as `stream`)
             unfinished, summary = close_for_verdict(session)
     except BaseException as exc:  # a flight stopped midway (Ctrl-C too) keeps its frames' figures
+        if pending is not None:  # the frame it stopped at is not in frames.csv: nor its PNG
+            pending.unlink(missing_ok=True)
         if rows:
             write_rows(out, rows)
             exc.frames_flown = len(rows)  # type: ignore[attr-defined]

@@ -18,7 +18,7 @@ import math
 import os
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ import moderngl
 import numpy as np
 
 from render.errors import RenderError
+from render.ground_watch import GroundWatch
 from render.pipeline import ViewOptions, session_patch_log2
 from render.renderer import RenderConfig, RenderStats, TerrainRenderer
 from render.step import frame_step
@@ -250,7 +251,14 @@ class ViewResult:
     screenshot: Path | None
     # why a scripted run's view is incomplete (streamer.run.flight_problem: blocks that could
     # not be read, reads never answered), its screenshot then removed; None: it is whole
+    # (a scripted run whose last frame drew no terrain pixel, last.drawn_px == 0, has its
+    # screenshot removed too: a picture of sky is not a view of the store)
     problem: str | None = None
+    # where the last frame's camera (the screenshot's) was against the ground: "" when clear
+    # of it, else render.views.clearance_note's clause (below the terrain, near plane clips it)
+    ground: str = ""
+    # blocks of the DEM the last frame's camera saw (0: none, it looked away; None: no frame)
+    visible_blocks: int | None = None
 
 
 def status_line(
@@ -308,6 +316,7 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
     overlay = _Overlay(ctx, size)
     zlo = float(np.nanmin(store.index.zmin))
     pose, fov = Pose.of(start), start.fov_y
+    watch = GroundWatch(store, background=True)  # a warning once per descent below ground
     state = {"tau": float(o.tau), "wire": o.wireframe, "quit": False, "captured": False}
 
     def capture(on: bool) -> None:  # mouse look with a hidden, captured cursor
@@ -385,9 +394,12 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             )
             pose = fly(pose, c, dt, speed_for(pose.z, zlo, store.grid.dx))
             cam = camera_at(pose, store, size, fov)
+            last_frame = scripted and n == frames - 1
+            # (the start camera: make_camera warned; the last one's is the screenshot's; both
+            # frames wait for their data anyway)
+            watch.check(cam, quiet=n == 0, wait=n == 0 or last_frame)
             if session.config.tau != state["tau"]:  # live tau: the session loads for it too
                 session.set_tau(state["tau"])
-            last_frame = scripted and n == frames - 1
             try:
                 step = frame_step(
                     session, strat, cam, state["tau"], metric, dt=dt if n else None,
@@ -398,6 +410,8 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
                 log.warning("%s", exc)
                 continue
             frame, last = step.frame, step.stats
+            if last_frame:  # a scripted run's view: terrain pixels drawn (0: sky, or nothing)
+                last = replace(last, drawn_px=r.drawn_pixels() if last.triangles else 0)
             ctx.copy_framebuffer(ctx.screen, r.fbo)
             ctx.screen.use()
             fps = 1.0 / frame_s if frame_s > 0.0 else 0.0
@@ -405,8 +419,9 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
             if now - tick > 0.25 or last_frame:
                 tick = now
                 label = metric if strat.uses_metric else strat.name  # whose error tau bounds
-                text = status_line(
-                    fps, last, state["tau"], label, mb, state["wire"], strat.build_ms
+                text = (
+                    status_line(fps, last, state["tau"], label, mb, state["wire"], strat.build_ms)
+                    + watch.status()
                 )
                 overlay.set(text)
                 glfw.set_window_title(win, f"terrastream view | {text}")
@@ -423,22 +438,26 @@ def _loop(glfw, win, ctx, store, start, o: ViewOptions, workers, budget_mb, fram
         # (reads in flight may finish, fail or never answer: a scripted run says which)
         unfinished, summary = close_for_verdict(session)
         warm.join(timeout=30.0)  # an import is not interruptible; it ends within seconds
+        watch.close()
         try:
             strat.close()
         finally:
             r.close()
     problem = flight_problem(summary, unfinished, store.url) if scripted else None
-    if problem and shot is not None:  # a screenshot of a view drawn without its data
+    blank = last is not None and last.drawn_px == 0  # no terrain pixel: not a view of it
+    if (problem or blank) and shot is not None:  # drawn without its data, or of no terrain
         shot.unlink(missing_ok=True)
         shot = None
-    return ViewResult(n, last, state["tau"], mb, shot, problem)
+    seen = None if last is None else frame.stats.visible_blocks
+    return ViewResult(n, last, state["tau"], mb, shot, problem, watch.note, seen)
 
 
 def _save(ctx: moderngl.Context, size: tuple[int, int], path: Path) -> None:
-    """Write the window's back buffer (terrain + status line) as a PNG."""
-    from PIL import Image
+    """Write the window's back buffer (terrain + status line) as an image (the format from
+    the extension: :func:`render.flythrough.encode_image`), whole or not at all."""
+    from render.flythrough import encode_image
+    from tiler.atomic import write_atomic
 
     data = ctx.screen.read(viewport=(0, 0, *size), components=3, alignment=1)
     img = np.frombuffer(data, np.uint8).reshape(size[1], size[0], 3)[::-1]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(img).save(path)
+    write_atomic(os.path.abspath(path), encode_image(img, path))

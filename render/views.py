@@ -164,6 +164,13 @@ def ground_note(store: TerrainStore, camera: Camera) -> str:
     near plane reaches (for a "no terrain pixel" error; no warning is logged)."""
     reach_ = near_reach(camera)
     c = float(ground_clearance(store, np.array([camera.position], dtype=np.float64), reach_)[0])
+    return clearance_note(camera, c)
+
+
+def clearance_note(camera: Camera, clearance: float) -> str:
+    """:func:`ground_note`'s clause for ``camera`` given its ``clearance`` above the terrain
+    under it (:func:`streamer.clip.ground_clearance`; NaN: unknown, ``inf``: high above)."""
+    c, reach_ = clearance, near_reach(camera)
     if c < 0:
         return (
             f"the camera is {-c:.3g} m below the terrain under it (it sees the terrain from "

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+if TYPE_CHECKING:
+    from streamer.camera import Camera
+    from tiler.store import TerrainStore
 
 from cli.checks import (
     input_file,
@@ -100,7 +104,7 @@ def flythrough(
     """
     from render.flythrough import flythrough as run
     from render.pipeline import ViewOptions
-    from streamer.errors import PathOutOfViewError
+    from streamer.errors import CameraError, PathOutOfViewError
     from streamer.run import make_path
 
     made = not out.exists()  # an --out folder made here and left empty by an error goes
@@ -117,9 +121,16 @@ def flythrough(
             for p in old:
                 not_an_input(p, "--out", [("--path", path)])  # a keyframe file named frames.csv
             s = open_store_arg(store_location(store, storage_options), projected=True)
-            cams = make_path(
-                s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport
-            )
+            try:
+                cams = make_path(
+                    s, path_kind, frames=frames, fps=fps, path_file=path, viewport=viewport
+                )
+            except CameraError as exc:  # (a keyframe far beyond the DEM: no far plane holds it)
+                where = f"a camera of the path in {str(path)!r}" if path else "a camera"
+                raise UsageError(
+                    f"{where} cannot be drawn: {exc}; keep the path near the DEM", hint="--path"
+                ) from None
+            check_cameras_near(s, cams, path)
             for p in old:  # removed only once the store is open and the path built
                 p.unlink(missing_ok=True)
             every_line = max(1, frames // 10)
@@ -208,6 +219,27 @@ def flythrough(
                 raise typer.Exit(EXIT_RUNTIME)
     finally:
         remove_if_left_empty(out, made)
+
+
+def check_cameras_near(store: TerrainStore, cams: list[Camera], path: Path | None) -> None:
+    """Refuse (a usage error naming --path, before any frame is flown) a path with a camera
+    more than 2^31 cells from the DEM's origin, beyond the renderer's 32-bit cell index (it
+    stopped the flight at that frame, exit 1)."""
+    from render.views import CAMERA_CELL_LIMIT, camera_cells
+
+    g = store.grid
+    for i, c in enumerate(cams):
+        x, y = float(c.position[0]), float(c.position[1])
+        if camera_cells(g, x, y) > CAMERA_CELL_LIMIT - 2:
+            far = CAMERA_CELL_LIMIT * min(abs(g.dx), abs(g.dy))
+            raise UsageError(
+                f"frame {i} of the path"
+                + (f" in {str(path)!r}" if path else "")
+                + f" puts the camera at x {x:.6g}, y {y:.6g}, more than 2^31 cells from the "
+                "DEM's origin, beyond the renderer's 32-bit cell index; keep the path within "
+                f"{far:.3g} m of the DEM",
+                hint="--path",
+            )
 
 
 def earlier_outputs(out: Path, overwrite: bool) -> list[Path]:

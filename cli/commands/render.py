@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -11,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 if TYPE_CHECKING:
-    from PIL.Image import Image as PILImage
+    import numpy as np
 
 from cli.checks import image_suffixes, open_store_arg, output_file
 from cli.common import UsageError, fail_on_errors
@@ -72,8 +71,6 @@ def render(
     Example: terrastream render demo.zarr --camera 500000,4990000,3000 --look-at
     505000,4995000,500 --tau 1 -o view.png
     """
-    from PIL import Image
-
     from render.pipeline import ViewOptions, render_view
     from render.strategies import error_label
     from render.views import ground_note, make_camera
@@ -86,6 +83,7 @@ def render(
         output_file(
             out, "--out", suffixes=image_suffixes(), overwrite=overwrite, inputs=[("STORE", store)]
         )
+        image_format(out, "--out")  # (an .xbm, a .pbm: refused before drawing)
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
@@ -118,7 +116,7 @@ def render(
                 "--look-at)",
                 hint="--camera",
             )
-        save_image(Image.fromarray(img), out)
+        save_image(img, out)
         if as_json:
             d = {
                 "out": str(out),
@@ -140,17 +138,40 @@ def render(
         )
 
 
-def save_image(img: PILImage, out: Path) -> None:
-    """Save ``img`` to ``out`` whole or not at all: encoded in memory (the format from OUT's
-    extension), written beside OUT and renamed over it (``tiler.atomic.write_atomic``), so a
-    failed save (a full disk, Ctrl-C) leaves neither half an image nor a damaged earlier OUT."""
-    from PIL import Image
+def image_format(path: Path, hint: str) -> None:
+    """Refuse (a usage error naming ``hint``) an image file whose extension's format cannot
+    hold an RGB picture (:func:`render.flythrough.encode_image` on a tiny one): said before
+    anything is drawn, not after."""
+    import numpy as np
 
+    from render.flythrough import ImageFormatError, encode_image
+
+    try:
+        encode_image(np.zeros((2, 3, 3), np.uint8), path)
+    except ImageFormatError as exc:
+        if exc.resized is not None:  # (not the size of the tiny picture tried)
+            raise UsageError(
+                f"{path.suffix} files do not keep a picture's size (one of 3x2 became "
+                f"{exc.resized[0]}x{exc.resized[1]}); use .png (lossless), .jpg or .tif",
+                hint=hint,
+            ) from None
+        raise UsageError(str(exc), hint=hint) from None
+
+
+def save_image(img: np.ndarray, out: Path) -> None:
+    """Save the RGB picture ``img`` to ``out`` whole or not at all: encoded in memory (the
+    format from OUT's extension; a format that cannot hold it as it is, e.g. an .ico of more
+    than 256 pixels a side, is a usage error naming --out), written beside OUT and renamed
+    over it (``tiler.atomic.write_atomic``), so a failed save (a full disk, Ctrl-C) leaves
+    neither half an image nor a damaged earlier OUT."""
+    from render.flythrough import ImageFormatError, encode_image
     from tiler.atomic import write_atomic
 
-    buf = io.BytesIO()
-    img.save(buf, format=Image.registered_extensions()[out.suffix.lower()])
-    write_atomic(os.path.abspath(out), buf.getvalue())
+    try:
+        data = encode_image(img, out)
+    except ImageFormatError as exc:
+        raise UsageError(str(exc), hint="--out") from None
+    write_atomic(os.path.abspath(out), data)
 
 
 def register(app: typer.Typer) -> None:

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from cli.checks import image_suffixes, open_store_arg, output_file
+from cli.commands.render import image_format
 from cli.common import EXIT_RUNTIME, UsageError, fail_on_errors
 from cli.options import (
     LOD_DEFAULT,
@@ -92,6 +93,8 @@ def view(
             overwrite=overwrite,
             inputs=[("STORE", store)],
         )
+        if screenshot is not None:
+            image_format(screenshot, "--screenshot")  # (an .xbm: refused before flying)
         s = open_store_arg(store_location(store, storage_options), projected=True)
         cam = make_camera(
             s, viewport, position=camera, look_at=look_at, yaw=yaw, pitch=pitch, fov=fov
@@ -106,18 +109,41 @@ def view(
             options=opts,
         )
         st = res.last
+        blank = frames is not None and (st is None or st.drawn_px == 0)  # a picture of sky
         typer.echo(
             f"{res.frames} frames; last: {st.triangles if st else 0:,} triangles at tau "
             f"{res.tau:.3g}, {res.resident_mb:.1f} MiB resident"
             + (f"; wrote {res.screenshot}" if res.screenshot else "")
         )
-        if res.problem:  # drawn without data it needed: not a view of the store
+        if frames is not None and res.ground and not blank:  # seen from below the ground
+            shot = f"the screenshot {str(res.screenshot)!r}" if res.screenshot else "the last frame"
+            typer.echo(f"warning: {shot} was taken where {res.ground}", err=True)
+        unseen = blank and res.visible_blocks == 0  # it looked away: that is the first error
+        if res.problem and not unseen:  # drawn without data it needed: not a view of the store
             typer.echo(
                 f"error: the view of {store!r} is incomplete: {res.problem}"
                 + ("; the screenshot was not kept" if screenshot is not None else ""),
                 err=True,
             )
             raise typer.Exit(EXIT_RUNTIME)
+        if blank:  # never a screenshot of sky with exit 0 (as `render`)
+            tris = st.triangles if st else 0
+            why = res.ground or (
+                "the camera sees none of the DEM"
+                if unseen
+                else "none of its levels could be loaded"
+                if tris == 0
+                else "its triangles are all smaller than a pixel or outside the view"
+            )
+            if res.problem and not unseen:  # (a camera that looked away loads nothing)
+                why += f" (and the streaming said: {res.problem})"
+            raise UsageError(
+                f"the last of the {res.frames} frame(s) of {store!r} drew no terrain pixel "
+                f"({tris:,} triangles): {why}; point the camera at the terrain (--camera, "
+                "--look-at, --pitch)"
+                + ("; the screenshot was not kept" if screenshot is not None else ""),
+                hint="--camera",
+            )
 
 
 def register(app: typer.Typer) -> None:
