@@ -19,6 +19,8 @@ import numpy as np
 
 from streamer.errors import BudgetError
 from streamer.evict import Block, Entry, EvictionIndex
+from tiler.errors import LayoutError
+from tiler.grid import as_block
 
 __all__ = ["Block", "LevelCache", "PinChanges", "mib_text"]
 
@@ -54,10 +56,12 @@ class LevelCache(EvictionIndex):
     """Decoded levels of blocks under a byte budget; visible wants are pinned (the eviction
     order and the room questions: :class:`streamer.evict.EvictionIndex`)."""
 
-    def __init__(self, budget_bytes: int) -> None:
+    def __init__(self, budget_bytes: int, shape: tuple[int, int] | None = None) -> None:
         if budget_bytes <= 0:
             raise BudgetError(f"budget must be a positive number of bytes, got {budget_bytes}")
         self.budget = int(budget_bytes)
+        # the block grid's (rows, cols): a block id outside it is refused (None: not checked)
+        self.shape = None if shape is None else (int(shape[0]), int(shape[1]))
         self._entries: dict[Block, Entry] = {}
         self.nbytes = 0  # resident levels + reservations of levels being read
         self.peak_nbytes = 0  # largest resident (decoded levels only)
@@ -92,9 +96,31 @@ class LevelCache(EvictionIndex):
         self._last_wants: dict[Block, tuple[int, float]] = {}
         self._repinned: set[Block] = set()
 
+    def check_block(self, block: object) -> None:
+        """Raise ``LayoutError`` (a ValueError) naming ``block`` and the grid unless it is a
+        block id ``(row, col)`` inside the cache's grid (no check without a ``shape``): such an
+        id once read as a block holding nothing (``levels((-1, -1))`` gave ``[]``)."""
+        shape = self.shape
+        if shape is None:
+            return
+        if type(block) is tuple and len(block) == 2:
+            r, c = block
+            if type(r) is int and type(c) is int and 0 <= r < shape[0] and 0 <= c < shape[1]:
+                return
+        r, c = as_block(block)  # (a LayoutError for what is no block id at all)
+        if not (0 <= r < shape[0] and 0 <= c < shape[1]):
+            raise LayoutError(
+                f"block {block!r} is outside the {shape[0]}x{shape[1]}-block grid (rows "
+                f"0..{shape[0] - 1}, columns 0..{shape[1] - 1})"
+            )
+
     def level(self, block: Block) -> int:
         """Finest resident level of a block (-1 if none)."""
-        return self._top.get(block, -1)
+        top = self._top.get(block)
+        if top is None:
+            self.check_block(block)  # (only on a miss: the per-frame lookups stay one get)
+            return -1
+        return top
 
     def levels_of(self, blocks: Iterable[Block]) -> list[int]:
         """:meth:`level` of each block (one C-level pass: for the per-frame loops)."""
@@ -115,7 +141,10 @@ class LevelCache(EvictionIndex):
     def levels(self, block: Block) -> list[np.ndarray]:
         """The block's resident levels (a new list; arrays are shared, read-only)."""
         e = self._entries.get(block)
-        return list(e.levels) if e else []
+        if e is None:
+            self.check_block(block)
+            return []
+        return list(e.levels)
 
     def blocks(self) -> list[Block]:
         """Blocks with at least one resident level."""
@@ -176,6 +205,11 @@ class LevelCache(EvictionIndex):
             )
         if changes is None or changes.of is not pins or changes.prev is not self._pins:
             changes = self.pin_changes(pins)
+        if self.shape is not None:  # new entries are the only way a wrong id gets in
+            entries = self._entries
+            for b, _ in changes.moved:
+                if b not in entries:
+                    self.check_block(b)  # (before anything changes)
         self.frame += 1
         entries, prev = self._entries, self._pins
         gen = self._gen
@@ -295,6 +329,7 @@ class LevelCache(EvictionIndex):
                 n += 1
                 e = entries.get(b)
                 if e is None:
+                    self.check_block(b)
                     e = entries[b] = Entry()
                 w = lv if lv > e.pin else e.pin
                 e.priority = prio
@@ -336,13 +371,19 @@ class LevelCache(EvictionIndex):
     def want(self, block: Block) -> tuple[int, int]:
         """``(wanted level, pinned level)`` of a block (``(-1, -1)`` if unwanted)."""
         e = self._entries.get(block)
-        return (e.want, e.pin) if e else (-1, -1)
+        if e is None:
+            self.check_block(block)
+            return (-1, -1)
+        return (e.want, e.pin)
 
     def want_priority(self, block: Block) -> tuple[int, int, float]:
         """``(wanted level, pinned level, priority)`` of a block (``(-1, -1, 0.0)`` if
         unwanted)."""
         e = self._entries.get(block)
-        return (e.want, e.pin, e.priority) if e else (-1, -1, 0.0)
+        if e is None:
+            self.check_block(block)
+            return (-1, -1, 0.0)
+        return (e.want, e.pin, e.priority)
 
     def add_level(
         self, block: Block, level: int, values: np.ndarray, *, reserved: bool = False
@@ -355,6 +396,7 @@ class LevelCache(EvictionIndex):
         if e is None:
             if reserved:
                 self.release(int(values.nbytes))
+            self.check_block(block)
             return False
         if level != len(e.levels):
             raise ValueError(f"block {block}: level {level} arrived but {len(e.levels)} is next")
@@ -379,7 +421,10 @@ class LevelCache(EvictionIndex):
 
     def drop_level(self, block: Block) -> None:
         """Unload a block's finest level."""
-        e = self._entries[block]
+        e = self._entries.get(block)
+        if e is None or not e.levels:
+            self.check_block(block)
+            raise ValueError(f"block {block!r} holds no level to unload")
         self._gen += 1
         a = e.levels.pop()
         self._moved.add(block)

@@ -88,7 +88,7 @@ class Loader:
         self.level_bytes = level_bytes
         self.field_name = field_name
         self.read_hook = read_hook
-        self.cache = LevelCache(int(config.budget_mb * 2**20))
+        self.cache = LevelCache(int(config.budget_mb * 2**20), store.grid.shape)
         #: the error fields and masks the loaders read, for the session's renderer
         self.side = BlockSide(side_bytes(int(config.budget_mb * 2**20)))
         self.errors = PatchErrorTable(store.k, config.patch_log2, gaps=config.nodata == "gap")
@@ -400,7 +400,10 @@ class Loader:
                 due = self.due.pop((b, nxt), None)
                 if due is not None and time.monotonic() > due:
                     self.frame_late += nbytes
-                if (b, nxt) in self.demanded:
+                # real-time: a level a frame lacked, or one the frame being made pins (it
+                # needs it; a read that came back before that frame was finished counted
+                # as prefetched, prefetch off too, as the frame had not marked it yet)
+                if (b, nxt) in self.demanded or self.cache.want(b)[1] >= nxt:
                     self.frame_realtime += nbytes
                 else:
                     self.frame_prefetched += nbytes
@@ -505,6 +508,10 @@ class Loader:
     def busy(self) -> bool:
         """Whether jobs are queued or running (caller holds the lock)."""
         return bool(len(self.queue) or self._in_flight or self.decoding)
+
+    def threads(self) -> list[threading.Thread]:
+        """The loader threads started so far (alive or not; none without workers)."""
+        return [] if self._pool is None else self._pool.threads
 
     def close(self, timeout_s: float) -> list[str]:
         """Stop taking jobs, wait (bounded) for running ones; names of threads still alive."""

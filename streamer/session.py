@@ -158,20 +158,24 @@ class Session:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        if self._closed:  # closed in the block: no second wait for reads that hang
+            return
         self._close(10.0, raise_bug=exc_type is None)  # never mask the exception in flight
 
     def close(self, timeout_s: float = 10.0) -> list[str]:
         """Stop the loader and planning threads, waiting at most ``timeout_s`` for reads in
         flight; the names of threads still running then (a read the server never answers).
         An exception a loader or planning thread raised that no :meth:`update` re-raised yet
-        is raised here, once the threads are stopped."""
+        is raised here, once the threads are stopped. Closing again waits (as long) for the
+        threads still running and names those still running then."""
         return self._close(timeout_s, raise_bug=True)
 
     def _close(self, timeout_s: float, *, raise_bug: bool) -> list[str]:
         with self._cv:
-            if self._closed:
-                return []
+            again = self._closed
             self._closed = self._plans.closed = True
+        if again:  # (it returned [] while the threads the first close named still ran)
+            return self._join_left(timeout_s)
         t0 = time.monotonic()
         pool = self._plans.pool
         if pool is not None:  # told first: it ends while the loader's reads are awaited
@@ -193,6 +197,18 @@ class Session:
             if left is not None:
                 log.error("a session thread failed: %r", left)
         return alive
+
+    def _join_left(self, timeout_s: float) -> list[str]:
+        """Wait at most ``timeout_s`` for the session's threads still running after a close;
+        the names of those still running then (kept as :attr:`unfinished`)."""
+        pool = self._plans.pool
+        threads = self.loader.threads() + ([] if pool is None else pool.threads)
+        deadline = time.monotonic() + max(0.0, float(timeout_s))
+        for t in threads:
+            if t.is_alive():
+                t.join(timeout=max(0.0, deadline - time.monotonic()))
+        self.unfinished = [t.name for t in threads if t.is_alive()]
+        return list(self.unfinished)
 
     def set_tau(self, tau: float) -> None:
         """Change the screen-space error threshold for what is drawn *and* what is streamed."""
@@ -267,6 +283,14 @@ class Session:
         floor = sum(self._cum_bytes[lv] for lv in least.values() if lv >= 0)
         if floor <= self.cache.budget:
             return exc  # a larger τ fits: the advice holds
+        # the need counted blocks whose error tables were not read at their coarsest levels
+        # (the warm-up's first frame): said beside the floor, it read less than the least a
+        # view needs at any τ ("need 0.0044 MiB ... at any tau at least 0.0059 MiB")
+        values = dict(exc.values)
+        before = sum(self._cum_bytes[lv] for lv in needed.values() if lv >= 0)
+        now = sum(self._cum_bytes[lv] for lv in self.planner.needed(camera).values() if lv >= 0)
+        if now > before:
+            values["need"] = mib_text(now)
         has = self.store.index.has_nodata
         n, holes = len(least), sum(1 for b in least if has[b])
         who = "it" if n == 1 else f"{holes} of them"
@@ -291,7 +315,7 @@ class Session:
             "the visible blocks need {need} at their levels but the budget is {budget}; at "
             "any {tau} {visible} at least {floor}" + why + ": raise {budget_mb} to at least that",
             params=exc.params,
-            **exc.values,
+            **values,
             visible="the visible block needs" if n == 1 else f"the {n} visible blocks need",
             floor=mib_text(floor),
         )
@@ -568,7 +592,8 @@ class Session:
     # -- results ---------------------------------------------------------------------------
 
     def levels(self, block: Block) -> list[np.ndarray]:
-        """Resident decoded levels of a block (for renderers)."""
+        """Resident decoded levels of a block (for renderers); ``LayoutError`` (a ValueError)
+        for a block id outside the store's grid."""
         with self._cv:
             return self.cache.levels(block)
 
@@ -585,8 +610,12 @@ class Session:
     def block_side(self, block: Block) -> Side | None:
         """A block's error fields and mask as the loaders read them, and the fields under the
         nodata rule "full" (read-only arrays), or None when not kept
-        (:mod:`streamer.blockside`): for renderers, which then read the store."""
-        return self.loader.side.get(block)
+        (:mod:`streamer.blockside`): for renderers, which then read the store.
+        ``LayoutError`` (a ValueError) for a block id outside the store's grid."""
+        side = self.loader.side.get(block)
+        if side is None:
+            self.cache.check_block(block)
+        return side
 
     def summary(self) -> dict[str, Any]:
         """Totals over every frame so far (the ``summary`` object of ``--json``).

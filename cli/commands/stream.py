@@ -211,6 +211,7 @@ def stream(
         typer.echo("")
         typer.echo(format_summary(result.summary))
         hull_note(result.summary)
+        unseen_note(result)
         problem = flight_problem(end, unfinished, store)
         result.summary["at_close"] = {k: end[k] for k in AT_CLOSE} | {
             "unanswered_reads": sum(n.startswith(THREAD_PREFIX) for n in unfinished),
@@ -238,6 +239,24 @@ def hull_note(summary: dict) -> None:
             f"draws ({hull_holes or 0} with holes) where Qiu's triangle counts "
             f"{summary['stall_frames']} ({summary['hole_frames']}): the triangle misses what "
             "the camera sees beside and behind its apex; --culling hull streams what is drawn",
+            err=True,
+        )
+
+
+def unseen_note(result: RunResult) -> None:
+    """Count the frames that saw no block of the DEM (``summary.unseen_frames``) and warn when
+    there are any: their stall, hole and byte figures are empty, so a path that leaves the
+    DEM for most of its frames read as a flight that streamed perfectly."""
+    rows = result.rows
+    unseen = sum(1 for r in rows if not r["visible_blocks"])
+    result.summary["unseen_frames"] = unseen
+    if unseen:
+        where = "Qiu's triangle" if result.summary.get("stall_set") == "triangle" else "the hull"
+        typer.echo(
+            f"warning: {unseen} of {len(rows)} frame(s) had no block of the DEM in view (over "
+            f"{where}: the camera path leaves the DEM or looks away from it); they needed no "
+            f"data and cannot stall: the figures measure streaming over the other "
+            f"{len(rows) - unseen}",
             err=True,
         )
 

@@ -11,6 +11,7 @@ from streamer.blockside import BlockSide, Side, side_bytes
 from streamer.nodata import has_boundary, mixed_nodes, pack_mixed, rule_errors, unpack_mixed
 from streamer.paths import default_flythrough
 from streamer.session import open_session
+from tiler.errors import LayoutError
 from tiler.tile import TileOptions, tile
 
 
@@ -96,7 +97,8 @@ def test_a_session_keeps_what_its_loaders_read(nodata_store, workers):
             else:
                 assert side.mixed is None
         assert len(known) >= 4 and raised >= 1 and boundaries >= 1
-        assert sess.block_side((99, 99)) is None
+        with pytest.raises(LayoutError, match="outside the 4x5-block grid"):
+            sess.block_side((99, 99))
 
 
 def test_mixed_nodes_packed_and_unpacked():
@@ -158,4 +160,5 @@ def test_resident_levels_follow_the_cache_and_what_a_renderer_takes_of_them(noda
         else:
             assert mixed is None
         assert src.held_later(b, held[b] + 1) is None  # a level it does not hold
-        assert src.held_later((99, 99), 0) is None  # a block it does not hold
+        with pytest.raises(LayoutError, match="outside"):
+            src.held_later((99, 99), 0)  # a block outside the grid
