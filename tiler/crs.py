@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -169,6 +170,43 @@ def choose_crs(dst_crs: str, src_crs: CRS | None, bounds: tuple[float, ...]) -> 
 
     ``bounds`` are the sources' ``(left, bottom, right, top)`` in ``src_crs``.
     """
+    return choose_crs_many(dst_crs, [(src_crs, bounds)])
+
+
+def choose_crs_many(
+    dst_crs: str,
+    sources: Sequence[tuple[CRS | None, tuple[float, ...]]],
+    names: Sequence[str] | None = None,
+) -> CRS:
+    """The target CRS for ``dst_crs`` (``"auto"`` or WKT) and sources given as ``(crs,
+    (left, bottom, right, top))`` each in its own CRS: every one is checked to reach the target
+    (or longitude/latitude, which ``auto`` needs), and ``auto`` fits the union of their
+    longitude/latitude extents, taken the short way round (across the antimeridian when that is
+    narrower). A refusal names the source (``names[i]``) when ``names`` are given."""
+    target = None if dst_crs == AUTO else CRS.from_wkt(dst_crs)
+    lonlat = []
+    for i, (src_crs, b) in enumerate(sources):
+        try:
+            lonlat.append(_source_lonlat(src_crs, tuple(b), target))
+        except SourceError as exc:
+            if names is None:
+                raise
+            if exc.template is None:
+                raise SourceError(f"{names[i]!r}: {exc}") from exc
+            raise SourceError(
+                "{source_name!r}: " + exc.template,
+                params=exc.params,
+                source_name=names[i],
+                **exc.values,
+            ) from exc
+    return target if target is not None else auto_crs(lonlat_union(lonlat))
+
+
+def _source_lonlat(
+    src_crs: CRS | None, bounds: tuple[float, ...], target: CRS | None
+) -> tuple[float, float, float, float]:
+    """Refuse a source CRS that cannot be reprojected to ``target`` (None: to longitude/
+    latitude, for ``auto``); its ``bounds`` in longitude/latitude when ``target`` is None."""
     if src_crs is None:
         raise SourceError(
             "the source has no CRS, so it cannot be reprojected; tile it without a target CRS"
@@ -180,7 +218,6 @@ def choose_crs(dst_crs: str, src_crs: CRS | None, bounds: tuple[float, ...]) -> 
             params={"dst_crs": "dst_crs"},
             name=src_crs.to_wkt().split('"')[1] if '"' in src_crs.to_wkt() else "unnamed",
         )
-    target = None if dst_crs == AUTO else CRS.from_wkt(dst_crs)
     left, bottom, right, top = bounds
     try:  # (within an Env: GDAL's "ERROR 1: PROJ ..." to logging, not to stderr)
         with rasterio.Env():
@@ -194,10 +231,44 @@ def choose_crs(dst_crs: str, src_crs: CRS | None, bounds: tuple[float, ...]) -> 
             "CRS it can reach with {dst_crs}, or tile without one",
             params={"dst_crs": "dst_crs"},
             name=crs_name(src_crs.to_wkt()),
-            to="longitude/latitude, which 'auto' needs" if target is None else crs_name(dst_crs),
+            to="longitude/latitude, which 'auto' needs"
+            if target is None
+            else crs_name(target.to_wkt()),
             exc=str(exc).split("\n")[0][:200],
         ) from exc
-    return target if target is not None else auto_crs(tuple(bounds))
+    w, s, e, n = (float(v) for v in bounds)
+    return w, s, e, n
+
+
+def lonlat_union(
+    boxes: Sequence[tuple[float, float, float, float]],
+) -> tuple[float, float, float, float]:
+    """The smallest ``(west, south, east, north)`` holding every box, longitudes taken round the
+    globe: boxes on both sides of the antimeridian (179..180 and -180..-179) make 179..181, not
+    -180..180. ``east`` may exceed 180; a box with ``east < west`` crosses the antimeridian."""
+    south = min(b[1] for b in boxes)
+    north = max(b[3] for b in boxes)
+    arcs = []  # (start in [0, 360), length) of each box's longitudes
+    for w, _, e, _ in boxes:
+        span = e - w if e >= w else e + 360.0 - w
+        if span >= 360.0:
+            return -180.0, south, 180.0, north
+        arcs.append((w % 360.0, span))
+    # the widest gap between the arcs (walking east) is what the union leaves out
+    arcs.sort()
+    reach = arcs[0][0] + arcs[0][1]  # how far east the arcs so far cover
+    gap, gap_end = 0.0, arcs[0][0]
+    for start, span in arcs[1:]:
+        if start - reach > gap:
+            gap, gap_end = start - reach, start
+        reach = max(reach, start + span)
+    wrap = arcs[0][0] + 360.0 - reach  # the gap from the last arc's end round to the first
+    if wrap >= gap:
+        gap, gap_end = wrap, arcs[0][0]
+    if gap <= 0.0:
+        return -180.0, south, 180.0, north
+    west = (gap_end + 180.0) % 360.0 - 180.0
+    return west, south, west + 360.0 - gap, north
 
 
 def is_local(crs: CRS | None) -> bool:

@@ -71,7 +71,9 @@ def store_info(url: str | os.PathLike) -> dict[str, Any]:
         # heights: value_range is in metres; the stored values are (metres - offset) / scale
         "vertical": vertical,  # {"scale", "offset", "units", "metres_per_unit"} or None
         "value_range_stored": stored_range,
-        "source_crs": crs_name(m.extra.get("source_crs_wkt"))
+        "source_crs": " + ".join(m.extra["source_crss"])  # a mosaic warped from several
+        if m.extra.get("source_crss")
+        else crs_name(m.extra.get("source_crs_wkt"))
         if m.extra.get("source_crs_wkt")
         else crs,
         "reprojection": m.extra.get("reprojection"),  # {"requested", "crs", ...} or None

@@ -60,6 +60,32 @@ def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
     return valid
 
 
+def wrapped_crs(info: SourceInfo) -> CRS | None:
+    """For a geographic source whose longitudes run past ±180 (179..181, or 0..360), its CRS
+    with longitudes wrapped round its centre (PROJ's ``+lon_wrap``), else None (its own).
+
+    GDAL's warper maps each target pixel back to -180..180, so the part of such a source past
+    the antimeridian (181 read as -179) was found in no sample and silently became nodata.
+    """
+    if not info.crs_wkt:
+        return None
+    crs = CRS.from_wkt(info.crs_wkt)
+    if not crs.is_geographic:
+        return None
+    t = Affine(*info.transform)
+    xs = [(t * (c, r))[0] for c in (0, info.width) for r in (0, info.height)]
+    if min(xs) >= -180.0 and max(xs) <= 180.0:
+        return None
+    centre = (min(xs) + max(xs)) / 2.0
+    return CRS.from_proj4(f"{crs.to_proj4()} +lon_wrap={centre:.9g}")
+
+
+def _inside(rings: list, shape: tuple[int, ...], at: Affine) -> np.ndarray:
+    """True where a pixel centre of a ``shape`` window at ``at`` lies in any of ``rings``."""
+    shapes = [{"type": "Polygon", "coordinates": [r]} for r in rings]
+    return geometry_mask(shapes, out_shape=shape, transform=at, invert=True)
+
+
 def _read(fn: Callable[..., np.ndarray], band: int, win: Window, path: str) -> np.ndarray:
     """``fn(band, window=win)`` (a dataset's ``read`` or ``read_masks``), a GDAL read failure
     raised as :class:`SourceReadError` naming the file and the window (for an ``http(s)`` URL
@@ -146,6 +172,7 @@ class MosaicReader:
                 height=spec.height,
                 resampling=Resampling[spec.resampling],
                 src_nodata=info.nodata,
+                src_crs=wrapped_crs(info),
                 nodata=spec.nodata,
                 dtype=spec.dtype,
                 tolerance=WARP_TOLERANCE,
@@ -187,6 +214,7 @@ class MosaicReader:
         fill = np.asarray(spec.nodata if spec.nodata is not None else 0).astype(self.dtype)
         out = np.full((h, w), fill, dtype=self.dtype)
         filled = np.zeros((h, w), dtype=bool)
+        seams = []  # (source, its samples and their validity before the hull cut, where)
         for i in hits:
             fr0, fc0, fr1, fc1 = (int(v) for v in self._fp[i])
             ir0, ir1 = max(r0, fr0), min(r0 + h, fr1)
@@ -201,19 +229,36 @@ class MosaicReader:
                 if mask is not None:
                     valid &= mask
             self._check_chosen_nodata(data, valid, i)
-            if spec.warp and spec.sources[i].hull:
-                valid &= geometry_mask(
-                    [{"type": "Polygon", "coordinates": [spec.sources[i].hull]}],
-                    out_shape=data.shape,
-                    transform=spec.affine * Affine.translation(ic0, ir0),
-                    invert=True,
-                )
             sub = (slice(ir0 - r0, ir1 - r0), slice(ic0 - c0, ic1 - c0))
+            if spec.warp and spec.sources[i].hull:
+                at = spec.affine * Affine.translation(ic0, ir0)
+                if spec.sources[i].edge:
+                    seams.append((i, data, valid.copy(), sub, at))
+                valid &= _inside([spec.sources[i].hull], data.shape, at)
             take = valid & ~filled[sub]
             out[sub][take] = data[take].astype(self.dtype)
             filled[sub] |= take
             if filled.all():
-                break
+                return out
+        for i, data, valid, sub, at in seams:
+            # the seam between sources that share no sample lies outside every hull, yet within
+            # a source's pixels and a pixel from another's samples, beside them (not past the
+            # end of their rows or columns: the mosaic's outer edge stays cut), or a pixel from
+            # two others' (where four tiles meet): there its samples (edge-held by GDAL's
+            # kernel, as a gdalwarp of the tiles gives) are kept
+            todo = valid & ~filled[sub]
+            if not todo.any():
+                continue
+            info = spec.sources[i]
+            todo &= _inside([info.edge], data.shape, at)
+            beside = np.zeros(data.shape, dtype=bool)
+            around = np.zeros(data.shape, dtype=np.int32)
+            for k in range(0, len(info.near), 3):
+                beside |= _inside(list(info.near[k : k + 2]), data.shape, at)
+                around += _inside([info.near[k + 2]], data.shape, at)
+            take = todo & (beside | (around >= 2))
+            out[sub][take] = data[take].astype(self.dtype)
+            filled[sub] |= take
         return out
 
     def _read_aligned(

@@ -17,7 +17,13 @@ from rasterio.transform import Affine
 from rasterio.warp import transform as warp_transform
 from rasterio.warp import transform_bounds
 
-from tiler.crs import choose_crs, parse_dst_crs, parse_resampling
+from tiler.crs import (
+    choose_crs_many,
+    crs_name,
+    lonlat_union,
+    parse_dst_crs,
+    parse_resampling,
+)
 from tiler.encoding import parse_dtype
 from tiler.errors import SourceError
 from tiler.source_header import SourceInfo, read_info
@@ -110,18 +116,22 @@ def plan_mosaic(
         infos,
     )
     crss = [CRS.from_wkt(i.crs_wkt) if i.crs_wkt else None for i in infos]
+    if dst_crs is None and resolution is not None:
+        raise SourceError("a resolution applies when reprojecting; give a target CRS too")
+    if dst_crs is not None:  # each source is warped from its own CRS
+        return _plan_warped(
+            infos, band, dtype, crss, parse_dst_crs(dst_crs), resolution, resampling
+        )
     for c, info in zip(crss, infos, strict=True):
         if c != crss[0]:
             raise SourceError(
-                f"sources are in different CRSs ({infos[0].path!r}: {crss[0]}, {info.path!r}: "
-                f"{c}); give a target CRS to reproject them onto one grid"
-            )
-    src_crs = crss[0]
-    if dst_crs is None and resolution is not None:
-        raise SourceError("a resolution applies when reprojecting; give a target CRS too")
-    if dst_crs is None:
-        return _plan_aligned(infos, band, dtype, src_crs)
-    return _plan_warped(infos, band, dtype, src_crs, parse_dst_crs(dst_crs), resolution, resampling)
+                "sources are in different CRSs ({first!r}: {a}, {path!r}: {b}); give a target "
+                "CRS with {dst_crs} (e.g. 'auto') to reproject them onto one grid",
+                params={"dst_crs": "dst_crs"},
+                first=infos[0].path, a=crs_name(crss[0].to_wkt()) if crss[0] else "none",
+                path=info.path, b=crs_name(c.to_wkt()) if c else "none",
+            )  # fmt: skip
+    return _plan_aligned(infos, band, dtype, crss[0])
 
 
 def _plan_aligned(
@@ -197,19 +207,29 @@ def _with_footprint(info: SourceInfo, r0: int, c0: int, r1: int, c1: int) -> Sou
 #: finer is a unit mistake (degrees given as metres), not an upsampling anyone wants
 MAX_UPSAMPLE = 100.0
 HULL_POINTS = 64  # points per edge of a source's sample-centre hull
+SEAM_POINTS = 16  # points per edge of the seam rings (chords ~1 m off over a 1° tile)
 HULL_EPS = 1e-3  # source pixels the hull is widened by, so samples on it are kept (no ties)
 
 
-def _hull(info: SourceInfo, src_crs: CRS, target: CRS) -> tuple[tuple[float, float], ...]:
-    """The ring through the source's outer sample centres, in target coordinates.
+def _hull(
+    info: SourceInfo,
+    src_crs: CRS,
+    target: CRS,
+    widen: float = HULL_EPS,
+    widen_cols: float | None = None,
+    points: int = HULL_POINTS,
+) -> tuple[tuple[float, float], ...]:
+    """The ring through the source's outer sample centres, in target coordinates (``widen``
+    source pixels out across its rows, ``widen_cols`` across its columns, default the same:
+    0.5 is the ring of its pixel edges).
 
     Reprojected samples outside it would be extrapolated (GDAL holds edge values constant
     there), so they are left out: the store ends where the source's samples end.
     """
     t = Affine(*info.transform)
-    n = HULL_POINTS
-    e = HULL_EPS
-    r0, c0, r1, c1 = -e, -e, info.height - 1 + e, info.width - 1 + e
+    n = points
+    e, f = widen, widen if widen_cols is None else widen_cols
+    r0, c0, r1, c1 = -e, -f, info.height - 1 + e, info.width - 1 + f
     edge = np.linspace(0.0, 1.0, n, endpoint=False)
     rows = np.concatenate(
         [r0 + 0 * edge, r0 + edge * (r1 - r0), r1 + 0 * edge, r1 - edge * (r1 - r0)]
@@ -244,14 +264,25 @@ def _on_earth(bounds: tuple[float, ...], crs: CRS | None) -> tuple[float, float,
     return left, bottom, right, top
 
 
-def _union_bounds(infos: Sequence[SourceInfo]) -> tuple[float, float, float, float]:
-    b = np.array([_bounds(i) for i in infos])
-    return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+def _extent_in(
+    crs: CRS, own: Sequence[tuple[float, float, float, float]], crss: Sequence[CRS | None]
+) -> tuple[float, float, float, float]:
+    """The union of the extents of the sources in ``crs`` (longitudes the short way round the
+    globe when it is geographic: tiles on both sides of the antimeridian make 179..181)."""
+    same = np.array([b for b, c in zip(own, crss, strict=True) if c == crs])
+    left, bottom = float(same[:, 0].min()), float(same[:, 1].min())
+    right, top = float(same[:, 2].max()), float(same[:, 3].max())
+    if crs.is_geographic:
+        wrapped = lonlat_union([tuple(b) for b in same])
+        if wrapped[2] - wrapped[0] < right - left - 1e-9:  # shorter across the antimeridian
+            return wrapped
+    return left, bottom, right, top
 
 
 def _finest_pixel(info: SourceInfo, bounds: tuple[float, ...], src_crs: CRS, target: CRS) -> float:
-    """The source's finer pixel side, in target units, at the centre of the extent: the
-    default resolution, so reprojection loses no detail along either axis."""
+    """The source's finer pixel side, in target units, at the centre of ``bounds``: the
+    default resolution (the finest over the sources), so reprojection loses no detail along
+    either axis."""
     a, b, _, d, e, _ = info.transform
     cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
     xs, ys = warp_transform(src_crs, target, [cx, cx + a, cx + b], [cy, cy + d, cy + e])
@@ -264,19 +295,30 @@ def _plan_warped(
     infos: list[SourceInfo],
     band: int,
     dtype: np.dtype,
-    src_crs: CRS | None,
+    crss: list[CRS | None],
     dst_crs: str,
     resolution: float | tuple[float, float] | None,
     resampling: str,
 ) -> MosaicSpec:
     resampling = parse_resampling(resampling)
-    bounds = _on_earth(_union_bounds(infos), src_crs)
-    target = choose_crs(dst_crs, src_crs, bounds)
+    # every source's extent in its own CRS: the target grid is the union of their extents
+    # on the target (a union taken in one source CRS would span the globe for tiles on both
+    # sides of the antimeridian)
+    own = [_on_earth(_bounds(i), c) for i, c in zip(infos, crss, strict=True)]
+    names = [i.path for i in infos] if len(infos) > 1 else None
+    target = choose_crs_many(dst_crs, list(zip(crss, own, strict=True)), names)
     if resolution is not None:
         res = (resolution, resolution) if np.isscalar(resolution) else tuple(resolution)
         if not all(math.isfinite(r) and r > 0 for r in res):
             raise SourceError(f"resolution must be positive target CRS units, got {resolution}")
-    native = _finest_pixel(infos[0], bounds, src_crs, target)
+    # the finest source's pixel (as gdalwarp): a finer source listed after a coarser one keeps
+    # its detail (sources of one CRS and pixel size are measured once, at their extent's centre)
+    kinds: dict[tuple, tuple[SourceInfo, CRS]] = {}
+    for i, c in zip(infos, crss, strict=True):
+        kinds.setdefault(
+            (c.to_wkt(), *(abs(v) for v in i.transform[:2] + i.transform[3:5])), (i, c)
+        )
+    native = min(_finest_pixel(i, _extent_in(c, own, crss), c, target) for i, c in kinds.values())
     if resolution is None:
         r = float(f"{native:.3g}")
         res = (r, r)
@@ -288,7 +330,15 @@ def _plan_warped(
             params={"resolution": "resolution"},
             res=min(res), factor=native / min(res), native=native, least=native / MAX_UPSAMPLE,
         )  # fmt: skip
-    left, bottom, right, top = transform_bounds(src_crs, target, *bounds, densify_pts=51)
+    boxes = [
+        transform_bounds(c, target, *b, densify_pts=51) for c, b in zip(crss, own, strict=True)
+    ]
+    if all(c == crss[0] for c in crss):  # (one CRS: their union's extent, as before)
+        union = _extent_in(crss[0], own, crss)
+        left, bottom, right, top = transform_bounds(crss[0], target, *union, densify_pts=51)
+    else:
+        left, bottom = min(b[0] for b in boxes), min(b[1] for b in boxes)
+        right, top = max(b[2] for b in boxes), max(b[3] for b in boxes)
     ew, ns = right - left, top - bottom
     # snap to multiples of the resolution (gdalwarp -tap), so separate runs share one grid
     left = math.floor(left / res[0]) * res[0]
@@ -306,13 +356,13 @@ def _plan_warped(
         )  # fmt: skip
     t = Affine(res[0], 0.0, left, 0.0, -res[1], top)
     placed = []
-    for i in infos:
-        sb = transform_bounds(src_crs, target, *_on_earth(_bounds(i), src_crs), densify_pts=51)
+    for i, c, sb in zip(infos, crss, boxes, strict=True):
         c0 = max(0, math.floor((sb[0] - left) / res[0]) - 2)
         c1 = min(width, math.ceil((sb[2] - left) / res[0]) + 2)
         r0 = max(0, math.floor((top - sb[3]) / res[1]) - 2)
         r1 = min(height, math.ceil((top - sb[1]) / res[1]) + 2)
-        placed.append(replace(_with_footprint(i, r0, c0, r1, c1), hull=_hull(i, src_crs, target)))
+        placed.append(replace(_with_footprint(i, r0, c0, r1, c1), hull=_hull(i, c, target)))
+    placed = _with_seams(placed, crss, target)
     return MosaicSpec(
         sources=tuple(placed),
         band=band,
@@ -322,8 +372,33 @@ def _plan_warped(
         crs_wkt=target.to_wkt(),
         dtype=dtype.name,
         nodata=_mosaic_nodata(infos, dtype, covered=False),
-        source_crs_wkt=src_crs.to_wkt() if src_crs else None,
+        source_crs_wkt=crss[0].to_wkt() if crss[0] else None,
         warp=True,
         resampling=resampling,
         dst_crs=dst_crs,
     )
+
+
+def _with_seams(placed: list[SourceInfo], crss: Sequence[CRS], target: CRS) -> list[SourceInfo]:
+    """Each source with the rings :class:`~tiler.mosaic.MosaicReader` fills seams from: its
+    pixel edges, and, for each source whose footprint meets it, three rings round that one's
+    sample centres: one source pixel out across its columns only, across its rows only, and
+    both (none: no seam)."""
+    fp = np.array([p.footprint for p in placed], dtype=np.int64).reshape(-1, 4)
+    out = []
+    for k, p in enumerate(placed):
+        meet = (fp[:, 0] < fp[k, 2]) & (fp[:, 2] > fp[k, 0]) & (fp[:, 1] < fp[k, 3])
+        meet &= fp[:, 3] > fp[k, 1]
+        meet[k] = False
+        others = np.nonzero(meet)[0].tolist()
+        if not others:
+            out.append(p)
+            continue
+        near = tuple(
+            _hull(placed[j], crss[j], target, widen=a, widen_cols=b, points=SEAM_POINTS)
+            for j in others
+            for a, b in ((HULL_EPS, 1.0), (1.0, HULL_EPS), (1.0, 1.0))
+        )
+        edge = _hull(p, crss[k], target, widen=0.5, points=SEAM_POINTS)
+        out.append(replace(p, edge=edge, near=near))
+    return out

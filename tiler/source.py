@@ -146,6 +146,9 @@ def source_meta(ds: MosaicReader, src: SourceLike, opts: TileOptions) -> StoreMe
             "resampling": spec.resampling,
             "resolution": [spec.transform[0], -spec.transform[4]],
         }
+        names = list(dict.fromkeys(crs_name(i.crs_wkt) for i in spec.sources))
+        if len(names) > 1:  # (source_crs_wkt is the first source's)
+            extra["source_crss"] = names
     vertical = vertical_meta(first.scale, first.offset, first.units)
     if vertical:
         if opts.precision:

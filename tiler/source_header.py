@@ -57,6 +57,13 @@ class SourceInfo:
     # GDAL's AREA_OR_POINT ("Area", "Point" or None): how its samples are meant (GDAL's
     # geotransform is the pixel corners' either way)
     area_or_point: str | None = None
+    # when reprojecting and another source abuts or overlaps it: its pixel edges' ring, and
+    # three rings per such source round that one's sample centres (widened a pixel across
+    # columns, across rows, both), in target coordinates: the seam between two tiles that
+    # share no sample lies outside both hulls (see MosaicReader). Derived from the fields
+    # above, so not in a resume fingerprint (tiler.resume: the fields before ``masked``)
+    edge: tuple[tuple[float, float], ...] = ()
+    near: tuple[tuple[tuple[float, float], ...], ...] = ()
 
 
 #: GDAL's connection strings naming a part of a file: ``NETCDF:"f.nc":elevation``,

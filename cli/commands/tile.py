@@ -224,7 +224,10 @@ def tile(
             if rep:
                 from tiler.crs import crs_name
 
-                src_crs = crs_name(store.meta.extra.get("source_crs_wkt"))
+                crss = store.meta.extra.get("source_crss")  # (a mosaic of several CRSs)
+                src_crs = (
+                    " + ".join(crss) if crss else crs_name(store.meta.extra.get("source_crs_wkt"))
+                )
                 typer.echo(
                     f"reprojected from {src_crs} to {rep['crs']} ({rep['requested']}), "
                     f"{rep['resolution'][0]:g} m pixels, {rep['resampling']} resampling"
