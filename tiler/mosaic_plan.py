@@ -6,6 +6,7 @@ footprint from its warped sample-centre hull), as a picklable :class:`MosaicSpec
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections.abc import Sequence
@@ -28,6 +29,8 @@ from tiler.encoding import parse_dtype
 from tiler.errors import SourceError
 from tiler.source_header import SourceInfo, read_info
 from tiler.vertical import metres_per_unit
+
+log = logging.getLogger(__name__)
 
 ALIGN_TOL = 1e-3  # pixels: how far a source's origin may sit off the mosaic's pixel grid
 
@@ -175,6 +178,8 @@ def _plan_aligned(
     height = max(p.footprint[2] for p in placed)
     width = max(p.footprint[3] for p in placed)
     t = Affine(a, 0.0, c + c_min * a, 0.0, e, f + r_min * e)
+    if src_crs is not None and src_crs.is_geographic and len(placed) > 1:
+        _warn_antimeridian(placed, width * abs(a))
     return MosaicSpec(
         sources=placed,
         band=band,
@@ -186,6 +191,22 @@ def _plan_aligned(
         nodata=_mosaic_nodata(infos, dtype, _covers([p.footprint for p in placed], height, width)),
         source_crs_wkt=src_crs.to_wkt() if src_crs else None,
     )
+
+
+def _warn_antimeridian(placed: Sequence[SourceInfo], span_deg: float) -> None:
+    """Warn when geographic sources lie on both sides of the antimeridian: their grid in
+    degrees runs the long way round (a mostly empty grid of ``span_deg``), where a target CRS
+    makes one small grid of their short-way union."""
+    boxes = [_bounds(p) for p in placed]
+    west, _, east, _ = lonlat_union(boxes)
+    if span_deg > 180.0 and east - west < span_deg / 2:
+        log.warning(
+            "the sources lie on both sides of the antimeridian: in degrees their grid runs the "
+            "long way round (%.1f° of longitude, mostly empty, where they cover %.1f°); "
+            "`--dst-crs auto` makes one grid of what they cover",
+            span_deg,
+            east - west,
+        )
 
 
 def _north_up(info: SourceInfo) -> tuple[float, float, float, float, float, float]:

@@ -219,3 +219,28 @@ def test_a_positive_control_the_seam_stripe_is_caught(tmp_path):
     pair, one = _abutting(tmp_path, seams=False)
     lost = store_array(one)[1] & ~store_array(pair)[1]
     assert lost.sum() > 50  # (both seams, crossing the DEM)
+
+
+def test_without_a_target_crs_tiles_across_the_antimeridian_are_warned_about(tmp_path, caplog):
+    """Without `--dst-crs` such tiles lie losslessly on a grid in degrees that runs the long way
+    round (a 2° DEM as 360° of columns, mostly empty), with no word; now a warning names
+    `--dst-crs auto`. The control: two tiles side by side elsewhere plan quietly."""
+    import logging
+
+    data = fractal((61, 61), seed=3)
+    west = write_dem(tmp_path / "w.tif", np.ascontiguousarray(data[:, :31]), crs="EPSG:4326",
+                     origin=(179.0, -16.0), cell=DEG)  # fmt: skip
+    east = write_dem(tmp_path / "e.tif", np.ascontiguousarray(data[:, 30:]), crs="EPSG:4326",
+                     origin=(-180.0, -16.0), cell=DEG)  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="tiler.mosaic_plan"):
+        spec = plan_mosaic([str(west), str(east)])
+    assert spec.width > 10_000  # (the long way round, as before: lossless, but mostly empty)
+    assert "both sides of the antimeridian" in caplog.text and "--dst-crs auto" in caplog.text
+    caplog.clear()
+    a = write_dem(tmp_path / "a.tif", np.ascontiguousarray(data[:, :31]), crs="EPSG:4326",
+                  origin=(10.0, 45.0), cell=DEG)  # fmt: skip
+    b = write_dem(tmp_path / "b.tif", np.ascontiguousarray(data[:, 30:]), crs="EPSG:4326",
+                  origin=(10.0 + 30 * DEG, 45.0), cell=DEG)  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="tiler.mosaic_plan"):
+        plan_mosaic([str(a), str(b)])
+    assert "antimeridian" not in caplog.text
