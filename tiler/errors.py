@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 
 class NamedParams(Exception):
@@ -111,6 +112,15 @@ class BlockDataError(StoreCorruptError):
         super().__init__(message)
         self.array, self.block, self.level = array, block, level
 
+    def __reduce__(self) -> tuple:  # through a worker process (dask's, multiprocessing's)
+        return (_located, (type(self), str(self), self.array, self.block, self.level))
+
+
+def _located(cls: type, message: str, array: Any, block: Any, level: Any) -> Exception:
+    """Rebuild a :class:`BlockDataError` / :class:`StoreUnavailableError` after pickling (its
+    keyword-only fields made the default unpickling fail, or drop them)."""
+    return cls(message, array=array, block=block, level=level)
+
 
 class ChunkChecksumError(BlockDataError):
     """A chunk's crc32c does not match its bytes (bit rot, a torn write, tampering)."""
@@ -135,6 +145,9 @@ class StoreUnavailableError(StoreError):
     ):
         super().__init__(message)
         self.array, self.block, self.level = array, block, level
+
+    def __reduce__(self) -> tuple:  # through a worker process: the block kept
+        return (_located, (type(self), str(self), self.array, self.block, self.level))
 
 
 class StoreChangedError(StoreError):
@@ -192,3 +205,6 @@ class BlockFailedError(TilerError, RuntimeError):
     def __init__(self, message: str, block: tuple[int, int] | None = None) -> None:
         super().__init__(message)
         self.block = block
+
+    def __reduce__(self) -> tuple:  # through a worker process: the block kept
+        return (type(self), (str(self), self.block))

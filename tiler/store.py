@@ -91,6 +91,21 @@ __all__ = [
 
 
 REMOTE_CHECK_INTERVAL_S = 1.0
+#: remote reads of one block tried again when a repair is seen while they are under way
+#: (their kept shard indexes may be the old ones), at most
+EPOCH_RETRIES = 4
+#: a store first read in a forked child reopens its zarr store under this lock (its event
+#: loop and connections are the parent's); a new lock in each child
+_FORK_LOCK = threading.Lock()
+
+
+def _new_fork_lock() -> None:
+    global _FORK_LOCK
+    _FORK_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_new_fork_lock)
 
 
 class TerrainStore:
@@ -101,8 +116,11 @@ class TerrainStore:
     :class:`MissingChunkError` (both name array, block and level), and a store replaced or
     rewritten since it was opened raises :class:`StoreChangedError` (checked after each read
     batch; at most once a second for remote stores, so reads in the second before it is seen
-    may return the new store's chunks). Once seen, the change is final: every later read
-    raises it.
+    may return the new store's chunks, or a block mixing the old and new store's). Once seen,
+    the change is final: every later read raises it; a remote read under way when another
+    thread sees a repair is read again (its kept shard indexes may be the old ones).
+
+    A store opened before a ``fork`` reopens its zarr store in the child on first use there.
 
     Level chunks of a format-2 store are read and decoded by :mod:`tiler.chunkread` (same
     checks, no zarr call per chunk; a remote store's one request each, its shard indexes kept
@@ -172,6 +190,8 @@ class TerrainStore:
         #: and the shard indexes read from it
         self._remote = self._group.store if self._direct and remote else None
         self.shard_indexes = IndexCache()
+        #: the process the zarr store was opened in (a forked child reopens it: _in_process)
+        self._pid = os.getpid()
 
     @property
     def direct_reads(self) -> bool:
@@ -186,7 +206,35 @@ class TerrainStore:
         """The error opening array ``name`` failed with (:func:`tiler.read_errors.open_error`)."""
         return open_error(self.url, name, exc)
 
+    def _in_process(self) -> None:
+        """Reopen the zarr store in a forked child before its first read there: the parent's
+        is bound to the parent's event loop and connections (a remote read then failed as
+        "the store is damaged"), its locks and in-flight index reads may be held by threads
+        the child does not have."""
+        if self._pid == os.getpid():
+            return
+        with _FORK_LOCK:
+            if self._pid == os.getpid():
+                return
+            self._lock = threading.Lock()
+            with server_errors("the store's metadata", self.url):
+                try:
+                    group = self.location.open_group("r")
+                except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+                    self._changed = (
+                        f"store {self.url!r} was removed or replaced while it was open (its "
+                        f"root metadata is gone: {exc}); reopen it to read the new store"
+                    )
+                    raise StoreChangedError(self._changed) from exc
+            self._group = group
+            self._arrays = {}
+            if self._remote is not None:
+                self._remote = group.store
+            self.shard_indexes = IndexCache(self.shard_indexes.max_entries)
+            self._pid = os.getpid()
+
     def _array(self, name: str) -> zarr.Array:
+        self._in_process()
         with self._lock:
             arr = self._arrays.get(name)
             if arr is None:
@@ -241,6 +289,7 @@ class TerrainStore:
         (once seen, on every later call and read: the change is final for this reader)."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
+        self._in_process()
         if not self.location.is_local and not self.location.is_memory and not force:
             now = time.monotonic()
             if now - self._last_check < REMOTE_CHECK_INTERVAL_S:
@@ -279,6 +328,7 @@ class TerrainStore:
         (a direct level read decompresses into ``into`` when given)."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
+        self._in_process()
         spec = self._direct.get(name)
         if self._remote is not None:  # (rate-limited) a repair seen drops kept shard indexes
             self._check_before_read()  # before they are used, not after
@@ -288,11 +338,31 @@ class TerrainStore:
             elif self._remote is None:
                 out = chunkread.read_local(self._root, spec, block, into)
             else:
-                frame = sync(fetch_chunk(self._remote, spec, block, self.shard_indexes))
+                remote, sp = self._remote, spec
+                frame = self._unrepaired(
+                    block, lambda: sync(fetch_chunk(remote, sp, block, self.shard_indexes))
+                )
                 out = decoded(frame, spec, into)
+        except StoreChangedError:  # (a read raced with repairs: not the block's damage)
+            raise
         except Exception as exc:
             out = exc
         return self._checked(name, block, level, out)
+
+    def _unrepaired(self, block: tuple[int, int], fetch: Any) -> Any:
+        """``fetch()`` (a remote read of ``block``'s chunks), again while a repair of the
+        store was seen by another thread during it (:meth:`check_unchanged` cleared the kept
+        shard indexes: the read may have used the old ones, which point at other blocks'
+        chunks of the repaired shard, whose crc32c passes)."""
+        for _ in range(EPOCH_RETRIES):
+            epoch = self.shard_indexes.epoch
+            got = fetch()
+            if self.shard_indexes.epoch == epoch:
+                return got
+        raise StoreChangedError(
+            f"store {self.url!r} was repaired {EPOCH_RETRIES} times while block {block} was "
+            "read; read it again"
+        )
 
     def _remote_levels(self, block: tuple[int, int], views: list[np.ndarray]) -> list[np.ndarray]:
         """Levels ``0..len(views)-1`` of ``block`` from a remote store, asked for at once (one
@@ -300,9 +370,12 @@ class TerrainStore:
         here."""
         if self._changed is not None:
             raise StoreChangedError(self._changed)
+        self._in_process()
         self._check_before_read()  # (as in _read: before the kept shard indexes are used)
         specs = [self._direct[f"levels/{i}"] for i in range(len(views))]
-        got = sync(fetch_chunks(self._remote, [(sp, block) for sp in specs], self.shard_indexes))
+        reads = [(sp, block) for sp in specs]
+        remote = self._remote
+        got = self._unrepaired(block, lambda: sync(fetch_chunks(remote, reads, self.shard_indexes)))
         return [self._checked(f"levels/{i}", block, i, decoded(f, sp, v))
                 for i, (sp, f, v) in enumerate(zip(specs, got, views, strict=True))]  # fmt: skip
 

@@ -36,6 +36,17 @@ _STORES_LOCK = threading.Lock()
 _NOW = object()  # (the store a URL opens to now)
 
 
+def _new_stores_lock() -> None:
+    """A forked child's own lock (the parent's may be held by a thread the child lacks; the
+    cached stores reopen themselves there: ``TerrainStore._in_process``)."""
+    global _STORES_LOCK
+    _STORES_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_new_stores_lock)
+
+
 def _cached_store(url: str, generation: str | None | object = _NOW) -> TerrainStore:
     """One open store per URL, build and process (TerrainStore is thread-safe, not
     picklable). Without ``generation``: the store the URL holds now (a cached one rewritten
@@ -100,6 +111,15 @@ def read_level_chunk(
     return g
 
 
+def _build(store: TerrainStore) -> str | None:
+    """``store``'s generation, ``store`` kept as that build's (a dataset made from it reads
+    it, not what its URL holds now: rewritten since, it raises StoreChangedError instead of
+    giving the new build's heights under its own coordinates)."""
+    with _STORES_LOCK:
+        _STORES.setdefault((store.url, store.meta.generation), store)
+    return store.meta.generation
+
+
 def _chunks(n: int, bstep: int, nblocks: int) -> tuple[int, ...]:
     """Per-block chunk sizes along one axis: ``bstep`` each, the last block takes the rest."""
     return tuple(bstep if b < nblocks - 1 else n - b * bstep for b in range(nblocks))
@@ -111,8 +131,8 @@ class LevelArray(BackendArray):
     Holds the store URL, not an open store, so it pickles (dask workers re-open the store).
     """
 
-    def __init__(self, url: str, level: int) -> None:
-        store = _cached_store(url)
+    def __init__(self, url: str, level: int, generation: str | None | object = _NOW) -> None:
+        store = _cached_store(url, generation)
         self.url, self.level = url, level
         self.generation = store.meta.generation  # the build this array reads
         h, w, step = level_shape(store, level)
@@ -167,7 +187,7 @@ def level_dataarray(store: TerrainStore, level: int | None = None) -> xr.DataArr
 
         raise StoreError(f"level must be in 0..{k} for {store.url!r}, got {level}")
     var = level_variable(store, level)
-    arr = LevelArray(store.url, level)
+    arr = LevelArray(store.url, level, _build(store))
     build = (store.meta.generation, store.meta.source.get("checksum"))
     name = f"terrastream-{tokenize(store.url, level, *build)}"
     chunks = tuple(var.encoding["preferred_chunks"].values())
@@ -192,7 +212,8 @@ def level_variable(store: TerrainStore, level: int) -> xr.Variable:
     }
     if m.crs_wkt:
         attrs["grid_mapping"] = "spatial_ref"
-    var = xr.Variable(("y", "x"), indexing.LazilyIndexedArray(LevelArray(store.url, level)), attrs)
+    data = indexing.LazilyIndexedArray(LevelArray(store.url, level, _build(store)))
+    var = xr.Variable(("y", "x"), data, attrs)
     var.encoding["preferred_chunks"] = {"y": _chunks(h, bstep, rows), "x": _chunks(w, bstep, cols)}
     var.encoding["_FillValue"] = np.nan  # nodata and padding are NaN (rioxarray's rio.nodata)
     return var
@@ -267,6 +288,14 @@ def level_dataset(store: TerrainStore, level: int | None = None, lazy: bool = Fa
     )
 
 
+def _opened(filename_or_obj: Any) -> TerrainStore:
+    """The store to read: an open ``TerrainStore`` itself (its build), else the one its path
+    or URL holds now."""
+    if isinstance(filename_or_obj, TerrainStore):
+        return filename_or_obj
+    return _cached_store(_url(filename_or_obj))
+
+
 def _url(filename_or_obj: Any) -> str:
     if isinstance(filename_or_obj, TerrainStore):
         return filename_or_obj.url
@@ -292,7 +321,7 @@ class TerrastreamBackendEntrypoint(BackendEntrypoint):
         level: int | None = None,
     ) -> xr.Dataset:
         """The store's level ``level`` (default: the finest) as a Dataset."""
-        ds = level_dataset(_cached_store(_url(filename_or_obj)), level, lazy=True)
+        ds = level_dataset(_opened(filename_or_obj), level, lazy=True)
         if drop_variables:
             ds = ds.drop_vars(drop_variables, errors="ignore")
         return ds
@@ -301,7 +330,7 @@ class TerrastreamBackendEntrypoint(BackendEntrypoint):
         self, filename_or_obj: Any, *, drop_variables: str | Iterable[str] | None = None
     ) -> dict[str, xr.Dataset]:
         """Every level as a group ``/level_L``; the root holds the store's description."""
-        store = _cached_store(_url(filename_or_obj))
+        store = _opened(filename_or_obj)
         groups = {"/": xr.Dataset(attrs=level_dataset(store, 0, lazy=True).attrs)}
         for level in range(store.k + 1):
             ds = level_dataset(store, level, lazy=True)
