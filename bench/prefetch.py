@@ -326,19 +326,21 @@ def main(argv: list[str] | None = None) -> int:
     log(qtab)
 
     frames_files = {}
+    folder = args.out.parent  # (beside --out: a run written elsewhere leaves results/ alone)
+    folder.mkdir(parents=True, exist_ok=True)
     for r in records:
         rows = r.pop("_rows", None)
         if rows is None:
             continue
-        fname = RESULTS / f"prefetch_frames_{r['name']}.json"
+        fname = folder / f"prefetch_frames_{r['name']}.json"
         fname.write_text(json.dumps(_compact_rows(rows), separators=(",", ":")))
-        frames_files[r["name"]] = str(fname.relative_to(REPO))
+        frames_files[r["name"]] = fname.name  # (beside the JSON that names it)
         r["frames_file"] = frames_files[r["name"]]
         if args.plot and r["store"] == "synth" and r["prefetch"] and r["transport"] == "sleep":
-            png = RESULTS / "prefetch_synth.png"
+            png = folder / "prefetch_synth.png"
             plot_run(RunResult(rows=rows, summary=r["summary"]), png, title=r["name"])
-            r["plot"] = str(png.relative_to(REPO))
-            log(f"wrote {png.relative_to(REPO)}")
+            r["plot"] = png.name
+            log(f"wrote {png}")
     doc = {
         "benchmark": "prefetch",
         "started_utc": started,
