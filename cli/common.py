@@ -39,10 +39,10 @@ EXIT_TERMINATED = 143
 EXIT_USER_ERROR = EXIT_USAGE
 
 EXIT_STATUS_HELP = (
-    "Exit status: 0 success; 1 the command failed while running (I/O error, damaged store, "
-    "library failure); 2 usage error (bad value, missing input, existing output without "
-    "--overwrite, no display or OpenGL); 130 interrupted (a rerun of `tile` resumes); 143 "
-    "terminated (SIGTERM), as 130."
+    "Exit status: 0 success; 1 the command failed while running (I/O error, damaged store "
+    "or unreadable blocks, library failure); 2 usage error (bad value, missing input, existing "
+    "output without --overwrite, a view or path that shows no terrain, no display or OpenGL); "
+    "130 interrupted (a rerun of `tile` resumes); 143 terminated (SIGTERM), as 130."
 )
 INTERRUPTED_MESSAGE = "interrupted"
 #: ``tile``'s: its store resumes (other commands start again: nothing of theirs resumes)
