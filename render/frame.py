@@ -61,6 +61,8 @@ Block = tuple[int, int]
 T = TypeVar("T")
 #: binding points of the shared buffers and textures (render/glsl/*.glsl)
 HEIGHTS_BINDING, LEVEL_TEX_UNIT, ORDER_TEX_UNIT, TRIANGLES_BINDING = 0, 1, 2, 3
+#: OpenGL's enum of the first user clip distance (``render/glsl/emit.glsl``'s nodata clip)
+GL_CLIP_DISTANCE0 = 0x3000
 
 
 class FrameServices:
@@ -418,7 +420,11 @@ class FrameServices:
         """Begin the frame for ``prog``, run ``body`` (the draw calls), wait for the GPU and
         check for GL errors; the frame's wall time in ms."""
         t0 = self.begin_frame(camera, prog, clear=clear, lod_colour=lod_colour, holes=holes)
-        body()
+        self.ctx.enable_direct(GL_CLIP_DISTANCE0)  # a triangle with a masked corner is not
+        try:  # drawn at all (render/glsl/emit.glsl; with ``holes`` its distances are all 0)
+            body()
+        finally:
+            self.ctx.disable_direct(GL_CLIP_DISTANCE0)  # (other programs do not write it)
         self.ctx.finish()
         ms = (time.perf_counter() - t0) * 1000.0
         check_gl(self.ctx, what)

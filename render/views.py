@@ -26,6 +26,12 @@ log = logging.getLogger(__name__)
 
 #: elongation (long / short horizontal side) beyond which the overview looks along the DEM
 STRIP_RATIO = 4.0
+#: the overview looks down more steeply than its 35° (20° for a strip) when the DEM's relief
+#: seen at that pitch (relief × cos pitch) exceeds this many times its longer horizontal side
+#: (framing the tall box can leave the terrain a sliver narrower than a pixel) ...
+STEEP_RATIO = 2.0
+#: ... and when that framing leaves the image of its footprint under this many pixels across
+STEEP_MIN_PX = 4.0
 
 
 def parse_triple(text: str, name: str) -> tuple[float, float, float]:
@@ -58,13 +64,48 @@ def _tan_half_diag(size: tuple[int, int], fov: float) -> float:
 def overview_camera(store: TerrainStore, size: tuple[int, int], fov: float = 45.0) -> Camera:
     """A view of the whole DEM above its highest point: from the south pitched 35° down, or,
     for a DEM more than :data:`STRIP_RATIO` times longer than wide, from beyond its south or
-    west end looking along it (pitched 20° down) so a thin strip is not a sub-pixel line."""
+    west end looking along it (pitched 20° down) so a thin strip is not a sub-pixel line; a DEM
+    whose relief dwarfs its extent (:data:`STEEP_RATIO`), which that framing of its tall box
+    would shrink to under :data:`STEEP_MIN_PX` pixels, is seen from more steeply above (up to
+    straight down) at its centre."""
     x0, y0, x1, y1 = store.grid.extent
     zlo, zhi = _zrange(store)
     w, h = max(x1 - x0, 1e-9), max(y1 - y0, 1e-9)
     along_x = w > STRIP_RATIO * h
     strip = along_x or h > STRIP_RATIO * w
     pitch = math.radians(20.0 if strip else 35.0)
+    eye, far, dist = _overview_eye(store, size, fov, pitch, along_x, strip)
+    side, relief = max(w, h), zhi - zlo
+    if relief * math.cos(pitch) > STEEP_RATIO * side:  # the relief may shrink the terrain:
+        across, depth = (h, w) if along_x else (w, h)  # its footprint's image, in pixels
+        focal = (size[1] / 2) / math.tan(math.radians(fov) / 2)
+        if focal * min(across, depth * math.sin(pitch)) / dist < STEEP_MIN_PX:
+            pitch = math.acos(STEEP_RATIO * side / relief)  # the relief seen no taller than
+            eye, far, _ = _overview_eye(store, size, fov, pitch, along_x, False, side)  # that
+    near = near_plane(store, tuple(eye), _tan_half_diag(size, fov), max(0.5, 1e-4 * far))
+    try:
+        return Camera(
+            tuple(eye), yaw=90.0 if along_x else 0.0, pitch=-math.degrees(pitch), fov_y=fov,
+            viewport=size, near=near, far=max(far, 2 * near),
+        )  # fmt: skip
+    except CameraError as exc:
+        raise CameraSpecError("{detail}", detail=str(exc)) from exc
+
+
+def _overview_eye(
+    store: TerrainStore,
+    size: tuple[int, int],
+    fov: float,
+    pitch: float,
+    along_x: bool,
+    strip: bool,
+    margin_cap: float = math.inf,
+) -> tuple[np.ndarray, float, float]:
+    """:func:`overview_camera`'s eye, far distance and distance to its target (the DEM's box's
+    centre, or a strip's near end) at ``pitch`` (radians); the eye's margin above the DEM's top
+    (5 % of its relief) is at most ``margin_cap`` (but 2 cells and 1 m at least)."""
+    x0, y0, x1, y1 = store.grid.extent
+    zlo, zhi = _zrange(store)
     heading = np.array([1.0, 0.0]) if along_x else np.array([0.0, 1.0])
     fwd = np.array([heading[0] * math.cos(pitch), heading[1] * math.cos(pitch), -math.sin(pitch)])
     right = np.array([heading[1], -heading[0], 0.0])
@@ -80,18 +121,11 @@ def overview_camera(store: TerrainStore, size: tuple[int, int], fov: float = 45.
     rel = corners - target
     along, sx, sy = rel @ fwd, rel @ right, rel @ up
     dist = float(np.max(np.maximum(np.abs(sx) / tx, np.abs(sy) / ty) - along))
-    margin = max(0.05 * (zhi - zlo), 2.0 * max(store.grid.dx, store.grid.dy), 1.0)
+    margin = max(min(0.05 * (zhi - zlo), margin_cap), 2.0 * max(store.grid.dx, store.grid.dy), 1.0)
     dist = max(dist, (zhi + margin - target[2]) / math.sin(pitch), 1.0)
     eye = target - dist * fwd
     far = float(np.max((corners - eye) @ fwd)) * 1.5 + 1.0
-    near = near_plane(store, tuple(eye), _tan_half_diag(size, fov), max(0.5, 1e-4 * far))
-    try:
-        return Camera(
-            tuple(eye), yaw=90.0 if along_x else 0.0, pitch=-math.degrees(pitch), fov_y=fov,
-            viewport=size, near=near, far=max(far, 2 * near),
-        )  # fmt: skip
-    except CameraError as exc:
-        raise CameraSpecError("{detail}", detail=str(exc)) from exc
+    return eye, far, dist
 
 
 def nadir_camera(
@@ -235,3 +269,90 @@ def make_camera(
         raise CameraSpecError("{detail}", detail=str(exc)) from exc
     warn_below_ground(store, eye, cam)
     return cam
+
+
+def terrain_cells(store: TerrainStore) -> bool:
+    """Whether some cell of the DEM has four terrain corners: only such cells are drawn (a
+    triangle with a nodata corner is not); reads the masks of blocks with nodata, and only
+    until one such cell is found."""
+    idx = store.index
+    exists = np.asarray(idx.exists, dtype=bool)
+    nodata = np.asarray(idx.has_nodata, dtype=bool)
+    if (exists & ~nodata).any():  # (a block without nodata or padding: every cell is terrain)
+        return True
+    for br, bc in zip(*np.nonzero(exists), strict=True):
+        m = store.read_mask((int(br), int(bc)))
+        if (m[:-1, :-1] & m[1:, :-1] & m[:-1, 1:] & m[1:, 1:]).any():
+            return True
+    return False
+
+
+#: a view with a side under this many pixels, in which the DEM's image would be at least 2 px
+#: a side were the view this size, is "too small to hold a terrain pixel" (no_pixel_cause)
+SMALL_VIEW = 16
+
+
+def image_box(store: TerrainStore, camera: Camera) -> tuple[float, float, float, float] | None:
+    """The pixel rectangle ``(left, top, right, bottom)`` bounding the DEM's box (its extent
+    times its height range) as ``camera`` sees it; None when part of the box is level with or
+    behind the camera (no finite bound)."""
+    x0, y0, x1, y1 = store.grid.extent
+    zlo, zhi = _zrange(store)
+    corners = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (zlo, zhi)])
+    px, py, depth = camera.project(corners)
+    if not np.all(depth > 0.0):
+        return None
+    return float(px.min()), float(py.min()), float(px.max()), float(py.max())
+
+
+def no_pixel_cause(store: TerrainStore, camera: Camera) -> tuple[str, str]:
+    """Why a view whose triangles drew no terrain pixel shows none, as ``(kind, clause)``:
+    ``"nodata"`` (no cell of the DEM has four terrain corners), ``"size"`` (the DEM's image
+    fills a view too small to hold a terrain pixel), ``"steep"`` (its image is a sliver narrower
+    than a pixel: relief far beyond its extent, or seen edge-on), ``"far"`` (its image is
+    smaller than a pixel), ``"outside"`` (its image lies outside the view) or ``("", "")`` when
+    none of these is certain. The clause names the values and what to do, without flags."""
+    if not terrain_cells(store):
+        return "nodata", (
+            "no cell of the DEM has four terrain corners, so its terrain is too sparse to "
+            "draw from any camera (a triangle with a nodata corner is not drawn); check the "
+            "DEM's nodata value and mask"
+        )
+    box = image_box(store, camera)
+    if box is None:
+        return "", ""
+    w, h = camera.viewport
+    left, top, right, bottom = box
+    bw, bh = right - left, bottom - top
+    size = f"{bw:.2g} x {bh:.2g} px"
+    if right <= 0.0 or bottom <= 0.0 or left >= w or top >= h:
+        return "outside", (
+            f"the DEM's image ({size}) lies outside the {w}x{h} view; point the camera at "
+            "the terrain"
+        )
+    if min(w, h) < SMALL_VIEW and min(bw, bh) * SMALL_VIEW / min(w, h) >= 2.0:
+        return "size", (
+            f"the {w}x{h} view is too small to hold a terrain pixel: the DEM's image "
+            f"({size}) covers none of its pixel centres; render a larger view (at least "
+            f"{SMALL_VIEW}x{SMALL_VIEW})"
+        )
+    if min(bw, bh) < 2.0 and max(bw / w, bh / h) >= 0.25:
+        x0, y0, x1, y1 = store.grid.extent
+        zlo, zhi = _zrange(store)
+        side = max(x1 - x0, y1 - y0)
+        why = (
+            f"its {zhi - zlo:.3g} m relief is {(zhi - zlo) / side:.3g} times its "
+            f"{side:.3g} m extent, so"
+            if zhi - zlo > STEEP_RATIO * side
+            else "it is seen edge-on, so"
+        )
+        return "steep", (
+            f"{why} the DEM's image is a sliver ({size}) narrower than a pixel; look down on "
+            "it from more steeply above (or use the default overview camera)"
+        )
+    if bw < 1.0 and bh < 1.0:
+        return "far", (
+            f"the DEM's image is {size}, smaller than a pixel: the DEM is too far from the "
+            "camera to be seen; move the camera closer"
+        )
+    return "", ""

@@ -73,7 +73,7 @@ def render(
     """
     from render.pipeline import ViewOptions, render_view
     from render.strategies import error_label
-    from render.views import ground_note, make_camera
+    from render.views import ground_note, make_camera, no_pixel_cause
 
     with fail_on_errors():
         viewport = parse_size(size)
@@ -102,6 +102,14 @@ def render(
                 f"{ground_note(s, cam)}",
                 hint="--camera",
             )
+        if st.drawn_px == 0:  # triangles, but none covers a pixel: the cause, when known
+            kind, cause = no_pixel_cause(s, cam)
+            if kind:
+                raise UsageError(
+                    f"the view of {store!r} drew no terrain pixel ({st.triangles:,} "
+                    f"triangles): {cause}",
+                    hint=_CAUSE_HINTS[kind],
+                )
         if st.drawn_px == 0:  # triangles, but none covers a pixel: a picture of sky
             sparse = (
                 ", or its terrain is too sparse to draw (a triangle with a nodata corner is "
@@ -111,9 +119,8 @@ def render(
             )
             raise UsageError(
                 f"the view of {store!r} drew no terrain pixel ({st.triangles:,} triangles, "
-                f"all smaller than a pixel or outside the {size} view): the DEM is too far "
-                f"from the camera to be seen{sparse}; move the camera closer (--camera, "
-                "--look-at)",
+                f"none covering a pixel centre of the {size} view): the terrain in view is "
+                f"too small to be seen{sparse}; move the camera closer (--camera, --look-at)",
                 hint="--camera",
             )
         save_image(img, out)
@@ -136,6 +143,16 @@ def render(
             "strategy's own buffers)"
             + (f", {st.clamped} nodes clamped to resident levels" if st.clamped else "")
         )
+
+
+#: the option a "no terrain pixel" cause (render.views.no_pixel_cause) points at
+_CAUSE_HINTS = {
+    "nodata": "STORE",
+    "size": "--size",
+    "steep": "--camera",
+    "far": "--camera",
+    "outside": "--camera",
+}
 
 
 def image_format(path: Path, hint: str) -> None:

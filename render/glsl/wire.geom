@@ -21,6 +21,7 @@ void main() {
                   area / length(p[1] - p[0]));
     for (int i = 0; i < 3; i++) {
         gl_Position = gl_in[i].gl_Position;
+        gl_ClipDistance[0] = gl_in[i].gl_ClipDistance[0];  // (emit.glsl's nodata clip)
         g_normal = v_normal[i]; g_h = v_h[i]; g_masked = v_masked[i]; g_level = v_level[i];
         g_dist = vec3(0.0); g_dist[i] = d[i];
         EmitVertex();
