@@ -293,15 +293,19 @@ def coverage(
     tri_cr: np.ndarray,
     tri_h: np.ndarray,
     store: TerrainStore | None = None,
+    near_clipped: int | None = None,
 ) -> Coverage:
     """Coverage of the drawn triangles (global ``(col, row)`` corners, drawn heights) over
     the in-view samples of the reference selection ``ref`` that a triangle can draw: those the
     drawn triangles or the reference's own full-resolution ones cover (:func:`reference_cover`,
     read for the missed samples only); :class:`EmptyViewError` when the view holds no terrain
     sample. With ``store``, the near-clipped count is every such sample of the store
-    (:func:`near_clipped_samples`), else those of ``ref``'s nodes."""
+    (:func:`near_clipped_samples`; ``near_clipped``: that count, computed once for a camera
+    drawn at several τ), else those of ``ref``'s nodes."""
     terrain, terrain_h, nodata, clipped = _in_view(ref, grid, camera, heights)
-    if store is not None:
+    if near_clipped is not None:
+        clipped = near_clipped
+    elif store is not None:
         clipped = near_clipped_samples(store, camera)
     if not len(terrain):
         raise EmptyViewError(

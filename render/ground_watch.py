@@ -10,6 +10,7 @@ import math
 from render.views import clearance_note
 from streamer.camera import Camera
 from streamer.clip import ground_height, near_reach
+from streamer.pool import DaemonPool
 from tiler.errors import StoreError
 from tiler.store import TerrainStore
 
@@ -31,15 +32,13 @@ class GroundWatch:
     WAIT_S = 30.0  # the longest :meth:`check` with ``wait`` waits for a block
 
     def __init__(self, store: TerrainStore, *, background: bool = False) -> None:
-        from concurrent.futures import ThreadPoolExecutor
-
         self.store = store
         self.cache: dict = {}
         self.unreadable: set = set()  # blocks whose read failed (the session reports them)
         self.pending: dict = {}  # block -> (the worker's read of it, the dict it fills)
-        self.pool = (
-            ThreadPoolExecutor(1, thread_name_prefix="terrastream-ground") if background else None
-        )
+        # (daemon threads: a read that hangs does not hold the process's exit, as a
+        # ThreadPoolExecutor's, joined at exit, would: 8 s after the viewer closed)
+        self.pool = DaemonPool(1, "terrastream-ground") if background else None
         self.warned = self.CLEAR  # the deepest state said since the camera was last clear
         self.level = self.CLEAR
         self.note = ""  # the last camera's clause ("" when clear or unknown)

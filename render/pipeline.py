@@ -31,7 +31,7 @@ from render.strategies import (
 from render.strategies.base import DrawOptions
 from render.strategies.chunk_tess import ChunkTessellation, GpuChunks, start_depth
 from render.strategies.qiu import QiuStrategy, patch_counts, select_clod
-from render.views import ground_note
+from render.views import ground_note, no_pixel_cause, terrain_cells
 from streamer.camera import Camera
 from streamer.lod import get_metric
 from streamer.session import Session, open_session
@@ -318,6 +318,8 @@ def tradeoff(
     footprint = ~measure.is_clear(r.image(), CLEAR)
     if not footprint.any():  # every figure would compare sky with sky
         where = ground_note(store, camera)  # on or under the ground: that is why
+        if not where and not terrain_cells(store):  # (too sparse: no cell can be drawn)
+            where = no_pixel_cause(store, camera)[1]
         raise EmptyViewError(
             f"the view from ({camera.position[0]:.1f}, {camera.position[1]:.1f}, "
             f"{camera.position[2]:.1f}) draws no terrain pixel at full resolution "
@@ -334,6 +336,7 @@ def tradeoff(
     strat = get_strategy(lod, r, **o.strategy_options(), **(lod_options or {}))
     sp = session_patch_log2(strat, r)
     rows = []
+    near = coverage.near_clipped_samples(store, camera)  # (the camera's, whatever the τ)
     for tau in taus:
         sm = stream_metric(lod, metric)
         for st_tau in restream_taus(tau if stream_tau is None else stream_tau):
@@ -353,7 +356,7 @@ def tradeoff(
         err = measure.error_stats(strat.screen_errors(camera, patches))
         tri, tri_h = strat.triangles(camera, patches)
         seen = drawn_cracks(r, strat, camera, patches, ref_p, footprint, (tri, tri_h))
-        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h, store=store)
+        cov = coverage.coverage(r.grid, camera, ref_p, ref_heights, tri, tri_h, near_clipped=near)
         wt = cracks.watertight(r.grid, tri, tri_h)
         drawn = strat.drawn_blocks(patches)
         own = strat.own_gpu_bytes()

@@ -248,23 +248,31 @@ def lonlat_union(
     -180..180. ``east`` may exceed 180; a box with ``east < west`` crosses the antimeridian."""
     south = min(b[1] for b in boxes)
     north = max(b[3] for b in boxes)
-    arcs = []  # (start in [0, 360), length) of each box's longitudes
+    ivs = []  # each box's longitudes as intervals of [0, 360) (one crossing 360 cut in two)
     for w, _, e, _ in boxes:
         span = e - w if e >= w else e + 360.0 - w
         if span >= 360.0:
             return -180.0, south, 180.0, north
-        arcs.append((w % 360.0, span))
-    # the widest gap between the arcs (walking east) is what the union leaves out
-    arcs.sort()
-    reach = arcs[0][0] + arcs[0][1]  # how far east the arcs so far cover
-    gap, gap_end = 0.0, arcs[0][0]
-    for start, span in arcs[1:]:
-        if start - reach > gap:
-            gap, gap_end = start - reach, start
-        reach = max(reach, start + span)
-    wrap = arcs[0][0] + 360.0 - reach  # the gap from the last arc's end round to the first
+        start = w % 360.0
+        if start + span > 360.0:
+            ivs += [(start, 360.0), (0.0, start + span - 360.0)]
+        else:
+            ivs.append((start, start + span))
+    ivs.sort()
+    merged = [list(ivs[0])]
+    for s0, e0 in ivs[1:]:
+        if s0 <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], e0)
+        else:
+            merged.append([s0, e0])
+    # the widest gap between the merged intervals (walking east) is what the union leaves out
+    gap, gap_end = 0.0, merged[0][0]
+    for (_, a_end), (b_start, _) in zip(merged, merged[1:], strict=False):
+        if b_start - a_end > gap:
+            gap, gap_end = b_start - a_end, b_start
+    wrap = merged[0][0] + 360.0 - merged[-1][1]  # from the last interval round to the first
     if wrap >= gap:
-        gap, gap_end = wrap, arcs[0][0]
+        gap, gap_end = wrap, merged[0][0]
     if gap <= 0.0:
         return -180.0, south, 180.0, north
     west = (gap_end + 180.0) % 360.0 - 180.0

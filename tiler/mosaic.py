@@ -32,7 +32,7 @@ from rasterio.vrt import WarpedVRT
 from rasterio.windows import Window
 
 from tiler.errors import SourceError, SourceReadError, SourceUnavailableError
-from tiler.mosaic_plan import MosaicSpec, plan_mosaic  # noqa: F401  (re-exported)
+from tiler.mosaic_plan import MosaicSpec, plan_mosaic, wrapped_crs  # noqa: F401  (re-exported)
 from tiler.source_header import SourceInfo, open_raster, read_info  # noqa: F401  (re-exported)
 from tiler.source_http import http_url, is_remote, remote_env, server_failure, slow_advice
 
@@ -58,26 +58,6 @@ def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
     if nodata is not None and not np.isnan(nodata):
         valid &= data != np.asarray(nodata).astype(data.dtype)
     return valid
-
-
-def wrapped_crs(info: SourceInfo) -> CRS | None:
-    """For a geographic source whose longitudes run past ±180 (179..181, or 0..360), its CRS
-    with longitudes wrapped round its centre (PROJ's ``+lon_wrap``), else None (its own).
-
-    GDAL's warper maps each target pixel back to -180..180, so the part of such a source past
-    the antimeridian (181 read as -179) was found in no sample and silently became nodata.
-    """
-    if not info.crs_wkt:
-        return None
-    crs = CRS.from_wkt(info.crs_wkt)
-    if not crs.is_geographic:
-        return None
-    t = Affine(*info.transform)
-    xs = [(t * (c, r))[0] for c in (0, info.width) for r in (0, info.height)]
-    if min(xs) >= -180.0 and max(xs) <= 180.0:
-        return None
-    centre = (min(xs) + max(xs)) / 2.0
-    return CRS.from_proj4(f"{crs.to_proj4()} +lon_wrap={centre:.9g}")
 
 
 def _inside(rings: list, shape: tuple[int, ...], at: Affine) -> np.ndarray:

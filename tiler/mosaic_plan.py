@@ -312,6 +312,51 @@ def _finest_pixel(info: SourceInfo, bounds: tuple[float, ...], src_crs: CRS, tar
     return min(dx, dy)
 
 
+#: the largest shift (degrees, ~1 m) a source's CRS may lose by being wrapped at ±180°
+WRAP_TOLERANCE_DEG = 1e-5
+
+
+def wrapped_crs(info: SourceInfo) -> CRS | None:
+    """For a geographic source whose longitudes run past ±180 (179..181, or 0..360), its CRS
+    with longitudes wrapped round its centre (PROJ's ``+lon_wrap``), else None (its own).
+
+    GDAL's warper maps each target pixel back to -180..180, so the part of such a source past
+    the antimeridian (181 read as -179) was found in no sample and silently became nodata.
+    """
+    if not info.crs_wkt:
+        return None
+    crs = CRS.from_wkt(info.crs_wkt)
+    if not crs.is_geographic:
+        return None
+    t = Affine(*info.transform)
+    xs = [(t * (c, r))[0] for c in (0, info.width) for r in (0, info.height)]
+    if min(xs) >= -180.0 and max(xs) <= 180.0:
+        return None
+    centre = (min(xs) + max(xs)) / 2.0
+    wrapped = CRS.from_proj4(f"{crs.to_proj4()} +lon_wrap={centre:.9g}")
+    # a PROJ string keeps no datum transformation PROJ would pick from the CRS itself (NAD27:
+    # 265 m at 179.5°E): checked on a point inside -180..180, refused past ~1 m
+    ys = [(t * (0, r))[1] for r in (0, info.height)]
+    lons, lats = (  # a 9 x 5 lattice over the source: the shift varies (and grids end)
+        v.ravel() for v in np.meshgrid(np.linspace(min(xs), max(xs), 9), np.linspace(*ys, 5))
+    )
+    lats = np.clip(lats, -90.0, 90.0)
+    ax, ay = warp_transform(
+        crs, "EPSG:4326", ((lons + 180.0) % 360.0 - 180.0).tolist(), lats.tolist()
+    )
+    bx, by = warp_transform(wrapped, "EPSG:4326", lons.tolist(), lats.tolist())
+    dx = (np.asarray(ax) - np.asarray(bx) + 180.0) % 360.0 - 180.0
+    off = float(max(np.abs(dx).max(), np.abs(np.asarray(ay) - np.asarray(by)).max()))
+    if off > WRAP_TOLERANCE_DEG:
+        raise SourceError(
+            f"{info.path!r} runs past ±180° of longitude in {crs.to_string()!r}, whose datum "
+            "shift cannot be kept while its longitudes are wrapped (it would be placed up to "
+            f"{off * 111_000:.0f} m off); warp it to EPSG:4326 first "
+            "(`gdalwarp -t_srs EPSG:4326 SRC out.tif`) and tile that"
+        )
+    return wrapped
+
+
 def _plan_warped(
     infos: list[SourceInfo],
     band: int,
@@ -322,6 +367,8 @@ def _plan_warped(
     resampling: str,
 ) -> MosaicSpec:
     resampling = parse_resampling(resampling)
+    for i in infos:  # (refused now, not by a worker once the store is begun)
+        wrapped_crs(i)
     # every source's extent in its own CRS: the target grid is the union of their extents
     # on the target (a union taken in one source CRS would span the globe for tiles on both
     # sides of the antimeridian)

@@ -17,7 +17,6 @@ Everything GDAL does on a remote source runs inside it: the open, the header's s
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 import http.client
 import math
@@ -196,30 +195,26 @@ def gdal_network_failure(message: str) -> str | None:
 
 @functools.cache
 def _gdal_clear_cache() -> object | None:
-    """GDAL's ``VSICurlClearCache`` from the libgdal rasterio runs on (its wheel's bundled one,
-    else the system's), or None when it cannot be found."""
-    import glob
+    """GDAL's ``VSICurlClearCache`` from the libgdal rasterio's own extension module links
+    (so never another GDAL's), or None when it cannot be found."""
+    import rasterio._base
 
-    import rasterio
-
-    libs = os.path.join(os.path.dirname(os.path.dirname(rasterio.__file__)), "rasterio.libs")
-    bundled = sorted(glob.glob(os.path.join(libs, "libgdal*.so*")))
-    names = [*bundled, ctypes.util.find_library("gdal")]
-    for name in filter(None, names):
-        try:
-            fn = ctypes.CDLL(name).VSICurlClearCache
-        except (OSError, AttributeError):
-            continue
-        fn.restype, fn.argtypes = None, []
-        return fn
-    return None
+    try:
+        fn = ctypes.CDLL(rasterio._base.__file__).VSICurlClearCache
+    except (OSError, AttributeError):
+        return None
+    fn.restype, fn.argtypes = None, []
+    return fn
 
 
 def forget_failed_open() -> bool:
     """Make GDAL ask the server again after a remote open failed: its network file systems
     remember a path they could not reach as absent for the rest of the process, so a second
     open said "does not exist in the file system" whatever the server did (a usage error
-    instead of the network named). False when GDAL's function cannot be found."""
+    instead of the network named). The whole network cache is cleared: its per-path clearing
+    (``VSICurlPartialClearCache``, tried with the path, its folder and ``/vsis3/``) leaves that
+    memory in place; a failed open is rare, and other sources' next reads only fetch again.
+    False when GDAL's function cannot be found."""
     fn = _gdal_clear_cache()
     if fn is None:
         return False

@@ -356,7 +356,12 @@ class TerrainStore:
         chunks of the repaired shard, whose crc32c passes)."""
         for _ in range(EPOCH_RETRIES):
             epoch = self.shard_indexes.epoch
-            got = fetch()
+            try:
+                got = fetch()
+            except (chunkread.ChecksumMismatch, chunkread.ChunkDecodeError):
+                if self.shard_indexes.epoch == epoch:
+                    raise  # damage: no repair was seen meanwhile
+                continue  # (an old index's range over the rewritten shard: not damage)
             if self.shard_indexes.epoch == epoch:
                 return got
         raise StoreChangedError(

@@ -200,3 +200,33 @@ def test_in_the_background_the_render_thread_reads_nothing(store, monkeypatch, c
     finally:
         watch.close()
     assert _warnings(caplog) == []
+
+
+def test_a_hung_ground_read_does_not_hold_the_process_at_exit(store):
+    """The ground reads ran on a ThreadPoolExecutor, whose threads Python joins at exit: a read
+    the server never answers held ``view``'s exit after its window closed (8.7 s for an 8 s
+    read). Daemon threads (``streamer.pool.DaemonPool``) let it end. The control: the worker
+    is the named ``terrastream-ground`` thread and a read that returns is still used."""
+    import subprocess
+    import sys
+    import time
+
+    script = (
+        "import time, render.ground_watch as gw\n"
+        "from tiler.store import open_store\n"
+        f"w = gw.GroundWatch(open_store({str(store.url)!r}), background=True)\n"
+        "w.pool.submit(time.sleep, 20)\n"
+        "time.sleep(0.2)\n"
+        "w.close()\n"
+    )
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=60)
+    assert time.monotonic() - t0 < 12, "the process waited for the hung read"
+    watch = GroundWatch(store, background=True)
+    try:
+        assert watch.pool.submit(lambda: 1).result(timeout=10) == 1
+        assert any(t.name.startswith("terrastream-ground") for t in watch.pool.threads)
+        cam = _cams(store, [-30.0])[0]
+        assert "below" in watch.check(cam, wait=True)  # (read on the worker, then used)
+    finally:
+        watch.close()

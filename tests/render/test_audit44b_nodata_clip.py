@@ -111,3 +111,16 @@ def test_render_of_a_dem_without_a_whole_cell_fails_naming_it(stores, tmp_path, 
     res = runner.invoke(app, ["render", stores["hole"], *args])
     assert res.exit_code == 0, res.output
     assert json.loads(res.output.splitlines()[-1])["drawn_px"] > 1000
+
+
+def test_tradeoff_of_a_dem_without_a_whole_cell_names_why(stores):
+    """``tradeoff`` of such a DEM said "it holds no terrain sample, or the DEM is smaller than a
+    pixel from there"; it now names the missing whole cells. Quiet case: the DEM with a hole
+    measures."""
+    args = ["--size", "96x72", "--taus", "2", "--repeats", "1"]
+    res = runner.invoke(app, ["tradeoff", stores["checker"], *args])
+    assert res.exit_code == 2, res.output
+    assert "no cell of the DEM has four terrain corners" in res.output, res.output
+    assert "smaller than a pixel" not in res.output
+    res = runner.invoke(app, ["tradeoff", stores["hole"], *args])
+    assert res.exit_code == 0, res.output

@@ -244,3 +244,16 @@ def test_without_a_target_crs_tiles_across_the_antimeridian_are_warned_about(tmp
     with caplog.at_level(logging.WARNING, logger="tiler.mosaic_plan"):
         plan_mosaic([str(a), str(b)])
     assert "antimeridian" not in caplog.text
+
+
+def test_a_source_past_180_in_a_datum_the_wrap_would_lose_is_refused(tmp_path):
+    """Wrapping a CRS at ±180° goes through a PROJ string, which keeps no datum shift: a NAD27
+    source at 179..181 would be placed ~265 m off (exit 0). It is refused when planned,
+    naming the file and the gdalwarp that fixes it; WGS 84 (the control) is wrapped."""
+    data = fractal((61, 61), seed=3)
+    nad27 = write_dem(tmp_path / "nad27.tif", data, crs="EPSG:4267", origin=(179.0, 54.0),
+                      cell=DEG)  # fmt: skip
+    with pytest.raises(SourceError, match=r"nad27\.tif.*datum shift.*gdalwarp -t_srs EPSG:4326"):
+        plan_mosaic([str(nad27)], dst_crs="auto")
+    wgs = write_dem(tmp_path / "wgs.tif", data, crs="EPSG:4326", origin=(179.0, 52.0), cell=DEG)
+    assert plan_mosaic([str(wgs)], dst_crs="auto").width > 0

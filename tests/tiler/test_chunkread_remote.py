@@ -239,3 +239,44 @@ def test_an_index_read_across_a_clear_is_not_kept(served):
         assert cache.inflight == {}
         sync(fetch_chunk(s._remote, spec, (0, 0), cache))
         assert len(cache) == 1 and cache.fetches == 2
+
+
+class _Torn:
+    """A remote store whose first ``levels/2`` chunk read (every one, unless ``repaired``)
+    answers flipped bytes, as an old index's range over a rewritten shard would; with
+    ``repaired`` another thread is made to see a repair (``clear``) just then."""
+
+    def __init__(self, s: TerrainStore, repaired: bool) -> None:
+        self.s, self.inner, self.repaired, self.calls = s, s._remote, repaired, 0
+
+    async def get(self, key, proto, byte_range=None):
+        got = await self.inner.get(key, proto, byte_range)
+        if "levels/2" in key and type(byte_range).__name__ == "RangeByteRequest":
+            self.calls += 1
+            if self.calls == 1 or not self.repaired:
+                raw = bytearray(got.to_bytes())
+                raw[len(raw) // 2] ^= 0xFF
+                got = proto.buffer.from_bytes(bytes(raw))
+                if self.repaired:
+                    self.s.shard_indexes.clear()
+        return got
+
+
+@pytest.mark.parametrize("repaired", [True, False])
+def test_damage_seen_while_a_repair_is_seen_is_read_again(served, repaired):
+    """A read whose chunk range fell across a shard rewritten by a repair (old index, new
+    bytes) raised a checksum error and the block was called damaged, though another thread
+    saw the repair meanwhile; it is now read again. The control: the same bad bytes with no
+    repair seen are damage, named as such."""
+    d, _ = served
+    local = open_store(d / "s.zarr")
+    with LoopbackServer(d) as url:
+        s = open_store(f"{url}/s.zarr")
+        s._remote = torn = _Torn(s, repaired)
+        if repaired:
+            got = s.read_level_raw((1, 1), 2)
+            np.testing.assert_array_equal(got, local.read_level_raw((1, 1), 2))
+            assert torn.calls == 2
+        else:
+            with pytest.raises(ChunkChecksumError, match=r"\(1, 1\)"):
+                s.read_level_raw((1, 1), 2)
