@@ -102,7 +102,7 @@ def main() -> int:
     }
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1) + "\n")
+    out.write_text(json.dumps(portable(doc), indent=1) + "\n")
     print(f"wrote {portable(str(out))}")
     return 0
 

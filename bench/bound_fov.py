@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info, portable, store_complete  # noqa: E402
 from render.pipeline import ViewOptions, tradeoff  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
 from streamer.run import make_path  # noqa: E402
@@ -79,12 +79,13 @@ def prepare(work: Path = BWORK) -> dict[str, Path]:
     """The two stores under ``work``, made when missing."""
     work.mkdir(parents=True, exist_ok=True)
     synth, tif = work / "s1025.zarr", work / "s1025.tif"
-    if not synth.exists():
+    if not store_complete(synth):  # (a folder an interrupted run left is made again)
         _cli("synth", str(tif), "--size", "1025", "--seed", "1", "--overwrite")
-        _cli("tile", str(tif), str(synth), "--block-size", "257", "--workers", "1")
+        _cli("tile", str(tif), str(synth), "--block-size", "257", "--workers", "1", "--overwrite")
     real = work / "n44w072_auto.zarr"
-    if not real.exists():
-        _cli("tile", str(REAL_HGT), str(real), "--dst-crs", "auto", "--block-size", "257")
+    if not store_complete(real):
+        _cli("tile", str(REAL_HGT), str(real), "--dst-crs", "auto", "--block-size", "257",
+             "--overwrite")  # fmt: skip
     return {"synth": synth, "real": real}
 
 
@@ -220,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         results[name] = {"store": str(store), "rows": rows, "verdicts": vs}
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1))
+    out.write_text(json.dumps(portable(results), indent=1))
     print(f"wrote {out.name}")
     return 0
 

@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 from numcodecs import Blosc  # noqa: E402
 
 from bench.common import SHARED_DATA as DATA  # noqa: E402  ($TERRASTREAM_SHARED_DATA)
+from bench.common import portable  # noqa: E402
 from tiler.encoding import encoding_for  # noqa: E402
 from tiler.layout import grid_side, parse_block_size  # noqa: E402
 from tiler.static_error import default_cap  # noqa: E402
@@ -318,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
         }
     )
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(res, indent=1) + "\n")
+    a.out.write_text(json.dumps(portable(res), indent=1) + "\n")
     print(f"wrote {a.out}")
     return 0
 

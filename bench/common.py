@@ -87,6 +87,7 @@ def machine_info() -> dict[str, Any]:
     if hasattr(os, "getloadavg"):
         info["loadavg_at_start"] = os.getloadavg()  # timings are only comparable within a run
     info["git_head"] = git_head()
+    info["dirty"], info["dirty_files"] = git_dirty()
     return info
 
 
@@ -100,14 +101,56 @@ def git_head() -> str | None:
         return None
 
 
+#: the code folders whose uncommitted changes make a measurement not the commit it names
+CODE_DIRS = ("tiler", "streamer", "render", "cli", "bench")
+#: how many changed files :func:`git_dirty` names (the flag counts them all)
+DIRTY_LIST_MAX = 20
+
+
+def git_dirty(repo: Path = REPO) -> tuple[bool | None, list[str] | None]:
+    """Whether tracked files under :data:`CODE_DIRS` differ from HEAD (staged or not) and the
+    first :data:`DIRTY_LIST_MAX` of them (``+N more`` last when there are more); ``(None,
+    None)`` when git cannot tell. ``bench/results`` (data) and untracked files are left out."""
+    import subprocess
+
+    cmd = [
+        "git", "--no-optional-locks", "-C", str(repo), "status", "--porcelain=v1",
+        "--untracked-files=no", "--", *CODE_DIRS, ":(exclude)bench/results",
+    ]  # fmt: skip
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None, None
+    if res.returncode != 0:
+        return None, None
+    files = sorted(line[3:] for line in res.stdout.splitlines() if len(line) > 3)
+    shown = files[:DIRTY_LIST_MAX]
+    if len(files) > DIRTY_LIST_MAX:
+        shown.append(f"+{len(files) - DIRTY_LIST_MAX} more")
+    return bool(files), shown
+
+
+def store_complete(path: str | Path) -> bool:
+    """Whether ``path`` holds a finished store (:func:`tiler.store.open_store` opens it and its
+    ``meta.complete`` is set): a folder an interrupted run left half-written is not one."""
+    from tiler.errors import StoreError
+    from tiler.store import open_store
+
+    try:
+        return bool(open_store(path).meta.complete)
+    except StoreError:
+        return False
+
+
 def ensure_store(path: str | Path) -> bool:
-    """Make the benchmark store ``path`` if it is one this module names and is missing
-    (``S4097``: ``terrastream synth --size 4097 --seed 0``, blocks of 1025²; ``N44W072_EQC``:
-    ``bench/prefetch.py``'s metre relabelling; ``LONGYEARBYEN``); whether it exists now."""
+    """Make the benchmark store ``path`` if it is one this module names and is missing or
+    unfinished (:func:`store_complete`; ``tile`` run again resumes it) (``S4097``:
+    ``terrastream synth --size 4097 --seed 0``, blocks of 1025²; ``N44W072_EQC``:
+    ``bench/prefetch.py``'s metre relabelling; ``LONGYEARBYEN``); whether it is complete now."""
     import subprocess
 
     path = Path(path).resolve()
-    if (path / "zarr.json").exists():
+    if store_complete(path):
         return True
     exe = str(Path(sys.executable).with_name("terrastream"))
     if path == S4097:
@@ -126,7 +169,7 @@ def ensure_store(path: str | Path) -> bool:
         if not src.exists():
             return False
         subprocess.run([exe, "tile", str(src), str(path), "--block-size", "257"], check=True)
-    return (path / "zarr.json").exists()
+    return store_complete(path)
 
 
 def flythrough_rows(

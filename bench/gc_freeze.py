@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(
         json.dumps(
-            {"store": portable(str(STORE)), "runs": runs, "machine": machine_info()}, indent=1
+            portable({"store": str(STORE), "runs": runs, "machine": machine_info()}), indent=1
         )
     )
     print(f"wrote {portable(out_path)}")

@@ -46,6 +46,7 @@ from tiler.synth import synth_array  # noqa: E402
 
 DEFAULT_OUT = REPO / "bench" / "results" / "kernels.json"
 from bench.common import REAL_HGT as REAL  # noqa: E402  ($TERRASTREAM_SHARED_DATA)
+from bench.common import portable  # noqa: E402
 
 #: another checkout to compare `terrastream info` start-up with (--compare-tree; none by default)
 OTHER_TREE: Path | None = None
@@ -322,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(name)
                 result.setdefault("breakdown", {})[name] = breakdown(grid, max(reps, 5))
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(result, indent=2) + "\n")
+    a.out.write_text(json.dumps(portable(result), indent=2) + "\n")
     print(f"wrote {a.out}")
     return 0
 

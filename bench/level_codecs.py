@@ -174,7 +174,7 @@ def main() -> None:
         "rows": rows,
         "shuffles": per_block,
     }
-    out.write_text(json.dumps(doc, indent=1))
+    out.write_text(json.dumps(portable(doc), indent=1))
     print(f"# wrote {out}")
 
 

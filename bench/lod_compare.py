@@ -227,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     js = out / f"lod_compare{tag}.json"
     js.write_text(json.dumps(portable(results), indent=1))
     (out / f"lod_compare{tag}.md").write_text(markdown(results, a.metric))
-    (out / f"lod_compare{tag}_machine.json").write_text(json.dumps(machine_info(), indent=1))
+    (out / f"lod_compare{tag}_machine.json").write_text(
+        json.dumps(portable(machine_info()), indent=1)
+    )
     print(f"wrote {js}")
     return 0
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, machine_info  # noqa: E402
+from bench.common import RESULTS, machine_info, portable  # noqa: E402
 from bench.session_update import bench_store  # noqa: E402
 from streamer import planthread  # noqa: E402
 from streamer.run import make_path  # noqa: E402
@@ -109,12 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
-            {
-                "frames": a.frames,
-                "block_size": a.block_size,
-                "rows": rows,
-                "machine": machine_info(),
-            },
+            portable(
+                {
+                    "frames": a.frames,
+                    "block_size": a.block_size,
+                    "rows": rows,
+                    "machine": machine_info(),
+                }
+            ),
             indent=1,
         )  # fmt: skip
     )

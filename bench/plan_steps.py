@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, machine_info  # noqa: E402
+from bench.common import RESULTS, machine_info, portable  # noqa: E402
 from bench.session_update import bench_store  # noqa: E402
 from streamer.cache import LevelCache  # noqa: E402
 from streamer.loader import Loader  # noqa: E402
@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine_info(),
     }
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(out, indent=1))
+    a.out.write_text(json.dumps(portable(out), indent=1))
     print(f"wrote {a.out}")
     return 0
 

@@ -316,6 +316,12 @@ def main(argv: list[str] | None = None) -> int:
             f"(wall {m['max_update_ms']:.1f}), late frames {m['late_frames']}, "
             f"{rec['wall_s']:.0f} s"
         )
+        if m["ledger_skipped_frames"]:
+            log(
+                f"    WARNING: the load ledger could not account {m['ledger_skipped_frames']} "
+                "frame(s) (the cache kept changing while listed): its per-load figures "
+                "(loaded_per_used_load, never_used_load_bytes) undercount their draws"
+            )
         records.append(rec)
     tab = table(records)
     qtab, qdata = qiu_table(records)
@@ -333,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         if rows is None:
             continue
         fname = folder / f"prefetch_frames_{r['name']}.json"
-        fname.write_text(json.dumps(_compact_rows(rows), separators=(",", ":")))
+        fname.write_text(json.dumps(portable(_compact_rows(rows)), separators=(",", ":")))
         frames_files[r["name"]] = fname.name  # (beside the JSON that names it)
         r["frames_file"] = frames_files[r["name"]]
         if args.plot and r["store"] == "synth" and r["prefetch"] and r["transport"] == "sleep":

@@ -31,8 +31,14 @@ class LoadLedger:
     ``LevelCache.blocks`` / ``level``) is compared with the previous frame's: a rise is a load
     of each new level, a fall an eviction. A load is *used* once a frame draws it (a visible
     block's levels ``0..min(resident, needed)``) before it is evicted; an evicted load that no
-    frame drew is wasted. Loads evicted within one frame are not seen (rare).
+    frame drew is wasted. Loads evicted within one frame are not seen (rare). A frame whose
+    cache could not be listed (loaders changing it throughout :data:`RETRIES` tries) is not
+    accounted: it is counted in ``ledger_skipped_frames`` (its draws are then missing from
+    ``used_load_bytes``; its loads and evictions are seen at the next frame).
     """
+
+    #: tries to list the cache while loader threads change it, per frame
+    RETRIES = 10
 
     def __init__(self, level_bytes: list[int]) -> None:
         self.level_bytes = level_bytes
@@ -41,16 +47,18 @@ class LoadLedger:
         self.used = 0
         self.evicted_unused = 0
         self.evicted_used = 0
+        self.skipped_frames = 0
 
     def frame(self, session: Session, blocks: dict) -> None:
         cache = session.cache
-        for _ in range(10):
+        for _ in range(self.RETRIES):
             try:
                 cached = cache.blocks()
                 break
             except RuntimeError:  # a loader thread changed the cache meanwhile: look again
                 continue
         else:
+            self.skipped_frames += 1  # (reported in result(): never dropped silently)
             return
         now = {b: cache.level(b) for b in cached}
         for b in set(self.drawn) | set(now):
@@ -86,6 +94,7 @@ class LoadLedger:
             "evicted_unused_bytes": self.evicted_unused,
             "evicted_used_bytes": self.evicted_used,
             "resident_unused_bytes_at_end": resident_unused,
+            "ledger_skipped_frames": self.skipped_frames,
         }
 
 

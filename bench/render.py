@@ -29,6 +29,7 @@ from bench.common import (  # noqa: E402
     S16385,
     ensure_store,
     machine_info,
+    portable,
 )
 from render import cracks, measure  # noqa: E402
 from render.measure import heights_fn  # noqa: E402
@@ -166,13 +167,15 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
-            {
-                "rows": rows,
-                "summary": summary,
-                "papers": PAPERS,
-                "seconds": time.time() - t0,
-                "machine": machine_info(),
-            },
+            portable(
+                {
+                    "rows": rows,
+                    "summary": summary,
+                    "papers": PAPERS,
+                    "seconds": time.time() - t0,
+                    "machine": machine_info(),
+                }
+            ),
             indent=1,
         )
     )

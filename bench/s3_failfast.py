@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, machine_info  # noqa: E402
+from bench.common import RESULTS, machine_info, portable  # noqa: E402
 
 
 class Dropping:
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{'' if conns is None else conns:>5} {seconds:7.2f}"
                 )
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps({"rows": rows, "machine": machine_info()}, indent=1))
+    a.out.write_text(json.dumps(portable({"rows": rows, "machine": machine_info()}), indent=1))
     print(f"wrote {a.out}")
     return 0
 

@@ -39,7 +39,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import RESULTS, WORK, machine_info, portable  # noqa: E402
 
 MODES = ("processes", "localcluster", "external")
 PY = sys.executable
@@ -285,7 +285,7 @@ def malloc_probe(rounds: int, out: Path) -> dict:
         "runs": rows,
         "machine": machine_info(),
     }
-    out.write_text(json.dumps(doc, indent=1))
+    out.write_text(json.dumps(portable(doc), indent=1))
     print(f"wrote {out}")
     return doc
 
@@ -423,7 +423,7 @@ def s3_reads(rounds: int, out: Path) -> dict:
         "medians": summary,
         "machine": machine_info(),
     }
-    out.write_text(json.dumps(doc, indent=1))
+    out.write_text(json.dumps(portable(doc), indent=1))
     keys = list(next(iter(summary.values())))
     print("| read | " + " | ".join(summary) + " |\n|---|" + "---:|" * len(summary))
     for k in keys:
@@ -525,7 +525,7 @@ def main() -> None:
         "runs": results,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
+    out.write_text(json.dumps(portable(doc), indent=1))
     plot(results, out.with_suffix(".png"))
     print(f"wrote {out} and {out.with_suffix('.png')}")
 

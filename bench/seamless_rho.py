@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import REAL_HGT, REPO, RESULTS, WORK, machine_info, portable, store_complete  # noqa: E402
 from render.pipeline import tradeoff  # noqa: E402
 from render.renderer import RenderConfig, TerrainRenderer  # noqa: E402
 from streamer.run import make_path  # noqa: E402
@@ -54,12 +54,13 @@ def prepare() -> dict[str, Path]:
     """The two stores, made when missing."""
     RWORK.mkdir(parents=True, exist_ok=True)
     synth, tif = RWORK / "s2049.zarr", RWORK / "s2049.tif"
-    if not synth.exists():
+    if not store_complete(synth):  # (a folder an interrupted run left is made again)
         _cli("synth", str(tif), "--size", "2049", "--seed", "1", "--overwrite")
-        _cli("tile", str(tif), str(synth), "--block-size", "257", "--workers", "1")
+        _cli("tile", str(tif), str(synth), "--block-size", "257", "--workers", "1", "--overwrite")
     real = RWORK / "n44w072_auto.zarr"
-    if not real.exists():
-        _cli("tile", str(REAL_HGT), str(real), "--dst-crs", "auto", "--block-size", "257")
+    if not store_complete(real):
+        _cli("tile", str(REAL_HGT), str(real), "--dst-crs", "auto", "--block-size", "257",
+             "--overwrite")  # fmt: skip
     return {"synth": synth, "real": real}
 
 
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         results[name] = {"store": str(path.relative_to(REPO)), "rows": rows}
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1))
+    out.write_text(json.dumps(portable(results), indent=1))
     print(f"wrote {out.name}")
     return 0
 

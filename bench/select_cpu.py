@@ -69,6 +69,7 @@ from bench.common import (  # noqa: E402
     WORK,
     ensure_store,
     machine_info,
+    portable,
 )
 
 DEFAULT_STORES = [str(S4097), str(N44W072_EQC)]
@@ -318,7 +319,7 @@ def main_metric(a) -> int:
         return 1
     info["loadavg_at_end"] = os.getloadavg()
     out = Path(a.out or RESULTS / f"select_cpu_{a.metric}.json")
-    out.write_text(json.dumps({"machine": info, "rows": rows}, indent=1))
+    out.write_text(json.dumps(portable({"machine": info, "rows": rows}), indent=1))
     print(f"# wrote {out.relative_to(REPO) if out.is_relative_to(REPO) else out}")
     return 0
 
@@ -407,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     info["loadavg_at_end"] = os.getloadavg()
     Path(a.out).write_text(
-        json.dumps({"machine": info, "compile": compile_s, "rows": rows}, indent=1)
+        json.dumps(portable({"machine": info, "compile": compile_s, "rows": rows}), indent=1)
     )
     print(f"# wrote {Path(a.out).relative_to(REPO) if Path(a.out).is_relative_to(REPO) else a.out}")
     return 0

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import RESULTS, WORK, machine_info, portable  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from streamer.session import open_session  # noqa: E402
 from tiler.store import open_store  # noqa: E402
@@ -67,6 +67,26 @@ class _WaitLock:
 
     def locked(self) -> bool:
         return self._lock.locked()
+
+
+def spread(v: np.ndarray, slow: np.ndarray) -> dict[str, float | None]:
+    """p50, p99 and max of ``v`` and its mean over the ``slow`` frames: None (JSON null) when
+    there are none (a mean of no frames is not 0)."""
+    return {
+        "p50": float(np.percentile(v, 50)),
+        "p99": float(np.percentile(v, 99)),
+        "max": float(v.max()),
+        "mean_in_slow": float(v[slow].mean()) if slow.any() else None,
+    }
+
+
+def spread_line(name: str, v: dict[str, float | None]) -> str:
+    """One printed line of :func:`spread`'s figures (``n/a`` for a mean over no frames)."""
+    mean = v["mean_in_slow"]
+    return (
+        f"{name:10} p50 {v['p50']:.3f} p99 {v['p99']:.3f} max {v['max']:.3f} "
+        f"mean in >= 1 ms frames {'n/a' if mean is None else f'{mean:.3f}'}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -155,21 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     cpu = ms["cpu"]
     slow = cpu >= 1.0
 
-    def pct(v: np.ndarray) -> dict:
-        return {
-            "p50": float(np.percentile(v, 50)),
-            "p99": float(np.percentile(v, 99)),
-            "max": float(v.max()),
-            "mean_in_slow": float(v[slow].mean()) if slow.any() else 0.0,
-        }
-
     out = {
         "frames": n,
         "workers": a.workers,
         "loadavg_start_end": [load0, load1],
-        "ms": {k: pct(v) for k, v in ms.items()},
+        "ms": {k: spread(v, slow) for k, v in ms.items()},
         "counts": {
-            k: pct(rec[k])
+            k: spread(rec[k], slow)
             for k in (
                 "visible",
                 "new_visible",
@@ -213,13 +225,12 @@ def main(argv: list[str] | None = None) -> int:
         f"{out['full_collections_on_caller']}"
     )
     for k, v in out["ms"].items():
-        print(f"{k:10} p50 {v['p50']:.3f} p99 {v['p99']:.3f} max {v['max']:.3f} "
-              f"mean in >= 1 ms frames {v['mean_in_slow']:.3f}")  # fmt: skip
+        print(spread_line(k, v))
     print(
         "CPU ms mean by involuntary context switches in the frame:", out["cpu_mean_by_preemptions"]
     )
     path = RESULTS / "session_tail.json"
-    path.write_text(json.dumps(out, indent=1))
+    path.write_text(json.dumps(portable(out), indent=1))
     print(f"wrote {path}")
     return 0
 

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import RESULTS, WORK, machine_info, portable  # noqa: E402
 from streamer.run import make_path  # noqa: E402
 from streamer.session import open_session  # noqa: E402
 from tiler.store import open_store  # noqa: E402
@@ -126,24 +126,26 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
         json.dumps(
-            {
-                "frames": a.frames,
-                "workers": a.workers,
-                "block_size": b,
-                "budget_mb": a.budget_mb,
-                "linger_s": a.linger_s,
-                "freeze_gc": a.freeze_gc,
-                "plan_step_blocks": a.plan_step,
-                "evicted_bytes": evicted,
-                "visible_blocks_p50": float(np.median(visible)),
-                "update": rows,
-                "stall_frames": summary["stall_frames"],
-                "loaded_bytes": summary["loaded_bytes"],
-                "kernels": os.environ.get("TERRASTREAM_KERNELS", "auto"),
-                "loadavg_start_end": [load0, os.getloadavg()[0]],
-                "lock_holds_us": locks,
-                "machine": machine_info(),
-            },
+            portable(
+                {
+                    "frames": a.frames,
+                    "workers": a.workers,
+                    "block_size": b,
+                    "budget_mb": a.budget_mb,
+                    "linger_s": a.linger_s,
+                    "freeze_gc": a.freeze_gc,
+                    "plan_step_blocks": a.plan_step,
+                    "evicted_bytes": evicted,
+                    "visible_blocks_p50": float(np.median(visible)),
+                    "update": rows,
+                    "stall_frames": summary["stall_frames"],
+                    "loaded_bytes": summary["loaded_bytes"],
+                    "kernels": os.environ.get("TERRASTREAM_KERNELS", "auto"),
+                    "loadavg_start_end": [load0, os.getloadavg()[0]],
+                    "lock_holds_us": locks,
+                    "machine": machine_info(),
+                }
+            ),
             indent=1,
         )
     )

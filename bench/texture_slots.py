@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"machine": machine_info(), "store": portable(str(a.store)), "size": list(size),
            "tau": a.tau, "ahead_per_frame": a.ahead_per_frame, "git_head": git_head(),
            "runs": runs}  # fmt: skip
-    a.out.write_text(json.dumps(doc, indent=1))
+    a.out.write_text(json.dumps(portable(doc), indent=1))
     print(f"# wrote {portable(str(a.out))}")
     return 0
 

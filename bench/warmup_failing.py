@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import RESULTS, WORK, machine_info, portable  # noqa: E402
 from streamer.frames import SessionConfig  # noqa: E402
 from streamer.paths import default_flythrough  # noqa: E402
 from streamer.session import Session  # noqa: E402
@@ -89,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(
         json.dumps(
-            {"read_s": a.read_s, "config": CONFIG, "runs": runs, "machine": machine_info()},
+            portable(
+                {"read_s": a.read_s, "config": CONFIG, "runs": runs, "machine": machine_info()}
+            ),
             indent=1,
         )
     )
