@@ -448,25 +448,32 @@ def _plan_warped(
 
 
 def _with_seams(placed: list[SourceInfo], crss: Sequence[CRS], target: CRS) -> list[SourceInfo]:
-    """Each source with the rings :class:`~tiler.mosaic.MosaicReader` fills seams from: its
-    pixel edges, and, for each source whose footprint meets it, three rings round that one's
-    sample centres: one source pixel out across its columns only, across its rows only, and
-    both (none: no seam)."""
+    """Each source with the indices of the others whose footprint meets it (none: no seam):
+    :class:`~tiler.mosaic.MosaicReader` fills their seams from :func:`seam_rings`, which it
+    builds itself (a spec holding the rings was ~5x larger, and is shipped with every block
+    task of a dask run)."""
     fp = np.array([p.footprint for p in placed], dtype=np.int64).reshape(-1, 4)
     out = []
     for k, p in enumerate(placed):
         meet = (fp[:, 0] < fp[k, 2]) & (fp[:, 2] > fp[k, 0]) & (fp[:, 1] < fp[k, 3])
         meet &= fp[:, 3] > fp[k, 1]
         meet[k] = False
-        others = np.nonzero(meet)[0].tolist()
-        if not others:
-            out.append(p)
-            continue
-        near = tuple(
-            _hull(placed[j], crss[j], target, widen=a, widen_cols=b, points=SEAM_POINTS)
-            for j in others
-            for a, b in ((HULL_EPS, 1.0), (1.0, HULL_EPS), (1.0, 1.0))
-        )
-        edge = _hull(p, crss[k], target, widen=0.5, points=SEAM_POINTS)
-        out.append(replace(p, edge=edge, near=near))
+        others = tuple(np.nonzero(meet)[0].tolist())
+        out.append(replace(p, near=others) if others else p)
     return out
+
+
+Ring = tuple[tuple[float, float], ...]
+
+
+def seam_rings(info: SourceInfo, target: CRS) -> tuple[Ring, tuple[Ring, Ring, Ring]]:
+    """The rings, in ``target`` coordinates, :class:`~tiler.mosaic.MosaicReader` fills seams
+    from: the source's pixel edges, and three round its sample centres, one source pixel out
+    across its columns only, across its rows only, and both."""
+    src = CRS.from_wkt(info.crs_wkt)
+    edge = _hull(info, src, target, widen=0.5, points=SEAM_POINTS)
+    cols, rows, both = (
+        _hull(info, src, target, widen=a, widen_cols=b, points=SEAM_POINTS)
+        for a, b in ((HULL_EPS, 1.0), (1.0, HULL_EPS), (1.0, 1.0))
+    )
+    return edge, (cols, rows, both)

@@ -57,13 +57,12 @@ class SourceInfo:
     # GDAL's AREA_OR_POINT ("Area", "Point" or None): how its samples are meant (GDAL's
     # geotransform is the pixel corners' either way)
     area_or_point: str | None = None
-    # when reprojecting and another source abuts or overlaps it: its pixel edges' ring, and
-    # three rings per such source round that one's sample centres (widened a pixel across
-    # columns, across rows, both), in target coordinates: the seam between two tiles that
-    # share no sample lies outside both hulls (see MosaicReader). Derived from the fields
-    # above, so not in a resume fingerprint (tiler.resume: the fields before ``masked``)
-    edge: tuple[tuple[float, float], ...] = ()
-    near: tuple[tuple[tuple[float, float], ...], ...] = ()
+    # when reprojecting: the indices (in the spec) of the other sources whose footprint meets
+    # this one's: the seam between two tiles that share no sample lies outside both hulls,
+    # and MosaicReader fills it from rings round them (tiler.mosaic_plan.seam_rings, built
+    # by the reader, not shipped with every block task). Derived from the fields above, so
+    # not in a resume fingerprint (tiler.resume: the fields before ``masked``)
+    near: tuple[int, ...] = ()
 
 
 #: GDAL's connection strings naming a part of a file: ``NETCDF:"f.nc":elevation``,
