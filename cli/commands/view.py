@@ -135,8 +135,6 @@ def view(
                 if tris == 0
                 else "its triangles are all smaller than a pixel or outside the view"
             )
-            if res.problem and not unseen:  # (a camera that looked away loads nothing)
-                why += f" (and the streaming said: {res.problem})"
             raise UsageError(
                 f"the last of the {res.frames} frame(s) of {store!r} drew no terrain pixel "
                 f"({tris:,} triangles): {why}; point the camera at the terrain (--camera, "
