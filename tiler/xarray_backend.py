@@ -281,7 +281,8 @@ def level_dataset(store: TerrainStore, level: int | None = None, lazy: bool = Fa
     return ds.assign_attrs(
         {
             "title": f"terrastream store {m.source.get('name')}",
-            "source": str(m.source.get("path")),
+            # (a mosaic's every source, as its title's "+ N more" says there are)
+            "source": "; ".join(map(str, m.source.get("paths") or [m.source.get("path")])),
             "terrastream_format_version": m.format_version,
             "Conventions": "CF-1.8",
         }
