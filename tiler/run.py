@@ -123,9 +123,10 @@ class BlockWorker:
             hits = self.ds.sources_for(row, col, 1, 1) or [0]  # (of a mosaic: the sample's)
             name = os.path.basename(srcs[hits[0]].path.rstrip("/"))
             more = " (or a source after it)" if len(hits) > 1 else ""
+            grid = "reprojected grid" if self.ds.spec.warp else "DEM"  # (not the source's)
             raise HeightRangeError(
                 f"{name}{more}, block {(br, bc)}, first at row {row}, column {col} of the "
-                f"DEM: {height_range_message(exc.count, exc.value, exc.raw, name)}",
+                f"{grid}: {height_range_message(exc.count, exc.value, exc.raw, name)}",
                 value=exc.value,
                 raw=exc.raw,
                 count=exc.count,

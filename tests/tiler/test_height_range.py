@@ -159,3 +159,17 @@ def test_infinite_samples_are_refused_not_dropped_as_nodata(tmp_path, value):
     assert verify_store(tmp_path / "ok.zarr").ok
     nan = write_dem(tmp_path / "nan.tif", _dem(float("nan")))
     assert tile(nan, tmp_path / "nan.zarr", TileOptions(block_size=33, workers=1)).meta.complete
+
+
+def test_a_reprojected_sources_refusal_says_the_place_is_on_the_reprojected_grid(tmp_path):
+    """Warped, the row and column named are the target grid's, not the source's: the message
+    said "of the DEM" (read as the source's own row 30 when it was the grid's 43). The control:
+    unwarped, "of the DEM" (they are the same)."""
+    data = fractal((61, 61), 2, dtype="float32")
+    data[30, 30] = np.inf
+    src = write_dem(tmp_path / "g.tif", data, crs="EPSG:4326", origin=(10.0, 45.0), cell=1 / 30)
+    opts = TileOptions(block_size=33, workers=1, dst_crs="auto")
+    with pytest.raises(HeightRangeError, match=r"of the reprojected grid: "):
+        tile(src, tmp_path / "w.zarr", opts)
+    with pytest.raises(HeightRangeError, match=r"row 30, column 30 of the DEM: "):
+        tile(src, tmp_path / "p.zarr", TileOptions(block_size=33, workers=1))
