@@ -279,8 +279,10 @@ def process_block(window: np.ndarray, params: BlockParams) -> BlockResult:
     valid[:h, :w] = valid_mask(data, params.nodata)
     exists = bool(valid.any())
     has_nodata = not bool(valid.all())
-    if dtype.kind == "f" and exists and bool(np.isinf(data[valid[:h, :w]]).any()):
-        raise _height_range(data, valid[:h, :w], params)  # ±inf not declared nodata
+    if dtype.kind == "f" and exists:  # ±inf not declared nodata (0.09 ms a 1025² block)
+        inf = np.isinf(data)
+        if inf.any() and bool((inf & valid[:h, :w]).any()):
+            raise _height_range(data, valid[:h, :w], params)
     grid = np.zeros((side, side), dtype=dtype)
     grid[:h, :w] = data
     if dtype.kind == "f":
