@@ -171,6 +171,9 @@ class TerrainStore:
         self.checksummed = self.meta.format_version >= 2
         self._fill = level_fill(self.meta.storage_dtype) if self.checksummed else None
         self._lock = threading.Lock()
+        #: the process the zarr store was opened in (a forked child reopens it: _in_process;
+        #: set before the arrays are first opened, which asks it)
+        self._pid = os.getpid()
         self._arrays: dict[str, zarr.Array] = {}
         self._last_check = time.monotonic()
         #: the change :meth:`check_unchanged` saw: every later read raises it (a reader never
@@ -190,8 +193,6 @@ class TerrainStore:
         #: and the shard indexes read from it
         self._remote = self._group.store if self._direct and remote else None
         self.shard_indexes = IndexCache()
-        #: the process the zarr store was opened in (a forked child reopens it: _in_process)
-        self._pid = os.getpid()
 
     @property
     def direct_reads(self) -> bool:
