@@ -281,8 +281,8 @@ def unportable_json(text: str) -> list[int]:
 
 BAD_SCRIPT = """
 import json
-from bench.common import RESULTS, machine_info
-doc = {"machine": machine_info(), "store": "/work/main/bench/work/s.zarr"}
+from bench.common import RESULTS, WORK, machine_info
+doc = {"machine": machine_info(), "store": str(WORK / "s.zarr")}
 (RESULTS / "x.json").write_text(json.dumps(doc, indent=1))
 with open(RESULTS / "y.json", "w") as f:
     json.dump({"rows": []}, f)
@@ -290,8 +290,8 @@ with open(RESULTS / "y.json", "w") as f:
 
 GOOD_SCRIPT = """
 import json
-from bench.common import RESULTS, portable
-doc = {"store": "/work/main/bench/work/s.zarr"}
+from bench.common import RESULTS, WORK, portable
+doc = {"store": str(WORK / "s.zarr")}
 (RESULTS / "x.json").write_text(json.dumps(portable(doc), indent=1))
 out = portable(doc)
 (RESULTS / "y.json").write_text(json.dumps(out) + "\\n")
