@@ -1,12 +1,14 @@
 """Rendering with a streaming session: single views and the tau trade-off sweep (fly-throughs:
-:mod:`render.flythrough`)."""
+:mod:`render.flythrough`).
+
+The sweep's rows, table and figure are :mod:`render.tradeoff_report`'s, the cracks of a view's
+own selection :mod:`render.view_cracks`'; their names are re-exported here."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,6 +33,15 @@ from render.strategies import (
 from render.strategies.base import DrawOptions
 from render.strategies.chunk_tess import ChunkTessellation, GpuChunks, start_depth
 from render.strategies.qiu import QiuStrategy, patch_counts, select_clod
+from render.tradeoff_report import ERROR_PANEL as ERROR_PANEL  # re-exported (moved there)
+from render.tradeoff_report import TABLE_HEADER as TABLE_HEADER  # re-exported
+from render.tradeoff_report import TradeoffRow, format_row
+from render.tradeoff_report import finite as finite  # re-exported
+from render.tradeoff_report import plot_tradeoff as plot_tradeoff  # re-exported
+from render.tradeoff_report import tradeoff_figure as tradeoff_figure  # re-exported
+from render.view_cracks import drawn_cracks
+from render.view_cracks import in_view as in_view  # re-exported (moved there)
+from render.view_cracks import nadir_for as nadir_for  # re-exported
 from render.views import ground_note, no_pixel_cause, terrain_cells
 from streamer.camera import Camera
 from streamer.lod import get_metric
@@ -200,69 +211,6 @@ def render_view(
         if not clamped:
             break
     return r.image(), replace(step.stats, drawn_px=r.drawn_pixels(), clamped=clamped)
-
-
-def nadir_for(camera: Camera, zmid: float) -> Camera:
-    """A straight-down camera over the point the view centre looks at (for crack counting)."""
-    f = camera.forward
-    eye = camera.eye
-    t = (zmid - eye[2]) / f[2] if f[2] < -1e-6 else 0.0
-    gx, gy = (eye[:2] + t * f[:2]) if t > 0 else eye[:2]
-    h = max(abs(eye[2] - zmid), 1.0)
-    return Camera(
-        (gx, gy, zmid + h),
-        pitch=-90.0,
-        fov_y=camera.fov_y,
-        viewport=camera.viewport,
-        near=camera.near,
-        far=camera.far,
-    )
-
-
-@dataclass(frozen=True)
-class TradeoffRow:
-    """One tau of the trade-off sweep (the ``--json`` row)."""
-
-    tau: float
-    metric: str
-    triangles: int
-    patches: int
-    selection_ms: float
-    frame_ms: float
-    reference_frame_ms: float
-    reference_triangles: int
-    max_screen_error_px: float
-    p99_screen_error_px: float
-    mean_screen_error_px: float
-    samples_in_view: int
-    psnr_db: float
-    changed_share: float
-    crack_pixels: int  # the view's own selection, seen from the camera
-    resident_bytes: int
-    loaded_bytes: int
-    gpu_bytes: int
-    clamped: int
-    strategy: str = DEFAULT
-    nodata: str = "full"  # the nodata rule the view was drawn and streamed with
-    used_bytes: int = 0  # level data (float32) the drawn surface reads, per block up to its level
-    own_gpu_bytes: int = 0  # the strategy's own GPU buffers (meshes, quadtree textures)
-    crack_pixels_above: int = 0  # the view's own selection seen from a nadir camera
-    open_edges: int = 0  # drawn edges unshared and not on the outer boundary (render.cracks)
-    gap_edges: int = 0  # of those, the ones whose two sides do not meet in 3-D
-    max_gap_m: float = 0.0  # largest vertical opening of the drawn mesh, metres
-    longest_gap_m: float = 0.0  # longest gap edge, metres
-    terrain_covered: float = 1.0  # share of in-view terrain samples the drawn surface covers
-    nodata_covered: float = 0.0  # share of in-view nodata samples it covers
-    uncovered_px: float = 0.0  # screen distance of an uncovered terrain sample to drawn terrain
-    terrain_in_view: int = 0  # in-view terrain samples (render.coverage)
-    nodata_in_view: int = 0
-    near_clipped_samples: int = 0  # terrain samples in the lateral view nearer than near
-    #: in-view terrain samples neither the drawn nor the reference's triangles cover (isolated
-    #: beside nodata): left out of terrain_in_view, terrain_covered and uncovered_px
-    undrawable_samples: int = 0
-    #: the stream tau whose session supplied the levels (:func:`restream_taus`: a fraction of
-    #: the row's when its strategy wanted levels the first session did not load)
-    stream_tau: float | None = None
 
 
 def tradeoff(
@@ -437,139 +385,3 @@ def full_rule_note(
         f"resolution; --nodata-rule gap would draw at most {n:,} at τ = {top:g} (it refines "
         "such a node only while its cells span more than min(τ, 1) px)"
     )
-
-
-def drawn_cracks(
-    r: TerrainRenderer,
-    strat: Any,
-    camera: Camera,
-    sel: Any,
-    ref_p: Any,
-    footprint: np.ndarray,
-    triangles: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[int, int]:
-    """Crack pixels of the view's own selection ``sel``: seen from ``camera`` (inside the
-    reference's ``footprint``) and from above (:func:`render.cracks.above_camera` framing the
-    drawn triangles — ``triangles``, default ``strat.triangles(camera, sel)`` — inside the
-    reference selection ``ref_p`` drawn from there, where the reference's surface lies in
-    ``camera``'s view: outside it each selection culls at its own granularity, and where the
-    two culled edges pinch below a pixel the gap between them is enclosed, not a crack); from
-    above, only pixels whose ray passes below the drawn surface (:func:`render.cracks.rays_below`:
-    through a gap, not past a ridge that wide-angle relief folds over the background). On a
-    store with nodata, a pixel that the selection covers once its nodata holes are drawn sees a
-    hole in the data, not a crack, and is not counted (:func:`render.measure.crack_pixels`'
-    ``holes``). From the camera, a clear pixel that only the image border reaches (a crack
-    running off the image's edge) counts where its ray passes below the drawn surface
-    (:func:`render.cracks.border_only`, :func:`render.cracks.gaps_through`)."""
-    nodata = bool(np.asarray(r.store.index.has_nodata).any())
-
-    def seen(cam: Camera, fp: np.ndarray, mesh: tuple | None = None, edge: tuple = ()) -> int:
-        strat.draw(cam, sel, clear=CLEAR)
-        img = r.image()
-        n = measure.crack_pixels(img, fp, CLEAR)
-        # edge (the drawn mesh): the clear pixels only the image border reaches count where
-        # their ray passes through a gap in it (a crack running off the image's edge)
-        off = cracks.border_only(img, fp, CLEAR) if edge else None
-        holes = None
-        if (n or (off is not None and off.any())) and nodata:  # holes in the data among them?
-            strat.draw(cam, sel, clear=CLEAR, holes=True)  # (drawn only when there is a doubt)
-            holes = ~measure.is_clear(r.image(), CLEAR)
-            n = measure.crack_pixels(img, fp, CLEAR, holes=holes)
-        if n and mesh is not None:  # only rays that pass below the drawn surface: a gap
-            rows, cols = np.nonzero(measure.crack_mask(img, fp, CLEAR, holes=holes))
-            n = int(cracks.rays_below(r.grid, cam, *mesh, np.c_[rows, cols]).sum())
-        if off is not None:
-            n += cracks.gaps_through(r.grid, cam, edge, off, holes)
-        return n
-
-    tri, h = triangles if triangles is not None else strat.triangles(camera, sel)
-    here = seen(camera, footprint, edge=(tri, h))
-    above = cracks.above_camera(r.grid, camera, tri, h)
-    r.draw(above, ref_p, clear=CLEAR)
-    fp_above = ~measure.is_clear(r.image(), CLEAR)
-    fp_above &= in_view(camera, r.surface_points(above))
-    return here, seen(above, fp_above, (tri, h))
-
-
-def in_view(camera: Camera, points: np.ndarray) -> np.ndarray:
-    """Per point of ``points`` (``(..., 3)``, NaN for none): inside ``camera``'s view frustum."""
-    flat = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return camera.in_view(flat).reshape(np.shape(points)[:-1])
-
-
-TABLE_HEADER = (
-    f"{'tau':>5} {'metric':>12} {'triangles':>10} {'sel ms':>7} {'GPU ms':>7} {'ref ms':>7} "
-    f"{'max px':>7} {'p99 px':>7} {'PSNR':>6} {'changed':>8} {'cracks':>6} {'above':>6} "
-    f"{'open':>5} {'gaps':>5} {'gap m':>7} {'terrain':>7} {'nodata':>6} {'undrawn px':>10} "
-    f"{'clipped':>7} {'resident MiB':>12}"
-)
-
-
-def format_row(r: TradeoffRow) -> str:
-    """One line of the trade-off table (cracks seen from the camera and from above, open and
-    gap edges, largest gap, coverage of terrain and nodata, how far undrawn terrain lies from
-    drawn terrain on screen, near-clipped samples)."""
-    return (
-        f"{r.tau:>5g} {r.metric:>12} {r.triangles:>10,} {r.selection_ms:>7.2f} "
-        f"{r.frame_ms:>7.1f} {r.reference_frame_ms:>7.1f} {r.max_screen_error_px:>7.2f} "
-        f"{r.p99_screen_error_px:>7.2f} {r.psnr_db:>6.1f} {100 * r.changed_share:>7.2f}% "
-        f"{r.crack_pixels:>6} {r.crack_pixels_above:>6} {r.open_edges:>5} {r.gap_edges:>5} "
-        f"{r.max_gap_m:>7.2f} {coverage.percent(r.terrain_covered):>7} "
-        f"{coverage.percent(r.nodata_covered):>6} "
-        f"{r.uncovered_px:>10.2f} {r.near_clipped_samples:>7} {r.resident_bytes / 2**20:>12.2f}"
-    )
-
-
-ERROR_PANEL = "measured screen error px"
-
-
-def plot_tradeoff(rows: Sequence[TradeoffRow], out: str | Path, title: str = "") -> None:
-    """tau vs triangles, times, bytes, measured error and PSNR, as a PNG."""
-    import matplotlib.pyplot as plt
-
-    fig = tradeoff_figure(rows, title)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-
-
-def tradeoff_figure(rows: Sequence[TradeoffRow], title: str = "") -> Any:
-    """The matplotlib figure of :func:`plot_tradeoff` (six panels; the error panel carries
-    the ``y = tau`` line the measured error is read against)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(2, 3, figsize=(13, 7))
-    for metric in sorted({r.metric for r in rows}):
-        rs = sorted((r for r in rows if r.metric == metric), key=lambda r: r.tau)
-        t = [r.tau for r in rs]
-        panels = [
-            ("triangles", [r.triangles for r in rs]),
-            ("CPU selection ms", [r.selection_ms for r in rs]),
-            ("GPU frame ms (LOD)", [r.frame_ms for r in rs]),
-            ("resident MiB", [r.resident_bytes / 2**20 for r in rs]),
-            (ERROR_PANEL, [r.max_screen_error_px for r in rs]),
-            ("PSNR dB vs full res", [r.psnr_db for r in rs]),
-        ]
-        for a, (name, ys) in zip(ax.ravel(), panels, strict=True):
-            a.plot(t, ys, "o-", label=f"{metric}" + (" max" if "error" in name else ""))
-            if "error" in name:
-                a.plot(t, [r.p99_screen_error_px for r in rs], "s--", label=f"{metric} p99")
-            a.set_xscale("log", base=2)
-            a.set_xlabel("tau (px)")
-            a.set_title(name)
-    taus = sorted({r.tau for r in rows})
-    for a in ax.ravel():
-        if a.get_title() == ERROR_PANEL:  # the bound the measured error is read against
-            a.plot(taus, taus, "k:", label="tau")
-        a.grid(alpha=0.3)
-        a.legend(fontsize=7)
-    fig.suptitle(title or "speed / accuracy trade-off")
-    fig.tight_layout()
-    return fig
-
-
-def finite(x: float) -> float | None:
-    """JSON-safe float (None for NaN/inf)."""
-    return x if math.isfinite(x) else None

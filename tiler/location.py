@@ -9,69 +9,32 @@ exists, list) used by the lease, the resume journal and the verifier. Three kind
 - an fsspec URL (``memory://``, ``http(s)://``, ``s3://`` ...): the fsspec filesystem of the URL;
 - a zarr ``Store`` object: its async API, run on a private event loop per call.
 
-Adding a backend means adding one branch here (see docs/FORMAT.md, "Store backends").
+The raw-key operations are :class:`tiler.location_keys.LocationKeys`, which :class:`Location`
+inherits. Adding a backend means adding one branch here (opening it, whether it can rename) and
+one in :mod:`tiler.location_keys` (its key operations; see docs/FORMAT.md, "Store backends").
 """
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import hashlib
 import json
 import os
 import shutil
-import threading
-from collections.abc import Coroutine
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import zarr
 from zarr.abc.store import Store
-from zarr.buffer import default_buffer_prototype
 
-from tiler.atomic import partial_name, write_atomic
-from tiler.errors import BucketNotFoundError, StorageOptionsError, StoreError, StoreURLError
+from tiler.errors import StorageOptionsError, StoreError, StoreURLError
+from tiler.location_keys import LocationKeys, run_sync
 from tiler.remote import is_http
 from tiler.s3_reader import S3_READER_ENV, open_s3_reader
-from tiler.transport import (
-    http_options,
-    is_transport_error,
-    missing_bucket,
-    missing_bucket_message,
-    s3fs_options,
-    unavailable,
-)
-
-T = TypeVar("T")
+from tiler.transport import http_options, is_transport_error, s3fs_options, unavailable
 
 
 def is_url(path: str | os.PathLike) -> bool:
     """True for fsspec URLs such as ``memory://``, ``http://``, ``s3://``."""
     return "://" in str(path)
-
-
-def _run(coro: Coroutine[Any, Any, T]) -> T:
-    """Run a coroutine to completion from sync code (own loop; a helper thread if one runs)."""
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return asyncio.run(coro)
-    box: dict[str, Any] = {}
-
-    def target() -> None:
-        try:
-            box["v"] = asyncio.run(coro)
-        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
-            box["e"] = exc
-
-    t = threading.Thread(target=target, name="terrastream-location-io")
-    t.start()
-    t.join(timeout=600)
-    if t.is_alive():
-        raise StoreError("a store operation did not finish within 600 s")
-    if "e" in box:
-        raise box["e"]
-    return box["v"]
 
 
 def parse_storage_options(text: str | None) -> dict[str, Any] | None:
@@ -93,7 +56,7 @@ def parse_storage_options(text: str | None) -> dict[str, Any] | None:
     return value
 
 
-class Location:
+class Location(LocationKeys):
     """A store location: local directory, fsspec URL or zarr ``Store`` object.
 
     ``storage_options`` (fsspec URLs only) go to the URL's filesystem, e.g.
@@ -299,7 +262,7 @@ class Location:
             if fs.exists(path):
                 fs.rm(path, recursive=True)
             return
-        _run(self.target.delete_dir(""))
+        run_sync(self.target.delete_dir(""))
 
     def sibling(self, suffix: str) -> Location:
         """A new local location next to this one (``<path><suffix>``)."""
@@ -319,188 +282,6 @@ class Location:
         if os.path.isdir(parent) and os.access(parent, os.W_OK):
             return None
         return parent
-
-    # ---- raw keys ------------------------------------------------------------------------
-    def _key_path(self, key: str) -> str:
-        if self.is_local:
-            return os.path.join(self.target, *key.split("/"))  # type: ignore[arg-type]
-        _, path = self._fs()
-        return f"{path.rstrip('/')}/{key}"
-
-    def get_bytes(self, key: str) -> bytes | None:
-        """The bytes stored under ``key``, or None if it does not exist."""
-        if isinstance(self.target, Store):
-            buf = _run(self.target.get(key, prototype=default_buffer_prototype()))
-            return None if buf is None else buf.to_bytes()
-        if self.is_local:
-            try:
-                with open(self._key_path(key), "rb") as f:
-                    return f.read()
-            except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
-                return None
-        fs, _ = self._fs()
-        try:
-            return fs.cat_file(self._key_path(key))
-        except FileNotFoundError:
-            return None
-
-    def put_bytes(self, key: str, data: bytes) -> None:
-        """Store ``data`` under ``key`` (local: written to a temporary file, then renamed)."""
-        if isinstance(self.target, Store):
-            buf = default_buffer_prototype().buffer.from_bytes(data)
-            _run(self.target.set(key, buf))
-            return
-        if self.is_local:
-            write_atomic(self._key_path(key), data)
-            return
-        fs, _ = self._fs()
-        try:
-            fs.pipe_file(self._key_path(key), data)
-        except FileNotFoundError as exc:  # (s3fs: the first write into a missing bucket)
-            if missing_bucket(exc):
-                raise BucketNotFoundError(missing_bucket_message(self.url)) from exc
-            raise
-
-    def put_if_absent(self, key: str, data: bytes) -> bool:
-        """Create ``key`` only if it does not exist; True if this call created it.
-
-        Atomic for local directories (the whole content appears at once: a temporary file is
-        hard-linked into place, so a concurrent reader never sees it empty or half written) and
-        zarr Stores that implement ``set_if_not_exists``; best effort (check, then write) for
-        fsspec URLs.
-        """
-        if self.is_local:
-            return _link_if_absent(self._key_path(key), data)
-        if isinstance(self.target, Store):
-            store = self.target
-            buf = default_buffer_prototype().buffer.from_bytes(data)
-
-            async def go() -> bool:
-                await store.set_if_not_exists(key, buf)
-                got = await store.get(key, prototype=default_buffer_prototype())
-                return got is not None and got.to_bytes() == data
-
-            return _run(go())
-        if self.key_exists(key):
-            return False
-        self.put_bytes(key, data)
-        return self.get_bytes(key) == data
-
-    def delete_key(self, key: str) -> None:
-        """Delete ``key`` if it exists."""
-        if isinstance(self.target, Store):
-            _run(self.target.delete(key))
-            return
-        if self.is_local:
-            with contextlib.suppress(FileNotFoundError):
-                os.remove(self._key_path(key))
-            return
-        fs, _ = self._fs()
-        with contextlib.suppress(FileNotFoundError):
-            fs.rm_file(self._key_path(key))
-
-    def delete_prefix(self, prefix: str) -> None:
-        """Delete every key under ``prefix`` (a zarr array or group path)."""
-        if isinstance(self.target, Store):
-            _run(self.target.delete_dir(prefix))
-            return
-        if self.is_local:
-            p = self._key_path(prefix)
-            if os.path.isdir(p):
-                shutil.rmtree(p)
-            return
-        fs, _ = self._fs()
-        p = self._key_path(prefix)
-        if fs.exists(p):
-            fs.rm(p, recursive=True)
-
-    def key_exists(self, key: str) -> bool:
-        """True if ``key`` exists."""
-        if isinstance(self.target, Store):
-            return bool(_run(self.target.exists(key)))
-        if self.is_local:
-            return os.path.isfile(self._key_path(key))
-        fs, _ = self._fs()
-        return self._fs_exists(fs, self._key_path(key), f"key {key!r}")
-
-    def list_keys(self, prefix: str = "") -> list[str]:
-        """Every key under ``prefix`` (raises NotImplementedError where listing is impossible)."""
-        if isinstance(self.target, Store):
-            store = self.target
-
-            async def go() -> list[str]:
-                return [k async for k in store.list_prefix(prefix)]
-
-            return _run(go())
-        if self.is_local:
-            root = self.path
-            base = root / prefix if prefix else root
-            if not base.exists():
-                return []
-            return sorted(p.relative_to(root).as_posix() for p in base.rglob("*") if p.is_file())
-        if str(self.target).startswith(("http://", "https://")):
-            raise NotImplementedError(f"{self.url!r} cannot be listed over HTTP")
-        fs, root = self._fs()
-        root = root.rstrip("/")
-        base = f"{root}/{prefix}" if prefix else root
-        if not fs.exists(base):
-            return []
-        return sorted(p[len(root) + 1 :] for p in fs.find(base))
-
-    @property
-    def can_list(self) -> bool:
-        """False where the backend cannot list a store's files (plain HTTP), so
-        :meth:`total_size` cannot sum them."""
-        return not is_http(str(self.target))
-
-    def total_size(self, prefix: str = "") -> int:
-        """Total bytes stored under ``prefix`` (0 where the backend cannot list, e.g. HTTP)."""
-        if self.is_local:
-            base = self.path / prefix if prefix else self.path
-            if base.is_file():
-                return base.stat().st_size
-            return sum(p.stat().st_size for p in base.rglob("*") if p.is_file())
-        if isinstance(self.target, Store):
-            store = self.target
-
-            async def go() -> int:
-                n = 0
-                async for key in store.list_prefix(prefix):
-                    n += int(await store.getsize(key))
-                return n
-
-            try:
-                return _run(go())
-            except NotImplementedError:
-                return 0
-        if str(self.target).startswith(("http://", "https://")):
-            return 0
-        fs, root = self._fs()
-        base = f"{root.rstrip('/')}/{prefix}" if prefix else root
-        if not fs.exists(base):
-            return 0
-        return int(sum(d["size"] for d in fs.find(base, detail=True).values()))
-
-    def remove_partial_files(self) -> int:
-        """Delete leftover ``*.partial`` temporary files of interrupted writes (local only)."""
-        if not self.is_local or not self.path.is_dir():
-            return 0
-        n = 0
-        for p in self.path.rglob("*.partial"):
-            p.unlink(missing_ok=True)
-            n += 1
-        return n
-
-    def change_token(self) -> object:
-        """A cheap value that changes when the root metadata is replaced (reader check)."""
-        if self.is_local:
-            try:
-                st = os.stat(self._key_path("zarr.json"))
-            except FileNotFoundError:
-                return None
-            return (st.st_ino, st.st_mtime_ns, st.st_size)
-        data = self.get_bytes("zarr.json")
-        return None if data is None else hashlib.blake2b(data, digest_size=16).digest()
 
 
 def _refuse_query(url: str) -> None:
@@ -540,32 +321,3 @@ def for_writing(loc: Location) -> Location:
     if not loc.is_s3:
         return loc
     return Location(loc.target, s3fs_options(loc.storage_options, write=True), writing=True)
-
-
-def _link_if_absent(path: str, data: bytes) -> bool:
-    """Create the file ``path`` holding ``data`` unless it exists; True if this call made it.
-
-    The bytes go to a private temporary file first, which is then hard-linked to ``path``
-    (``link`` fails if ``path`` exists), so the file never exists with partial content. On a
-    filesystem without hard links, ``O_EXCL`` creation (content written just after) is used.
-    """
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = partial_name(path)
-    with open(tmp, "wb") as f:
-        f.write(data)
-    try:
-        os.link(tmp, path)
-        return True
-    except FileExistsError:
-        return False
-    except OSError:  # no hard links here (some FUSE or SMB mounts)
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            return False
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        return True
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)

@@ -134,11 +134,11 @@ def test_from_above_only_the_measured_view_counts(setup, monkeypatch):
     pinch below a pixel the gap between them is enclosed. Counted only where the reference's
     surface lies in the measured view, it reads 0; the control, the count over the whole
     reference, reads the pinched pixel."""
-    from render import pipeline
+    from render import view_cracks  # (drawn_cracks' module: render.pipeline re-exports it)
 
     _, (_, above) = _measure(setup, "jung-han", stitching=True)
     assert above == 0
-    monkeypatch.setattr(pipeline, "in_view", lambda camera, pts: np.ones(pts.shape[:-1], bool))
+    monkeypatch.setattr(view_cracks, "in_view", lambda camera, pts: np.ones(pts.shape[:-1], bool))
     _, (_, unrestricted) = _measure(setup, "jung-han", stitching=True)
     assert unrestricted > 0
 
