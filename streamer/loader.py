@@ -160,11 +160,18 @@ class Loader:
     # -- taking jobs -----------------------------------------------------------------------
 
     def fetchable(self, b: Block) -> int | None:
-        """Next level of ``b`` to fetch (-1: its errors), or None (caller holds the lock)."""
+        """Next level of ``b`` to fetch (-1: its errors), or None (caller holds the lock).
+        With ``prefetch`` off only what a frame pinned: the plan's wants above the pins are
+        levels no frame asked for yet (the level the view needs of a block pinned at the patch
+        level before its errors arrived, found by the planning thread first), read ahead."""
+        want, pin = self.cache.want(b)
+        if not self.config.prefetch:
+            if pin < 0:
+                return None  # no frame needs it (not even its errors)
+            want = pin
         busy = self.fetching.get(b, set())
         if b not in self.errors:
             return None if -1 in busy else -1
-        want, _pin = self.cache.want(b)
         pending = self.raw.get(b, {})
         if not self.config.concurrent_levels:  # level by level: nothing of b under way
             if busy or pending or b in self.decoding:
@@ -292,7 +299,7 @@ class Loader:
                 time.sleep(self.config.latency_ms / 1000.0)
             if self.read_hook is not None:
                 self.read_hook(b, level)
-            data = self._read_errors(b) if level < 0 else self.store.read_level_raw(b, level)
+            data = self.read_errors(b) if level < 0 else self.store.read_level_raw(b, level)
         except READ_ERRORS as exc:
             with self.cv:
                 if level >= 0:
@@ -345,7 +352,7 @@ class Loader:
             with self.cv:
                 self.decoding.discard(b)
 
-    def _read_errors(self, b: Block) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    def read_errors(self, b: Block) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
         """The block's error field and gap widths under the session's nodata rule
         (:func:`streamer.nodata.rule_errors`); the fields and mask read are kept in
         :attr:`side`. A chunk that zarr or its codecs cannot decode raises
@@ -402,7 +409,8 @@ class Loader:
                     self.frame_late += nbytes
                 # real-time: a level a frame lacked, or one the frame being made pins (it
                 # needs it; a read that came back before that frame was finished counted
-                # as prefetched, prefetch off too, as the frame had not marked it yet)
+                # as prefetched, prefetch off too, as the frame had not marked it yet).
+                # With prefetch off only pinned levels are read (fetchable): all real-time
                 if (b, nxt) in self.demanded or self.cache.want(b)[1] >= nxt:
                     self.frame_realtime += nbytes
                 else:

@@ -25,12 +25,13 @@ reused by every store; those are zarr's, not the session's, and their number doe
 with the number of sessions (tested).
 
 Bytes are decoded level bytes (the source dtype), the quantity held in memory and budgeted.
+Parts kept apart: pinning a frame's levels and the budget error (:mod:`streamer.pins`),
+closing the threads (:mod:`streamer.sessionthreads`), the arguments' checks
+(:mod:`streamer.sessionargs`).
 """
 
 from __future__ import annotations
 
-import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -42,11 +43,10 @@ import numpy as np
 
 from streamer import levels as levels_kernels
 from streamer.blockside import Side
-from streamer.cache import Block, PinChanges, mib_text
+from streamer.cache import Block, PinChanges
 from streamer.camera import Camera
 from streamer.errors import (
     BudgetError,
-    CameraError,
     LoadError,
     LodError,
     SessionClosedError,
@@ -58,20 +58,17 @@ from streamer.gcfreeze import freeze_heap
 from streamer.loader import READ_ERRORS, Loader
 from streamer.loadreport import failing as loader_failing
 from streamer.lod import FIELD_FOR_METRIC
+from streamer.pins import UNBOUNDED_TAU, levels_of, pin_and_queue, read_error_tables, to_queue
 from streamer.planner import Planner
 from streamer.planthread import PlanThread
+from streamer.sessionargs import check_camera, check_dt, check_timeout
+from streamer.sessionthreads import SessionThreads
 from streamer.waits import wait_for, wait_idle, waiting
 from tiler.crs import require_projected
-from tiler.errors import StoreChangedError, StoreIncompleteError
+from tiler.errors import StoreIncompleteError
 from tiler.layout import level_size
 from tiler.store import TerrainStore, open_store
 from tiler.vertical import height_dtype
-
-log = logging.getLogger(__name__)
-
-
-#: the τ a budget error plans with to find the least a view needs (any larger changes nothing)
-UNBOUNDED_TAU = 1e30
 
 
 class Session:
@@ -117,14 +114,12 @@ class Session:
         # kept from LevelCache.take_level_changes: the caller's copy, read without the lock
         self._resident: dict[Block, int] = {}
         self._resident_version = 0  # +1 whenever that copy changes
-        self._closed = False
         self._updating = threading.Lock()  # held by the thread inside update() (one at a time)
-        self._fatal_raised = False  # the store change was raised to the caller once
-        self.unfinished: list[str] = []  # threads still running when close() returned
         self._peak_frames = 0  # the largest FrameStats.resident_bytes of the frames so far
         # account_hull: frames with a block of the hull holding no level (None: not accounted)
         self._hull_hole_frames: int | None = None
         self._plans = PlanThread(self.planner, self.loader, self.config.workers)
+        self._threads = SessionThreads(self.loader, self._plans)
 
     @property
     def config(self) -> SessionConfig:
@@ -133,6 +128,7 @@ class Session:
 
     @config.setter
     def config(self, cfg: SessionConfig) -> None:
+        self._check_open("its settings cannot change")
         if cfg.workers != self._config.workers or cfg.budget_mb != self._config.budget_mb:
             raise StreamerError("workers and budget_mb cannot change during a session")
         if cfg.nodata != self._config.nodata:  # the error table was filled under the old rule
@@ -158,90 +154,51 @@ class Session:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        if self._closed:  # closed in the block: no second wait for reads that hang
+        if self._threads.closed:  # closed in the block: no second wait for reads that hang
             return
-        self._close(10.0, raise_bug=exc_type is None)  # never mask the exception in flight
+        self._threads.close(10.0, raise_bug=exc_type is None)  # never mask the exception
 
     def close(self, timeout_s: float = 10.0) -> list[str]:
         """Stop the loader and planning threads, waiting at most ``timeout_s`` for reads in
         flight; the names of threads still running then (a read the server never answers).
         An exception a loader or planning thread raised that no :meth:`update` re-raised yet
         is raised here, once the threads are stopped. Closing again waits (as long) for the
-        threads still running and names those still running then."""
-        return self._close(timeout_s, raise_bug=True)
+        threads still running and names those still running then.
 
-    def _close(self, timeout_s: float, *, raise_bug: bool) -> list[str]:
-        with self._cv:
-            again = self._closed
-            self._closed = self._plans.closed = True
-        if again:  # (it returned [] while the threads the first close named still ran)
-            return self._join_left(timeout_s)
-        t0 = time.monotonic()
-        pool = self._plans.pool
-        if pool is not None:  # told first: it ends while the loader's reads are awaited
-            pool.shutdown(wait=False, cancel_futures=True)
-        alive = self.loader.close(timeout_s)
-        if pool is not None:
-            for t in pool.threads:
-                t.join(timeout=max(0.0, timeout_s - (time.monotonic() - t0)))
-                if t.is_alive():
-                    alive.append(t.name)
-        if alive:
-            log.warning("session threads still running after %.1f s: %s", timeout_s, alive)
-        self.unfinished = alive
-        if raise_bug:
-            self._raise_background_error(fatal=not self._fatal_raised)
-        else:
-            with self._cv:
-                left = self._plans.error or self.loader.bug
-            if left is not None:
-                log.error("a session thread failed: %r", left)
-        return alive
+        A closed session plans and loads nothing more: :meth:`update`, :meth:`warm_up`,
+        :meth:`set_tau` and assigning :attr:`config` raise :class:`SessionClosedError`. What it
+        held stays readable, for the report and the last frame's drawing: :meth:`summary`,
+        :meth:`levels`, :meth:`block_side`, :meth:`resident_levels` (see :attr:`closed`)."""
+        return self._threads.close(timeout_s, raise_bug=True)
 
-    def _join_left(self, timeout_s: float) -> list[str]:
-        """Wait at most ``timeout_s`` for the session's threads still running after a close;
-        the names of those still running then (kept as :attr:`unfinished`)."""
-        pool = self._plans.pool
-        threads = self.loader.threads() + ([] if pool is None else pool.threads)
-        deadline = time.monotonic() + max(0.0, float(timeout_s))
-        for t in threads:
-            if t.is_alive():
-                t.join(timeout=max(0.0, deadline - time.monotonic()))
-        self.unfinished = [t.name for t in threads if t.is_alive()]
-        return list(self.unfinished)
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called (its threads may still be finishing: see
+        :attr:`unfinished`): a reader of :meth:`levels` that must not take a closed
+        session's data (it holds no newer level) checks it first."""
+        return self._threads.closed
+
+    @property
+    def unfinished(self) -> list[str]:
+        """The session's threads still running when the latest :meth:`close` returned."""
+        return self._threads.unfinished
 
     def set_tau(self, tau: float) -> None:
         """Change the screen-space error threshold for what is drawn *and* what is streamed."""
-        self._check_open()
+        self._check_open(f"set_tau({tau!r}) cannot change its threshold")
         if isinstance(tau, bool) or not isinstance(tau, int | float | np.integer | np.floating):
             raise LodError(f"tau must be a number of pixels > 0, got {tau!r}")
         self.config = replace(self.config, tau=float(tau))  # validated by SessionConfig
 
     # -- planning -------------------------------------------------------------------------
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise SessionClosedError("this session is closed")
-
-    def _to_queue(self, needed: dict[Block, int], levels: np.ndarray | None = None) -> list[Block]:
-        """The visible blocks that lack a level and are not queued as visible yet (no lock
-        needed: single dict reads; a block loaded meanwhile is re-checked when taken).
-        ``levels``: ``needed``'s values as an array, if the caller has it."""
-        blocks = list(needed)
-        lv = _values(needed) if levels is None else levels
-        unknown = self.loader.errors.lookup(blocks) < 0
-        short = np.flatnonzero(unknown | (self.cache.levels_array(blocks) < lv))
-        queued = self.loader.queue.queued_key
-        out = []
-        for i in short.tolist():
-            b = blocks[i]
-            # a visible block's key starts (0 if its errors are unknown else 1, 0): one
-            # already queued at least that urgently is not pushed again (no key computed)
-            best = queued(b)
-            if best is not None and best[1] == 0 and best[0] <= (0 if unknown[i] else 1):
-                continue
-            out.append(b)
-        return out
+    def _check_open(self, what: str) -> None:
+        """:class:`SessionClosedError` saying ``what`` cannot be done, once closed."""
+        if self._threads.closed:
+            raise SessionClosedError(
+                f"this session is closed (close() was called): {what}; open a new session "
+                "to stream again"
+            )
 
     def _pin_and_queue(
         self,
@@ -252,111 +209,16 @@ class Session:
         *,
         camera: Camera,
     ) -> int:
-        """Pin this frame's levels and queue the missing ones (``todo``: :meth:`_to_queue`'s
-        answer, ``changes``: ``LevelCache.pin_changes``', both found before taking the lock;
-        ``need``: the pinned bytes, if summed; ``camera``: the pose they are for, to word a
-        budget error; caller holds the lock)."""
-        try:
-            self.cache.set_pins(needed, self.level_bytes, need, changes)
-        except BudgetError as exc:
-            raise self._budget_error(exc, needed, camera) from None
-        if todo is None:
-            todo = self._to_queue(needed)
-        push = self.loader.push
-        for b in todo:
-            push(b)
-        return len(todo)
-
-    def _budget_error(
-        self, exc: BudgetError, needed: dict[Block, int], camera: Camera | None
-    ) -> BudgetError:
-        """``exc`` (the pins exceed the budget), or, when no τ can help, an error saying so and
-        giving the smallest budget that fits this view: its visible blocks at the levels an
-        unbounded τ still needs (the patch level; beside nodata, what the nodata rule keeps)."""
-        if exc.template is None or camera is None or not needed:
-            return exc
-        # the levels a block needs at any τ come from its error table: a block whose table is
-        # not read yet (the first frame's, during warm-up) would count at the patch level, a
-        # floor that fails again once the table arrives; read them now (an error's path)
-        unread = self._read_error_tables(self.planner.visible(camera))
-        least = self.planner.needed(camera, tau=UNBOUNDED_TAU)
-        floor = sum(self._cum_bytes[lv] for lv in least.values() if lv >= 0)
-        if floor <= self.cache.budget:
-            return exc  # a larger τ fits: the advice holds
-        # the need counted blocks whose error tables were not read at their coarsest levels
-        # (the warm-up's first frame): said beside the floor, it read less than the least a
-        # view needs at any τ ("need 0.0044 MiB ... at any tau at least 0.0059 MiB")
-        values = dict(exc.values)
-        before = sum(self._cum_bytes[lv] for lv in needed.values() if lv >= 0)
-        now = sum(self._cum_bytes[lv] for lv in self.planner.needed(camera).values() if lv >= 0)
-        if now > before:
-            values["need"] = mib_text(now)
-        has = self.store.index.has_nodata
-        n, holes = len(least), sum(1 for b in least if has[b])
-        who = "it" if n == 1 else f"{holes} of them"
-        hold, stay = ("holds", "stays") if who == "it" or holes == 1 else ("hold", "stay")
-        why = ""
-        if holes and self.config.nodata == "full":
-            why = (
-                f" ({who} {hold} nodata beside terrain and {stay} at full resolution under the "
-                "nodata rule 'full')"
-            )
-        elif holes:
-            why = (
-                f" ({who} {hold} nodata beside terrain, which the nodata rule "
-                f"'{self.config.nodata}' refines while its cells span more than a pixel)"
-            )
-        if unread:
-            why += (
-                f" ({unread} of them counted at their coarsest levels: their error tables could"
-                " not be read, so they may need more)"
-            )
-        return BudgetError(
-            "the visible blocks need {need} at their levels but the budget is {budget}; at "
-            "any {tau} {visible} at least {floor}" + why + ": raise {budget_mb} to at least that",
-            params=exc.params,
-            **values,
-            visible="the visible block needs" if n == 1 else f"the {n} visible blocks need",
-            floor=mib_text(floor),
+        return pin_and_queue(
+            self.loader, self.planner, needed, self._cum_bytes, todo, need, changes, camera=camera
         )
 
     def _read_error_tables(self, blocks: list[Block]) -> int:
-        """Read the error tables of those of ``blocks`` the session has not read yet, as the
-        loaders do (for a budget error's floor); the number that could not be read."""
-        ld = self.loader
-        unread = 0
-        for b, slot in zip(blocks, ld.errors.lookup(blocks).tolist(), strict=True):
-            if slot >= 0:
-                continue
-            try:
-                data = ld._read_errors(b)
-            except READ_ERRORS as exc:
-                log.warning("reading the error table of block %s failed: %s", b, exc)
-                unread += 1
-                continue
-            ld.errors.add(b, *data)
-        return unread
+        """:func:`streamer.pins.read_error_tables` of this session's loader."""
+        return read_error_tables(self.loader, blocks)
 
     def _raise_background_error(self, *, fatal: bool = True) -> None:
-        """Re-raise a planning failure or a loader bug on the caller's thread, and (``fatal``)
-        a change of the store under the session, which every later call raises again."""
-        ld, plans = self.loader, self._plans
-        if plans.error is None and ld.bug is None and (not fatal or ld.fatal is None):
-            return  # (read without the lock: one set meanwhile is raised by the next call)
-        with self._cv:
-            plan_exc, plans.error = plans.error, None
-            bug, ld.bug = ld.bug, None
-            changed = ld.fatal if fatal else None
-        if plan_exc is not None:
-            raise StreamerError(f"prefetch planning failed: {plan_exc}") from plan_exc
-        if bug is not None:
-            raise bug
-        if changed is not None:
-            self._fatal_raised = True
-            raise StoreChangedError(
-                f"{changed}; the session stopped loading when it saw the change (a remote "
-                "store's levels read in the second before may be the new store's)"
-            ) from changed
+        self._threads.raise_error(fatal=fatal)
 
     # -- the frame ------------------------------------------------------------------------
 
@@ -370,16 +232,9 @@ class Session:
         first time ever), which ``update`` uses only once loaded. With ``freeze_gc`` it ends
         with :func:`streamer.gcfreeze.freeze_heap`.
         """
-        self._check_open()
-        _check_camera(camera)
-        if timeout_s is not None and not (
-            isinstance(timeout_s, (int, float)) and not isinstance(timeout_s, bool)
-            and 0 < timeout_s < math.inf
-        ):  # fmt: skip
-            raise StreamerError(
-                f"timeout_s must be a finite number of seconds > 0 (None: the session's "
-                f"wait_timeout_s), got {timeout_s!r}"
-            )
+        self._check_open("warm_up cannot load for a camera")
+        check_camera(camera)
+        check_timeout(timeout_s)
         t0 = time.perf_counter()
         levels_kernels.warm_up(self.loader.errors)
         before = self.totals.loaded_bytes
@@ -417,9 +272,9 @@ class Session:
         ``retries`` times in a row and ``retries`` more times during this wait (bounded by
         ``wait_timeout_s``). With ``warm_start``, the first call runs :meth:`warm_up` first.
         """
-        self._check_open()
-        _check_camera(camera)
-        dt = _check_dt(dt)
+        self._check_open("update cannot plan or load a frame")
+        check_camera(camera)
+        dt = check_dt(dt)
         if not self._updating.acquire(blocking=False):
             raise SessionThreadError(
                 "Session.update was called while another thread is inside it; drive a session "
@@ -448,7 +303,7 @@ class Session:
         # no lock: the error table is read lock-free
         blocks, levels = self.planner.needed_arrays(camera)
         needed = dict(zip(blocks, levels.tolist(), strict=True))
-        todo = self._to_queue(needed, levels)
+        todo = to_queue(self.loader, needed, levels)
         need = int(self._cum_array[levels].sum())
         changes = self.cache.pin_changes(needed)  # (only this thread sets the pins)
         with self._cv:  # (one hold: a contended one costs the caller a GIL hand-off too)
@@ -470,7 +325,7 @@ class Session:
                 # the errors arrived while waiting: wait for what they say is needed
                 with self._cv:
                     self._pin_and_queue(fresh, camera=camera)
-                needed, levels, need = fresh, _values(fresh), None
+                needed, levels, need = fresh, levels_of(fresh), None
                 wait_for(self.loader, cfg, self._raise_background_error, needed, self._due)
         t2, c2 = time.perf_counter(), time.thread_time()
         return self._finish_frame(
@@ -593,14 +448,18 @@ class Session:
 
     def levels(self, block: Block) -> list[np.ndarray]:
         """Resident decoded levels of a block (for renderers); ``LayoutError`` (a ValueError)
-        for a block id outside the store's grid."""
+        for a block id outside the store's grid. A closed session still answers with the
+        levels it holds (no new one is queued; a read in flight at close may still add one):
+        renderers finish drawing its last frame from them (:mod:`render.block_source`). Check
+        :attr:`closed` where a closed session's data must not be used."""
         with self._cv:
             return self.cache.levels(block)
 
     def resident_levels(self) -> dict[Block, int]:
         """The finest resident level of every block holding any, as of the latest
         :meth:`update` (a copy; call it from the caller's thread, as ``update``): what a
-        renderer may prepare ahead for blocks not yet in view."""
+        renderer may prepare ahead for blocks not yet in view. After :meth:`close`, as of the
+        last ``update`` (it changes no more)."""
         return dict(self._resident)
 
     def resident_version(self) -> int:
@@ -611,7 +470,8 @@ class Session:
         """A block's error fields and mask as the loaders read them, and the fields under the
         nodata rule "full" (read-only arrays), or None when not kept
         (:mod:`streamer.blockside`): for renderers, which then read the store.
-        ``LayoutError`` (a ValueError) for a block id outside the store's grid."""
+        ``LayoutError`` (a ValueError) for a block id outside the store's grid. Answered after
+        :meth:`close` too, as :meth:`levels`."""
         side = self.loader.side.get(block)
         if side is None:
             self.cache.check_block(block)
@@ -625,6 +485,8 @@ class Session:
         ``FrameStats.resident_bytes`` of the frames (the same quantity, as frames saw it).
         With ``account_hull``, ``stall_frames_hull`` and ``hole_frames_hull`` count the frames
         that lacked a level, or had a block with none, over the frustum hull the renderer draws.
+        After :meth:`close` it is the flight's final report (``terrastream stream`` and
+        ``flythrough`` take it once the close waited for the reads in flight).
         """
         t = self.totals
         with self._cv:
@@ -659,6 +521,7 @@ def open_session(
 
 __all__ = [
     "READ_ERRORS",
+    "UNBOUNDED_TAU",
     "BudgetError",
     "Frame",
     "FrameStats",
@@ -668,29 +531,3 @@ __all__ = [
     "SessionConfig",
     "open_session",
 ]
-
-
-def _check_camera(camera: object) -> None:
-    """A :class:`CameraError` unless ``camera`` is a :class:`Camera` (None gave an
-    AttributeError about ``pitch`` from deep inside the planner)."""
-    if not isinstance(camera, Camera):
-        raise CameraError(f"a session needs a streamer.camera.Camera, got {camera!r}")
-
-
-def _check_dt(dt: float | None) -> float | None:
-    """``dt`` as a float (None stays None), or :class:`CameraError` unless it is a finite
-    number of seconds >= 0 (0: the same instant, no velocity)."""
-    if dt is None:
-        return None
-    try:
-        value = float(dt)
-    except (TypeError, ValueError):
-        raise CameraError(f"dt must be a number of seconds, got {dt!r}") from None
-    if not (math.isfinite(value) and value >= 0.0):
-        raise CameraError(f"dt must be a finite number of seconds >= 0, got {dt!r}")
-    return value
-
-
-def _values(needed: dict[Block, int]) -> np.ndarray:
-    """A needed mapping's levels as an int64 array (in its order)."""
-    return np.fromiter(needed.values(), dtype=np.int64, count=len(needed))
