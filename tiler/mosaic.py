@@ -18,8 +18,10 @@ nodata.
 from __future__ import annotations
 
 import os
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
+from contextlib import nullcontext
 
 import numpy as np
 import rasterio
@@ -44,6 +46,12 @@ from tiler.source_http import http_url, is_remote, remote_env, server_failure, s
 
 MAX_OPEN = 16  # datasets a reader keeps open (least recently used are closed)
 WARP_TOLERANCE = 0.01  # source pixels of transform approximation (GDAL: 0.125); see notes
+#: held while rasterio's ``geometry_mask`` builds its in-memory raster and while a reprojecting
+#: reader opens a source: both hide a warning inside ``warnings.catch_warnings()``, which swaps
+#: the process-wide filter list, so two reader threads doing it at once restored each other's
+#: list and rasterio's "Dataset has no geotransform" (NotGeoreferencedWarning) escaped, under
+#: ``-q`` too (or an "ignore" stayed for good)
+_WARNINGS_LOCK = threading.Lock()
 
 
 def same_nodata(a: float | None, b: float | None) -> bool:
@@ -69,7 +77,8 @@ def _valid(data: np.ndarray, nodata: float | None) -> np.ndarray:
 def _inside(rings: list, shape: tuple[int, ...], at: Affine) -> np.ndarray:
     """True where a pixel centre of a ``shape`` window at ``at`` lies in any of ``rings``."""
     shapes = [{"type": "Polygon", "coordinates": [r]} for r in rings]
-    return geometry_mask(shapes, out_shape=shape, transform=at, invert=True)
+    with _WARNINGS_LOCK:  # (see there: rasterio's catch_warnings is not thread-safe)
+        return geometry_mask(shapes, out_shape=shape, transform=at, invert=True)
 
 
 def _read(fn: Callable[..., np.ndarray], band: int, win: Window, path: str) -> np.ndarray:
@@ -151,7 +160,9 @@ class MosaicReader:
                 old_vrt.close()
             old.close()
         spec = self.spec
-        ds = open_raster(spec.sources[i].path)
+        # (only a reprojecting reader masks by hulls: no other waits for a slow open)
+        with _WARNINGS_LOCK if spec.warp else nullcontext():
+            ds = open_raster(spec.sources[i].path)
         vrt = None
         if spec.warp:
             info = spec.sources[i]

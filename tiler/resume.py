@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Sequence
 from dataclasses import astuple, dataclass, fields, replace
 from typing import Any
 
@@ -142,11 +143,17 @@ def changed_done_blocks(
     again (no encoding: about the cost of reading them)."""
     from tiler.source import read_window
 
-    raw = journal[...]
+    try:
+        raw = journal[...]
+    except (ValueError, OSError, RuntimeError):
+        # a damaged entry (its crc32c fails): done_blocks counted it not done (it is computed
+        # again); the done ones are read one by one
+        raw = None
     dtype = np.dtype(meta.dtype)
     changed = []
     for br, bc in zip(*(v.tolist() for v in np.nonzero(done)), strict=True):
-        entry = unpack(raw[br, bc], meta.k, meta.storage_dtype)
+        row = raw[br, bc] if raw is not None else journal[br, bc]
+        entry = unpack(row, meta.k, meta.storage_dtype)
         if entry is None:
             continue
         data = np.asarray(read_window(ds, band, grid, br, bc), dtype=dtype)
@@ -198,11 +205,21 @@ def _masked_at(info: Any) -> int:
     return [f.name for f in fields(info)].index("masked")
 
 
+class SourceFingerprint(str):
+    """:func:`source_fingerprint`'s value: the hex digest a job compares, carrying ``parts``
+    (:func:`source_parts`), which :func:`job_identity` stores beside it so that a differing
+    fingerprint can be said file by file (None: a reader without a mosaic spec)."""
+
+    parts: dict[str, Any] | None = None
+
+
 def source_fingerprint(ds: Any, band: int) -> str:
     """blake2b-128 of the source's shape, dtype, georeferencing, nodata and three sample windows.
 
     Cheap (three reads of at most 256x256) yet it tells two different DEMs of the same size
-    apart; the per-block digests of the finished store cover every sample.
+    apart; the per-block digests of the finished store cover every sample. Of a mosaic reader
+    (one with a ``spec``) it is a :class:`SourceFingerprint` whose ``parts`` say each source's
+    share of it.
     """
     h = hashlib.blake2b(digest_size=16)
     spec = getattr(ds, "spec", None)  # a tiler.mosaic.MosaicReader: every source and the warp
@@ -220,11 +237,51 @@ def source_fingerprint(ds: Any, band: int) -> str:
         h.update(repr((ds.height, ds.width, ds.dtypes[band - 1], tuple(ds.transform)[:6])).encode())
         h.update(repr((ds.crs.to_wkt() if ds.crs else None, ds.nodatavals[band - 1])).encode())
     n = 256
+    windows = []
     for r, c in ((0, 0), (ds.height // 2, ds.width // 2), (ds.height - 1, ds.width - 1)):
         r0, c0 = max(0, min(r, ds.height - n)), max(0, min(c, ds.width - n))
         win = Window(c0, r0, min(n, ds.width - c0), min(n, ds.height - r0))
-        h.update(np.ascontiguousarray(ds.read(band, window=win)).tobytes())
-    return h.hexdigest()
+        data = np.ascontiguousarray(ds.read(band, window=win))
+        h.update(data.tobytes())
+        windows.append((r0, c0, data))
+    if spec is None:
+        return h.hexdigest()
+    out = SourceFingerprint(h.hexdigest())
+    out.parts = source_parts(spec, windows)
+    return out
+
+
+def _digest(*values: Any) -> str:
+    """A short (64-bit) hex digest of ``values``' repr."""
+    return hashlib.blake2b(repr(values).encode(), digest_size=8).hexdigest()
+
+
+def source_parts(spec: Any, windows: Sequence[tuple[int, int, np.ndarray]] = ()) -> dict[str, Any]:
+    """Each source's share of the fingerprint, to name the one that changed: its file name,
+    size, a digest of its own header and one of the fingerprint ``windows`` (``(row, col,
+    samples)`` on the target grid) within its footprint; with a digest of the target grid,
+    without which the samples do not compare. (No modification time: the store's metadata
+    would differ between two tilings of the same files.)"""
+    fps = [tuple(int(v) for v in s.footprint) for s in spec.sources]
+    files = []
+    for s, (fr0, fc0, fr1, fc1) in zip(spec.sources, fps, strict=True):
+        cut = []
+        for r0, c0, data in windows:
+            h, w = data.shape
+            ir0, ir1, ic0, ic1 = max(r0, fr0), min(r0 + h, fr1), max(c0, fc0), min(c0 + w, fc1)
+            if ir0 < ir1 and ic0 < ic1:
+                sub = data[ir0 - r0 : ir1 - r0, ic0 - c0 : ic1 - c0]
+                cut.append((ir0, ic0, hashlib.blake2b(sub.tobytes(), digest_size=8).hexdigest()))
+        own = astuple(replace(s, path="", size_bytes=None, footprint=(0, 0, 0, 0), hull=()))
+        files.append(
+            {
+                "name": os.path.basename(s.path.rstrip("/")),
+                "size": s.size_bytes,
+                "header": _digest(own[: _masked_at(s) + 1]),
+                "samples": _digest(cut) if cut else None,
+            }
+        )
+    return {"grid": _digest(astuple(replace(spec, sources=())), fps), "files": files}
 
 
 def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
@@ -245,6 +302,8 @@ def job_identity(fingerprint: str, opts: Any, meta: Any) -> dict[str, Any]:
         # the reprojection asked for (its effect is also in the fingerprint, which names no
         # option): a rerun with another is refused naming it
         **_reprojection_items(opts),
+        # (not compared: they say which source a differing fingerprint comes from)
+        **({SOURCE_PARTS: fingerprint.parts} if getattr(fingerprint, "parts", None) else {}),
     }
 
 
@@ -268,6 +327,10 @@ def _reprojection_items(opts: Any) -> dict[str, Any]:
 
 #: job items added after stores were begun without them: absent from a store's job, they match
 _LATER_ITEMS = ("dst_crs", "resampling", "resolution")
+#: the job item holding :func:`source_parts` (a store begun before it has none)
+SOURCE_PARTS = "source_parts"
+#: job items not compared one by one: the fingerprint, and what explains a differing one
+_EXPLAINED = ("source_fingerprint", SOURCE_PARTS)
 
 
 def source_of(label: dict | None) -> str | None:
@@ -289,6 +352,63 @@ def _source_diff(was: Any, now: Any) -> str:
             "size, georeferencing, nodata or samples differ: edited or replaced since?)"
         )
     return "source: another file, or the same one changed (its fingerprint differs)"
+
+
+def source_change(was: dict[str, Any], now: dict[str, Any], samples: bool = True) -> str | None:
+    """What differs between two :func:`source_parts` file entries of the same file: its size,
+    its header, its samples (``samples``: they compare, the target grid being the same); None
+    when nothing tells them apart."""
+    what = []
+    if was.get("size") is not None and now.get("size") is not None and was["size"] != now["size"]:
+        what.append(f"its size ({was['size']} bytes then, {now['size']} now)")
+    if was.get("header") != now.get("header"):
+        what.append("its header (dimensions, georeferencing, data type, nodata or mask)")
+    elif samples and was.get("samples") != now.get("samples"):
+        what.append("its samples")
+    if not what:
+        return None
+    plural = len(what) > 1 or what == ["its samples"]
+    return " and ".join(what) + (" differ" if plural else " differs")
+
+
+def _changed_sources(was: Any, now: Any) -> str | None:
+    """The sources that differ between a store's job and this run's, file by file, from their
+    :func:`source_parts` (None: a store begun without them, or nothing they tell)."""
+    if not isinstance(was, dict) or not isinstance(now, dict):
+        return None
+    old, new = was.get("files") or [], now.get("files") or []
+    if not old or not new:
+        return None
+    names = [f.get("name") for f in old], [f.get("name") for f in new]
+    n = len(new)
+    if names[0] != names[1]:
+        if len(old) == n == 1:
+            return None  # (the store's and this run's labels name both files in full)
+        if len(old) != n:
+            shown = [
+                ", ".join(repr(x) for x in v[:5]) + (", ..." if len(v) > 5 else "") for v in names
+            ]
+            return (
+                f"sources: store was tiled from {len(old)} ({shown[0]}), this run reads {n} "
+                f"({shown[1]})"
+            )
+        swapped = [
+            f"source {i + 1} of {n}: store was tiled from {a!r}, this run reads {b!r}"
+            for i, (a, b) in enumerate(zip(*names, strict=True))
+            if a != b
+        ]
+        return "; ".join(swapped)
+    grid = was.get("grid") is not None and was.get("grid") == now.get("grid")
+    changed = []
+    for i, (a, b) in enumerate(zip(old, new, strict=True)):
+        why = source_change(a, b, samples=grid)
+        if why is not None:
+            which = f" (source {i + 1} of {n})" if n > 1 else ""
+            changed.append(
+                f"source: {b.get('name')!r}{which} is not the file the store was tiled from "
+                f"as it was then: {why}"
+            )
+    return "; ".join(changed) or None
 
 
 def check_same_job(
@@ -318,13 +438,14 @@ def check_same_job(
         f"{key}: store has {old.get(key)!r}, this run has {value!r}"
         for key, value in new.items()
         if old.get(key) != value
-        and key != "source_fingerprint"
+        and key not in _EXPLAINED
         and (key in old or key not in _LATER_ITEMS)
     ]
     warp = any(d.split(":")[0] in _LATER_ITEMS for d in diffs)  # (it explains the samples)
     if old.get("source_fingerprint") != new.get("source_fingerprint") and not warp:
         was, now = sources
-        diffs.insert(0, _source_diff(was, now))
+        which = _changed_sources(old.get(SOURCE_PARTS), new.get(SOURCE_PARTS))
+        diffs.insert(0, which or _source_diff(was, now))
     if diffs:
         raise JobMismatchError(
             "{url!r} holds {store} of another job ({diffs}); rerun with the original source "

@@ -31,7 +31,7 @@ from tiler.layout import level_size
 from tiler.lease import live_writer
 from tiler.location import Location, as_location
 from tiler.meta import CHECKSUM_KEY
-from tiler.resume import TILING_STATES
+from tiler.resume import SOURCE_PARTS, TILING_STATES, source_change, source_parts
 from tiler.schema import (
     ATTR,
     INDEX_NAMES,
@@ -530,6 +530,36 @@ def _same_grid(spec: Any, meta: StoreMeta) -> str | None:
     return None
 
 
+def _changed_sources(meta: StoreMeta, spec: Any) -> list[str | None]:
+    """Per source of ``spec``: how it differs from the file of the same name the store was
+    tiled from (size or header, from the job's :func:`~tiler.resume.source_parts`), or None
+    (the same, or not known: a store tiled before them, or other files)."""
+    old = ((meta.extra.get("job") or {}).get(SOURCE_PARTS) or {}).get("files") or []
+    new = source_parts(spec)["files"]
+    if [f.get("name") for f in old] != [f["name"] for f in new]:
+        return [None] * len(new)
+    return [source_change(a, b, samples=False) for a, b in zip(old, new, strict=True)]
+
+
+def _block_sources(ds: Any, grid: Any, b: tuple[int, int], changed: list[str | None]) -> str:
+    """Which sources block ``b``'s samples come from, for its message: of a mosaic, the files
+    whose footprint meets it, and of those any known to have changed since the tiling."""
+    n = len(ds.spec.sources)
+    hits = ds.sources_for(*grid.block_window(*b))
+    known = [i for i in hits if changed[i] is not None]
+    name = [repr(os.path.basename(s.path.rstrip("/"))) for s in ds.spec.sources]
+    if known:
+        return "; " + "; ".join(
+            f"{name[i]}{f' (source {i + 1} of {n})' if n > 1 else ''}, which the block's "
+            f"samples come from, is not the file the store was tiled from: {changed[i]}"
+            for i in known
+        )
+    if n == 1 or not hits:
+        return ""
+    shown = [name[i] for i in hits[:3]] + ([f"{len(hits) - 3} more"] if len(hits) > 3 else [])
+    return f" (its samples come from {' or '.join(shown)})"
+
+
 def _check_source(
     paths: list[str], meta: StoreMeta, digests: np.ndarray, rep: VerifyReport
 ) -> None:
@@ -558,6 +588,7 @@ def _check_source(
                 f"onto {why}: not the DEM this store was tiled from{more}",
             )
             return
+        changed = _changed_sources(meta, ds.spec)
         for b in grid.blocks():
             data = np.asarray(read_window(ds, band, grid, *b), dtype=np.dtype(meta.dtype))
             h, w = data.shape
@@ -566,5 +597,10 @@ def _check_source(
             ).digest()
             if int.from_bytes(d, "little") != int(digests[b]):
                 rep.add(
-                    "source", "index/digest", b, None, f"block {b} differs from the source {src!r}"
+                    "source",
+                    "index/digest",
+                    b,
+                    None,
+                    f"block {b} differs from the source {src!r}"
+                    + _block_sources(ds, grid, b, changed),
                 )
