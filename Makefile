@@ -18,8 +18,10 @@ gl-libs:   # with CI=true: fails when no headless EGL context can be created
 
 setup: $(STAMP) gl-libs
 
+TEST_WORKERS ?= 2   # pytest-xdist processes for `make test` (0: one process)
+
 test: setup   # ends with "GL tests: N ran (...), M skipped" (tests/conftest.py)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 reliability: setup   # the long fault-injection series (24 kills, 24 Ctrl-Cs, 30,000-frame faulty session); counts in BENCHMARKS.md
 	TERRASTREAM_RELIABILITY_LONG=1 $(BIN)/python -m pytest -s tests/reliability tests/streamer/test_session_faults.py

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import logging
 import os
 import signal
 from pathlib import Path
@@ -39,6 +40,21 @@ def _unfreeze_gc():
     yield
     if gc.get_freeze_count():
         gc.unfreeze()
+
+
+@pytest.fixture(autouse=True)
+def _no_cli_log_handler_outlives_its_test():
+    """The CLI run in-process (``setup_logging``: ``logging.basicConfig(force=True)``) gives
+    the root logger a handler on the test's captured stderr, closed after the test; a thread
+    that outlived it (dask's event loop saying "Close client connection") then printed
+    "--- Logging error --- ValueError: I/O operation on closed file" in the middle of the run.
+    Such handlers (plain ``StreamHandler``s, not pytest's own) go with their test."""
+    root = logging.getLogger()
+    before = set(root.handlers)
+    yield
+    for h in list(root.handlers):
+        if type(h) is logging.StreamHandler and h not in before:
+            root.removeHandler(h)
 
 
 @pytest.fixture(scope="session")
