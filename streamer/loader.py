@@ -104,8 +104,10 @@ class Loader:
         self.raw: dict[Block, dict[int, np.ndarray]] = {}  # read, not yet decoded
         self.decoding: set[Block] = set()
         self.probes: set[Job] = set()  # reads running of blocks failed when they started
+        # the levels a frame lacked, each until it arrives (then a later reload of it is
+        # classified afresh), and the due time of the first frame that lacked it: the same keys
         self.demanded: set[tuple[Block, int]] = set()
-        self.due: dict[tuple[Block, int], float] = {}  # level -> due time of its first frame
+        self.due: dict[tuple[Block, int], float] = {}
         self.ever_loaded: set[tuple[Block, int]] = set()  # (block, level) loaded at least once
         self.frame_late = 0
         self.unreported: list[tuple[Block, BaseException]] = []
@@ -407,11 +409,17 @@ class Loader:
                 due = self.due.pop((b, nxt), None)
                 if due is not None and time.monotonic() > due:
                     self.frame_late += nbytes
-                # real-time: a level a frame lacked, or one the frame being made pins (it
-                # needs it; a read that came back before that frame was finished counted
-                # as prefetched, prefetch off too, as the frame had not marked it yet).
-                # With prefetch off only pinned levels are read (fetchable): all real-time
-                if (b, nxt) in self.demanded or self.cache.want(b)[1] >= nxt:
+                # real-time: a level a frame lacked since it last arrived, or one the frame
+                # being made pins (it needs it; a read that came back before that frame was
+                # finished counted as prefetched, prefetch off too, as the frame had not
+                # marked it yet). With prefetch off only pinned levels are read (fetchable):
+                # all real-time. A demand is met once its level arrives (its due time went
+                # above): a reload of the level after an eviction, read ahead, is prefetched
+                # (it stayed real-time for good, and the set grew through the flight). A level
+                # that never arrives (a failing read) stays demanded: loadreport.failing
+                demanded = (b, nxt) in self.demanded
+                self.demanded.discard((b, nxt))
+                if demanded or self.cache.want(b)[1] >= nxt:
                     self.frame_realtime += nbytes
                 else:
                     self.frame_prefetched += nbytes
@@ -449,7 +457,8 @@ class Loader:
         return [(b, lv) for b, lv in needed.items() if cache.level(b) < lv or b not in errors]
 
     def mark_demand(self, needed: dict[Block, int], due: float) -> None:
-        """Mark the levels ``needed`` lacks as demanded, due at ``due`` unless due earlier."""
+        """Mark the levels ``needed`` lacks as demanded, due at ``due`` unless due earlier
+        (until each arrives)."""
         with self.cv:
             for b, lv in needed.items():
                 for level in range(self.cache.level(b) + 1, lv + 1):

@@ -45,7 +45,10 @@ def stuck(ld: Loader) -> str:
 def failing(ld: Loader) -> dict[str, Any]:
     """The blocks whose latest read failed: how many, how many a frame needed, how many
     for the server's fault (:class:`StoreUnavailableError`), the latest error, and the
-    store's change if one ended the loading (caller holds ``ld``'s lock)."""
+    store's change if one ended the loading (caller holds ``ld``'s lock). A frame needed a
+    block if a level of it a frame lacked has not arrived since (``Loader.demanded``): a
+    failing level never arrives, so its block stays needed after the frame; a block whose
+    only failing read is of a level read ahead, its frames' levels all arrived, is not."""
     needed = {b for b, _ in ld.demanded}
     errs = ld.last_error
     return {

@@ -1,6 +1,7 @@
 """The caller's per-frame bookkeeping stays small (issue 14): a visible block that lacks a level
 is queued once, not once per frame, and a block shown as on the previous frame is not marked
-again, with the same demanded/due/used records as marking every block every frame."""
+again, with the same demanded/due/used records as marking every block every frame (the marks
+recorded as they are made: the loader forgets a demand once its level arrives)."""
 
 from __future__ import annotations
 
@@ -94,19 +95,39 @@ def _marks(frames):
     return demanded, used
 
 
+class _Recording(set):
+    """``Loader.demanded`` that also keeps every level ever marked in ``added``: the loader
+    discards a demand when its level arrives, so the set itself holds only the pending ones."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.added: set = set()
+
+    def add(self, item) -> None:
+        self.added.add(item)
+        super().add(item)
+
+    def update(self, *others) -> None:  # (no marker uses it; recorded all the same)
+        for other in others:
+            for item in other:
+                self.add(item)
+
+
 def _threaded_flight(store, liar=False):
     """Frame 0 waits (its levels are resident: something is drawn), the rest outrun one
     loader. Returns the frames, the demanded levels marked by frame 0's wait, and the
-    session's demanded levels and drawn levels at the end."""
+    demanded levels marked over the whole flight and the drawn levels at the end."""
     with open_session(store, budget_mb=16, workers=1, latency_ms=1) as s:
+        s.loader.demanded = marks = _Recording()
         frames = []
         for i, cam in enumerate(cams(store, 150)):
             if liar:  # every block claims the previous frame's state: nothing is marked
                 s._shown = _SameAsAnything()
             frames.append(s.update(cam, 1 / 60, wait=i == 0))
             if i == 0:
-                waited = set(s.loader.demanded)
-        return frames, waited, set(s.loader.demanded), dict(s.totals.used), s.summary()
+                waited = set(marks.added)
+        assert s.loader.demanded is marks  # (not replaced: every mark was recorded)
+        return frames, waited, set(marks.added), dict(s.totals.used), s.summary()
 
 
 class _SameAsAnything(dict):
