@@ -98,10 +98,9 @@ def build(
     else:
         group = create_store(loc, meta, opts)
     grid = meta.grid
+    asm = ShardAssembler(group, loc, meta, np.zeros(grid.shape, dtype=bool))
     # a store just created has an empty journal: nothing to read back
-    done = done_blocks(group[JOURNAL]) if resume else np.zeros(grid.shape, dtype=bool)
-    if resume and done.any():
-        _check_done_unchanged(src, opts.band, grid, group[JOURNAL], done, meta, loc)
+    done = _resume_journal(src, opts.band, meta, loc, asm) if resume else np.zeros(grid.shape, bool)
     todo = [b for b in grid.blocks() if not done[b]]
     total = grid.rows * grid.cols
     skipped = total - len(todo)
@@ -116,7 +115,6 @@ def build(
     )
     report = progress_reporter(total, skipped, progress)
     report(0, 0)
-    asm = ShardAssembler(group, loc, meta, done)
     try:
         summary.executor = run_blocks(
             src, loc, opts, grid, block_params(meta), todo, done, report, lease, asm.blocks_done
@@ -144,25 +142,46 @@ def build(
         log.warning("Ctrl-C during the final writes: they were completed, the store is finished")
 
 
-def _check_done_unchanged(
-    src: Any, band: int, grid: BlockGrid, journal: Any, done: np.ndarray, meta: StoreMeta, loc: Any
-) -> None:
-    """Refuse to resume when the source's samples of blocks already done changed since (a
-    source edited in place passes the job's fingerprint: the same size, header and three
-    sample windows), naming the blocks: the store would mix two DEMs."""
-    from tiler.resume import changed_done_blocks
+def _resume_journal(
+    src: Any, band: int, meta: StoreMeta, loc: Any, asm: ShardAssembler
+) -> np.ndarray:
+    """Read a resumed store's journal once, a shard region at a time: return the blocks done
+    (an entry damaged, its crc32c failing: not done, computed again) and hand their entries to
+    ``asm``, made with no block done (a shard all done is written now). Refuse to resume when
+    the source's samples of blocks already done changed since (a source edited in place passes
+    the job's fingerprint: the same size, header and three sample windows), naming the blocks:
+    the store would mix two DEMs."""
+    from tiler.resume import changed_done_blocks, read_journal_region
     from tiler.source import open_source
 
-    with open_source(src, band) as ds:
-        changed = changed_done_blocks(ds, band, grid, journal, done, meta)
+    done = np.zeros(meta.grid.shape, dtype=bool)
+    changed: list[tuple[int, int]] = []
+    with contextlib.ExitStack() as stack:
+        ds = None
+        for r0, r1, c0, c1 in asm.regions():
+            raw = read_journal_region(asm.jarr, r0, r1, c0, c1)
+            region = done[r0:r1, c0:c1]
+            region[...] = raw[:, :, -1] == 1
+            if not region.any():
+                continue
+            if ds is None:  # (opened once, and only when a block is done)
+                ds = stack.enter_context(open_source(src, band))
+            changed += changed_done_blocks(ds, band, meta.grid, raw, region, meta, (r0, c0))
+            if not changed:  # (a refused resume hands nothing on)
+                entries = {
+                    (r0 + i, c0 + j): unpack(raw[i, j], meta.k, meta.storage_dtype)
+                    for i, j in zip(*np.nonzero(region), strict=True)
+                }
+                asm.resumed((r0 // asm.sr, c0 // asm.sc), entries)
     if changed:
         raise _source_changed(
             "{url!r} holds an unfinished store whose source changed since it was started: the "
             "samples of {n} block(s) already done differ ({shown}); rerun with the original "
             "source to finish it, or tile with {overwrite} to start again",
             loc,
-            changed,
+            sorted(changed),
         )
+    return done
 
 
 def _source_changed(template: str, loc: Any, changed: list) -> JobMismatchError:
@@ -206,17 +225,32 @@ def _check_repair_source(
 
 
 def _region_entries(
-    jarr: zarr.Array, r0: int, r1: int, c0: int, c1: int, meta: StoreMeta
+    jarr: zarr.Array,
+    r0: int,
+    r1: int,
+    c0: int,
+    c1: int,
+    meta: StoreMeta,
+    known: dict[tuple[int, int], JournalEntry] | None = None,
 ) -> dict[tuple[int, int], JournalEntry]:
-    raw = jarr[r0:r1, c0:c1]
-    out = {}
-    for br in range(r0, r1):
-        for bc in range(c0, c1):
-            e = unpack(raw[br - r0, bc - c0], meta.k, meta.storage_dtype)
-            if e is None:
-                raise StoreCorruptError(f"block ({br}, {bc}) has no journal entry")
-            out[br, bc] = e
-    return out
+    """The journal entries of blocks ``[r0:r1, c0:c1]``; those of ``known`` (read already) are
+    not read again."""
+    known = known or {}
+    blocks = [(br, bc) for br in range(r0, r1) for bc in range(c0, c1) if (br, bc) not in known]
+    if len(blocks) == (r1 - r0) * (c1 - c0):
+        raw = np.asarray(jarr[r0:r1, c0:c1]).reshape(len(blocks), -1)
+    elif blocks:  # (the chunks of these blocks only, fetched together)
+        rows, cols = (np.array(v, dtype=np.intp)[:, None] for v in zip(*blocks, strict=True))
+        raw = np.asarray(jarr.vindex[rows, cols, np.arange(jarr.shape[2])[None, :]])
+    else:
+        raw = np.zeros((0, jarr.shape[2]), dtype=np.uint8)
+    out = dict(known)
+    for (br, bc), row in zip(blocks, raw, strict=True):
+        e = unpack(row, meta.k, meta.storage_dtype)
+        if e is None:
+            raise StoreCorruptError(f"block ({br}, {bc}) has no journal entry")
+        out[br, bc] = e
+    return {b: out[b] for b in sorted(out)}
 
 
 def write_small_levels(
@@ -268,9 +302,28 @@ class ShardAssembler:
                 region = done[r0 : r0 + self.sr, c0 : c0 + self.sc]
                 self.remaining[r0 // self.sr, c0 // self.sc] = int((~region).sum())
         self.flushed: set[tuple[int, int]] = set()
+        #: the entries of the blocks a resumed run found done, of shards not all done yet
+        self.known: dict[tuple[int, int], dict[tuple[int, int], JournalEntry]] = {}
         self.index = {
             n: np.full((rows, cols), fv, dtype=dt) for n, (dt, fv) in index_dtypes(meta).items()
         }
+
+    def regions(self) -> list[tuple[int, int, int, int]]:
+        """Every shard's blocks ``(r0, r1, c0, c1)``, row-major."""
+        return [
+            (r0, min(r0 + self.sr, self.rows), c0, min(c0 + self.sc, self.cols))
+            for r0 in range(0, self.rows, self.sr)
+            for c0 in range(0, self.cols, self.sc)
+        ]
+
+    def resumed(self, s: tuple[int, int], entries: dict[tuple[int, int], JournalEntry]) -> None:
+        """Take the entries of shard ``s``'s blocks done before a resume (counted as done):
+        write the shard now if they are all of it, else keep them for when it is."""
+        self.remaining[s] -= len(entries)
+        if self.remaining[s] == 0:
+            self.flush(s, entries)
+        else:
+            self.known[s] = entries
 
     def blocks_done(self, blocks: list[tuple[int, int]]) -> None:
         """Count finished blocks; write every shard that became complete."""
@@ -283,11 +336,15 @@ class ShardAssembler:
             if self.remaining[s] == 0 and s not in self.flushed:
                 self.flush(s)
 
-    def flush(self, s: tuple[int, int]) -> None:
-        """Write shard ``s`` of levels 0..5 and record its blocks' index rows."""
+    def flush(
+        self, s: tuple[int, int], known: dict[tuple[int, int], JournalEntry] | None = None
+    ) -> None:
+        """Write shard ``s`` of levels 0..5 and record its blocks' index rows (``known``, or
+        those kept by :meth:`resumed`: entries read already)."""
         r0, c0 = s[0] * self.sr, s[1] * self.sc
         r1, c1 = min(r0 + self.sr, self.rows), min(c0 + self.sc, self.cols)
-        entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta)
+        known = known if known is not None else self.known.pop(s, None)
+        entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta, known)
         write_small_levels(self.loc, self.meta, entries, (r0, r1, c0, c1))
         for b, e in entries.items():
             _index_row(self.index, b, e, self.meta)

@@ -13,6 +13,7 @@ again), ``"tiling"`` (resumable), ``"finishing"`` (journal consumed: a rerun onl
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 from collections.abc import Sequence
@@ -26,7 +27,7 @@ from rasterio.windows import Window
 from tiler.errors import JobMismatchError
 from tiler.layout import level_size
 from tiler.meta import nodata_json
-from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs
+from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs, shard_shape
 
 JOURNAL = "journal"
 _ROW = np.dtype([("exists", "u1"), ("has_nodata", "u1"), ("zmin", "<f8"), ("zmax", "<f8"),
@@ -135,31 +136,62 @@ def block_digest(data: np.ndarray) -> int:
 
 
 def changed_done_blocks(
-    ds: Any, band: int, grid: Any, journal: zarr.Array, done: np.ndarray, meta: Any
+    ds: Any,
+    band: int,
+    grid: Any,
+    journal: zarr.Array | np.ndarray,
+    done: np.ndarray,
+    meta: Any,
+    origin: tuple[int, int] = (0, 0),
 ) -> list[tuple[int, int]]:
     """The done blocks of an unfinished store whose source samples no longer match their
     journal digest: the source was edited in place since (same size, same header, same three
     fingerprint windows), and resuming would mix two DEMs. Reads every done block's window
-    again (no encoding: about the cost of reading them)."""
+    again (no encoding: about the cost of reading them).
+
+    ``journal``: the journal array (read a shard region at a time, :func:`read_journal_region`)
+    or raw entries already read, those of the blocks from ``origin`` on, as ``done`` is."""
     from tiler.source import read_window
 
-    try:
-        raw = journal[...]
-    except (ValueError, OSError, RuntimeError):
-        # a damaged entry (its crc32c fails): done_blocks counted it not done (it is computed
-        # again); the done ones are read one by one
-        raw = None
+    if not isinstance(journal, np.ndarray):
+        rows, cols = done.shape
+        sr, sc = shard_shape(rows, cols)
+        changed = []
+        for r0 in range(0, rows, sr):
+            for c0 in range(0, cols, sc):
+                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
+                if done[r0:r1, c0:c1].any():
+                    raw = read_journal_region(journal, r0, r1, c0, c1)
+                    region = done[r0:r1, c0:c1]
+                    changed += changed_done_blocks(ds, band, grid, raw, region, meta, (r0, c0))
+        return sorted(changed)
     dtype = np.dtype(meta.dtype)
     changed = []
-    for br, bc in zip(*(v.tolist() for v in np.nonzero(done)), strict=True):
-        row = raw[br, bc] if raw is not None else journal[br, bc]
-        entry = unpack(row, meta.k, meta.storage_dtype)
+    for i, j in zip(*(v.tolist() for v in np.nonzero(done)), strict=True):
+        entry = unpack(journal[i, j], meta.k, meta.storage_dtype)
         if entry is None:
             continue
+        br, bc = origin[0] + i, origin[1] + j
         data = np.asarray(read_window(ds, band, grid, br, bc), dtype=dtype)
         if block_digest(data) != entry.digest:
             changed.append((br, bc))
     return changed
+
+
+def read_journal_region(arr: zarr.Array, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """The raw journal entries of blocks ``[r0:r1, c0:c1]`` (uint8, one entry a block), read at
+    once; when one is damaged (its crc32c fails) they are read one by one and a damaged one is
+    left zero: not done (its block is computed again)."""
+    try:
+        return np.asarray(arr[r0:r1, c0:c1], dtype=np.uint8)
+    except (ValueError, OSError, RuntimeError):
+        pass
+    out = np.zeros((r1 - r0, c1 - c0, arr.shape[2]), dtype=np.uint8)
+    for br in range(r0, r1):
+        for bc in range(c0, c1):
+            with contextlib.suppress(ValueError, OSError, RuntimeError):
+                out[br - r0, bc - c0] = arr[br, bc]
+    return out
 
 
 def changed_blocks_by_index(
