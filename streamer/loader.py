@@ -105,7 +105,8 @@ class Loader:
         self.decoding: set[Block] = set()
         self.probes: set[Job] = set()  # reads running of blocks failed when they started
         # the levels a frame lacked, each until it arrives (then a later reload of it is
-        # classified afresh), and the due time of the first frame that lacked it: the same keys
+        # classified afresh) or the camera moves on (:meth:`forget_steps`), and the due time
+        # of the first frame that lacked it: the same keys
         self.demanded: set[tuple[Block, int]] = set()
         self.due: dict[tuple[Block, int], float] = {}
         self.ever_loaded: set[tuple[Block, int]] = set()  # (block, level) loaded at least once
@@ -147,7 +148,9 @@ class Loader:
         may be slightly stale by the swap; a job is re-checked when it is taken. The queue
         holds the blocks that want a level they do not hold (``LevelCache.short_steps``): a
         block's errors come before any of its levels (:meth:`fetchable`), so a block without
-        them is one of those."""
+        them is one of those. Demands of levels no longer wanted are forgotten first
+        (:meth:`forget_steps`)."""
+        yield from self.forget_steps(chunk)
         items = []
         errors, level = self.errors, self.cache.level
         for part in self.cache.short_steps(chunk):
@@ -158,6 +161,43 @@ class Loader:
             yield
         yield from self.queue.rebuild_steps(items, time.monotonic(), chunk)
         self.totals.cancelled = self.queue.cancelled
+
+    def forget_steps(self, chunk: int = 64) -> Iterator[None]:
+        """Forget the demands (and due times) of levels no longer wanted (the plan's wants and
+        the pins; the pins alone with ``prefetch`` off, as :meth:`fetchable`), in steps of at
+        most ``chunk`` demands (the caller holds the lock during each). The camera moved on
+        before they were read: a later read of such a level, ahead of need, is prefetched and
+        not late against a frame long gone. Kept: a level being read or decoded (:meth:`reading`:
+        bytes read because a frame lacked them stay real-time) and the levels of a failing
+        block (:meth:`failing`: still a block a frame needed, ``loadreport.failing``). Run by
+        the planning thread after it applied a plan's wants (:meth:`reschedule_steps`), where
+        wants are lowered; pinned levels are always wanted, so a frame's demands stay while
+        it pins them."""
+        keys = list(self.demanded)
+        want, prefetch = self.cache.want, self.config.prefetch
+        for i in range(0, len(keys), chunk):
+            for key in keys[i : i + chunk]:
+                b, level = key
+                w, pin = want(b)
+                if (w if prefetch else pin) >= level or self.reading(b, level):
+                    continue
+                if self.failing(b) or key not in self.demanded:
+                    continue
+                self.demanded.discard(key)
+                self.due.pop(key, None)
+            yield
+
+    def reading(self, b: Block, level: int) -> bool:
+        """Whether ``level`` of ``b`` is being read or decoded (caller holds the lock)."""
+        return (
+            level in self.fetching.get(b, ())
+            or level in self.raw.get(b, ())
+            or (b in self.decoding)
+        )
+
+    def failing(self, b: Block) -> bool:
+        """Whether ``b``'s latest read failed or it is failed (caller holds the lock)."""
+        return b in self.last_error or self.queue.is_failed(b)
 
     # -- taking jobs -----------------------------------------------------------------------
 
@@ -416,7 +456,8 @@ class Loader:
                 # all real-time. A demand is met once its level arrives (its due time went
                 # above): a reload of the level after an eviction, read ahead, is prefetched
                 # (it stayed real-time for good, and the set grew through the flight). A level
-                # that never arrives (a failing read) stays demanded: loadreport.failing
+                # that never arrives (a failing read) stays demanded: loadreport.failing; one
+                # no longer wanted, not read, is forgotten (forget_steps)
                 demanded = (b, nxt) in self.demanded
                 self.demanded.discard((b, nxt))
                 if demanded or self.cache.want(b)[1] >= nxt:

@@ -47,7 +47,8 @@ def failing(ld: Loader) -> dict[str, Any]:
     for the server's fault (:class:`StoreUnavailableError`), the latest error, and the
     store's change if one ended the loading (caller holds ``ld``'s lock). A frame needed a
     block if a level of it a frame lacked has not arrived since (``Loader.demanded``): a
-    failing level never arrives, so its block stays needed after the frame; a block whose
+    failing level never arrives, so its block stays needed after the frame (even once the
+    camera moved on: ``Loader.forget_steps`` keeps a failing block's demands); a block whose
     only failing read is of a level read ahead, its frames' levels all arrived, is not."""
     needed = {b for b, _ in ld.demanded}
     errs = ld.last_error
