@@ -18,7 +18,8 @@ gl-libs:   # with CI=true: fails when no headless EGL context can be created
 
 setup: $(STAMP) gl-libs
 
-TEST_WORKERS ?= 2   # pytest-xdist processes for `make test` (0: one process)
+# pytest-xdist processes for `make test` (0: one process)
+TEST_WORKERS ?= 2
 
 test: setup   # ends with "GL tests: N ran (...), M skipped" (tests/conftest.py)
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile

@@ -172,7 +172,10 @@ def _resume_journal(
                     (r0 + i, c0 + j): unpack(raw[i, j], meta.k, meta.storage_dtype)
                     for i, j in zip(*np.nonzero(region), strict=True)
                 }
-                asm.resumed((r0 // asm.sr, c0 // asm.sc), entries)
+                # a shard all done is written now: a Ctrl-C waits for its writes (zarr's
+                # synchronous calls, as in run_blocks and finish) and is raised after them
+                with DeferredInterrupt():
+                    asm.resumed((r0 // asm.sr, c0 // asm.sc), entries)
     if changed:
         raise _source_changed(
             "{url!r} holds an unfinished store whose source changed since it was started: the "

@@ -134,3 +134,54 @@ def test_a_source_changed_under_a_later_shard_is_refused_then_resumes(tmp_path, 
     store = tile(dem, dst, opts)
     assert store.tile_summary.resumed
     assert diff_stores(dst, ref) == []
+
+
+def _flush_guards(monkeypatch, tmp_path, guard_resumed: bool) -> list[tuple[tuple, bool]]:
+    """Interrupt, then resume with every shard write recorded with whether a Ctrl-C would be
+    deferred over it (``guard_resumed`` False: the resume's early writes run unguarded, as
+    first written)."""
+    import tiler.assemble as asm_mod
+    import tiler.interrupt as intr
+
+    dem = write_dem(tmp_path / "d.tif", fractal((150, 40), 3))
+    dst = tmp_path / "s.zarr"
+    _interrupted(monkeypatch, dem, dst)
+    seen = []
+    real_write = asm_mod.write_small_levels
+
+    def spy(loc, meta, entries, region):
+        seen.append((region, bool(intr._ACTIVE)))
+        return real_write(loc, meta, entries, region)
+
+    monkeypatch.setattr(asm_mod, "write_small_levels", spy)
+    if not guard_resumed:
+        monkeypatch.setattr(asm_mod, "DeferredInterrupt", _NoDefer)
+    tile(dem, dst, OPTS)
+    return seen
+
+
+class _NoDefer:
+    """A stand-in for ``DeferredInterrupt`` that defers nothing (the positive control)."""
+
+    def __init__(self, **kw) -> None:
+        self.interrupted = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+def test_a_resumes_shard_writes_defer_a_ctrl_c(monkeypatch, tmp_path):
+    """The all-done shard a resume writes while it reads the journal is written with a Ctrl-C
+    deferred, as every other shard write: raised inside zarr's synchronous calls it left writes
+    pending on zarr's loop while the lease was released (review of ccdd73f)."""
+    seen = _flush_guards(monkeypatch, tmp_path, guard_resumed=True)
+    assert [r for r, _ in seen] == [(0, 16, 0, 5), (16, 19, 0, 5)]  # the early one first
+    assert all(deferred for _, deferred in seen), seen
+
+
+def test_control_without_the_guard_the_early_shard_write_is_unguarded(monkeypatch, tmp_path):
+    seen = _flush_guards(monkeypatch, tmp_path, guard_resumed=False)
+    assert not all(deferred for _, deferred in seen), seen
