@@ -162,7 +162,8 @@ def format_summary(d: dict) -> str:
             "frame 1)",
             f"loaded {d['loaded_bytes'] * mb:.2f} MiB, used {d['used_bytes'] * mb:.2f} MiB "
             f"(loaded/used {d['loaded_bytes'] / used:.2f}), "
-            f"wasted {d['wasted_bytes'] * mb:.2f} MiB",
+            f"wasted {d['wasted_bytes'] * mb:.2f} MiB; read but discarded on arrival "
+            f"{d.get('discarded_bytes', 0) * mb:.2f} MiB (in the session)",
             f"peak resident {d['peak_resident_bytes'] * mb:.2f} MiB of a "
             f"{d['budget_bytes'] * mb:.2f} MiB budget; max update {d['max_update_ms']:.2f} ms "
             f"(CPU {d['max_update_cpu_ms']:.2f} ms)",

@@ -224,6 +224,9 @@ class Totals:
     failed_ever: set = field(default_factory=set)
     reloaded_bytes: int = 0  # levels loaded again after they had been evicted
     reloaded_levels: int = 0
+    discarded_bytes: int = 0  # levels read from the store but thrown away, never cached: the
+    # bytes read are loaded_bytes + discarded_bytes
+    discarded_levels: int = 0
     used: dict = field(default_factory=dict)  # block -> finest level a frame has drawn
 
     def add(self, frame: Frame) -> None:
@@ -261,7 +264,15 @@ class Totals:
         failed_now: list[Block],
         failing: dict[str, Any],
     ) -> dict[str, Any]:
-        """The ``summary()`` mapping of a session (see :meth:`streamer.session.Session.summary`)."""
+        """The ``summary()`` mapping of a session (see :meth:`streamer.session.Session.summary`).
+
+        ``loaded_bytes`` counts the levels added to the cache; ``discarded_bytes`` (over
+        ``discarded_levels``) the levels read from the store but thrown away on arrival (the
+        block lost the level below meanwhile or is no longer wanted, a level beyond a gap that
+        will not be filled, a decode that raised): the bytes read from the store are their sum
+        (decoded level bytes, as every figure; errors reads carry none). Discarded bytes are in
+        no frame's ``realtime_bytes`` or ``prefetched_bytes``.
+        """
         return {
             "frames": self.frames,
             "stall_frames": self.stall_frames,
@@ -292,4 +303,6 @@ class Totals:
             **failing,
             "reloaded_bytes": self.reloaded_bytes,
             "reloaded_levels": self.reloaded_levels,
+            "discarded_bytes": self.discarded_bytes,
+            "discarded_levels": self.discarded_levels,
         }

@@ -430,14 +430,22 @@ class Loader:
                 if raw is None:
                     return
                 levels = self.cache.levels(b)
-            decoded = self.store.decode_next(_storage(self.store, levels), raw)
-            values = self.store.to_heights(decoded)
+            try:
+                decoded = self.store.decode_next(_storage(self.store, levels), raw)
+                values = self.store.to_heights(decoded)
+            except BaseException:  # a bug, raised on (see run_job): nxt was read all the same
+                with self.cv:
+                    self.cache.release(self.level_bytes[nxt])
+                    self._discard(self.level_bytes[nxt])
+                raise
             with self.cv:
                 self.frame_io_s += time.perf_counter() - t0
                 nbytes = int(values.nbytes)
-                if self.cache.level(b) != nxt - 1 or not self.cache.add_level(
-                    b, nxt, values, reserved=True
-                ):
+                evicted = self.cache.level(b) != nxt - 1  # (add_level releases it otherwise)
+                if evicted:
+                    self.cache.release(self.level_bytes[nxt])
+                if evicted or not self.cache.add_level(b, nxt, values, reserved=True):
+                    self._discard(nbytes)
                     self._drop_raw(b)  # evicted or unwanted meanwhile
                     return
                 self.totals.loaded_bytes += nbytes
@@ -467,9 +475,18 @@ class Loader:
                 self.cv.notify_all()
 
     def _drop_raw(self, b: Block) -> None:
-        """Forget fetched but undecodable levels of ``b`` (caller holds the lock)."""
+        """Forget fetched but undecodable levels of ``b``, counted as discarded (caller holds
+        the lock)."""
         for level in self.raw.pop(b, {}):
             self.cache.release(self.level_bytes[level])
+            self._discard(self.level_bytes[level])
+
+    def _discard(self, nbytes: int) -> None:
+        """Count a level read from the store but thrown away, never cached (caller holds the
+        lock): ``Totals.discarded_bytes``, so that the bytes read are ``loaded_bytes`` plus
+        ``discarded_bytes``."""
+        self.totals.discarded_bytes += nbytes
+        self.totals.discarded_levels += 1
 
     def _requeue(self, b: Block) -> None:
         """Put ``b`` back in the queue if it still wants more (caller holds the lock)."""
