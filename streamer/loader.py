@@ -360,7 +360,11 @@ class Loader:
                 if self.queue.is_failed(b) and not was_failed:
                     self.unreported.append((b, exc))
                 self.frame_io_s += time.perf_counter() - t0
-            log.warning("reading block %s level %d failed (%d): %s", b, level, count, exc)
+            # after close() (which stops waiting for reads in flight after its timeout) a
+            # read that then fails concerns no frame: said at debug, not as a warning to a
+            # user whose session or command has already ended
+            say = log.debug if self.closed else log.warning
+            say("reading block %s level %d failed (%d): %s", b, level, count, exc)
             return
         if level < 0:
             self.errors.add(b, *data)  # the table has its own writer lock; readers need none
