@@ -48,7 +48,9 @@ Stalls are counted over Qiu's triangle (the session's ``culling="qiu"``) and, wi
 the update CPU figures include; ``bench/session_update.py`` measures the caller without it).
 Two figures independent of stalls: ``late_bytes`` (bytes that arrived after the frame that first
 needed them was due) and ``coarse_frames`` (frames drawn coarser than needed, by levels in the
-JSON).
+JSON). ``discarded_bytes`` (the ``discMB`` column) counts the bytes read from the store but
+thrown away on arrival (the block had moved on), in no loaded figure: the bytes read are
+``loaded_bytes + discarded_bytes``; the per-frame rows have it as ``discarded_bytes``.
 
 Timings on a shared 2-core machine are noisy: compare ratios within one run of this script.
 MB = MiB.
@@ -312,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
             f"    stalls {m['stall_frames']} ({m['stalls_in_first_second']} in the first second),"
             f" rt {m['realtime_pct_of_needed']:.4f} % of needed, loaded/used "
             f"{m['loaded_per_used']:.2f} (per load {m['loaded_per_used_load']:.2f}), "
+            f"discarded {m['discarded_bytes'] / 2**20:.3f} MiB, "
             f"max update CPU {m['max_update_cpu_ms']:.2f} ms "
             f"(wall {m['max_update_ms']:.1f}), late frames {m['late_frames']}, "
             f"{rec['wall_s']:.0f} s"

@@ -196,6 +196,10 @@ def derive(rows: list[dict], summary: dict, cameras: list, out: dict) -> dict[st
     yaw_rate = _yaw_rates(cameras)
     startup = [i for i in stalls if i <= int(FPS)]
     f0 = rows[0]
+    # read but thrown away on arrival (the block had moved on): session-wide, as loaded_bytes
+    # here; the rows' per-frame figures beside them (the warm-up's apart)
+    discarded = int(summary["discarded_bytes"])
+    disc_rows = np.array([r["discarded_bytes"] for r in rows], dtype=np.int64)
     return {
         "frames": n,
         "stall_frames": summary["stall_frames"],
@@ -236,6 +240,12 @@ def derive(rows: list[dict], summary: dict, cameras: list, out: dict) -> dict[st
         "used_bytes": summary["used_bytes"],
         "loaded_per_used": summary["loaded_bytes"] / used,
         "wasted_bytes": summary["wasted_bytes"],
+        "discarded_bytes": discarded,
+        "discarded_levels": int(summary["discarded_levels"]),
+        "discarded_pct_of_read": 100.0 * discarded / max(summary["loaded_bytes"] + discarded, 1),
+        "warmup_discarded_bytes": int(summary["warmup_discarded_bytes"]),
+        "frames_discarded_bytes": int(disc_rows.sum()),
+        "frames_with_discards": int((disc_rows > 0).sum()),
         **out["ledger"],
         "loaded_per_used_load": summary["loaded_bytes"] / max(out["ledger"]["used_load_bytes"], 1),
         "never_used_load_bytes": out["ledger"]["evicted_unused_bytes"]

@@ -60,6 +60,7 @@ FRAME_COLUMNS = (
     "visible_blocks",
     "prefetch_blocks",
     "late_ms",
+    "discarded_bytes",
 )
 
 
@@ -71,7 +72,8 @@ def table(records: list[dict[str, Any]]) -> str:
     head = (
         f"{'configuration':<30} {'frames':>6} {'stall':>5} {'hull':>5} {'/10k':>7} {'lateMB':>7} "
         f"{'coarse':>6} {'rt%need':>8} "
-        f"{'rt%used':>8} {'ld/used':>7} {'ld/load':>7} {'peakMB':>7} {'updCPU':>7} {'p99CPU':>7} "
+        f"{'rt%used':>8} {'ld/used':>7} {'ld/load':>7} {'discMB':>7} {'peakMB':>7} {'updCPU':>7} "
+        f"{'p99CPU':>7} "
         f"{'updWall':>7} {'io ms/f':>7} {'f1 MB':>6} {'f1 ms':>6} {'late':>5}  "
         "stall rt   ld   ld2  budg upd"
     )
@@ -85,7 +87,7 @@ def table(records: list[dict[str, Any]]) -> str:
             f"{m['late_bytes'] / MB:>7.3f} {m['coarse_frames']:>6} "
             f"{m['realtime_pct_of_needed']:>8.4f} "
             f"{m['realtime_pct_of_used']:>8.2f} {m['loaded_per_used']:>7.2f} "
-            f"{m['loaded_per_used_load']:>7.2f} "
+            f"{m['loaded_per_used_load']:>7.2f} {m['discarded_bytes'] / MB:>7.3f} "
             f"{m['peak_resident_bytes'] / MB:>7.1f} {m['max_update_cpu_ms']:>7.2f} "
             f"{m['p99_update_cpu_ms']:>7.2f} {m['max_update_ms']:>7.1f} "
             f"{m['io_ms_per_frame_mean']:>7.2f} {m['first_frame_loaded_bytes'] / MB:>6.2f} "
@@ -103,7 +105,8 @@ def table(records: list[dict[str, Any]]) -> str:
         " the same / distinct bytes drawn (stricter, not a target); ld/used = loaded / distinct "
         "(block, level) bytes drawn (the session's used_bytes; re-loads on a second pass count as"
         " waste) <= 1.5 (check 'ld'); ld/load = loaded / bytes of loads that a frame drew before "
-        "their eviction (check 'ld2'); peak resident"
+        "their eviction (check 'ld2'); discMB = bytes read but discarded on arrival (the "
+        "block had moved on; in no loaded figure: read = loaded + discarded); peak resident"
         " <= budget; updCPU = max caller-thread CPU ms of update() (target <= 2 ms), updWall = its"
         " wall ms; io ms/f = mean loader-thread ms per frame after frame 1 (includes the latency "
         "sleeps); f1 = warm-up + frame 0: loaded MB and wall ms; late = frames started > 1 "

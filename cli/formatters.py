@@ -145,6 +145,12 @@ def format_summary(d: dict) -> str:
     mb = 1 / 2**20
     needed = max(d["needed_bytes"], 1)
     used = max(d["used_bytes"], 1)
+    after = d.get("discarded_after_frames_bytes")  # (streamer.run.frames_summary's cut)
+    where = (
+        "in the session"
+        if after is None
+        else f"in the warm-up and the frames; {after * mb:.2f} MiB more after the last frame"
+    )
     return "\n".join(
         [
             f"frames {d['frames']}, stall frames {d['stall_frames']} (over the "
@@ -163,7 +169,7 @@ def format_summary(d: dict) -> str:
             f"loaded {d['loaded_bytes'] * mb:.2f} MiB, used {d['used_bytes'] * mb:.2f} MiB "
             f"(loaded/used {d['loaded_bytes'] / used:.2f}), "
             f"wasted {d['wasted_bytes'] * mb:.2f} MiB; read but discarded on arrival "
-            f"{d.get('discarded_bytes', 0) * mb:.2f} MiB (in the session)",
+            f"{d.get('discarded_bytes', 0) * mb:.2f} MiB ({where})",
             f"peak resident {d['peak_resident_bytes'] * mb:.2f} MiB of a "
             f"{d['budget_bytes'] * mb:.2f} MiB budget; max update {d['max_update_ms']:.2f} ms "
             f"(CPU {d['max_update_cpu_ms']:.2f} ms)",

@@ -70,7 +70,8 @@ class SessionConfig:
     linger_s: float | None = None  # unload unwanted levels after this long; None: only when
     # the budget needs the room (least recently wanted first)
     horizon_s: float = 0.5  # also plan for where the camera will be this far ahead
-    inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame (None: all)
+    inline_bytes_per_frame: int | None = None  # workers=0: I/O allowance per frame, bytes
+    # read (loaded or discarded on arrival; None: all)
     account_hull: bool = False  # culling="qiu": also count stalls over the frustum hull (the
     # set the renderer draws) in FrameStats.hull_stalled (costs a second plan per frame)
     scheme: str = "ours"  # loading scheme, see SCHEMES ("qiu": Qiu et al. as published)
@@ -184,6 +185,8 @@ class FrameStats:
     levels_short: int = 0  # largest (needed - resident) level gap over visible blocks (0: none
     # drawn coarser than needed; a hole counts needed + 1)
     failed_blocks: int = 0  # visible blocks whose reads failed ``retries`` times in a row
+    discarded_bytes: int = 0  # read from the store since the previous frame but thrown away on
+    # arrival, never cached (in neither realtime_bytes nor prefetched_bytes; Totals.summary)
 
 
 @dataclass(frozen=True)
@@ -271,7 +274,10 @@ class Totals:
         block lost the level below meanwhile or is no longer wanted, a level beyond a gap that
         will not be filled, a decode that raised): the bytes read from the store are their sum
         (decoded level bytes, as every figure; errors reads carry none). Discarded bytes are in
-        no frame's ``realtime_bytes`` or ``prefetched_bytes``.
+        no frame's ``realtime_bytes`` or ``prefetched_bytes``: each frame's
+        ``FrameStats.discarded_bytes`` counts those since the previous frame and
+        ``warmup_discarded_bytes`` the warm-up's, so that ``discarded_bytes`` is the warm-up's
+        plus the frames' plus those discarded after the last frame.
         """
         return {
             "frames": self.frames,
@@ -296,6 +302,7 @@ class Totals:
             "cancelled_loads": self.cancelled,
             "warmup_ms": self.warmup.get("ms", 0.0),
             "warmup_bytes": int(self.warmup.get("bytes", 0)),
+            "warmup_discarded_bytes": int(self.warmup.get("discarded_bytes", 0)),
             "hole_frames": self.hole_frames,
             "failed_frames": self.failed_frames,
             "failed_blocks": [list(b) for b in failed_now],

@@ -27,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
+from typing import NamedTuple
 
 import numpy as np
 import zarr.errors
@@ -70,6 +71,20 @@ PER_BLOCK = 4  # raw levels of one block fetched at once
 READ_ERRORS: tuple[type[BaseException], ...] = (OSError, StoreError, zarr.errors.BaseZarrError)
 
 Job = tuple[Block, int]
+
+
+class FrameCounts(NamedTuple):
+    """What the loaders counted since the previous frame (:meth:`Loader.take_counts`): the
+    decoded bytes loaded in time (real-time) and ahead (prefetched), the I/O seconds, the bytes
+    that came late, the bytes read but discarded on arrival, and the failures not yet
+    reported."""
+
+    realtime: int
+    prefetched: int
+    io_s: float
+    late: int
+    discarded: int
+    unreported: list[tuple[Block, BaseException]]
 
 
 class Loader:
@@ -118,6 +133,7 @@ class Loader:
         self.frame_realtime = 0
         self.frame_prefetched = 0
         self.frame_io_s = 0.0
+        self.frame_discarded = 0  # bytes read but discarded on arrival (:meth:`_discard`)
         self.bug: BaseException | None = None
         self.fatal: StoreChangedError | None = None  # the store changed under the session
         self.closed = False
@@ -488,9 +504,11 @@ class Loader:
     def _discard(self, nbytes: int) -> None:
         """Count a level read from the store but thrown away, never cached (caller holds the
         lock): ``Totals.discarded_bytes``, so that the bytes read are ``loaded_bytes`` plus
-        ``discarded_bytes``."""
+        ``discarded_bytes``, and the next frame's ``FrameStats.discarded_bytes`` (or the
+        warm-up's, :meth:`Session.warm_up`)."""
         self.totals.discarded_bytes += nbytes
         self.totals.discarded_levels += 1
+        self.frame_discarded += nbytes
 
     def _requeue(self, b: Block) -> None:
         """Put ``b`` back in the queue if it still wants more (caller holds the lock)."""
@@ -503,12 +521,12 @@ class Loader:
 
     # -- what a waiting frame lacks (Session.update(..., wait=True)) -------------------------
 
-    def take_frame_counts(self) -> tuple[int, int, float, int, list[tuple[Block, BaseException]]]:
-        """The bytes read in time, prefetched, the I/O seconds, the bytes that came late and
-        the failures not yet reported since the last frame, reset (hold :attr:`cv`)."""
-        out = (self.frame_realtime, self.frame_prefetched, self.frame_io_s, self.frame_late,
-               self.unreported)  # fmt: skip
+    def take_counts(self) -> FrameCounts:
+        """What the loaders counted since the last frame, reset (hold :attr:`cv`)."""
+        out = FrameCounts(self.frame_realtime, self.frame_prefetched, self.frame_io_s,
+                          self.frame_late, self.frame_discarded, self.unreported)  # fmt: skip
         self.frame_realtime = self.frame_prefetched = self.frame_late = 0
+        self.frame_discarded = 0
         self.frame_io_s = 0.0
         self.unreported = []
         return out
@@ -545,11 +563,12 @@ class Loader:
 
     def load_inline(self, allowance: int | None, deadline: float | None = None) -> bool:
         """``workers=0``: one pass of jobs on the caller's thread, up to ``allowance`` bytes
-        and until ``deadline`` (``time.monotonic``): each ``(block, level)`` at most once and
-        one retry of a failed block (``LoadQueue.pop``'s probe) unless nothing else is queued.
-        A read that fails adds no bytes, and one slower than its retry's backoff (a server
-        that stopped answering, each read ending at its timeout) once kept this loop retrying
-        the most urgent block for ever. The pass ends when a block fails its last retry (the
+        read (loaded, or discarded on arrival: the same I/O) and until ``deadline``
+        (``time.monotonic``): each ``(block, level)`` at most once and one retry of a failed
+        block (``LoadQueue.pop``'s probe) unless nothing else is queued. A read that fails
+        adds no bytes, and one slower than its retry's backoff (a server that stopped
+        answering, each read ending at its timeout) once kept this loop retrying the most
+        urgent block for ever. The pass ends when a block fails its last retry (the
         frame reports it at once). True when work is left that could run now."""
         spent = 0
         tried: set[Job] = set()
@@ -572,9 +591,10 @@ class Loader:
                 if job is None:
                     return bool(held)
                 tried.add(job)
-                before, failed = self.totals.loaded_bytes, len(self.unreported)
+                t = self.totals
+                before, failed = t.loaded_bytes + t.discarded_bytes, len(self.unreported)
                 self.run_job(job)
-                spent += self.totals.loaded_bytes - before
+                spent += t.loaded_bytes + t.discarded_bytes - before
                 if len(self.unreported) > failed:
                     return True  # a block failed every retry: the frame reports it now
             return True

@@ -199,7 +199,8 @@ def run_flythrough(
     """Update the session once per camera, paced at the session's fps; collect every frame.
 
     With ``first_wait`` the session is warmed up for the first camera (see
-    :meth:`Session.warm_up`; reported as ``warmup_ms``/``warmup_bytes``) and frame 0 waits.
+    :meth:`Session.warm_up`; reported as ``warmup_ms``/``warmup_bytes``, and
+    ``warmup_discarded_bytes``) and frame 0 waits.
     An exception that stops the flight carries the frames flown so far as ``exc.partial``
     (a :class:`RunResult`). Either summary's figures are the rows' (:func:`frames_summary`).
     """
@@ -228,12 +229,16 @@ def run_flythrough(
 
 
 def frames_summary(summary: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """``summary`` (a live session's) with its loaded bytes those of the frames ``rows``.
+    """``summary`` (a live session's) with its loaded and discarded bytes those of the warm-up
+    and the frames ``rows``.
 
     Loaders keep reading after the last frame (until the session closes, or while an error
     stops the flight), so a session's ``loaded_bytes`` may exceed the warm-up's plus the
     frames' real-time and prefetched bytes: ``loaded_bytes`` becomes that sum (``wasted_bytes``
-    follows) and ``loaded_after_frames_bytes`` says what arrived after the last frame.
+    follows) and ``loaded_after_frames_bytes`` says what arrived after the last frame. Likewise
+    ``discarded_bytes`` (read but thrown away on arrival) becomes ``warmup_discarded_bytes``
+    plus the rows' ``discarded_bytes``, and ``discarded_after_frames_bytes`` the rest
+    (``discarded_levels`` stays the session's count).
     """
     out = dict(summary)
     in_frames = int(out.get("warmup_bytes", 0)) + sum(
@@ -243,6 +248,12 @@ def frames_summary(summary: dict[str, Any], rows: list[dict[str, Any]]) -> dict[
     out["loaded_bytes"] = in_frames
     out["loaded_after_frames_bytes"] = max(0, total - in_frames)
     out["wasted_bytes"] = max(0, in_frames - int(out.get("used_bytes", 0)))
+    thrown = int(out.get("warmup_discarded_bytes", 0)) + sum(
+        int(r.get("discarded_bytes", 0)) for r in rows
+    )
+    total = int(out.get("discarded_bytes", thrown))
+    out["discarded_bytes"] = thrown
+    out["discarded_after_frames_bytes"] = max(0, total - thrown)
     return out
 
 

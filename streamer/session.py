@@ -224,7 +224,9 @@ class Session:
 
     def warm_up(self, camera: Camera, timeout_s: float | None = None) -> dict[str, float]:
         """Before a flight: load everything the plan for ``camera`` wants — the visible levels
-        and the prefetch around them — and return ``{"ms", "bytes"}`` spent.
+        and the prefetch around them — and return ``{"ms", "bytes"}`` spent, and
+        ``"discarded_bytes"``: those read meanwhile but thrown away on arrival (in no frame's
+        ``FrameStats.discarded_bytes``; ``summary()["warmup_discarded_bytes"]``).
 
         Without it the first second of a flight stalls while the prefetch ring fills; Qiu et
         al. likewise count the first frame's load apart (Table 3). It also loads the compiled
@@ -238,6 +240,8 @@ class Session:
         t0 = time.perf_counter()
         levels_kernels.warm_up(self.loader.errors)
         before = self.totals.loaded_bytes
+        with self._cv:
+            discarded_before = self.totals.discarded_bytes
         limit = self.config.wait_timeout_s if timeout_s is None else float(timeout_s)
         start = time.monotonic()
         deadline = start + limit
@@ -256,9 +260,14 @@ class Session:
             self.loader.frame_realtime = self.loader.frame_prefetched = 0
             self.loader.frame_io_s = 0.0
             loaded = self.totals.loaded_bytes - before
+            # the warm-up's discards are its own; those since the previous frame before it
+            # began (a warm-up after frames) stay the next frame's: each is counted once
+            discarded = self.totals.discarded_bytes - discarded_before
+            self.loader.frame_discarded -= discarded
         if self.config.freeze_gc:
             freeze_heap()  # one collection now rather than tens of ms in some later frame
-        out = {"ms": (time.perf_counter() - t0) * 1000.0, "bytes": float(loaded)}
+        ms = (time.perf_counter() - t0) * 1000.0
+        out = {"ms": ms, "bytes": float(loaded), "discarded_bytes": float(discarded)}
         self.totals.warmup = out
         return out
 
@@ -390,7 +399,7 @@ class Session:
                 for lvl in range(have + 1, lv + 1):
                     ld.demanded.add((b, lvl))
                     ld.due.setdefault((b, lvl), due)
-            realtime, prefetched, io_s, late, news = ld.take_frame_counts()
+            counts = ld.take_counts()
             failed = frozenset(b for b in ld.queue.failed_blocks() if b in needed)
             resident = cache.nbytes - cache.reserved  # levels held, not reads in flight
             errors = self.totals.io_errors
@@ -411,9 +420,9 @@ class Session:
             visible_blocks=len(needed),
             prefetch_blocks=self._plans.ring,
             needed_bytes=need,
-            realtime_bytes=realtime,
-            prefetched_bytes=prefetched,
-            io_ms=io_s * 1000.0,
+            realtime_bytes=counts.realtime,
+            prefetched_bytes=counts.prefetched,
+            io_ms=counts.io_s * 1000.0,
             update_ms=(update_s + t3 - t2) * 1e3,
             update_cpu_ms=(update_cpu + c3 - c2) * 1e3,
             wait_ms=wait_s * 1e3,
@@ -424,16 +433,17 @@ class Session:
             holes=int((have < 0).sum()),
             failed_blocks=len(failed),
             stall_set=self.stall_set,
-            late_bytes=late,
+            late_bytes=counts.late,
             hull_stalled=hull,
             levels_short=max(0, short),
+            discarded_bytes=counts.discarded,
         )
         frame = Frame(camera=camera, blocks=blocks, stats=stats, failed=failed)
         if hull is not None:
             self._hull_hole_frames = (self._hull_hole_frames or 0) + int(hull_holes > 0)
         self._record(frame)
-        if news and self.config.raise_on_failure:
-            b, exc = news[0]
+        if counts.unreported and self.config.raise_on_failure:
+            b, exc = counts.unreported[0]
             cfg = self.config
             raise LoadError.after_retries(b, exc, cfg.retries, cfg.heal, frame) from exc
         return frame

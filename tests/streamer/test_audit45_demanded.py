@@ -74,13 +74,14 @@ def _reload_ahead(store, demanded: _Recording, pin: bool) -> tuple[int, int, int
             cache.set_wants({b: (lv, lv if pin else -1, 1.0)}, s.level_bytes)
             while cache.level(b) >= lv:
                 cache.drop_level(b)
-            ld.take_frame_counts()
+            ld.take_counts()
             ld.reschedule()
             reloaded = s.totals.reloaded_levels
         ld.load_inline(None)
         with ld.cv:
             assert cache.level(b) == lv
-            realtime, prefetched, *_ = ld.take_frame_counts()
+            c = ld.take_counts()
+            realtime, prefetched = c.realtime, c.prefetched
             return realtime, prefetched, s.totals.reloaded_levels - reloaded, s.level_bytes[lv]
 
 

@@ -98,12 +98,13 @@ def _read_ahead_later(store, target, keep_all: bool = False) -> tuple[int, int, 
         time.sleep(max(0.0, due - time.monotonic()) + 0.02)  # that frame's due time is past
         with ld.cv:
             s.cache.set_wants({b: (lv, -1, 1.0)}, s.level_bytes)  # a revisit's prefetch
-            ld.take_frame_counts()
+            ld.take_counts()
             ld.reschedule()
         ld.load_inline(None)
         with ld.cv:
             assert s.cache.level(b) == lv
-            realtime, prefetched, _io, late, _ = ld.take_frame_counts()
+            c = ld.take_counts()
+            realtime, prefetched, late = c.realtime, c.prefetched, c.late
             assert set(ld.due) == set(ld.demanded)
         return realtime, prefetched, late, s.level_bytes[lv], held
 
