@@ -146,11 +146,12 @@ def _resume_journal(
     src: Any, band: int, meta: StoreMeta, loc: Any, asm: ShardAssembler
 ) -> np.ndarray:
     """Read a resumed store's journal once, a shard region at a time: return the blocks done
-    (an entry damaged, its crc32c failing: not done, computed again) and hand their entries to
-    ``asm``, made with no block done (a shard all done is written now). Refuse to resume when
-    the source's samples of blocks already done changed since (a source edited in place passes
-    the job's fingerprint: the same size, header and three sample windows), naming the blocks:
-    the store would mix two DEMs."""
+    (an entry damaged, its crc32c failing: not done, computed again; a transport failure stops
+    the resume, :class:`StoreUnavailableError`, rather than compute its blocks again) and hand
+    their entries to ``asm``, made with no block done (a shard all done is written now). Refuse
+    to resume when the source's samples of blocks already done changed since (a source edited
+    in place passes the job's fingerprint: the same size, header and three sample windows),
+    naming the blocks: the store would mix two DEMs."""
     from tiler.resume import changed_done_blocks, read_journal_region
     from tiler.source import open_source
 
@@ -159,7 +160,7 @@ def _resume_journal(
     with contextlib.ExitStack() as stack:
         ds = None
         for r0, r1, c0, c1 in asm.regions():
-            raw = read_journal_region(asm.jarr, r0, r1, c0, c1)
+            raw = read_journal_region(asm.jarr, r0, r1, c0, c1, loc.url)
             region = done[r0:r1, c0:c1]
             region[...] = raw[:, :, -1] == 1
             if not region.any():
@@ -377,7 +378,7 @@ def finish(
     grid = meta.grid
     if JOURNAL in group:
         if asm is None or any(asm.remaining.values()):
-            done = done_blocks(group[JOURNAL])
+            done = done_blocks(group[JOURNAL], loc.url)
             if not done.all():
                 missing = int((~done).sum())
                 raise StoreCorruptError(
@@ -485,11 +486,10 @@ def repair_store(
         # an interrupted repair (state "repair"): the blocks its journal holds were
         # recomputed (their big levels are written); they are patched in, not recomputed
         resuming = not meta.complete and meta.extra.get("state") == "repair"
-        prior: set[tuple[int, int]] = set()
+        prior: dict[tuple[int, int], JournalEntry] = {}
         if resuming and JOURNAL in group:
-            done = done_blocks(group[JOURNAL])
-            prior = {(int(r), int(c)) for r, c in zip(*np.nonzero(done), strict=True)}
-        bad = sorted(report.bad_blocks - prior)
+            prior = _journal_entries(group[JOURNAL], meta, loc)
+        bad = sorted(report.bad_blocks - prior.keys())
         damage = [p for p in report.problems if p.kind != "unfinished"]
         if damage and not bad and not prior and not report.bad_tables and not resuming:
             raise StoreCorruptError(
@@ -531,7 +531,7 @@ def repair_store(
                     src, loc, opts, grid, block_params(meta), bad, done, report_fn, lease
                 )
             if bad or prior:
-                _patch(group, loc, meta, sorted(set(bad) | prior))
+                _patch(group, loc, meta, bad, prior)
             loc.delete_prefix(JOURNAL)
             # a new revision: the root metadata changes, so remote readers that kept shard
             # indexes of the old blocks drop them (TerrainStore.check_unchanged)
@@ -542,18 +542,58 @@ def repair_store(
     return store
 
 
-def _patch(group: zarr.Group, loc: Location, meta: StoreMeta, bad: list[tuple[int, int]]) -> None:
-    """Write the repaired blocks' small levels and index rows (other blocks kept)."""
+def _journal_entries(
+    jarr: zarr.Array, meta: StoreMeta, loc: Location
+) -> dict[tuple[int, int], JournalEntry]:
+    """The entries an interrupted repair's journal holds, read once, a shard region at a time
+    (a damaged one: not held, its block repaired again if still bad; a transport failure:
+    :class:`StoreUnavailableError`, the repair stopped to be rerun)."""
+    from tiler.resume import read_journal_region
+
+    rows, cols = meta.grid.shape
+    sr, sc = shard_shape(rows, cols)
+    entries = {}
+    for r0 in range(0, rows, sr):
+        for c0 in range(0, cols, sc):
+            r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
+            raw = read_journal_region(jarr, r0, r1, c0, c1, loc.url)
+            for i, j in zip(*np.nonzero(raw[:, :, -1] == 1), strict=True):
+                e = unpack(raw[i, j], meta.k, meta.storage_dtype)
+                if e is not None:  # (always: its mark byte is 1)
+                    entries[r0 + int(i), c0 + int(j)] = e
+    return entries
+
+
+def _patch(
+    group: zarr.Group,
+    loc: Location,
+    meta: StoreMeta,
+    bad: list[tuple[int, int]],
+    known: dict[tuple[int, int], JournalEntry] | None = None,
+) -> None:
+    """Write the repaired blocks' small levels and index rows (other blocks kept): those of
+    ``bad``, their journal entries read a shard at a time (their chunks fetched together), and
+    those of ``known`` (entries read already)."""
+    from tiler.resume import read_journal_blocks
+
     grid = meta.grid
     rows, cols = grid.shape
+    sr, sc = shard_shape(rows, cols)
     jarr = group[JOURNAL]
+    by_shard: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for b in sorted(bad):
+        by_shard.setdefault((b[0] // sr, b[1] // sc), []).append(b)
+    read: dict[tuple[int, int], JournalEntry | None] = dict(known or {})
+    for blocks in by_shard.values():
+        raw = read_journal_blocks(jarr, blocks, loc.url)
+        for b, row in zip(blocks, raw, strict=True):
+            read[b] = unpack(row, meta.k, meta.storage_dtype)
     entries = {}
-    for b in bad:
-        e = unpack(jarr[b], meta.k, meta.storage_dtype)
+    for b in sorted(read):
+        e = read[b]
         if e is None:
             raise StoreCorruptError(f"repair of block {b} did not complete")
         entries[b] = e
-    sr, sc = shard_shape(rows, cols)
     shards: dict[tuple[int, int], dict] = {}
     for b, e in entries.items():
         shards.setdefault((b[0] // sr, b[1] // sc), {})[b] = e

@@ -3,9 +3,11 @@
 Each worker writes a block's big levels, errors and mask, then the block's *journal entry* last:
 one chunk (crc32c-checked) of the ``journal`` array holding the block's small levels (the sharded
 levels 0..5) and its index row. A block is done exactly when its journal entry reads back
-intact, so a run killed at any moment loses only the blocks in flight. When every block is done
-the finish step builds the shards and the index from the journal, deletes the journal and marks
-the store complete; the result is byte-identical to an uninterrupted run.
+intact, so a run killed at any moment loses only the blocks in flight (an entry whose read the
+store's transport fails is neither: read again, then the run stops, :func:`read_journal_region`).
+When every block is done the finish step builds the shards and the index from the journal,
+deletes the journal and marks the store complete; the result is byte-identical to an
+uninterrupted run.
 
 The run's state is ``meta.extra["state"]``: ``"layout"`` (arrays being created: a rerun starts
 again), ``"tiling"`` (resumable), ``"finishing"`` (journal consumed: a rerun only finishes).
@@ -13,10 +15,11 @@ again), ``"tiling"`` (resumable), ``"finishing"`` (journal consumed: a rerun onl
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
+import logging
 import os
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import astuple, dataclass, fields, replace
 from typing import Any
 
@@ -24,10 +27,13 @@ import numpy as np
 import zarr
 from rasterio.windows import Window
 
-from tiler.errors import JobMismatchError
+from tiler.errors import JobMismatchError, StoreUnavailableError
 from tiler.layout import level_size
 from tiler.meta import nodata_json
 from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs, shard_shape
+from tiler.transport import describe, is_transport_error, unavailable
+
+log = logging.getLogger("tiler.tile")
 
 JOURNAL = "journal"
 _ROW = np.dtype([("exists", "u1"), ("has_nodata", "u1"), ("zmin", "<f8"), ("zmax", "<f8"),
@@ -178,20 +184,102 @@ def changed_done_blocks(
     return changed
 
 
-def read_journal_region(arr: zarr.Array, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+#: what reading a damaged journal entry raises (its crc32c failing, a torn chunk): the entry is
+#: not done and its block is computed again. A transport failure (an ``OSError``, a dropped
+#: connection...) is not damage: the read is tried again, then :func:`_journal_unavailable`.
+_DAMAGED = (ValueError, RuntimeError)
+#: times a journal read that the transport failed is tried again (after the client's own
+#: retries, :mod:`tiler.transport`), :data:`JOURNAL_RETRY_WAIT_S` apart, before the run stops
+JOURNAL_READ_RETRIES = 1
+JOURNAL_RETRY_WAIT_S = 0.5
+
+
+def _journal_unavailable(
+    subject: str, arr: zarr.Array, url: str | None, exc: BaseException, **where: Any
+) -> StoreUnavailableError:
+    """The error for a transport failure ``exc`` reading ``subject`` of the journal ``arr`` of
+    the store at ``url`` (None: the array's store): the entries are not taken for not done
+    (their blocks would be computed again, hours on a big job); the run stops, to be rerun."""
+    err = unavailable(subject, url or str(arr.store), exc)
+    n = JOURNAL_READ_RETRIES + 1
+    tries = "once" if n == 1 else "twice" if n == 2 else f"{n} times"
+    return StoreUnavailableError(
+        f"{err} (tried {tries}; the blocks done so far are kept: rerun the same command to "
+        "go on from them)",
+        array=JOURNAL,
+        **where,
+    )
+
+
+def _read_or_damaged(
+    read: Callable[[], Any], subject: str, arr: zarr.Array, url: str | None, **where: Any
+) -> np.ndarray | None:
+    """``read()`` as uint8; None when an entry read is damaged; a transport failure is tried
+    again (:data:`JOURNAL_READ_RETRIES`), then raises :func:`_journal_unavailable`'s error."""
+    for attempt in range(JOURNAL_READ_RETRIES + 1):
+        try:
+            return np.asarray(read(), dtype=np.uint8)
+        except Exception as exc:
+            if not (isinstance(exc, OSError) or is_transport_error(exc)):
+                if isinstance(exc, _DAMAGED):
+                    return None
+                raise
+            if attempt == JOURNAL_READ_RETRIES:
+                raise _journal_unavailable(subject, arr, url, exc, **where) from exc
+            log.warning(
+                "reading %s of %s failed (%s); trying again",
+                subject, url or arr.store, describe(exc),
+            )  # fmt: skip
+            time.sleep(JOURNAL_RETRY_WAIT_S)
+    raise AssertionError("unreachable")
+
+
+def read_journal_region(
+    arr: zarr.Array, r0: int, r1: int, c0: int, c1: int, url: str | None = None
+) -> np.ndarray:
     """The raw journal entries of blocks ``[r0:r1, c0:c1]`` (uint8, one entry a block), read at
     once; when one is damaged (its crc32c fails) they are read one by one and a damaged one is
-    left zero: not done (its block is computed again)."""
-    try:
-        return np.asarray(arr[r0:r1, c0:c1], dtype=np.uint8)
-    except (ValueError, OSError, RuntimeError):
-        pass
+    left zero: not done (its block is computed again). A transport failure raises
+    :class:`StoreUnavailableError` naming the store (``url``)."""
+    subject = f"the journal entries of blocks ({r0}..{r1 - 1}, {c0}..{c1 - 1})"
+    raw = _read_or_damaged(lambda: arr[r0:r1, c0:c1], subject, arr, url)
+    if raw is not None:
+        return raw
     out = np.zeros((r1 - r0, c1 - c0, arr.shape[2]), dtype=np.uint8)
     for br in range(r0, r1):
         for bc in range(c0, c1):
-            with contextlib.suppress(ValueError, OSError, RuntimeError):
-                out[br - r0, bc - c0] = arr[br, bc]
+            one = _read_entry(arr, br, bc, url)
+            if one is not None:
+                out[br - r0, bc - c0] = one
     return out
+
+
+def read_journal_blocks(
+    arr: zarr.Array, blocks: Sequence[tuple[int, int]], url: str | None = None
+) -> np.ndarray:
+    """The raw journal entries of ``blocks`` (``(len(blocks), n)`` uint8), their chunks fetched
+    together (one zarr call, not one a block); damaged ones left zero and transport failures
+    raised, as :func:`read_journal_region`."""
+    n = arr.shape[2]
+    if not blocks:
+        return np.zeros((0, n), dtype=np.uint8)
+    rows, cols = (np.array(v, dtype=np.intp)[:, None] for v in zip(*blocks, strict=True))
+    subject = f"the journal entries of {len(blocks)} block(s) from {tuple(blocks[0])} on"
+    raw = _read_or_damaged(lambda: arr.vindex[rows, cols, np.arange(n)[None, :]], subject, arr, url)
+    if raw is not None:
+        return raw
+    out = np.zeros((len(blocks), n), dtype=np.uint8)
+    for i, (br, bc) in enumerate(blocks):
+        one = _read_entry(arr, br, bc, url)
+        if one is not None:
+            out[i] = one
+    return out
+
+
+def _read_entry(arr: zarr.Array, br: int, bc: int, url: str | None) -> np.ndarray | None:
+    """Block ``(br, bc)``'s raw journal entry; None when damaged."""
+    subject = f"the journal entry of block ({br}, {bc})"
+    return _read_or_damaged(lambda: arr[br, bc], subject, arr, url, block=(br, bc))
 
 
 def changed_blocks_by_index(
@@ -214,20 +302,18 @@ def changed_blocks_by_index(
     return changed
 
 
-def done_blocks(arr: zarr.Array) -> np.ndarray:
-    """``(rows, cols)`` bool: blocks whose journal entry is written and intact."""
+def done_blocks(arr: zarr.Array, url: str | None = None) -> np.ndarray:
+    """``(rows, cols)`` bool: blocks whose journal entry is written and intact. A transport
+    failure raises :class:`StoreUnavailableError` naming the store (``url``)."""
     rows, cols, _ = arr.shape
-    try:
-        return arr[:, :, -1] == 1
-    except (ValueError, OSError, RuntimeError):
-        pass  # a torn or damaged entry: check block by block
-    out = np.zeros((rows, cols), bool)
+    marks = _read_or_damaged(lambda: arr[:, :, -1], "the journal", arr, url)
+    if marks is not None:
+        return marks == 1
+    out = np.zeros((rows, cols), bool)  # a torn or damaged entry: check block by block
     for br in range(rows):
         for bc in range(cols):
-            try:
-                out[br, bc] = arr[br, bc, -1] == 1
-            except (ValueError, OSError, RuntimeError):
-                out[br, bc] = False
+            one = _read_entry(arr, br, bc, url)
+            out[br, bc] = one is not None and one[-1] == 1
     return out
 
 
