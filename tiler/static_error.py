@@ -154,6 +154,18 @@ def _surface_dev(f4, a, b, c, d, u, v):
 
 
 _BROADCAST_MIN = 16  # node size (samples) above which 4-D broadcasting beats offset loops
+#: ... and at or below it, the node count per ``s**2`` up to which broadcasting still beats the
+#: ``s**2`` offset passes (each a few numpy calls of ~10-20 us): a 17-sample block's depth 0 took
+#: 5.7 ms in 256 passes against 0.1 ms broadcast. Measured (offset / broadcast time): 1.26 at
+#: 48² nodes of s = 16 but 0.84 at 64² (a 1025² block's depth 6), 2.5 at 24² of s = 8, 1.3 at
+#: 12² of s = 4, 1.4 at 6² of s = 2 (both paths give the same float32 values)
+_BROADCAST_NODES_PER_S2 = 12
+
+
+def broadcast_nodes(nr: int, nc: int, s: int) -> bool:
+    """Whether :func:`_depth_nodes` broadcasts ``(nr, nc)`` nodes of ``s`` samples in 4-D (else
+    one pass per in-node offset): for large nodes, and for few small ones."""
+    return s > _BROADCAST_MIN or nr * nc <= _BROADCAST_NODES_PER_S2 * s * s
 
 
 def _offset_dev(
@@ -274,10 +286,10 @@ def _depth_nodes(
     """float32 max |f - surface| of each node of ``s`` samples over the ``(nr*s+1, nc*s+1)``
     heights ``f`` (``c``: the node corners; ``inval`` samples count 0). Only the first ``rs``
     rows and ``cs`` columns of each node are visited, besides its borders: the rest must be
-    invalid (large nodes; the small ones visit all)."""
+    invalid (on the broadcast path; the offset passes visit all)."""
     nr, nc = c.shape[0] - 1, c.shape[1] - 1
     t = (np.arange(s) / s).astype(np.float32)
-    if s > _BROADCAST_MIN:
+    if broadcast_nodes(nr, nc, s):
         f4 = f[:-1, :-1].reshape(nr, s, nc, s)[:, :rs, :, :cs]
         quad = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
         corners = [q[:, None, :, None] for q in quad]
