@@ -26,6 +26,7 @@ test: setup   # ends with "GL tests: N ran (...), M skipped" (tests/conftest.py)
 
 reliability: setup   # the long fault-injection series (24 kills, 24 Ctrl-Cs, 30,000-frame faulty session); counts in BENCHMARKS.md
 	TERRASTREAM_RELIABILITY_LONG=1 $(BIN)/python -m pytest -s tests/reliability tests/streamer/test_session_faults.py
+	TERRASTREAM_RELIABILITY_LONG=1 $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile -m long_series tests
 
 demo: setup
 	@bash scripts/demo.sh

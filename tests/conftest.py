@@ -12,6 +12,41 @@ import numpy as np
 import pytest
 from demtools import write_dem
 
+#: ``make reliability`` (and anyone setting it) runs the long fault-injection series: the
+#: longer versions of some tests, and the tests marked ``long_series``
+LONG = os.environ.get("TERRASTREAM_RELIABILITY_LONG") == "1"
+_LONG_LEFT: list[str] = []
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Without :data:`LONG`, leave the ``long_series`` tests (longer kill/resume cases, each
+    with a shorter sibling in the suite) to ``make reliability``: deselected, and counted in
+    the run's last lines."""
+    if LONG:
+        return
+    keep, left = [], []
+    for item in items:
+        (left if item.get_closest_marker("long_series") else keep).append(item)
+    if left:
+        config.hook.pytest_deselected(items=left)
+        items[:] = keep
+        _LONG_LEFT[:] = [i.nodeid for i in left]
+
+
+def pytest_sessionfinish(session) -> None:
+    """An xdist worker hands its count of deselected long tests to the controller."""
+    out = getattr(session.config, "workeroutput", None)
+    if out is not None:
+        out["long_left"] = list(_LONG_LEFT)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error) -> None:
+    """(xdist controller) each worker collected every test: any one's count is the run's."""
+    left = getattr(node, "workeroutput", {}).get("long_left")
+    if left and not _LONG_LEFT:
+        _LONG_LEFT[:] = left
+
 
 def pytest_configure(config):
     """Ctrl-C as a terminal sends it, whatever started the run: a shell starts a background
@@ -114,3 +149,7 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     terminalreporter.write_sep("-", _GL.line())
+    if _LONG_LEFT:
+        terminalreporter.write_line(
+            f"{len(_LONG_LEFT)} long kill/resume test(s) deselected: `make reliability` runs them"
+        )

@@ -7,6 +7,7 @@ has a positive control: a small tree that breaks it on purpose, which the checke
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -81,11 +82,17 @@ def layer_violations(root: Path) -> list[str]:
     return found
 
 
+@functools.cache
+def _import_graph(root: Path) -> tuple[dict[str, Path], dict[str, set[str]]]:
+    """The project's modules and what each imports (parsed once a tree)."""
+    mods = modules(root)
+    return mods, {n: imports(root, p) for n, p in mods.items()}
+
+
 def gl_reach(root: Path, start: str) -> list[str]:
     """An import chain from module ``start`` to a GL module through project modules ([] if
     none)."""
-    mods = modules(root)
-    edges = {n: imports(root, p) for n, p in mods.items()}
+    mods, edges = _import_graph(root)
     parts = start.split(".")
     first = [".".join(parts[:j]) for j in range(1, len(parts) + 1)]  # its packages run first
     seen = set(first)

@@ -31,6 +31,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("tiler.tile")
 IN_FLIGHT_PER_THREAD = 3  # tasks queued per worker thread (keeps workers busy, memory bounded)
+#: seconds a scheduler address is tried (distributed retries a refused connection) before
+#: :class:`SchedulerError` says it cannot be reached
+CONNECT_TIMEOUT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -97,7 +100,7 @@ def _connect(spec: str, n_workers: int) -> tuple[Any, Any]:
         log.info("started a local dask cluster: %d worker process(es)", n_workers)
         return distributed.Client(cluster), cluster
     try:
-        return distributed.Client(spec, timeout="20s"), None
+        return distributed.Client(spec, timeout=f"{CONNECT_TIMEOUT_S}s"), None
     except (OSError, TimeoutError) as exc:
         raise SchedulerError(
             f"cannot reach the dask scheduler at {spec!r}: {exc}; start one "

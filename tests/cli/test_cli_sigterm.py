@@ -93,7 +93,11 @@ def test_sigterm_during_synth_leaves_nothing(tmp_path, handled, sigint_ignored):
         assert _partials(tmp_path)
 
 
-@pytest.mark.parametrize("sigint_ignored", [False, True], ids=["sigint", "sigint-ignored"])
+@pytest.mark.parametrize(
+    "sigint_ignored",
+    [False, pytest.param(True, marks=pytest.mark.long_series)],
+    ids=["sigint", "sigint-ignored"],
+)  # (with SIGINT ignored: `make reliability`; synth's case above runs in the suite)
 def test_sigterm_during_tile_resumes(dem_factory, tmp_path, sigint_ignored):
     """With SIGINT ignored the block run's deferred interrupt still takes the SIGTERM (a
     KeyboardInterrupt raised inside the pool's locks could hang it: tiler.interrupt)."""
@@ -112,6 +116,7 @@ def test_sigterm_during_tile_resumes(dem_factory, tmp_path, sigint_ignored):
     assert diff_stores(dst, ref) == []
 
 
+@pytest.mark.long_series  # (the suite's sibling: test_dask's SIGINT to a group with workers)
 def test_sigterm_to_the_group_of_a_tile_with_worker_processes_resumes(dem_factory, tmp_path):
     """SIGTERM to the whole process group reached the worker processes too, which died of it:
     the run said "a tiling worker process died (out of memory or killed)", exit 1. The workers

@@ -160,6 +160,7 @@ def _journal_entries(store: Path) -> int:
     )
 
 
+@pytest.mark.long_series  # (the suite's siblings: the Ctrl-C resumes below, reliability kills)
 def test_killed_worker_then_rerun_is_identical_and_skips_finished(tmp_path):
     """SIGKILL a worker process mid-run (no retry of lost tasks: allowed-failures=0), so the
     run fails naming a block; the rerun computes only the unfinished blocks, byte-identical."""
@@ -237,7 +238,10 @@ def test_scheduler_spec_checked(tmp_path):
         tile(src, "memory://x.zarr", TileOptions(block_size=33, scheduler="inproc://nowhere"))
 
 
-def test_unreachable_scheduler_is_a_clear_error(tmp_path):
+def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
+    from tiler import dask_run
+
+    monkeypatch.setattr(dask_run, "CONNECT_TIMEOUT_S", 2.0)  # (20 s for users)
     src = _dem(tmp_path)
     with pytest.raises(SchedulerError, match="cannot reach the dask scheduler"):
         tile(src, tmp_path / "o.zarr", TileOptions(block_size=33, scheduler="tcp://127.0.0.1:9"))
