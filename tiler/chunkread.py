@@ -85,11 +85,14 @@ def is_block_chain(codecs: Any, itemsize: int) -> bool:
 
 
 def regular_array(
-    metadata: dict[str, Any],
+    metadata: dict[str, Any], separators: tuple[str, ...] = ("/",)
 ) -> tuple[np.dtype, tuple[int, ...], tuple[int, ...], list[Any]] | None:
     """``(little-endian dtype, shape, chunk shape, codecs)`` of an array's zarr metadata
-    (``to_dict()``) if it has a regular chunk grid, default ``/`` chunk keys and no storage
-    transformers (the layouts this module and :mod:`tiler.chunkwrite` address), else None."""
+    (``to_dict()``) if it has a regular chunk grid, default chunk keys with a separator in
+    ``separators`` and no storage transformers (the layouts this module and
+    :mod:`tiler.chunkwrite` address), else None. This module's keys (:meth:`LevelSpec.key`)
+    are ``/``-separated: only a writer that builds its keys from the array's separator
+    (:class:`tiler.chunkwrite.ChunkSpec`) passes ``("/", ".")``."""
     try:
         dtype = np.dtype(str(metadata["data_type"])).newbyteorder("<")
         shape = tuple(int(x) for x in metadata["shape"])
@@ -102,7 +105,7 @@ def regular_array(
     if (
         grid.get("name") != "regular"
         or cke.get("name") != "default"
-        or dict(cke.get("configuration") or {}).get("separator", "/") != "/"
+        or dict(cke.get("configuration") or {}).get("separator", "/") not in separators
         or metadata.get("storage_transformers")
     ):
         return None

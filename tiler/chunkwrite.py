@@ -8,7 +8,9 @@ the worker can encode the chunk itself with the same numcodecs blosc zarr calls 
 file the way zarr's ``LocalStore`` does (a temporary file renamed over the key: a killed
 writer never leaves half a chunk). The bytes are zarr's, bit for bit (tested);
 :func:`chunk_spec` accepts an array only if its metadata is exactly that chain with one chunk
-per block, and anything else keeps zarr's writer.
+per block, and anything else keeps zarr's writer. The ``journal`` (one ``uint8`` chunk per
+block, the block's commit: :mod:`tiler.resume`) has that chain too, under ``.``-separated keys
+(``journal/c.<r>.<c>.0``): a :class:`ChunkSpec` carries its array's key separator.
 
 One choice is ours, not zarr's: a sparse block's bit-shuffled level chunk may be written byte
 shuffled (:func:`encode_sparse`, the rule in :mod:`tiler.schema`). Blosc frames name their own
@@ -50,6 +52,8 @@ def _typesize_passed() -> bool:
 
 _TYPESIZE_PASSED = _typesize_passed()
 _SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
+#: the chunk key separators of zarr's default key encoding (:meth:`ChunkSpec.key` builds both)
+_SEPARATORS = ("/", ".")
 
 __all__ = [
     "ChunkSpec",
@@ -72,18 +76,24 @@ class ChunkSpec:
     codec: Any  # numcodecs Blosc configured as the array's blosc codec
     #: the same blosc with byte shuffle, for a bit-shuffled array (:func:`encode_sparse`)
     byte_codec: Any = None
+    #: the array's chunk key separator (zarr's default encoding: ``/`` or ``.``)
+    separator: str = "/"
 
     def key(self, block: tuple[int, int]) -> str:
-        """Store key of ``block``'s chunk."""
-        return f"{self.name}/c/{block[0]}/{block[1]}" + "/0" * len(self.shape)
+        """Store key of ``block``'s chunk (``name/c/r/c/0`` or, for ``.``, ``name/c.r.c.0``)."""
+        parts = ["c", str(block[0]), str(block[1]), *("0" * len(self.shape))]
+        return f"{self.name}/{self.separator.join(parts)}"
 
 
-def _chain(metadata: dict[str, Any]) -> tuple[np.dtype, tuple, tuple, dict, int] | None:
+def _chain(
+    metadata: dict[str, Any], separators: tuple[str, ...] = ("/",)
+) -> tuple[np.dtype, tuple, tuple, dict, int] | None:
     """``(little-endian dtype, shape, chunk shape, Blosc keywords but shuffle, shuffle)`` of a
-    zarr v3 array with a regular grid and this module's codec chain, else None."""
+    zarr v3 array with a regular grid, a chunk key separator in ``separators`` and this
+    module's codec chain, else None."""
     if google_crc32c is None or Blosc is None or not _TYPESIZE_PASSED:
         return None
-    parsed = regular_array(metadata)
+    parsed = regular_array(metadata, separators)
     if parsed is None:
         return None
     dtype, shape, chunks, codecs = parsed
@@ -105,8 +115,9 @@ def _chain(metadata: dict[str, Any]) -> tuple[np.dtype, tuple, tuple, dict, int]
 
 def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
     """The :class:`ChunkSpec` of an array from its zarr metadata (``to_dict()``), or None if
-    its chunks are not stored the way this module encodes them (zarr then writes them)."""
-    parsed = _chain(metadata)
+    its chunks are not stored the way this module encodes them (zarr then writes them). Keys
+    separated by ``/`` or ``.`` (the journal's) are both written: :meth:`ChunkSpec.key`."""
+    parsed = _chain(metadata, _SEPARATORS)
     if parsed is None:
         return None
     dtype, shape, chunks, kw, shuffle = parsed
@@ -114,7 +125,8 @@ def chunk_spec(name: str, metadata: dict[str, Any]) -> ChunkSpec | None:
         return None
     codec = Blosc(shuffle=shuffle, **kw)
     byte_codec = Blosc(shuffle=Blosc.SHUFFLE, **kw) if shuffle == Blosc.BITSHUFFLE else None
-    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec)
+    cke = dict(metadata["chunk_key_encoding"].get("configuration") or {})
+    return ChunkSpec(name, shape[2:], dtype, codec, byte_codec, str(cke.get("separator", "/")))
 
 
 def single_chunk(values: np.ndarray, metadata: dict[str, Any]) -> tuple[str, bytes] | None:

@@ -65,8 +65,10 @@ class BlockWorker:
     """Reads, encodes and writes blocks for one thread or process (own dataset and arrays).
 
     On a local format-2 store a block's level, error and mask chunks are encoded and written
-    by :mod:`tiler.chunkwrite` (the bytes zarr would write, without a zarr call each); the
-    journal entry, the block's commit, is written through zarr after them."""
+    by :mod:`tiler.chunkwrite` (the bytes zarr would write, without a zarr call each), and so
+    is its journal entry, the block's commit, after them (each file written whole, renamed over
+    its key). Remote stores, ``TERRASTREAM_DIRECT_WRITES=0`` and arrays whose metadata
+    :func:`tiler.chunkwrite.chunk_spec` refuses are written through zarr."""
 
     def __init__(self, src: str, band: int, target: Any, grid: BlockGrid, params: Any):
         self.src, self.band, self.grid, self.params = src, band, grid, params
@@ -80,7 +82,7 @@ class BlockWorker:
         self.sparse: dict[str, chunkwrite.ChunkSpec] = {}  # bit-shuffled levels (sparse rule)
         self.root = ""
         direct = self.loc.is_local and os.environ.get(DIRECT_WRITES_ENV, "1").strip() != "0"
-        for n in [*names, "errors", "mask"]:
+        for n in [*names, "errors", "mask", JOURNAL]:
             spec = chunkwrite.chunk_spec(n, self.arrays[n].metadata.to_dict())
             if spec is None:
                 continue
@@ -164,7 +166,9 @@ class BlockWorker:
                 res.digest,
             ),
         )
-        journal[br, bc] = pack(entry, self.params.storage_dtype, content=with_content)
+        # the commit, once the data chunks above are written (direct writes return after the
+        # rename: tiler.atomic)
+        self._write(JOURNAL, (br, bc), pack(entry, self.params.storage_dtype, with_content))
         return br, bc
 
     def close(self) -> None:
