@@ -45,6 +45,12 @@ MIRROR_INTERVAL_S = 0.5
 #: ``auto`` uses threads with the compiled kernels up to this many workers (measured on 2 cores:
 #: 2 threads within ~5 % of 2 processes; more threads were not measured against processes)
 THREADS_SCALE_TO = 2
+#: ``auto`` starts worker processes only for jobs of at least this many samples to tile: each
+#: process imports and warms up on its own (~1-2 s), which smaller jobs never repay. Measured on
+#: 2 cores, 2 workers, numpy kernels (2026-12-08): 40² in blocks of 17, 0.19 s on threads vs
+#: 1.4-2.1 s on processes; 2049², 1.5-1.9 vs 5.5-7.3 s; 4097², 5.4-6.7 vs 8.8-9.4 s; 8193²,
+#: 18.0 vs 17.2 s (even)
+PROCESS_MIN_SAMPLES = 8192 * 8192
 
 
 def open_for_write(target: Any, name: str) -> zarr.Array:
@@ -313,19 +319,24 @@ def is_dask_scheduler(spec: str | None) -> bool:
     return bool(spec) and (spec == "dask" or "://" in str(spec))
 
 
-def choose_executor(opts: Any, loc: Location, todo: int, backend: str = "numpy") -> str:
+def choose_executor(
+    opts: Any, loc: Location, todo: int, backend: str = "numpy", samples: int | None = None
+) -> str:
     """``"processes"`` or ``"threads"`` for this run (logs why processes are not used).
 
-    ``auto``: threads for small jobs; for larger ones threads too when the kernels are compiled
-    (``backend == "numba"``: they release the GIL) and at most :data:`THREADS_SCALE_TO` workers
-    run, else processes. Measured on 2 cores (BENCHMARKS.md "Tiling"): 2 threads tile 16385²
-    within ~5 % of 2 processes' time with under half the memory, and 4097² 1.4 s sooner.
+    ``auto``: threads for small jobs (fewer than 4 blocks a worker, or fewer than
+    :data:`PROCESS_MIN_SAMPLES` ``samples`` to tile); for larger ones threads too when the
+    kernels are compiled (``backend == "numba"``: they release the GIL) and at most
+    :data:`THREADS_SCALE_TO` workers run, else processes. Measured on 2 cores (BENCHMARKS.md
+    "Tiling"): 2 threads tile 16385² within ~5 % of 2 processes' time with under half the
+    memory, and 4097² 1.4 s sooner.
     """
     want = opts.executor
     if getattr(opts, "scheduler", None) in ("threads", "processes"):
         want = opts.scheduler
     if want == "auto":
-        big = opts.n_workers > 1 and todo >= 4 * opts.n_workers
+        enough = samples is None or samples >= PROCESS_MIN_SAMPLES
+        big = opts.n_workers > 1 and todo >= 4 * opts.n_workers and enough
         threads_scale = backend == "numba" and opts.n_workers <= THREADS_SCALE_TO
         procs = big and not threads_scale and loc.can_share_with_processes
         want = "processes" if procs else "threads"
@@ -395,7 +406,7 @@ def _run_local(run: BlockRun) -> str:
     workers = opts.n_workers
     args = (src, opts.band, target, grid, params)
     backend = kernels_for(grid)
-    executor = choose_executor(opts, loc, len(todo), backend)
+    executor = choose_executor(opts, loc, len(todo), backend, len(todo) * (1 << grid.k) ** 2)
     # the job's kernels, for the worker threads and what spawned workers inherit (and warm up);
     # run_blocks restores the caller's setting afterwards
     os.environ[kernels.ENV] = backend
