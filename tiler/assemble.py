@@ -8,6 +8,7 @@ the index built from the journal, the journal deleted, ``complete: true`` writte
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import hashlib
 import logging
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from zarr.core.sync import sync
 
 from tiler.errors import (
     HeightRangeError,
@@ -236,18 +238,31 @@ def _region_entries(
     c1: int,
     meta: StoreMeta,
     known: dict[tuple[int, int], JournalEntry] | None = None,
+    url: str | None = None,
 ) -> dict[tuple[int, int], JournalEntry]:
-    """The journal entries of blocks ``[r0:r1, c0:c1]``; those of ``known`` (read already) are
-    not read again."""
+    """The journal entries of blocks ``[r0:r1, c0:c1]``, all done; those of ``known`` (read
+    already) are not read again. An entry damaged (its crc32c failing): :class:`StoreCorruptError`
+    naming its block, and to rerun (resuming computes it again); a read the transport fails is
+    tried again, then :class:`StoreUnavailableError` naming the store (``url``)."""
+    from tiler.resume import read_journal_blocks, read_journal_region
+
     known = known or {}
     blocks = [(br, bc) for br in range(r0, r1) for bc in range(c0, c1) if (br, bc) not in known]
+    damaged: list[tuple[int, int]] = []
     if len(blocks) == (r1 - r0) * (c1 - c0):
-        raw = np.asarray(jarr[r0:r1, c0:c1]).reshape(len(blocks), -1)
-    elif blocks:  # (the chunks of these blocks only, fetched together)
-        rows, cols = (np.array(v, dtype=np.intp)[:, None] for v in zip(*blocks, strict=True))
-        raw = np.asarray(jarr.vindex[rows, cols, np.arange(jarr.shape[2])[None, :]])
-    else:
-        raw = np.zeros((0, jarr.shape[2]), dtype=np.uint8)
+        raw = read_journal_region(jarr, r0, r1, c0, c1, url, damaged).reshape(len(blocks), -1)
+    else:  # (the chunks of these blocks only, fetched together)
+        raw = read_journal_blocks(jarr, blocks, url, damaged)
+    if damaged:
+        shown = ", ".join(map(str, damaged[:5])) + (", ..." if len(damaged) > 5 else "")
+        what = f"block {shown}" if len(damaged) == 1 else f"{len(damaged)} blocks ({shown})"
+        raise StoreCorruptError(
+            f"the journal entry of {what} of {url or str(jarr.store)!r}, written when the block "
+            "was done, reads back damaged (its crc32c fails): the storage did not keep what "
+            "was written. The store stays unfinished: rerun the same command to compute "
+            f"{'it' if len(damaged) == 1 else 'them'} again (the other blocks done are kept); "
+            "if it happens again, check the disk or bucket"
+        )
     out = dict(known)
     for (br, bc), row in zip(blocks, raw, strict=True):
         e = unpack(row, meta.k, meta.storage_dtype)
@@ -257,26 +272,58 @@ def _region_entries(
     return {b: out[b] for b in sorted(out)}
 
 
+def _read_clean_blocks(
+    arrays: list[zarr.Array], region: tuple[int, int, int, int], clean: list[tuple[int, int]]
+) -> list[np.ndarray]:
+    """The stored values of blocks ``clean`` (of shard ``region``) in each of ``arrays`` (one
+    ``(len(clean), n)`` array each): each array's shard fetched whole, once, all arrays at once
+    (one GET each on S3, where a read a block was two: the shard index, then the chunk), and
+    only ``clean``'s chunks decoded (another block's may be damaged: it is being rebuilt)."""
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.storage import MemoryStore, StorePath
+
+    r0, _, c0, _ = region
+    rows, cols = (np.array(v, dtype=np.intp)[:, None] for v in zip(*clean, strict=True))
+
+    async def one(arr: zarr.Array) -> np.ndarray:
+        a = arr.async_array
+        sr, sc = a.metadata.chunk_grid.chunk_shape[:2]  # (the shard's blocks)
+        key = a.metadata.encode_chunk_key((r0 // sr, c0 // sc, 0))
+        shard = await (a.store_path / key).get(prototype=default_buffer_prototype())
+        copy = zarr.AsyncArray(metadata=a.metadata, store_path=StorePath(MemoryStore()))
+        if shard is not None:  # (absent: every block reads as the fill value, as from the store)
+            await copy.store_path.store.set(key, shard)
+        return np.asarray(await copy.vindex.getitem((rows, cols, np.arange(a.shape[2])[None, :])))
+
+    async def go() -> list[np.ndarray]:
+        return list(await asyncio.gather(*(one(arr) for arr in arrays)))
+
+    return sync(go())
+
+
 def write_small_levels(
     loc: Location,
     meta: StoreMeta,
     entries: dict[tuple[int, int], JournalEntry],
     region: tuple[int, int, int, int],
 ) -> None:
-    """Write the small levels of one shard region from journal entries (other blocks: kept).
+    """Write the small levels of one shard region from journal entries (other blocks: kept,
+    read back a level at a time: :func:`_read_clean_blocks`).
 
     The levels' arrays are opened, and their shards written, all at once
     (:mod:`tiler.zarr_batch`)."""
     r0, r1, c0, c1 = region
     names = [f"levels/{i}" for i in range(small_levels(meta.k))]
+    arrays = open_arrays(loc, names)
+    # repair: the blocks that are fine (they verified clean) are read back
+    clean = [(br, bc) for br in range(r0, r1) for bc in range(c0, c1) if (br, bc) not in entries]
+    kept = _read_clean_blocks(arrays, region, clean) if clean else [None] * len(arrays)
     writes = []
-    for i, arr in enumerate(open_arrays(loc, names)):
+    for i, (arr, old) in enumerate(zip(arrays, kept, strict=True)):
         data = np.empty((r1 - r0, c1 - c0, arr.shape[2]), dtype=arr.dtype)
-        if len(entries) < (r1 - r0) * (c1 - c0):  # repair: the blocks that are fine are read
-            for br in range(r0, r1):  # back (they verified clean)
-                for bc in range(c0, c1):
-                    if (br, bc) not in entries:
-                        data[br - r0, bc - c0] = arr[br, bc]
+        if old is not None:
+            for (br, bc), row in zip(clean, old, strict=True):
+                data[br - r0, bc - c0] = row
         for (br, bc), e in entries.items():
             data[br - r0, bc - c0] = e.levels[i]
         writes.append((arr, (slice(r0, r1), slice(c0, c1)), data))
@@ -348,7 +395,7 @@ class ShardAssembler:
         r0, c0 = s[0] * self.sr, s[1] * self.sc
         r1, c1 = min(r0 + self.sr, self.rows), min(c0 + self.sc, self.cols)
         known = known if known is not None else self.known.pop(s, None)
-        entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta, known)
+        entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta, known, self.loc.url)
         write_small_levels(self.loc, self.meta, entries, (r0, r1, c0, c1))
         for b, e in entries.items():
             _index_row(self.index, b, e, self.meta)
@@ -545,22 +592,35 @@ def repair_store(
 def _journal_entries(
     jarr: zarr.Array, meta: StoreMeta, loc: Location
 ) -> dict[tuple[int, int], JournalEntry]:
-    """The entries an interrupted repair's journal holds, read once, a shard region at a time
-    (a damaged one: not held, its block repaired again if still bad; a transport failure:
-    :class:`StoreUnavailableError`, the repair stopped to be rerun)."""
-    from tiler.resume import read_journal_region
+    """The entries an interrupted repair's journal holds, read once: those its listing shows
+    (:func:`listed_journal_blocks`: the keys absent, most of them, are not asked for), a
+    shard's fetched together; where the store cannot list, every entry, a shard region at a
+    time. A damaged one: not held, its block repaired again if still bad; a transport
+    failure: :class:`StoreUnavailableError`, the repair stopped to be rerun."""
+    from tiler.resume import listed_journal_blocks, read_journal_blocks, read_journal_region
 
     rows, cols = meta.grid.shape
     sr, sc = shard_shape(rows, cols)
+    listed = listed_journal_blocks(loc, jarr, loc.url)
+    found: list[tuple[tuple[int, int], np.ndarray]] = []
+    if listed is not None:
+        by_shard: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for b in listed:
+            by_shard.setdefault((b[0] // sr, b[1] // sc), []).append(b)
+        for blocks in by_shard.values():
+            found += zip(blocks, read_journal_blocks(jarr, blocks, loc.url), strict=True)
+    else:
+        for r0 in range(0, rows, sr):
+            for c0 in range(0, cols, sc):
+                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
+                raw = read_journal_region(jarr, r0, r1, c0, c1, loc.url)
+                for i, j in zip(*np.nonzero(raw[:, :, -1] == 1), strict=True):
+                    found.append(((r0 + int(i), c0 + int(j)), raw[i, j]))
     entries = {}
-    for r0 in range(0, rows, sr):
-        for c0 in range(0, cols, sc):
-            r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
-            raw = read_journal_region(jarr, r0, r1, c0, c1, loc.url)
-            for i, j in zip(*np.nonzero(raw[:, :, -1] == 1), strict=True):
-                e = unpack(raw[i, j], meta.k, meta.storage_dtype)
-                if e is not None:  # (always: its mark byte is 1)
-                    entries[r0 + int(i), c0 + int(j)] = e
+    for b, row in found:
+        e = unpack(row, meta.k, meta.storage_dtype)
+        if e is not None:  # (a damaged entry reads as zeros: not written)
+            entries[b] = e
     return entries
 
 

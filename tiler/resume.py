@@ -211,18 +211,16 @@ def _journal_unavailable(
     )
 
 
-def _read_or_damaged(
-    read: Callable[[], Any], subject: str, arr: zarr.Array, url: str | None, **where: Any
-) -> np.ndarray | None:
-    """``read()`` as uint8; None when an entry read is damaged; a transport failure is tried
-    again (:data:`JOURNAL_READ_RETRIES`), then raises :func:`_journal_unavailable`'s error."""
+def _with_retries(
+    call: Callable[[], Any], subject: str, arr: zarr.Array, url: str | None, **where: Any
+) -> Any:
+    """``call()``; a transport failure is tried again (:data:`JOURNAL_READ_RETRIES`), then
+    raises :func:`_journal_unavailable`'s error; any other error is raised as it is."""
     for attempt in range(JOURNAL_READ_RETRIES + 1):
         try:
-            return np.asarray(read(), dtype=np.uint8)
+            return call()
         except Exception as exc:
             if not (isinstance(exc, OSError) or is_transport_error(exc)):
-                if isinstance(exc, _DAMAGED):
-                    return None
                 raise
             if attempt == JOURNAL_READ_RETRIES:
                 raise _journal_unavailable(subject, arr, url, exc, **where) from exc
@@ -234,13 +232,30 @@ def _read_or_damaged(
     raise AssertionError("unreachable")
 
 
+def _read_or_damaged(
+    read: Callable[[], Any], subject: str, arr: zarr.Array, url: str | None, **where: Any
+) -> np.ndarray | None:
+    """``read()`` as uint8; None when an entry read is damaged; a transport failure is tried
+    again (:data:`JOURNAL_READ_RETRIES`), then raises :func:`_journal_unavailable`'s error."""
+    try:
+        return _with_retries(lambda: np.asarray(read(), dtype=np.uint8), subject, arr, url, **where)
+    except _DAMAGED:
+        return None
+
+
 def read_journal_region(
-    arr: zarr.Array, r0: int, r1: int, c0: int, c1: int, url: str | None = None
+    arr: zarr.Array,
+    r0: int,
+    r1: int,
+    c0: int,
+    c1: int,
+    url: str | None = None,
+    damaged: list[tuple[int, int]] | None = None,
 ) -> np.ndarray:
     """The raw journal entries of blocks ``[r0:r1, c0:c1]`` (uint8, one entry a block), read at
     once; when one is damaged (its crc32c fails) they are read one by one and a damaged one is
-    left zero: not done (its block is computed again). A transport failure raises
-    :class:`StoreUnavailableError` naming the store (``url``)."""
+    left zero: not done (its block is computed again), and appended to ``damaged`` (if given).
+    A transport failure raises :class:`StoreUnavailableError` naming the store (``url``)."""
     subject = f"the journal entries of blocks ({r0}..{r1 - 1}, {c0}..{c1 - 1})"
     raw = _read_or_damaged(lambda: arr[r0:r1, c0:c1], subject, arr, url)
     if raw is not None:
@@ -251,15 +266,20 @@ def read_journal_region(
             one = _read_entry(arr, br, bc, url)
             if one is not None:
                 out[br - r0, bc - c0] = one
+            elif damaged is not None:
+                damaged.append((br, bc))
     return out
 
 
 def read_journal_blocks(
-    arr: zarr.Array, blocks: Sequence[tuple[int, int]], url: str | None = None
+    arr: zarr.Array,
+    blocks: Sequence[tuple[int, int]],
+    url: str | None = None,
+    damaged: list[tuple[int, int]] | None = None,
 ) -> np.ndarray:
     """The raw journal entries of ``blocks`` (``(len(blocks), n)`` uint8), their chunks fetched
-    together (one zarr call, not one a block); damaged ones left zero and transport failures
-    raised, as :func:`read_journal_region`."""
+    together (one zarr call, not one a block); damaged ones left zero (and appended to
+    ``damaged``) and transport failures raised, as :func:`read_journal_region`."""
     n = arr.shape[2]
     if not blocks:
         return np.zeros((0, n), dtype=np.uint8)
@@ -273,6 +293,8 @@ def read_journal_blocks(
         one = _read_entry(arr, br, bc, url)
         if one is not None:
             out[i] = one
+        elif damaged is not None:
+            damaged.append((br, bc))
     return out
 
 
@@ -280,6 +302,35 @@ def _read_entry(arr: zarr.Array, br: int, bc: int, url: str | None) -> np.ndarra
     """Block ``(br, bc)``'s raw journal entry; None when damaged."""
     subject = f"the journal entry of block ({br}, {bc})"
     return _read_or_damaged(lambda: arr[br, bc], subject, arr, url, block=(br, bc))
+
+
+def listed_journal_blocks(
+    loc: Any, arr: zarr.Array, url: str | None = None
+) -> list[tuple[int, int]] | None:
+    """The blocks that have a journal entry key, from one listing of the journal's prefix (on
+    S3 a LIST a thousand keys, where reading every entry is a GET a block, a 404 for each block
+    without one), row-major; None where the store cannot list (then every entry is read). A
+    transport failure is tried again, then raises :class:`StoreUnavailableError` naming the
+    store (``url``), as reading the entries does. A key missing from the listing only has its
+    block recomputed if it is still bad: a listing never makes a block done."""
+    rows, cols, _ = arr.shape
+    sep = getattr(arr.metadata.chunk_key_encoding, "separator", ".")
+    head = f"{JOURNAL}/c{sep}"
+    try:
+        keys = _with_retries(lambda: loc.list_keys(JOURNAL), "the journal's keys", arr, url)
+    except NotImplementedError:
+        return None
+    blocks = set()
+    for key in keys:
+        if not key.startswith(head):
+            continue  # (zarr.json, a leftover temporary file)
+        parts = key[len(head) :].split(sep)
+        if len(parts) != 3 or not all(p.isdigit() for p in parts) or parts[2] != "0":
+            continue
+        br, bc = int(parts[0]), int(parts[1])
+        if br < rows and bc < cols:
+            blocks.add((br, bc))
+    return sorted(blocks)
 
 
 def changed_blocks_by_index(
