@@ -53,7 +53,8 @@ def run_sync(coro: Coroutine[Any, Any, T]) -> T:
 
 class LocationKeys:
     """The raw-key operations of :class:`tiler.location.Location` (its only user, which sets
-    ``target`` and provides ``url``, ``is_local``, ``path``, ``_fs`` and ``_fs_exists``)."""
+    ``target`` and provides ``url``, ``is_local``, ``is_memory``, ``is_s3``, ``path``, ``_fs``
+    and ``_fs_exists``)."""
 
     target: str | Store
 
@@ -228,15 +229,136 @@ class LocationKeys:
         return n
 
     def change_token(self) -> object:
-        """A cheap value that changes when the root metadata is replaced (reader check)."""
+        """A cheap value that changes when the root metadata is replaced (reader check); None
+        if the store has no root metadata.
+
+        Local: the file's inode, mtime and size. ``http(s)://`` and ``s3://``: the root
+        ``zarr.json``'s strong validator from a metadata request (HEAD: its ETag, size and
+        Last-Modified; no body), where the server gives one that must change with the bytes
+        (:meth:`_validator_token`); otherwise, and for other backends, a hash of the whole
+        ``zarr.json`` (a GET: ~64 KB for a 400-source mosaic, whose sources it lists). A
+        transport failure is raised as the client raised it (the caller classifies it).
+        """
         if self.is_local:
             try:
                 st = os.stat(self._key_path("zarr.json"))
             except FileNotFoundError:
                 return None
             return (st.st_ino, st.st_mtime_ns, st.st_size)
+        if not self._no_validator:
+            token = self._validator_token()
+            if token is not _NO_VALIDATOR:
+                return token
         data = self.get_bytes("zarr.json")
         return None if data is None else hashlib.blake2b(data, digest_size=16).digest()
+
+    #: set once this location's server gave no strong validator (no ETag, a weak one, HEAD
+    #: refused): later tokens GET and hash ``zarr.json`` without asking for one again
+    _no_validator = False
+
+    def _validator_token(self) -> object:
+        """``("etag", ETag, size, Last-Modified, ...)`` of the root ``zarr.json`` from one
+        metadata request (S3: with its version), None if it does not exist, or
+        :data:`_NO_VALIDATOR` where this backend or server gives no validator that changes
+        whenever the bytes do (then the caller hashes the bytes).
+
+        ``s3://``: S3's ETag (an MD5 of the object, or of its parts, or a value unique to the
+        upload where encrypted). ``http(s)://``: a strong ETag (not ``W/``), except nginx's,
+        which is only the Last-Modified (whole seconds) and the size (:func:`_mtime_etag`: a
+        store renamed into place can have both equal to the old one's), and except one whose
+        Last-Modified is within :data:`FRESH_VALIDATOR_S` of the server's Date (an ETag made
+        from the mtime in whole seconds, as lighttpd's, may not change on a rewrite of the same
+        size within that second; asked again at the next check); a server without ETag
+        (``python -m http.server`` sends only a Last-Modified in whole seconds) has none."""
+        if not isinstance(self.target, str) or self.is_memory:
+            return _NO_VALIDATOR
+        if self.is_s3:
+            fs, _ = self._fs()
+            try:
+                info = fs.info(self._key_path("zarr.json"), refresh=True)
+            except FileNotFoundError:
+                return None
+            etag = info.get("ETag")
+            if info.get("type") != "file" or not etag:
+                self._no_validator = True
+                return _NO_VALIDATOR
+            return ("etag", etag, info.get("size"), str(info.get("LastModified")),
+                    info.get("VersionId"))  # fmt: skip
+        if not is_http(self.target):
+            return _NO_VALIDATOR
+        status, headers = self._http_head("zarr.json")
+        if status in (404, 410):
+            return None
+        if status in (405, 501):  # HEAD not served: GET it
+            self._no_validator = True
+            return _NO_VALIDATOR
+        etag, modified = headers.get("etag"), headers.get("last-modified")
+        size = headers.get("content-length")
+        if not etag or etag.startswith(("W/", "w/")) or _mtime_etag(etag, modified, size):
+            self._no_validator = True
+            return _NO_VALIDATOR
+        if modified is not None and not _settled(modified, headers.get("date")):
+            return _NO_VALIDATOR  # (for now: asked again at the next check)
+        return ("etag", etag, size, modified)
+
+    def _http_head(self, key: str) -> tuple[int, dict[str, str]]:
+        """``(status, headers)`` (names lower-cased) of a HEAD of ``key`` through the store's
+        fsspec HTTP session: its headers, authorisation and timeouts, redirects followed. A
+        failed connection, or an error status other than "not found" (404, 410) and "HEAD not
+        served" (405, 501), raises aiohttp's error, as a GET would."""
+        from fsspec.asyn import sync
+
+        fs, _ = self._fs()
+        url = fs.encode_url(self._key_path(key))
+        kwargs = dict(fs.kwargs)
+        headers = {**(kwargs.pop("headers", None) or {}), "Accept-Encoding": "identity"}
+        redirects = kwargs.pop("allow_redirects", True)
+
+        async def go() -> tuple[int, dict[str, str]]:
+            session = await fs.set_session()
+            async with session.head(url, headers=headers, allow_redirects=redirects, **kwargs) as r:
+                if r.status >= 400 and r.status not in (404, 405, 410, 501):
+                    r.raise_for_status()
+                return r.status, {k.lower(): v for k, v in r.headers.items()}
+
+        return sync(fs.loop, go)
+
+
+#: :meth:`LocationKeys._validator_token`'s "no strong validator here: hash the bytes"
+_NO_VALIDATOR = object()
+#: seconds a server's Last-Modified must lie before its Date for its ETag to be trusted as
+#: changing on any rewrite (an ETag made of the mtime in whole seconds, nginx's, may not change
+#: on a rewrite within that second; the margin covers a file system clock ahead of the server's)
+FRESH_VALIDATOR_S = 60.0
+
+
+def _mtime_etag(etag: str, modified: str | None, size: str | None) -> bool:
+    """True for nginx's ETag, ``"<Last-Modified in hex seconds>-<size in hex>"``: no more
+    than those two, which another file can share (written in the same second, same size)."""
+    from email.utils import parsedate_to_datetime
+
+    if modified is None or size is None:
+        return False
+    try:
+        seconds = int(parsedate_to_datetime(modified).timestamp())
+        return etag.strip('"') == f"{seconds:x}-{int(size):x}"
+    except (TypeError, ValueError, IndexError, OverflowError):
+        return False
+
+
+def _settled(modified: str, date: str | None) -> bool:
+    """True if the HTTP dates say ``modified`` (Last-Modified) lies at least
+    :data:`FRESH_VALIDATOR_S` before ``date`` (the answer's Date; this machine's clock without
+    one); False for a date that does not parse."""
+    import time
+    from email.utils import parsedate_to_datetime
+
+    try:
+        then = parsedate_to_datetime(modified).timestamp()
+        now = parsedate_to_datetime(date).timestamp() if date else time.time()
+    except (TypeError, ValueError, IndexError, OverflowError):
+        return False
+    return now - then >= FRESH_VALIDATOR_S
 
 
 def link_if_absent(path: str, data: bytes) -> bool:
