@@ -220,6 +220,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--budget-mb", type=float, default=256.0)
     p.add_argument("--tau", type=float, default=1.0)
     p.add_argument("--no-evict", action="store_true")
+    p.add_argument(
+        "--variants",
+        default="",
+        help="comma-separated subset of the variants to fly (default: all), e.g. none,qiu",
+    )
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     return p.parse_args(argv)
 
@@ -237,6 +242,14 @@ def main(argv: list[str] | None = None) -> int:
     }
     t_start = time.perf_counter()
     names = [n.strip() for n in args.stores.split(",") if n.strip()]
+    chosen = {v.strip() for v in args.variants.split(",") if v.strip()}
+    known = {*VARIANTS, *HEADLINE_ONLY}
+    if unknown := sorted(chosen - known):
+        print(
+            f"error: --variants {','.join(unknown)}: choose among {', '.join(sorted(known))}",
+            file=sys.stderr,
+        )
+        return 2
     if bad := [n for n in names if n not in ("real", "synth")]:
         print(f"error: --stores {','.join(bad)}: use real and/or synth", file=sys.stderr)
         return 2
@@ -255,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
                 variants = dict(VARIANTS)
                 if (speed, lat) == HEADLINE:
                     variants.update(HEADLINE_ONLY)
+                if chosen:
+                    variants = {v: ov for v, ov in variants.items() if v in chosen}
                 for v, ov in variants.items():
                     rec = run_one(
                         store, v, ov, speed, lat, args, frames=args.frames, budget_mb=args.budget_mb
@@ -267,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.no_evict or peak is None:
             continue
         budget = round(peak / 2, 2)
-        for v in EVICT_VARIANTS:  # one budget for all: raised until no variant's pins fail
+        for v in [v for v in EVICT_VARIANTS if not chosen or v in chosen]:
+            # one budget for all: raised until no variant's pins fail
             for _ in range(4):
                 try:
                     rec = run_one(
