@@ -27,7 +27,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from bench.common import RESULTS, WORK, machine_info  # noqa: E402
+from bench.common import RESULTS, WORK, machine_info, portable  # noqa: E402
 
 
 def block_for(size: int) -> int:
@@ -101,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         "rows": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    args.out.write_text(json.dumps(portable(out), indent=2) + "\n")
+    print(f"wrote {portable(str(args.out))}")
     return 0
 
 
