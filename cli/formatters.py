@@ -140,6 +140,14 @@ def format_info(d: dict) -> str:
     return "\n".join(lines)
 
 
+def warmup_line(d: dict, mb: float) -> str:
+    """The summary's warm-up line: one warm-up before frame 0 as before; several (a session
+    warmed up again, ``warmups``) say how many, their figures summed."""
+    n = int(d.get("warmups", 1))
+    what = "warm-up before frame 0" if n <= 1 else f"{n} warm-ups (summed)"
+    return f"{what}: {d['warmup_bytes'] * mb:.2f} MiB in {d['warmup_ms']:.0f} ms"
+
+
 def format_summary(d: dict) -> str:
     """The stream summary block."""
     mb = 1 / 2**20
@@ -161,7 +169,7 @@ def format_summary(d: dict) -> str:
             f"{d.get('failing_blocks_needed', 0)})",
             f"late bytes {d.get('late_bytes', 0) * mb:.3f} MiB (after their frame was due); "
             f"frames drawn coarser than needed, by levels: {d.get('coarse_frames_by_levels', {})}",
-            f"warm-up before frame 0: {d['warmup_bytes'] * mb:.2f} MiB in {d['warmup_ms']:.0f} ms",
+            warmup_line(d, mb),
             f"needed {d['needed_bytes'] * mb:.1f} MiB over all frames; real-time loaded "
             f"{d['realtime_bytes'] * mb:.3f} MiB "
             f"({100 * d['realtime_bytes_after_first_frame'] / needed:.3f} % of needed after "

@@ -26,7 +26,7 @@ from render.step import frame_step
 from render.strategies import DEFAULT, get_strategy, stream_metric
 from streamer.camera import Camera
 from streamer.clip import warn_path_below_ground
-from streamer.run import close_for_verdict, flight_problem, out_of_view
+from streamer.run import close_for_verdict, flight_problem, frames_summary, out_of_view
 from streamer.session import open_session
 from tiler.atomic import write_atomic
 from tiler.store import TerrainStore
@@ -186,6 +186,7 @@ def flythrough(
         strat.build_in_background()
     draw = o.draw_options()
     rows: list[FlyRow] = []
+    flown: list[dict[str, Any]] = []  # the frames' FrameStats, for streamer.run.frames_summary
     pending: Path | None = None  # a frame's PNG written, its row not yet in rows
     try:
         with open_session(
@@ -228,6 +229,7 @@ def flythrough(
                     drawn_px=r.drawn_pixels() if st.triangles else 0,
                 )
                 rows.append(row)
+                flown.append(asdict(fs))
                 pending = None
                 if on_frame:
                     on_frame(row)
@@ -269,7 +271,9 @@ def flythrough(
         )
     write_rows(out, rows)
     tri = np.array([x.triangles for x in rows])
-    in_frames = int(summary["realtime_bytes"]) + int(summary["prefetched_bytes"])
+    in_frames = sum(int(f["realtime_bytes"]) + int(f["prefetched_bytes"]) for f in flown)
+    thrown = sum(int(f["discarded_bytes"]) for f in flown)
+    cut = frames_summary(summary, flown)  # the session's loads and discards cut to the frames
     summary = {
         "frames": len(rows),
         "mean_triangles": float(tri.mean()),
@@ -289,10 +293,16 @@ def flythrough(
         # whose triangles covered no pixel (the others were stalled: nothing resident)
         "unseen_frames": int(sum(x.visible_blocks == 0 for x in rows if x.triangles == 0)),
         "pixelless_frames": int(sum(x.triangles > 0 and x.drawn_px == 0 for x in rows)),
-        # the frames' loads, as frames.csv sums them; reads ahead that finished while the
-        # session closed, after the last frame, apart
+        # the frames' loads, as frames.csv sums them; a warm-up's (none here) and reads ahead
+        # that finished while the session closed, after the last frame, apart: the three
+        # add up to the session's loads (streamer.run.frames_summary)
         "loaded_mb": float(in_frames / 2**20),
-        "loaded_after_frames_mb": float(max(0, summary["loaded_bytes"] - in_frames) / 2**20),
+        "warmup_mb": float(cut["warmup_bytes"] / 2**20),
+        "loaded_after_frames_mb": float(cut["loaded_after_frames_bytes"] / 2**20),
+        # levels read but thrown away on arrival, never cached, split the same way
+        "discarded_mb": float(thrown / 2**20),
+        "warmup_discarded_mb": float(cut["warmup_discarded_bytes"] / 2**20),
+        "discarded_after_frames_mb": float(cut["discarded_after_frames_bytes"] / 2**20),
         "io_errors": int(summary["io_errors"]),
         "failing_blocks": int(summary["failing_blocks"]),
         # why the fly-through is incomplete (streamer.run.flight_problem), or None

@@ -166,6 +166,7 @@ class FrameStats:
     needed_bytes: int
     realtime_bytes: int  # loaded while this frame waited for it or after it was due
     prefetched_bytes: int  # loaded ahead of any frame needing it, since the previous frame
+    # (both: a warm-up's loads between the two frames apart, in Totals' warmup figures)
     io_ms: float  # worker time spent reading and decoding since the previous frame
     update_ms: float  # wall time of update() on the caller's thread (excluding waiting)
     update_cpu_ms: float  # CPU time of the caller's thread in update() (excluding waiting)
@@ -216,7 +217,8 @@ class Totals:
     prefetched_bytes: int = 0
     max_update_ms: float = 0.0
     max_update_cpu_ms: float = 0.0
-    warmup: dict = field(default_factory=dict)
+    warmup: dict = field(default_factory=dict)  # all warm-ups': "ms", "bytes",
+    # "discarded_bytes" summed, "count" (add_warmup)
     io_errors: int = 0
     cancelled: int = 0
     hole_frames: int = 0
@@ -256,6 +258,20 @@ class Totals:
         self.max_update_cpu_ms = max(self.max_update_cpu_ms, st.update_cpu_ms)
         self.frames += 1
 
+    def add_warmup(self, figures: dict[str, float]) -> None:
+        """Add one warm-up's ``{"ms", "bytes", "discarded_bytes"}`` (``Session.warm_up``'s):
+        the warm-up figures are every warm-up's, not the latest's."""
+        count = self.warmups + 1  # (before the keys below make a mapping without a count)
+        w = self.warmup
+        for key in ("ms", "bytes", "discarded_bytes"):
+            w[key] = w.get(key, 0.0) + float(figures.get(key, 0.0))
+        w["count"] = count
+
+    @property
+    def warmups(self) -> int:
+        """How many warm-ups were counted (a ``warmup`` mapping without a count: one)."""
+        return int(self.warmup.get("count", 1 if self.warmup else 0))
+
     def summary(
         self,
         *,
@@ -276,8 +292,11 @@ class Totals:
         (decoded level bytes, as every figure; errors reads carry none). Discarded bytes are in
         no frame's ``realtime_bytes`` or ``prefetched_bytes``: each frame's
         ``FrameStats.discarded_bytes`` counts those since the previous frame and
-        ``warmup_discarded_bytes`` the warm-up's, so that ``discarded_bytes`` is the warm-up's
-        plus the frames' plus those discarded after the last frame.
+        ``warmup_discarded_bytes`` the warm-ups', so that ``discarded_bytes`` is the warm-ups'
+        plus the frames' plus those discarded after the last frame; likewise ``loaded_bytes``
+        is ``warmup_bytes`` plus the frames' real-time and prefetched bytes plus those loaded
+        after the last frame. The warm-up figures (``warmup_ms``, ``warmup_bytes``,
+        ``warmup_discarded_bytes``) sum every warm-up's, ``warmups`` of them.
         """
         return {
             "frames": self.frames,
@@ -300,6 +319,7 @@ class Totals:
             "max_update_cpu_ms": self.max_update_cpu_ms,
             "io_errors": self.io_errors,
             "cancelled_loads": self.cancelled,
+            "warmups": self.warmups,  # the warm-up figures below are all of theirs, summed
             "warmup_ms": self.warmup.get("ms", 0.0),
             "warmup_bytes": int(self.warmup.get("bytes", 0)),
             "warmup_discarded_bytes": int(self.warmup.get("discarded_bytes", 0)),

@@ -229,12 +229,13 @@ def run_flythrough(
 
 
 def frames_summary(summary: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """``summary`` (a live session's) with its loaded and discarded bytes those of the warm-up
-    and the frames ``rows``.
+    """``summary`` (a live session's) with its loaded and discarded bytes those of the
+    warm-ups and the frames ``rows``.
 
     Loaders keep reading after the last frame (until the session closes, or while an error
-    stops the flight), so a session's ``loaded_bytes`` may exceed the warm-up's plus the
-    frames' real-time and prefetched bytes: ``loaded_bytes`` becomes that sum (``wasted_bytes``
+    stops the flight), so a session's ``loaded_bytes`` may exceed the warm-ups' (``warmup_bytes``,
+    every warm-up's, before or between the frames) plus the frames' real-time and prefetched
+    bytes: ``loaded_bytes`` becomes that sum (``wasted_bytes``
     follows) and ``loaded_after_frames_bytes`` says what arrived after the last frame. Likewise
     ``discarded_bytes`` (read but thrown away on arrival) becomes ``warmup_discarded_bytes``
     plus the rows' ``discarded_bytes``, and ``discarded_after_frames_bytes`` the rest

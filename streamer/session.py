@@ -228,6 +228,12 @@ class Session:
         ``"discarded_bytes"``: those read meanwhile but thrown away on arrival (in no frame's
         ``FrameStats.discarded_bytes``; ``summary()["warmup_discarded_bytes"]``).
 
+        Each warm-up adds to the session's warm-up figures (``summary()["warmups"]``,
+        ``"warmup_ms"``, ``"warmup_bytes"``, ``"warmup_discarded_bytes"``: all warm-ups'). A
+        warm-up after frames keeps what the loaders counted since the previous frame before it
+        began for the next frame (its real-time, prefetched, late and discarded bytes, its
+        I/O time); what arrives during it is the warm-up's alone.
+
         Without it the first second of a flight stalls while the prefetch ring fills; Qiu et
         al. likewise count the first frame's load apart (Table 3). It also loads the compiled
         needed-level kernel (``TERRASTREAM_KERNELS=auto``: numba's import, a compilation the
@@ -239,9 +245,12 @@ class Session:
         check_timeout(timeout_s)
         t0 = time.perf_counter()
         levels_kernels.warm_up(self.loader.errors)
-        before = self.totals.loaded_bytes
-        with self._cv:
+        ld = self.loader
+        with self._cv:  # (one hold: what the loaders counted so far is the next frame's)
+            before = self.totals.loaded_bytes
             discarded_before = self.totals.discarded_bytes
+            kept = (ld.frame_realtime, ld.frame_prefetched, ld.frame_discarded, ld.frame_io_s,
+                    ld.frame_late)  # fmt: skip
         limit = self.config.wait_timeout_s if timeout_s is None else float(timeout_s)
         start = time.monotonic()
         deadline = start + limit
@@ -257,18 +266,19 @@ class Session:
                     continue
                 wait_idle(self.loader, self._raise_background_error, deadline, limit, start)
         with self._cv:  # (one hold: a read arriving now counts in the warm-up or in frame 0)
-            self.loader.frame_realtime = self.loader.frame_prefetched = 0
-            self.loader.frame_io_s = 0.0
+            # the warm-up's loads and discards are its own; those since the previous frame
+            # before it began (a warm-up after frames) stay the next frame's: each is counted
+            # once (every load adds to loaded_bytes and to one of the frame counters, every
+            # discard to discarded_bytes and frame_discarded; only update() resets them)
             loaded = self.totals.loaded_bytes - before
-            # the warm-up's discards are its own; those since the previous frame before it
-            # began (a warm-up after frames) stay the next frame's: each is counted once
             discarded = self.totals.discarded_bytes - discarded_before
-            self.loader.frame_discarded -= discarded
+            (ld.frame_realtime, ld.frame_prefetched, ld.frame_discarded, ld.frame_io_s,
+             ld.frame_late) = kept  # fmt: skip
         if self.config.freeze_gc:
             freeze_heap()  # one collection now rather than tens of ms in some later frame
         ms = (time.perf_counter() - t0) * 1000.0
         out = {"ms": ms, "bytes": float(loaded), "discarded_bytes": float(discarded)}
-        self.totals.warmup = out
+        self.totals.add_warmup(out)
         return out
 
     def update(self, camera: Camera, dt: float | None = None, *, wait: bool = False) -> Frame:
