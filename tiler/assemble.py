@@ -2,8 +2,9 @@
 
 ``build`` runs one job into a location the caller holds the writer lease of; ``finish`` turns a
 store whose every block has a journal entry into a complete store (shards of the small levels and
-the index built from the journal, the journal deleted, ``complete: true`` written last);
-``repair_store`` recomputes only the blocks ``verify_store`` reports damaged.
+the index built from the journal, the journal deleted, ``complete: true`` written last).
+``repair_store``, which recomputes only the blocks ``verify_store`` reports damaged, is in
+:mod:`tiler.repair` (still importable from here).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import contextlib
 import hashlib
 import logging
 import os
-import uuid
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -35,13 +35,12 @@ from tiler.location import Location
 from tiler.resume import (
     JOURNAL,
     JournalEntry,
-    create_journal,
     done_blocks,
     small_levels,
     unpack,
 )
-from tiler.run import open_for_write, progress_reporter, run_blocks
-from tiler.schema import chunk_key, expected_table, index_chunk, index_dtypes, shard_shape
+from tiler.run import progress_reporter, run_blocks
+from tiler.schema import chunk_key, index_dtypes, shard_shape
 from tiler.store import StoreMeta, read_meta, write_meta
 from tiler.vertical import height_transform
 from tiler.zarr_batch import open_arrays, read_all, write_all
@@ -147,22 +146,39 @@ def build(
 def _resume_journal(
     src: Any, band: int, meta: StoreMeta, loc: Any, asm: ShardAssembler
 ) -> np.ndarray:
-    """Read a resumed store's journal once, a shard region at a time: return the blocks done
-    (an entry damaged, its crc32c failing: not done, computed again; a transport failure stops
-    the resume, :class:`StoreUnavailableError`, rather than compute its blocks again) and hand
-    their entries to ``asm``, made with no block done (a shard all done is written now). Refuse
-    to resume when the source's samples of blocks already done changed since (a source edited
-    in place passes the job's fingerprint: the same size, header and three sample windows),
-    naming the blocks: the store would mix two DEMs."""
-    from tiler.resume import changed_done_blocks, read_journal_region
+    """Read a resumed store's journal once: the entries its listing shows
+    (:func:`listed_journal_blocks`: the keys absent, the blocks not done, are not asked for), a
+    shard's fetched together; where the store cannot list, every entry, a shard region at a
+    time. Return the blocks done (an entry damaged, its crc32c failing: not done, computed
+    again; a transport failure stops the resume, :class:`StoreUnavailableError`, rather than
+    compute its blocks again) and hand their entries to ``asm``, made with no block done (a
+    shard all done is written now). Refuse to resume when the source's samples of blocks
+    already done changed since (a source edited in place passes the job's fingerprint: the
+    same size, header and three sample windows), naming the blocks: the store would mix two
+    DEMs."""
+    from tiler.journal_reads import listed_journal_blocks, read_journal_blocks, read_journal_region
+    from tiler.resume import changed_done_blocks
     from tiler.source import open_source
 
     done = np.zeros(meta.grid.shape, dtype=bool)
     changed: list[tuple[int, int]] = []
+    listed = listed_journal_blocks(loc, asm.jarr, loc.url)
+    by_shard: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for b in listed or ():
+        by_shard.setdefault((b[0] // asm.sr, b[1] // asm.sc), []).append(b)
     with contextlib.ExitStack() as stack:
         ds = None
         for r0, r1, c0, c1 in asm.regions():
-            raw = read_journal_region(asm.jarr, r0, r1, c0, c1, loc.url)
+            if listed is None:  # (a store that cannot list: every entry of the region read)
+                raw = read_journal_region(asm.jarr, r0, r1, c0, c1, loc.url)
+            else:
+                blocks = by_shard.get((r0 // asm.sr, c0 // asm.sc))
+                if not blocks:
+                    continue  # (no entry written: no block of it done)
+                raw = np.zeros((r1 - r0, c1 - c0, asm.jarr.shape[2]), dtype=np.uint8)
+                rows = read_journal_blocks(asm.jarr, blocks, loc.url)  # (damaged: left zero)
+                for (br, bc), row in zip(blocks, rows, strict=True):
+                    raw[br - r0, bc - c0] = row
             region = done[r0:r1, c0:c1]
             region[...] = raw[:, :, -1] == 1
             if not region.any():
@@ -180,7 +196,7 @@ def _resume_journal(
                 with DeferredInterrupt():
                     asm.resumed((r0 // asm.sr, c0 // asm.sc), entries)
     if changed:
-        raise _source_changed(
+        raise source_changed_error(
             "{url!r} holds an unfinished store whose source changed since it was started: the "
             "samples of {n} block(s) already done differ ({shown}); rerun with the original "
             "source to finish it, or tile with {overwrite} to start again",
@@ -190,7 +206,7 @@ def _resume_journal(
     return done
 
 
-def _source_changed(template: str, loc: Any, changed: list) -> JobMismatchError:
+def source_changed_error(template: str, loc: Any, changed: list) -> JobMismatchError:
     """The refusal ``template`` (``{url}``, ``{n}``, ``{shown}``, ``{overwrite}``) naming the
     first blocks of ``changed`` whose source samples differ from what was recorded."""
     shown = ", ".join(map(str, changed[:5])) + (", ..." if len(changed) > 5 else "")
@@ -201,33 +217,6 @@ def _source_changed(template: str, loc: Any, changed: list) -> JobMismatchError:
         n=len(changed),
         shown=shown,
     )
-
-
-def _check_repair_source(
-    src: Any, band: int, meta: StoreMeta, group: zarr.Group, bad: list, loc: Any
-) -> None:
-    """Refuse a repair from a source whose samples of the bad blocks differ from what the
-    store recorded (their ``index/digest``): the job's fingerprint lets a same-size edit
-    through, and the repaired blocks would hold another DEM than the rest."""
-    from tiler.resume import changed_blocks_by_index
-    from tiler.source import open_source
-
-    digests = np.zeros(meta.grid.shape, dtype=np.uint64)
-    try:
-        digests[...] = group["index/digest"][...]
-    except (ValueError, OSError, RuntimeError, KeyError):
-        return  # a damaged digest table: repaired itself, nothing to compare against
-    with open_source(src, band) as ds:
-        changed = changed_blocks_by_index(ds, band, meta.grid, digests, bad, meta)
-    if changed:
-        raise _source_changed(
-            "cannot repair {url!r} from this source: its samples of {n} damaged block(s) differ "
-            "from what the store recorded ({shown}), so it changed since the store was tiled "
-            "and the repaired blocks would hold another DEM; repair from the original source, "
-            "or tile with {overwrite} to start again",
-            loc,
-            changed,
-        )
 
 
 def _region_entries(
@@ -244,7 +233,7 @@ def _region_entries(
     already) are not read again. An entry damaged (its crc32c failing): :class:`StoreCorruptError`
     naming its block, and to rerun (resuming computes it again); a read the transport fails is
     tried again, then :class:`StoreUnavailableError` naming the store (``url``)."""
-    from tiler.resume import read_journal_blocks, read_journal_region
+    from tiler.journal_reads import read_journal_blocks, read_journal_region
 
     known = known or {}
     blocks = [(br, bc) for br in range(r0, r1) for bc in range(c0, c1) if (br, bc) not in known]
@@ -398,7 +387,7 @@ class ShardAssembler:
         entries = _region_entries(self.jarr, r0, r1, c0, c1, self.meta, known, self.loc.url)
         write_small_levels(self.loc, self.meta, entries, (r0, r1, c0, c1))
         for b, e in entries.items():
-            _index_row(self.index, b, e, self.meta)
+            put_index_row(self.index, b, e, self.meta)
         self.flushed.add(s)
 
     def finish_all(self) -> None:
@@ -408,7 +397,9 @@ class ShardAssembler:
                 self.flush(s)
 
 
-def _index_row(index: dict[str, np.ndarray], b: tuple[int, int], e: Any, meta: StoreMeta) -> None:
+def put_index_row(
+    index: dict[str, np.ndarray], b: tuple[int, int], e: Any, meta: StoreMeta
+) -> None:
     """Put journal entry ``e``'s index row into ``index`` at block ``b``."""
     for name in ("exists", "has_nodata", "zmin", "zmax", "digest"):
         index[name][b] = getattr(e, name)
@@ -498,179 +489,11 @@ def complete(
     log.info("store complete: %s", group.store)
 
 
-def repair_store(
-    src: str, loc: Location, opts: Any, job: dict, progress: Callable | None, summary: Any
-) -> Any:
-    """Recompute the blocks ``verify_store`` finds damaged, from ``src``; return the store."""
-    from tiler.lease import WriterLease
-    from tiler.resume import check_same_job, source_of
-    from tiler.source import source_label
-    from tiler.store import TerrainStore
-    from tiler.verify import verify_store
+def __getattr__(name: str) -> Any:
+    """``repair_store``, moved to :mod:`tiler.repair`, importable from here as before (looked
+    up when asked for: :mod:`tiler.repair` imports this module)."""
+    if name == "repair_store":
+        from tiler.repair import repair_store
 
-    report = verify_store(loc)
-    if report.unrepairable:
-        raise StoreCorruptError(
-            "{url!r} cannot be repaired ({why}); tile the DEM again with {overwrite}",
-            params={"overwrite": "overwrite=True"},
-            url=loc.url,
-            why="; ".join(report.unrepairable),
-        )
-    with WriterLease(loc, opts.lease_timeout_s) as lease:
-        group = loc.open_group("r+")
-        meta = read_meta(group)
-        old_job = dict(meta.extra.get("job") or {})
-        check_same_job(
-            loc.url,
-            old_job,
-            {
-                **job,
-                "compression_level": old_job.get("compression_level", job["compression_level"]),
-            },
-            repair=True,
-            sources=(source_of(meta.source), source_of(source_label(src))),
-        )
-        # an interrupted repair (state "repair"): the blocks its journal holds were
-        # recomputed (their big levels are written); they are patched in, not recomputed
-        resuming = not meta.complete and meta.extra.get("state") == "repair"
-        prior: dict[tuple[int, int], JournalEntry] = {}
-        if resuming and JOURNAL in group:
-            prior = _journal_entries(group[JOURNAL], meta, loc)
-        bad = sorted(report.bad_blocks - prior.keys())
-        damage = [p for p in report.problems if p.kind != "unfinished"]
-        if damage and not bad and not prior and not report.bad_tables and not resuming:
-            raise StoreCorruptError(
-                "{url!r} is damaged in a way no block rebuild repairs ({why}); tile the DEM "
-                "again with {overwrite}",
-                params={"overwrite": "overwrite=True"},
-                url=loc.url,
-                why="; ".join(p.message for p in damage),
-            )
-        for name in report.bad_tables:
-            open_for_write(loc, name)[...] = expected_table(name, meta.k)
-        summary.blocks_total = meta.grid.rows * meta.grid.cols
-        summary.blocks_repaired = len(bad) + len(prior)
-        summary.blocks_computed = len(bad)
-        summary.blocks_skipped = len(prior)
-        if bad or resuming:
-            where = getattr(src, "label", src)  # a MosaicSpec: its paths, not its repr
-            if bad:
-                _check_repair_source(src, opts.band, meta, group, bad, loc)
-                log.warning("repairing %d damaged block(s) of %s from %s", len(bad), loc.url, where)
-            if resuming:
-                log.warning(
-                    "finishing the interrupted repair of %s (%d block(s) recomputed before)",
-                    loc.url, len(prior),
-                )  # fmt: skip
-            else:
-                write_meta(
-                    group, replace(meta, complete=False, extra=dict(meta.extra, state="repair"))
-                )
-            if bad and (not resuming or JOURNAL not in group):
-                create_journal(group, *meta.grid.shape, meta.k, meta.storage_dtype)
-            grid = meta.grid
-            if bad:
-                done = np.ones(grid.shape, bool)
-                for b in bad:
-                    done[b] = False
-                report_fn = progress_reporter(len(bad), 0, progress)
-                summary.executor = run_blocks(
-                    src, loc, opts, grid, block_params(meta), bad, done, report_fn, lease
-                )
-            if bad or prior:
-                _patch(group, loc, meta, bad, prior)
-            loc.delete_prefix(JOURNAL)
-            # a new revision: the root metadata changes, so remote readers that kept shard
-            # indexes of the old blocks drop them (TerrainStore.check_unchanged)
-            extra = {k: v for k, v in meta.extra.items() if k != "state"}
-            complete(group, replace(meta, extra=dict(extra, revision=uuid.uuid4().hex)))
-    store = TerrainStore(loc)
-    store.tile_summary = summary
-    return store
-
-
-def _journal_entries(
-    jarr: zarr.Array, meta: StoreMeta, loc: Location
-) -> dict[tuple[int, int], JournalEntry]:
-    """The entries an interrupted repair's journal holds, read once: those its listing shows
-    (:func:`listed_journal_blocks`: the keys absent, most of them, are not asked for), a
-    shard's fetched together; where the store cannot list, every entry, a shard region at a
-    time. A damaged one: not held, its block repaired again if still bad; a transport
-    failure: :class:`StoreUnavailableError`, the repair stopped to be rerun."""
-    from tiler.resume import listed_journal_blocks, read_journal_blocks, read_journal_region
-
-    rows, cols = meta.grid.shape
-    sr, sc = shard_shape(rows, cols)
-    listed = listed_journal_blocks(loc, jarr, loc.url)
-    found: list[tuple[tuple[int, int], np.ndarray]] = []
-    if listed is not None:
-        by_shard: dict[tuple[int, int], list[tuple[int, int]]] = {}
-        for b in listed:
-            by_shard.setdefault((b[0] // sr, b[1] // sc), []).append(b)
-        for blocks in by_shard.values():
-            found += zip(blocks, read_journal_blocks(jarr, blocks, loc.url), strict=True)
-    else:
-        for r0 in range(0, rows, sr):
-            for c0 in range(0, cols, sc):
-                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
-                raw = read_journal_region(jarr, r0, r1, c0, c1, loc.url)
-                for i, j in zip(*np.nonzero(raw[:, :, -1] == 1), strict=True):
-                    found.append(((r0 + int(i), c0 + int(j)), raw[i, j]))
-    entries = {}
-    for b, row in found:
-        e = unpack(row, meta.k, meta.storage_dtype)
-        if e is not None:  # (a damaged entry reads as zeros: not written)
-            entries[b] = e
-    return entries
-
-
-def _patch(
-    group: zarr.Group,
-    loc: Location,
-    meta: StoreMeta,
-    bad: list[tuple[int, int]],
-    known: dict[tuple[int, int], JournalEntry] | None = None,
-) -> None:
-    """Write the repaired blocks' small levels and index rows (other blocks kept): those of
-    ``bad``, their journal entries read a shard at a time (their chunks fetched together), and
-    those of ``known`` (entries read already)."""
-    from tiler.resume import read_journal_blocks
-
-    grid = meta.grid
-    rows, cols = grid.shape
-    sr, sc = shard_shape(rows, cols)
-    jarr = group[JOURNAL]
-    by_shard: dict[tuple[int, int], list[tuple[int, int]]] = {}
-    for b in sorted(bad):
-        by_shard.setdefault((b[0] // sr, b[1] // sc), []).append(b)
-    read: dict[tuple[int, int], JournalEntry | None] = dict(known or {})
-    for blocks in by_shard.values():
-        raw = read_journal_blocks(jarr, blocks, loc.url)
-        for b, row in zip(blocks, raw, strict=True):
-            read[b] = unpack(row, meta.k, meta.storage_dtype)
-    entries = {}
-    for b in sorted(read):
-        e = read[b]
-        if e is None:
-            raise StoreCorruptError(f"repair of block {b} did not complete")
-        entries[b] = e
-    shards: dict[tuple[int, int], dict] = {}
-    for b, e in entries.items():
-        shards.setdefault((b[0] // sr, b[1] // sc), {})[b] = e
-    for (s0, s1), ents in shards.items():
-        r0, c0 = s0 * sr, s1 * sc
-        write_small_levels(loc, meta, ents, (r0, min(r0 + sr, rows), c0, min(c0 + sc, cols)))
-    index = {}
-    ir, ic = index_chunk(rows, cols)
-    for name, (dt, fv) in index_dtypes(meta).items():
-        arr = group[f"index/{name}"]
-        index[name] = np.full((rows, cols), fv, dtype=dt)
-        for r0 in range(0, rows, ir):
-            for c0 in range(0, cols, ic):
-                sl = (slice(r0, r0 + ir), slice(c0, c0 + ic))
-                with contextlib.suppress(ValueError, OSError, RuntimeError):
-                    index[name][sl] = arr[sl]  # a damaged chunk's blocks are all repaired
-    for b, e in entries.items():
-        _index_row(index, b, e, meta)
-    index["done"][...] = True
-    write_index(loc, grid, index)
+        return repair_store
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

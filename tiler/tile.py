@@ -445,7 +445,7 @@ def _tile(
         kind, old, why = inspect_destination(loc)
     unfinished = kind == "store" and old.extra.get("state") in TILING_STATES
     if opts.repair and not unfinished:
-        from tiler.assemble import repair_store
+        from tiler.repair import repair_store
 
         return repair_store(src, loc, opts, job, progress, summary)
     if kind == "store" and old.extra.get("state") == "repair" and not opts.overwrite:

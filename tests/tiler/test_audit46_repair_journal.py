@@ -26,7 +26,7 @@ import zarr.storage
 from demtools import fractal, write_dem
 from storetools import diff_stores
 
-import tiler.resume as resume_mod
+import tiler.journal_reads as journal_mod
 import tiler.tile as tile_mod
 from tiler.errors import StoreUnavailableError
 from tiler.meta import read_meta
@@ -78,7 +78,7 @@ class _JournalReads:
 
     def __init__(self, monkeypatch, fail: dict[str, int] | None = None) -> None:
         fail = fail or {}
-        monkeypatch.setattr(resume_mod, "JOURNAL_RETRY_WAIT_S", 0.0, raising=False)
+        monkeypatch.setattr(journal_mod, "JOURNAL_RETRY_WAIT_S", 0.0, raising=False)
         self.reads: Counter = Counter()
         self.failed: Counter = Counter()
         self.inflight = self.most = 0

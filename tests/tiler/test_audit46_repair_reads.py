@@ -29,7 +29,8 @@ from demtools import fractal, write_dem
 from storetools import diff_stores
 
 import tiler.assemble as asm_mod
-import tiler.resume as resume_mod
+import tiler.journal_reads as journal_mod
+import tiler.repair as repair_mod
 import tiler.tile as tile_mod
 from tiler.errors import StoreCorruptError, StoreUnavailableError
 from tiler.location import Location
@@ -82,7 +83,7 @@ class _LevelReads:
         self.reads: Counter = Counter()
         self.inside = False
         real_get = zarr.storage.LocalStore.get
-        real_write = asm_mod.write_small_levels
+        real_write = repair_mod.write_small_levels
         outer = self
 
         async def get(store, key, *args, **kwargs):
@@ -99,7 +100,7 @@ class _LevelReads:
                 outer.inside = False
 
         monkeypatch.setattr(zarr.storage.LocalStore, "get", get)
-        monkeypatch.setattr(asm_mod, "write_small_levels", write_small_levels)
+        monkeypatch.setattr(repair_mod, "write_small_levels", write_small_levels)
 
 
 def test_a_repair_reads_each_rebuilt_shard_once_a_level(big, tmp_path, monkeypatch):
@@ -162,7 +163,7 @@ class _JournalFaults:
     error instead."""
 
     def __init__(self, monkeypatch, root: Path, damage=(), fail: dict[str, int] | None = None):
-        monkeypatch.setattr(resume_mod, "JOURNAL_RETRY_WAIT_S", 0.0)
+        monkeypatch.setattr(journal_mod, "JOURNAL_RETRY_WAIT_S", 0.0)
         self.reads: Counter = Counter()
         self.absent: Counter = Counter()
         self.failed: Counter = Counter()
@@ -381,7 +382,7 @@ def test_a_transport_error_listing_the_journal(
     src, ref = small
     dst = tmp_path / "s.zarr"
     _interrupted_repair(monkeypatch, small, small_damaged, dst)
-    monkeypatch.setattr(resume_mod, "JOURNAL_RETRY_WAIT_S", 0.0)
+    monkeypatch.setattr(journal_mod, "JOURNAL_RETRY_WAIT_S", 0.0)
     real = Location.list_keys
     calls = Counter()
 

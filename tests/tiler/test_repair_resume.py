@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from demtools import fractal, write_dem
 
-import tiler.assemble as assemble
+import tiler.repair as repair
 from tiler.errors import StoreExistsError
 from tiler.tile import TileOptions, tile
 from tiler.verify import verify_store
@@ -44,15 +44,15 @@ def test_an_interrupted_repair_is_reported_and_finished(made, tmp_path, monkeypa
     s = tile(src, tmp_path / "s.zarr", _opts()).location.path
     for f in (chunk_files(s, "levels/6")[4], chunk_files(s, "errors")[1]):
         f.write_bytes(f.read_bytes()[:-3] + b"xyz")  # (two blocks damaged)
-    real = getattr(assemble, where)
+    real = getattr(repair, where)
 
     def killed(*a, **k):
         raise Killed(where)
 
-    monkeypatch.setattr(assemble, where, killed)
+    monkeypatch.setattr(repair, where, killed)
     with pytest.raises(Killed):
         tile(src, s, _opts(repair=True))
-    monkeypatch.setattr(assemble, where, real)
+    monkeypatch.setattr(repair, where, real)
     rep = verify_store(s)
     assert not rep.ok and rep.state == "repair"
     assert any(p.kind == "unfinished" and "--repair" in p.message for p in rep.problems)
