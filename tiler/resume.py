@@ -38,7 +38,7 @@ from tiler.journal_reads import read_journal_blocks as read_journal_blocks
 from tiler.journal_reads import read_journal_region as read_journal_region
 from tiler.layout import level_size
 from tiler.meta import nodata_json
-from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs, shard_shape
+from tiler.schema import FORMAT_VERSION, SHARDED_LEVELS, WRITE_CONFIG, codecs
 
 _ROW = np.dtype([("exists", "u1"), ("has_nodata", "u1"), ("zmin", "<f8"), ("zmax", "<f8"),
                  ("digest", "<u8"), ("content", "<u8"), ("mark", "u1")])  # fmt: skip
@@ -149,7 +149,7 @@ def changed_done_blocks(
     ds: Any,
     band: int,
     grid: Any,
-    journal: zarr.Array | np.ndarray,
+    journal: np.ndarray,
     done: np.ndarray,
     meta: Any,
     origin: tuple[int, int] = (0, 0),
@@ -159,22 +159,10 @@ def changed_done_blocks(
     fingerprint windows), and resuming would mix two DEMs. Reads every done block's window
     again (no encoding: about the cost of reading them).
 
-    ``journal``: the journal array (read a shard region at a time, :func:`read_journal_region`)
-    or raw entries already read, those of the blocks from ``origin`` on, as ``done`` is."""
+    ``journal``: the raw entries already read (:func:`read_journal_region`,
+    :func:`read_journal_blocks`), those of the blocks from ``origin`` on, as ``done`` is."""
     from tiler.source import read_window
 
-    if not isinstance(journal, np.ndarray):
-        rows, cols = done.shape
-        sr, sc = shard_shape(rows, cols)
-        changed = []
-        for r0 in range(0, rows, sr):
-            for c0 in range(0, cols, sc):
-                r1, c1 = min(r0 + sr, rows), min(c0 + sc, cols)
-                if done[r0:r1, c0:c1].any():
-                    raw = read_journal_region(journal, r0, r1, c0, c1)
-                    region = done[r0:r1, c0:c1]
-                    changed += changed_done_blocks(ds, band, grid, raw, region, meta, (r0, c0))
-        return sorted(changed)
     dtype = np.dtype(meta.dtype)
     changed = []
     for i, j in zip(*(v.tolist() for v in np.nonzero(done)), strict=True):
