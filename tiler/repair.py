@@ -191,7 +191,12 @@ def _patch(
     for b in sorted(read):
         e = read[b]
         if e is None:
-            raise StoreCorruptError(f"repair of block {b} did not complete")
+            raise StoreCorruptError(
+                f"the journal entry of block {b} of {loc.url!r}, written by this repair, reads "
+                "back missing or damaged: the storage did not keep what was written. The store "
+                "stays in state 'repair': rerun the same command to finish it (an entry still "
+                "missing then is computed again); if it happens again, check the disk or bucket"
+            )
         entries[b] = e
     shards: dict[tuple[int, int], dict] = {}
     for b, e in entries.items():
