@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import json
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import zarr.storage
 
+import tiler.journal_reads as journal_reads
+from tiler.journal_reads import JOURNAL
 from tiler.schema import ATTR
 
 #: differ between two builds by design: the build's id (reader change detection), a repair's
@@ -58,3 +62,36 @@ def block_of(
     """First block covered by a chunk file (``c/<r>/<c>/...``), scaled by the shard shape."""
     parts = chunk.relative_to(root / array / "c").parts
     return int(parts[0]) * shard[0], int(parts[1]) * shard[1]
+
+
+class JournalReads:
+    """Journal chunk reads from local stores (zarr's ``LocalStore.get`` patched), counted
+    (``reads``: found, ``absent``: a look for one not there); ``damage``: keys whose file is
+    damaged on disk (a byte flipped) just before their first read that finds one; ``fail``:
+    keys whose first ``n`` reads raise a transport error instead."""
+
+    def __init__(self, monkeypatch, root: Path, damage=(), fail: dict[str, int] | None = None):
+        monkeypatch.setattr(journal_reads, "JOURNAL_RETRY_WAIT_S", 0.0)
+        self.reads: Counter = Counter()
+        self.absent: Counter = Counter()
+        self.failed: Counter = Counter()
+        todo, fail = set(damage), fail or {}
+        real = zarr.storage.LocalStore.get
+        outer = self
+
+        async def get(store, key, *args, **kwargs):
+            if not key.startswith(f"{JOURNAL}/c."):
+                return await real(store, key, *args, **kwargs)
+            if key in todo and (root / key).is_file():
+                todo.discard(key)
+                raw = bytearray((root / key).read_bytes())
+                raw[len(raw) // 2] ^= 0xFF
+                (root / key).write_bytes(bytes(raw))
+            if outer.failed[key] < fail.get(key, 0):
+                outer.failed[key] += 1
+                raise ConnectionResetError(f"simulated: connection reset reading {key}")
+            out = await real(store, key, *args, **kwargs)
+            (outer.absent if out is None else outer.reads)[key] += 1
+            return out
+
+        monkeypatch.setattr(zarr.storage.LocalStore, "get", get)

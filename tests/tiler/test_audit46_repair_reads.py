@@ -26,7 +26,7 @@ import pytest
 import zarr
 import zarr.storage
 from demtools import fractal, write_dem
-from storetools import diff_stores
+from storetools import JournalReads, diff_stores
 
 import tiler.assemble as asm_mod
 import tiler.journal_reads as journal_mod
@@ -156,39 +156,6 @@ def small(tmp_path_factory):
     return src, tile(src, d / "ref.zarr", SMALL).location.path
 
 
-class _JournalFaults:
-    """Journal chunk reads from local stores: counted (``reads``: found, ``absent``: a look for
-    one not there); ``damage``: keys whose file is damaged on disk (a byte flipped) just before
-    their first read that finds one; ``fail``: keys whose first ``n`` reads raise a transport
-    error instead."""
-
-    def __init__(self, monkeypatch, root: Path, damage=(), fail: dict[str, int] | None = None):
-        monkeypatch.setattr(journal_mod, "JOURNAL_RETRY_WAIT_S", 0.0)
-        self.reads: Counter = Counter()
-        self.absent: Counter = Counter()
-        self.failed: Counter = Counter()
-        todo, fail = set(damage), fail or {}
-        real = zarr.storage.LocalStore.get
-        outer = self
-
-        async def get(store, key, *args, **kwargs):
-            if not key.startswith(f"{JOURNAL}/c."):
-                return await real(store, key, *args, **kwargs)
-            if key in todo and (root / key).is_file():
-                todo.discard(key)
-                raw = bytearray((root / key).read_bytes())
-                raw[len(raw) // 2] ^= 0xFF
-                (root / key).write_bytes(bytes(raw))
-            if outer.failed[key] < fail.get(key, 0):
-                outer.failed[key] += 1
-                raise ConnectionResetError(f"simulated: connection reset reading {key}")
-            out = await real(store, key, *args, **kwargs)
-            (outer.absent if out is None else outer.reads)[key] += 1
-            return out
-
-        monkeypatch.setattr(zarr.storage.LocalStore, "get", get)
-
-
 def _stop_after(monkeypatch, n: int) -> None:
     """A Ctrl-C in the block after the ``n``-th (``tiler.tile.process_block``)."""
     real = tile_mod.process_block
@@ -232,7 +199,7 @@ def test_a_damaged_entry_at_a_shard_flush_names_the_block(small, tmp_path, monke
             for c in range(2)
             if f"c.{r}.{c}.0" not in done
         )
-    _JournalFaults(monkeypatch, dst, damage=[key])
+    JournalReads(monkeypatch, dst, damage=[key])
     with pytest.raises(StoreCorruptError, match="rerun the same command") as info:
         tile(src, dst, SMALL)
     msg = str(info.value)
@@ -254,7 +221,7 @@ def test_the_cli_exits_1_on_a_damaged_entry_at_a_flush(small, tmp_path, monkeypa
 
     src, _ = small
     dst = tmp_path / "s.zarr"
-    _JournalFaults(monkeypatch, dst, damage=[f"{JOURNAL}/c.3.1.0"])
+    JournalReads(monkeypatch, dst, damage=[f"{JOURNAL}/c.3.1.0"])
     args = ["tile", str(src), str(dst), "--block-size", "9", "--workers", "2"]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 1, res.output
@@ -268,7 +235,7 @@ def test_a_transport_error_at_a_shard_flush_stops_the_run(small, tmp_path, monke
     src, ref = small
     dst = tmp_path / "s.zarr"
     key = f"{JOURNAL}/c.3.1.0"
-    seen = _JournalFaults(monkeypatch, dst, fail={key: 2})
+    seen = JournalReads(monkeypatch, dst, fail={key: 2})
     with pytest.raises(StoreUnavailableError, match="rerun the same command") as info:
         tile(src, dst, SMALL)
     assert str(dst) in str(info.value) and "connection reset" in str(info.value)
@@ -286,7 +253,7 @@ def test_a_shard_flush_reads_again_a_read_dropped_once(small, tmp_path, monkeypa
     src, ref = small
     dst = tmp_path / "s.zarr"
     key = f"{JOURNAL}/c.3.1.0"
-    seen = _JournalFaults(monkeypatch, dst, fail={key: 1})
+    seen = JournalReads(monkeypatch, dst, fail={key: 1})
     with caplog.at_level("WARNING", logger="tiler.tile"):
         tile(src, dst, SMALL)
     assert seen.failed[key] == 1 and "trying again" in caplog.text
@@ -298,7 +265,7 @@ def test_a_flush_with_no_fault_reads_each_entry_once(small, tmp_path, monkeypatc
     """The normal case: no fault, no warning; each journal entry read once, none absent."""
     src, ref = small
     dst = tmp_path / "s.zarr"
-    seen = _JournalFaults(monkeypatch, dst)
+    seen = JournalReads(monkeypatch, dst)
     tile(src, dst, SMALL)
     assert dict(seen.reads) == {f"{JOURNAL}/c.{r}.{c}.0": 1 for r in range(19) for c in range(2)}
     assert diff_stores(dst, ref) == []
@@ -346,7 +313,7 @@ def test_a_resumed_repair_reads_only_the_entries_listed(
     dst = tmp_path / "s.zarr"
     before = _interrupted_repair(monkeypatch, small, small_damaged, dst)
     assert len(before) == 2
-    seen = _JournalFaults(monkeypatch, dst)
+    seen = JournalReads(monkeypatch, dst)
     store = tile(src, dst, SMALL_REPAIR)
     assert store.tile_summary.blocks_skipped == 2
     assert not seen.absent, seen.absent
@@ -365,7 +332,7 @@ def test_a_store_that_cannot_list_reads_every_entry(small, small_damaged, tmp_pa
         raise NotImplementedError("simulated: no listing")
 
     monkeypatch.setattr(Location, "list_keys", cannot)
-    seen = _JournalFaults(monkeypatch, dst)
+    seen = JournalReads(monkeypatch, dst)
     store = tile(src, dst, SMALL_REPAIR)
     assert store.tile_summary.blocks_skipped == 2
     assert sum(seen.absent.values()) == 19 * 2 - 2

@@ -17,9 +17,8 @@ import pytest
 import zarr
 import zarr.storage
 from demtools import fractal, write_dem
-from storetools import diff_stores
+from storetools import JournalReads, diff_stores
 
-import tiler.journal_reads as journal_mod
 import tiler.tile as tile_mod
 from tiler.errors import StoreUnavailableError
 from tiler.location import Location
@@ -38,40 +37,6 @@ def small(tmp_path_factory):
     d = tmp_path_factory.mktemp("audit46_resume_list")
     src = write_dem(d / "dem.tif", fractal((150, 16), 7))
     return src, tile(src, d / "ref.zarr", OPTS).location.path
-
-
-class _JournalReads:
-    """Journal chunk reads from local stores (the counting of
-    ``test_audit46_repair_reads.py``): ``reads`` those finding an entry, ``absent`` the looks
-    for one not there, by key; ``damage``: keys whose file gets a byte flipped just before
-    their first read finding one; ``fail``: keys whose first ``n`` reads raise a transport
-    error instead."""
-
-    def __init__(self, monkeypatch, root: Path, damage=(), fail: dict[str, int] | None = None):
-        monkeypatch.setattr(journal_mod, "JOURNAL_RETRY_WAIT_S", 0.0)
-        self.reads: Counter = Counter()
-        self.absent: Counter = Counter()
-        self.failed: Counter = Counter()
-        todo, fail = set(damage), fail or {}
-        real = zarr.storage.LocalStore.get
-        outer = self
-
-        async def get(store, key, *args, **kwargs):
-            if not key.startswith(f"{JOURNAL}/c."):
-                return await real(store, key, *args, **kwargs)
-            if key in todo and (root / key).is_file():
-                todo.discard(key)
-                raw = bytearray((root / key).read_bytes())
-                raw[len(raw) // 2] ^= 0xFF
-                (root / key).write_bytes(bytes(raw))
-            if outer.failed[key] < fail.get(key, 0):
-                outer.failed[key] += 1
-                raise ConnectionResetError(f"simulated: connection reset reading {key}")
-            out = await real(store, key, *args, **kwargs)
-            (outer.absent if out is None else outer.reads)[key] += 1
-            return out
-
-        monkeypatch.setattr(zarr.storage.LocalStore, "get", get)
 
 
 def _interrupted(monkeypatch, src, dst: Path, n: int = 16 * 2 + 1) -> set[str]:
@@ -107,7 +72,7 @@ def test_a_resumed_tiling_asks_for_no_absent_journal_key(small, tmp_path, monkey
     dst = tmp_path / "s.zarr"
     before = _interrupted(monkeypatch, src, dst, n)
     assert 0 < len(before) < len(ALL)
-    seen = _JournalReads(monkeypatch, dst)
+    seen = JournalReads(monkeypatch, dst)
     store = tile(src, dst, OPTS)
     assert store.tile_summary.resumed
     assert store.tile_summary.blocks_skipped == len(before)
@@ -127,7 +92,7 @@ def test_a_store_that_cannot_list_is_read_as_before(small, tmp_path, monkeypatch
         raise NotImplementedError("simulated: no listing")
 
     monkeypatch.setattr(Location, "list_keys", cannot)
-    seen = _JournalReads(monkeypatch, dst)
+    seen = JournalReads(monkeypatch, dst)
     store = tile(src, dst, OPTS)
     assert store.tile_summary.blocks_skipped == len(before)
     assert set(seen.absent) == ALL - before
@@ -141,7 +106,7 @@ def test_a_damaged_listed_entry_is_computed_again(small, tmp_path, monkeypatch):
     dst = tmp_path / "s.zarr"
     before = _interrupted(monkeypatch, src, dst)
     key = sorted(before)[len(before) // 2]
-    seen = _JournalReads(monkeypatch, dst, damage=[key])
+    seen = JournalReads(monkeypatch, dst, damage=[key])
     store = tile(src, dst, OPTS)
     assert store.tile_summary.blocks_skipped == len(before) - 1
     assert not seen.absent
@@ -160,9 +125,9 @@ def test_a_transport_error_at_the_resume(small, tmp_path, monkeypatch, caplog, w
     key = sorted(before)[0]
     calls = Counter()
     if where == "entry":
-        seen = _JournalReads(monkeypatch, dst, fail={key: failures})
+        seen = JournalReads(monkeypatch, dst, fail={key: failures})
     else:
-        seen = _JournalReads(monkeypatch, dst)
+        seen = JournalReads(monkeypatch, dst)
         real = Location.list_keys
 
         def flaky(self, prefix=""):
